@@ -1,0 +1,4 @@
+"""Reading a Flock of Birds over a serial line: protocol codec, link, reader thread, recordings.
+
+Everything here turns bytes into frames (times, rotations, positions, valid) in SI units.
+"""

@@ -1,0 +1,65 @@
+"""The `flockcal` command line: parses arguments and hands over to a command module.
+
+Errors a person can act on are raised as a `flockcal.errors.FlockcalError` (each layer derives its
+own type) and printed as one line on stderr with a non-zero exit code, never as a traceback.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+
+from flockcal import __version__
+from flockcal.errors import FlockcalError
+
+# Each module registers its own sub-commands; a module that is missing (not yet built) is skipped.
+COMMAND_MODULES = [
+    "flockcal.commands.fit",
+    "flockcal.commands.simulate",
+    "flockcal.commands.record",
+    "flockcal.commands.serve",
+    "flockcal.commands.outputs",
+    "flockcal.commands.markers",
+]
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="flockcal",
+        description="Live skeleton calibration for 6-DOF magnetic motion trackers.",
+    )
+    parser.add_argument("--version", action="version", version=f"flockcal {__version__}")
+    parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name in COMMAND_MODULES:
+        try:
+            module = importlib.import_module(name)
+        except ModuleNotFoundError as exc:
+            if exc.name == name:
+                continue
+            raise
+        module.register(sub)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    logging.basicConfig(
+        level=logging.DEBUG if args.verbose > 1 else logging.INFO if args.verbose else logging.WARNING,
+        format="%(asctime)s %(levelname)s %(name)s: %(message)s",
+    )
+    if not getattr(args, "func", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args.func(args) or 0)
+    except FlockcalError as exc:
+        print(f"flockcal {args.command}: error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        return 130
+    except BrokenPipeError:
+        return 0

@@ -1,0 +1,157 @@
+"""The .npz take interchange of design.md §5: load, validate and save recorded frames.
+
+A take is n frames of m sensors: rotations (n, m, 3, 3) body→world, positions (n, m, 3) metres,
+valid (n, m), times (n,) seconds, names (m,), rate_hz. Every problem found gets a one-line `TakeError`.
+"""
+
+from __future__ import annotations
+
+import os
+import zipfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from flockcal.errors import FlockcalError
+
+
+class TakeError(FlockcalError, ValueError):
+    """A take file that is missing, unreadable or inconsistent."""
+
+
+@dataclass(frozen=True)
+class Take:
+    """Frames of one recording, in SI units, validated on construction."""
+
+    rotations: np.ndarray  # (n, m, 3, 3) float64
+    positions: np.ndarray  # (n, m, 3) float64, metres
+    names: tuple[str, ...]  # (m,)
+    rate_hz: float
+    valid: np.ndarray  # (n, m) bool
+    times: np.ndarray  # (n,) float64, seconds since start
+    extra: dict = field(default_factory=dict)  # any further arrays the file carried
+
+    @property
+    def n_frames(self) -> int:
+        return self.rotations.shape[0]
+
+    @property
+    def n_sensors(self) -> int:
+        return self.rotations.shape[1]
+
+    def index(self, name: str) -> int:
+        """Sensor index of `name`, or a TakeError listing the names the take has."""
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise TakeError(f"no sensor named {name!r} in this take (it has: {', '.join(self.names)})") from None
+
+
+def make_take(
+    rotations,
+    positions,
+    names,
+    rate_hz: float,
+    valid=None,
+    times=None,
+    extra: dict | None = None,
+    source: str = "take",
+) -> Take:
+    """Build a validated Take from arrays; raises TakeError naming the first problem found."""
+    R = np.asarray(rotations, dtype=float)
+    t = np.asarray(positions, dtype=float)
+    if R.ndim != 4 or R.shape[2:] != (3, 3):
+        raise TakeError(f"{source}: 'rotations' must have shape (n, m, 3, 3), got {R.shape}")
+    n, m = R.shape[:2]
+    if t.shape != (n, m, 3):
+        raise TakeError(f"{source}: 'positions' must have shape ({n}, {m}, 3) to match 'rotations', got {t.shape}")
+    names = tuple(str(x) for x in np.atleast_1d(np.asarray(names)).tolist())
+    if len(names) != m:
+        raise TakeError(f"{source}: 'names' has {len(names)} entries but the arrays have {m} sensors")
+    if m < 2:
+        raise TakeError(f"{source}: needs at least two sensors to find a joint, got {m}")
+    if len(set(names)) != m:
+        dup = sorted({x for x in names if names.count(x) > 1})
+        raise TakeError(f"{source}: sensor names must be unique; repeated: {', '.join(dup)}")
+    if any(not x.strip() for x in names):
+        raise TakeError(f"{source}: sensor names must not be empty")
+    if n < 1:
+        raise TakeError(f"{source}: the take has no frames")
+    rate = float(np.asarray(rate_hz))
+    if not np.isfinite(rate) or rate <= 0:
+        raise TakeError(f"{source}: 'rate_hz' must be a positive number, got {rate_hz!r}")
+    if valid is None:
+        v = np.ones((n, m), dtype=bool)
+    else:
+        v = np.asarray(valid)
+        if v.shape != (n, m):
+            raise TakeError(f"{source}: 'valid' must have shape ({n}, {m}), got {v.shape}")
+        v = v.astype(bool)
+    finite = np.isfinite(R).all(axis=(2, 3)) & np.isfinite(t).all(axis=2)
+    bad = v & ~finite
+    if bad.any():
+        k, i = np.argwhere(bad)[0]
+        raise TakeError(
+            f"{source}: {int(bad.sum())} sensor-frames marked valid hold NaN or inf "
+            f"(first: frame {k}, sensor {names[i]!r}); mark them invalid with a 'valid' array"
+        )
+    if times is None:
+        ts = np.arange(n, dtype=float) / rate
+    else:
+        ts = np.asarray(times, dtype=float)
+        if ts.shape != (n,):
+            raise TakeError(f"{source}: 'times' must have shape ({n},), got {ts.shape}")
+        if not np.isfinite(ts).all():
+            raise TakeError(f"{source}: 'times' holds NaN or inf")
+        if n > 1 and np.any(np.diff(ts) < 0):
+            raise TakeError(f"{source}: 'times' must not go backwards")
+    # Invalid sensor-frames may hold anything; store zeros so no NaN leaks into sums downstream.
+    if not v.all():
+        R = np.where(v[..., None, None], R, 0.0)
+        t = np.where(v[..., None], t, 0.0)
+    return Take(R, t, names, rate, v, ts, dict(extra or {}))
+
+
+def load_take(path: str | os.PathLike) -> Take:
+    """Read a take .npz; raises TakeError for a missing, corrupt or inconsistent file."""
+    path = Path(path)
+    if not path.exists():
+        raise TakeError(f"{path}: no such file")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
+        raise TakeError(f"{path}: not a readable .npz take ({exc})") from None
+    missing = [k for k in ("rotations", "positions", "names", "rate_hz") if k not in arrays]
+    if missing:
+        raise TakeError(f"{path}: missing array(s) {', '.join(missing)} (design.md §5 lists what a take holds)")
+    known = {"rotations", "positions", "names", "rate_hz", "valid", "times"}
+    return make_take(
+        arrays["rotations"],
+        arrays["positions"],
+        arrays["names"],
+        arrays["rate_hz"],
+        valid=arrays.get("valid"),
+        times=arrays.get("times"),
+        extra={k: v for k, v in arrays.items() if k not in known},
+        source=str(path),
+    )
+
+
+def save_take(path: str | os.PathLike, take: Take) -> None:
+    """Write a take .npz (atomically: a crash never leaves a half-written file under `path`)."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".part")
+    with open(tmp, "wb") as fh:
+        np.savez_compressed(
+            fh,
+            rotations=take.rotations,
+            positions=take.positions,
+            names=np.asarray(take.names, dtype=str),
+            rate_hz=np.float64(take.rate_hz),
+            valid=take.valid,
+            times=take.times,
+            **take.extra,
+        )
+    os.replace(tmp, path)

@@ -1,0 +1,1 @@
+"""The live service: FastAPI app, sessions, websocket, dashboard and SQLite persistence."""
