@@ -1,0 +1,1 @@
+"""Files calibrations leave flockcal in: BVH, skeleton JSON, HTML reports."""

@@ -1,0 +1,1 @@
+"""REST and websocket routes of the live service, one module per resource."""
