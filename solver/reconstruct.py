@@ -1,0 +1,217 @@
+"""Residual removal (paper §3.4): play a take back through the fitted articulated model.
+
+Only the sensors' rotations and the root's translation drive the model, so joints cannot separate;
+the raw data's joint separations (the residuals) are what this removes. Pure numpy, no I/O.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from flockcal.errors import FlockcalError
+
+
+class ArticulationError(FlockcalError, ValueError):
+    """A calibration that cannot drive a take (names that do not match, a parent map that is no tree)."""
+
+
+@dataclass(frozen=True)
+class Articulation:
+    """A rooted tree of rigid bodies, one sensor each, with every joint located in both bodies' frames.
+
+    `c[j]` is body j's inboard joint in j's sensor frame, `l[j]` the same point in its parent's frame
+    (both zero at the root, which has no inboard joint). `order` lists the root first and every
+    parent before its children.
+    """
+
+    names: tuple[str, ...]
+    parent: np.ndarray  # (m,) int, -1 at the root
+    c: np.ndarray  # (m, 3) metres
+    l: np.ndarray  # (m, 3) metres
+    order: np.ndarray  # (m,) int
+
+    @property
+    def root(self) -> int:
+        return int(self.order[0])
+
+    @property
+    def n_bodies(self) -> int:
+        return len(self.names)
+
+    def children(self, i: int) -> list[int]:
+        return [int(j) for j in np.flatnonzero(self.parent == i)]
+
+    def origin(self) -> np.ndarray:
+        """(m, 3) each body's pivot in its own sensor frame: its inboard joint, the sensor at the root."""
+        return self.c.copy()
+
+    def reordered(self, names: Sequence[str]) -> "Articulation":
+        """The same tree with bodies indexed as in `names` (a take's sensor order); the names must match."""
+        names = tuple(str(x) for x in names)
+        missing = [x for x in self.names if x not in names]
+        extra = [x for x in names if x not in self.names]
+        if missing or extra:
+            parts = []
+            if missing:
+                parts.append(f"the calibration has sensor(s) {', '.join(missing)} that the take lacks")
+            if extra:
+                parts.append(f"the take has sensor(s) {', '.join(extra)} that the calibration lacks")
+            raise ArticulationError(
+                "; ".join(parts) + " — use a calibration made for this sensor set (same sensor names)"
+            )
+        if names == self.names:
+            return self
+        perm = np.array([self.names.index(x) for x in names])  # new index -> old index
+        inverse = np.empty_like(perm)
+        inverse[perm] = np.arange(len(perm))
+        old_parent = self.parent[perm]
+        parent = np.where(old_parent < 0, -1, inverse[np.maximum(old_parent, 0)])
+        return Articulation(names, parent, self.c[perm], self.l[perm], inverse[self.order])
+
+
+def tree_order(parent: np.ndarray) -> np.ndarray:
+    """Root first, parents before children; raises ArticulationError unless `parent` is one rooted tree."""
+    parent = np.asarray(parent, dtype=int)
+    roots = np.flatnonzero(parent < 0)
+    if len(roots) != 1:
+        raise ArticulationError(f"the parent map must have exactly one root, it has {len(roots)}")
+    order = [int(roots[0])]
+    seen = {order[0]}
+    k = 0
+    while k < len(order):
+        for j in np.flatnonzero(parent == order[k]):
+            if int(j) not in seen:
+                seen.add(int(j))
+                order.append(int(j))
+        k += 1
+    if len(order) != len(parent):
+        return_cycle = sorted(set(range(len(parent))) - seen)
+        raise ArticulationError(
+            f"bodies {return_cycle} are not connected to the root (a cycle or a missing parent in the map)"
+        )
+    return np.asarray(order)
+
+
+def articulation(calibration) -> Articulation:
+    """An Articulation from a Calibration, or from its design.md §5 dict (fit JSON or a skeleton file).
+
+    Reads only `sensors`, `root`, `parent` and `joints[].child/parent/c/l`, which are the stable contract.
+    """
+    d = calibration.to_dict() if hasattr(calibration, "to_dict") else calibration
+    if not isinstance(d, Mapping):
+        raise ArticulationError(f"expected a Calibration or its dict, got {type(calibration).__name__}")
+    try:
+        names = tuple(str(x) for x in d["sensors"])
+        parent_map = {str(k): str(v) for k, v in dict(d["parent"]).items()}
+        joints = list(d["joints"])
+    except (KeyError, TypeError) as exc:
+        raise ArticulationError(f"calibration lacks {exc} (design.md §5 lists the fields)") from None
+    index = {x: i for i, x in enumerate(names)}
+    unknown = sorted({x for kv in parent_map.items() for x in kv} - set(index))
+    if unknown:
+        raise ArticulationError(f"the parent map names unknown sensor(s) {', '.join(unknown)}")
+    m = len(names)
+    parent = np.full(m, -1, dtype=int)
+    for child, par in parent_map.items():
+        parent[index[child]] = index[par]
+    root = d.get("root")
+    if root is not None and str(root) in index and parent[index[str(root)]] != -1:
+        raise ArticulationError(f"root {root!r} has a parent in the parent map")
+    order = tree_order(parent)
+    c = np.zeros((m, 3))
+    l = np.zeros((m, 3))
+    have = np.zeros(m, dtype=bool)
+    for joint in joints:
+        child = str(joint["child"])
+        if child not in index:
+            raise ArticulationError(f"joint of unknown sensor {child!r}")
+        i = index[child]
+        if parent[i] < 0 or names[parent[i]] != str(joint["parent"]):
+            continue  # a non-tree joint (loop candidate) takes no part in driving the tree
+        c[i] = np.asarray(joint["c"], dtype=float)
+        l[i] = np.asarray(joint["l"], dtype=float)
+        have[i] = True
+    lacking = [names[i] for i in range(m) if parent[i] >= 0 and not have[i]]
+    if lacking:
+        raise ArticulationError(f"no joint given for sensor(s) {', '.join(lacking)} of the tree")
+    if not (np.isfinite(c).all() and np.isfinite(l).all()):
+        raise ArticulationError("joint centres hold NaN or inf")
+    return Articulation(names, parent, c, l, order)
+
+
+def held_poses(rotations: np.ndarray, positions: np.ndarray, valid: np.ndarray | None = None):
+    """Rotations and positions with every invalid sensor-frame replaced by that sensor's last valid one.
+
+    Frames before a sensor's first valid record take its first valid one. Raises ArticulationError for
+    a sensor that is never valid (nothing to hold).
+    """
+    R = np.asarray(rotations, dtype=float)
+    t = np.asarray(positions, dtype=float)
+    if valid is None:
+        return R, t
+    valid = np.asarray(valid, dtype=bool)
+    if valid.all():
+        return R, t
+    n, m = valid.shape
+    never = np.flatnonzero(~valid.any(axis=0))
+    if len(never):
+        raise ArticulationError(f"sensor index(es) {never.tolist()} never gave a valid record; nothing to play back")
+    frame = np.arange(n)[:, None]
+    last = np.maximum.accumulate(np.where(valid, frame, -1), axis=0)
+    first = valid.argmax(axis=0)
+    source = np.where(last < 0, first[None, :], last)  # (n, m) frame index to read from
+    cols = np.broadcast_to(np.arange(m), (n, m))
+    return R[source, cols], t[source, cols]
+
+
+def joint_separation(rotations, positions, art: Articulation, valid=None) -> np.ndarray:
+    """(n, m) world distance between the two bodies' copies of each tree joint (indexed by its child).
+
+    This is ‖e_k‖ of design.md §1 for the tree joints; NaN at the root and where either sensor is invalid.
+    """
+    R = np.asarray(rotations, dtype=float)
+    t = np.asarray(positions, dtype=float)
+    par = np.maximum(art.parent, 0)
+    e = np.einsum("nmab,mb->nma", R, art.c) + t - np.einsum("nmab,mb->nma", R[:, par], art.l) - t[:, par]
+    sep = np.linalg.norm(e, axis=-1)
+    sep[:, art.parent < 0] = np.nan
+    if valid is not None:
+        valid = np.asarray(valid, dtype=bool)
+        sep[~(valid & valid[:, par])] = np.nan
+    return sep
+
+
+@dataclass(frozen=True)
+class Reconstruction:
+    """A take played back through an articulated model (arrays over n frames, m bodies, world metres)."""
+
+    rotations: np.ndarray  # (n, m, 3, 3) body -> world; invalid frames hold the last valid rotation
+    sensor_positions: np.ndarray  # (n, m, 3) where the model puts each sensor
+    joint_positions: np.ndarray  # (n, m, 3) each body's pivot: inboard joint, root sensor at the root
+    articulation: Articulation
+
+    def separation(self) -> np.ndarray:
+        """(n, m) joint separation of the reconstruction: zero up to rounding, NaN at the root."""
+        return joint_separation(self.rotations, self.sensor_positions, self.articulation)
+
+
+def reconstruct(rotations, positions, art: Articulation, valid=None) -> Reconstruction:
+    """Drive `art` by the take's rotations and its root sensor's translation (paper §3.4).
+
+    Each body's sensor is placed so its inboard joint coincides with the parent's copy of that joint:
+    t'_j = R_p l_j + t'_p − R_j c_j, walking the tree from the root (one vectorised step per body).
+    """
+    R, t = held_poses(rotations, positions, valid)
+    if R.ndim != 4 or R.shape[1] != art.n_bodies:
+        raise ArticulationError(f"take has {R.shape[1] if R.ndim == 4 else '?'} sensors, the model {art.n_bodies}")
+    sensor = np.empty_like(t)
+    root = art.root
+    sensor[:, root] = t[:, root]
+    for j in art.order[1:]:
+        p = art.parent[j]
+        sensor[:, j] = R[:, p] @ art.l[j] + sensor[:, p] - R[:, j] @ art.c[j]
+    joints = np.einsum("nmab,mb->nma", R, art.c) + sensor
+    return Reconstruction(R, sensor, joints, art)
