@@ -1,0 +1,186 @@
+"""Optical marker takes: the marker .npz of design.md §5 and C3D files (through ezc3d), validated.
+
+A marker take is n frames of k labelled 3D points in metres, NaN where a marker was not seen. Every
+problem found gets a one-line `MarkerError` that names the file and the fix.
+"""
+
+from __future__ import annotations
+
+import os
+import zipfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from flockcal.errors import FlockcalError
+
+
+class MarkerError(FlockcalError, ValueError):
+    """A marker file that is missing, unreadable or inconsistent."""
+
+
+@dataclass(frozen=True)
+class MarkerTake:
+    markers: np.ndarray  # (n, k, 3) float64 metres, NaN where unseen
+    marker_names: tuple[str, ...]  # (k,)
+    rate_hz: float
+    times: np.ndarray  # (n,) seconds since start
+    source: str = "markers"
+
+    @property
+    def n_frames(self) -> int:
+        return self.markers.shape[0]
+
+    @property
+    def n_markers(self) -> int:
+        return self.markers.shape[1]
+
+    def visible(self) -> np.ndarray:
+        """(n, k) True where a marker was seen."""
+        return np.isfinite(self.markers).all(-1)
+
+
+def make_marker_take(markers, marker_names, rate_hz, times=None, source: str = "markers") -> MarkerTake:
+    """Build a validated MarkerTake from arrays (metres); raises MarkerError naming the first problem."""
+    M = np.asarray(markers, dtype=float)
+    if M.ndim != 3 or M.shape[2] != 3:
+        raise MarkerError(f"{source}: 'markers' must have shape (frames, markers, 3), got {M.shape}")
+    n, k, _ = M.shape
+    names = tuple(str(x) for x in np.atleast_1d(np.asarray(marker_names)).tolist())
+    if len(names) != k:
+        raise MarkerError(f"{source}: 'marker_names' has {len(names)} entries but 'markers' has {k} markers")
+    if len(set(names)) != k:
+        dup = sorted({x for x in names if names.count(x) > 1})
+        raise MarkerError(f"{source}: marker names must be unique; repeated: {', '.join(dup)}")
+    if n < 2:
+        raise MarkerError(f"{source}: a marker take needs at least two frames, got {n}")
+    if k < 2:
+        raise MarkerError(f"{source}: a marker take needs at least two markers, got {k}")
+    if np.isinf(M).any():
+        raise MarkerError(f"{source}: 'markers' holds inf; write NaN for a marker that was not seen")
+    # A point is seen or not: a partly-NaN point is not a position, so it counts as a gap.
+    M = np.where(np.isfinite(M).all(-1, keepdims=True), M, np.nan)
+    if not np.isfinite(M).any():
+        raise MarkerError(f"{source}: no marker is seen in any frame")
+    big = np.nanmax(np.abs(M))
+    if big > 100.0:
+        raise MarkerError(
+            f"{source}: marker coordinates reach {big:.0f}, which is not metres; "
+            "convert to metres (millimetres divide by 1000)"
+        )
+    rate = float(np.asarray(rate_hz))
+    if not np.isfinite(rate) or rate <= 0:
+        raise MarkerError(f"{source}: 'rate_hz' must be a positive number, got {rate_hz!r}")
+    if times is None:
+        ts = np.arange(n, dtype=float) / rate
+    else:
+        ts = np.asarray(times, dtype=float)
+        if ts.shape != (n,) or not np.isfinite(ts).all():
+            raise MarkerError(f"{source}: 'times' must be {n} finite numbers, got shape {ts.shape}")
+        if np.any(np.diff(ts) < 0):
+            raise MarkerError(f"{source}: 'times' must not go backwards")
+    return MarkerTake(M, names, rate, ts, source)
+
+
+def load_markers(path: str | os.PathLike) -> MarkerTake:
+    """Read a marker take from `.npz` (design.md §5) or `.c3d`; raises MarkerError with the fix."""
+    path = Path(path)
+    if not path.exists():
+        raise MarkerError(f"{path}: no such file")
+    suffix = path.suffix.lower()
+    if suffix == ".c3d":
+        return load_c3d(path)
+    if suffix == ".npz":
+        return load_marker_npz(path)
+    raise MarkerError(f"{path}: unknown marker file type {suffix!r}; give a .c3d or a marker .npz")
+
+
+def load_marker_npz(path: str | os.PathLike) -> MarkerTake:
+    path = Path(path)
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            arrays = {k: data[k] for k in data.files}
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
+        raise MarkerError(f"{path}: not a readable .npz ({exc})") from None
+    if "markers" not in arrays and "rotations" in arrays:
+        raise MarkerError(f"{path}: this is a sensor take (rotations/positions); fit it with `flockcal fit`")
+    missing = [k for k in ("markers", "marker_names", "rate_hz") if k not in arrays]
+    if missing:
+        raise MarkerError(f"{path}: missing array(s) {', '.join(missing)} (design.md §5 lists what a marker take holds)")
+    return make_marker_take(arrays["markers"], arrays["marker_names"], arrays["rate_hz"], arrays.get("times"), str(path))
+
+
+def save_markers(path: str | os.PathLike, take: MarkerTake) -> None:
+    """Write a marker .npz (atomically)."""
+    path = Path(path)
+    tmp = path.with_name(path.name + ".part")
+    with open(tmp, "wb") as fh:
+        np.savez_compressed(
+            fh,
+            markers=take.markers,
+            marker_names=np.asarray(take.marker_names, dtype=str),
+            rate_hz=np.float64(take.rate_hz),
+            times=take.times,
+        )
+    os.replace(tmp, path)
+
+
+_UNIT_SCALE = {"mm": 1e-3, "millimeters": 1e-3, "millimetres": 1e-3, "cm": 1e-2, "m": 1.0, "meters": 1.0, "metres": 1.0}
+# Vicon and others store model outputs (angles, forces, …) as POINTs too; they are not markers.
+_NOT_MARKERS = ("ANGLES", "FORCES", "MOMENTS", "POWERS", "SCALARS", "REACTIONS")
+
+
+def _param(params, group, name, default=None):
+    try:
+        return params[group][name]["value"]
+    except (KeyError, TypeError):
+        return default
+
+
+def load_c3d(path: str | os.PathLike) -> MarkerTake:
+    """Markers of a C3D file in metres: model outputs dropped, invalid points (residual < 0, or exactly
+    at the origin, which some writers use for 'not seen') set to NaN, unnamed points named P1…"""
+    path = Path(path)
+    try:
+        import ezc3d
+    except ImportError:
+        raise MarkerError("reading C3D needs the ezc3d package: pip install 'flockcal[optical]'") from None
+    try:
+        c3d = ezc3d.c3d(str(path))
+    except Exception as exc:  # ezc3d raises plain RuntimeError/IOError for a bad file
+        raise MarkerError(f"{path}: not a readable C3D file ({exc})") from None
+    params = c3d["parameters"]
+    pts = np.asarray(c3d["data"]["points"], dtype=float)  # (4, k, n)
+    k = pts.shape[1]
+    if k == 0 or pts.shape[2] == 0:
+        raise MarkerError(f"{path}: the C3D file holds no 3D points (analog-only?); nothing to fit")
+    labels = []
+    for name in ("LABELS", "LABELS2", "LABELS3", "LABELS4"):
+        labels += [str(x).strip() for x in (_param(params, "POINT", name, []) or [])]
+    labels = labels[:k] + [f"P{i + 1}" for i in range(len(labels), k)]
+    labels = [lab if lab else f"P{i + 1}" for i, lab in enumerate(labels)]
+    seen_names: dict[str, int] = {}
+    for i, lab in enumerate(labels):  # C3D does not forbid repeated labels; make them unique
+        if lab in seen_names:
+            labels[i] = f"{lab}#{i + 1}"
+        seen_names[lab] = i
+    exclude = set()
+    for group in _NOT_MARKERS:
+        exclude |= {str(x).strip() for x in (_param(params, "POINT", group, []) or [])}
+    units = str((_param(params, "POINT", "UNITS", ["mm"]) or ["mm"])[0]).strip().lower()
+    if units not in _UNIT_SCALE:
+        raise MarkerError(f"{path}: unknown POINT:UNITS {units!r}; expected mm, cm or m")
+    rate = float(np.atleast_1d(_param(params, "POINT", "RATE", [0.0]))[0])
+    xyz = pts[:3].transpose(2, 1, 0) * _UNIT_SCALE[units]  # (n, k, 3)
+    try:
+        res = np.asarray(c3d["data"]["meta_points"]["residuals"], dtype=float)[0].T  # (n, k)
+        bad = res < 0
+    except (KeyError, IndexError, TypeError):
+        bad = np.zeros(xyz.shape[:2], dtype=bool)
+    bad |= np.all(xyz == 0.0, axis=-1)
+    xyz[bad] = np.nan
+    keep = [i for i, lab in enumerate(labels) if lab not in exclude]
+    if len(keep) < 2:
+        raise MarkerError(f"{path}: fewer than two marker trajectories after dropping model outputs")
+    return make_marker_take(xyz[:, keep], [labels[i] for i in keep], rate, source=str(path))

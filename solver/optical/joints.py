@@ -1,0 +1,202 @@
+"""Joint points from markers alone (Kirk et al. 2005 §3): the point that keeps a constant distance to
+every marker of two rigid groups, per frame, and the skeleton tree as the MST of those fits' residuals.
+
+For groups A, B with markers a ∈ A∪B: minimise Σ_k Σ_a (‖m_a,k − p_k‖ − r_a)² + λ n Σ_a r_a² over the
+per-frame points p_k and the constant radii r_a (scipy least_squares, sparse Jacobian). The small λ keeps
+a nearly planar motion from sending p to infinity; the final fit on all frames drops it.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.optimize import least_squares
+from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
+
+from flockcal.solver.optical.rigid import nanmean, procrustes_mean, to_body
+
+
+@dataclass(frozen=True)
+class JointPoint:
+    points: np.ndarray  # (n, 3) joint point per frame, world metres; NaN where the frame was not usable
+    radii: np.ndarray  # (q,) constant distance to each marker of A∪B (A's first)
+    rms: float  # rms of ‖m − p‖ − r over used marker-frames (m)
+    frames: np.ndarray  # (f,) frames used
+    residuals: np.ndarray  # (n, q) ‖m − p‖ − r, NaN where unseen or unused
+
+
+def usable_frames(markers_a: np.ndarray, markers_b: np.ndarray) -> np.ndarray:
+    """Frames where each group shows a marker and A∪B shows at least four (p then has redundancy)."""
+    va = np.isfinite(markers_a).all(-1)
+    vb = np.isfinite(markers_b).all(-1)
+    return np.flatnonzero(va.any(1) & vb.any(1) & (va.sum(1) + vb.sum(1) >= min(4, va.shape[1] + vb.shape[1])))
+
+
+def sphere_centre_guess(markers_a: np.ndarray, markers_b: np.ndarray, frames: np.ndarray):
+    """Initial joint points (f,3) for `frames`, or None: B's markers seen from A's frame lie on spheres
+    about the joint, so one linear solve (shared centre c, per-marker r² − ‖c‖²) finds it.
+
+    Needs a group with three or more markers to give a frame; the larger one is used.
+    """
+    A, Bm = markers_a[frames], markers_b[frames]
+    if A.shape[1] < Bm.shape[1]:
+        A, Bm = Bm, A
+    if A.shape[1] < 3:
+        return None
+    _, R, t, ok = procrustes_mean(A)
+    if ok.sum() < 10:
+        return None
+    y = to_body(R[ok], t[ok], Bm[ok])  # (f', qb, 3)
+    seen = np.isfinite(y).all(-1)
+    qb = y.shape[1]
+    # ‖y‖² = 2 yᵀc + s_b  →  rows [2yᵀ, e_b] · [c; s] = ‖y‖²
+    rows = np.zeros(seen.shape + (3 + qb,))
+    rows[..., :3] = 2 * np.where(seen[..., None], y, 0.0)
+    rows[..., 3:] = np.eye(qb)[None] * seen[..., None]
+    rhs = np.where(seen, (np.where(seen[..., None], y, 0.0) ** 2).sum(-1), 0.0)
+    sol, *_ = np.linalg.lstsq(rows.reshape(-1, 3 + qb), rhs.ravel(), rcond=1e-10)
+    c = sol[:3]
+    p = np.einsum("nij,j->ni", R, c) + t
+    p[~ok] = np.nan  # the caller fills frames without a pose of A
+    return p
+
+
+def joint_point(
+    markers_a: np.ndarray,
+    markers_b: np.ndarray,
+    penalty: float = 1e-5,
+    frames: np.ndarray | None = None,
+    init: np.ndarray | None = None,
+    max_nfev: int = 50,
+) -> JointPoint:
+    """Solve the Kirk joint-point problem for groups A (n,qa,3) and B (n,qb,3) on `frames` (default all
+    usable frames). `init` (n,3) world points override the built-in guess (sphere fit, else midpoint)."""
+    M = np.concatenate([markers_a, markers_b], axis=1)
+    n, q, _ = M.shape
+    use = usable_frames(markers_a, markers_b)
+    if frames is not None:
+        use = np.intersect1d(use, frames)
+    F = len(use)
+    out_pts = np.full((n, 3), np.nan)
+    out_res = np.full((n, q), np.nan)
+    if F < 4:
+        return JointPoint(out_pts, np.full(q, np.nan), np.inf, use, out_res)
+    Mu = M[use]
+    seen = np.isfinite(Mu).all(-1)  # (F, q)
+    Mz = np.where(seen[..., None], Mu, 0.0)
+    if init is not None and np.isfinite(init[use]).all():
+        p0 = init[use]
+    else:
+        p0 = sphere_centre_guess(markers_a, markers_b, use)
+        mid = 0.5 * (nanmean(markers_a[use], axis=1) + nanmean(markers_b[use], axis=1))
+        p0 = mid if p0 is None else np.where(np.isfinite(p0), p0, mid)
+    dist0 = np.linalg.norm(Mz - p0[:, None], axis=-1)
+    r0 = (np.where(seen, dist0, 0).sum(0) / np.maximum(seen.sum(0), 1)).clip(1e-3)
+    x0 = np.concatenate([p0.ravel(), r0])
+    pen = np.sqrt(penalty * F)
+
+    # Sparse Jacobian layout: row (f, a) touches p_f (3 columns) and r_a; penalty row a touches r_a.
+    f_idx, a_idx = np.meshgrid(np.arange(F), np.arange(q), indexing="ij")
+    row = np.arange(F * q)
+    rows = np.concatenate([np.repeat(row, 3), row, F * q + np.arange(q)])
+    cols = np.concatenate([(3 * f_idx.ravel()[:, None] + np.arange(3)).ravel(), 3 * F + a_idx.ravel(), 3 * F + np.arange(q)])
+    mask = seen.ravel()
+
+    def unpack(x):
+        return x[: 3 * F].reshape(F, 3), x[3 * F :]
+
+    def fun(x):
+        p, r = unpack(x)
+        d = np.linalg.norm(Mz - p[:, None], axis=-1)
+        res = np.where(seen, d - r[None], 0.0)
+        return np.concatenate([res.ravel(), pen * r])
+
+    def jac(x):
+        p, r = unpack(x)
+        diff = Mz - p[:, None]
+        d = np.maximum(np.linalg.norm(diff, axis=-1), 1e-12)
+        dp = -(diff / d[..., None]) * mask.reshape(F, q)[..., None]
+        dr = -mask.astype(float)
+        vals = np.concatenate([dp.ravel(), dr, np.full(q, pen)])
+        return sp.csr_matrix((vals, (rows, cols)), shape=(F * q + q, 3 * F + q))
+
+    sol = least_squares(fun, x0, jac=jac, method="trf", tr_solver="lsmr", x_scale="jac", max_nfev=max_nfev, xtol=1e-10, ftol=1e-10)
+    p, r = unpack(sol.x)
+    d = np.linalg.norm(Mz - p[:, None], axis=-1)
+    res = np.where(seen, d - r[None], np.nan)
+    rms = float(np.sqrt(np.nanmean(res**2)))
+    out_pts[use] = p
+    out_res[use] = res
+    return JointPoint(out_pts, r, rms, use, out_res)
+
+
+@dataclass(frozen=True)
+class Tree:
+    parent: np.ndarray  # (G,) parent group, −1 at the root
+    root: int
+    cost: np.ndarray  # (G, G) pair residual rms (m); inf where a pair could not be fitted
+    order: list[int]  # root first, parents before children
+
+
+def pair_costs(markers: np.ndarray, groups: list[np.ndarray], frames: np.ndarray, penalty: float = 1e-5) -> np.ndarray:
+    """(G, G) rms of the joint-point fit of every pair of groups on the given (sub-sampled) frames."""
+    G = len(groups)
+    cost = np.full((G, G), np.inf)
+    for a in range(G):
+        for b in range(a + 1, G):
+            fit = joint_point(markers[:, groups[a]], markers[:, groups[b]], penalty=penalty, frames=frames, max_nfev=30)
+            cost[a, b] = cost[b, a] = fit.rms
+    return cost
+
+
+def central_root(adjacency: np.ndarray) -> int:
+    """The group whose removal splits the tree most evenly (smallest largest remaining part)."""
+    G = len(adjacency)
+    best, best_size = 0, G + 1
+    for g in range(G):
+        keep = np.ones(G, dtype=bool)
+        keep[g] = False
+        sub = adjacency[np.ix_(keep, keep)]
+        _, lab = connected_components(sp.csr_matrix(sub), directed=False)
+        largest = np.bincount(lab).max() if len(lab) else 0
+        if largest < best_size:
+            best, best_size = g, largest
+    return best
+
+
+def spanning_tree(cost: np.ndarray, root: int | None = None) -> Tree:
+    """Minimum spanning tree over the pair residuals, rooted at `root` (default: the central group).
+
+    Weights are residual ranks + 1 so that an exact fit (residual 0) is still an edge to csgraph.
+    """
+    G = len(cost)
+    if G == 1:
+        return Tree(np.array([-1]), 0, cost, [0])
+    iu = np.triu_indices(G, 1)
+    vals = cost[iu]
+    finite = np.isfinite(vals)
+    ranks = np.empty(len(vals))
+    ranks[np.argsort(np.where(finite, vals, np.inf), kind="stable")] = np.arange(1, len(vals) + 1)
+    W = np.zeros((G, G))
+    W[iu] = np.where(finite, ranks, 0.0)  # an unfittable pair is no edge
+    mst = minimum_spanning_tree(sp.csr_matrix(W)).toarray()
+    adj = (mst + mst.T) > 0
+    if root is None:
+        root = central_root(adj)
+    parent = np.full(G, -1)
+    order = [root]
+    seen = {root}
+    frontier = [root]
+    while frontier:
+        nxt = []
+        for g in frontier:
+            for h in np.flatnonzero(adj[g]):
+                if h not in seen:
+                    parent[h] = g
+                    seen.add(int(h))
+                    order.append(int(h))
+                    nxt.append(int(h))
+        frontier = nxt
+    return Tree(parent, int(root), cost, order)
