@@ -1,0 +1,282 @@
+"""The all-pairs Gram accumulator of design.md §2: one 4m×4m matrix from which every pair's normal equations are read.
+
+Frames are summed in blocks into G = Σ X_kᵀX_k, plus each sensor's self terms restricted to the frames where
+the other sensor of a pair is valid. Accumulators copy, merge (add), subtract (windows) and optionally forget,
+so a live stream, one batch and an archive split across workers all give the same sums.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.linalg.blas import dsyrk
+
+from flockcal.solver.errors import SolverError
+
+# Frames per block: big enough for BLAS to run at full speed, small enough that the block stays in cache.
+BLOCK = 256
+
+
+def as_frames(rotations, positions, valid=None, n_sensors: int | None = None):
+    """(rotations (n,m,3,3), positions (n,m,3), valid (n,m) bool) from a batch or a single frame.
+
+    Sensor-frames holding NaN or inf count as invalid, so a dropout can never poison a sum.
+    """
+    R = np.asarray(rotations, dtype=float)
+    t = np.asarray(positions, dtype=float)
+    if R.ndim == 3:
+        R, t = R[None], t[None]
+        if valid is not None:
+            valid = np.asarray(valid)[None]
+    if R.ndim != 4 or R.shape[2:] != (3, 3):
+        raise SolverError(f"rotations must have shape (n, m, 3, 3) or (m, 3, 3), got {np.shape(rotations)}")
+    n, m = R.shape[:2]
+    if n_sensors is not None and m != n_sensors:
+        raise SolverError(f"frames have {m} sensors but the accumulator was made for {n_sensors}")
+    if t.shape != (n, m, 3):
+        raise SolverError(f"positions must have shape ({n}, {m}, 3) to match the rotations, got {np.shape(positions)}")
+    if valid is None:
+        w = np.ones((n, m), dtype=bool)
+    else:
+        w = np.asarray(valid)
+        if w.shape != (n, m):
+            raise SolverError(f"valid must have shape ({n}, {m}), got {w.shape}")
+        w = w.astype(bool)
+    return R, t, w
+
+
+class GramAccumulator:
+    """Σ X_kᵀX_k over frames, with X_k = [R_k^0 … R_k^(m−1) | t_k^0 … t_k^(m−1)] (3 × 4m), in blocks.
+
+    Internally the columns are ordered (q, a) — column q of sensor a's [R | t], q = 0..3 — so a block of
+    frames is copied into X with two strided assignments; `.gram` returns the documented layout.
+    Invalid sensor-frames are zeroed columns, so every cross term already counts only frames where both
+    sensors are valid; `_self[j, a]` holds sensor a's own 4×4 Gram over frames where j is valid too.
+    With a forgetting factor λ < 1 each frame is weighted λ^age (per frame, not per call), so frames fed
+    one at a time or in one batch give the same sums.
+    """
+
+    def __init__(self, n_sensors: int, forgetting: float = 1.0, origin=None):
+        if int(n_sensors) < 2:
+            raise SolverError(f"an accumulator needs at least two sensors, got {n_sensors}")
+        if not 0.0 < float(forgetting) <= 1.0:
+            raise SolverError(f"the forgetting factor must be in (0, 1], got {forgetting}")
+        m = self.n_sensors = int(n_sensors)
+        self.forgetting = float(forgetting)
+        self.origin = None if origin is None else np.asarray(origin, dtype=float).reshape(3).copy()
+        self._gram = np.zeros((4 * m, 4 * m))
+        self._self = np.zeros((m, m, 4, 4))
+        self._pair_frames = np.zeros((m, m))
+        self._frames = 0
+        self._xbuf = np.empty((BLOCK, 3, 4, m))
+        # Small updates wait here until a block is full (or a result is read): a 1-frame update costs a copy.
+        self._pend_R = np.empty((BLOCK, m, 3, 3))
+        self._pend_t = np.empty((BLOCK, m, 3))
+        self._pend_w = np.empty((BLOCK, m), dtype=bool)
+        self._npend = 0
+
+    # -- feeding -----------------------------------------------------------------------------------
+    def update(self, rotations, positions, valid=None) -> "GramAccumulator":
+        """Add a batch of frames (n, m, 3, 3) / (n, m, 3) / (n, m), or a single frame (m, 3, 3) / (m, 3) / (m,)."""
+        R, t, w = as_frames(rotations, positions, valid, self.n_sensors)
+        n = R.shape[0]
+        if n == 0:
+            return self
+        if self._npend + n <= BLOCK:
+            k = self._npend
+            self._pend_R[k:k + n] = R
+            self._pend_t[k:k + n] = t
+            self._pend_w[k:k + n] = w
+            self._npend += n
+            if self._npend == BLOCK:
+                self._flush()
+            return self
+        self._flush()
+        self._accumulate(R, t, w)
+        return self
+
+    def _flush(self) -> None:
+        if self._npend:
+            k, self._npend = self._npend, 0
+            self._accumulate(self._pend_R[:k], self._pend_t[:k], self._pend_w[:k])
+
+    def _set_origin(self, t: np.ndarray, w: np.ndarray) -> None:
+        # The first frame's centroid keeps ‖t‖² small in G, so SSE = uᵀAu − 2bᵀu + Σ‖d‖² does not cancel badly.
+        rows = np.flatnonzero(w.any(axis=1))
+        if rows.size:
+            k = rows[0]
+            pts = t[k][w[k]]
+            pts = pts[np.isfinite(pts).all(axis=1)]
+            if len(pts):
+                self.origin = pts.mean(axis=0)
+
+    def _accumulate(self, R: np.ndarray, t: np.ndarray, w: np.ndarray) -> None:
+        if self.origin is None:
+            self._set_origin(t, w)
+            if self.origin is None:  # nothing valid yet: only the frame count moves
+                self._decay(R.shape[0])
+                self._frames += R.shape[0]
+                return
+        for s in range(0, R.shape[0], BLOCK):
+            self._block(R[s:s + BLOCK], t[s:s + BLOCK], w[s:s + BLOCK])
+
+    def _decay(self, n: int) -> np.ndarray | None:
+        """Scale the sums by λ^n and return the weights λ^(n−1−k) of the n new frames (None when λ = 1)."""
+        if self.forgetting == 1.0:
+            return None
+        f = self.forgetting ** n
+        self._gram *= f
+        self._self *= f
+        self._pair_frames *= f
+        return self.forgetting ** np.arange(n - 1, -1, -1, dtype=float)
+
+    def _block(self, R: np.ndarray, t: np.ndarray, w: np.ndarray) -> None:
+        nb, m = R.shape[:2]
+        buf = self._xbuf[:nb]
+        buf[:, :, :3, :] = R.transpose(0, 2, 3, 1)  # X[k, r, q, a] = R_k^a[r, q]
+        np.subtract(t.transpose(0, 2, 1), self.origin[None, :, None], out=buf[:, :, 3, :])
+        all_valid = bool(w.all())
+        if not np.isfinite(buf).all():
+            w = w & np.isfinite(R).all(axis=(2, 3)) & np.isfinite(t).all(axis=2)
+            all_valid = False
+        if not all_valid:
+            np.copyto(buf, 0.0, where=~w[:, None, None, :])  # copyto, not multiply: 0 × NaN is NaN
+        omega = self._decay(nb)
+        if omega is not None:
+            buf *= np.sqrt(omega)[:, None, None, None]
+        X = buf.reshape(3 * nb, 4 * m)
+        gb = dsyrk(1.0, X.T, trans=0)  # upper triangle of XᵀX, without a copy of X
+        gb = gb + np.triu(gb, 1).T
+        self._gram += gb
+        wf = w.astype(float)
+        if all_valid:
+            diag = np.einsum("qapa->aqp", gb.reshape(4, m, 4, m))
+            self._self += diag[None]
+            self._pair_frames += nb if omega is None else omega.sum()
+        else:
+            own = np.einsum("krqa,krpa->kaqp", buf, buf)  # each sensor's own 4×4 Gram per frame
+            self._self += (wf.T @ own.reshape(nb, m * 16)).reshape(m, m, 4, 4)
+            self._pair_frames += wf.T @ (wf if omega is None else wf * omega[:, None])
+        self._frames += nb
+
+    # -- results -----------------------------------------------------------------------------------
+    @property
+    def frames(self) -> int:
+        """Frames seen (whatever their validity; not decayed)."""
+        return self._frames + self._npend
+
+    @property
+    def pair_frames(self) -> np.ndarray:
+        """(m, m) frames where both sensors were valid (weighted by λ^age when forgetting)."""
+        self._flush()
+        return self._pair_frames.copy()
+
+    @property
+    def gram(self) -> np.ndarray:
+        """G = Σ X_kᵀX_k (4m × 4m) in design.md's layout: rotation columns 3a..3a+2, then translation 3m+a."""
+        self._flush()
+        m = self.n_sensors
+        a = np.arange(m)
+        perm = np.concatenate([(np.arange(3)[None, :] * m + a[:, None]).ravel(), 3 * m + a])
+        return self._gram[np.ix_(perm, perm)]
+
+    def normal_equations(self, pairs) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """For pairs (p, 2) of (i, j): A (p,6,6), b (p,6), Σ‖t_j − t_i‖² (p,), frames n (p,).
+
+        The stacked system is Q_k u = d_k with Q_k = [R_i, −R_j], u = (c, l), d_k = t_j − t_i, so that
+        SSE(u) = uᵀAu − 2bᵀu + Σ‖d‖², over the frames where both sensors are valid.
+        """
+        self._flush()
+        m = self.n_sensors
+        P = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
+        if P.size and (P.min() < 0 or P.max() >= m):
+            raise SolverError(f"pair indices must be in 0..{m - 1}")
+        i, j = P[:, 0], P[:, 1]
+        p = len(P)
+        G, S = self._gram, self._self
+        q = np.arange(3) * m
+        ri = q[None, :] + i[:, None]  # (p, 3) internal rotation columns
+        rj = q[None, :] + j[:, None]
+        Sji, Sij = S[j, i], S[i, j]  # sensor i's self terms over frames where j is valid, and vice versa
+        Gij = G[ri[:, :, None], rj[:, None, :]]
+        A = np.empty((p, 6, 6))
+        A[:, :3, :3] = Sji[:, :3, :3]
+        A[:, 3:, 3:] = Sij[:, :3, :3]
+        A[:, :3, 3:] = -Gij
+        A[:, 3:, :3] = -Gij.transpose(0, 2, 1)
+        b = np.empty((p, 6))
+        b[:, :3] = G[ri, 3 * m + j[:, None]] - Sji[:, :3, 3]
+        b[:, 3:] = G[rj, 3 * m + i[:, None]] - Sij[:, :3, 3]
+        dd = Sji[:, 3, 3] - 2.0 * G[3 * m + i, 3 * m + j] + Sij[:, 3, 3]
+        return A, b, dd, self._pair_frames[i, j].copy()
+
+    def pair_point(self, point, src, dst) -> np.ndarray:
+        """Mean over frames of a point fixed in sensor `src`'s frame, expressed in sensor `dst`'s frame.
+
+        For two rigidly joined sensors this is exact: mean of R_dstᵀ(R_src x + t_src − t_dst). Vectorised
+        over (k, 3) points with (k,) src and dst indices.
+        """
+        self._flush()
+        m = self.n_sensors
+        x = np.asarray(point, dtype=float).reshape(-1, 3)
+        s = np.asarray(src, dtype=np.intp).reshape(-1)
+        d = np.asarray(dst, dtype=np.intp).reshape(-1)
+        q = np.arange(3) * m
+        rd, rs = q[None, :] + d[:, None], q[None, :] + s[:, None]
+        G = self._gram
+        Gds = G[rd[:, :, None], rs[:, None, :]]
+        total = np.einsum("kab,kb->ka", Gds, x) + G[rd, 3 * m + s[:, None]] - self._self[s, d, :3, 3]
+        n = self._pair_frames[s, d]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(n[:, None] > 0, total / n[:, None], np.nan)
+
+    # -- copies and arithmetic ---------------------------------------------------------------------
+    def copy(self) -> "GramAccumulator":
+        """An independent snapshot (later updates to either do not affect the other)."""
+        self._flush()
+        new = GramAccumulator(self.n_sensors, self.forgetting, self.origin)
+        new._gram = self._gram.copy()
+        new._self = self._self.copy()
+        new._pair_frames = self._pair_frames.copy()
+        new._frames = self._frames
+        return new
+
+    snapshot = copy
+
+    def _check_compatible(self, other: "GramAccumulator") -> None:
+        if not isinstance(other, GramAccumulator) or other.n_sensors != self.n_sensors:
+            raise SolverError("accumulators can only be combined when they have the same number of sensors")
+        if self.origin is not None and other.origin is not None and not np.array_equal(self.origin, other.origin):
+            raise SolverError(
+                "accumulators with different origins cannot be combined; create the workers' accumulators "
+                "with the same origin= (for example the first frame's centroid)"
+            )
+
+    def merge(self, other: "GramAccumulator") -> "GramAccumulator":
+        """Add another accumulator's sums into this one (frames from a second worker); returns self."""
+        self._check_compatible(other)
+        self._flush()
+        other._flush()
+        if self.origin is None:
+            self.origin = None if other.origin is None else other.origin.copy()
+        self._gram += other._gram
+        self._self += other._self
+        self._pair_frames += other._pair_frames
+        self._frames += other._frames
+        return self
+
+    def __add__(self, other: "GramAccumulator") -> "GramAccumulator":
+        return self.copy().merge(other)
+
+    def __sub__(self, other: "GramAccumulator") -> "GramAccumulator":
+        """The frames in self but not in an earlier snapshot `other` of it: a window (without forgetting)."""
+        self._check_compatible(other)
+        new = self.copy()
+        other._flush()
+        new._gram -= other._gram
+        new._self -= other._self
+        new._pair_frames -= other._pair_frames
+        new._frames -= other._frames
+        return new
+
+    def __repr__(self) -> str:
+        return f"GramAccumulator(n_sensors={self.n_sensors}, frames={self.frames}, forgetting={self.forgetting})"
