@@ -1,0 +1,317 @@
+"""Sensor slippage and swap detection (design.md §4): a live `SlipMonitor` fed the same micro-batches as
+the accumulator plus the current joint estimates, and `detect_slips` for a recorded take.
+
+Per joint, a CUSUM on the residual's distance from that joint's own robust baseline (scaled by the
+noise the data shows) raises a suspicion; `slippage_attribution` then names the sensor whose joints
+all stepped (or the pair that swapped) before an event is reported.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from flockcal.errors import FlockcalError
+from flockcal.solver.slippage_attribution import attribute
+from flockcal.solver.slippage_stats import Baseline, cusum, deviation, robust_baseline, sensor_frame_residuals
+
+
+class SlippageError(FlockcalError, ValueError):
+    """Inputs the slippage monitor cannot use (shapes, names, a calibration without joints)."""
+
+
+@dataclass(frozen=True)
+class SlipEvent:
+    """One sensor moved on the body: when, which (with the alternatives), which joints, how far."""
+
+    time_s: float  # estimated time of the slip (first frame of the step)
+    sensor: str
+    candidates: tuple[str, ...]  # sensors that could explain it, most likely first
+    confidence: float  # posterior share of `sensor`
+    joints: tuple[str, ...]  # the affected joints, each named by its child body
+    jump_mm: float  # size of the residual step
+    detected_s: float = float("nan")  # time of the frame at which the monitor reported it
+    sensor_index: int = -1
+    joint_indices: tuple[int, ...] = ()
+
+    kind = "slip"
+
+    def to_dict(self) -> dict:
+        """The `slip_events` entry of design.md §5 (extended with kind, confidence and detected_s)."""
+        return {"kind": "slip", "time_s": round(self.time_s, 4), "sensor": self.sensor,
+                "candidates": list(self.candidates), "confidence": round(self.confidence, 4),
+                "joints": list(self.joints), "jump_mm": round(self.jump_mm, 2),
+                "detected_s": round(self.detected_s, 4)}
+
+
+@dataclass(frozen=True)
+class SwapEvent:
+    """Two sensors exchanged identity (their data streams swapped) from `time_s` on."""
+
+    time_s: float
+    a: str
+    b: str
+    joints: tuple[str, ...]
+    jump_mm: float
+    confidence: float = 1.0
+    detected_s: float = float("nan")
+    sensor_indices: tuple[int, int] = (-1, -1)
+    joint_indices: tuple[int, ...] = ()
+
+    kind = "swap"
+
+    @property
+    def sensor(self) -> str:
+        return self.a
+
+    @property
+    def candidates(self) -> tuple[str, ...]:
+        return (self.a, self.b)
+
+    def to_dict(self) -> dict:
+        """A `slip_events` entry of kind "swap": `sensor` and `candidates` name both sensors."""
+        return {"kind": "swap", "time_s": round(self.time_s, 4), "sensor": self.a,
+                "candidates": [self.a, self.b], "sensors": [self.a, self.b],
+                "confidence": round(self.confidence, 4), "joints": list(self.joints),
+                "jump_mm": round(self.jump_mm, 2), "detected_s": round(self.detected_s, 4)}
+
+
+class _FrameBuffer:
+    """The most recent frames (times, rotations, positions, valid) with their global frame index."""
+
+    def __init__(self, capacity: int, m: int):
+        self.capacity = capacity
+        size = 2 * capacity
+        self.times = np.zeros(size)
+        self.R = np.zeros((size, m, 3, 3))
+        self.t = np.zeros((size, m, 3))
+        self.valid = np.zeros((size, m), dtype=bool)
+        self.lo = self.hi = 0
+        self.first_index = 0  # global index of slot lo
+
+    def append(self, times, R, t, valid) -> int:
+        """Store a batch (at most `capacity` frames); returns the global index of its first frame."""
+        n = len(times)
+        if self.hi + n > len(self.times):
+            keep = min(self.hi - self.lo, self.capacity - n)
+            src = slice(self.hi - keep, self.hi)
+            for a in (self.times, self.R, self.t, self.valid):
+                a[:keep] = a[src]
+            self.first_index += self.hi - keep - self.lo
+            self.lo, self.hi = 0, keep
+        sl = slice(self.hi, self.hi + n)
+        self.times[sl], self.R[sl], self.t[sl], self.valid[sl] = times, R, t, valid
+        self.hi += n
+        if self.hi - self.lo > self.capacity:
+            drop = self.hi - self.lo - self.capacity
+            self.lo += drop
+            self.first_index += drop
+        return self.first_index + (self.hi - self.lo) - n
+
+    def since(self, index: int) -> slice:
+        """Slots holding global frames index… (clipped to what is still stored)."""
+        return slice(self.lo + max(index - self.first_index, 0), self.hi)
+
+    def between(self, t0: float, t1: float) -> slice:
+        times = self.times[self.lo:self.hi]
+        a, b = np.searchsorted(times, [t0, t1], side="left")
+        return slice(self.lo + a, self.lo + b)
+
+    def global_index(self, sl: slice) -> np.ndarray:
+        return self.first_index + np.arange(sl.start - self.lo, sl.stop - self.lo)
+
+
+class SlipMonitor:
+    """Live slippage detector over the p joints of a tree (or any joint list).
+
+    joints: (p, 2) sensor indices (child, parent). Feed `update` every batch of frames with the current
+    joint estimates c, l (p, 3) (the child and parent frame coordinates of each joint centre); it returns
+    the events confirmed in this batch. After an event the affected joints re-baseline from the slip
+    time on (they stay quiet for `warmup_s` + `lag_s`); the others keep their state.
+
+    All thresholds are in units of each joint's own robust noise scale, except `min_jump_m` (the
+    smallest step worth reporting) and `scale_floor_m` (stops exact, noise-free data from dividing by 0).
+    """
+
+    def __init__(self, joints, n_sensors: int, rate_hz: float, names=None, *,
+                 min_jump_m: float = 0.005, warmup_s: float = 2.0, baseline_s: float = 8.0,
+                 lag_s: float = 1.0, refresh_s: float = 0.25, kappa: float = 3.0, z_cap: float = 12.0,
+                 threshold: float = 30.0, confirm_s: float = 0.04, min_evidence: float = 20.0,
+                 max_misfit: float = 9.0, scale_floor_m: float = 2e-4):
+        J = np.asarray(joints, dtype=int).reshape(-1, 2)
+        if J.size and (J.min() < 0 or J.max() >= n_sensors or (J[:, 0] == J[:, 1]).any()):
+            raise SlippageError(f"joints must be (child, parent) pairs of distinct sensor indices below {n_sensors}")
+        if not rate_hz > 0:
+            raise SlippageError(f"rate_hz must be positive, got {rate_hz!r}")
+        self.joints = J
+        self.m = int(n_sensors)
+        self.rate_hz = float(rate_hz)
+        self.names = tuple(str(x) for x in names) if names is not None else tuple(str(i) for i in range(self.m))
+        if len(self.names) != self.m:
+            raise SlippageError(f"{len(self.names)} names given for {self.m} sensors")
+        self.min_jump = float(min_jump_m)
+        self.warmup_s, self.baseline_s, self.lag_s, self.refresh_s = warmup_s, baseline_s, lag_s, refresh_s
+        self.kappa, self.z_cap, self.threshold = kappa, z_cap, threshold
+        self.confirm_frames = max(3, int(round(confirm_s * rate_hz)))
+        self.min_evidence, self.max_misfit, self.scale_floor = min_evidence, max_misfit, scale_floor_m
+        p = len(J)
+        cap = int(np.ceil((baseline_s + lag_s + 1.0) * rate_hz))
+        self._buf = _FrameBuffer(cap, self.m)
+        self._chunk = max(1, int(round(refresh_s * rate_hz)))
+        self.segment_start = np.full(p, np.nan)  # time each joint's current segment began
+        self.ready = np.zeros(p, dtype=bool)
+        self.base: Baseline | None = None
+        self._c_ref = np.full((p, 3), np.nan)
+        self._l_ref = np.full((p, 3), np.nan)
+        self._last_refresh = -np.inf
+        self.S = np.zeros(p)
+        self.onset = np.zeros(p, dtype=int)
+        self.events: list[SlipEvent | SwapEvent] = []
+
+    # -- public -------------------------------------------------------------------------------------
+    def update(self, times, rotations, positions, valid=None, c=None, l=None) -> list:
+        """Take a batch of frames and the current joint estimates; return the events confirmed now."""
+        R = np.asarray(rotations, dtype=float)
+        t = np.asarray(positions, dtype=float)
+        if R.ndim == 3:
+            R, t = R[None], t[None]
+        n = R.shape[0]
+        if R.shape != (n, self.m, 3, 3) or t.shape != (n, self.m, 3):
+            raise SlippageError(f"frames must be rotations (n, {self.m}, 3, 3) and positions (n, {self.m}, 3); "
+                                f"got {R.shape} and {t.shape}")
+        ts = np.atleast_1d(np.asarray(times, dtype=float))
+        if ts.shape != (n,):
+            raise SlippageError(f"times must have shape ({n},), got {ts.shape}")
+        v = np.ones((n, self.m), dtype=bool) if valid is None else np.asarray(valid, dtype=bool).reshape(n, self.m)
+        p = len(self.joints)
+        c = np.asarray(c, dtype=float).reshape(p, 3)
+        l = np.asarray(l, dtype=float).reshape(p, 3)
+        v = v & np.isfinite(R).all(axis=(2, 3)) & np.isfinite(t).all(axis=2)
+        R = np.where(v[..., None, None], R, 0.0)
+        t = np.where(v[..., None], t, 0.0)
+        if np.isnan(self.segment_start).all() and n:
+            self.segment_start[:] = ts[0]
+        out = []
+        for a in range(0, n, self._chunk):
+            b = min(n, a + self._chunk)
+            out += self._process(ts[a:b], R[a:b], t[a:b], v[a:b], c, l)
+        self.events += out
+        return out
+
+    # -- internals ----------------------------------------------------------------------------------
+    def _process(self, ts, R, t, v, c, l) -> list:
+        buf = self._buf
+        g0 = buf.append(ts, R, t, v)
+        now = float(ts[-1])
+        finite = np.isfinite(c).all(axis=1) & np.isfinite(l).all(axis=1)
+        moved = np.abs(c - self._c_ref).sum(axis=1) + np.abs(l - self._l_ref).sum(axis=1)
+        tol = 0.5 * (self.base.sigma if self.base is not None else np.zeros(len(c)))
+        if now - self._last_refresh >= self.refresh_s or np.any(~(moved <= tol) & finite):
+            self._refresh(now, c, l)
+        ready = self.ready & finite
+        u, w = sensor_frame_residuals(R, t, self.joints, np.where(finite[:, None], c, 0), np.where(finite[:, None], l, 0))
+        pv = v[:, self.joints[:, 0]] & v[:, self.joints[:, 1]]
+        base = self.base
+        d = deviation(u, w, base.base_u, base.base_w)
+        with np.errstate(invalid="ignore"):
+            z = (d - base.level) / base.scale
+        x = np.minimum(z, self.z_cap) - self.kappa
+        x = np.where(pv, x, 0.0)
+        x = np.where(ready[None, :], x, -1e9)
+        x = np.nan_to_num(x, nan=-1e9)
+        S, onset = cusum(x, self.S, self.onset, g0)
+        self.S, self.onset = S[-1].copy(), onset[-1].copy()
+        end = g0 + len(ts)
+        fired = ready & (self.S >= self.threshold) & (end - self.onset >= self.confirm_frames)
+        if not fired.any():
+            return []
+        start = int(self.onset[fired].min())
+        sl = buf.since(start)
+        att = attribute(buf.R[sl], buf.t[sl], buf.valid[sl], self.joints, c, l, base, ready, fired,
+                        self.m, self.min_jump, self.min_evidence, self.max_misfit)
+        if att.kind is None:
+            self.S[fired] = 0.0
+            return []
+        affected = np.asarray(att.joints, dtype=int)
+        mine = affected[fired[affected]]
+        t_onset = float(buf.times[buf.since(int(self.onset[mine].min() if mine.size else start))][0])
+        names = tuple(self.names[int(self.joints[j, 0])] for j in affected)
+        if att.kind == "slip":
+            ev = SlipEvent(t_onset, self.names[att.sensor], tuple(self.names[k] for k, _ in att.candidates),
+                           att.confidence, names, 1000.0 * att.jump_m, now, att.sensor, tuple(affected.tolist()))
+        else:
+            ev = SwapEvent(t_onset, self.names[att.sensor], self.names[att.other], names, 1000.0 * att.jump_m,
+                           att.confidence, now, (att.sensor, att.other), tuple(affected.tolist()))
+        self.segment_start[affected] = t_onset
+        self.ready[affected] = False
+        self.S[affected] = 0.0
+        self.S[fired] = 0.0
+        return [ev]
+
+    def _refresh(self, now: float, c, l) -> None:
+        """Recompute every joint's baseline with the current estimates from the lagged window."""
+        buf = self._buf
+        sl = buf.between(now - self.lag_s - self.baseline_s, now - self.lag_s)
+        R, t, v = buf.R[sl], buf.t[sl], buf.valid[sl]
+        times = buf.times[sl]
+        gidx = buf.global_index(sl)
+        cc = np.nan_to_num(c)
+        ll = np.nan_to_num(l)
+        u, w = sensor_frame_residuals(R, t, self.joints, cc, ll)
+        mask = v[:, self.joints[:, 0]] & v[:, self.joints[:, 1]]
+        mask &= times[:, None] >= self.segment_start[None, :]
+        # A run the CUSUM is still following may be the start of a slip: keep it out of the baseline.
+        mask &= ~((self.S > 0)[None, :] & (gidx[:, None] >= self.onset[None, :]))
+        self.base = robust_baseline(u, w, mask, self.scale_floor)
+        enough = self.base.frames >= 0.5 * min(self.warmup_s, self.baseline_s) * self.rate_hz
+        settled = now - self.segment_start >= self.warmup_s
+        self.ready = enough & settled & np.isfinite(self.base.level)
+        self._c_ref, self._l_ref = np.array(c, dtype=float), np.array(l, dtype=float)
+        self._last_refresh = now
+
+
+def detect_slips(take, calibration=None, *, joints=None, c=None, l=None, batch_s: float = 1 / 30,
+                 **options) -> list:
+    """Slip and swap events in a recorded take, replayed through a `SlipMonitor` in live-sized batches.
+
+    take: a `flockcal.takes.Take` (or anything with rotations, positions, rate_hz and optionally valid,
+    times, names). Joint estimates come from `calibration` (a `Calibration` or its design.md §5 dict)
+    or from `joints` (p, 2) with `c`, `l` (p, 3). A whole-take fit is blended across a slip; the
+    monitor's baselines are taken in both sensor frames of each joint, so the step still shows.
+    """
+    R = np.asarray(take.rotations, dtype=float)
+    t = np.asarray(take.positions, dtype=float)
+    n, m = R.shape[:2]
+    rate = float(take.rate_hz)
+    names = tuple(getattr(take, "names", None) or (str(i) for i in range(m)))
+    valid = getattr(take, "valid", None)
+    times = getattr(take, "times", None)
+    times = np.arange(n) / rate if times is None else np.asarray(times, dtype=float)
+    if calibration is not None:
+        joints, c, l = joints_from_calibration(calibration, names)
+    if joints is None or c is None or l is None:
+        raise SlippageError("detect_slips needs a calibration or joints with c and l (fit the take first)")
+    mon = SlipMonitor(joints, m, rate, names, **options)
+    step = max(1, int(round(batch_s * rate)))
+    for a in range(0, n, step):
+        b = min(n, a + step)
+        mon.update(times[a:b], R[a:b], t[a:b], None if valid is None else valid[a:b], c, l)
+    return mon.events
+
+
+def joints_from_calibration(calibration, names) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(joints (p, 2), c (p, 3), l (p, 3)) from a Calibration or its design.md §5 dict."""
+    d = calibration.to_dict() if hasattr(calibration, "to_dict") else calibration
+    try:
+        entries = d["joints"]
+    except (KeyError, TypeError):
+        raise SlippageError("the calibration has no 'joints' list (expected the `flockcal fit --json` shape)") from None
+    index = {n: i for i, n in enumerate(names)}
+    try:
+        J = np.array([[index[e["child"]], index[e["parent"]]] for e in entries], dtype=int).reshape(-1, 2)
+    except KeyError as exc:
+        raise SlippageError(f"the calibration names sensor {exc.args[0]!r}, which this take does not have") from None
+    c = np.array([e["c"] for e in entries], dtype=float).reshape(-1, 3)
+    l = np.array([e["l"] for e in entries], dtype=float).reshape(-1, 3)
+    return J, c, l
