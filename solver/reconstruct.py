@@ -167,21 +167,28 @@ def held_poses(rotations: np.ndarray, positions: np.ndarray, valid: np.ndarray |
     return R[source, cols], t[source, cols]
 
 
-def joint_separation(rotations, positions, art: Articulation, valid=None) -> np.ndarray:
-    """(n, m) world distance between the two bodies' copies of each tree joint (indexed by its child).
+def tree_residuals(rotations, positions, art: Articulation, valid=None) -> np.ndarray:
+    """(n, m, 3) e_k = R_j c_j + t_j − R_p l_j − t_p (world metres) for each tree joint, indexed by child.
 
-    This is ‖e_k‖ of design.md §1 for the tree joints; NaN at the root and where either sensor is invalid.
+    NaN at the root and where either sensor of the joint is invalid.
     """
     R = np.asarray(rotations, dtype=float)
     t = np.asarray(positions, dtype=float)
     par = np.maximum(art.parent, 0)
     e = np.einsum("nmab,mb->nma", R, art.c) + t - np.einsum("nmab,mb->nma", R[:, par], art.l) - t[:, par]
-    sep = np.linalg.norm(e, axis=-1)
-    sep[:, art.parent < 0] = np.nan
+    e[:, art.parent < 0] = np.nan
     if valid is not None:
         valid = np.asarray(valid, dtype=bool)
-        sep[~(valid & valid[:, par])] = np.nan
-    return sep
+        e[~(valid & valid[:, par])] = np.nan
+    return e
+
+
+def joint_separation(rotations, positions, art: Articulation, valid=None) -> np.ndarray:
+    """(n, m) world distance between the two bodies' copies of each tree joint (indexed by its child).
+
+    This is ‖e_k‖ of design.md §1 for the tree joints; NaN at the root and where either sensor is invalid.
+    """
+    return np.linalg.norm(tree_residuals(rotations, positions, art, valid), axis=-1)
 
 
 @dataclass(frozen=True)

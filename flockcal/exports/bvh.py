@@ -27,8 +27,8 @@ _EULER_SEQ = "ZXY"
 # Rotations taking the tracker's world frame to BVH's Y-up frame, keyed by the tracker's up axis.
 UP_AXES = {
     "+y": np.eye(3),
-    "+z": np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]]),  # Z-up (simulator, most labs)
-    "-z": np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]),  # Z-down (Flock of Birds' native frame)
+    "+z": np.array([[1.0, 0, 0], [0, 0, 1], [0, -1, 0]]),  # Z-up (many optical labs)
+    "-z": np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]]),  # Z-down: the Flock's transmitter frame, the simulator's
 }
 
 
@@ -125,7 +125,7 @@ def hierarchy_text(art: Articulation, scale: float, names: list[str] | None = No
     return "\n".join(lines) + "\n"
 
 
-def bvh_text(calibration, take, *, units: str = "cm", up: str = "+z") -> str:
+def bvh_text(calibration, take, *, units: str = "cm", up: str = "-z") -> str:
     """The BVH file for `take` (a flockcal.takes.Take) played through `calibration` (a Calibration or its
     §5 dict, or an Articulation). `up` names the tracker world's up axis; the file is Y-up."""
     if units not in UNITS_PER_METRE:

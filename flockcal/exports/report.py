@@ -1,0 +1,280 @@
+"""One self-contained HTML report of a calibration: skeleton drawing, bones, topology, per-joint residual
+plots and histograms (the paper's figures 6–8), coverage and slip events. Figures are base64 PNG data
+URIs, so the page is a single file that opens anywhere.
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import os
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from flockcal.solver.reconstruct import Articulation, articulation, reconstruct, tree_residuals
+
+MAX_PLOT_POINTS = 4000  # per joint trace: enough to see every burst, small enough to draw quickly
+
+CSS = """
+body{font:14px/1.45 system-ui,sans-serif;margin:2em auto;max-width:1100px;color:#222;padding:0 1em}
+h1{font-size:1.6em;margin-bottom:.2em} h2{margin-top:1.8em;border-bottom:1px solid #ccc}
+table{border-collapse:collapse;margin:.5em 0} td,th{padding:2px 10px;border-bottom:1px solid #eee;text-align:right}
+th{background:#f4f4f4} td.name,th.name{text-align:left} .meta{color:#666}
+.bar{display:inline-block;height:10px;background:#3a7;vertical-align:middle}
+.barbox{display:inline-block;width:60px;background:#eee;margin-right:4px}
+img{max-width:100%;border:1px solid #ddd} ul.tree{list-style:none;padding-left:1.2em} .warn{color:#b40}
+"""
+
+
+def _png(fig) -> str:
+    """The figure as a data: URI (and the figure closed, so long reports do not pile up memory)."""
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+    plt.close(fig)
+    return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
+
+
+def _img(uri: str, alt: str) -> str:
+    return f'<img alt="{html.escape(alt)}" src="{uri}">'
+
+
+def _pose_frame(valid: np.ndarray) -> int:
+    """A frame to draw: the middle of the take, moved to the nearest frame where every sensor is valid."""
+    n = len(valid)
+    full = np.flatnonzero(valid.all(axis=1))
+    if not len(full):
+        return n // 2
+    return int(full[np.argmin(np.abs(full - n // 2))])
+
+
+def skeleton_figure(rec, frame: int, world: np.ndarray) -> str:
+    """Three orthographic views of the reconstructed pose at `frame`: bones solid, sensor offsets dashed.
+
+    `world` turns tracker coordinates into a Y-up frame (see `bvh.bvh_world`): x, up, z.
+    """
+    import matplotlib.pyplot as plt
+
+    art = rec.articulation
+    J = rec.joint_positions[frame] @ world.T
+    S = rec.sensor_positions[frame] @ world.T
+    views = [("front (z, up)", 2, 1), ("side (x, up)", 0, 1), ("top (x, z)", 0, 2)]
+    fig, axes = plt.subplots(1, 3, figsize=(12, 4.4))
+    for ax, (title, a, b) in zip(axes, views):
+        for j in art.order[1:]:
+            p = art.parent[j]
+            ax.plot([J[p, a], J[j, a]], [J[p, b], J[j, b]], "-", color="#246", lw=2.5)
+        for j in range(art.n_bodies):
+            ax.plot([J[j, a], S[j, a]], [J[j, b], S[j, b]], "--", color="#c63", lw=0.8)
+        ax.plot(J[:, a], J[:, b], "o", color="#246", ms=4)
+        ax.plot(S[:, a], S[:, b], "s", color="#c63", ms=3)
+        for j, name in enumerate(art.names):
+            ax.annotate(name, (J[j, a], J[j, b]), fontsize=7, xytext=(3, 3), textcoords="offset points")
+        ax.set_title(title, fontsize=10)
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.grid(alpha=0.3)
+    fig.suptitle(f"reconstructed pose at frame {frame} (joints ●, sensors ■)", fontsize=11)
+    return _png(fig)
+
+
+def _grid(k: int):
+    import matplotlib.pyplot as plt
+
+    cols = 3 if k > 4 else max(k, 1)
+    rows = max(1, -(-k // cols))
+    fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 2.3 * rows), squeeze=False)
+    for ax in axes.flat[k:]:
+        ax.axis("off")
+    return fig, axes.flat
+
+
+def residual_time_figure(times, e, joints, names) -> str:
+    """Per joint: residual components and magnitude (mm) against time (paper figs 6–7)."""
+    fig, axes = _grid(len(joints))
+    step = max(1, len(times) // MAX_PLOT_POINTS)
+    t = times[::step]
+    for ax, j in zip(axes, joints):
+        ej = e[::step, j] * 1000
+        for k, (axis, colour) in enumerate(zip("xyz", ("#d55", "#5a5", "#55d"))):
+            ax.plot(t, ej[:, k], lw=0.6, color=colour, label=axis)
+        ax.plot(t, np.linalg.norm(ej, axis=1), lw=0.9, color="k", label="|e|")
+        ax.set_title(f"{names[j]}", fontsize=9)
+        ax.tick_params(labelsize=7)
+        ax.grid(alpha=0.3)
+    axes[0].legend(fontsize=6, ncol=4, loc="upper right")
+    fig.supxlabel("time (s)", fontsize=9)
+    fig.supylabel("residual (mm)", fontsize=9)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def residual_histogram_figure(sep, joints, names) -> str:
+    """Per joint: histogram of the residual magnitude (mm) over all frames (paper fig 8)."""
+    fig, axes = _grid(len(joints))
+    for ax, j in zip(axes, joints):
+        s = sep[:, j]
+        s = s[np.isfinite(s)] * 1000
+        if len(s):
+            ax.hist(s, bins=40, color="#468")
+            ax.axvline(np.sqrt(np.mean(s**2)), color="#c33", lw=1)
+        ax.set_title(f"{names[j]}", fontsize=9)
+        ax.tick_params(labelsize=7)
+    fig.supxlabel("|residual| (mm); red line: rms", fontsize=9)
+    fig.supylabel("frames", fontsize=9)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def _fmt(x, scale=1.0, digits=1) -> str:
+    if x is None or (isinstance(x, float) and not np.isfinite(x)):
+        return "–"
+    return f"{float(x) * scale:.{digits}f}"
+
+
+def _tree_html(art: Articulation, rms_by_child: dict[str, float]) -> str:
+    def node(i: int) -> str:
+        name = html.escape(art.names[i])
+        label = name if art.parent[i] < 0 else f"{name} <span class=meta>(joint rms {_fmt(rms_by_child.get(art.names[i]), 1000, 2)} mm)</span>"
+        kids = "".join(node(k) for k in art.children(i))
+        return f"<li>{label}{f'<ul class=tree>{kids}</ul>' if kids else ''}</li>"
+
+    return f"<ul class=tree>{node(art.root)}</ul>"
+
+
+def _bars(cov) -> str:
+    if cov is None:
+        return "–"
+    return "".join(
+        f'<span class=barbox title="{float(v):.2f}"><span class=bar style="width:{60 * min(max(float(v), 0), 1):.0f}px"></span></span>'
+        for v in cov
+    )
+
+
+def _find_slips(take, d: dict) -> list[dict]:
+    """Slip events: the calibration's own, else the slippage detector's if that module is installed."""
+    if d.get("slip_events"):
+        return list(d["slip_events"])
+    try:
+        from flockcal.solver.slippage import detect_slips
+    except ImportError:
+        return []
+    try:
+        events = detect_slips(take.rotations, take.positions, valid=take.valid, times=take.times, names=take.names)
+    except TypeError:
+        return []  # a detector with another signature: leave slips out rather than guess
+    return [e.to_dict() if hasattr(e, "to_dict") else dict(e) for e in events]
+
+
+def report_html(
+    calibration, take, *, title: str | None = None, source: str | None = None, slips=None, up: str = "-z"
+) -> str:
+    """The report page for `take` (a flockcal.takes.Take) fitted as `calibration` (Calibration or its
+    §5 dict). `slips` overrides the slip events (list of §5 slip dicts); `up` is the world's up axis."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from flockcal.exports.bvh import bvh_world
+
+    d = calibration.to_dict() if hasattr(calibration, "to_dict") else dict(calibration)
+    art = articulation(d).reordered(take.names)
+    names = art.names
+    e = tree_residuals(take.rotations, take.positions, art, take.valid)
+    sep = np.linalg.norm(e, axis=-1)
+    rec = reconstruct(take.rotations, take.positions, art, take.valid)
+    joints = [int(j) for j in art.order[1:]]
+    by_child = {j["child"]: j for j in d.get("joints", [])}
+    rms_by_child = {names[j]: float(np.sqrt(np.nanmean(sep[:, j] ** 2))) for j in joints}
+    slips = _find_slips(take, d) if slips is None else list(slips)
+    duration = float(take.times[-1] - take.times[0]) if take.n_frames > 1 else 0.0
+    title = title or f"flockcal calibration report{f' — {source}' if source else ''}"
+
+    parts = [
+        "<!doctype html><html lang=en><head><meta charset=utf-8>",
+        f"<title>{html.escape(title)}</title><style>{CSS}</style></head><body>",
+        f"<h1>{html.escape(title)}</h1>",
+        f"<p class=meta>{take.n_frames} frames, {duration:.1f} s at {take.rate_hz:g} Hz, {len(names)} sensors; "
+        f"root {html.escape(names[art.root])}; {100 * float(take.valid.mean()):.1f}% of sensor-frames valid; "
+        f"made {datetime.now(timezone.utc).isoformat(timespec='seconds')}</p>",
+        "<h2>Skeleton</h2>",
+        _img(skeleton_figure(rec, _pose_frame(take.valid), bvh_world(up)), "skeleton drawing"),
+        "<h2>Topology</h2>",
+        _tree_html(art, rms_by_child),
+    ]
+    loops = d.get("loop_candidates") or []
+    if loops:
+        parts.append("<p>Loop candidates (non-tree pairs that fit as well as tree joints):</p><table><tr><th class=name>a</th><th class=name>b</th><th>rms (mm)</th></tr>")
+        parts += [f"<tr><td class=name>{html.escape(x['a'])}</td><td class=name>{html.escape(x['b'])}</td><td>{_fmt(x.get('rms_m'), 1000, 2)}</td></tr>" for x in loops]
+        parts.append("</table>")
+
+    parts.append("<h2>Bones</h2><table><tr><th class=name>body</th><th class=name>from joint</th><th class=name>to joint</th><th>length (cm)</th><th>std err (mm)</th></tr>")
+    from flockcal.solver.known_skeleton import bones as bones_of
+
+    for b in d.get("bones") or bones_of(art):
+        parts.append(
+            f"<tr><td class=name>{html.escape(str(b['body']))}</td><td class=name>{html.escape(str(b.get('from_joint')))}</td>"
+            f"<td class=name>{html.escape(str(b['to_joint']))}</td><td>{_fmt(b.get('length_m'), 100, 2)}</td><td>{_fmt(b.get('stderr_m'), 1000, 2)}</td></tr>"
+        )
+    parts.append("</table>")
+
+    parts.append(
+        "<h2>Joints and sensor placement</h2><table><tr><th class=name>joint (child)</th><th class=name>parent</th>"
+        "<th>rms (mm)</th><th>max (mm)</th><th>ε (mm)</th><th>sensor→joint (cm)</th><th>c std err (mm)</th>"
+        "<th class=name>hinge</th><th class=name>coverage (3 axes)</th></tr>"
+    )
+    for j in joints:
+        info = by_child.get(names[j], {})
+        s = sep[:, j]
+        worst = float(np.nanmax(s)) if np.isfinite(s).any() else float("nan")
+        hinge = "yes" if info.get("hinge") else "no"
+        parts.append(
+            f"<tr><td class=name>{html.escape(names[j])}</td><td class=name>{html.escape(names[art.parent[j]])}</td>"
+            f"<td>{_fmt(rms_by_child[names[j]], 1000, 2)}</td><td>{_fmt(worst, 1000, 2)}</td>"
+            f"<td>{_fmt(info.get('epsilon'), 1000, 4)}</td><td>{_fmt(float(np.linalg.norm(art.c[j])), 100, 2)}</td>"
+            f"<td>{_fmt(info.get('c_stderr_m'), 1000, 2)}</td><td class=name>{hinge}</td>"
+            f"<td class=name>{_bars(info.get('coverage'))}</td></tr>"
+        )
+    parts.append("</table><p class=meta>Coverage: 1 − σ of the mean relative rotation about each principal axis; "
+                 "an empty bar means that joint was never turned about that axis, so move it more.</p>")
+
+    if joints:
+        parts += [
+            "<h2>Residuals over time</h2><p class=meta>e = R<sub>child</sub> c + t<sub>child</sub> − R<sub>parent</sub> l − t<sub>parent</sub>, world axes (paper figs 6–7).</p>",
+            _img(residual_time_figure(take.times, e, joints, names), "residuals over time"),
+            "<h2>Residual magnitude histograms</h2><p class=meta>Paper fig 8.</p>",
+            _img(residual_histogram_figure(sep, joints, names), "residual histograms"),
+        ]
+
+    parts.append("<h2>Coverage of the data</h2><table><tr><th class=name>sensor</th><th>valid frames</th><th>longest gap (s)</th></tr>")
+    for i, name in enumerate(names):
+        v = take.valid[:, i]
+        gaps = np.diff(np.flatnonzero(np.concatenate([[True], v, [True]]))) - 1
+        gap_s = (gaps.max() if len(gaps) else 0) / take.rate_hz
+        parts.append(f"<tr><td class=name>{html.escape(name)}</td><td>{100 * v.mean():.1f}%</td><td>{gap_s:.2f}</td></tr>")
+    parts.append("</table>")
+
+    parts.append("<h2>Slip events</h2>")
+    if slips:
+        parts.append("<table><tr><th>time (s)</th><th class=name>sensor</th><th class=name>joints</th><th>jump (mm)</th></tr>")
+        for s in slips:
+            parts.append(
+                f"<tr><td>{_fmt(s.get('time_s'), 1, 2)}</td><td class="name warn">{html.escape(str(s.get('sensor')))}</td>"
+                f"<td class=name>{html.escape(', '.join(map(str, s.get('joints', []))))}</td><td>{_fmt(s.get('jump_mm'), 1, 1)}</td></tr>"
+            )
+        parts.append("</table>")
+    else:
+        parts.append("<p>None detected.</p>")
+    parts.append("</body></html>\n")
+    return "\n".join(parts)
+
+
+def write_report(path: str | os.PathLike, calibration, take, **options) -> None:
+    """Write the report page to `path` (atomically)."""
+    path = Path(path)
+    text = report_html(calibration, take, **options)
+    tmp = path.with_name(path.name + ".part")
+    tmp.write_text(text, encoding="utf-8")
+    os.replace(tmp, path)

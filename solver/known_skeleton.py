@@ -1,0 +1,234 @@
+"""Fit a take with a saved skeleton: topology and bone lengths fixed, only sensor placements move.
+
+Each body's saved joint points are moved as one rigid piece into the new take's sensor frame: a
+Procrustes start from the free per-joint fits, then Gauss–Newton on the exact least-squares cost of all
+tree joints (read from the Gram normal equations), so bones stay the saved ones to rounding.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from flockcal.solver.reconstruct import Articulation, ArticulationError
+
+
+def _skew(v: np.ndarray) -> np.ndarray:
+    """(…, 3, 3) cross-product matrices [v]×."""
+    z = np.zeros(v.shape[:-1])
+    x, y, w = v[..., 0], v[..., 1], v[..., 2]
+    return np.stack([np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2)
+
+
+def body_points(art: Articulation) -> list[tuple[list[int], np.ndarray]]:
+    """Per body: the joints (named by child index) it holds and their centres (k, 3) in its frame."""
+    out = []
+    for b in range(art.n_bodies):
+        joints = ([b] if art.parent[b] >= 0 else []) + art.children(b)
+        pts = [art.c[b]] if art.parent[b] >= 0 else []
+        pts += [art.l[k] for k in art.children(b)]
+        out.append((joints, np.array(pts).reshape(-1, 3)))
+    return out
+
+
+def bones(art: Articulation, stderr: dict[tuple[str, str | None], float] | None = None) -> list[dict]:
+    """design.md §5 `bones`: per body, inboard joint to each outboard joint (root: pairs of outboard joints)."""
+    out = []
+    names = art.names
+    for b in art.order:
+        b = int(b)
+        kids = art.children(b)
+        if art.parent[b] >= 0:
+            spans = [(b, art.c[b], k, art.l[k]) for k in kids]
+        else:
+            spans = [(k1, art.l[k1], k2, art.l[k2]) for n1, k1 in enumerate(kids) for k2 in kids[n1 + 1 :]]
+        for a, pa, k, pk in spans:
+            key = (names[a], names[k])
+            out.append(
+                {
+                    "body": names[b],
+                    "from_joint": names[a],
+                    "to_joint": names[k],
+                    "length_m": float(np.linalg.norm(pk - pa)),
+                    "stderr_m": float((stderr or {}).get(key, float("nan"))),
+                }
+            )
+    return out
+
+
+def rigid_fit(old: np.ndarray, new: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Rotation Q and shift s minimising Σ‖Q old + s − new‖² (Kabsch); Q = I for a single point."""
+    if len(old) < 2:
+        return np.eye(3), (new - old).mean(axis=0) if len(old) else np.zeros(3)
+    po, pn = old.mean(axis=0), new.mean(axis=0)
+    U, _, Vt = np.linalg.svd((old - po).T @ (new - pn))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T)) or 1.0])
+    Q = Vt.T @ D @ U.T
+    return Q, pn - Q @ po
+
+
+@dataclass(frozen=True)
+class KnownFit:
+    """A take fitted with a saved skeleton; `to_dict()` is the design.md §5 fit JSON."""
+
+    articulation: Articulation  # saved bones, this take's placements
+    frames: int
+    rms: np.ndarray  # (m,) per tree joint (indexed by child; NaN at the root), metres
+    epsilon: np.ndarray  # (m,)
+    rms_free: np.ndarray  # (m,) the same joint fitted freely: a much smaller value says the skeleton no longer fits
+    iterations: int
+    joint_info: dict = field(default_factory=dict)  # child name -> extra §5 joint fields (coverage, hinge, …)
+    bone_stderr: dict = field(default_factory=dict)
+
+    def to_dict(self) -> dict:
+        art = self.articulation
+        names = art.names
+        joints = []
+        for j in art.order[1:]:
+            j = int(j)
+            entry = {
+                "child": names[j],
+                "parent": names[art.parent[j]],
+                "c": art.c[j].tolist(),
+                "l": art.l[j].tolist(),
+                "rms_m": float(self.rms[j]),
+                "epsilon": float(self.epsilon[j]),
+                "rms_free_m": float(self.rms_free[j]),
+            }
+            entry.update(self.joint_info.get(names[j], {}))
+            joints.append(entry)
+        return {
+            "sensors": list(names),
+            "root": names[art.root],
+            "parent": {names[j]: names[art.parent[j]] for j in art.order[1:]},
+            "frames": int(self.frames),
+            "joints": joints,
+            "bones": bones(art, self.bone_stderr),
+            "loop_candidates": [],
+            "slip_events": [],
+            "known_skeleton": True,
+        }
+
+
+def _joint_sse(A, b, dd, u):
+    return np.einsum("pi,pij,pj->p", u, A, u) - 2 * np.einsum("pi,pi->p", b, u) + dd
+
+
+def fit_known_skeleton(
+    acc,
+    saved: Articulation,
+    names,
+    iterations: int = 20,
+    bone_stderr: dict | None = None,
+) -> KnownFit:
+    """Fit the accumulated take (sensor order `names`) with `saved`'s topology and bone lengths.
+
+    `acc` is a `GramAccumulator`; only its normal equations for the tree joints are read, so this costs
+    a handful of 6m×6m solves whatever the take's length.
+    """
+    from flockcal.solver.fits import pair_fits  # the solver core; imported here to keep this module light
+
+    art = saved.reordered(names)
+    m = art.n_bodies
+    if acc.n_sensors != m:
+        raise ArticulationError(f"the accumulator has {acc.n_sensors} sensors, the skeleton {m}")
+    child = np.array([int(j) for j in art.order[1:]])
+    par = art.parent[child]
+    pairs = np.stack([child, par], axis=1)
+    A, bvec, dd, nfr = (np.asarray(x, dtype=float) for x in acc.normal_equations(pairs))
+    if np.any(nfr < 1):
+        lacking = [art.names[j] for j, k in zip(child, nfr) if k < 1]
+        raise ArticulationError(f"no frame has both sensors of joint(s) {', '.join(lacking)} valid")
+    free = pair_fits(acc, pairs)
+    free_c = np.asarray(free.c, dtype=float)
+    free_l = np.asarray(free.l, dtype=float)
+
+    # Procrustes start: each body's saved joint points onto the same joints of the free fit.
+    row = {int(j): r for r, j in enumerate(child)}
+    Q = np.broadcast_to(np.eye(3), (m, 3, 3)).copy()
+    s = np.zeros((m, 3))
+    for bdy, (joints, old) in enumerate(body_points(art)):
+        new = np.array([free_c[row[k]] if k == bdy else free_l[row[k]] for k in joints]).reshape(-1, 3)
+        Q[bdy], s[bdy] = rigid_fit(old, new)
+
+    def placed(Q, s):
+        c = np.einsum("pab,pb->pa", Q[child], art.c[child]) + s[child]
+        l = np.einsum("pab,pb->pa", Q[par], art.l[child]) + s[par]
+        return c, l
+
+    def cost(Q, s):
+        c, l = placed(Q, s)
+        return _joint_sse(A, bvec, dd, np.concatenate([c, l], axis=1))
+
+    # Gauss–Newton on Σ SSE_j over per-body rigid motions (ω, δs); the cost is exactly quadratic in the
+    # joint points, so only the rotations' curvature is linearised. Minimum-norm steps leave the free
+    # directions (a leaf spinning about its one joint, hinge axes) where Procrustes put them.
+    sse = cost(Q, s)
+    done = 0
+    for done in range(1, iterations + 1):
+        c, l = placed(Q, s)
+        Qc = c - s[child]
+        Ql = l - s[par]
+        Jc = np.concatenate([-_skew(Qc), np.broadcast_to(np.eye(3), Qc.shape + (3,))], axis=2)  # (p, 3, 6)
+        Jl = np.concatenate([-_skew(Ql), np.broadcast_to(np.eye(3), Ql.shape + (3,))], axis=2)
+        r = np.einsum("pij,pj->pi", A, np.concatenate([c, l], axis=1)) - bvec  # ½ gradient in u
+        H = np.zeros((m, m, 6, 6))
+        g = np.zeros((m, 6))
+        Acc, Acl, All = A[:, :3, :3], A[:, :3, 3:], A[:, 3:, 3:]
+        np.add.at(H, (child, child), np.swapaxes(Jc, 1, 2) @ Acc @ Jc)
+        np.add.at(H, (par, par), np.swapaxes(Jl, 1, 2) @ All @ Jl)
+        cross = np.swapaxes(Jc, 1, 2) @ Acl @ Jl
+        np.add.at(H, (child, par), cross)
+        np.add.at(H, (par, child), np.swapaxes(cross, 1, 2))
+        np.add.at(g, child, np.einsum("pia,pi->pa", Jc, r[:, :3]))
+        np.add.at(g, par, np.einsum("pia,pi->pa", Jl, r[:, 3:]))
+        Hf = H.transpose(0, 2, 1, 3).reshape(6 * m, 6 * m)
+        step = np.linalg.lstsq(Hf, -g.reshape(-1), rcond=1e-10)[0].reshape(m, 6)
+        improved = False
+        for shrink in (1.0, 0.5, 0.25, 0.125):
+            dQ = Rotation.from_rotvec(shrink * step[:, :3]).as_matrix()
+            Qn, sn = dQ @ Q, s + shrink * step[:, 3:]
+            new = cost(Qn, sn)
+            if new.sum() <= sse.sum():
+                improved = sse.sum() - new.sum() > 1e-12 * max(sse.sum(), 1e-30)
+                Q, s, sse = Qn, sn, new
+                break
+        if not improved:
+            break
+
+    c, l = placed(Q, s)
+    C = np.zeros((m, 3))
+    L = np.zeros((m, 3))
+    C[child], L[child] = c, l
+    fitted = Articulation(art.names, art.parent, C, L, art.order)
+    rms = np.full(m, np.nan)
+    eps = np.full(m, np.nan)
+    rms_free = np.full(m, np.nan)
+    sse = np.maximum(sse, 0.0)
+    rms[child] = np.sqrt(sse / nfr)
+    eps[child] = np.sqrt(sse) / nfr
+    rms_free[child] = np.asarray(free.rms, dtype=float)
+    info = {}
+    for r_, j in enumerate(child):
+        extra = {}
+        for key, attr in (
+            ("singular_values", "singular_values"),
+            ("hinge", "hinge"),
+            ("axis_child", "axis_i"),
+            ("axis_parent", "axis_j"),
+            ("coverage", "coverage"),
+            ("c_stderr_m", "c_stderr"),
+            ("l_stderr_m", "l_stderr"),
+        ):
+            value = getattr(free, attr, None)
+            if value is None:
+                continue
+            v = np.asarray(value)[r_]
+            if key.startswith("axis") and not np.all(np.isfinite(v)):
+                extra[key] = None
+            else:
+                extra[key] = v.tolist() if np.ndim(v) else (bool(v) if v.dtype == bool else float(v))
+        info[art.names[j]] = extra
+    return KnownFit(fitted, int(acc.frames), rms, eps, rms_free, done, info, dict(bone_stderr or {}))
