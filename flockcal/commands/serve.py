@@ -1,0 +1,95 @@
+"""`flockcal serve`: the live calibration service (REST API, websocket, dashboard) under uvicorn.
+
+With no --device it runs the built-in simulator, so it works on a machine with no tracker attached.
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import os
+from pathlib import Path
+
+from flockcal.errors import UserError
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "serve",
+        help="run the live calibration service (dashboard, REST API, websocket)",
+        description="Run the live calibration service: reads the tracker, fits the skeleton live, "
+                    "serves a dashboard at / and the API at /api (docs at /docs).",
+    )
+    p.add_argument("--device", metavar="URL", help="tracker pyserial URL or device path "
+                   "(/dev/ttyUSB0, socket://host:port, rfc2217://…); default: the built-in simulator")
+    p.add_argument("--birds", type=int, default=16, help="number of sensors (default 16)")
+    p.add_argument("--rate", type=float, metavar="HZ", help="measurement rate to ask the tracker for")
+    p.add_argument("--host", default="127.0.0.1", help="address to listen on (default 127.0.0.1; "
+                   "any other address needs --token)")
+    p.add_argument("--http-port", type=int, default=8750, help="HTTP port (default 8750)")
+    p.add_argument("--data-dir", type=Path, help="sessions database and recordings "
+                   "(default $XDG_DATA_HOME/flockcal or ~/.local/share/flockcal)")
+    p.add_argument("--token", help="admin token: every mutating request needs 'Authorization: Bearer TOKEN' "
+                   "(also read from $FLOCKCAL_TOKEN)")
+    p.add_argument("--read-token", help="read-only token for dashboards (GET and the websocket)")
+    p.add_argument("--kiosk-token", help="token that can read and start/stop sessions, nothing else")
+    p.add_argument("--names", help="comma-separated sensor names, one per bird (default: the simulator's "
+                   "body names for sim://, else bird1..birdN)")
+    p.add_argument("--fit-hz", type=float, default=30.0, help="full refits per second (default 30)")
+    p.add_argument("--cors-origin", action="append", default=[], metavar="ORIGIN",
+                   help="allow browser pages from this origin (repeatable; CORS is closed by default)")
+    p.set_defaults(func=run)
+
+
+def settings_from_args(args: argparse.Namespace):
+    from flockcal.server.settings import Settings, default_data_dir
+
+    names = tuple(x.strip() for x in args.names.split(",")) if args.names else None
+    return Settings(
+        device=args.device,
+        birds=args.birds,
+        rate_hz=args.rate,
+        host=args.host,
+        http_port=args.http_port,
+        data_dir=args.data_dir or default_data_dir(),
+        token=args.token or os.environ.get("FLOCKCAL_TOKEN") or None,
+        read_token=args.read_token or os.environ.get("FLOCKCAL_READ_TOKEN") or None,
+        kiosk_token=args.kiosk_token or os.environ.get("FLOCKCAL_KIOSK_TOKEN") or None,
+        names=names,
+        fit_hz=args.fit_hz,
+        cors_origins=tuple(args.cors_origin),
+    )
+
+
+def run(args: argparse.Namespace) -> int:
+    import uvicorn
+
+    from flockcal.server.app import create_app
+    from flockcal.server.errors import ConfigError
+
+    try:
+        settings = settings_from_args(args).check()
+    except ConfigError as exc:
+        raise UserError(str(exc)) from None
+    try:
+        settings.data_dir.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:
+        raise UserError(f"cannot create the data directory {settings.data_dir}: {exc.strerror}; pick another with --data-dir") from None
+    app = create_app(settings)
+    host = f"[{settings.host}]" if ":" in settings.host else settings.host
+    log = logging.getLogger("flockcal.serve")
+    logging.getLogger("flockcal").setLevel(logging.INFO)
+    base = f"http://{host}:{settings.http_port}"
+    print(f"flockcal serve: tracker {settings.device_url}", flush=True)
+    print(f"flockcal serve: dashboard {base}/   kiosk {base}/kiosk   API docs {base}/docs", flush=True)
+    print(f"flockcal serve: data in {settings.data_dir}", flush=True)
+    log.info("listening on %s", base)
+    config = uvicorn.Config(app, host=settings.host, port=settings.http_port, log_level="warning",
+                            ws_max_size=64 * 1024, lifespan="on")
+    server = uvicorn.Server(config)
+    try:
+        server.run()
+    except OSError as exc:
+        raise UserError(f"cannot listen on {settings.host}:{settings.http_port}: {exc.strerror}; "
+                        "choose another --http-port") from None
+    return 0

@@ -1,0 +1,179 @@
+"""The FastAPI application: routers, error replies a person can act on, body limits, CORS, pages.
+
+`create_app(settings)` builds the app and its Service (started and stopped by the app's lifespan);
+`flockcal serve` runs it under uvicorn, tests run it on a free loopback port.
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import logging
+from contextlib import asynccontextmanager
+from pathlib import Path
+
+from fastapi import FastAPI, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.middleware.cors import CORSMiddleware
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
+from fastapi.staticfiles import StaticFiles
+from starlette.exceptions import HTTPException as StarletteHTTPException
+
+from flockcal import __version__
+from flockcal.server.errors import ServerError
+from flockcal.server.settings import Settings
+
+log = logging.getLogger(__name__)
+
+STATIC = Path(__file__).with_name("static")
+
+PLACEHOLDER = """<!doctype html><meta charset="utf-8"><title>flockcal</title>
+<h1>flockcal is running</h1><p>The {what} page is not installed. The API is described at
+<a href="/docs">/docs</a>; live data streams from <code>/ws/live</code>.</p>"""
+
+
+def _error(status: int, message: str, code: str, headers: dict | None = None) -> JSONResponse:
+    return JSONResponse({"detail": message, "error": code}, status_code=status, headers=headers)
+
+
+def _validation_message(exc: RequestValidationError) -> tuple[int, str]:
+    errors = exc.errors()
+    for e in errors:
+        if e.get("type") == "json_invalid":
+            ctx = e.get("ctx") or {}
+            return 400, f"the request body is not valid JSON ({ctx.get('error', 'parse error')}); send a JSON object"
+    parts = []
+    for e in errors[:5]:
+        loc = ".".join(str(x) for x in e.get("loc", ()) if x != "body") or "body"
+        msg = e.get("msg", "invalid")
+        if e.get("type") == "extra_forbidden":
+            msg = "unknown field; remove it (see /docs for the fields this request takes)"
+        elif e.get("type") == "string_pattern_mismatch":
+            msg = "only letters, digits, space, _ . - are allowed (1–64 characters, starting with a letter or digit)"
+        parts.append(f"{loc}: {msg}")
+    more = f" (and {len(errors) - 5} more)" if len(errors) > 5 else ""
+    return 422, "invalid request — " + "; ".join(parts) + more
+
+
+class BodyLimit:
+    """Refuse request bodies over `limit` bytes with 413, whether Content-Length says so or not."""
+
+    def __init__(self, app, limit: int):
+        self.app = app
+        self.limit = limit
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http":
+            return await self.app(scope, receive, send)
+        headers = dict(scope.get("headers") or [])
+        length = headers.get(b"content-length")
+        too_big = _error(413, f"request body too large (limit {self.limit} bytes)", "too_large")
+        if length is not None:
+            try:
+                if int(length) > self.limit:
+                    return await too_big(scope, receive, send)
+            except ValueError:
+                return await _error(400, "bad Content-Length header", "bad_request")(scope, receive, send)
+        seen = 0
+
+        async def limited_receive():
+            nonlocal seen
+            message = await receive()
+            if message["type"] == "http.request":
+                seen += len(message.get("body", b""))
+                if seen > self.limit:
+                    raise _TooLarge()
+            return message
+
+        started = False
+
+        async def tracking_send(message):
+            nonlocal started
+            if message["type"] == "http.response.start":
+                started = True
+            await send(message)
+
+        try:
+            await self.app(scope, limited_receive, tracking_send)
+        except _TooLarge:
+            if not started:
+                await too_big(scope, receive, send)
+
+
+class _TooLarge(Exception):
+    pass
+
+
+def create_app(settings: Settings, service=None) -> FastAPI:
+    """The app; `service` may be given (tests), else one is built from `settings` at startup."""
+    from flockcal.server.routes import live, sessions, simulator, status
+    from flockcal.server.service import Service
+
+    settings = settings.check()
+
+    @asynccontextmanager
+    async def lifespan(app: FastAPI):
+        svc = service or Service(settings)
+        app.state.service = svc
+        svc.hub.bind(asyncio.get_running_loop())
+        if not svc.started:
+            svc.start()
+        try:
+            yield
+        finally:
+            await asyncio.get_running_loop().run_in_executor(None, svc.stop)
+
+    app = FastAPI(
+        title="flockcal",
+        version=__version__,
+        description="Live skeleton calibration for 6-DOF magnetic trackers. "
+                    "Live data: websocket /ws/live (protocol in the README's server section).",
+        lifespan=lifespan,
+    )
+    app.state.settings = settings
+
+    @app.exception_handler(ServerError)
+    async def _server_error(request: Request, exc: ServerError):
+        headers = {"WWW-Authenticate": "Bearer"} if exc.status == 401 else None
+        return _error(exc.status, str(exc), exc.code, headers)
+
+    @app.exception_handler(RequestValidationError)
+    async def _invalid(request: Request, exc: RequestValidationError):
+        status, message = _validation_message(exc)
+        return _error(status, message, "invalid_json" if status == 400 else "invalid_request")
+
+    @app.exception_handler(StarletteHTTPException)
+    async def _http(request: Request, exc: StarletteHTTPException):
+        if exc.status_code == 404:
+            return _error(404, f"no such path {request.url.path}; the API is listed at /docs", "not_found")
+        if exc.status_code == 405:
+            return _error(405, f"{request.method} is not allowed on {request.url.path}; see /docs", "method_not_allowed")
+        return _error(exc.status_code, str(exc.detail), "http_error")
+
+    app.include_router(status.router)
+    app.include_router(sessions.router)
+    app.include_router(simulator.router)
+    app.include_router(live.router)
+
+    def page(name: str, what: str):
+        path = STATIC / name
+
+        async def serve_page():
+            if path.exists():
+                return FileResponse(path, media_type="text/html")
+            return HTMLResponse(PLACEHOLDER.format(what=what))
+
+        return serve_page
+
+    app.add_api_route("/", page("index.html", "dashboard"), include_in_schema=False, methods=["GET"])
+    app.add_api_route("/kiosk", page("kiosk.html", "kiosk"), include_in_schema=False, methods=["GET"])
+    if STATIC.is_dir():
+        app.mount("/static", StaticFiles(directory=STATIC), name="static")
+
+    if settings.cors_origins:
+        app.add_middleware(
+            CORSMiddleware, allow_origins=list(settings.cors_origins), allow_methods=["GET", "POST", "DELETE"],
+            allow_headers=["Authorization", "Content-Type"],
+        )
+    app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
+    return app

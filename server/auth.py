@@ -1,0 +1,70 @@
+"""Who may do what: bearer tokens as FastAPI dependencies.
+
+admin (`--token`) may do everything; kiosk (`--kiosk-token`) may read and start/stop sessions;
+read (`--read-token`) may only read (GET and the websocket). With no token configured the service is
+open, which `Settings.check` only allows on a loopback address.
+"""
+
+from __future__ import annotations
+
+import secrets
+from typing import Literal
+
+from fastapi import Request
+
+from flockcal.server.errors import Forbidden, Unauthorized
+from flockcal.server.settings import Settings
+
+Role = Literal["admin", "kiosk", "read"]
+
+
+def token_role(settings: Settings, token: str | None) -> Role | None:
+    """The role a presented token grants, or None; constant-time comparisons."""
+    if not settings.token:
+        return "admin"
+    if not token:
+        return None
+    found: Role | None = None
+    for role, expected in (("admin", settings.token), ("kiosk", settings.kiosk_token), ("read", settings.read_token)):
+        if expected and secrets.compare_digest(token.encode(), expected.encode()):
+            found = role
+    return found
+
+
+def bearer(request: Request) -> str | None:
+    header = request.headers.get("authorization", "")
+    scheme, _, value = header.partition(" ")
+    if scheme.lower() != "bearer" or not value.strip():
+        return None
+    return value.strip()
+
+
+def _role(request: Request) -> Role:
+    settings: Settings = request.app.state.settings
+    if not settings.token:
+        return "admin"
+    token = bearer(request)
+    if token is None:
+        raise Unauthorized("this service needs a token: send the header 'Authorization: Bearer <token>'")
+    role = token_role(settings, token)
+    if role is None:
+        raise Unauthorized("the token was not recognised; check the --token/--read-token/--kiosk-token the service started with")
+    return role
+
+
+def require_read(request: Request) -> Role:
+    return _role(request)
+
+
+def require_session_control(request: Request) -> Role:
+    role = _role(request)
+    if role not in ("admin", "kiosk"):
+        raise Forbidden("this token is read-only; starting or stopping sessions needs the admin or kiosk token")
+    return role
+
+
+def require_admin(request: Request) -> Role:
+    role = _role(request)
+    if role != "admin":
+        raise Forbidden(f"this {role} token cannot do that; it needs the admin token (--token)")
+    return role

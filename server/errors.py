@@ -1,0 +1,60 @@
+"""Errors of the live service, each carrying the HTTP status a client should see.
+
+Route handlers and the session manager raise these; app.py turns them into JSON
+`{"detail": message, "error": code}` so a person reading the response knows what to fix.
+"""
+
+from __future__ import annotations
+
+from flockcal.errors import FlockcalError
+
+
+class ServerError(FlockcalError):
+    """A problem with the service's configuration or a request; `status` is the HTTP code."""
+
+    status = 500
+    code = "server_error"
+
+    def __init__(self, message: str, status: int | None = None, code: str | None = None):
+        super().__init__(message)
+        if status is not None:
+            self.status = status
+        if code is not None:
+            self.code = code
+
+
+class ConfigError(ServerError):
+    """Settings that cannot work together (e.g. a public address without a token)."""
+
+    status = 500
+    code = "config_error"
+
+
+class BadRequest(ServerError):
+    status = 400
+    code = "bad_request"
+
+
+class Unauthorized(ServerError):
+    status = 401
+    code = "unauthorized"
+
+
+class Forbidden(ServerError):
+    status = 403
+    code = "forbidden"
+
+
+class NotFound(ServerError):
+    status = 404
+    code = "not_found"
+
+
+class Conflict(ServerError):
+    status = 409
+    code = "conflict"
+
+
+class Unavailable(ServerError):
+    status = 503
+    code = "unavailable"

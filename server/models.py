@@ -1,0 +1,175 @@
+"""Pydantic models of the REST API: requests are strict, responses mirror design.md §5.
+
+Only this module and the routes use pydantic; everything below them passes plain dicts and arrays.
+Result models allow extra fields so the §5 contract can grow without breaking the API.
+"""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9 _.\-]{0,63}$"
+Name = str  # validated against NAME_PATTERN where it enters
+
+
+class Strict(BaseModel):
+    model_config = ConfigDict(extra="forbid", str_strip_whitespace=True)
+
+
+class Open(BaseModel):
+    model_config = ConfigDict(extra="allow")
+
+
+# --- §5 result -----------------------------------------------------------------------------------
+class Joint(Open):
+    child: str
+    parent: str
+    c: list[float | None]
+    l: list[float | None]
+    rms_m: float | None = None
+    epsilon: float | None = None
+    singular_values: list[float | None] = []
+    hinge: bool = False
+    axis_child: list[float | None] | None = None
+    axis_parent: list[float | None] | None = None
+    coverage: list[float | None] = []
+    c_stderr_m: float | None = None
+    l_stderr_m: float | None = None
+
+
+class Bone(Open):
+    body: str
+    from_joint: str | None = None
+    to_joint: str
+    length_m: float | None = None
+    stderr_m: float | None = None
+
+
+class LoopCandidate(Open):
+    a: str
+    b: str
+    rms_m: float | None = None
+
+
+class SlipEvent(Open):
+    time_s: float
+    sensor: str
+    candidates: list[str] = []
+    joints: list[str] = []
+    jump_mm: float | None = None
+
+
+class CalibrationResult(Open):
+    """Exactly what `flockcal fit --json` prints (design.md §5)."""
+
+    sensors: list[str]
+    root: str | None = None
+    parent: dict[str, str] = {}
+    frames: int = 0
+    joints: list[Joint] = []
+    bones: list[Bone] = []
+    loop_candidates: list[LoopCandidate] = []
+    slip_events: list[SlipEvent] = []
+
+
+# --- sessions ------------------------------------------------------------------------------------
+class SessionCreate(Strict):
+    performer: str = Field(pattern=NAME_PATTERN, description="who is wearing the sensors (1–64 letters, digits, space _ . -)")
+    hierarchy: dict[str, str] | None = Field(
+        None, description="known {child: parent} map, root omitted; leave out for automatic topology")
+    root: str | None = Field(None, pattern=NAME_PATTERN, description="root body; default chosen by the solver")
+    skeleton: str | None = Field(
+        None, pattern=r"^[a-z_]{1,32}$",
+        description="named hierarchy preset instead of `hierarchy`: 'auto' (default) or 'human' (the simulator's body)")
+
+
+class SessionSummary(Open):
+    id: str
+    performer: str
+    state: Literal["live", "stopped", "interrupted"]
+    frames: int = 0
+    started_at: float | None = None
+    time_s: float | None = None
+    hierarchy: dict[str, str] | None = None
+    root: str | None = None
+    fit_error: str | None = None
+
+
+class Session(Open):
+    id: str
+    performer: str
+    state: Literal["live", "stopped", "interrupted"]
+    root: str | None = None
+    hierarchy: dict[str, str] | None = None
+    names: list[str]
+    device: str
+    rate_hz: float | None = None
+    created_at: float
+    stopped_at: float | None = None
+    frames: int = 0
+    recording: str | None = None
+    note: str | None = None
+    has_result: bool = False
+    has_recording: bool = False
+    has_raw_recording: bool = False
+
+
+class SessionList(BaseModel):
+    sessions: list[Session]
+    live: str | None = Field(None, description="id of the live session, if any")
+
+
+class Status(Open):
+    connected: bool
+    birds: int | None = None
+    rate_hz: float | None = None
+    frames: int = 0
+    dropped_records: int = 0
+    resynced: int = 0
+    reconnects: int = 0
+    last_error: str | None = None
+    device: str | None = None
+    sensors: list[str] = []
+    session: SessionSummary | None = None
+    simulator: bool = False
+
+
+class ResidualSeries(BaseModel):
+    session_id: str
+    joint: str | None = None
+    times: list[float] = Field(description="session clock, seconds")
+    joints: dict[str, list[float | None]] = Field(description="{joint child name: rms in mm per time}")
+
+
+class Event(Open):
+    id: int
+    type: str = Field(description="slip | tracker | session")
+    session_id: str | None = None
+    time_s: float | None = Field(None, description="session clock, seconds")
+    wall_time: float
+
+
+class EventList(BaseModel):
+    session_id: str
+    events: list[Event]
+
+
+class SlipRequest(Strict):
+    sensor: str = Field(pattern=NAME_PATTERN)
+    distance_m: float = Field(0.02, gt=0, le=0.5, description="how far the sensor slides on the skin, metres")
+
+
+class MotionRequest(Strict):
+    routine: str = Field(pattern=r"^[a-z_]{1,32}$", description="exercise | walk | kiosk | idle")
+
+
+class SimulatorReply(Open):
+    ok: bool = True
+    message: str
+
+
+class ErrorReply(BaseModel):
+    detail: str = Field(description="what went wrong and what to do about it")
+    error: str = Field(description="machine-readable code")

@@ -1,0 +1,447 @@
+"""The live pipeline: frames from the reader thread → the session's accumulator → fits → snapshots.
+
+One thread owns all mutable state. The reader only appends to a pending list; the pipeline wakes when
+frames arrive (at most `publish_hz` times a second), folds them into the live session's Gram
+accumulator and frame log, refits at `fit_hz`, and publishes an immutable Snapshot by swapping one
+reference. Nothing here ever waits for a client.
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from collections import deque
+from concurrent.futures import Future
+from dataclasses import dataclass, field
+from typing import Callable
+
+import numpy as np
+
+from flockcal.errors import FlockcalError
+from flockcal.server.framelog import FrameLog
+from flockcal.server.snapshot import ResidualSample, Snapshot
+from flockcal.server.store import Store
+
+log = logging.getLogger(__name__)
+
+RECENT_EVENTS = 200
+RECENT_RESIDUALS = 400
+
+
+@dataclass
+class LiveSession:
+    """Mutable state of the session being recorded; touched only by the pipeline thread."""
+
+    id: str
+    performer: str
+    names: tuple[str, ...]
+    hierarchy: dict | None
+    root: str | None
+    framelog: FrameLog
+    acc: object = None  # GramAccumulator, made on install
+    t0: float | None = None  # reader time of the session's first frame
+    frames: int = 0
+    started_wall: float = field(default_factory=time.time)
+    fit: dict | None = None
+    fit_error: str | None = None
+    fit_frames: int = 0  # accumulator frames the newest fit used
+    slip_monitor: object = None
+    residual_rows: list = field(default_factory=list)  # (time_s, {joint: mm}) not yet in the store
+
+    def summary(self) -> dict:
+        return {
+            "id": self.id, "performer": self.performer, "state": "live", "frames": self.frames,
+            "started_at": self.started_wall,
+            "hierarchy": self.hierarchy, "root": self.root,
+        }
+
+
+def calibrate_dict(acc, names, hierarchy=None, root=None) -> dict:
+    """The §5 JSON of a fit of `acc` (solver's calibrate); SolverError etc. propagate."""
+    from flockcal.solver.calibration import calibrate
+
+    return calibrate(acc, hierarchy=hierarchy, root=root, names=list(names)).to_dict()
+
+
+def new_accumulator(m: int):
+    from flockcal.solver.accumulator import GramAccumulator
+
+    return GramAccumulator(m)
+
+
+class Pipeline:
+    """Owns the live state; `feed` and `tracker_event` may be called from any thread."""
+
+    def __init__(
+        self,
+        names: tuple[str, ...],
+        store: Store,
+        source_status: Callable[[], dict],
+        publish_hz: float = 60.0,
+        fit_hz: float = 30.0,
+        residual_hz: float = 20.0,
+        on_publish: Callable[[Snapshot], None] | None = None,
+        slip_monitor_factory: Callable | None = None,
+    ):
+        self.names = tuple(names)
+        self.m = len(self.names)
+        self.store = store
+        self.source_status = source_status
+        self.min_publish_s = 1.0 / publish_hz
+        self.min_fit_s = 1.0 / fit_hz
+        self.residual_period = 1.0 / residual_hz
+        self.on_publish = on_publish
+        self.slip_monitor_factory = slip_monitor_factory
+        self._cond = threading.Condition()
+        self._pending: list[tuple] = []
+        self._pending_events: list[dict] = []
+        self._commands: list[tuple[Callable, Future]] = []
+        self._stop = False
+        self._thread: threading.Thread | None = None
+        # State below is only touched by the pipeline thread.
+        self.live: LiveSession | None = None
+        self.frames = 0
+        self.last_frame_time: float | None = None
+        self._R = np.tile(np.eye(3), (self.m, 1, 1))
+        self._t = np.zeros((self.m, 3))
+        self._valid = np.zeros(self.m, dtype=bool)
+        self._have_pose = False
+        self._fit_seq = 0
+        self._seq = 0
+        self._events: deque = deque(maxlen=RECENT_EVENTS)
+        self._residuals: deque = deque(maxlen=RECENT_RESIDUALS)
+        self._residual_seq = 0
+        self._res_sumsq = None
+        self._res_count = None
+        self._res_joints: tuple = ()
+        self._res_last_emit: float | None = None
+        self._last_fit_time = 0.0
+        self._last_db_flush = 0.0
+        self.pose_fit: dict | None = None
+        self.fits_done = 0
+        self.fit_seconds = 0.0
+        self._last_status: dict = {}
+        self._snapshot = self._make_snapshot()
+
+    # --- called from other threads -----------------------------------------------------------------
+    @property
+    def snapshot(self) -> Snapshot:
+        return self._snapshot
+
+    def feed(self, times, rotations, positions, valid) -> None:
+        """Reader callback: hand over a batch of frames (arrays over n frames); never blocks for long."""
+        with self._cond:
+            self._pending.append((times, rotations, positions, valid))
+            self._cond.notify()
+
+    def tracker_event(self, event: dict) -> None:
+        with self._cond:
+            self._pending_events.append(event)
+            self._cond.notify()
+
+    def add_event(self, event: dict) -> None:
+        """Queue an event (slip, session, tracker) for the store and the websocket."""
+        self.tracker_event(event)
+
+    def call(self, fn: Callable[[], object], timeout: float = 30.0):
+        """Run `fn` on the pipeline thread after the frames already received, and return its result."""
+        fut: Future = Future()
+        with self._cond:
+            self._commands.append((fn, fut))
+            self._cond.notify()
+        if self._thread is None or not self._thread.is_alive():
+            raise FlockcalError("the live pipeline is not running; restart the service")
+        return fut.result(timeout)
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="flockcal-pipeline", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        with self._cond:
+            self._stop = True
+            self._cond.notify()
+        if self._thread:
+            self._thread.join(10)
+
+    # --- session control (run on the pipeline thread through `call`) ----------------------------------
+    def begin_session(self, live: LiveSession) -> None:
+        def install():
+            if self.live is not None:
+                raise FlockcalError(f"session {self.live.id} is still live")
+            live.acc = new_accumulator(self.m)
+            if self.slip_monitor_factory is not None:
+                try:
+                    live.slip_monitor = self.slip_monitor_factory(self.names)
+                except Exception as exc:  # a monitor that cannot start must not stop the session
+                    log.warning("slip monitor unavailable: %s", exc)
+            self.live = live
+            self._reset_residuals()
+            self._residuals.clear()
+            self._publish()
+
+        self.call(install)
+
+    def end_session(self) -> tuple[LiveSession, dict | None, str | None]:
+        """Stop recording; returns (session, final fit dict or None, why there is no fit)."""
+
+        def finish():
+            live = self.live
+            if live is None:
+                raise FlockcalError("no session is live")
+            self._flush_residual_sample(force=True)
+            self._flush_db()
+            result, error = None, None
+            if live.acc.frames > 0:
+                try:
+                    result = calibrate_dict(live.acc, self.names, live.hierarchy, live.root)
+                    slips = [
+                        {k: e[k] for k in ("time_s", "sensor", "candidates", "joints", "jump_mm") if k in e}
+                        for e in self._events if e.get("type") == "slip" and e.get("session_id") == live.id
+                    ]
+                    if slips:
+                        result["slip_events"] = slips
+                except FlockcalError as exc:
+                    error = str(exc)
+            else:
+                error = "no frames arrived during the session"
+            live.framelog.close()
+            self.live = None
+            if result:
+                self.pose_fit = result
+            self._publish()
+            return live, result, error
+
+        return self.call(finish)
+
+    # --- the thread ----------------------------------------------------------------------------------
+    def _run(self) -> None:
+        last_publish = 0.0
+        while True:
+            with self._cond:
+                while not self._stop and not self._commands:
+                    has_work = bool(self._pending or self._pending_events)
+                    # Publish as soon as frames arrive, but no more than publish_hz; status twice a second.
+                    due = last_publish + (self.min_publish_s if has_work else 0.5)
+                    now = time.monotonic()
+                    if now >= due:
+                        break
+                    self._cond.wait(due - now)
+                stopping = self._stop
+                batches, self._pending = self._pending, []
+                events, self._pending_events = self._pending_events, []
+                commands, self._commands = self._commands, []
+            try:
+                if batches:
+                    self._process_frames(batches)
+                if events:
+                    self._process_events(events)
+                for fn, fut in commands:
+                    try:
+                        fut.set_result(fn())
+                    except BaseException as exc:  # handed back to the caller
+                        fut.set_exception(exc)
+                self._publish()
+            except Exception:  # the pipeline must survive a bad batch; the log says why
+                log.exception("pipeline step failed")
+            last_publish = time.monotonic()
+            if stopping:
+                if self.live is not None:
+                    self._flush_db()
+                    self.live.framelog.flush()
+                return
+
+    def _process_frames(self, batches: list[tuple]) -> None:
+        if len(batches) == 1:
+            times, R, t, valid = batches[0]
+        else:
+            times = np.concatenate([b[0] for b in batches])
+            R = np.concatenate([b[1] for b in batches])
+            t = np.concatenate([b[2] for b in batches])
+            valid = np.concatenate([b[3] for b in batches])
+        times = np.asarray(times, dtype=float)
+        R = np.asarray(R, dtype=float)
+        t = np.asarray(t, dtype=float)
+        valid = np.asarray(valid, dtype=bool)
+        n = len(times)
+        if n == 0:
+            return
+        self.frames += n
+        self.last_frame_time = float(times[-1])
+        # Newest pose of each sensor, held from its last valid record.
+        any_valid = valid.any(axis=0)
+        if any_valid.any():
+            last = n - 1 - np.argmax(valid[::-1], axis=0)
+            cols = np.flatnonzero(any_valid)
+            self._R[cols] = R[last[cols], cols]
+            self._t[cols] = t[last[cols], cols]
+            self._have_pose = True
+        self._valid = valid[-1].copy()
+        live = self.live
+        if live is None:
+            return
+        if live.t0 is None:
+            live.t0 = float(times[0])
+        live.framelog.write(times, R, t, valid)
+        live.frames += n
+        Rz = np.where(valid[..., None, None], R, 0.0)
+        tz = np.where(valid[..., None], t, 0.0)
+        live.acc.update(Rz, tz, valid)
+        self._residual_step(times - live.t0, Rz, tz, valid)
+
+    def _residual_step(self, ts, R, t, valid) -> None:
+        live = self.live
+        fit = live.fit
+        if not fit or not fit.get("joints"):
+            return
+        index = {n: i for i, n in enumerate(self.names)}
+        joints = tuple(j["child"] for j in fit["joints"])
+        if joints != self._res_joints:
+            self._flush_residual_sample(force=True)
+            self._res_joints = joints
+            self._res_pairs = np.array([[index[j["child"]], index[j["parent"]]] for j in fit["joints"]])
+            self._res_c = np.array([j["c"] for j in fit["joints"]], dtype=float)
+            self._res_l = np.array([j["l"] for j in fit["joints"]], dtype=float)
+            self._res_sumsq = np.zeros(len(joints))
+            self._res_count = np.zeros(len(joints))
+        ci, pj = self._res_pairs[:, 0], self._res_pairs[:, 1]
+        e = (np.einsum("npab,pb->npa", R[:, ci], self._res_c) + t[:, ci]
+             - np.einsum("npab,pb->npa", R[:, pj], self._res_l) - t[:, pj])
+        ok = valid[:, ci] & valid[:, pj]
+        sq = np.where(ok, np.einsum("npa,npa->np", e, e), 0.0)
+        if live.slip_monitor is not None:
+            self._slip_step(ts, np.where(ok, np.sqrt(sq), np.nan))
+        self._res_sumsq += sq.sum(axis=0)
+        self._res_count += ok.sum(axis=0)
+        self._res_time = float(ts[-1])
+        if self._res_last_emit is None:
+            self._res_last_emit = float(ts[0])
+        if self._res_time - self._res_last_emit >= self.residual_period:
+            self._flush_residual_sample()
+
+    def _slip_step(self, ts, residual_norms) -> None:
+        live = self.live
+        try:
+            found = live.slip_monitor.update(ts, residual_norms, list(self._res_joints))
+        except Exception as exc:
+            log.warning("slip monitor failed, disabling it for this session: %s", exc)
+            live.slip_monitor = None
+            return
+        for ev in found or []:
+            d = ev if isinstance(ev, dict) else dict(vars(ev))
+            d["type"] = "slip"
+            self._process_events([d])
+
+    def _flush_residual_sample(self, force: bool = False) -> None:
+        if self._res_count is None or not self._res_count.any() or self.live is None:
+            return
+        rms = np.sqrt(self._res_sumsq / np.maximum(self._res_count, 1)) * 1000.0
+        values = {j: round(float(v), 4) for j, v, c in zip(self._res_joints, rms, self._res_count) if c > 0}
+        self._residual_seq += 1
+        sample = ResidualSample(self._residual_seq, self._res_time, values)
+        self._residuals.append(sample)
+        self.live.residual_rows.append((sample.time_s, values))
+        self._res_sumsq[:] = 0
+        self._res_count[:] = 0
+        self._res_last_emit = self._res_time
+
+    def _reset_residuals(self) -> None:
+        self._res_joints = ()
+        self._res_sumsq = self._res_count = None
+        self._res_last_emit = None
+
+    def _process_events(self, events: list[dict]) -> None:
+        live = self.live
+        rows = []
+        for ev in events:
+            ev = dict(ev)
+            ev.setdefault("wall_time", time.time())
+            if live is not None and "session_id" not in ev:
+                ev["session_id"] = live.id
+                if "time_s" not in ev:
+                    ev["time_s"] = (self.last_frame_time - live.t0) if (live.t0 is not None and self.last_frame_time is not None) else 0.0
+            rows.append(ev)
+        ids = self.store.add_events(rows)
+        for ev, i in zip(rows, ids):
+            ev["id"] = i
+            self._events.append(ev)
+
+    def _flush_db(self) -> None:
+        live = self.live
+        if live is None:
+            return
+        rows, live.residual_rows = live.residual_rows, []
+        self.store.add_residuals(live.id, rows)
+        self.store.update_session(live.id, frames=live.frames)
+        self._last_db_flush = time.monotonic()
+
+    def _publish(self) -> None:
+        live = self.live
+        now = time.monotonic()
+        if live is not None:
+            if now - live.framelog.last_flush >= live.framelog.flush_s:
+                live.framelog.flush()
+            if now - self._last_db_flush >= 1.0:
+                self._flush_db()
+            if live.acc.frames > live.fit_frames and now - self._last_fit_time >= self.min_fit_s:
+                self._refit(live)
+                self._last_fit_time = now
+        self._snapshot = self._make_snapshot()
+        if self.on_publish is not None:
+            self.on_publish(self._snapshot)
+
+    def _refit(self, live: LiveSession) -> None:
+        start = time.perf_counter()
+        frames = live.acc.frames
+        try:
+            live.fit = calibrate_dict(live.acc, self.names, live.hierarchy, live.root)
+            live.fit_error = None
+            self.pose_fit = live.fit
+            self._fit_seq += 1
+        except FlockcalError as exc:
+            live.fit_error = str(exc)
+        except Exception as exc:  # a numerical failure must not stop publishing
+            log.exception("fit failed")
+            live.fit_error = f"fit failed: {exc}"
+        live.fit_frames = frames
+        self.fits_done += 1
+        self.fit_seconds += time.perf_counter() - start
+
+    def _make_snapshot(self) -> Snapshot:
+        self._seq += 1
+        live = self.live
+        try:
+            tracker = dict(self.source_status())
+        except Exception as exc:  # the status of a source that failed is itself news
+            tracker = {"connected": False, "last_error": f"status unavailable: {exc}"}
+        session = None
+        if live is not None:
+            session = live.summary()
+            session["time_s"] = (self.last_frame_time - live.t0) if live.t0 is not None and self.last_frame_time is not None else 0.0
+            session["fit_error"] = live.fit_error
+        status = dict(tracker)
+        status.update(
+            frames=self.frames,
+            session=session,
+            sensors=list(self.names),
+            fits=self.fits_done,
+            fit_ms=round(1000 * self.fit_seconds / self.fits_done, 3) if self.fits_done else None,
+        )
+        return Snapshot(
+            seq=self._seq,
+            wall_time=time.time(),
+            frames=self.frames,
+            last_frame_time=self.last_frame_time,
+            status=status,
+            session=session,
+            names=self.names,
+            fit=live.fit if live is not None else None,
+            fit_seq=self._fit_seq,
+            residuals=tuple(self._residuals),
+            events=tuple(self._events),
+            rotations=self._R.copy() if self._have_pose else None,
+            positions=self._t.copy() if self._have_pose else None,
+            valid=self._valid.copy(),
+            pose_fit=self.pose_fit,
+        )

@@ -1,0 +1,72 @@
+"""The live skeleton a browser draws: joint world positions with the residual removed (paper §3.4).
+
+Each body is placed from its parent's pose, starting at the root sensor, so bones never stretch; the
+message holds plain points, index pairs and sensor poses so the page needs no math of its own.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from flockcal.solver.reconstruct import ArticulationError, articulation, reconstruct
+
+
+def _round(a, nd: int = 5):
+    return np.round(np.asarray(a, dtype=float), nd).tolist()
+
+
+def sensors_only(names, rotations, positions, valid) -> dict:
+    """Pose with no fit yet: only where the sensors are (as measured)."""
+    return {
+        "joints": [],
+        "bones": [],
+        "sensors": [
+            {"name": n, "p": _round(positions[i]), "R": _round(rotations[i].reshape(9)), "valid": bool(valid[i])}
+            for i, n in enumerate(names)
+        ],
+    }
+
+
+def live_pose(names, rotations, positions, valid, fit: dict | None) -> dict:
+    """Pose message body for one frame: (m,3,3) rotations, (m,3) positions, (m,) valid; fit = §5 dict.
+
+    joints: one point per tree joint (named by its child body), one for the root sensor and one for
+    each leaf's sensor (so end bones have a far end); bones: index pairs into joints; sensors: measured
+    position and row-major rotation (body → world) of each sensor.
+    """
+    base = sensors_only(names, rotations, positions, valid)
+    if not fit or not fit.get("parent"):
+        return base
+    try:
+        art = articulation(fit).reordered(names)
+    except (ArticulationError, KeyError, ValueError):
+        return base
+    if not valid.any():
+        return base
+    rec = reconstruct(rotations[None], positions[None], art, valid[None] if not valid.all() else None)
+    pivots = rec.joint_positions[0]  # inboard joint of each body, root sensor at the root
+    sensor_at = rec.sensor_positions[0]
+    m = len(names)
+    root = art.root
+    points = []
+    index = {}
+    for i in range(m):
+        index[i] = len(points)
+        kind = "root" if i == root else "joint"
+        points.append({"name": names[i], "kind": kind, "p": _round(pivots[i])})
+    bones = []
+    has_child = np.zeros(m, dtype=bool)
+    for j in range(m):
+        p = int(art.parent[j])
+        if p >= 0:
+            has_child[p] = True
+            bones.append([index[p], index[j]])
+    for j in range(m):
+        if j != root and not has_child[j]:
+            # A leaf (hand, foot, head) ends at its sensor: draw the bone out to it.
+            points.append({"name": f"{names[j]} sensor", "kind": "end", "p": _round(sensor_at[j])})
+            bones.append([index[j], len(points) - 1])
+    base["joints"] = points
+    base["bones"] = bones
+    base["root"] = names[root]
+    return base

@@ -1,0 +1,22 @@
+"""Shared dependencies of the routes: the running service and validated path parameters."""
+
+from __future__ import annotations
+
+import re
+
+from fastapi import Path, Request
+
+from flockcal.server.errors import BadRequest
+
+SESSION_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9\-]{0,63}$")
+
+
+def get_service(request: Request):
+    return request.app.state.service
+
+
+def session_id(id: str = Path(description="session id, as returned by POST /api/sessions")) -> str:
+    # Ids become file names; refuse anything that could walk out of the recordings directory.
+    if not SESSION_ID_RE.match(id):
+        raise BadRequest(f"{id[:80]!r} is not a session id (letters, digits and '-' only); GET /api/sessions lists them")
+    return id

@@ -1,0 +1,151 @@
+"""Sessions: list, start, read, stop, delete, result, residual time series, events, re-solve, downloads.
+
+Handlers only validate and read: fits come from the pipeline's snapshots or the store.
+"""
+
+from __future__ import annotations
+
+import io
+
+import numpy as np
+from fastapi import APIRouter, Depends, Query
+from fastapi.responses import Response
+
+from flockcal.server.auth import require_admin, require_read, require_session_control
+from flockcal.server.errors import BadRequest, NotFound
+from flockcal.server.models import (
+    CalibrationResult, ErrorReply, EventList, ResidualSeries, Session, SessionCreate, SessionList,
+)
+from flockcal.server.routes.deps import get_service, session_id
+from flockcal.server.settings import NAME_RE
+
+router = APIRouter(prefix="/api/sessions", tags=["sessions"])
+
+ERRORS = {code: {"model": ErrorReply} for code in (400, 401, 403, 404, 409, 413, 422)}
+
+
+def presets(service) -> dict[str, dict | None]:
+    """Named hierarchies a session can start with: 'auto', and 'human' when the sensors are the simulator's."""
+    out: dict[str, dict | None] = {"auto": None}
+    try:
+        from flockcal.simulator.body import human
+
+        truth = human(n_bodies=len(service.pipeline.names)).truth()
+        if list(truth["sensors"]) == list(service.pipeline.names):
+            out["human"] = dict(truth["parent"])
+    except Exception:  # no simulator body for this sensor set: only automatic topology
+        pass
+    return out
+
+
+@router.get("", response_model=SessionList, summary="all sessions, newest first", responses=ERRORS)
+def list_sessions(service=Depends(get_service), _role=Depends(require_read)):
+    return {"sessions": service.sessions.list(), "live": service.sessions.live_id()}
+
+
+@router.post("", response_model=Session, status_code=201, summary="start a session", responses=ERRORS)
+def start_session(body: SessionCreate, service=Depends(get_service), _role=Depends(require_session_control)):
+    """Start recording a performer: automatic topology, or a known `hierarchy` ({child: parent}) / `skeleton` preset."""
+    hierarchy = body.hierarchy
+    if body.skeleton is not None:
+        if hierarchy is not None:
+            raise BadRequest("give either 'hierarchy' or 'skeleton', not both")
+        known = presets(service)
+        if body.skeleton not in known:
+            raise BadRequest(f"unknown skeleton {body.skeleton!r}; choose one of: {', '.join(known)}")
+        hierarchy = known[body.skeleton]
+    if hierarchy is not None:
+        bad = [x for kv in hierarchy.items() for x in kv if not NAME_RE.match(x)]
+        if bad:
+            raise BadRequest(f"hierarchy name {bad[0][:80]!r} is not a valid sensor name")
+    return service.sessions.start(body.performer, hierarchy, body.root)
+
+
+@router.get("/presets", summary="named hierarchies a session can start with")
+def list_presets(service=Depends(get_service), _role=Depends(require_read)) -> dict[str, dict[str, str] | None]:
+    return presets(service)
+
+
+@router.get("/{id}", response_model=Session, responses=ERRORS)
+def get_session(sid: str = Depends(session_id), service=Depends(get_service), _role=Depends(require_read)):
+    return service.sessions.get(sid)
+
+
+@router.delete("/{id}", status_code=204, responses=ERRORS, summary="delete a stopped session, its results and recordings")
+def delete_session(sid: str = Depends(session_id), service=Depends(get_service), _role=Depends(require_admin)):
+    service.sessions.delete(sid)
+    return Response(status_code=204)
+
+
+@router.post("/{id}/stop", response_model=Session, responses=ERRORS, summary="stop the live session and store its result")
+def stop_session(sid: str = Depends(session_id), service=Depends(get_service), _role=Depends(require_session_control)):
+    return service.sessions.stop(sid)
+
+
+@router.post("/{id}/resolve", response_model=Session, responses=ERRORS,
+             summary="re-fit a stopped or interrupted session from its recording")
+def resolve_session(sid: str = Depends(session_id), service=Depends(get_service), _role=Depends(require_admin)):
+    return service.sessions.resolve(sid)
+
+
+@router.get("/{id}/result", response_model=CalibrationResult, responses=ERRORS,
+            summary="the calibration, same shape as `flockcal fit --json`")
+def get_result(sid: str = Depends(session_id), service=Depends(get_service), _role=Depends(require_read)):
+    result, _live = service.sessions.result(sid)
+    return result
+
+
+@router.get("/{id}/residuals", response_model=ResidualSeries, responses=ERRORS,
+            summary="per-joint residual rms (mm) over time")
+def get_residuals(sid: str = Depends(session_id),
+                  joint: str | None = Query(None, max_length=64, description="a joint, named by its child body"),
+                  since: float | None = Query(None, description="session clock, seconds: only later samples"),
+                  service=Depends(get_service), _role=Depends(require_read)):
+    rows = service.sessions.residuals(sid, joint, since)
+    names = sorted({k for _, v in rows for k in v})
+    return {"session_id": sid, "joint": joint, "times": [t for t, _ in rows],
+            "joints": {k: [v.get(k) for _, v in rows] for k in names}}
+
+
+@router.get("/{id}/events", response_model=EventList, responses=ERRORS, summary="slippage, tracker and session events")
+def get_events(sid: str = Depends(session_id), since: int = Query(0, ge=0, description="only events with a larger id"),
+               service=Depends(get_service), _role=Depends(require_read)):
+    return {"session_id": sid, "events": service.sessions.events(sid, since)}
+
+
+@router.get("/{id}/take", responses={200: {"content": {"application/octet-stream": {}}}, **ERRORS},
+            summary="the session's frames as a design.md §5 .npz take (what `flockcal fit` reads)")
+def get_take(sid: str = Depends(session_id), service=Depends(get_service), _role=Depends(require_read)):
+    from flockcal.server.framelog import read_frames
+
+    service.sessions.get(sid)
+    path = service.sessions.frames_path(sid)
+    if not path.exists():
+        raise NotFound(f"session {sid} has no recording on disk")
+    data = read_frames(path)
+    buf = io.BytesIO()
+    np.savez_compressed(
+        buf, rotations=data["rotations"], positions=data["positions"], names=np.asarray(data["names"], dtype=str),
+        rate_hz=np.float64(data["rate_hz"] or 0.0) if data["rate_hz"] else np.float64(_rate(data["times"])),
+        valid=data["valid"], times=data["times"] - (data["times"][0] if len(data["times"]) else 0.0),
+    )
+    return Response(buf.getvalue(), media_type="application/octet-stream",
+                    headers={"Content-Disposition": f'attachment; filename="{sid}.npz"'})
+
+
+@router.get("/{id}/raw", responses={200: {"content": {"application/octet-stream": {}}}, **ERRORS},
+            summary="the raw tracker bytes (.fobraw) of the session, when the driver recorded them")
+def get_raw(sid: str = Depends(session_id), service=Depends(get_service), _role=Depends(require_read)):
+    from fastapi.responses import FileResponse
+
+    service.sessions.get(sid)
+    path = service.sessions.raw_path(sid)
+    if not path.exists():
+        raise NotFound(f"session {sid} has no raw recording")
+    return FileResponse(path, media_type="application/octet-stream", filename=f"{sid}.fobraw")
+
+
+def _rate(times) -> float:
+    if len(times) < 2:
+        return 1.0
+    return float((len(times) - 1) / max(times[-1] - times[0], 1e-9))

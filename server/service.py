@@ -1,0 +1,85 @@
+"""The running service: settings, store, frame source, pipeline, sessions and the snapshot hub.
+
+`Service.start()` marks sessions a dead process left live as interrupted, starts the pipeline and the
+tracker reader; `stop()` closes any live session cleanly. FastAPI reads it from `app.state.service`.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from flockcal.server.hub import SnapshotHub
+from flockcal.server.pipeline import Pipeline
+from flockcal.server.sessions import SessionManager
+from flockcal.server.settings import Settings
+from flockcal.server.sources import FrameSource, TrackerSource
+from flockcal.server.store import Store
+
+log = logging.getLogger(__name__)
+
+
+def slip_monitor_factory():
+    """The slippage engineer's live detector adapted to the pipeline, or None if it is not there."""
+    try:
+        from flockcal.server.slips import make_slip_monitor
+    except ImportError:
+        return None
+    return make_slip_monitor
+
+
+class Service:
+    def __init__(self, settings: Settings, source: FrameSource | None = None):
+        self.settings = settings.check()
+        data = Path(settings.data_dir)
+        data.mkdir(parents=True, exist_ok=True)
+        self.data_dir = data
+        self.store = Store(data / "flockcal.sqlite3")
+        self.source = source if source is not None else TrackerSource(settings)
+        self.interrupted = self.store.mark_interrupted()
+        if self.interrupted:
+            log.warning("sessions %s were live when the service last stopped; marked interrupted", ", ".join(self.interrupted))
+        self.pipeline = Pipeline(
+            self.source.names,
+            self.store,
+            self.status_of_source,
+            publish_hz=settings.publish_hz,
+            fit_hz=settings.fit_hz,
+            residual_hz=settings.residual_hz,
+            slip_monitor_factory=slip_monitor_factory(),
+        )
+        self.hub = SnapshotHub(self.pipeline.snapshot)
+        self.pipeline.on_publish = self.hub.publish
+        self.sessions = SessionManager(self.store, self.pipeline, data / "recordings", settings.device_url,
+                                       settings.rate_hz)
+        self.started = False
+
+    def status_of_source(self) -> dict:
+        st = dict(self.source.status())
+        st.setdefault("birds", self.settings.birds)
+        st["device"] = self.settings.device_url
+        st["simulator"] = self.simulator is not None
+        return st
+
+    @property
+    def simulator(self):
+        """Handle on the simulated performer when the device is the simulator, else None."""
+        return getattr(self.source, "simulator", None)
+
+    def start(self) -> None:
+        self.pipeline.start()
+        self.source.start(self.pipeline.feed, self.pipeline.tracker_event)
+        self.started = True
+
+    def stop(self) -> None:
+        live = self.sessions.live_id()
+        if live is not None:
+            try:
+                self.sessions.stop(live)
+            except Exception:
+                log.exception("could not stop session %s cleanly", live)
+        try:
+            self.source.stop()
+        finally:
+            self.pipeline.stop()
+            self.store.close()

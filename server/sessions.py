@@ -1,0 +1,232 @@
+"""Sessions: one performer's calibration take — start, live results, stop, store, re-solve.
+
+The manager is the only writer of session rows. At most one session is live (one tracker per
+service); its live results come from the pipeline's snapshots, a stopped one's from the store.
+"""
+
+from __future__ import annotations
+
+import logging
+import secrets
+import threading
+import time
+from pathlib import Path
+
+from flockcal.errors import FlockcalError
+from flockcal.server.errors import BadRequest, Conflict, NotFound
+from flockcal.server.framelog import FrameLog, read_frames
+from flockcal.server.pipeline import LiveSession, Pipeline, calibrate_dict, new_accumulator
+from flockcal.server.settings import NAME_RE
+from flockcal.server.store import Store
+
+log = logging.getLogger(__name__)
+
+FRAMES_SUFFIX = ".frames"
+RAW_SUFFIX = ".fobraw"
+
+
+def new_session_id() -> str:
+    return time.strftime("%Y%m%d-%H%M%S") + "-" + secrets.token_hex(3)
+
+
+class SessionManager:
+    def __init__(self, store: Store, pipeline: Pipeline, recordings: Path, device: str, rate_hz: float | None,
+                 raw_recorder=None):
+        self.store = store
+        self.pipeline = pipeline
+        self.recordings = Path(recordings)
+        self.recordings.mkdir(parents=True, exist_ok=True)
+        self.device = device
+        self.rate_hz = rate_hz
+        self.raw_recorder = raw_recorder  # object with start(path)/stop() for the tracker's .fobraw, or None
+        self._lock = threading.Lock()  # one start/stop at a time
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return self.pipeline.names
+
+    def frames_path(self, session_id: str) -> Path:
+        return self.recordings / f"{session_id}{FRAMES_SUFFIX}"
+
+    def raw_path(self, session_id: str) -> Path:
+        return self.recordings / f"{session_id}{RAW_SUFFIX}"
+
+    def live_id(self) -> str | None:
+        s = self.pipeline.snapshot.session
+        return s["id"] if s else None
+
+    # --- checks ------------------------------------------------------------------------------------
+    def check_hierarchy(self, hierarchy: dict | None, root: str | None) -> None:
+        names = set(self.names)
+        if root is not None and root not in names:
+            raise BadRequest(f"root {root!r} is not a sensor name; the sensors are: {', '.join(self.names)}")
+        if hierarchy is None:
+            return
+        unknown = sorted({x for kv in hierarchy.items() for x in kv} - names)
+        if unknown:
+            raise BadRequest(f"hierarchy names unknown sensor(s) {', '.join(unknown)}; the sensors are: {', '.join(self.names)}")
+        roots = names - set(hierarchy)
+        if len(roots) != 1:
+            raise BadRequest(
+                f"hierarchy must give a parent to every sensor but one (the root); "
+                f"{len(roots)} have none: {', '.join(sorted(roots))}"
+            )
+        if root is not None and root in hierarchy:
+            raise BadRequest(f"root {root!r} has a parent in the hierarchy; leave the root out of the map")
+        # Every chain must end at the root (no cycles).
+        (top,) = roots
+        for child in hierarchy:
+            seen, x = set(), child
+            while x != top:
+                if x in seen:
+                    raise BadRequest(f"hierarchy has a cycle through {x!r}")
+                seen.add(x)
+                x = hierarchy[x]
+
+    # --- lifecycle ---------------------------------------------------------------------------------
+    def start(self, performer: str, hierarchy: dict | None = None, root: str | None = None) -> dict:
+        if not NAME_RE.match(performer):
+            raise BadRequest("performer name must be 1–64 letters, digits, spaces, _ . - and start with a letter or digit")
+        self.check_hierarchy(hierarchy, root)
+        with self._lock:
+            live = self.live_id()
+            if live is not None:
+                raise Conflict(f"session {live} is live; stop it (POST /api/sessions/{live}/stop) before starting another")
+            sid = new_session_id()
+            row = {
+                "id": sid, "performer": performer, "state": "live", "root": root, "hierarchy": hierarchy,
+                "names": list(self.names), "device": self.device, "rate_hz": self.rate_hz,
+                "created_at": time.time(), "frames": 0, "recording": self.frames_path(sid).name,
+            }
+            framelog = FrameLog(self.frames_path(sid), list(self.names), self.rate_hz)
+            self.store.insert_session(row)
+            if self.raw_recorder is not None:
+                try:
+                    self.raw_recorder.start(self.raw_path(sid))
+                except FlockcalError as exc:
+                    log.warning("raw recording unavailable: %s", exc)
+            session = LiveSession(sid, performer, self.names, hierarchy, root, framelog)
+            try:
+                self.pipeline.begin_session(session)
+            except BaseException:
+                framelog.close()
+                self.store.delete_session(sid)
+                raise
+            self.pipeline.add_event({"type": "session", "session_id": sid, "time_s": 0.0, "action": "started",
+                                     "message": f"session {sid} started for {performer}"})
+            return self.get(sid)
+
+    def stop(self, session_id: str) -> dict:
+        with self._lock:
+            row = self._row(session_id)
+            if row["state"] != "live" or self.live_id() != session_id:
+                raise Conflict(f"session {session_id} is not live (it is {row['state']}); nothing to stop")
+            if self.raw_recorder is not None:
+                try:
+                    self.raw_recorder.stop()
+                except FlockcalError as exc:
+                    log.warning("raw recording did not close cleanly: %s", exc)
+            live, result, error = self.pipeline.end_session()
+            self.store.update_session(
+                session_id, state="stopped", stopped_at=time.time(), frames=live.frames, result=result,
+                note=None if result else f"no result: {error}",
+            )
+            self.pipeline.add_event({"type": "session", "session_id": session_id, "action": "stopped",
+                                     "time_s": None, "message": f"session {session_id} stopped after {live.frames} frames"})
+            return self.get(session_id)
+
+    def delete(self, session_id: str) -> None:
+        with self._lock:
+            row = self._row(session_id)
+            if row["state"] == "live" and self.live_id() == session_id:
+                raise Conflict(f"session {session_id} is live; stop it before deleting it")
+            self.store.delete_session(session_id)
+            for p in (self.frames_path(session_id), self.raw_path(session_id)):
+                p.unlink(missing_ok=True)
+
+    def resolve(self, session_id: str) -> dict:
+        """Re-fit a stopped or interrupted session from its frame log (same hierarchy and root)."""
+        with self._lock:
+            row = self._row(session_id)
+            if row["state"] == "live":
+                raise Conflict(f"session {session_id} is live; stop it first")
+            path = self.frames_path(session_id)
+            if not path.exists():
+                raise NotFound(f"session {session_id} has no recording on disk ({path.name}); it cannot be re-solved")
+            data = read_frames(path)
+            n = len(data["times"])
+            if n == 0:
+                raise Conflict(f"session {session_id}'s recording holds no frames; nothing to solve")
+            acc = new_accumulator(len(data["names"]))
+            acc.update(data["rotations"], data["positions"], data["valid"])
+            try:
+                result = calibrate_dict(acc, data["names"], row["hierarchy"], row["root"])
+            except FlockcalError as exc:
+                raise Conflict(f"session {session_id} could not be solved: {exc}") from None
+            state = "stopped" if row["state"] == "interrupted" else row["state"]
+            self.store.update_session(session_id, result=result, frames=n, state=state,
+                                      note=f"re-solved from its recording ({n} frames)")
+            return self.get(session_id)
+
+    # --- reading -----------------------------------------------------------------------------------
+    def _row(self, session_id: str) -> dict:
+        row = self.store.session(session_id)
+        if row is None:
+            raise NotFound(f"no session {session_id!r}; GET /api/sessions lists them")
+        return row
+
+    def get(self, session_id: str) -> dict:
+        row = self._row(session_id)
+        snap = self.pipeline.snapshot
+        if snap.session and snap.session["id"] == session_id:
+            row["frames"] = snap.session["frames"]
+            row["has_result"] = snap.fit is not None
+        row["has_recording"] = self.frames_path(session_id).exists()
+        row["has_raw_recording"] = self.raw_path(session_id).exists()
+        return row
+
+    def list(self) -> list[dict]:
+        snap = self.pipeline.snapshot
+        rows = self.store.sessions()
+        for row in rows:
+            row["has_recording"] = self.frames_path(row["id"]).exists()
+            row["has_raw_recording"] = self.raw_path(row["id"]).exists()
+            if snap.session and snap.session["id"] == row["id"]:
+                row["frames"] = snap.session["frames"]
+                row["has_result"] = snap.fit is not None
+        return rows
+
+    def result(self, session_id: str) -> tuple[dict, bool]:
+        """(§5 result, live?) — the live fit for the live session, the stored one otherwise."""
+        row = self._row(session_id)
+        snap = self.pipeline.snapshot
+        if snap.session and snap.session["id"] == session_id:
+            if snap.fit is None:
+                why = snap.session.get("fit_error") or "not enough frames yet"
+                raise Conflict(f"session {session_id} has no fit yet ({why}); keep the performer moving")
+            return snap.fit, True
+        result = self.store.result(session_id)
+        if result is None:
+            hint = " — POST /api/sessions/{0}/resolve re-solves it from its recording".format(session_id) \
+                if row["state"] == "interrupted" else ""
+            raise Conflict(f"session {session_id} has no result ({row['note'] or row['state']}){hint}")
+        return result, False
+
+    def residuals(self, session_id: str, joint: str | None, since: float | None) -> list[tuple[float, dict]]:
+        self._row(session_id)
+        if joint is not None and joint not in self.names:
+            raise BadRequest(f"joint {joint!r} is not a sensor name (a joint is named by its child body); the sensors are: {', '.join(self.names)}")
+        since = float("-inf") if since is None else since
+        rows = self.store.residuals(session_id, since)
+        snap = self.pipeline.snapshot
+        if snap.session and snap.session["id"] == session_id:
+            # Samples not yet flushed to the store (at most a second's worth) come from the snapshot.
+            last = rows[-1][0] if rows else since
+            rows += [(s.time_s, s.rms_mm) for s in snap.residuals if s.time_s > last]
+        if joint is not None:
+            rows = [(t, {joint: v[joint]}) for t, v in rows if joint in v]
+        return rows
+
+    def events(self, session_id: str, since_id: int = 0) -> list[dict]:
+        self._row(session_id)
+        return self.store.events(session_id, since_id)

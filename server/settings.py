@@ -1,0 +1,110 @@
+"""Every setting of the live service in one place, with defaults and the checks between them.
+
+`flockcal serve` builds a `Settings` from its options; tests build one directly. `check()` refuses
+combinations that would be unsafe (a public address with no token) with a message naming the fix.
+"""
+
+from __future__ import annotations
+
+import ipaddress
+import os
+import re
+from dataclasses import dataclass, field, replace
+from pathlib import Path
+
+from flockcal.server.errors import ConfigError
+
+DEFAULT_BIRDS = 16
+DEFAULT_RATE_HZ = 144.0
+
+# Names of sensors, performers and joints travel into file names and SQL; keep them to a safe alphabet.
+NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9 _.\-]{0,63}$")
+
+
+def default_device(birds: int = DEFAULT_BIRDS, rate_hz: float = DEFAULT_RATE_HZ) -> str:
+    """The built-in simulator: a performer doing the exercise routine, looping forever."""
+    return f"sim://?birds={birds}&motion=exercise&rate={rate_hz:g}&loop=1"
+
+
+def default_data_dir() -> Path:
+    """Per-user data directory: $XDG_DATA_HOME/flockcal or ~/.local/share/flockcal."""
+    base = os.environ.get("XDG_DATA_HOME") or os.path.join(os.path.expanduser("~"), ".local", "share")
+    return Path(base) / "flockcal"
+
+
+def is_loopback(host: str) -> bool:
+    if host in ("localhost", "localhost.localdomain"):
+        return True
+    try:
+        return ipaddress.ip_address(host.strip("[]")).is_loopback
+    except ValueError:
+        return False
+
+
+@dataclass(frozen=True)
+class Settings:
+    device: str | None = None  # pyserial URL; None = the built-in simulator
+    birds: int = DEFAULT_BIRDS
+    rate_hz: float | None = None  # None = whatever the tracker (or simulator default) runs at
+    host: str = "127.0.0.1"
+    http_port: int = 8750
+    data_dir: Path = field(default_factory=default_data_dir)
+    token: str | None = None  # admin: every mutating request
+    read_token: str | None = None  # read-only: GET and the websocket (kiosks, dashboards)
+    kiosk_token: str | None = None  # read + start/stop sessions, nothing else
+    names: tuple[str, ...] | None = None  # sensor names; None = from the simulator model, else bird1..N
+    publish_hz: float = 60.0  # upper bound on snapshot rate; the pipeline publishes when frames arrive
+    fit_hz: float = 30.0  # full refit (all pairs + topology + bones) rate, ≥ 30 per the issue
+    residual_hz: float = 20.0  # residual rms samples per second kept for the time series
+    residual_window_s: float = 120.0  # live residual history kept in memory
+    max_body_bytes: int = 64 * 1024
+    cors_origins: tuple[str, ...] = ()  # CORS closed unless origins are listed
+    baud: int = 115200
+    hemisphere: str = "forward"
+    ws_max_clients: int = 200
+    log_level: str = "info"
+
+    @property
+    def device_url(self) -> str:
+        if self.device:
+            return self.device
+        return default_device(self.birds, self.rate_hz or DEFAULT_RATE_HZ)
+
+    @property
+    def auth_required(self) -> bool:
+        return bool(self.token)
+
+    def with_(self, **changes) -> "Settings":
+        return replace(self, **changes)
+
+    def check(self) -> "Settings":
+        """Return self if usable; raise ConfigError naming the option to change otherwise."""
+        if not 2 <= self.birds <= 64:
+            raise ConfigError(f"--birds must be between 2 and 64, got {self.birds}")
+        if self.rate_hz is not None and not 1 <= self.rate_hz <= 1000:
+            raise ConfigError(f"--rate must be between 1 and 1000 Hz, got {self.rate_hz:g}")
+        if not 0 <= self.http_port <= 65535:
+            raise ConfigError(f"--http-port must be 0..65535, got {self.http_port}")
+        if self.fit_hz <= 0 or self.publish_hz <= 0:
+            raise ConfigError("fit and publish rates must be positive")
+        if not is_loopback(self.host) and not self.token:
+            raise ConfigError(
+                f"--host {self.host} is reachable from other machines; give --token SECRET "
+                "(and --read-token for dashboards) so only you can change sessions"
+            )
+        tokens = [t for t in (self.token, self.read_token, self.kiosk_token) if t]
+        if len(set(tokens)) != len(tokens):
+            raise ConfigError("--token, --read-token and --kiosk-token must all differ")
+        if any(len(t) < 8 for t in tokens):
+            raise ConfigError("tokens must be at least 8 characters long")
+        if (self.read_token or self.kiosk_token) and not self.token:
+            raise ConfigError("--read-token/--kiosk-token need an admin --token as well")
+        if self.names is not None:
+            if len(self.names) != self.birds:
+                raise ConfigError(f"--names lists {len(self.names)} names for {self.birds} birds")
+            bad = [n for n in self.names if not NAME_RE.match(n)]
+            if bad:
+                raise ConfigError(f"sensor name {bad[0]!r} is not allowed: use letters, digits, space, _ . -")
+            if len(set(self.names)) != len(self.names):
+                raise ConfigError("sensor names must be unique")
+        return self

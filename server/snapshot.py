@@ -1,0 +1,83 @@
+"""The immutable snapshot the pipeline publishes: everything a client may read about the live state.
+
+API handlers and websocket senders only ever read the newest Snapshot; derived views (the pose, the
+JSON bodies) are computed on first use and cached on the snapshot, so 50 clients cost one encoding.
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from functools import cached_property
+
+import numpy as np
+
+from flockcal.server import coaching
+from flockcal.server.pose import live_pose
+
+
+@dataclass(frozen=True, eq=False)
+class ResidualSample:
+    seq: int
+    time_s: float  # session clock
+    rms_mm: dict  # {joint child name: rms over the sample interval, mm}
+
+
+@dataclass(frozen=True, eq=False)
+class Snapshot:
+    seq: int  # increases with every publish
+    wall_time: float  # unix seconds at publish
+    frames: int  # frames received since the service started
+    last_frame_time: float | None  # reader clock of the newest frame
+    status: dict  # tracker status + pipeline figures + live session summary
+    session: dict | None  # live session summary, None when none is live
+    names: tuple[str, ...]
+    fit: dict | None  # design.md §5 JSON of the live session's newest fit
+    fit_seq: int  # increases when `fit` changes
+    residuals: tuple[ResidualSample, ...]  # recent samples, oldest first
+    events: tuple[dict, ...]  # recent events (each with its store id), oldest first
+    rotations: np.ndarray | None  # newest pose of each sensor (m,3,3) (held where invalid)
+    positions: np.ndarray | None  # (m,3)
+    valid: np.ndarray | None  # (m,) whether the newest frame held a valid record for each sensor
+    pose_fit: dict | None = None  # fit used to draw the skeleton (live or the last stopped session's)
+
+    @cached_property
+    def hints(self) -> list[dict]:
+        return coaching.hints(self.fit) if self.fit else []
+
+    @cached_property
+    def progress(self) -> float:
+        return coaching.progress(self.fit) if self.fit else 0.0
+
+    @cached_property
+    def pose(self) -> dict | None:
+        if self.rotations is None:
+            return None
+        return live_pose(list(self.names), self.rotations, self.positions, self.valid, self.pose_fit)
+
+    # JSON bodies without their envelope: a sender splices in type, seq and time per connection.
+    @cached_property
+    def status_json(self) -> str:
+        return json.dumps({"status": self.status, "snapshot": self.seq, "frames": self.frames})
+
+    @cached_property
+    def fit_json(self) -> str:
+        return json.dumps({
+            "result": self.fit, "hints": self.hints, "progress": self.progress,
+            "session": self.session, "fit_seq": self.fit_seq, "snapshot": self.seq, "frames": self.frames,
+        })
+
+    @cached_property
+    def pose_json(self) -> str:
+        return json.dumps({"pose": self.pose, "snapshot": self.seq, "frames": self.frames,
+                           "frame_time": self.last_frame_time})
+
+
+def residual_message(samples: list[ResidualSample]) -> dict:
+    """{times: [...], joints: {child: [mm|None, ...]}} aligned on times (the dashboard's plot shape)."""
+    names = sorted({k for s in samples for k in s.rms_mm})
+    return {
+        "times": [round(s.time_s, 4) for s in samples],
+        "joints": {k: [s.rms_mm.get(k) for s in samples] for k in names},
+        "last": samples[-1].seq if samples else None,
+    }
