@@ -1,0 +1,385 @@
+"""Chunks of bytes with arrival times → frames (times, rotations, positions, valid), deterministically.
+
+The live reader and replay both feed this one class, so a recording replays to byte-identical frames.
+Decisions depend only on the chunks (their bytes and arrival times), never on the clock while processing.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from flockcal.drivers import codec
+from flockcal.drivers.link import FlockSetup
+
+
+@dataclass
+class Frames:
+    """A batch of n frames of m birds; invalid slots hold zeros (parts a format lacks are NaN)."""
+
+    times: np.ndarray  # (n,) monotonic seconds, arrival of the cycle's first byte
+    rotations: np.ndarray  # (n, m, 3, 3) body → transmitter
+    positions: np.ndarray  # (n, m, 3) metres, transmitter frame (+Z down)
+    valid: np.ndarray  # (n, m) bool
+
+    def __len__(self) -> int:
+        return len(self.times)
+
+    @staticmethod
+    def empty(m: int) -> "Frames":
+        return Frames(np.zeros(0), np.zeros((0, m, 3, 3)), np.zeros((0, m, 3)), np.zeros((0, m), bool))
+
+    @staticmethod
+    def concat(parts: list["Frames"], m: int) -> "Frames":
+        if not parts:
+            return Frames.empty(m)
+        if len(parts) == 1:
+            return parts[0]
+        return Frames(*(np.concatenate([getattr(p, k) for p in parts]) for k in ("times", "rotations", "positions", "valid")))
+
+
+@dataclass
+class _Held:
+    """Records of one port decoded but not yet released (we wait to see what follows the last one)."""
+
+    times: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    addresses: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    rotations: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
+    positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
+    valid: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    suspect: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+
+    def __len__(self) -> int:
+        return len(self.times)
+
+    def append(self, other: "_Held") -> "_Held":
+        return _Held(*(np.concatenate([getattr(self, k), getattr(other, k)]) for k in _HELD_FIELDS))
+
+    def split(self, k: int) -> tuple["_Held", "_Held"]:
+        return (_Held(*(getattr(self, f)[:k] for f in _HELD_FIELDS)),
+                _Held(*(getattr(self, f)[k:] for f in _HELD_FIELDS)))
+
+    def select(self, sel) -> "_Held":
+        return _Held(*(getattr(self, f)[sel] for f in _HELD_FIELDS))
+
+
+_HELD_FIELDS = ("times", "addresses", "rotations", "positions", "valid", "suspect")
+
+
+class _PortStream:
+    """One port's decoder plus the check that tells a whole record from a damaged one.
+
+    A record window can be clean (phasing bit first, none inside) and still be wrong: bytes inserted
+    inside a record push its tail out of the window. Such a record is always followed (or preceded) by
+    lost bytes, so every record next to lost bytes is marked suspect and must agree with the bird's
+    motion before it is used. The last record of a chunk is held until the next bytes show what follows.
+    """
+
+    def __init__(self, setup: FlockSetup, index: int):
+        fmt = setup.record_format
+        if setup.group:
+            self.decoder = codec.StreamDecoder({a: fmt for a in setup.addresses}, group=True,
+                                               scale_inches=setup.scale_inches)
+        else:
+            self.decoder = codec.StreamDecoder(fmt, group=False, address=setup.addresses[index],
+                                               scale_inches=setup.scale_inches)
+        self.length = codec.record_length(fmt, group=setup.group)
+        self.fed = 0  # stream bytes fed
+        self.prev_end: int | None = None  # stream offset just after the last record released
+        self.held = _Held()
+        self.held_end = -1
+        self.resyncs_seen = 0
+        self.dropped_seen = 0
+
+    def feed(self, data: bytes, t: float) -> _Held:
+        rec = self.decoder.feed(data, t)
+        self.fed += len(data)
+        tail_start = self.fed - self.decoder.pending_bytes
+        if len(rec) == 0:
+            if len(self.held) and tail_start != self.held_end:
+                return self._release_all(next_gap=True)  # bytes after the held record were lost
+            if len(self.held) and self.decoder.pending_bytes:
+                return self._release_all(next_gap=False)  # a new record starts right after it
+            return _Held()
+        offsets = rec.offsets
+        ends = offsets + self.length
+        new = _Held(rec.times, rec.addresses, rec.rotations, rec.positions, rec.valid,
+                    np.zeros(len(rec), bool))
+        starts_all = offsets
+        if len(self.held):
+            prev_ends = np.concatenate([[self.held_end], ends[:-1]])
+        else:
+            first_prev = offsets[0] if self.prev_end is None else self.prev_end
+            prev_ends = np.concatenate([[first_prev], ends[:-1]])
+        prev_gap = starts_all != prev_ends
+        next_gap = np.zeros(len(rec), bool)
+        next_gap[:-1] = offsets[1:] != ends[:-1]
+        new.suspect = prev_gap | next_gap
+        out = _Held()
+        if len(self.held):
+            self.held.suspect = self.held.suspect | prev_gap[:1]
+            out = self.held
+        # The last record: known good on the right if a new record starts right after it.
+        last_end = int(ends[-1])
+        if last_end != tail_start:
+            new.suspect[-1] = True
+            release, keep = new, _Held()
+        elif self.decoder.pending_bytes:
+            release, keep = new, _Held()
+        else:
+            release, keep = new.split(len(new) - 1)
+        out = out.append(release) if len(out) else release
+        self.held = keep
+        self.held_end = last_end if len(keep) else -1
+        self.prev_end = last_end
+        return out
+
+    def _release_all(self, next_gap: bool) -> _Held:
+        out = self.held
+        if next_gap and len(out):
+            out.suspect[-1] = True
+        self.held = _Held()
+        self.held_end = -1
+        return out
+
+    def flush(self) -> _Held:
+        """Release what is held (the line went quiet or is being reset) and forget partial records."""
+        out = self._release_all(next_gap=False)
+        self.decoder.reset()
+        self.prev_end = None
+        return out
+
+
+class FrameAssembler:
+    """Feeds chunks to per-port decoders and groups the records into frames of one measurement cycle.
+
+    Group mode: a cycle is a run of strictly increasing bird addresses on the one port. One port per
+    bird: records are grouped by arrival time (nearest to the cycle's median arrival, within half a
+    period). A bird whose record is missing, damaged, saturated or fails the motion check is invalid.
+    """
+
+    def __init__(self, setup: FlockSetup, *, hemisphere_tracking: bool = True, max_speed: float = 20.0,
+                 max_turn_rate: float = 60.0):
+        self.setup = setup
+        self.m = setup.birds
+        self.ports = [_PortStream(setup, i) for i in range(1 if setup.group else len(setup.urls))]
+        self.period = 1.0 / max(setup.rate_hz, 1e-3)
+        self.hemisphere_tracking = hemisphere_tracking
+        self.max_speed = max_speed
+        self.max_turn_rate = max_turn_rate
+        self.index_of_address = np.full(256, -1, np.int64)
+        self.index_of_address[np.asarray(setup.addresses)] = np.arange(self.m)
+        self.hemisphere = codec.hemisphere_vector(setup.hemisphere)
+        # Group-mode records of the cycle still open.
+        self.open = _Held()
+        # One-port-per-bird queues of released records.
+        self.queues = [_Held() for _ in self.ports]
+        self.now = -np.inf
+        # Per-bird memory for the motion check and the hemisphere tracker.
+        self.last_time = np.full(self.m, -np.inf)
+        self.last_seen = np.full(self.m, -np.inf)  # arrival of the last record of any kind, per bird
+        self.last_pos = np.full((self.m, 3), np.nan)
+        self.last_rot = np.full((self.m, 3, 3), np.nan)
+        self.flipped = np.zeros(self.m, bool)
+        self.out: list[Frames] = []
+        self.events: list[tuple[str, str, dict]] = []
+        self.frames = 0
+        self.dropped_records = 0
+        self.rejected_records = 0
+
+    # -- counters ------------------------------------------------------------------------------
+    @property
+    def resyncs(self) -> int:
+        return sum(p.decoder.resyncs for p in self.ports)
+
+    @property
+    def dropped_bytes(self) -> int:
+        return sum(p.decoder.dropped_bytes for p in self.ports)
+
+    # -- input ---------------------------------------------------------------------------------
+    def feed(self, port: int, t: float, data: bytes) -> None:
+        """Bytes that arrived on `port` at monotonic time `t`."""
+        if port >= len(self.ports):
+            return
+        self.now = max(self.now, t)
+        ps = self.ports[port]
+        released = ps.feed(data, t)
+        if ps.decoder.resyncs != ps.resyncs_seen:
+            lost = ps.decoder.dropped_bytes - ps.dropped_seen
+            self.events.append(("resync", f"port {port}: {lost} byte(s) lost or garbled; resynchronised on the "
+                                          f"phasing bit", {"port": port, "bytes": int(lost)}))
+            ps.resyncs_seen, ps.dropped_seen = ps.decoder.resyncs, ps.decoder.dropped_bytes
+        self._take_records(port, released, final=False)
+
+    def flush(self) -> None:
+        """The stream ended or broke: emit everything pending (its missing birds invalid) and start afresh."""
+        for i, ps in enumerate(self.ports):
+            self._take_records(i, ps.flush(), final=False)
+        if self.setup.group:
+            self._emit_group(self.open, close_last=True)
+            self.open = _Held()
+        else:
+            self._emit_ports(final=True)
+
+    def take(self) -> Frames:
+        """Frames assembled since the last call."""
+        out, self.out = Frames.concat(self.out, self.m), []
+        return out
+
+    def take_events(self) -> list[tuple[str, str, dict]]:
+        out, self.events = self.events, []
+        return out
+
+    # -- group mode ----------------------------------------------------------------------------
+    def _take_records(self, port: int, rec: _Held, final: bool) -> None:
+        if len(rec) == 0:
+            return
+        if self.setup.group:
+            self.open = self.open.append(rec) if len(self.open) else rec
+            self._emit_group(self.open, close_last=False)
+        else:
+            self.queues[port] = self.queues[port].append(rec) if len(self.queues[port]) else rec
+            self._emit_ports(final=False)
+
+    def _emit_group(self, rec: _Held, close_last: bool) -> None:
+        if len(rec) == 0:
+            return
+        a = rec.addresses
+        new_cycle = np.concatenate([[True], a[1:] <= a[:-1]])
+        cycle = np.cumsum(new_cycle) - 1
+        n = int(cycle[-1]) + 1
+        # The last cycle stays open unless it already holds the highest address (nothing can follow).
+        done = n if (close_last or a[-1] == max(self.setup.addresses)) else n - 1
+        if done == 0:
+            return
+        k = int(np.searchsorted(cycle, done))
+        closed, self.open = rec.split(k)
+        cyc = cycle[:k]
+        first = np.flatnonzero(new_cycle[:k])
+        self._emit(closed.times[first], cyc, self.index_of_address[closed.addresses], closed)
+
+    # -- one port per bird ---------------------------------------------------------------------
+    def _emit_ports(self, final: bool) -> None:
+        P = self.period
+        while True:
+            heads = np.array([q.times[0] if len(q) else np.inf for q in self.queues])
+            have = np.isfinite(heads)
+            if not have.any():
+                return
+            t_min = heads[have].min()
+            if not (have.all() or final or self.now > t_min + 2.5 * P):
+                return
+            ref = float(np.median(heads[have]))
+            picks = []
+            cyc_times = []
+            for b, q in enumerate(self.queues):
+                if not len(q):
+                    continue
+                t = q.times
+                stale = int(np.searchsorted(t, ref - 0.5 * P, side="left"))
+                upto = int(np.searchsorted(t, ref + 0.5 * P, side="right"))
+                if upto > stale:
+                    picks.append((b, q.select(slice(upto - 1, upto))))
+                    cyc_times.append(t[upto - 1])
+                # Records older than the window, and all but the newest inside it, are lost.
+                removed = max(upto, stale)
+                self.rejected_records += removed - (1 if upto > stale else 0)
+                self.queues[b] = q.select(slice(removed, None))
+            if not picks:
+                return
+            rec = picks[0][1]
+            for _, r in picks[1:]:
+                rec = rec.append(r)
+            birds = np.array([b for b, _ in picks])
+            self._emit(np.array([min(cyc_times)]), np.zeros(len(rec), np.int64), birds, rec)
+
+    # -- common: fill frames, check suspects, track hemisphere ---------------------------------
+    def _emit(self, cycle_times: np.ndarray, cycle: np.ndarray, bird: np.ndarray, rec: _Held) -> None:
+        n, m = len(cycle_times), self.m
+        R = np.zeros((n, m, 3, 3))
+        p = np.zeros((n, m, 3))
+        valid = np.zeros((n, m), bool)
+        suspect = np.zeros((n, m), bool)
+        ok = bird >= 0
+        c, b = cycle[ok], bird[ok]
+        R[c, b] = rec.rotations[ok]
+        p[c, b] = rec.positions[ok]
+        valid[c, b] = rec.valid[ok]
+        suspect[c, b] = rec.suspect[ok] & rec.valid[ok]
+        rec_time = np.zeros((n, m))
+        rec_time[c, b] = rec.times[ok]
+        np.maximum.at(self.last_seen, b, rec.times[ok])
+        if suspect.any():
+            self._check_suspects(R, p, valid, suspect, rec_time)
+        if self.hemisphere_tracking and self.setup.record_format in ("position", "position_angles",
+                                                                     "position_matrix", "position_quaternion"):
+            self._track_hemisphere(p, valid)
+        self._remember(R, p, valid, rec_time)
+        R[~valid] = 0.0
+        p[~valid] = 0.0
+        self.frames += n
+        self.dropped_records += int(np.count_nonzero(~valid))
+        self.out.append(Frames(cycle_times.astype(float), R, p, valid))
+
+    def _check_suspects(self, R, p, valid, suspect, rec_time) -> None:
+        """Keep a suspect record only if it continues the bird's motion (a garbled one jumps far away)."""
+        for f, b in zip(*np.nonzero(suspect)):  # rare: only records next to lost bytes
+            prev = np.flatnonzero(valid[:f, b])
+            if len(prev):
+                q, Q, tq = p[prev[-1], b], R[prev[-1], b], rec_time[prev[-1], b]
+            else:
+                q, Q, tq = self.last_pos[b], self.last_rot[b], self.last_time[b]
+            dt = rec_time[f, b] - tq
+            keep = False
+            if np.isfinite(dt) and dt <= 0.5:
+                dt = max(dt, 1.0 / max(self.setup.rate_hz, 1.0))
+                keep = True
+                if np.all(np.isfinite(p[f, b])) and np.all(np.isfinite(q)):
+                    # Mirror-tolerant: a hemisphere crossing flips the reported position.
+                    jump = min(np.linalg.norm(p[f, b] - q), np.linalg.norm(p[f, b] + q))
+                    keep &= jump <= self.max_speed * dt + 0.03
+                if np.all(np.isfinite(R[f, b])) and np.all(np.isfinite(Q)):
+                    cos = (np.trace(Q.T @ R[f, b]) - 1.0) / 2.0
+                    keep &= np.arccos(np.clip(cos, -1.0, 1.0)) <= self.max_turn_rate * dt + 0.2
+            if not keep:
+                valid[f, b] = False
+                self.rejected_records += 1
+
+    def _track_hemisphere(self, p: np.ndarray, valid: np.ndarray) -> None:
+        """Undo hemisphere folding: the bird reports −p once a sensor crosses into the other hemisphere.
+
+        Consecutive valid raw positions pointing to opposite sides (p·q < 0) can only be such a flip (a
+        real move would have to pass through the transmitter). Positions are corrected in place.
+        """
+        n = len(p)
+        rows = np.arange(n)[:, None]
+        idx = np.where(valid, rows, -1)
+        last = np.maximum.accumulate(idx, axis=0)
+        prev_idx = np.vstack([np.full((1, self.m), -1), last[:-1]])
+        cols = np.arange(self.m)[None, :]
+        prev = np.where((prev_idx >= 0)[..., None], p[np.maximum(prev_idx, 0), cols], self.last_raw_pos())
+        toggle = valid & (np.einsum("nmi,nmi->nm", p, prev) < 0)
+        if toggle.any():
+            for b in np.flatnonzero(toggle.any(axis=0)):
+                self.events.append(("hemisphere_flip", f"bird {b} crossed the hemisphere boundary "
+                                    f"{int(toggle[:, b].sum())} time(s); positions corrected",
+                                    {"bird": int(b), "count": int(toggle[:, b].sum())}))
+        raw_last = np.where((last[-1] >= 0)[:, None], p[np.maximum(last[-1], 0), np.arange(self.m)], self.last_raw_pos())
+        parity = (np.cumsum(toggle, axis=0) + self.flipped[None, :]) % 2 == 1
+        self._raw_last = raw_last
+        self.flipped = parity[-1].copy()
+        p[parity] *= -1.0
+
+    def last_raw_pos(self) -> np.ndarray:
+        return getattr(self, "_raw_last", np.full((self.m, 3), np.nan))
+
+    def _remember(self, R, p, valid, rec_time) -> None:
+        seen = valid.any(axis=0)
+        if not seen.any():
+            return
+        last = len(valid) - 1 - np.argmax(valid[::-1], axis=0)
+        b = np.flatnonzero(seen)
+        self.last_pos[b] = p[last[b], b]
+        self.last_rot[b] = R[last[b], b]
+        self.last_time[b] = rec_time[last[b], b]
