@@ -1,0 +1,90 @@
+"""Record a simulated take: a performer's routine sampled at a frame rate, with noise and faults,
+returned as a `flockcal.takes.Take` plus the ground truth to compare a fit against.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from flockcal.simulator.body import BodyModel, SimulatorError
+from flockcal.simulator.performer import Performer
+from flockcal.takes import Take, make_take
+
+FAULT_KEYS = {"dropout", "dropout_burst_s", "slip", "slips", "unit_scale", "hemisphere", "quantise", "orientation", "noise_scale"}
+
+
+def simulate(
+    model: str | BodyModel = "human",
+    motion: str = "walk",
+    seconds: float = 45.0,
+    rate_hz: float = 100.0,
+    birds: int | None = 16,
+    seed: int = 1,
+    noise: str | None = "tracker",
+    faults: dict | None = None,
+    height: float = 1.75,
+    period: float | None = None,
+) -> tuple[Take, dict]:
+    """Simulate `seconds` of `motion` at `rate_hz` and return (take, truth).
+
+    model: "human" (birds 2..16), "linkage" (6 links) or "pair" (two sensors 0.565 m apart), or a
+    BodyModel; birds=None keeps every body. noise: "tracker" or None. faults (all optional):
+    {"dropout": p, "dropout_burst_s": s, "slips": [{"sensor", "at_time", "distance_m", "direction",
+    "angle_deg"}] (or one as "slip"), "unit_scale": f, "hemisphere": "forward"|…, "quantise": 36|72|144,
+    "orientation": "matrix"|"angles"|"quaternion", "noise_scale": f}.
+    truth: the fit-shaped ground truth at the start of the take, with `slip_events` listing each slip
+    and `after_slips` the truth once every slip has happened.
+    """
+    faults = dict(faults or {})
+    unknown = set(faults) - FAULT_KEYS
+    if unknown:
+        raise SimulatorError(f"unknown fault(s) {', '.join(sorted(unknown))}; known: {', '.join(sorted(FAULT_KEYS))}")
+    if isinstance(model, str) and model != "human" and birds == 16:
+        birds = None  # the default 16 is for the human suit; the rigs have their own counts
+    perf = Performer(
+        model, routine=motion, seed=seed, noise=noise, rate_hz=rate_hz, birds=birds,
+        period=period, height=height, seconds=seconds,
+    )  # fmt: skip
+    if "noise_scale" in faults:
+        perf.set_noise(noise, float(faults["noise_scale"]))
+    if faults.get("dropout"):
+        perf.set_dropout(float(faults["dropout"]), float(faults.get("dropout_burst_s", 0.0)))
+    if "unit_scale" in faults:
+        perf.set_unit_scale(float(faults["unit_scale"]))
+    if faults.get("hemisphere"):
+        perf.set_hemisphere(faults["hemisphere"])
+    if faults.get("quantise"):
+        perf.set_quantise(float(faults["quantise"]), faults.get("orientation", "matrix"))
+    slips = list(faults.get("slips", []))
+    if "slip" in faults:
+        slips.append(faults["slip"])
+    for s in slips:
+        if not isinstance(s, dict) or "sensor" not in s or "distance_m" not in s:
+            raise SimulatorError("each slip needs at least {'sensor': name, 'distance_m': metres, 'at_time': seconds}")
+        perf.inject_slip(
+            s["sensor"], float(s["distance_m"]), at_time=float(s.get("at_time", seconds / 2)),
+            direction=s.get("direction"), angle_deg=float(s.get("angle_deg", 0.0)),
+        )  # fmt: skip
+
+    n = int(round(seconds * rate_hz))
+    if n < 1:
+        raise SimulatorError(f"{seconds} s at {rate_hz} Hz gives no frames")
+    times = np.arange(n) / float(rate_hz)
+    R, p, valid = perf.poses(times)
+    take = make_take(R, p, perf.names, rate_hz, valid=valid, times=times, source="simulated take")
+
+    truth = perf.truth(at_time=float(times[0]))
+    if truth["slip_events"]:
+        after = perf.truth()
+        truth["after_slips"] = {"joints": after["joints"], "bones": after["bones"]}
+    truth["simulation"] = {
+        "model": perf.model.kind,
+        "motion": motion,
+        "seconds": float(seconds),
+        "rate_hz": float(rate_hz),
+        "frames": n,
+        "seed": int(seed),
+        "noise": noise,
+        "faults": {k: v for k, v in faults.items() if k not in ("slip", "slips")},
+    }
+    return take, truth
