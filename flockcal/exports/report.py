@@ -155,18 +155,14 @@ def _bars(cov) -> str:
 
 
 def _find_slips(take, d: dict) -> list[dict]:
-    """Slip events: the calibration's own, else the slippage detector's if that module is installed."""
+    """Slip events: the calibration's own, else the slippage detector's over the take."""
     if d.get("slip_events"):
         return list(d["slip_events"])
     try:
         from flockcal.solver.slippage import detect_slips
     except ImportError:
         return []
-    try:
-        events = detect_slips(take.rotations, take.positions, valid=take.valid, times=take.times, names=take.names)
-    except TypeError:
-        return []  # a detector with another signature: leave slips out rather than guess
-    return [e.to_dict() if hasattr(e, "to_dict") else dict(e) for e in events]
+    return [e.to_dict() if hasattr(e, "to_dict") else dict(e) for e in detect_slips(take, d)]
 
 
 def report_html(
@@ -258,10 +254,12 @@ def report_html(
 
     parts.append("<h2>Slip events</h2>")
     if slips:
-        parts.append("<table><tr><th>time (s)</th><th class=name>sensor</th><th class=name>joints</th><th>jump (mm)</th></tr>")
+        parts.append("<table><tr><th>time (s)</th><th class=name>kind</th><th class=name>sensor</th><th class=name>joints</th><th>jump (mm)</th></tr>")
         for s in slips:
+            who = " ↔ ".join(map(str, s["sensors"])) if s.get("sensors") else str(s.get("sensor"))
             parts.append(
-                f"<tr><td>{_fmt(s.get('time_s'), 1, 2)}</td><td class="name warn">{html.escape(str(s.get('sensor')))}</td>"
+                f"<tr><td>{_fmt(s.get('time_s'), 1, 2)}</td><td class=name>{html.escape(str(s.get('kind', 'slip')))}</td>"
+                f'<td class="name warn">{html.escape(who)}</td>'
                 f"<td class=name>{html.escape(', '.join(map(str, s.get('joints', []))))}</td><td>{_fmt(s.get('jump_mm'), 1, 1)}</td></tr>"
             )
         parts.append("</table>")

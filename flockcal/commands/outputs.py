@@ -1,0 +1,196 @@
+"""Sub-commands for what people take away from a calibration: `scale` (tracker unit scale from a rigid
+pair), `report` (one HTML page), `export-bvh` (animation for Blender/Maya/MotionBuilder) and
+`skeleton` (the performer's skeleton file, to fit their next take with it).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from flockcal.errors import UserError
+
+
+def scale_factor(text: str) -> float:
+    """A `--scale` value: a number, or a JSON file written by `flockcal scale --json` (its "factor")."""
+    try:
+        value = float(text)
+    except ValueError:
+        path = Path(text)
+        if not path.exists():
+            raise UserError(f"--scale {text!r} is neither a number nor an existing file") from None
+        try:
+            value = float(json.loads(path.read_text())["factor"])
+        except (json.JSONDecodeError, KeyError, TypeError, ValueError, UnicodeDecodeError):
+            raise UserError(f"{path}: not a `flockcal scale --json` file (no numeric 'factor')") from None
+    if not (value > 0 and value < float("inf")):
+        raise UserError(f"--scale must be a positive factor, got {value!r}")
+    return value
+
+
+def load_scaled_take(path: str, scale: str | None):
+    """The take at `path`, its positions multiplied by the `--scale` factor if one was given."""
+    from dataclasses import replace
+
+    from flockcal.solver.scale import apply_scale
+    from flockcal.takes import load_take
+
+    take = load_take(path)
+    if scale is not None:
+        take = replace(take, positions=apply_scale(take.positions, scale_factor(scale)))
+    return take
+
+
+def _hierarchy(path: str | None) -> dict | None:
+    if path is None:
+        return None
+    try:
+        data = json.loads(Path(path).read_text())
+    except FileNotFoundError:
+        raise UserError(f"{path}: no such hierarchy file") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        raise UserError(f"{path}: not valid JSON ({exc})") from None
+    if not isinstance(data, dict) or not all(isinstance(k, str) and isinstance(v, str) for k, v in data.items()):
+        raise UserError(f"{path}: a hierarchy file is one JSON object {{child: parent}} of sensor names")
+    return data
+
+
+def fit_take(take, hierarchy: str | None = None, root: str | None = None, skeleton: str | None = None):
+    """Fit `take` for an output: with a saved skeleton file, a `{child: parent}` file, or a full search.
+
+    Returns a Calibration or a KnownFit; both give the design.md §5 dict through `.to_dict()`.
+    """
+    from flockcal.solver.accumulator import GramAccumulator
+
+    acc = GramAccumulator(take.n_sensors)
+    acc.update(take.rotations, take.positions, take.valid)
+    if skeleton is not None:
+        if hierarchy is not None or root is not None:
+            raise UserError("--skeleton fixes the tree; leave out --hierarchy and --root")
+        from flockcal.exports.skeleton import load_skeleton
+
+        return load_skeleton(skeleton).fit(acc, take.names)
+    from flockcal.solver.calibration import calibrate
+
+    return calibrate(acc, hierarchy=_hierarchy(hierarchy), root=root, names=list(take.names))
+
+
+def _add_fit_options(p: argparse.ArgumentParser) -> None:
+    p.add_argument("take", help="take file (.npz, design.md §5)")
+    p.add_argument("--hierarchy", metavar="FILE.json", help="{child: parent} map: skip the topology search")
+    p.add_argument("--root", metavar="NAME", help="root body of the tree")
+    p.add_argument("--skeleton", metavar="FILE.json", help="a saved skeleton of this performer: fit placements only")
+    p.add_argument("--scale", metavar="FACTOR|FILE", help="unit scale factor (or `flockcal scale --json` output)")
+
+
+def cmd_scale(args) -> int:
+    from flockcal.solver.scale import apply_scale, rigid_pair_scale
+    from flockcal.takes import load_take, save_take
+
+    take = load_take(args.take)
+    if args.sensors:
+        names = [x.strip() for x in args.sensors.split(",")]
+        if len(names) != 2 or not all(names):
+            raise UserError(f"--sensors takes two names separated by a comma, got {args.sensors!r}")
+    elif take.n_sensors == 2:
+        names = list(take.names)
+    else:
+        raise UserError(f"the take has {take.n_sensors} sensors; name the rigid pair with --sensors A,B")
+    a, b = (take.index(x) for x in names)
+    est = rigid_pair_scale(
+        take.positions[:, a],
+        take.positions[:, b],
+        args.distance,
+        valid=take.valid[:, a] & take.valid[:, b],
+        rotations_a=take.rotations[:, a],
+        rotations_b=take.rotations[:, b],
+        max_relative_std=args.max_spread,
+    )
+    if args.json:
+        print(json.dumps({"sensors": names, **est.to_dict()}))
+    else:
+        print(
+            f"scale factor {est.factor:.5f} ± {est.factor_stderr:.5f} (true / measured distance; multiply positions by it)\n"
+            f"measured {est.measured_mean_m * 100:.2f} cm ± {est.measured_std_m * 100:.2f} cm over {est.frames} frames; "
+            f"scaled: mean {args.distance * 100:.2f} cm, std {est.scaled_std_m * 100:.2f} cm"
+        )
+    if args.apply:
+        if not args.output:
+            raise UserError("--apply needs --output FILE for the rescaled take")
+        later = load_take(args.apply)
+        from dataclasses import replace
+
+        save_take(args.output, replace(later, positions=apply_scale(later.positions, est.factor)))
+        print(f"wrote {args.output} (positions × {est.factor:.5f})", file=sys.stderr)
+    return 0
+
+
+def cmd_report(args) -> int:
+    from flockcal.exports.report import write_report
+
+    take = load_scaled_take(args.take, args.scale)
+    cal = fit_take(take, args.hierarchy, args.root, args.skeleton)
+    write_report(args.output, cal, take, source=Path(args.take).name, up=args.up)
+    print(f"wrote {args.output}", file=sys.stderr)
+    return 0
+
+
+def cmd_export_bvh(args) -> int:
+    from flockcal.exports.bvh import write_bvh
+
+    take = load_scaled_take(args.take, args.scale)
+    cal = fit_take(take, args.hierarchy, args.root, args.skeleton)
+    write_bvh(args.output, cal, take, units=args.units, up=args.up)
+    print(f"wrote {args.output}", file=sys.stderr)
+    return 0
+
+
+def cmd_skeleton(args) -> int:
+    from flockcal.exports.skeleton import write_skeleton
+
+    take = load_scaled_take(args.take, args.scale)
+    cal = fit_take(take, args.hierarchy, args.root, args.skeleton)
+    source = {"take": Path(args.take).name, "frames": take.n_frames, "rate_hz": take.rate_hz}
+    if args.scale is not None:
+        source["scale"] = scale_factor(args.scale)
+    write_skeleton(args.output, cal, source)
+    print(f"wrote {args.output}", file=sys.stderr)
+    return 0
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "scale",
+        help="tracker unit scale from two sensors rigidly fixed a known distance apart",
+        description="Estimate the tracker's unit scale factor (true / measured mean distance) and its spread "
+        "from a take of two rigidly fixed sensors; apply it later with --scale.",
+    )
+    p.add_argument("take", help="take of the rigid pair (.npz)")
+    p.add_argument("--distance", type=float, required=True, metavar="METRES", help="true distance between the sensors")
+    p.add_argument("--sensors", metavar="A,B", help="the two sensors (default: the take's two sensors)")
+    p.add_argument("--max-spread", type=float, default=0.05, metavar="FRACTION",
+                   help="refuse the take if the distance std exceeds this fraction of its mean (default 0.05)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--apply", metavar="TAKE", help="also write this later take rescaled by the factor")
+    p.add_argument("-o", "--output", metavar="OUT.npz", help="where --apply writes the rescaled take")
+    p.set_defaults(func=cmd_scale)
+
+    p = subparsers.add_parser("report", help="one self-contained HTML page of a take's calibration")
+    _add_fit_options(p)
+    p.add_argument("-o", "--output", required=True, metavar="REPORT.html")
+    p.add_argument("--up", default="-z", choices=["-z", "+z", "+y"], help="tracker world's up axis (default -z, the Flock's)")
+    p.set_defaults(func=cmd_report)
+
+    p = subparsers.add_parser("export-bvh", help="the take played through its fitted skeleton, as BVH")
+    _add_fit_options(p)
+    p.add_argument("-o", "--output", required=True, metavar="OUT.bvh")
+    p.add_argument("--units", default="cm", choices=["cm", "m", "mm", "in"], help="file units (default cm)")
+    p.add_argument("--up", default="-z", choices=["-z", "+z", "+y"], help="tracker world's up axis (default -z, the Flock's)")
+    p.set_defaults(func=cmd_export_bvh)
+
+    p = subparsers.add_parser("skeleton", help="save the performer's calibrated skeleton for their next take")
+    _add_fit_options(p)
+    p.add_argument("-o", "--output", required=True, metavar="SKELETON.json")
+    p.set_defaults(func=cmd_skeleton)
