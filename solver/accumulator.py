@@ -209,6 +209,15 @@ class GramAccumulator:
         dd = Sji[:, 3, 3] - 2.0 * G[3 * m + i, 3 * m + j] + Sij[:, 3, 3]
         return A, b, dd, self._pair_frames[i, j].copy()
 
+    def translation_power(self, pairs) -> np.ndarray:
+        """(p,) mean of ‖t_i − o‖² + ‖t_j − o‖² over the pair's frames: the size of the terms Σ‖d‖² is read from."""
+        self._flush()
+        P = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
+        i, j = P[:, 0], P[:, 1]
+        n = self._pair_frames[i, j]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(n > 0, (self._self[j, i, 3, 3] + self._self[i, j, 3, 3]) / n, 0.0)
+
     def pair_point(self, point, src, dst) -> np.ndarray:
         """Mean over frames of a point fixed in sensor `src`'s frame, expressed in sensor `dst`'s frame.
 
@@ -228,6 +237,18 @@ class GramAccumulator:
         n = self._pair_frames[s, d]
         with np.errstate(invalid="ignore", divide="ignore"):
             return np.where(n[:, None] > 0, total / n[:, None], np.nan)
+
+    def relative_rotation(self, src, dst) -> np.ndarray:
+        """(k, 3, 3) mean over frames of R_dstᵀ R_src, projected to a rotation: maps src-frame vectors to dst."""
+        from flockcal.solver.transforms import nearest_rotation
+
+        self._flush()
+        m = self.n_sensors
+        s = np.asarray(src, dtype=np.intp).reshape(-1)
+        d = np.asarray(dst, dtype=np.intp).reshape(-1)
+        q = np.arange(3) * m
+        rd, rs = q[None, :] + d[:, None], q[None, :] + s[:, None]
+        return nearest_rotation(self._gram[rd[:, :, None], rs[:, None, :]])
 
     # -- copies and arithmetic ---------------------------------------------------------------------
     def copy(self) -> "GramAccumulator":

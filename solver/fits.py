@@ -19,6 +19,9 @@ NUMERIC_FLOOR = 1e-10
 # the rotation variance the residual noise alone could produce (at most ~1.5× σ²/L², derived below).
 HINGE_MARGIN = 4.0
 
+# Rounding budget of SSE/n read from the Gram, in units of Σ(‖t_i‖² + ‖t_j‖²)/(n μ_min): 64 × machine epsilon.
+ROUNDING = 64 * np.finfo(float).eps
+
 
 @dataclass(frozen=True)
 class PairFits:
@@ -42,6 +45,7 @@ class PairFits:
     rank: np.ndarray  # (p,) directions solved: 6 ball, 5 hinge, 3 no relative rotation, 0 no data
     noise_floor: np.ndarray  # (p,) σ²/L², the rotation variance the residual noise alone would explain
     separation: np.ndarray  # (p,) m, rms distance between the two sensors (2L)
+    rms_floor: np.ndarray  # (p,) m, rounding level of rms read from the Gram: smaller values mean 0
 
     def __len__(self) -> int:
         return len(self.pairs)
@@ -134,6 +138,10 @@ def pair_fits(acc, pairs=None, hinge_margin: float = HINGE_MARGIN) -> PairFits:
     cov = np.einsum("pik,pk,pjk->pij", V, inv, V) * (sigma2 / nn)[:, None, None]
     c_cov, l_cov = cov[:, :3, :3], cov[:, 3:, 3:]
 
+    # SSE = Σ‖d‖² − Σ (v_kᵀb)²/λ_k loses about ε·Σ‖t‖²/μ_min to rounding (μ_min: smallest kept eigenvalue).
+    mu_kept = np.where(keep, mu, np.inf).min(axis=1)
+    mu_kept = np.where(np.isfinite(mu_kept), np.minimum(mu_kept, 1.0), 1.0)
+
     hinge = rank == 5
     axis = V[:, :, 0]  # the dropped direction of a hinge is the smallest eigenvalue's
     ai, aj = axis[:, :3], axis[:, 3:]
@@ -170,4 +178,5 @@ def pair_fits(acc, pairs=None, hinge_margin: float = HINGE_MARGIN) -> PairFits:
         rank=np.where(has, rank, 0),
         noise_floor=noise_floor + nan1,
         separation=np.sqrt(np.maximum(ddn, 0.0)) + nan1,
+        rms_floor=np.sqrt(ROUNDING * (np.maximum(ddn, 0.0) + acc.translation_power(P)) / mu_kept) + nan1,
     )

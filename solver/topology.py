@@ -1,0 +1,181 @@
+"""The skeleton's tree from all-pairs fits: minimum spanning tree over residuals, root, rigid groups, loops, ties.
+
+Sensors that never turned relative to each other are contracted into one rigid body first; the MST runs
+over bodies (scipy.sparse.csgraph, with strictly positive rank weights so that a perfect fit is still an
+edge); non-tree pairs that fit as well as the tree are reported as loop candidates or as ambiguous parents.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
+
+from flockcal.solver.errors import SolverError
+from flockcal.solver.fits import PairFits
+
+# A pair "fits as well as" another when its rms is within this fraction (plus rounding) of the other's.
+TIE_FRACTION = 0.05
+# Loop candidates: non-tree pairs with rms at most this multiple of the tree's median joint rms.
+LOOP_FACTOR = 2.0
+# Rigid pairs: no exercised direction, and rms at most this multiple of the typical best-partner rms.
+RIGID_FACTOR = 3.0
+
+
+@dataclass
+class Topology:
+    root: int
+    parent: np.ndarray  # (m,) int, −1 at the root
+    order: np.ndarray  # (m,) root first, parents before children
+    joint: np.ndarray  # (m,) bool: the link to the parent is a fitted joint (False at the root, rigid members)
+    group: np.ndarray  # (m,) rigid-body label; sensors sharing a label never turned relative to each other
+    loop_candidates: list = field(default_factory=list)  # [(a, b, rms)]
+    rigid_groups: list = field(default_factory=list)  # [[i, …]] groups of two or more sensors
+    ambiguous: list = field(default_factory=list)  # [(child, [parents], note)]
+
+
+def tree_centre(parent_edges: np.ndarray, n_nodes: int, weight=None) -> int:
+    """The node whose removal splits a tree (edges (k, 2)) most evenly: smallest largest remaining part.
+
+    Ties go to the node with more neighbours, then the lower index.
+    """
+    w = np.ones(n_nodes) if weight is None else np.asarray(weight, dtype=float)
+    if n_nodes == 1:
+        return 0
+    e = np.asarray(parent_edges, dtype=np.intp).reshape(-1, 2)
+    adj = csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n_nodes, n_nodes))
+    order, pred = breadth_first_order(adj, 0, directed=False)
+    sub = w.copy()
+    for v in order[::-1][:-1]:  # children before parents; at most one pass over the bodies
+        sub[pred[v]] += sub[v]
+    biggest_child = np.zeros(n_nodes)
+    kids = order[1:]
+    np.maximum.at(biggest_child, pred[kids], sub[kids])
+    score = np.maximum(biggest_child, w.sum() - sub)
+    degree = np.bincount(e.ravel(), minlength=n_nodes)
+    return int(np.lexsort((np.arange(n_nodes), -degree, score))[0])
+
+
+def _orient(edges: np.ndarray, n: int, root: int) -> tuple[np.ndarray, np.ndarray]:
+    """Parent array and BFS order of the tree `edges` (k, 2) hung from `root`."""
+    adj = csr_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n)) if len(edges) else csr_matrix((n, n))
+    order, pred = breadth_first_order(adj, root, directed=False)
+    if len(order) != n:
+        raise SolverError("the tree does not reach every sensor")
+    parent = np.where(pred < 0, -1, pred)
+    parent[root] = -1
+    return parent.astype(np.intp), order.astype(np.intp)
+
+
+def ancestors(parent: np.ndarray, order: np.ndarray) -> np.ndarray:
+    """(m, m) bool: anc[x, y] is True when y is a proper ancestor of x."""
+    m = len(parent)
+    anc = np.zeros((m, m), dtype=bool)
+    for x in order[1:]:  # parents come first, so each row copies a finished one
+        p = parent[x]
+        anc[x] = anc[p]
+        anc[x, p] = True
+    return anc
+
+
+def spanning_tree(fits: PairFits, n_sensors: int, root: int | None = None) -> Topology:
+    """The skeleton tree over all sensors from fits of (ideally) all pairs, hung from `root` (auto if None)."""
+    m = int(n_sensors)
+    if root is not None and not 0 <= int(root) < m:
+        raise SolverError(f"root index {root} is out of range for {m} sensors")
+    measured = fits.square("n", m, fill=0.0) > 0
+    np.fill_diagonal(measured, False)
+    rms = np.where(measured, fits.square("rms", m, fill=np.inf), np.inf)
+    rank = fits.square("rank", m, fill=0.0)
+    tol = np.nan_to_num(fits.square("rms_floor", m, fill=0.0)) + 1e-12  # rms below this is 0 to rounding
+    best = np.min(rms, axis=1)
+    scale = float(np.median(best[np.isfinite(best)])) if np.isfinite(best).any() else 0.0
+
+    # Rigid bodies: pairs that never turned relative to each other yet fit like a joint would.
+    rigid = measured & (rank <= 3) & (rms <= RIGID_FACTOR * scale + tol)
+    n_groups, label = connected_components(csr_matrix(rigid), directed=False)
+
+    # Contracted graph: each pair of bodies is linked by its best-fitting sensor pair.
+    iu, ju = np.triu_indices(m, k=1)
+    cross = label[iu] != label[ju]
+    pi, pj, pr = iu[cross], ju[cross], rms[iu, ju][cross]
+    gi, gj = np.minimum(label[pi], label[pj]), np.maximum(label[pi], label[pj])
+    srt = np.lexsort((pr, gj, gi))  # within each body pair, best rms first
+    first = np.ones(len(srt), dtype=bool)
+    first[1:] = (gi[srt][1:] != gi[srt][:-1]) | (gj[srt][1:] != gj[srt][:-1])
+    link = srt[first]
+    lw = pr[link]
+    # csgraph reads a zero weight as "no edge": feed rank order (1, 2, …), unmeasured pairs last.
+    finite = np.isfinite(lw)
+    weights = np.empty(len(link))
+    weights[np.argsort(np.where(finite, lw, np.inf), kind="stable")] = np.arange(1, len(link) + 1)
+    graph = csr_matrix((weights, (gi[link], gj[link])), shape=(n_groups, n_groups))
+    mst = minimum_spanning_tree(graph).toarray()
+    used = (mst[gi[link], gj[link]] > 0) | (mst[gj[link], gi[link]] > 0)
+    joint_edges = np.stack([pi[link][used], pj[link][used]], axis=1) if used.any() else np.zeros((0, 2), np.intp)
+    if n_groups > 1 and len(joint_edges) != n_groups - 1:
+        raise SolverError("the sensors do not form one connected skeleton")
+
+    # Root: the user's sensor, or the body that splits the tree most evenly.
+    if root is None:
+        gedges = np.stack([label[joint_edges[:, 0]], label[joint_edges[:, 1]]], axis=1)
+        sizes = np.bincount(label, minlength=n_groups)
+        rg = tree_centre(gedges, n_groups, sizes)
+        root = int(np.flatnonzero(label == rg)[0])
+    root = int(root)
+
+    # Within a rigid body every member hangs from the member where the body's inboard joint attaches.
+    gparent, gorder = _orient(np.stack([label[joint_edges[:, 0]], label[joint_edges[:, 1]]], axis=1), n_groups, label[root])
+    entry = np.full(n_groups, -1)
+    entry[label[root]] = root
+    jparent = np.full(m, -1)
+    a, b = joint_edges[:, 0], joint_edges[:, 1]
+    a_is_child = gparent[label[a]] == label[b]
+    child, par = np.where(a_is_child, a, b), np.where(a_is_child, b, a)
+    entry[label[child]] = child
+    jparent[child] = par
+    parent = np.full(m, -1, dtype=np.intp)
+    is_joint = jparent >= 0
+    parent[is_joint] = jparent[is_joint]
+    members = (np.arange(m) != entry[label]) & (np.arange(m) != root)
+    parent[members] = entry[label[members]]
+    parent[root] = -1
+    edges = np.stack([np.flatnonzero(parent >= 0), parent[parent >= 0]], axis=1)
+    _, order = _orient(edges, m, root)
+
+    topo = Topology(root, parent, order, is_joint, label)
+    topo.rigid_groups = [list(map(int, np.flatnonzero(label == g))) for g in range(n_groups) if (label == g).sum() > 1]
+
+    # Loop candidates: pairs between bodies not linked by the tree that fit like its joints.
+    tree_rms = rms[np.flatnonzero(is_joint), parent[is_joint]]
+    tree_rms = tree_rms[np.isfinite(tree_rms)]
+    if len(tree_rms):
+        limit = LOOP_FACTOR * float(np.median(tree_rms))
+        linked = np.zeros((n_groups, n_groups), dtype=bool)
+        jc = np.flatnonzero(is_joint)
+        linked[label[jc], label[parent[jc]]] = linked[label[parent[jc]], label[jc]] = True
+        cand = (label[iu] != label[ju]) & ~linked[label[iu], label[ju]] & (rms[iu, ju] <= limit + tol[iu, ju]) & (rank[iu, ju] >= 5)
+        topo.loop_candidates = [(int(a), int(b), float(rms[a, b])) for a, b in zip(iu[cand], ju[cand])]
+
+    # Ambiguous parents: another body, not below the child, that the child's sensor fits as well as its parent.
+    anc = ancestors(parent, order)
+    jc = np.flatnonzero(is_joint)
+    if len(jc):
+        ref = rms[jc, parent[jc]]
+        alt = rms[jc] <= ref[:, None] * (1 + TIE_FRACTION) + tol[jc] + tol[jc, parent[jc]][:, None]
+        alt &= ~anc.T[jc]  # not in the child's own subtree
+        alt &= label[None, :] != label[jc][:, None]
+        alt &= label[None, :] != label[parent[jc]][:, None]
+        alt &= np.isfinite(rms[jc])
+        for r, x in enumerate(jc):
+            others = np.flatnonzero(alt[r])
+            p = int(parent[x])
+            if not np.isfinite(ref[r]):
+                topo.ambiguous.append((int(x), [p], "no frame has both sensors valid: this joint was never measured"))
+            elif len(others):
+                hinged = rank[x, p] == 5 or (rank[x, others] == 5).any()
+                note = "intersecting hinge axes" if hinged else "coincident joint centres"
+                topo.ambiguous.append((int(x), [p] + [int(q) for q in others], f"fits equally well to each: {note}"))
+    return topo
