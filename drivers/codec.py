@@ -375,42 +375,52 @@ class StreamDecoder:
         self._tail_times = np.zeros(0)
 
     def feed(self, data: bytes, arrival_time: float | None = None) -> DecodedRecords:
+        """Records completed by `data` (bytes arrived at `arrival_time`), in stream order."""
         new = _as_u8(data)
         buf = np.concatenate([self._tail, new]) if len(self._tail) else new
         times = np.concatenate([self._tail_times,
                                 np.full(len(new), np.nan if arrival_time is None else arrival_time)])
+        return self._frame(buf, times, final=False)
+
+    def flush(self) -> DecodedRecords:
+        """Decide the unfinished tail as if no more bytes were coming (after a POINT reply with
+        mixed record lengths, where a short record could still be the start of a longer one)."""
+        return self._frame(self._tail, self._tail_times, final=True)
+
+    def _frame(self, buf: np.ndarray, times: np.ndarray, final: bool) -> DecodedRecords:
         n = len(buf)
         phase = (buf & PHASE_BIT) != 0
         starts = np.flatnonzero(phase)
-        # cs[i] = phasing bytes in buf[:i]; inner bytes of [s, s+L) are clean iff cs[s+L] == cs[s+1].
-        cs = np.concatenate([[0], np.cumsum(phase)])
-        acc_len = np.zeros(len(starts), np.int64)
+        # A record runs from its phasing byte to at most the next one (inner bytes have bit 7
+        # clear); an undamaged stream fills that gap exactly, garbage makes it longer.
+        gap = np.diff(np.append(starts, n))
+        exact = np.zeros(len(starts), np.int64)
+        longest = np.zeros(len(starts), np.int64)
         for L in self._lengths:  # a handful of distinct lengths at most
-            end = starts + L
-            ok = (end <= n) & (acc_len == 0)
-            e = np.minimum(end, n)
-            ok &= cs[e] == cs[np.minimum(starts + 1, n)]
+            fits = L <= gap
             if self.group:
-                ok &= self._length_of[buf[e - 1]] == L
-            acc_len[ok] = L
+                fits &= self._length_of[buf[np.minimum(starts + L - 1, n - 1)]] == L
+            exact[fits & (gap == L)] = L
+            longest[fits] = L
+        acc_len = np.where(exact > 0, exact, longest)
         accepted = acc_len > 0
-        # The last start may be a record still arriving: keep it for the next chunk.
+        # The last start may be a record still arriving (or, with mixed lengths, a short record
+        # that could be a longer one's beginning): keep it for the next chunk.
         keep_from = n
-        if len(starts) and not accepted[-1] and n - starts[-1] < self._lengths[-1]:
+        if len(starts) and not final and gap[-1] < self._lengths[-1]:
             keep_from = int(starts[-1])
-            accepted_starts, acc_l = starts[:-1][accepted[:-1]], acc_len[:-1][accepted[:-1]]
-            bad = int(np.count_nonzero(~accepted[:-1]))
+            accepted[-1] = False
+            considered = slice(0, len(starts) - 1)
         else:
-            accepted_starts, acc_l = starts[accepted], acc_len[accepted]
-            bad = int(np.count_nonzero(~accepted))
-        self.bad_records += bad
+            considered = slice(0, len(starts))
+        self.bad_records += int(np.count_nonzero(~accepted[considered]))
+        accepted_starts, acc_l = starts[accepted], acc_len[accepted]
         # Bytes covered by no accepted record (before the kept tail) are dropped; each maximal
         # run of them is one resync.
         cover = np.zeros(keep_from + 1, np.int64)
         np.add.at(cover, accepted_starts, 1)
         np.add.at(cover, accepted_starts + acc_l, -1)
-        covered = np.cumsum(cover[:keep_from]) > 0
-        lost = ~covered
+        lost = np.cumsum(cover[:keep_from]) <= 0
         n_lost = int(np.count_nonzero(lost))
         if n_lost:
             self.dropped_bytes += n_lost

@@ -2,3 +2,9 @@
 
 Importing this package registers the sim:// scheme with pyserial.
 """
+
+import serial as _serial
+
+# pyserial imports `<package>.protocol_<scheme>` for a `<scheme>://` URL from each package listed here.
+if "flockcal.simulator" not in _serial.protocol_handler_packages:
+    _serial.protocol_handler_packages.append("flockcal.simulator")

@@ -197,10 +197,27 @@ def test_per_address_formats_in_one_group_stream():
     dec = codec.StreamDecoder(fmts, group=True)
     out = dec.feed(data[:40])
     out2 = dec.feed(data[40:])
-    addresses = np.concatenate([out.addresses, out2.addresses])
+    assert dec.pending_bytes == 13  # the last record could be the start of a longer one
+    out3 = dec.flush()
+    addresses = np.concatenate([out.addresses, out2.addresses, out3.addresses])
     assert list(addresses) == [1, 2, 3, 1, 2, 3]
-    positions = np.concatenate([out.positions, out2.positions])
+    positions = np.concatenate([out.positions, out2.positions, out3.positions])
     assert np.max(np.abs(positions - pos)) < 1e-4
+
+
+def test_inner_byte_equal_to_a_shorter_formats_address_does_not_split_a_record():
+    # bird 2's 19-byte matrix record whose 7th byte happens to be 1, bird 1's address (7-byte records)
+    rot, pos = _poses(200, seed=3)
+    fmts = {1: "angles", 2: "matrix"}
+    recs = [np.frombuffer(codec.encode_records(fmts[a], rot[i:i + 1], pos[i:i + 1], addresses=[a]), np.uint8)
+            for i, a in enumerate(np.arange(200) % 2 + 1)]
+    recs = [r.copy() for r in recs]
+    for r in recs[1::2]:
+        r[6] = 1
+    dec = codec.StreamDecoder(fmts, group=True)
+    out = dec.feed(np.concatenate(recs).tobytes())
+    out3 = dec.flush()
+    assert len(out) + len(out3) == 200 and dec.bad_records == 0
 
 
 def test_non_group_stream_uses_the_port_address():
