@@ -9,6 +9,7 @@ reference. Nothing here ever waits for a client.
 from __future__ import annotations
 
 import logging
+import math
 import threading
 import time
 from collections import deque
@@ -57,11 +58,26 @@ class LiveSession:
         }
 
 
+def _finite(obj):
+    """JSON-safe copy: NaN and ±inf become None (browsers cannot parse them), numpy scalars become floats."""
+    if isinstance(obj, dict):
+        return {k: _finite(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_finite(v) for v in obj]
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
+
+
 def calibrate_dict(acc, names, hierarchy=None, root=None) -> dict:
-    """The §5 JSON of a fit of `acc` (solver's calibrate); SolverError etc. propagate."""
+    """The §5 JSON of a fit of `acc` (solver's calibrate), JSON-safe; SolverError etc. propagate."""
     from flockcal.solver.calibration import calibrate
 
-    return calibrate(acc, hierarchy=hierarchy, root=root, names=list(names)).to_dict()
+    return _finite(calibrate(acc, hierarchy=hierarchy, root=root, names=list(names)).to_dict())
 
 
 def new_accumulator(m: int):
@@ -82,7 +98,8 @@ class Pipeline:
         fit_hz: float = 30.0,
         residual_hz: float = 20.0,
         on_publish: Callable[[Snapshot], None] | None = None,
-        slip_monitor_factory: Callable | None = None,
+        detect_slips: bool = True,
+        rate_hz: Callable[[], float] | None = None,
     ):
         self.names = tuple(names)
         self.m = len(self.names)
@@ -92,7 +109,8 @@ class Pipeline:
         self.min_fit_s = 1.0 / fit_hz
         self.residual_period = 1.0 / residual_hz
         self.on_publish = on_publish
-        self.slip_monitor_factory = slip_monitor_factory
+        self.detect_slips = detect_slips
+        self.rate_hz = rate_hz or (lambda: 144.0)
         self._cond = threading.Condition()
         self._pending: list[tuple] = []
         self._pending_events: list[dict] = []
@@ -171,11 +189,6 @@ class Pipeline:
             if self.live is not None:
                 raise FlockcalError(f"session {self.live.id} is still live")
             live.acc = new_accumulator(self.m)
-            if self.slip_monitor_factory is not None:
-                try:
-                    live.slip_monitor = self.slip_monitor_factory(self.names)
-                except Exception as exc:  # a monitor that cannot start must not stop the session
-                    log.warning("slip monitor unavailable: %s", exc)
             self.live = live
             self._reset_residuals()
             self._residuals.clear()
@@ -296,22 +309,23 @@ class Pipeline:
         if not fit or not fit.get("joints"):
             return
         index = {n: i for i, n in enumerate(self.names)}
-        joints = tuple(j["child"] for j in fit["joints"])
+        joints = tuple((j["child"], j["parent"]) for j in fit["joints"])
         if joints != self._res_joints:
             self._flush_residual_sample(force=True)
             self._res_joints = joints
-            self._res_pairs = np.array([[index[j["child"]], index[j["parent"]]] for j in fit["joints"]])
-            self._res_c = np.array([j["c"] for j in fit["joints"]], dtype=float)
-            self._res_l = np.array([j["l"] for j in fit["joints"]], dtype=float)
+            self._res_pairs = np.array([[index[c], index[p]] for c, p in joints])
             self._res_sumsq = np.zeros(len(joints))
             self._res_count = np.zeros(len(joints))
+            live.slip_monitor = self._new_slip_monitor(self._res_pairs)
+        # The newest fit's joint centres; they move slowly, so reading them per batch is enough.
+        c = np.array([j["c"] for j in fit["joints"]], dtype=float)
+        l = np.array([j["l"] for j in fit["joints"]], dtype=float)
         ci, pj = self._res_pairs[:, 0], self._res_pairs[:, 1]
-        e = (np.einsum("npab,pb->npa", R[:, ci], self._res_c) + t[:, ci]
-             - np.einsum("npab,pb->npa", R[:, pj], self._res_l) - t[:, pj])
-        ok = valid[:, ci] & valid[:, pj]
-        sq = np.where(ok, np.einsum("npa,npa->np", e, e), 0.0)
-        if live.slip_monitor is not None:
-            self._slip_step(ts, np.where(ok, np.sqrt(sq), np.nan))
+        e = (np.einsum("npab,pb->npa", R[:, ci], c) + t[:, ci]
+             - np.einsum("npab,pb->npa", R[:, pj], l) - t[:, pj])
+        sq = np.einsum("npa,npa->np", e, e)
+        ok = valid[:, ci] & valid[:, pj] & np.isfinite(sq)
+        sq = np.where(ok, sq, 0.0)
         self._res_sumsq += sq.sum(axis=0)
         self._res_count += ok.sum(axis=0)
         self._res_time = float(ts[-1])
@@ -319,25 +333,44 @@ class Pipeline:
             self._res_last_emit = float(ts[0])
         if self._res_time - self._res_last_emit >= self.residual_period:
             self._flush_residual_sample()
+        if live.slip_monitor is not None and np.isfinite(c).all() and np.isfinite(l).all():
+            self._slip_step(ts, R, t, valid, c, l)
 
-    def _slip_step(self, ts, residual_norms) -> None:
+    def _new_slip_monitor(self, pairs):
+        if not self.detect_slips:
+            return None
+        try:
+            from flockcal.solver.slippage import SlipMonitor
+        except ImportError:
+            return None
+        rate = self.rate_hz()
+        try:
+            return SlipMonitor(pairs, self.m, rate, self.names)
+        except FlockcalError as exc:
+            log.warning("slip monitor unavailable: %s", exc)
+            return None
+
+    def _slip_step(self, ts, R, t, valid, c, l) -> None:
         live = self.live
         try:
-            found = live.slip_monitor.update(ts, residual_norms, list(self._res_joints))
-        except Exception as exc:
+            found = live.slip_monitor.update(ts, R, t, valid, c, l)
+        except Exception as exc:  # detection is advisory: a failure must not stop the session
             log.warning("slip monitor failed, disabling it for this session: %s", exc)
             live.slip_monitor = None
             return
+        events = []
         for ev in found or []:
-            d = ev if isinstance(ev, dict) else dict(vars(ev))
-            d["type"] = "slip"
-            self._process_events([d])
+            d = ev.to_dict() if hasattr(ev, "to_dict") else dict(ev)
+            d["type"] = d.pop("kind", "slip")
+            events.append(_finite(d))
+        if events:
+            self._process_events(events)
 
     def _flush_residual_sample(self, force: bool = False) -> None:
         if self._res_count is None or not self._res_count.any() or self.live is None:
             return
         rms = np.sqrt(self._res_sumsq / np.maximum(self._res_count, 1)) * 1000.0
-        values = {j: round(float(v), 4) for j, v, c in zip(self._res_joints, rms, self._res_count) if c > 0}
+        values = {j[0]: round(float(v), 4) for j, v, c in zip(self._res_joints, rms, self._res_count) if c > 0}
         self._residual_seq += 1
         sample = ResidualSample(self._residual_seq, self._res_time, values)
         self._residuals.append(sample)

@@ -19,15 +19,6 @@ from flockcal.server.store import Store
 log = logging.getLogger(__name__)
 
 
-def slip_monitor_factory():
-    """The slippage engineer's live detector adapted to the pipeline, or None if it is not there."""
-    try:
-        from flockcal.server.slips import make_slip_monitor
-    except ImportError:
-        return None
-    return make_slip_monitor
-
-
 class Service:
     def __init__(self, settings: Settings, source: FrameSource | None = None):
         self.settings = settings.check()
@@ -46,13 +37,17 @@ class Service:
             publish_hz=settings.publish_hz,
             fit_hz=settings.fit_hz,
             residual_hz=settings.residual_hz,
-            slip_monitor_factory=slip_monitor_factory(),
+            rate_hz=self.tracker_rate,
         )
         self.hub = SnapshotHub(self.pipeline.snapshot)
         self.pipeline.on_publish = self.hub.publish
         self.sessions = SessionManager(self.store, self.pipeline, data / "recordings", settings.device_url,
                                        settings.rate_hz)
         self.started = False
+
+    def tracker_rate(self) -> float:
+        rate = self.source.status().get("rate_hz") or self.settings.rate_hz
+        return float(rate) if rate else 100.0
 
     def status_of_source(self) -> dict:
         st = dict(self.source.status())

@@ -9,8 +9,11 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import urllib.parse
 from typing import Callable, Protocol
 
+from flockcal.errors import FlockcalError
+from flockcal.server.errors import ConfigError, ServerError
 from flockcal.server.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -29,20 +32,75 @@ class FrameSource(Protocol):
     def status(self) -> dict: ...
 
 
-def sensor_names(settings: Settings) -> tuple[str, ...]:
-    """Names given on the command line, else the simulated body's (for sim://), else bird1..birdN."""
+def sensor_names(settings: Settings, simulated: tuple[str, ...] | None = None) -> tuple[str, ...]:
+    """Names given on the command line, else the simulated performer's, else bird1..birdN."""
     if settings.names:
         return tuple(settings.names)
-    if settings.device_url.startswith("sim://"):
-        try:
-            from flockcal.simulator.body import human
-
-            names = tuple(human(n_bodies=settings.birds).names)
-            if len(names) == settings.birds:
-                return names
-        except Exception as exc:  # an unusual bird count: fall back to numbered birds
-            log.info("simulator body names unavailable for %d birds: %s", settings.birds, exc)
+    if simulated and len(simulated) == settings.birds:
+        return tuple(simulated)
     return tuple(f"bird{i + 1}" for i in range(settings.birds))
+
+
+def named_sim_url(url: str, name: str = "flockcal") -> str:
+    """sim://?… → sim://flockcal?… so the service can find its simulation again (slips, routines)."""
+    parts = urllib.parse.urlsplit(url)
+    if parts.scheme.lower() == "sim" and not parts.netloc:
+        return urllib.parse.urlunsplit(("sim", name, parts.path, parts.query, parts.fragment))
+    return url
+
+
+class SimulatorControl:
+    """The service's handle on a sim:// performer: inject a slip, change the routine."""
+
+    def __init__(self, simulation):
+        self.simulation = simulation
+
+    @property
+    def performer(self):
+        return self.simulation.source
+
+    @property
+    def names(self) -> tuple[str, ...] | None:
+        names = getattr(self.performer, "names", None)
+        return tuple(names) if names is not None else None
+
+    def inject_slip(self, sensor: str, distance_m: float) -> dict:
+        if not hasattr(self.performer, "inject_slip"):
+            raise ServerError("this simulated source cannot slip sensors", status=409)
+        return self.performer.inject_slip(sensor, distance_m)
+
+    def set_routine(self, name: str) -> None:
+        from flockcal.simulator.motion import ROUTINES, routine
+
+        p = self.performer
+        if name not in ROUTINES:
+            raise ServerError(f"unknown routine {name!r}; choose one of {', '.join(ROUTINES)}", status=400)
+        if not hasattr(p, "motion"):
+            raise ServerError("this simulated source has no routines", status=409)
+        old = p.motion
+        p.motion = routine(p.model, name, 60.0, getattr(p, "rate_hz", 100.0), getattr(p, "seed", 0))
+        log.info("simulated performer switched from %s to %s", getattr(old, "name", "?"), name)
+
+
+def open_simulation(url: str) -> SimulatorControl | None:
+    """Create the named simulation behind a sim:// URL up front (so its names are known), or None."""
+    if not url.lower().startswith("sim://"):
+        return None
+    import serial
+
+    import flockcal.simulator  # noqa: F401  (registers sim://)
+    from flockcal.simulator.protocol_sim import get_simulation
+
+    try:
+        port = serial.serial_for_url(url)
+        port.close()
+    except (serial.SerialException, ValueError) as exc:
+        raise ConfigError(f"--device {url}: {exc}") from None
+    name = urllib.parse.urlsplit(url).netloc
+    try:
+        return SimulatorControl(get_simulation(name))
+    except KeyError:
+        return None
 
 
 def event_dict(event) -> dict:
@@ -65,26 +123,34 @@ def event_dict(event) -> dict:
 
 
 class TrackerSource:
-    """The driver's TrackerReader on `settings.device_url`."""
+    """The driver's TrackerReader on `settings.device_url` (a sim:// URL gets a name and a control handle)."""
 
     def __init__(self, settings: Settings, recording_path=None):
         self.settings = settings
-        self.names = sensor_names(settings)
+        self.urls = [named_sim_url(u) for u in settings.device_urls]
+        self.url = ",".join(self.urls)
+        self.simulator = open_simulation(self.urls[0])
+        self.names = sensor_names(settings, self.simulator.names if self.simulator else None)
         self.reader = None
         self.recording_path = recording_path
 
     def start(self, on_frames: OnFrames, on_event: OnEvent) -> None:
+        from flockcal.drivers.link import Timing
         from flockcal.drivers.reader import TrackerConfig, TrackerReader
 
         cfg = TrackerConfig(
-            urls=[self.settings.device_url],
+            urls=self.urls,
+            timing=Timing.fast() if self.settings.fast_init else None,
             birds=self.settings.birds,
             rate_hz=self.settings.rate_hz,
             baud=self.settings.baud,
             hemisphere=self.settings.hemisphere,
             recording_path=self.recording_path,
         )
-        self.reader = TrackerReader(cfg, on_frames=on_frames, on_event=lambda ev: on_event(event_dict(ev)))
+        try:
+            self.reader = TrackerReader(cfg, on_frames=on_frames, on_event=lambda ev: on_event(event_dict(ev)))
+        except FlockcalError as exc:
+            raise ConfigError(f"--device {self.url}: {exc}") from None
         self.reader.start()
 
     def stop(self) -> None:

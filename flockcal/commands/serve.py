@@ -36,6 +36,8 @@ def register(subparsers) -> None:
     p.add_argument("--names", help="comma-separated sensor names, one per bird (default: the simulator's "
                    "body names for sim://, else bird1..birdN)")
     p.add_argument("--fit-hz", type=float, default=30.0, help="full refits per second (default 30)")
+    p.add_argument("--fast-init", action="store_true", default=bool(os.environ.get("FLOCKCAL_FAST_INIT")),
+                   help="skip the tracker's reset delays (for simulated trackers on a pty)")
     p.add_argument("--cors-origin", action="append", default=[], metavar="ORIGIN",
                    help="allow browser pages from this origin (repeatable; CORS is closed by default)")
     p.set_defaults(func=run)
@@ -58,6 +60,7 @@ def settings_from_args(args: argparse.Namespace):
         names=names,
         fit_hz=args.fit_hz,
         cors_origins=tuple(args.cors_origin),
+        fast_init=args.fast_init,
     )
 
 

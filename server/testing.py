@@ -1,0 +1,124 @@
+"""Run the real service for tests and benchmarks: uvicorn on a free loopback port, in a thread or a
+child process (for restarts and kill -9), plus the fake tracker on a pty as its device.
+"""
+
+from __future__ import annotations
+
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import httpx
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_ready(url: str, timeout: float = 30.0, token: str | None = None, proc=None) -> None:
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
+    deadline = time.monotonic() + timeout
+    last = None
+    while time.monotonic() < deadline:
+        if proc is not None and proc.poll() is not None:
+            raise RuntimeError(f"the service exited with code {proc.returncode} before it was ready")
+        try:
+            r = httpx.get(url + "/api/status", headers=headers, timeout=2)
+            if r.status_code == 200:
+                return
+            last = r.text
+        except httpx.HTTPError as exc:
+            last = exc
+        time.sleep(0.05)
+    raise TimeoutError(f"service at {url} not ready after {timeout} s ({last})")
+
+
+def wait_connected(url: str, timeout: float = 30.0, token: str | None = None, frames: int = 1) -> dict:
+    """Poll /api/status until the tracker streams (at least `frames` frames received)."""
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
+    deadline = time.monotonic() + timeout
+    st = {}
+    while time.monotonic() < deadline:
+        st = httpx.get(url + "/api/status", headers=headers, timeout=5).json()
+        if st.get("connected") and st.get("frames", 0) >= frames:
+            return st
+        time.sleep(0.05)
+    raise TimeoutError(f"tracker did not stream within {timeout} s: {st}")
+
+
+class ServerThread:
+    """The app under uvicorn on a background thread of this process."""
+
+    def __init__(self, settings, service=None):
+        import uvicorn
+
+        from flockcal.server.app import create_app
+
+        self.settings = settings
+        self.app = create_app(settings, service)
+        config = uvicorn.Config(self.app, host=settings.host, port=settings.http_port, log_level="warning",
+                                lifespan="on")
+        self.server = uvicorn.Server(config)
+        self.thread = threading.Thread(target=self.server.run, name="uvicorn", daemon=True)
+        self.url = f"http://127.0.0.1:{settings.http_port}"
+
+    @property
+    def service(self):
+        return self.app.state.service
+
+    def start(self, timeout: float = 30.0) -> "ServerThread":
+        self.thread.start()
+        deadline = time.monotonic() + timeout
+        while not self.server.started:
+            if not self.thread.is_alive() or time.monotonic() > deadline:
+                raise RuntimeError("uvicorn did not start")
+            time.sleep(0.02)
+        return self
+
+    def stop(self) -> None:
+        self.server.should_exit = True
+        self.thread.join(20)
+
+    def __enter__(self):
+        return self.start()
+
+    def __exit__(self, *exc):
+        self.stop()
+
+
+class ServerProcess:
+    """`python -m flockcal serve …` as a child process (so it can be restarted or killed with -9)."""
+
+    def __init__(self, args: list[str], port: int, log_path: str | Path | None = None):
+        self.port = port
+        self.url = f"http://127.0.0.1:{port}"
+        self.args = [sys.executable, "-m", "flockcal", "serve", "--http-port", str(port), *args]
+        self.log_path = log_path
+        self.proc: subprocess.Popen | None = None
+
+    def start(self, timeout: float = 60.0, token: str | None = None) -> "ServerProcess":
+        out = open(self.log_path, "ab") if self.log_path else subprocess.DEVNULL
+        env = dict(os.environ, FLOCKCAL_FAST_INIT="1")
+        self.proc = subprocess.Popen(self.args, stdout=out, stderr=subprocess.STDOUT, env=env)
+        wait_ready(self.url, timeout, token, self.proc)
+        return self
+
+    def kill9(self) -> None:
+        self.proc.send_signal(signal.SIGKILL)
+        self.proc.wait(10)
+
+    def stop(self) -> None:
+        if self.proc and self.proc.poll() is None:
+            self.proc.send_signal(signal.SIGINT)
+            try:
+                self.proc.wait(20)
+            except subprocess.TimeoutExpired:
+                self.proc.kill()
+                self.proc.wait(5)
