@@ -165,7 +165,6 @@ class PtyTracker:
         self._last_speed[k] = None
 
     def _serve(self) -> None:
-        ticks = 0
         while not self._stop.is_set():
             with self._lock:
                 live = [(k, p) for k, p in enumerate(self._ptys) if p is not None]
@@ -187,12 +186,11 @@ class PtyTracker:
                         continue
                     if data:
                         self.flock.write(data, k)
-                if self.follow_client_baud and ticks % 50 == 0:
+                if self.follow_client_baud:
                     self._follow_baud(live)
                 for k, p in live:
                     if self._ptys[k] is p:
                         self._pump(k, p)
-            ticks += 1
             if not fds:
                 self._stop.wait(self.poll_interval)
 

@@ -1,0 +1,186 @@
+"""Promises of PtyTracker: a FakeFlock on real pseudo-terminals, talked to through pyserial."""
+
+import time
+
+import numpy as np
+import pytest
+import serial
+
+from flockcal.drivers import codec
+from flockcal.simulator.fake_tracker import FakeFlock, ManualClock, SmoothSource
+from flockcal.simulator.pty_tracker import PtyTracker
+
+
+def _read_exactly(port, n, clock=None, wall_timeout=3.0):
+    """Read n bytes, moving the manual clock on in small steps so replies can arrive."""
+    data = bytearray()
+    deadline = time.monotonic() + wall_timeout
+    while len(data) < n and time.monotonic() < deadline:
+        if clock is not None:
+            clock.advance(0.005)
+        data += port.read(min(port.in_waiting, n - len(data)) or 0)
+        time.sleep(0.002)
+    return bytes(data)
+
+
+def _settle(port, clock, seconds=0.05):
+    """Give the server thread time to take our bytes, then let the flock's clock pass."""
+    port.flush()
+    time.sleep(0.05)
+    clock.advance(seconds)
+    time.sleep(0.02)
+
+
+@pytest.fixture
+def manual_pty():
+    clock = ManualClock()
+    src = SmoothSource(4, seed=4)
+    flock = FakeFlock(src, clock=clock, rate_hz=100.0)
+    with PtyTracker(flock=flock) as trk:
+        port = serial.Serial(trk.device, 115200, timeout=0)
+        yield trk, port, clock, src
+        port.close()
+
+
+def test_vrpn_init_sequence_gets_replies_of_the_expected_lengths(manual_pty):
+    trk, port, clock, src = manual_pty
+    port.write(b"B")
+    assert len(_read_exactly(port, 12, clock)) == 12  # POS/ANG before group mode
+    port.write(codec.change_command(50, 4))
+    _settle(port, clock)
+    cmd = codec.change_command(35, 1)
+    for a in range(1, 5):
+        cmd += codec.format_command("position_quaternion", a)
+    for a in range(1, 5):
+        cmd += codec.hemisphere_command("lower", a)
+    port.write(cmd)
+    _settle(port, clock)
+    port.reset_input_buffer()
+    port.write(codec.examine_command(36))
+    status = codec.decode_flock_status(_read_exactly(port, 14, clock))
+    assert np.all(status.accessible[:4] & status.running[:4])
+    port.write(codec.examine_command(2) + codec.examine_command(6))
+    reply = _read_exactly(port, 4, clock)
+    assert reply[0] == 25 and codec.measurement_rate_from_count(
+        int(codec.unpack_words(reply[2:], signed=False)[0])) == pytest.approx(100.0, rel=2e-3)
+    port.write(codec.examine_command(0) + codec.examine_command(1))
+    reply = _read_exactly(port, 4, clock)
+    assert codec.decode_status_word(reply[:2]).format.name == "position_quaternion"
+    assert codec.software_revision(reply[2:]) == pytest.approx(3.67)
+    assert port.in_waiting == 0  # nothing extra: every reply had exactly its length
+
+
+def test_stream_over_the_pty_counts_rate_times_duration_and_matches_the_source(manual_pty):
+    trk, port, clock, src = manual_pty
+    port.write(codec.change_command(50, 4) + codec.change_command(35, 1)
+               + b"".join(codec.format_command("position_matrix", a) for a in range(1, 5)))
+    _settle(port, clock)
+    t_stream = clock.t
+    port.write(b"@")
+    _settle(port, clock, 0.0)
+    dec = codec.StreamDecoder("position_matrix", group=True, n_birds=4)
+    parts = []
+    for _ in range(40):  # 2 s of flock time
+        clock.advance(0.05)
+        time.sleep(0.01)
+        parts.append(dec.feed(port.read(port.in_waiting)))
+    port.write(b"?")
+    _settle(port, clock, 0.1)
+    parts.append(dec.feed(port.read(port.in_waiting)))
+    addresses = np.concatenate([p.addresses for p in parts])
+    sets = len(addresses) / 4
+    assert abs(sets - 2.0 * 100.0) <= 3
+    assert dec.resyncs == 0 and dec.bad_records == 0
+    sel = addresses == 3
+    first = int(np.floor(t_stream * 100.0 + 1e-9)) + 1
+    times = (first + np.arange(np.count_nonzero(sel))) / 100.0
+    rot, pos, _ = src.poses(times)
+    got = np.concatenate([p.positions for p in parts])[sel]
+    assert np.max(np.abs(got - codec.fold_to_hemisphere(pos[:, 2], "forward"))) <= 1e-4
+
+
+def test_data_bytes_like_xon_xoff_and_newlines_pass_the_raw_pty(manual_pty):
+    trk, port, clock, src = manual_pty
+    # XON/XOFF, CR/LF, Ctrl-C, Ctrl-Z, Ctrl-D, DEL: a cooked tty would eat, map or signal on them
+    table = bytes([0x11, 0x13, 0x0D, 0x0A, 0x03, 0x1A, 0x04, 0x7F, 0x1C, 0x00, 0x15, 0x12, 0x17, 0x16])
+    port.write(codec.change_command(5, table) + codec.examine_command(5))
+    assert _read_exactly(port, 14, clock) == table
+
+
+def test_garbage_injection_is_visible_on_the_wire(manual_pty):
+    trk, port, clock, src = manual_pty
+    port.write(codec.change_command(50, 4) + codec.change_command(35, 1) + b"@")
+    _settle(port, clock, 0.2)
+    dec = codec.StreamDecoder("position_angles", group=True, n_birds=4)
+    dec.feed(port.read(port.in_waiting))
+    trk.inject_garbage(30)
+    clock.advance(0.2)
+    time.sleep(0.05)
+    out = dec.feed(port.read(port.in_waiting))
+    assert dec.dropped_bytes == 30 and dec.resyncs == 1 and len(out) > 0
+
+
+def test_disconnect_fails_the_client_and_reconnect_serves_the_same_path(manual_pty):
+    trk, port, clock, src = manual_pty
+    port.write(codec.change_command(35, 1))
+    _settle(port, clock)
+    trk.disconnect()
+    with pytest.raises(serial.SerialException):
+        for _ in range(50):  # the hang-up shows on the next read
+            port.timeout = 0.02
+            port.read(1)
+    port.close()
+    with pytest.raises(serial.SerialException):  # tried: reopening while unplugged
+        serial.Serial(trk.device, 115200)
+    trk.reconnect()
+    port2 = serial.Serial(trk.device, 115200, timeout=0)
+    try:
+        port2.write(codec.examine_command(35))
+        assert _read_exactly(port2, 1, clock) == b"\x01"  # the bird kept its state
+    finally:
+        port2.close()
+
+
+def test_one_pty_per_bird_streams_each_bird_without_address_bytes():
+    clock = ManualClock()
+    flock = FakeFlock(SmoothSource(3, seed=1), clock=clock, rate_hz=144.0, ports=3)
+    with PtyTracker(flock=flock) as trk:
+        ports = [serial.Serial(d, 115200, timeout=0) for d in trk.devices]
+        try:
+            assert len(set(trk.devices)) == 3
+            for k, p in enumerate(ports):
+                p.write((codec.change_command(50, 3) if k == 0 else b"")
+                        + codec.format_command("position_quaternion") + b"@")
+            _settle(ports[0], clock, 0.0)
+            for _ in range(10):
+                clock.advance(0.1)
+                time.sleep(0.01)
+            time.sleep(0.1)
+            for k, p in enumerate(ports):
+                out = codec.StreamDecoder("position_quaternion", group=False, address=k + 1).feed(
+                    p.read(p.in_waiting))
+                assert abs(len(out) - 144) <= 2
+        finally:
+            for p in ports:
+                p.close()
+
+
+def test_pty_follows_the_baud_the_client_sets_when_asked():
+    clock = ManualClock()
+    flock = FakeFlock(SmoothSource(4, seed=2), clock=clock, rate_hz=100.0)
+    with PtyTracker(flock=flock, baud=None) as trk:
+        port = serial.Serial(trk.device, 9600, timeout=0)
+        try:
+            time.sleep(0.1)  # the server notices the line speed
+            assert flock.lines[0].baud == 9600
+            port.write(codec.change_command(50, 4) + codec.change_command(35, 1) + b"@")
+            _settle(port, clock, 0.0)
+            got = 0
+            for _ in range(20):
+                clock.advance(0.05)
+                time.sleep(0.01)
+                got += len(port.read(port.in_waiting))
+            assert got <= 960 * 1.0 + 60  # 9600 baud 8N1 carries 960 B/s
+            assert flock.stats()["sets_skipped"] > 0
+        finally:
+            port.close()
