@@ -34,7 +34,7 @@ def _png(fig) -> str:
     import matplotlib.pyplot as plt
 
     buf = io.BytesIO()
-    fig.savefig(buf, format="png", dpi=90, bbox_inches="tight")
+    fig.savefig(buf, format="png", dpi=90)
     plt.close(fig)
     return "data:image/png;base64," + base64.b64encode(buf.getvalue()).decode("ascii")
 
@@ -64,6 +64,7 @@ def skeleton_figure(rec, frame: int, world: np.ndarray) -> str:
     S = rec.sensor_positions[frame] @ world.T
     views = [("front (z, up)", 2, 1), ("side (x, up)", 0, 1), ("top (x, z)", 0, 2)]
     fig, axes = plt.subplots(1, 3, figsize=(12, 4.4))
+    fig.subplots_adjust(left=0.05, right=0.99, bottom=0.08, top=0.86, wspace=0.22)
     for ax, (title, a, b) in zip(axes, views):
         for j in art.order[1:]:
             p = art.parent[j]
@@ -87,6 +88,7 @@ def _grid(k: int):
     cols = 3 if k > 4 else max(k, 1)
     rows = max(1, -(-k // cols))
     fig, axes = plt.subplots(rows, cols, figsize=(4 * cols, 2.3 * rows), squeeze=False)
+    fig.subplots_adjust(left=0.06, right=0.99, bottom=0.5 / rows, top=1 - 0.35 / rows, hspace=0.55, wspace=0.18)
     for ax in axes.flat[k:]:
         ax.axis("off")
     return fig, axes.flat
@@ -108,7 +110,6 @@ def residual_time_figure(times, e, joints, names) -> str:
     axes[0].legend(fontsize=6, ncol=4, loc="upper right")
     fig.supxlabel("time (s)", fontsize=9)
     fig.supylabel("residual (mm)", fontsize=9)
-    fig.tight_layout()
     return _png(fig)
 
 
@@ -119,13 +120,13 @@ def residual_histogram_figure(sep, joints, names) -> str:
         s = sep[:, j]
         s = s[np.isfinite(s)] * 1000
         if len(s):
-            ax.hist(s, bins=40, color="#468")
+            counts, edges = np.histogram(s, bins=40)
+            ax.stairs(counts, edges, fill=True, color="#468")  # one artist, not 40 bars: quick to draw
             ax.axvline(np.sqrt(np.mean(s**2)), color="#c33", lw=1)
         ax.set_title(f"{names[j]}", fontsize=9)
         ax.tick_params(labelsize=7)
     fig.supxlabel("|residual| (mm); red line: rms", fontsize=9)
     fig.supylabel("frames", fontsize=9)
-    fig.tight_layout()
     return _png(fig)
 
 
