@@ -1,0 +1,290 @@
+"""The optical pipeline end to end (Kirk, O'Brien & Forsyth 2005): markers → rigid groups → tree of
+joints → joint trajectories → fixed skeleton → per-body poses, and the `fit-markers` JSON.
+
+Marker swaps and glitches are caught as markers far from their body's fitted pose (they also show as a
+jump of the joint centre); those marker-frames are blanked and the joints refitted once.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field, replace
+
+import numpy as np
+
+from flockcal.errors import FlockcalError
+from flockcal.solver.optical.clustering import Clustering, cluster_markers
+from flockcal.solver.optical.joints import Tree, joint_point, pair_costs, spanning_tree
+from flockcal.solver.optical.projection import BodyShape, bone_lengths, skeleton_shapes
+from flockcal.solver.optical.rotations import Outliers, body_poses, find_outliers, marker_residuals, rigid_route_joint
+
+
+class OpticalError(FlockcalError):
+    """The markers do not support a skeleton fit (too few markers, frames or bodies)."""
+
+
+@dataclass
+class OpticalFit:
+    marker_names: tuple[str, ...]
+    labels: tuple[str, ...]  # body labels
+    groups: list[np.ndarray]  # marker indices per body
+    clustering: Clustering
+    tree: Tree
+    shapes: list[BodyShape]
+    bones: list[tuple[int, int | None, int, float]]
+    joint_points: dict[int, np.ndarray]  # child group → (n, 3) world joint centre per frame
+    joint_rms: dict[int, float]  # Kirk residual rms per tree joint (m)
+    rotations: np.ndarray  # (n, m, 3, 3) body → world
+    positions: np.ndarray  # (n, m, 3) body origin (its markers' centroid)
+    valid: np.ndarray  # (n, m)
+    outliers: Outliers
+    rate_hz: float
+    times: np.ndarray
+    unused_markers: list[str] = field(default_factory=list)
+
+    @property
+    def parent(self) -> np.ndarray:
+        return self.tree.parent
+
+    def bodies(self) -> dict[str, list[str]]:
+        return {lab: [self.marker_names[i] for i in g] for lab, g in zip(self.labels, self.groups)}
+
+    def take(self):
+        """The derived poses as a flockcal Take (design.md §5), for `fit`, the exports and slippage."""
+        from flockcal.takes import make_take
+
+        return make_take(self.rotations, self.positions, self.labels, self.rate_hz, valid=self.valid, times=self.times)
+
+    def to_dict(self) -> dict:
+        """`flockcal fit --json` shape (design.md §5) plus "bodies", "markers" and "swap_events"."""
+        return fit_json(self)
+
+
+def body_labels(marker_names, groups) -> tuple[str, ...]:
+    """A body is named after its markers' common prefix when it is a word of ≥ 2 characters
+    ("LTHI", "LKNE" → no; "lthigh_1", "lthigh_2" → "lthigh"), else "body<k>"; labels stay unique."""
+    labels = []
+    for k, g in enumerate(groups):
+        names = [marker_names[i] for i in g]
+        prefix = os.path.commonprefix(names).rstrip("_-. :") if len(names) > 1 else ""
+        lab = prefix if len(prefix) >= 2 else f"body{k}"
+        labels.append(lab)
+    for k, lab in enumerate(labels):
+        if labels.count(lab) > 1:
+            labels[k] = f"{lab}_{k}"
+    return tuple(labels)
+
+
+def topology_frames(visible: np.ndarray, count: int) -> np.ndarray:
+    """`count` frames spread over the take, each the best-covered frame of its stretch."""
+    n = len(visible)
+    if n <= count:
+        return np.arange(n)
+    edges = np.linspace(0, n, count + 1).astype(int)
+    seen = visible.sum(1)
+    return np.array([s + int(np.argmax(seen[s:e])) for s, e in zip(edges[:-1], edges[1:]) if e > s])
+
+
+def add_rigid_route_joints(shapes, weak, parent, R, t, valid, jp):
+    """Offsets of the weak joints from the bodies' poses (rigid-transform route) added to both bodies'
+    shapes; their per-frame points become the child's pose applied to c."""
+    shapes = list(shapes)
+    jp = dict(jp)
+    for c in sorted(weak):
+        p = int(parent[c])
+        ok = valid[:, c] & valid[:, p]
+        if ok.sum() < 10:
+            continue
+        cc, ll = rigid_route_joint(R[:, c], t[:, c], R[:, p], t[:, p], ok)
+        for body, off in ((c, cc), (p, ll)):
+            s = shapes[body]
+            shapes[body] = replace(s, joints=s.joints + [c], joint_offsets=np.vstack([s.joint_offsets, off]))
+        pts = np.einsum("nij,j->ni", R[:, c], cc) + t[:, c]
+        pts[~ok] = np.nan
+        jp[c] = pts
+    return shapes, jp
+
+
+def fit_joints(markers, groups, parent, frames=None) -> tuple[dict, dict]:
+    joint_points, joint_rms = {}, {}
+    for child in np.flatnonzero(parent >= 0):
+        fit = joint_point(markers[:, groups[child]], markers[:, groups[parent[child]]], penalty=0.0, frames=frames)
+        joint_points[int(child)] = fit.points
+        joint_rms[int(child)] = fit.rms
+    return joint_points, joint_rms
+
+
+def fit_markers(
+    markers: np.ndarray,
+    marker_names,
+    rate_hz: float,
+    times: np.ndarray | None = None,
+    n_groups: int | None = None,
+    root: int | str | None = None,
+    topology_frame_count: int = 120,
+    max_frames: int | None = 6000,
+    min_seen: float = 0.2,
+    seed: int = 0,
+) -> OpticalFit:
+    """Skeleton from an (n, k, 3) marker take. Markers seen in under `min_seen` of the frames are left
+    out (listed in `unused_markers`); takes longer than `max_frames` are thinned evenly for the joint
+    fits (the poses are still produced for every frame)."""
+    markers = np.asarray(markers, dtype=float)
+    names = tuple(str(x) for x in marker_names)
+    n, k, _ = markers.shape
+    times = np.arange(n) / rate_hz if times is None else np.asarray(times, dtype=float)
+    seen = np.isfinite(markers).all(-1)
+    keep = np.flatnonzero(seen.mean(0) >= min_seen)
+    unused = [names[i] for i in range(k) if i not in set(keep.tolist())]
+    if len(keep) < 2:
+        raise OpticalError(f"only {len(keep)} marker(s) are seen in at least {min_seen:.0%} of the frames; need two or more")
+    M = markers[:, keep]
+    kept_names = tuple(names[i] for i in keep)
+
+    clus = cluster_markers(M, n_groups=n_groups, seed=seed)
+    groups = clus.groups
+    if len(groups) < 2:
+        raise OpticalError("all markers move as one rigid body: there is no joint to find (move the limbs)")
+    labels = body_labels(kept_names, groups)
+    if isinstance(root, str):
+        if root not in labels:
+            raise OpticalError(f"no body labelled {root!r}; the bodies are {', '.join(labels)}")
+        root = labels.index(root)
+
+    fit_frames = None if max_frames is None or n <= max_frames else np.linspace(0, n - 1, max_frames).astype(int)
+    topo = topology_frames(np.isfinite(M).all(-1), topology_frame_count)
+    tree = spanning_tree(pair_costs(M, groups, topo), root=root)
+
+    work = M.copy()
+    outliers = None
+    sizes = np.array([len(g) for g in groups])
+    par = tree.parent
+    # A joint between two bodies of one or two markers each is poorly pinned by the Kirk fit (four
+    # distances for three unknowns a frame); such "weak" joints do not steer the poses and are solved
+    # afterwards by the rigid-transform route from the poses the other joints and markers give.
+    weak = {int(c) for c in np.flatnonzero(par >= 0) if sizes[c] < 3 and sizes[par[c]] < 3}
+    for c in sorted(weak):  # keep the Kirk joint where a body would be left with under three points
+        p = int(par[c])
+        points = [sizes[b] + sum(1 for j in range(len(par)) if j not in weak and (j == b or par[j] == b) and par[j] >= 0) for b in (c, p)]
+        if min(points) < 3:
+            weak.discard(c)
+    for _ in range(2):  # second pass: refit without the marker-frames the first pass found wrong
+        jp, jrms = fit_joints(work, groups, par, fit_frames)
+        strong = {c: v for c, v in jp.items() if c not in weak}
+        shapes = skeleton_shapes(work, groups, par, strong, skip=weak)
+        R, t, valid = body_poses(work, shapes, strong)
+        if weak:
+            shapes, jp = add_rigid_route_joints(shapes, weak, par, R, t, valid, jp)
+        found = find_outliers(marker_residuals(work, shapes, R, t, valid))
+        if outliers is None:
+            outliers = found
+        if not found.mask.any():
+            break
+        work = np.where(found.mask[..., None], np.nan, work)
+    # Poses for every frame, also those thinned out of the joint fits: markers alone, plus joints where fitted.
+    bones = bone_lengths(shapes, tree.parent)
+    return OpticalFit(
+        kept_names, labels, groups, clus, tree, shapes, bones, jp, jrms, R, t, valid, outliers,
+        float(rate_hz), times, unused,
+    )  # fmt: skip
+
+
+def _vec(x) -> list[float] | None:
+    x = np.asarray(x, dtype=float)
+    return None if not np.isfinite(x).all() else [float(v) for v in x]
+
+
+def fit_json(fit: OpticalFit) -> dict:
+    """Build the design.md §5 JSON: c, l and bones from the Kirk skeleton; singular values, hinge,
+    coverage and standard errors from the magnetic pair fit on the derived poses."""
+    from flockcal.solver.accumulator import GramAccumulator
+    from flockcal.solver.fits import pair_fits
+
+    labels = fit.labels
+    parent = fit.tree.parent
+    m = len(labels)
+    acc = GramAccumulator(m)
+    acc.update(fit.rotations, fit.positions, fit.valid)
+    kids = [int(c) for c in fit.tree.order if parent[c] >= 0]
+    pairs = np.array([[c, parent[c]] for c in kids], dtype=int).reshape(-1, 2)
+    pf = pair_fits(acc, pairs) if len(pairs) else None
+    joints = []
+    for idx, c in enumerate(kids):
+        p = int(parent[c])
+        sc, sp_ = fit.shapes[c], fit.shapes[p]
+        cc = sc.joint_offsets[sc.joints.index(c)]
+        ll = sp_.joint_offsets[sp_.joints.index(c)]
+        both = fit.valid[:, c] & fit.valid[:, p]
+        e = (
+            np.einsum("nij,j->ni", fit.rotations[both, c], cc) + fit.positions[both, c]
+            - np.einsum("nij,j->ni", fit.rotations[both, p], ll) - fit.positions[both, p]
+        )  # fmt: skip
+        sse = float((e**2).sum())
+        nb = max(int(both.sum()), 1)
+        joints.append(
+            {
+                "child": labels[c],
+                "parent": labels[p],
+                "c": _vec(cc),
+                "l": _vec(ll),
+                "rms_m": float(np.sqrt(sse / nb)),
+                "epsilon": float(np.sqrt(sse) / nb),
+                "singular_values": [float(v) for v in pf.singular_values[idx]],
+                "hinge": bool(pf.hinge[idx]),
+                "axis_child": _vec(pf.axis_i[idx]) if pf.hinge[idx] else None,
+                "axis_parent": _vec(pf.axis_j[idx]) if pf.hinge[idx] else None,
+                "coverage": [float(v) for v in pf.coverage[idx]],
+                "c_stderr_m": float(pf.c_stderr[idx]),
+                "l_stderr_m": float(pf.l_stderr[idx]),
+                "kirk_rms_m": float(fit.joint_rms[c]),
+            }
+        )
+    bones = [
+        {
+            "body": labels[b],
+            "from_joint": None if f is None else labels[f],
+            "to_joint": labels[t],
+            "length_m": float(length),
+            "stderr_m": bone_stderr(fit, b, f, t),
+        }
+        for b, f, t, length in fit.bones
+    ]
+    events = [
+        {
+            "time_s": float(fit.times[s]),
+            "stop_s": float(fit.times[min(e, len(fit.times) - 1)]),
+            "markers": [fit.marker_names[a], fit.marker_names[b]],
+        }
+        for s, e, a, b in fit.outliers.swaps
+    ]
+    return {
+        "sensors": list(labels),
+        "root": labels[fit.tree.root],
+        "parent": {labels[c]: labels[parent[c]] for c in kids},
+        "frames": int(len(fit.times)),
+        "joints": joints,
+        "bones": bones,
+        "loop_candidates": [],
+        "slip_events": [],
+        "bodies": fit.bodies(),
+        "markers": {
+            fit.marker_names[i]: {"body": labels[g], "offset": _vec(fit.shapes[g].marker_offsets[j])}
+            for g, grp in enumerate(fit.groups)
+            for j, i in enumerate(grp)
+        },
+        "unused_markers": list(fit.unused_markers),
+        "swap_events": events,
+        "marker_outlier_threshold_m": fit.outliers.threshold_m,
+    }
+
+
+def bone_stderr(fit: OpticalFit, body: int, a: int | None, b: int) -> float:
+    """Standard error of a bone length: spread of the per-frame joint-to-joint distance / √frames."""
+    if a is None:
+        return float("nan")
+    pa, pb = fit.joint_points.get(a), fit.joint_points.get(b)
+    if pa is None or pb is None:
+        return float("nan")
+    d = np.linalg.norm(pa - pb, axis=-1)
+    d = d[np.isfinite(d)]
+    return float(np.std(d) / np.sqrt(len(d))) if len(d) > 1 else float("nan")

@@ -1,0 +1,93 @@
+"""Per-body rotations from the fitted optical skeleton, so a marker take can go through the magnetic
+solver, the exports and the slippage monitor; and the marker residuals that expose swaps and glitches.
+
+Each frame, each body's fixed points (marker offsets and joint positions from the projection) are fitted
+rigidly to the markers and per-frame joint points seen then. A body with one or two markers borrows its
+joints' points; with fewer than three non-collinear points the frame is marked invalid for that body.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from flockcal.solver.optical.projection import BodyShape, body_points
+from flockcal.solver.optical.rigid import apply, rigid_fit
+
+
+def body_poses(markers: np.ndarray, shapes: list[BodyShape], joint_points: dict[int, np.ndarray]):
+    """rotations (n,m,3,3) body→world, positions (n,m,3) of each body's origin (its markers'
+    centroid), valid (n,m) where the pose is determined."""
+    n = markers.shape[0]
+    m = len(shapes)
+    Rs = np.tile(np.eye(3), (n, m, 1, 1))
+    ts = np.zeros((n, m, 3))
+    valid = np.zeros((n, m), dtype=bool)
+    for g, s in enumerate(shapes):
+        ref = np.concatenate([s.marker_offsets, s.joint_offsets], axis=0)
+        obs = body_points(markers, s.markers, joint_points, s.joints)
+        R, t, ok = rigid_fit(ref, obs)
+        Rs[:, g], ts[:, g], valid[:, g] = R, t, ok
+    return Rs, ts, valid
+
+
+def marker_residuals(markers: np.ndarray, shapes: list[BodyShape], rotations, positions, valid, min_markers: int = 3) -> np.ndarray:
+    """(n, k) distance between each seen marker and where its body's pose puts it; NaN if unknown.
+
+    Bodies with fewer than `min_markers` markers are left NaN: their pose leans on joint estimates,
+    so a large residual there says little about the marker."""
+    n, k, _ = markers.shape
+    out = np.full((n, k), np.nan)
+    for g, s in enumerate(shapes):
+        if len(s.markers) < min_markers:
+            continue
+        pred = apply(rotations[:, g], positions[:, g], s.marker_offsets)
+        d = np.linalg.norm(markers[:, s.markers] - pred, axis=-1)
+        out[:, s.markers] = np.where(valid[:, g, None], d, np.nan)
+    return out
+
+
+@dataclass(frozen=True)
+class Outliers:
+    mask: np.ndarray  # (n, k) marker-frames judged wrong (swapped, ghost, glitch)
+    threshold_m: float
+    runs: list[tuple[int, int, int, float]]  # (marker, start, stop, worst residual m)
+    swaps: list[tuple[int, int, int, int]]  # (start, stop, marker a, marker b) for runs that overlap
+
+
+def find_outliers(residuals: np.ndarray, factor: float = 8.0, floor_m: float = 0.006) -> Outliers:
+    """Marker-frames whose residual exceeds max(factor × robust σ, floor): a swapped label puts a
+    marker centimetres from its body. Two markers off over the same span are reported as a swap."""
+    r = residuals[np.isfinite(residuals)]
+    sigma = 1.4826 * np.median(np.abs(r - np.median(r))) if r.size else 0.0
+    thr = max(factor * sigma, floor_m)
+    mask = np.nan_to_num(residuals, nan=0.0) > thr
+    runs = []
+    for a in np.flatnonzero(mask.any(0)):
+        col = np.concatenate([[0], mask[:, a].astype(np.int8), [0]])
+        edges = np.flatnonzero(np.diff(col))
+        for s, e in zip(edges[::2], edges[1::2]):
+            runs.append((int(a), int(s), int(e), float(np.nanmax(residuals[s:e, a]))))
+    swaps, used = [], set()
+    for i, (a, s, e, _) in enumerate(runs):
+        for j in range(i + 1, len(runs)):
+            b, s2, e2, _ = runs[j]
+            if j in used or i in used or b == a:
+                continue
+            overlap = min(e, e2) - max(s, s2)
+            if overlap > 0.5 * max(e - s, e2 - s2):
+                swaps.append((min(s, s2), max(e, e2), a, b))
+                used |= {i, j}
+    return Outliers(mask, float(thr), runs, swaps)
+
+
+def rigid_route_joint(Ri, ti, Rj, tj, ok):
+    """The magnetic paper's joint from two bodies' poses: c (in i), l (in j) minimising
+    Σ‖R_i c + t_i − R_j l − t_j‖² over frames `ok` (minimum-norm least squares, O'Brien et al. eq. 15)."""
+    Q = np.concatenate([Ri[ok], -Rj[ok]], axis=2)  # (f, 3, 6)
+    d = tj[ok] - ti[ok]
+    A = np.einsum("fki,fkj->ij", Q, Q)
+    b = np.einsum("fki,fk->i", Q, d)
+    u = np.linalg.pinv(A, rcond=1e-8) @ b
+    return u[:3], u[3:]
