@@ -49,6 +49,7 @@ class _Held:
     positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
     valid: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
     suspect: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
+    after_gap: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # lost bytes just before it
 
     def __len__(self) -> int:
         return len(self.times)
@@ -64,7 +65,7 @@ class _Held:
         return _Held(*(getattr(self, f)[sel] for f in _HELD_FIELDS))
 
 
-_HELD_FIELDS = ("times", "addresses", "rotations", "positions", "valid", "suspect")
+_HELD_FIELDS = ("times", "addresses", "rotations", "positions", "valid", "suspect", "after_gap")
 
 
 class _PortStream:
@@ -78,6 +79,9 @@ class _PortStream:
 
     def __init__(self, setup: FlockSetup, index: int):
         fmt = setup.record_format
+        self.group = setup.group
+        self.period = 1.0 / max(setup.rate_hz, 1e-3)
+        self.last_time = -np.inf
         if setup.group:
             self.decoder = codec.StreamDecoder({a: fmt for a in setup.addresses}, group=True,
                                                scale_inches=setup.scale_inches)
@@ -104,8 +108,11 @@ class _PortStream:
             return _Held()
         offsets = rec.offsets
         ends = offsets + self.length
-        new = _Held(rec.times, rec.addresses, rec.rotations, rec.positions, rec.valid,
-                    np.zeros(len(rec), bool))
+        times = rec.times
+        if not self.group:
+            times = self._backdate(times)
+        new = _Held(times, rec.addresses, rec.rotations, rec.positions, rec.valid,
+                    np.zeros(len(rec), bool), np.zeros(len(rec), bool))
         starts_all = offsets
         if len(self.held):
             prev_ends = np.concatenate([[self.held_end], ends[:-1]])
@@ -116,6 +123,7 @@ class _PortStream:
         next_gap = np.zeros(len(rec), bool)
         next_gap[:-1] = offsets[1:] != ends[:-1]
         new.suspect = prev_gap | next_gap
+        new.after_gap = prev_gap.copy()
         out = _Held()
         if len(self.held):
             self.held.suspect = self.held.suspect | prev_gap[:1]
@@ -134,6 +142,15 @@ class _PortStream:
         self.held_end = last_end if len(keep) else -1
         self.prev_end = last_end
         return out
+
+    def _backdate(self, times: np.ndarray) -> np.ndarray:
+        """Records read in one chunk were made a period apart: date all but the last accordingly."""
+        k = np.arange(len(times))
+        last_of_run = np.searchsorted(times, times, side="right") - 1
+        est = times - (last_of_run - k) * self.period
+        est = np.maximum.accumulate(np.maximum(est, self.last_time))
+        self.last_time = float(est[-1])
+        return est
 
     def _release_all(self, next_gap: bool) -> _Held:
         out = self.held
@@ -174,7 +191,18 @@ class FrameAssembler:
         # Group-mode records of the cycle still open.
         self.open = _Held()
         # One-port-per-bird queues of released records.
-        self.queues = [_Held() for _ in self.ports]
+        self.port_cycle = [-1] * len(self.ports)  # cycle number of each port's last record
+        self.port_time = [-np.inf] * len(self.ports)
+        self.cycle_slots: dict[int, dict[int, _Held]] = {}
+        self.cycle_time: dict[int, float] = {}
+        self.newest = -1
+        self.emitted_upto = -1
+        # Cycles a port may lag behind the others before its slot is given up (host delays).
+        self.patience = max(3, int(np.ceil(0.25 / self.period)))
+        self.last_frame_time = -np.inf
+        self.phase: float | None = None  # arrival time of cycle 0, once anchored
+        self.anchor_records = 8
+        self.startup = [_Held() for _ in self.ports]
         self.now = -np.inf
         # Per-bird memory for the motion check and the hemisphere tracker.
         self.last_time = np.full(self.m, -np.inf)
@@ -216,6 +244,8 @@ class FrameAssembler:
         """The stream ended or broke: emit everything pending (its missing birds invalid) and start afresh."""
         for i, ps in enumerate(self.ports):
             self._take_records(i, ps.flush(), final=False)
+        if not self.setup.group and self.phase is None:
+            self._assign(0, _Held(), final=True)
         if self.setup.group:
             self._emit_group(self.open, close_last=True)
             self.open = _Held()
@@ -239,8 +269,8 @@ class FrameAssembler:
             self.open = self.open.append(rec) if len(self.open) else rec
             self._emit_group(self.open, close_last=False)
         else:
-            self.queues[port] = self.queues[port].append(rec) if len(self.queues[port]) else rec
-            self._emit_ports(final=False)
+            self._assign(port, rec, final)
+            self._emit_ports(final=final)
 
     def _emit_group(self, rec: _Held, close_last: bool) -> None:
         if len(rec) == 0:
@@ -260,39 +290,94 @@ class FrameAssembler:
         self._emit(closed.times[first], cyc, self.index_of_address[closed.addresses], closed)
 
     # -- one port per bird ---------------------------------------------------------------------
-    def _emit_ports(self, final: bool) -> None:
+    def _assign(self, port: int, rec: _Held, final: bool = False) -> None:
+        """Give each record of `port` its cycle number by counting: the one after the port's last record.
+
+        Counting is what survives a busy host, where arrival times of one cycle on different ports can
+        differ by a whole period. Time only anchors the count: at the start (each port's phase is the
+        smallest `arrival − count·period` over its first records, since host delays only ever add), and
+        after lost bytes or a long silence (the cycle nearest the flock's phase).
+        """
         P = self.period
-        while True:
-            heads = np.array([q.times[0] if len(q) else np.inf for q in self.queues])
-            have = np.isfinite(heads)
-            if not have.any():
+        if self.phase is None:
+            self.startup[port] = self.startup[port].append(rec) if len(self.startup[port]) else rec
+            counts = [len(h) for h in self.startup]
+            if not (min(counts) >= self.anchor_records or max(counts) >= 3 * self.anchor_records or final):
                 return
-            t_min = heads[have].min()
-            if not (have.all() or final or self.now > t_min + 2.5 * P):
+            if max(counts) == 0:
                 return
-            ref = float(np.median(heads[have]))
-            picks = []
-            cyc_times = []
-            for b, q in enumerate(self.queues):
-                if not len(q):
-                    continue
-                t = q.times
-                stale = int(np.searchsorted(t, ref - 0.5 * P, side="left"))
-                upto = int(np.searchsorted(t, ref + 0.5 * P, side="right"))
-                if upto > stale:
-                    picks.append((b, q.select(slice(upto - 1, upto))))
-                    cyc_times.append(t[upto - 1])
-                # Records older than the window, and all but the newest inside it, are lost.
-                removed = max(upto, stale)
-                self.rejected_records += removed - (1 if upto > stale else 0)
-                self.queues[b] = q.select(slice(removed, None))
-            if not picks:
-                return
-            rec = picks[0][1]
-            for _, r in picks[1:]:
-                rec = rec.append(r)
-            birds = np.array([b for b, _ in picks])
-            self._emit(np.array([min(cyc_times)]), np.zeros(len(rec), np.int64), birds, rec)
+            phases = np.array([np.min(h.times - np.arange(len(h)) * P) if len(h) else np.inf
+                               for h in self.startup])
+            self.phase = float(phases.min())
+            for b, h in enumerate(self.startup):
+                if len(h):
+                    first = int(round((phases[b] - self.phase) / P))
+                    self._place(b, h, first + np.arange(len(h)))
+            self.startup = [_Held() for _ in self.ports]
+            return
+        cycles = np.empty(len(rec), np.int64)
+        last, last_t = self.port_cycle[port], self.port_time[port]
+        for k in range(len(rec)):  # per record, but one port per bird is never the bulk path
+            t = float(rec.times[k])
+            # A host delay of many periods is normal on a busy machine; a longer silence means lost cycles.
+            if last >= 0 and not rec.after_gap[k] and t - last_t <= max(10 * P, 0.25):
+                c = last + 1
+            else:
+                c = max(int(round((t - self.phase) / P)), last + 1)
+            cycles[k] = c
+            last, last_t = c, t
+        self._place(port, rec, cycles)
+
+    def _place(self, port: int, rec: _Held, cycles: np.ndarray) -> None:
+        for k, c in enumerate(cycles.tolist()):
+            if c <= self.emitted_upto:
+                self.rejected_records += 1  # its cycle is already out
+                continue
+            slot = self.cycle_slots.setdefault(c, {})
+            if port in slot:
+                self.rejected_records += 1  # two records claim one cycle: keep the later one
+            slot[port] = rec.select(slice(k, k + 1))
+            t = float(rec.times[k])
+            self.cycle_time[c] = min(self.cycle_time.get(c, t), t)
+            self.newest = max(self.newest, c)
+        if len(cycles):
+            self.port_cycle[port] = int(cycles[-1])
+            self.port_time[port] = float(rec.times[-1])
+
+    def _emit_ports(self, final: bool) -> None:
+        """Emit cycles in order once every port has moved past them (or three cycles have followed)."""
+        ready = []
+        c = self.emitted_upto + 1
+        while c <= self.newest:
+            if c not in self.cycle_slots:
+                c += 1
+                continue
+            done = (len(self.cycle_slots[c]) == len(self.ports) or final
+                    or all(pc >= c for pc in self.port_cycle) or self.newest - c >= self.patience)
+            if not done:
+                break
+            ready.append(c)
+            c += 1
+        if not ready:
+            return
+        self.emitted_upto = ready[-1]
+        times, cycle, birds, parts = [], [], [], []
+        for i, c in enumerate(ready):
+            slot = self.cycle_slots.pop(c)
+            times.append(self.cycle_time.pop(c))
+            for b, r in slot.items():
+                cycle.append(i)
+                birds.append(b)
+                parts.append(r)
+        for c in [c for c in self.cycle_slots if c <= self.emitted_upto]:  # late records of emitted cycles
+            self.rejected_records += len(self.cycle_slots.pop(c))
+            self.cycle_time.pop(c, None)
+        rec = parts[0]
+        for r in parts[1:]:
+            rec = rec.append(r)
+        times = np.maximum.accumulate(np.maximum(np.asarray(times), self.last_frame_time))
+        self.last_frame_time = float(times[-1])
+        self._emit(times, np.asarray(cycle, np.int64), np.asarray(birds, np.int64), rec)
 
     # -- common: fill frames, check suspects, track hemisphere ---------------------------------
     def _emit(self, cycle_times: np.ndarray, cycle: np.ndarray, bird: np.ndarray, rec: _Held) -> None:

@@ -67,6 +67,8 @@ class FlockLink:
 
     # -- opening and closing -------------------------------------------------------------------
     def open(self) -> "FlockLink":
+        if self.url.startswith("sim://"):
+            import flockcal.simulator  # noqa: F401  (registers the sim:// scheme with pyserial)
         try:
             port = serial.serial_for_url(
                 self.url, do_not_open=True, baudrate=self.baud, bytesize=8, parity="N", stopbits=1,
@@ -117,6 +119,21 @@ class FlockLink:
         if data and record and self.recorder:
             self.recorder(b"R", self.index, t, data)
         return t, data
+
+    def fileno(self) -> int | None:
+        """The OS file descriptor when the port has one (device paths and ptys; not sim://)."""
+        try:
+            return self.port.fileno()
+        except (AttributeError, NotImplementedError, serial.SerialException, OSError):
+            return None
+
+    def read_available(self) -> bytes:
+        """The bytes waiting now, without blocking; LinkLost if the port reports readable but is gone."""
+        try:
+            # pyserial itself raises when a readable port returns nothing (a vanished pty/USB device).
+            return self.port.read(max(1, self.port.in_waiting))
+        except (serial.SerialException, OSError, TypeError) as exc:
+            raise LinkLost(f"reading {self.url} failed: {exc}") from None
 
     def read_exact(self, n: int, timeout: float) -> bytes:
         """Up to `n` bytes, waiting at most `timeout` seconds in all."""
@@ -422,7 +439,6 @@ def configure_flock(links: list[FlockLink], *, birds: int, rate_hz: float | None
     setup.notes = notes
     for note in notes:
         kind, _, text = note.partition(": ")
-        log.warning("%s", text)
         emit(kind, text)
 
     scale = 1 if scale_inches == 72 else 0

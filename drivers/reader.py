@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import logging
 import queue
+import select
 import threading
 import time
 from dataclasses import asdict, dataclass, field
@@ -343,7 +344,8 @@ class TrackerReader:
             self._status.update(connected=True, rate_hz=setup.rate_hz, record_format=setup.record_format,
                                 group=setup.group)
         self._connected_once.set()
-        self._emit("connected", f"{setup.birds} bird(s) on {', '.join(setup.urls)}: {setup.record_format}, "
+        where = setup.urls[0] if len(setup.urls) == 1 else f"{len(setup.urls)} ports ({setup.urls[0]}, …)"
+        self._emit("connected", f"{setup.birds} bird(s) on {where}: {setup.record_format}, "
                                 f"{'group mode' if setup.group else 'one port per bird'}, {setup.rate_hz:.1f} Hz, "
                                 f"{setup.mode} mode", birds=setup.birds, rate_hz=setup.rate_hz,
                    record_format=setup.record_format, group=setup.group)
@@ -354,8 +356,14 @@ class TrackerReader:
         cfg = self.cfg
         q: queue.Queue = queue.Queue()
         quit_pumps = threading.Event()
-        pumps = [threading.Thread(target=self._pump, args=(link, q, quit_pumps), daemon=True,
-                                  name=f"flockcal-pump-{link.index}") for link in self._links]
+        if len(self._links) > 1 and all(link.fileno() is not None for link in self._links):
+            # One select() loop stamps every port read in the same wake-up with the same time, so
+            # records of one cycle on different ports agree however late the thread runs.
+            pumps = [threading.Thread(target=self._pump_select, args=(self._links, q, quit_pumps), daemon=True,
+                                      name="flockcal-pump")]
+        else:
+            pumps = [threading.Thread(target=self._pump, args=(link, q, quit_pumps), daemon=True,
+                                      name=f"flockcal-pump-{link.index}") for link in self._links]
         for p in pumps:
             p.start()
         now = time.monotonic()
@@ -440,6 +448,26 @@ class TrackerReader:
                                     f"and cables", birds=birds)
         except TrackerError as exc:
             self._emit("error", f"while asking for error codes after a stall: {exc}")
+
+    @staticmethod
+    def _pump_select(links: list[FlockLink], q: queue.Queue, quit_pumps: threading.Event) -> None:
+        by_fd = {link.fileno(): link for link in links}
+        while not quit_pumps.is_set():
+            try:
+                ready, _, _ = select.select(list(by_fd), [], [], 0.05)
+            except (OSError, ValueError) as exc:
+                q.put((0, time.monotonic(), LinkLost(f"waiting for data failed: {exc}")))
+                return
+            t = time.monotonic()
+            for fd in ready:
+                link = by_fd[fd]
+                try:
+                    data = link.read_available()
+                except TrackerError as exc:
+                    q.put((link.index, t, exc))
+                    return
+                if data:
+                    q.put((link.index, t, data))
 
     @staticmethod
     def _pump(link: FlockLink, q: queue.Queue, quit_pumps: threading.Event) -> None:

@@ -1,0 +1,135 @@
+"""`flockcal record`, `replay` and `convert`: read a Flock of Birds to a raw .fobraw recording, decode one
+again (at real time or as fast as possible), and turn one into the .npz take interchange."""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+from flockcal.errors import UserError
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser("record", help="read a Flock of Birds and record every byte to a .fobraw file",
+                              description="Read a Flock of Birds (device path, pty, socket://, rfc2217:// or sim:// "
+                                          "URL) and append every byte, with arrival times, to a .fobraw recording.")
+    p.add_argument("--port", action="append", required=True, metavar="URL",
+                   help="serial port or pyserial URL; repeat once per bird for one port per bird")
+    p.add_argument("-o", "--output", required=True, help="recording to write (.fobraw)")
+    p.add_argument("--birds", type=int, default=1, help="number of birds (sensors) in the flock")
+    p.add_argument("--rate", type=float, default=None, help="measurement rate in Hz (default: keep the flock's)")
+    p.add_argument("--format", default="auto", help="record format: auto, position_matrix, position_quaternion, …")
+    p.add_argument("--group", dest="group", action="store_true", default=None, help="force group mode")
+    p.add_argument("--per-port", dest="group", action="store_false", help="one port per bird")
+    p.add_argument("--hemisphere", default="forward", help="forward, aft, upper, lower, left or right")
+    p.add_argument("--scale", type=int, default=36, choices=(36, 72), help="position full scale in inches")
+    p.add_argument("--baud", type=int, default=115200, help="baud rate set by the unit's DIP switches")
+    p.add_argument("--mode", default="stream", choices=("stream", "point"))
+    p.add_argument("--seconds", type=float, default=None, help="stop after this long (default: until Ctrl-C)")
+    p.set_defaults(func=_record)
+
+    p = subparsers.add_parser("replay", help="decode a .fobraw recording again",
+                              description="Decode a .fobraw recording through the live reader's code path and "
+                                          "print what it holds.")
+    p.add_argument("recording")
+    p.add_argument("--realtime", action="store_true", help="pace the frames by the recorded arrival times")
+    p.add_argument("--speed", type=float, default=1.0, help="with --realtime: play this many times faster")
+    p.add_argument("--salvage", action="store_true", help="replay what precedes a corrupt chunk")
+    p.set_defaults(func=_replay)
+
+    p = subparsers.add_parser("convert", help="convert a .fobraw recording to a .npz take",
+                              description="Decode a .fobraw recording and write the .npz take interchange.")
+    p.add_argument("recording")
+    p.add_argument("-o", "--output", required=True, help="take to write (.npz)")
+    p.add_argument("--names", default=None, help="comma-separated sensor names (default bird0, bird1, …)")
+    p.add_argument("--salvage", action="store_true", help="convert what precedes a corrupt chunk")
+    p.set_defaults(func=_convert)
+
+
+def _record(args) -> int:
+    from flockcal.drivers.reader import TrackerConfig, TrackerReader
+
+    cfg = TrackerConfig(urls=args.port, birds=args.birds, rate_hz=args.rate, record_format=args.format,
+                        group=args.group, hemisphere=args.hemisphere, scale_inches=args.scale, baud=args.baud,
+                        mode=args.mode, recording_path=args.output)
+    events = []
+
+    def on_event(event) -> None:
+        events.append(event)
+        if event.kind not in ("resync", "hemisphere_flip", "stopped"):
+            print(f"flockcal record: {event}", file=sys.stderr)
+
+    reader = TrackerReader(cfg, on_event=on_event)
+    reader.start(wait=60.0)
+    try:
+        end = time.monotonic() + args.seconds if args.seconds else None
+        while reader.running and (end is None or time.monotonic() < end):
+            time.sleep(0.1)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        reader.stop()
+    s = reader.status()
+    print(f"recorded {s['frames']} frames of {s['birds']} birds at {s['rate_hz'] or 0:.1f} Hz ({s['record_format']}) "
+          f"to {args.output}; {s['dropped_records']} bird-frames invalid, {s['resynced']} resyncs, "
+          f"{s['reconnects']} reconnects")
+    return 0
+
+
+def _load(path: str, salvage: bool):
+    from flockcal.drivers.recording import read_recording, replay
+
+    rec = read_recording(path, salvage=salvage)
+    if rec.truncated:
+        print(f"flockcal: {rec.summary()}", file=sys.stderr)
+    if not any("stream" in m for m in rec.markers):
+        raise UserError(f"{path}: the recording never reached streaming (the flock did not start); nothing to decode")
+    return rec, replay
+
+
+def _replay(args) -> int:
+    rec, replay = _load(args.recording, args.salvage)
+    if args.speed <= 0:
+        raise UserError("--speed must be positive")
+    out = replay(rec, realtime=args.realtime, speed=args.speed)
+    f = out.frames
+    valid = f.valid.mean() if len(f) else 0.0
+    span = f.times[-1] - f.times[0] if len(f) > 1 else 0.0
+    setup = out.setups[-1]
+    print(f"{rec.summary()}")
+    print(f"{len(f)} frames of {setup['birds']} birds over {span:.2f} s ({setup['record_format']}, "
+          f"{'group mode' if setup['group'] else 'one port per bird'}, {setup['rate_hz']:.1f} Hz); "
+          f"{valid:.1%} of bird-frames valid; {out.resyncs} resyncs; {out.sessions} session(s)")
+    for e in out.events:
+        if e.get("event") not in ("resync", "hemisphere_flip"):
+            print(f"  {e['event']}: {e.get('message', '')}")
+    return 0
+
+
+def _convert(args) -> int:
+    import numpy as np
+
+    from flockcal.drivers.recording import RecordingError
+    from flockcal.takes import make_take, save_take
+
+    rec, replay = _load(args.recording, args.salvage)
+    out = replay(rec)
+    f = out.frames
+    if len(f) == 0:
+        raise RecordingError(f"{args.recording}: no complete frame could be decoded")
+    setup = out.setups[-1]
+    m = f.valid.shape[1]
+    names = args.names.split(",") if args.names else [f"bird{i}" for i in range(m)]
+    if len(names) != m:
+        raise UserError(f"--names gives {len(names)} names but the recording has {m} birds")
+    carried = np.isfinite(f.positions).all(axis=2) & np.isfinite(f.rotations).all(axis=(2, 3))
+    if (f.valid & ~carried).any():
+        raise RecordingError(f"{args.recording}: its record format {setup['record_format']} lacks position or "
+                             f"orientation; a take needs both (record with position_matrix or position_quaternion)")
+    take = make_take(f.rotations, f.positions, names, setup["rate_hz"], valid=f.valid, times=f.times - f.times[0],
+                     source=args.recording)
+    save_take(args.output, take)
+    print(f"wrote {args.output}: {take.n_frames} frames of {take.n_sensors} sensors, "
+          f"{take.valid.mean():.1%} valid")
+    return 0
