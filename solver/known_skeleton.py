@@ -163,8 +163,8 @@ def fit_known_skeleton(
         return _joint_sse(A, bvec, dd, np.concatenate([c, l], axis=1))
 
     # Gauss–Newton on Σ SSE_j over per-body rigid motions (ω, δs); the cost is exactly quadratic in the
-    # joint points, so only the rotations' curvature is linearised. Minimum-norm steps leave the free
-    # directions (a leaf spinning about its one joint, hinge axes) where Procrustes put them.
+    # joint points, so only the rotations' curvature is linearised. Free directions (a leaf spinning
+    # about its one joint, a joint sliding along its hinge axis) stay where Procrustes put them.
     sse = cost(Q, s)
     done = 0
     for done in range(1, iterations + 1):
@@ -185,7 +185,11 @@ def fit_known_skeleton(
         np.add.at(g, child, np.einsum("pia,pi->pa", Jc, r[:, :3]))
         np.add.at(g, par, np.einsum("pia,pi->pa", Jl, r[:, 3:]))
         Hf = H.transpose(0, 2, 1, 3).reshape(6 * m, 6 * m)
-        step = np.linalg.lstsq(Hf, -g.reshape(-1), rcond=1e-10)[0].reshape(m, 6)
+        # A tiny ridge (Levenberg–Marquardt) keeps the free directions still: the gradient has no
+        # component along them, so the step there is ~0. LU solve, not lstsq: 96×96 either way, but
+        # SVD-based lstsq is slow under a threaded BLAS on a busy machine.
+        ridge = 1e-9 * max(float(np.trace(Hf)) / len(Hf), 1e-300)
+        step = np.linalg.solve(Hf + ridge * np.eye(len(Hf)), -g.reshape(-1)).reshape(m, 6)
         improved = False
         for shrink in (1.0, 0.5, 0.25, 0.125):
             dQ = Rotation.from_rotvec(shrink * step[:, :3]).as_matrix()
