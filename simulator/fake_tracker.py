@@ -103,6 +103,7 @@ class _Line:
     records_sent: int = 0
     sets_skipped: int = 0
     bytes_lost: int = 0
+    bytes_received: int = 0
 
     @property
     def bytes_per_second(self) -> float:
@@ -222,6 +223,7 @@ class FakeFlock:
             line = self._line(port)
             if not line.connected or self.standby:
                 return len(data)
+            line.bytes_received += len(data)
             for byte in bytes(data):
                 self._parse(line, byte)
             return len(data)
@@ -331,7 +333,8 @@ class FakeFlock:
     def stats(self, port: int = 0) -> dict:
         line = self._line(port)
         return {"records_sent": line.records_sent, "sets_skipped": line.sets_skipped,
-                "bytes_lost": line.bytes_lost, "baud": line.baud, "queued": len(line.data)}
+                "bytes_lost": line.bytes_lost, "bytes_received": line.bytes_received,
+                "baud": line.baud, "queued": len(line.data)}
 
     # ------------------------------------------------------------------ internals: lines
 

@@ -23,12 +23,23 @@ def _read_exactly(port, n, clock=None, wall_timeout=3.0):
     return bytes(data)
 
 
-def _settle(port, clock, seconds=0.05):
-    """Give the server thread time to take our bytes, then let the flock's clock pass."""
-    port.flush()
+def _send(port, flock, data, k=0):
+    """Write, and wait (wall clock) until the server has handed every byte to the flock, so that
+    the commands take effect at the manual clock's present time."""
+    target = flock.stats(k)["bytes_received"] + len(data)
+    port.write(data)
+    deadline = time.monotonic() + 5.0
+    while flock.stats(k)["bytes_received"] < target and time.monotonic() < deadline:
+        time.sleep(0.002)
+    assert flock.stats(k)["bytes_received"] == target
+
+
+def _pass(clock, seconds, steps=1):
+    """Let flock time pass, giving the server thread a moment to move the bytes to the pty."""
+    for _ in range(steps):
+        clock.advance(seconds / steps)
+        time.sleep(0.01)
     time.sleep(0.05)
-    clock.advance(seconds)
-    time.sleep(0.02)
 
 
 @pytest.fixture
@@ -38,23 +49,22 @@ def manual_pty():
     flock = FakeFlock(src, clock=clock, rate_hz=100.0)
     with PtyTracker(flock=flock) as trk:
         port = serial.Serial(trk.device, 115200, timeout=0)
-        yield trk, port, clock, src
+        yield trk, port, clock, src, flock
         port.close()
 
 
 def test_vrpn_init_sequence_gets_replies_of_the_expected_lengths(manual_pty):
-    trk, port, clock, src = manual_pty
+    trk, port, clock, src, flock = manual_pty
     port.write(b"B")
     assert len(_read_exactly(port, 12, clock)) == 12  # POS/ANG before group mode
-    port.write(codec.change_command(50, 4))
-    _settle(port, clock)
+    _send(port, flock, codec.change_command(50, 4))
+    _pass(clock, 0.6)  # the manual's wait after AUTO-CONFIG
     cmd = codec.change_command(35, 1)
     for a in range(1, 5):
         cmd += codec.format_command("position_quaternion", a)
     for a in range(1, 5):
         cmd += codec.hemisphere_command("lower", a)
-    port.write(cmd)
-    _settle(port, clock)
+    _send(port, flock, cmd)
     port.reset_input_buffer()
     port.write(codec.examine_command(36))
     status = codec.decode_flock_status(_read_exactly(port, 14, clock))
@@ -67,29 +77,28 @@ def test_vrpn_init_sequence_gets_replies_of_the_expected_lengths(manual_pty):
     reply = _read_exactly(port, 4, clock)
     assert codec.decode_status_word(reply[:2]).format.name == "position_quaternion"
     assert codec.software_revision(reply[2:]) == pytest.approx(3.67)
+    _pass(clock, 0.1)
     assert port.in_waiting == 0  # nothing extra: every reply had exactly its length
 
 
 def test_stream_over_the_pty_counts_rate_times_duration_and_matches_the_source(manual_pty):
-    trk, port, clock, src = manual_pty
-    port.write(codec.change_command(50, 4) + codec.change_command(35, 1)
-               + b"".join(codec.format_command("position_matrix", a) for a in range(1, 5)))
-    _settle(port, clock)
+    trk, port, clock, src, flock = manual_pty
+    _send(port, flock, codec.change_command(50, 4) + codec.change_command(35, 1)
+          + b"".join(codec.format_command("position_matrix", a) for a in range(1, 5)))
     t_stream = clock.t
-    port.write(b"@")
-    _settle(port, clock, 0.0)
+    _send(port, flock, b"@")
     dec = codec.StreamDecoder("position_matrix", group=True, n_birds=4)
     parts = []
     for _ in range(40):  # 2 s of flock time
         clock.advance(0.05)
         time.sleep(0.01)
         parts.append(dec.feed(port.read(port.in_waiting)))
-    port.write(b"?")
-    _settle(port, clock, 0.1)
+    _send(port, flock, b"?")
+    _pass(clock, 0.1)
     parts.append(dec.feed(port.read(port.in_waiting)))
     addresses = np.concatenate([p.addresses for p in parts])
     sets = len(addresses) / 4
-    assert abs(sets - 2.0 * 100.0) <= 3
+    assert abs(sets - 2.0 * 100.0) <= 1
     assert dec.resyncs == 0 and dec.bad_records == 0
     sel = addresses == 3
     first = int(np.floor(t_stream * 100.0 + 1e-9)) + 1
@@ -100,7 +109,7 @@ def test_stream_over_the_pty_counts_rate_times_duration_and_matches_the_source(m
 
 
 def test_data_bytes_like_xon_xoff_and_newlines_pass_the_raw_pty(manual_pty):
-    trk, port, clock, src = manual_pty
+    trk, port, clock, src, flock = manual_pty
     # XON/XOFF, CR/LF, Ctrl-C, Ctrl-Z, Ctrl-D, DEL: a cooked tty would eat, map or signal on them
     table = bytes([0x11, 0x13, 0x0D, 0x0A, 0x03, 0x1A, 0x04, 0x7F, 0x1C, 0x00, 0x15, 0x12, 0x17, 0x16])
     port.write(codec.change_command(5, table) + codec.examine_command(5))
@@ -108,22 +117,20 @@ def test_data_bytes_like_xon_xoff_and_newlines_pass_the_raw_pty(manual_pty):
 
 
 def test_garbage_injection_is_visible_on_the_wire(manual_pty):
-    trk, port, clock, src = manual_pty
-    port.write(codec.change_command(50, 4) + codec.change_command(35, 1) + b"@")
-    _settle(port, clock, 0.2)
+    trk, port, clock, src, flock = manual_pty
+    _send(port, flock, codec.change_command(50, 4) + codec.change_command(35, 1) + b"@")
+    _pass(clock, 0.2)
     dec = codec.StreamDecoder("position_angles", group=True, n_birds=4)
     dec.feed(port.read(port.in_waiting))
     trk.inject_garbage(30)
-    clock.advance(0.2)
-    time.sleep(0.05)
+    _pass(clock, 0.2)
     out = dec.feed(port.read(port.in_waiting))
     assert dec.dropped_bytes == 30 and dec.resyncs == 1 and len(out) > 0
 
 
 def test_disconnect_fails_the_client_and_reconnect_serves_the_same_path(manual_pty):
-    trk, port, clock, src = manual_pty
-    port.write(codec.change_command(35, 1))
-    _settle(port, clock)
+    trk, port, clock, src, flock = manual_pty
+    _send(port, flock, codec.change_command(35, 1))
     trk.disconnect()
     with pytest.raises(serial.SerialException):
         for _ in range(50):  # the hang-up shows on the next read
@@ -149,17 +156,13 @@ def test_one_pty_per_bird_streams_each_bird_without_address_bytes():
         try:
             assert len(set(trk.devices)) == 3
             for k, p in enumerate(ports):
-                p.write((codec.change_command(50, 3) if k == 0 else b"")
-                        + codec.format_command("position_quaternion") + b"@")
-            _settle(ports[0], clock, 0.0)
-            for _ in range(10):
-                clock.advance(0.1)
-                time.sleep(0.01)
-            time.sleep(0.1)
+                _send(p, flock, (codec.change_command(50, 3) if k == 0 else b"")
+                      + codec.format_command("position_quaternion") + b"@", k)
+            _pass(clock, 1.0, steps=10)
             for k, p in enumerate(ports):
                 out = codec.StreamDecoder("position_quaternion", group=False, address=k + 1).feed(
                     p.read(p.in_waiting))
-                assert abs(len(out) - 144) <= 2
+                assert abs(len(out) - 144) <= 1
         finally:
             for p in ports:
                 p.close()
@@ -171,10 +174,11 @@ def test_pty_follows_the_baud_the_client_sets_when_asked():
     with PtyTracker(flock=flock, baud=None) as trk:
         port = serial.Serial(trk.device, 9600, timeout=0)
         try:
-            time.sleep(0.1)  # the server notices the line speed
+            deadline = time.monotonic() + 5.0
+            while flock.lines[0].baud != 9600 and time.monotonic() < deadline:
+                time.sleep(0.005)  # the server notices the line speed on its next poll
             assert flock.lines[0].baud == 9600
-            port.write(codec.change_command(50, 4) + codec.change_command(35, 1) + b"@")
-            _settle(port, clock, 0.0)
+            _send(port, flock, codec.change_command(50, 4) + codec.change_command(35, 1) + b"@")
             got = 0
             for _ in range(20):
                 clock.advance(0.05)
