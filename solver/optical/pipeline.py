@@ -16,7 +16,7 @@ from flockcal.errors import FlockcalError
 from flockcal.solver.optical.clustering import Clustering, cluster_markers
 from flockcal.solver.optical.joints import Tree, joint_point, pair_costs, spanning_tree
 from flockcal.solver.optical.projection import BodyShape, bone_lengths, skeleton_shapes
-from flockcal.solver.optical.rotations import Outliers, body_poses, find_outliers, marker_residuals, rigid_route_joint
+from flockcal.solver.optical.rotations import Outliers, body_poses, find_outliers, rigid_route_joint, robust_marker_residuals
 
 
 class OpticalError(FlockcalError):
@@ -175,7 +175,8 @@ def fit_markers(
         R, t, valid = body_poses(work, shapes, strong)
         if weak:
             shapes, jp = add_rigid_route_joints(shapes, weak, par, R, t, valid, jp)
-        found = find_outliers(marker_residuals(work, shapes, R, t, valid))
+        res, thr = robust_marker_residuals(work, shapes, jp)
+        found = find_outliers(res, floor_m=thr)
         if outliers is None:
             outliers = found
         if not found.mask.any():
@@ -203,6 +204,9 @@ def fit_json(fit: OpticalFit) -> dict:
     labels = fit.labels
     parent = fit.tree.parent
     m = len(labels)
+    body_of = np.empty(len(fit.marker_names), dtype=int)
+    for g, grp in enumerate(fit.groups):
+        body_of[grp] = g
     acc = GramAccumulator(m)
     acc.update(fit.rotations, fit.positions, fit.valid)
     kids = [int(c) for c in fit.tree.order if parent[c] >= 0]
@@ -254,8 +258,9 @@ def fit_json(fit: OpticalFit) -> dict:
             "time_s": float(fit.times[s]),
             "stop_s": float(fit.times[min(e, len(fit.times) - 1)]),
             "markers": [fit.marker_names[a], fit.marker_names[b]],
+            "bodies": [labels[body_of[a]], labels[body_of[b]]],
         }
-        for s, e, a, b in fit.outliers.swaps
+        for s, e, a, b in swap_events(fit)
     ]
     return {
         "sensors": list(labels),
@@ -276,6 +281,21 @@ def fit_json(fit: OpticalFit) -> dict:
         "swap_events": events,
         "marker_outlier_threshold_m": fit.outliers.threshold_m,
     }
+
+
+def swap_events(fit: OpticalFit) -> list[tuple[int, int, int, int]]:
+    """Swaps worth telling a person: between two bodies, or inside a body of four or more markers.
+    With three markers, which one is wrong cannot be told when another is hidden, so a glitch there is
+    masked but not reported."""
+    body_of = np.empty(len(fit.marker_names), dtype=int)
+    for g, grp in enumerate(fit.groups):
+        body_of[grp] = g
+    sizes = np.array([len(g) for g in fit.groups])
+    return [
+        (s, e, a, b)
+        for s, e, a, b in fit.outliers.swaps
+        if body_of[a] != body_of[b] or sizes[body_of[a]] >= 4
+    ]
 
 
 def bone_stderr(fit: OpticalFit, body: int, a: int | None, b: int) -> float:

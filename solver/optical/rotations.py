@@ -56,9 +56,48 @@ class Outliers:
     swaps: list[tuple[int, int, int, int]]  # (start, stop, marker a, marker b) for runs that overlap
 
 
-def find_outliers(residuals: np.ndarray, factor: float = 8.0, floor_m: float = 0.006) -> Outliers:
+def robust_marker_residuals(markers, shapes, joint_points, floor_m: float = 0.006, factor: float = 8.0, rounds: int = 2):
+    """Like `marker_residuals`, but a frame whose worst marker is off by more than the threshold is
+    refitted without it (up to `rounds` markers per body-frame), so one swapped marker does not drag
+    the pose and make its honest neighbours look wrong too."""
+    n, k, _ = markers.shape
+    out = np.full((n, k), np.nan)
+    fits = []
+    for g, s in enumerate(shapes):
+        if len(s.markers) < 3:
+            continue
+        ref = np.concatenate([s.marker_offsets, s.joint_offsets], axis=0)
+        obs = body_points(markers, s.markers, joint_points, s.joints)
+        R, t, ok = rigid_fit(ref, obs)
+        fits.append((s, ref, obs, R, t, ok))
+    def res_of(s, R, t, ok):
+        pred = apply(R, t, s.marker_offsets)
+        return np.where(ok[:, None], np.linalg.norm(markers[:, s.markers] - pred, axis=-1), np.nan)
+    first = np.concatenate([res_of(s, R, t, ok).ravel() for s, _, _, R, t, ok in fits]) if fits else np.array([])
+    first = first[np.isfinite(first)]
+    sigma = 1.4826 * np.median(np.abs(first - np.median(first))) if first.size else 0.0
+    thr = max(factor * sigma, floor_m)
+    for s, ref, obs, R, t, ok in fits:
+        obs = obs.copy()
+        q = len(s.markers)
+        for _ in range(rounds):
+            res = res_of(s, R, t, ok)
+            worst = np.nanargmax(np.nan_to_num(res, nan=-1.0), axis=1)
+            redo = np.flatnonzero(np.nan_to_num(res, nan=0.0).max(1) > thr)
+            if not len(redo):
+                break
+            obs[redo, worst[redo]] = np.nan
+            R2, t2, ok2 = rigid_fit(ref, obs[redo])
+            R, t, ok = R.copy(), t.copy(), ok.copy()
+            R[redo], t[redo], ok[redo] = R2, t2, ok2
+        out[:, s.markers[:q]] = res_of(s, R, t, ok)
+    return out, thr
+
+
+def find_outliers(residuals: np.ndarray, factor: float = 8.0, floor_m: float = 0.006, min_run: int = 3) -> Outliers:
     """Marker-frames whose residual exceeds max(factor × robust σ, floor): a swapped label puts a
-    marker centimetres from its body. Two markers off over the same span are reported as a swap."""
+    marker centimetres from its body. Two markers off together for at least `min_run` frames are
+    reported as a swap; shorter glitches are only masked."""
     r = residuals[np.isfinite(residuals)]
     sigma = 1.4826 * np.median(np.abs(r - np.median(r))) if r.size else 0.0
     thr = max(factor * sigma, floor_m)
@@ -70,9 +109,10 @@ def find_outliers(residuals: np.ndarray, factor: float = 8.0, floor_m: float = 0
         for s, e in zip(edges[::2], edges[1::2]):
             runs.append((int(a), int(s), int(e), float(np.nanmax(residuals[s:e, a]))))
     swaps, used = [], set()
-    for i, (a, s, e, _) in enumerate(runs):
-        for j in range(i + 1, len(runs)):
-            b, s2, e2, _ = runs[j]
+    long_runs = [r for r in runs if r[2] - r[1] >= min_run]
+    for i, (a, s, e, _) in enumerate(long_runs):
+        for j in range(i + 1, len(long_runs)):
+            b, s2, e2, _ = long_runs[j]
             if j in used or i in used or b == a:
                 continue
             overlap = min(e, e2) - max(s, s2)
