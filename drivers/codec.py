@@ -131,13 +131,47 @@ def _angle_to_word(a: np.ndarray) -> np.ndarray:
 
 
 def nearest_rotation(m: np.ndarray) -> np.ndarray:
-    """Polar projection of (..., 3, 3) matrices onto SO(3) (vectorised SVD)."""
+    """Polar projection of (..., 3, 3) matrices onto SO(3).
+
+    Nearly orthonormal input (a quantised rotation) takes three Björck iterations, which converge
+    quadratically; anything far from a rotation goes through the SVD.
+    """
+    m = np.asarray(m, dtype=float)
+    r = m
+    for _ in range(3):
+        r = r @ (1.5 * np.eye(3) - 0.5 * np.swapaxes(r, -1, -2) @ r)
+    err = np.abs(np.swapaxes(r, -1, -2) @ r - np.eye(3)).max(axis=(-2, -1))
+    bad = ~(err < 1e-12) | (np.linalg.det(r) < 0)
+    if np.any(bad):
+        r[bad] = _svd_rotation(m[bad])
+    return r
+
+
+def _svd_rotation(m: np.ndarray) -> np.ndarray:
     u, _, vt = np.linalg.svd(m)
     d = np.sign(np.linalg.det(u @ vt))
     d[d == 0] = 1.0
     u = u.copy()
     u[..., :, 2] *= d[..., None]
     return u @ vt
+
+
+def quaternion_to_rotation(q: np.ndarray) -> np.ndarray:
+    """(..., 4) scalar-first quaternions (any norm > 0) → (..., 3, 3) rotation matrices."""
+    q = np.asarray(q, dtype=float)
+    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
+    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
+    out = np.empty(q.shape[:-1] + (3, 3))
+    out[..., 0, 0] = 1 - 2 * (y * y + z * z)
+    out[..., 0, 1] = 2 * (x * y - z * w)
+    out[..., 0, 2] = 2 * (x * z + y * w)
+    out[..., 1, 0] = 2 * (x * y + z * w)
+    out[..., 1, 1] = 1 - 2 * (x * x + z * z)
+    out[..., 1, 2] = 2 * (y * z - x * w)
+    out[..., 2, 0] = 2 * (x * z - y * w)
+    out[..., 2, 1] = 2 * (y * z + x * w)
+    out[..., 2, 2] = 1 - 2 * (x * x + y * y)
+    return out
 
 
 def euler_to_rotation(a, e, r) -> np.ndarray:
@@ -287,7 +321,7 @@ def _poses_from_words(fmt: RecordFormat, words: np.ndarray, scale_inches: float,
             q[:, 1:] *= -1.0
         elif quaternion_convention != "conjugate":
             raise ValueError(f"quaternion_convention must be one of {QUATERNION_CONVENTIONS}")
-        rotations = Rotation.from_quat(np.concatenate([q[:, 1:], q[:, :1]], axis=1)).as_matrix()
+        rotations = quaternion_to_rotation(q)
     return rotations, positions
 
 
@@ -356,6 +390,10 @@ class StreamDecoder:
         for a, f in fmt_by_address.items():
             self._length_of[a & 0xFF] = record_length(f, group=group, button=button)
         self._lengths = sorted({int(v) for v in self._length_of if v})
+        self._distinct = list(dict.fromkeys(fmt_by_address.values()))
+        self._format_index = np.full(256, -1, np.int64)
+        for a, f in fmt_by_address.items():
+            self._format_index[a & 0xFF] = self._distinct.index(f)
         self._tail = np.zeros(0, np.uint8)
         self._tail_times = np.zeros(0)
         self._offset = 0  # stream offset of the tail's first byte
@@ -417,10 +455,12 @@ class StreamDecoder:
         accepted_starts, acc_l = starts[accepted], acc_len[accepted]
         # Bytes covered by no accepted record (before the kept tail) are dropped; each maximal
         # run of them is one resync.
-        cover = np.zeros(keep_from + 1, np.int64)
-        np.add.at(cover, accepted_starts, 1)
-        np.add.at(cover, accepted_starts + acc_l, -1)
-        lost = np.cumsum(cover[:keep_from]) <= 0
+        # Accepted records never overlap, so their starts (and ends) are distinct indices.
+        opened = np.zeros(keep_from + 1, np.int64)
+        opened[accepted_starts] = 1
+        closed = np.zeros(keep_from + 1, np.int64)
+        closed[accepted_starts + acc_l] = 1
+        lost = np.cumsum(opened[:keep_from] - closed[:keep_from]) <= 0
         n_lost = int(np.count_nonzero(lost))
         if n_lost:
             self.dropped_bytes += n_lost
@@ -443,9 +483,12 @@ class StreamDecoder:
         buttons = np.zeros(k, np.uint8) if self.button else None
         if self.group:
             addresses = buf[starts + lengths - 1].astype(np.int64)
-        groups = ([(f, addresses == a) for a, f in self.formats.items()] if self.group
-                  else [(next(iter(self.formats.values())), slice(None))])
-        for fmt, sel in groups:  # one vectorised decode per configured bird format
+        if self.group:
+            kind = self._format_index[addresses]
+            groups = [(f, kind == i) for i, f in enumerate(self._distinct)]
+        else:
+            groups = [(self._distinct[0], slice(None))]
+        for fmt, sel in groups:  # one vectorised decode per distinct format
             st = starts[sel]
             if len(st) == 0:
                 continue
