@@ -314,26 +314,36 @@ def _examine(link: FlockLink, param: int, address: int = 0, addressing: str = "n
                            f"switched to FLY and its FBB cable") from None
 
 
+# Errors that do not stop a flock from measuring: reported as events, not raised.
+PASSING_ERRORS = frozenset({6, 11, 28, 32})
+
+
 def check_bird_errors(links: list[FlockLink], setup: "FlockSetup", emit: Emit,
                       birds: list[int] | None = None) -> list[tuple[int, int]]:
-    """Read the birds' error registers (cleared by reading); emit bird_error for each, raise on a fatal one.
+    """Read the birds' error registers (cleared by reading); emit bird_error for each, raise TrackerError
+    on one that stops measuring. Returns (bird index, code) for the birds that reported an error.
 
-    Returns (bird index, code) for the birds that reported an error.
+    The expanded error code (p16) also names the address concerned (the unresponsive slave for error
+    13), so an error the master holds for another bird is blamed on that bird.
     """
     found = []
+    fatal = None
     for i in (range(setup.birds) if birds is None else birds):
-        address = setup.addresses[i]
         link, addr = _route(links, setup, i)
-        code = _examine(link, 10, addr, setup.addressing)[0]
+        reply = _examine(link, 16, addr, setup.addressing)
+        code, about = reply[0], reply[1] & 0x7F
         if code == 0:
             continue
+        j = setup.addresses.index(about) if about in setup.addresses else i
+        address = setup.addresses[j]
         name = codec.ERROR_CODES.get(code, "unknown error code")
-        hint = error_hint(code)
-        message = f"bird {i} (address {address}) reports error {code}: {name}{hint}"
-        found.append((i, code))
-        emit("bird_error", message, bird=i, address=address, code=int(code), name=name)
-        if codec.error_is_fatal(code):
-            raise TrackerError(message)
+        message = f"bird {j} (address {address}) reports error {code}: {name}{error_hint(code)}"
+        found.append((j, code))
+        emit("bird_error", message, bird=j, address=address, code=int(code), name=name)
+        if code not in PASSING_ERRORS and fatal is None:
+            fatal = message
+    if fatal:
+        raise TrackerError(fatal)
     return found
 
 

@@ -1,0 +1,304 @@
+"""The tracker reader against the fake Flock of Birds on real ptys: formats, both wirings, faults, errors."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+import tty
+
+import numpy as np
+import pytest
+
+from flockcal.drivers import codec
+from flockcal.drivers.link import Timing, TrackerError
+from flockcal.drivers.reader import TrackerConfig, TrackerReader
+from flockcal.drivers.recording import read_recording, replay
+from flockcal.simulator.pty_tracker import PtyTracker
+
+
+class OrbitSource:
+    """Sensors on smooth orbits in the forward hemisphere (x > 0), remembering every pose produced."""
+
+    def __init__(self, n: int, seed: int = 0, cross: bool = False):
+        rng = np.random.default_rng(seed)
+        self.n_sensors = n
+        self.names = tuple(f"s{i}" for i in range(n))
+        self.centre = np.column_stack([np.full(n, 0.45), rng.uniform(-0.2, 0.2, (n, 2))])
+        self.amp = rng.uniform(0.05, 0.15, (n, 3))
+        self.freq = rng.uniform(0.3, 1.0, (n, 3))
+        self.phase = rng.uniform(0, 2 * np.pi, (n, 3))
+        self.cross = cross
+        self.lock = threading.Lock()
+        self.made_R, self.made_p = [], []
+
+    def poses(self, times):
+        t = np.asarray(times, float)[:, None, None]
+        p = self.centre + self.amp * np.sin(2 * np.pi * self.freq * t + self.phase)
+        if self.cross:  # bird 0 swings through x = 0, from the forward side at t = 0
+            p[:, 0, 0] = 0.35 * np.cos(2 * np.pi * 0.6 * t[:, 0, 0])
+        ang = 0.8 * np.sin(2 * np.pi * self.freq * t + self.phase)  # elevation well inside ±90°
+        R = codec.euler_to_rotation(2 * ang[..., 0], ang[..., 1], 2 * ang[..., 2])
+        with self.lock:
+            self.made_R.append(R)
+            self.made_p.append(p)
+        return R, p, np.ones(p.shape[:2], bool)
+
+    def produced(self):
+        with self.lock:
+            return np.concatenate(self.made_R), np.concatenate(self.made_p)
+
+
+class Collector:
+    def __init__(self):
+        self.parts, self.events = [], []
+
+    def frames(self, times, R, p, valid):
+        self.parts.append((times.copy(), R.copy(), p.copy(), valid.copy()))
+
+    def event(self, e):
+        self.events.append(e)
+
+    def arrays(self):
+        return tuple(np.concatenate([x[i] for x in self.parts]) for i in range(4))
+
+    def kinds(self):
+        return [e.kind for e in self.events]
+
+
+def read_for(cfg: TrackerConfig, seconds: float, during=None) -> tuple[Collector, dict]:
+    col = Collector()
+    reader = TrackerReader(cfg, on_frames=col.frames, on_event=col.event)
+    reader.start(wait=15)
+    try:
+        if during:
+            during()
+        time.sleep(seconds)
+    finally:
+        reader.stop()
+    return col, reader.status()
+
+
+def worst_match(src: OrbitSource, R, p, valid) -> tuple[float, float, np.ndarray]:
+    """For each decoded frame, the produced frame it equals best: (worst rotation error rad, worst
+    position error m, index of the produced frame matched per decoded frame)."""
+    TR, Tp = src.produced()
+    has_p = np.isfinite(p).all()
+    has_R = np.isfinite(R).all()
+    rot_err = pos_err = 0.0
+    idx = []
+    for f in range(len(valid)):
+        v = valid[f]
+        if not v.any():
+            idx.append(-1)
+            continue
+        cost = np.zeros(len(TR))
+        if has_p:
+            cost += np.abs(Tp[:, v] - p[f, v]).max(axis=(1, 2))
+        if has_R:
+            cost += np.abs(TR[:, v] - R[f, v]).max(axis=(1, 2, 3))
+        k = int(np.argmin(cost))
+        idx.append(k)
+        if has_p:
+            pos_err = max(pos_err, float(np.linalg.norm(Tp[k, v] - p[f, v], axis=-1).max()))
+        if has_R:
+            rel = np.einsum("bji,bjk->bik", TR[k, v], R[f, v])
+            cos = np.clip((np.trace(rel, axis1=1, axis2=2) - 1) / 2, -1, 1)
+            rot_err = max(rot_err, float(np.arccos(cos).max()))
+    return rot_err, pos_err, np.array(idx)
+
+
+def fast_config(urls, birds, **kw) -> TrackerConfig:
+    return TrackerConfig(urls=urls, birds=birds, timing=Timing.fast(), **kw)
+
+
+@pytest.mark.parametrize("fmt", list(codec.FORMATS))
+def test_group_mode_16_birds_decodes_the_simulated_poses_in_every_format(fmt):
+    src = OrbitSource(16, seed=1)
+    # The fake line is faster than RS-232 so every format fits 16 birds; the driver still says 115200.
+    with PtyTracker(src, birds=16, baud=921600) as trk:
+        col, status = read_for(fast_config([trk.device], 16, rate_hz=40, record_format=fmt), 1.2)
+    times, R, p, valid = col.arrays()
+    assert status["record_format"] == fmt and status["group"]
+    assert valid[1:-1].all(), "a complete group response was marked invalid"
+    rot_tol, pos_tol = codec.quantisation_tolerance(fmt, 36)
+    rot_err, pos_err, idx = worst_match(src, R, p, valid)
+    assert rot_err <= rot_tol + 1e-9 and pos_err <= pos_tol + 1e-9
+    assert np.all(np.diff(idx[idx >= 0]) > 0), "frames out of order or repeated"
+    expected = 40 * (times[-1] - times[0]) + 1
+    assert abs(len(times) - expected) <= 0.1 * expected
+
+
+@pytest.mark.parametrize("fmt", list(codec.FORMATS))
+def test_one_port_per_bird_16_ports_decodes_the_simulated_poses_in_every_format(fmt):
+    src = OrbitSource(16, seed=2)
+    with PtyTracker(src, birds=16, ports=16, baud=115200) as trk:
+        col, status = read_for(fast_config(trk.devices, 16, rate_hz=40, record_format=fmt), 1.0)
+    times, R, p, valid = col.arrays()
+    assert not status["group"] and status["record_format"] == fmt
+    assert valid.mean() > 0.85, "most records should be aligned into complete cycles"
+    rot_tol, pos_tol = codec.quantisation_tolerance(fmt, 36)
+    rot_err, pos_err, _ = worst_match(src, R, p, valid)
+    assert rot_err <= rot_tol + 1e-9 and pos_err <= pos_tol + 1e-9, "a bird's record landed in the wrong cycle"
+    expected = 40 * (times[-1] - times[0]) + 1
+    assert abs(len(times) - expected) <= 0.15 * expected
+
+
+def test_auto_format_falls_back_to_position_quaternion_when_the_line_is_too_slow():
+    src = OrbitSource(16)
+    with PtyTracker(src, birds=16, baud=115200) as trk:
+        col, status = read_for(fast_config([trk.device], 16, rate_hz=40), 0.5)
+    # position/matrix needs 16 × 40 × 25 = 16000 B/s; 115200 baud carries about 11520.
+    assert status["record_format"] == "position_quaternion"
+    fallback = [e for e in col.events if e.kind == "format_fallback"]
+    assert fallback and "position/quaternion" in fallback[0].message
+    assert col.arrays()[3][1:-1].all()
+
+
+def test_point_mode_polls_one_frame_per_poll():
+    src = OrbitSource(4, seed=3)
+    with PtyTracker(src, birds=4, baud=115200) as trk:
+        col, status = read_for(fast_config([trk.device], 4, rate_hz=20, mode="point",
+                                           record_format="position_matrix"), 1.0)
+    times, R, p, valid = col.arrays()
+    assert valid.all()
+    expected = 20 * (times[-1] - times[0]) + 1
+    assert abs(len(times) - expected) <= 0.2 * expected
+    rot_tol, pos_tol = codec.quantisation_tolerance("position_matrix")
+    rot_err, pos_err, _ = worst_match(src, R, p, valid)
+    assert rot_err <= rot_tol + 1e-9 and pos_err <= pos_tol + 1e-9
+
+
+def test_garbage_and_dropped_bytes_lose_only_damaged_records_and_never_a_corrupt_pose():
+    src = OrbitSource(8, seed=4)
+    with PtyTracker(src, birds=8, baud=115200) as trk:
+        def faults():
+            time.sleep(0.3)
+            for k in range(6):
+                trk.inject_garbage(5 + 3 * k)  # between records
+                time.sleep(0.07)
+                trk.drop_bytes(1 + k)  # inside the next record
+                time.sleep(0.07)
+        col, status = read_for(fast_config([trk.device], 8, rate_hz=50, record_format="position_quaternion"),
+                               0.5, during=faults)
+    times, R, p, valid = col.arrays()
+    assert status["resynced"] >= 6 and "resync" in col.kinds()
+    lost = int((~valid[1:-1]).sum())
+    assert 1 <= lost <= 6 * 2, f"{lost} bird-frames lost for 6 drops"
+    rot_tol, pos_tol = codec.quantisation_tolerance("position_quaternion")
+    rot_err, pos_err, _ = worst_match(src, R, p, valid)
+    assert rot_err <= rot_tol + 1e-9 and pos_err <= pos_tol + 1e-9
+    assert times[-1] - times[0] > 1.2, "the reader stopped after the faults"
+
+
+def test_a_2s_stall_is_reported_and_the_flock_is_reinitialised():
+    src = OrbitSource(4, seed=5)
+    with PtyTracker(src, birds=4, baud=115200) as trk:
+        col, status = read_for(fast_config([trk.device], 4, rate_hz=50, backoff=(0.1, 0.5)), 3.2,
+                               during=lambda: (time.sleep(0.3), trk.stall(2.0)))
+    kinds = col.kinds()
+    assert "stalled" in kinds and "reconnecting" in kinds
+    assert kinds.count("connected") >= 2
+    times, R, p, valid = col.arrays()
+    assert (times > times[0] + 2.4).sum() > 10, "no frames after the stall"
+    rot_err, pos_err, _ = worst_match(src, R, p, valid)
+    assert pos_err <= codec.quantisation_tolerance("position_matrix")[1] + 1e-9
+
+
+def test_an_unplugged_port_is_reported_and_reopened_when_it_comes_back():
+    src = OrbitSource(4, seed=6)
+    with PtyTracker(src, birds=4, baud=115200) as trk:
+        def unplug():
+            time.sleep(0.3)
+            trk.disconnect()
+            time.sleep(0.6)
+            trk.reconnect()
+        col, status = read_for(fast_config([trk.device], 4, rate_hz=50, backoff=(0.1, 0.4)), 1.5, during=unplug)
+    kinds = col.kinds()
+    assert "disconnected" in kinds and "reconnecting" in kinds and kinds.count("connected") >= 2
+    assert status["reconnects"] >= 1
+    times, _, _, valid = col.arrays()
+    assert (times > times[0] + 1.2).sum() > 10, "no frames after the reconnect"
+
+
+def test_a_bird_error_code_is_read_and_named():
+    src = OrbitSource(8)
+    with PtyTracker(src, birds=8, baud=115200) as trk:
+        trk.set_error(31, address=8)
+        reader = TrackerReader(fast_config([trk.device], 8, rate_hz=50))
+        with pytest.raises(TrackerError) as err:
+            reader.start(wait=10)
+    text = str(err.value)
+    assert "bird 7 (address 8)" in text and "error 31" in text and "CPU time overflow" in text
+    assert "lower --rate" in text
+
+
+def test_a_silent_line_gives_no_answer_naming_port_and_baud():
+    # Tried: a pty nobody answers on (a switched-off flock or a wrong cable).
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    path = os.ttyname(slave)
+    try:
+        reader = TrackerReader(fast_config([path], 2))
+        with pytest.raises(TrackerError) as err:
+            reader.start(wait=10)
+    finally:
+        os.close(master)
+        os.close(slave)
+    assert f"no answer from the flock on {path} at 115200 baud" in str(err.value)
+    assert "DIP switches" in str(err.value)
+
+
+def test_noise_in_reply_says_the_baud_rate_is_wrong():
+    # Tried: a line answering every command with bytes that mean nothing, as at a mismatched baud rate.
+    master, slave = os.openpty()
+    tty.setraw(slave)
+    path = os.ttyname(slave)
+    stop = threading.Event()
+
+    def noise():
+        while not stop.is_set():
+            try:
+                if os.read(master, 64):
+                    os.write(master, bytes([0xF3, 0x9E, 0xFF, 0x80]))
+            except OSError:
+                return
+
+    t = threading.Thread(target=noise, daemon=True)
+    t.start()
+    try:
+        reader = TrackerReader(fast_config([path], 2))
+        with pytest.raises(TrackerError) as err:
+            reader.start(wait=10)
+    finally:
+        stop.set()
+        os.close(slave)
+        os.close(master)
+    assert "garbled answer" in str(err.value) and "baud" in str(err.value)
+
+
+def test_a_recording_replays_to_byte_identical_frames(tmp_path):
+    src = OrbitSource(6, seed=7)
+    path = tmp_path / "take.fobraw"
+    with PtyTracker(src, birds=6, baud=115200) as trk:
+        def faults():
+            time.sleep(0.3)
+            trk.drop_bytes(3)
+            trk.inject_garbage(9)
+        col, _ = read_for(fast_config([trk.device], 6, rate_hz=50, recording_path=str(path)), 0.8, during=faults)
+    live = col.arrays()
+    out = replay(read_recording(path))
+    again = (out.frames.times, out.frames.rotations, out.frames.positions, out.frames.valid)
+    for a, b in zip(live, again):
+        assert a.shape == b.shape and a.tobytes() == b.tobytes()
+
+
+def test_a_hemisphere_crossing_is_detected_and_corrected():
+    src = OrbitSource(2, seed=8, cross=True)
+    with PtyTracker(src, birds=2, baud=115200) as trk:
+        col, _ = read_for(fast_config([trk.device], 2, rate_hz=50, record_format="position_matrix"), 1.3)
+    assert "hemisphere_flip" in col.kinds()
+    times, R, p, valid = col.arrays()
+    assert (p[valid[:, 0], 0, 0] < 0).any(), "bird 0 should be seen behind the transmitter"
+    _, pos_err, _ = worst_match(src, R, p, valid)
+    assert pos_err <= codec.quantisation_tolerance("position_matrix")[1] + 1e-9
