@@ -37,6 +37,7 @@ def bones(art: Articulation, stderr: dict[tuple[str, str | None], float] | None 
     """design.md §5 `bones`: per body, inboard joint to each outboard joint (root: pairs of outboard joints)."""
     out = []
     names = art.names
+    rigid = art.rigid if art.rigid is not None else np.zeros(art.n_bodies, dtype=bool)
     for b in art.order:
         b = int(b)
         kids = art.children(b)
@@ -45,6 +46,8 @@ def bones(art: Articulation, stderr: dict[tuple[str, str | None], float] | None 
         else:
             spans = [(k1, art.l[k1], k2, art.l[k2]) for n1, k1 in enumerate(kids) for k2 in kids[n1 + 1 :]]
         for a, pa, k, pk in spans:
+            if rigid[a] or rigid[k]:
+                continue  # a rigidly attached sensor has no joint, only a stand-in point at the sensor
             key = (names[a], names[k])
             out.append(
                 {
@@ -134,6 +137,7 @@ def fit_known_skeleton(
     m = art.n_bodies
     if acc.n_sensors != m:
         raise ArticulationError(f"the accumulator has {acc.n_sensors} sensors, the skeleton {m}")
+    art = art.completed(acc=acc)
     child = np.array([int(j) for j in art.order[1:]])
     par = art.parent[child]
     pairs = np.stack([child, par], axis=1)
@@ -206,7 +210,7 @@ def fit_known_skeleton(
     C = np.zeros((m, 3))
     L = np.zeros((m, 3))
     C[child], L[child] = c, l
-    fitted = Articulation(art.names, art.parent, C, L, art.order)
+    fitted = Articulation(art.names, art.parent, C, L, art.order, art.rigid)
     rms = np.full(m, np.nan)
     eps = np.full(m, np.nan)
     rms_free = np.full(m, np.nan)

@@ -32,6 +32,7 @@ class Articulation:
     c: np.ndarray  # (m, 3) metres
     l: np.ndarray  # (m, 3) metres
     order: np.ndarray  # (m,) int
+    rigid: np.ndarray | None = None  # (m,) bool: rigidly attached to its parent, no joint fitted (c = 0, l NaN until completed)
 
     @property
     def root(self) -> int:
@@ -69,7 +70,42 @@ class Articulation:
         inverse[perm] = np.arange(len(perm))
         old_parent = self.parent[perm]
         parent = np.where(old_parent < 0, -1, inverse[np.maximum(old_parent, 0)])
-        return Articulation(names, parent, self.c[perm], self.l[perm], inverse[self.order])
+        rigid = None if self.rigid is None else self.rigid[perm]
+        return Articulation(names, parent, self.c[perm], self.l[perm], inverse[self.order], rigid)
+
+    @property
+    def incomplete(self) -> np.ndarray:
+        """(m,) bool: rigidly attached bodies whose offset from the parent is not yet known."""
+        if self.rigid is None:
+            return np.zeros(self.n_bodies, dtype=bool)
+        return self.rigid & ~np.isfinite(self.l).all(axis=1)
+
+    def completed(self, rotations=None, positions=None, valid=None, acc=None) -> "Articulation":
+        """Rigidly attached bodies given a joint at their own sensor: l = that sensor's mean position in
+        the parent's frame, from a take's frames or from a GramAccumulator (`acc.pair_point`)."""
+        todo = np.flatnonzero(self.incomplete)
+        if not len(todo):
+            return self
+        l = self.l.copy()
+        p = self.parent[todo]
+        if acc is not None:
+            l[todo] = acc.pair_point(np.zeros((len(todo), 3)), todo, p)
+        elif rotations is not None and positions is not None:
+            R = np.asarray(rotations, dtype=float)
+            t = np.asarray(positions, dtype=float)
+            rel = np.einsum("nkba,nkb->nka", R[:, p], t[:, todo] - t[:, p])  # R_pᵀ (t_j − t_p)
+            if valid is not None:
+                ok = np.asarray(valid, dtype=bool)
+                ok = ok[:, todo] & ok[:, p]
+                rel = np.where(ok[..., None], rel, np.nan)
+            with np.errstate(invalid="ignore"):
+                l[todo] = np.nanmean(rel, axis=0) if len(rel) else np.nan
+        else:
+            raise ArticulationError("completing rigidly attached sensors needs the take's frames or its accumulator")
+        if not np.isfinite(l[todo]).all():
+            lacking = [self.names[i] for i in todo[~np.isfinite(l[todo]).all(axis=1)]]
+            raise ArticulationError(f"no frame has sensor(s) {', '.join(lacking)} and their parent both valid")
+        return Articulation(self.names, self.parent, self.c, l, self.order, self.rigid)
 
 
 def tree_order(parent: np.ndarray) -> np.ndarray:
@@ -134,12 +170,27 @@ def articulation(calibration) -> Articulation:
         c[i] = np.asarray(joint["c"], dtype=float)
         l[i] = np.asarray(joint["l"], dtype=float)
         have[i] = True
-    lacking = [names[i] for i in range(m) if parent[i] >= 0 and not have[i]]
+    # A sensor that never turned against its parent has no joint (its centre is undetermined): it rides
+    # rigidly on the parent, completed later from the frames (`Articulation.completed`).
+    group = {}
+    for g, members in enumerate(d.get("rigid_groups") or []):
+        for x in members:
+            group[str(x)] = g
+    rigid = np.zeros(m, dtype=bool)
+    lacking = []
+    for i in range(m):
+        if parent[i] < 0 or have[i]:
+            continue
+        if names[i] in group and group[names[i]] == group.get(names[parent[i]], -1):
+            rigid[i] = True
+            l[i] = np.nan
+        else:
+            lacking.append(names[i])
     if lacking:
         raise ArticulationError(f"no joint given for sensor(s) {', '.join(lacking)} of the tree")
-    if not (np.isfinite(c).all() and np.isfinite(l).all()):
+    if not (np.isfinite(c).all() and np.isfinite(l[~rigid]).all()):
         raise ArticulationError("joint centres hold NaN or inf")
-    return Articulation(names, parent, c, l, order)
+    return Articulation(names, parent, c, l, order, rigid if rigid.any() else None)
 
 
 def held_poses(rotations: np.ndarray, positions: np.ndarray, valid: np.ndarray | None = None):
@@ -211,6 +262,8 @@ def reconstruct(rotations, positions, art: Articulation, valid=None) -> Reconstr
     Each body's sensor is placed so its inboard joint coincides with the parent's copy of that joint:
     t'_j = R_p l_j + t'_p − R_j c_j, walking the tree from the root (one vectorised step per body).
     """
+    if art.incomplete.any():
+        art = art.completed(rotations, positions, valid)
     R, t = held_poses(rotations, positions, valid)
     if R.ndim != 4 or R.shape[1] != art.n_bodies:
         raise ArticulationError(f"take has {R.shape[1] if R.ndim == 4 else '?'} sensors, the model {art.n_bodies}")

@@ -163,3 +163,59 @@ def test_parent_map_with_a_cycle_is_refused():
     # Tried: a parent map where two bodies are each other's parent (no single tree).
     with pytest.raises(ArticulationError, match="not connected"):
         tree_order(np.array([-1, 2, 1]))
+
+
+@pytest.fixture(scope="module")
+def fitted_human():
+    """A simulated 8-sensor performer with tracker noise and dropouts, calibrated by the solver."""
+    from flockcal.simulator.take import simulate
+    from flockcal.solver.accumulator import GramAccumulator
+    from flockcal.solver.calibration import calibrate
+
+    take, _ = simulate("human", "exercise", seconds=6, rate_hz=50, seed=7, birds=8, faults={"dropout": 0.01})
+    acc = GramAccumulator(take.n_sensors)
+    acc.update(take.rotations, take.positions, take.valid)
+    return take, calibrate(acc, names=list(take.names))
+
+
+def test_fitted_take_bvh_matches_reconstruction_and_raw_separation_is_the_solvers_residual(fitted_human, tmp_path):
+    from flockcal.solver.residuals import joint_residuals
+
+    take, cal = fitted_human
+    d = cal.to_dict()
+    path = tmp_path / "human.bvh"
+    write_bvh(path, cal, take)
+    fk = bvh_forward_kinematics(Bvh(path.read_text()))
+    art = articulation(cal).reordered(take.names)
+    rec = reconstruct(take.rotations, take.positions, art, take.valid)
+    W = bvh_world("-z")
+    for i, name in enumerate(take.names):
+        np.testing.assert_allclose(fk[name] / 100.0 @ W, rec.joint_positions[:, i], atol=1e-6, rtol=0)
+    assert np.nanmax(rec.separation()) < 1e-12
+    idx = {n: i for i, n in enumerate(take.names)}
+    pairs = np.array([[idx[j["child"]], idx[j["parent"]]] for j in d["joints"]])
+    e = joint_residuals(take.rotations, take.positions, [j["c"] for j in d["joints"]], [j["l"] for j in d["joints"]],
+                        pairs, valid=take.valid)  # fmt: skip
+    raw = joint_separation(take.rotations, take.positions, art, take.valid)[:, pairs[:, 0]]
+    np.testing.assert_allclose(raw, np.linalg.norm(e, axis=-1), rtol=1e-12, atol=1e-15, equal_nan=True)
+    assert np.nanmean(raw) > 1e-3  # tracker noise: the raw joints come apart by millimetres
+
+
+def test_rigidly_attached_sensor_rides_on_its_parent_in_the_bvh(tmp_path):
+    from flockcal.simulator.take import simulate
+    from flockcal.solver.accumulator import GramAccumulator
+    from flockcal.solver.calibration import calibrate
+
+    # The rigid pair never turns one sensor against the other: the solver reports no joint for it.
+    take, _ = simulate("pair", "walk", seconds=4, rate_hz=50, seed=2)
+    acc = GramAccumulator(2)
+    acc.update(take.rotations, take.positions, take.valid)
+    cal = calibrate(acc, names=list(take.names))
+    assert cal.to_dict()["joints"] == []
+    path = tmp_path / "pair.bvh"
+    write_bvh(path, cal, take)
+    fk = bvh_forward_kinematics(Bvh(path.read_text()))
+    rec = reconstruct(take.rotations, take.positions, articulation(cal), take.valid)
+    np.testing.assert_allclose(fk["sensor_b"] / 100.0 @ bvh_world("-z"), rec.joint_positions[:, 1], atol=1e-6)
+    # Its pivot is its own sensor, placed from the pair's mean offset: within tracker noise of the data.
+    assert np.median(np.linalg.norm(rec.sensor_positions[:, 1] - take.positions[:, 1], axis=1)) < 0.01

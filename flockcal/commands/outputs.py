@@ -155,7 +155,7 @@ def cmd_skeleton(args) -> int:
     source = {"take": Path(args.take).name, "frames": take.n_frames, "rate_hz": take.rate_hz}
     if args.scale is not None:
         source["scale"] = scale_factor(args.scale)
-    write_skeleton(args.output, cal, source)
+    write_skeleton(args.output, cal, source, take=take)
     print(f"wrote {args.output}", file=sys.stderr)
     return 0
 

@@ -135,6 +135,7 @@ def bvh_text(calibration, take, *, units: str = "cm", up: str = "-z") -> str:
     art = calibration if isinstance(calibration, Articulation) else articulation(calibration)
     art = art.reordered(take.names)
     rec = reconstruct(take.rotations, take.positions, art, take.valid)
+    art = rec.articulation  # rigidly attached sensors now have their offsets
     rows = motion_channels(rec, world, scale)
     out = io.StringIO()
     out.write(hierarchy_text(art, scale))

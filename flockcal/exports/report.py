@@ -177,7 +177,7 @@ def report_html(
     from flockcal.exports.bvh import bvh_world
 
     d = calibration.to_dict() if hasattr(calibration, "to_dict") else dict(calibration)
-    art = articulation(d).reordered(take.names)
+    art = articulation(d).reordered(take.names).completed(take.rotations, take.positions, take.valid)
     names = art.names
     e = tree_residuals(take.rotations, take.positions, art, take.valid)
     sep = np.linalg.norm(e, axis=-1)

@@ -27,13 +27,28 @@ class SkeletonError(FlockcalError, ValueError):
     """A skeleton file that is unreadable, malformed, or made for other sensors."""
 
 
-def skeleton_dict(calibration, source: dict | None = None) -> dict:
+def skeleton_dict(calibration, source: dict | None = None, take=None, acc=None) -> dict:
     """The skeleton file's content for a Calibration (or its §5 dict); `source` describes the take
-    (e.g. {"take": "walk.npz", "frames": n, "rate_hz": r}); sessions may add their own keys."""
+    (e.g. {"take": "walk.npz", "frames": n, "rate_hz": r}); sessions may add their own keys.
+
+    A sensor rigidly attached to its parent (a calibration's `rigid_groups`) has no fitted joint; the
+    file then pins it at its own sensor, which needs the `take` (a Take) or its accumulator `acc`.
+    """
     d = calibration.to_dict() if hasattr(calibration, "to_dict") else dict(calibration)
     art = articulation(d)
+    if art.incomplete.any():
+        if take is not None:
+            art = art.reordered(take.names).completed(take.rotations, take.positions, take.valid).reordered(art.names)
+        elif acc is not None:
+            art = art.completed(acc=acc)
+        else:
+            rigid = ", ".join(art.names[i] for i in np.flatnonzero(art.incomplete))
+            raise SkeletonError(f"sensor(s) {rigid} ride rigidly on their parent; pass the take or its accumulator to place them")
     names = art.names
     joint_of = {j["child"]: j for j in d["joints"] if d["parent"].get(j["child"]) == j["parent"]}
+    for i in np.flatnonzero(art.rigid if art.rigid is not None else np.zeros(len(names), bool)):
+        joint_of[names[i]] = {"child": names[i], "parent": names[art.parent[i]], "c": art.c[i].tolist(),
+                              "l": art.l[i].tolist(), "rigid": True, "hinge": False}
     placements = []
     bodies = []
     for i, name in enumerate(names):
@@ -62,6 +77,7 @@ def skeleton_dict(calibration, source: dict | None = None) -> dict:
         "parent": {names[j]: names[art.parent[j]] for j in art.order[1:]},
         "joints": [joint_of[names[j]] for j in art.order[1:]],
         "bones": d.get("bones") or bones_of(art),
+        "rigid_groups": d.get("rigid_groups") or [],
         "placements": placements,
         "bodies": bodies,
     }
@@ -80,16 +96,16 @@ def _json_safe(obj):
     return obj
 
 
-def skeleton_bytes(calibration, source: dict | None = None) -> bytes:
+def skeleton_bytes(calibration, source: dict | None = None, take=None, acc=None) -> bytes:
     """The skeleton file as UTF-8 JSON bytes (for a download)."""
-    return (json.dumps(_json_safe(skeleton_dict(calibration, source)), indent=2) + "\n").encode("utf-8")
+    return (json.dumps(_json_safe(skeleton_dict(calibration, source, take, acc)), indent=2) + "\n").encode("utf-8")
 
 
-def write_skeleton(path: str | os.PathLike, calibration, source: dict | None = None) -> None:
+def write_skeleton(path: str | os.PathLike, calibration, source: dict | None = None, take=None, acc=None) -> None:
     """Write the skeleton file to `path` (atomically)."""
     path = Path(path)
     tmp = path.with_name(path.name + ".part")
-    tmp.write_bytes(skeleton_bytes(calibration, source))
+    tmp.write_bytes(skeleton_bytes(calibration, source, take, acc))
     os.replace(tmp, path)
 
 
@@ -188,12 +204,18 @@ def parse_skeleton(data, origin: str = "skeleton") -> Skeleton:
         raise SkeletonError(f"{origin}: {exc}") from None
     if data.get("root") is not None and data["root"] != names[art.root]:
         raise SkeletonError(f"{origin}: 'root' is {data['root']!r} but the parent map is rooted at {names[art.root]!r}")
-    # Bones are derived from the joint centres; a mismatch means the file was edited inconsistently.
-    stated = {(b.get("from_joint"), b.get("to_joint")): b.get("length_m") for b in data["bones"] if isinstance(b, dict)}
+    # Bones are derived from the joint centres; a stated length that disagrees means the file was edited
+    # inconsistently. (Bones the file does not list, e.g. inside a rigid group, are not required.)
+    stated = {}
+    for b in data["bones"]:
+        if isinstance(b, dict):
+            stated[(b.get("from_joint"), b.get("to_joint"))] = b.get("length_m")
     for bone in bones_of(art):
         key = (bone["from_joint"], bone["to_joint"])
+        if key not in stated and key[::-1] not in stated:
+            continue
         length = stated.get(key, stated.get(key[::-1]))
-        if length is None or not isinstance(length, (int, float)) or abs(length - bone["length_m"]) > 1e-6:
+        if not isinstance(length, (int, float)) or abs(length - bone["length_m"]) > 1e-6:
             raise SkeletonError(
                 f"{origin}: bone {key[0]}→{key[1]} on {bone['body']} is {length!r} m in 'bones' but the joint "
                 f"centres give {bone['length_m']:.6f} m; the file was edited inconsistently — re-export it"
