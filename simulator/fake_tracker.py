@@ -119,13 +119,15 @@ class FakeFlock:
     clock: a callable giving seconds (`ManualClock` for tests, `WallClock` for real time).
     scale_inches: power-up position scale, 36 or 72 (p3); default the source's `full_scale_in`
     or 36. With `ert` the scale is 144 in, as on the real extended-range transmitter.
+    pose_lookahead: seconds of measurement cycles asked of the source in one call (sources with
+    a large per-call cost keep up; a fault injected into the source shows after the block).
     """
 
     def __init__(self, source: PoseSource, *, birds: int | None = None, ert: bool = False,
                  rate_hz: float = DEFAULT_RATE_HZ, baud: float = 115200, ports: int = 1,
                  clock: Callable[[], float] | None = None, scale_inches: float | None = None,
                  quaternion_convention: str = "fob", seed: int = 0,
-                 buffer_limit: int = OUTPUT_BUFFER_LIMIT) -> None:
+                 buffer_limit: int = OUTPUT_BUFFER_LIMIT, pose_lookahead: float = 0.1) -> None:
         n = source.n_sensors if birds is None else int(birds)
         if not 1 <= n <= source.n_sensors:
             raise FakeTrackerError(f"birds must be 1..{source.n_sensors} (sensors of the pose source), not {n}")
@@ -142,6 +144,9 @@ class FakeFlock:
         self.addressing = ("normal" if units <= 14 else "expanded" if units <= 30 else "super_expanded")
         self.quaternion_convention = quaternion_convention
         self.buffer_limit = int(buffer_limit)
+        self.pose_lookahead = float(pose_lookahead)
+        self._cache_k = np.zeros(0, np.int64)
+        self._cache = None
         self._lock = threading.RLock()
         self._rng = np.random.default_rng(seed)
         # The source may say which scale its motion needs (a walking performer needs 72 in).
@@ -177,7 +182,8 @@ class FakeFlock:
         self.initialised = False
         self.configured_units = 0
         self.cycle_origin = self.now
-        self.last_cycle = int(np.floor((self.now - self.cycle_origin) * self.rate_hz))
+        self.last_cycle = 0
+        self._cache_k = np.zeros(0, np.int64)
         for b in self.birds.values():
             b.fmt, b.hemisphere, b.hemisphere_via_p22 = codec.DEFAULT_FORMAT, "forward", False
             b.button_mode = b.metal = False
@@ -378,14 +384,33 @@ class FakeFlock:
         if k1 > self.last_cycle:
             cycles = np.arange(self.last_cycle + 1, k1 + 1)
             cycles = cycles[cycles % self.report_divisor == 0]
-            times = self.cycle_origin + cycles / self.rate_hz
-            for line in self.lines:
-                if line.stream and len(times):
-                    self._stream(line, times)
+            streaming = [ln for ln in self.lines if ln.stream]
+            if len(cycles) and streaming:
+                poses = self._cycle_poses(cycles)
+                times = self.cycle_origin + cycles / self.rate_hz
+                for line in streaming:
+                    self._stream(line, times, poses)
             self.last_cycle = k1
         self.now = t
         for line in self.lines:
             self._cap(line)
+
+    def _cycle_poses(self, cycles: np.ndarray):
+        """Source poses at measurement cycles, asked for in blocks of `pose_lookahead` seconds."""
+        if self.sleeping:  # transmitter off: the data stop changing
+            rot, pos, valid = self.source.poses(np.array([self.sleep_time]))
+            n = len(cycles)
+            return (np.repeat(rot, n, 0), np.repeat(pos, n, 0), np.repeat(np.asarray(valid, bool), n, 0))
+        ck = self._cache_k
+        if not (len(ck) and ck[0] <= cycles[0] and cycles[-1] <= ck[-1]):
+            last = max(int(cycles[-1]), int(cycles[0] + np.ceil(self.pose_lookahead * self.rate_hz)))
+            ck = np.arange(int(cycles[0]), last + 1)
+            rot, pos, valid = self.source.poses(self.cycle_origin + ck / self.rate_hz)
+            self._cache_k = ck
+            self._cache = (np.asarray(rot), np.asarray(pos), np.asarray(valid, bool))
+        i = cycles - ck[0]
+        rot, pos, valid = self._cache
+        return rot[i], pos[i], valid[i]
 
     def _cap(self, line: _Line) -> None:
         # A host that does not read loses the oldest bytes, like an overrun OS buffer.
@@ -396,7 +421,7 @@ class FakeFlock:
             line.done = line.done[excess:]
             line.bytes_lost += excess
 
-    def _stream(self, line: _Line, times: np.ndarray) -> None:
+    def _stream(self, line: _Line, times: np.ndarray, poses) -> None:
         """Records for cycle times (each ≥ the last cycle), skipping sets the line cannot carry."""
         addresses = self._set_addresses(line, line.stream_address)
         if not addresses or line.xoff or not line.connected:
@@ -416,7 +441,7 @@ class FakeFlock:
         sel = np.arange(first, len(times), stride)
         line.sets_skipped += len(times) - len(sel)
         t_sel = times[sel]
-        data = self._records(addresses, t_sel)  # (k, size)
+        data = self._records(addresses, *(a[sel] for a in poses))  # (k, size)
         bps = line.bytes_per_second
         line.data += data.tobytes()
         line.done = np.concatenate([line.done, (t_sel[:, None] + np.arange(1, size + 1) / bps).ravel()])
@@ -436,11 +461,9 @@ class FakeFlock:
     def _record_length(self, bird: _Bird) -> int:
         return codec.record_length(bird.fmt, group=self.group, button=bird.button_mode, metal=bird.metal)
 
-    def _records(self, addresses: list[int], times: np.ndarray) -> np.ndarray:
-        """(k, set bytes) uint8: one record per address for each time, in address order."""
-        pose_times = np.full_like(times, self.sleep_time) if self.sleeping else times
-        rot, pos, valid = self.source.poses(pose_times)
-        rot, pos, valid = np.asarray(rot), np.asarray(pos), np.asarray(valid, bool)
+    def _records(self, addresses: list[int], rot, pos, valid) -> np.ndarray:
+        """(k, set bytes) uint8: one record per address for each of k measurements, in address order."""
+        n = len(rot)
         parts = []
         for a in addresses:
             bird = self.birds[a]
@@ -452,11 +475,11 @@ class FakeFlock:
             rec = codec.encode_words(words)
             extra = []
             if bird.button_mode:
-                extra.append(np.zeros(len(times), np.uint8))
+                extra.append(np.zeros(n, np.uint8))
             if bird.metal:
-                extra.append(np.zeros(len(times), np.uint8))
+                extra.append(np.zeros(n, np.uint8))
             if self.group:
-                extra.append(np.full(len(times), a & 0x7F, np.uint8))
+                extra.append(np.full(n, a & 0x7F, np.uint8))
             parts.append(np.concatenate([rec, np.stack(extra, 1)], 1) if extra else rec)
         return np.concatenate(parts, axis=1)
 
@@ -544,7 +567,10 @@ class FakeFlock:
             if not addresses:
                 self._error(9 if not self.initialised else 8, target)
                 return
-            self._send(line, self._records(addresses, np.array([self.now])).tobytes(), self.now)
+            # POINT returns the latest completed measurement
+            k = int(np.floor((self.now - self.cycle_origin) * self.rate_hz + 1e-9))
+            poses = self._cycle_poses(np.array([k]))
+            self._send(line, self._records(addresses, *poses).tobytes(), self.now)
             line.records_sent += len(addresses)
         elif op == Command.STREAM:
             if not self._set_addresses(line, target):
@@ -610,12 +636,12 @@ class FakeFlock:
             rate_hz = float(np.clip(rate_hz, 20.0, MAX_RATE_HZ))
         self._resync_cycles()
         self.rate_hz = float(rate_hz)
-        self.cycle_origin = self.now
-        self.last_cycle = 0
 
     def _resync_cycles(self) -> None:
+        """Re-origin the cycle grid at the last cycle (before a rate or divisor change)."""
         self.cycle_origin = self.cycle_origin + self.last_cycle / self.rate_hz
         self.last_cycle = 0
+        self._cache_k = np.zeros(0, np.int64)
 
     def _auto_config(self, n: int) -> None:
         if not 1 <= n <= 126:

@@ -244,7 +244,9 @@ def test_hemisphere_mirrors_positions_on_the_wrong_side():
     _ask(flock, clock, codec.hemisphere_command("aft"))  # sensors are at +X: all mirrored
     reply = _ask(flock, clock, b"B")
     _, p, _ = codec.decode_records("position_angles", reply, group=False)
-    _, pos, _ = src.poses(np.array([clock.t - 0.05]))
+    asked = clock.t - 0.05  # POINT answers with the latest completed measurement cycle
+    cycle = flock.cycle_origin + np.floor((asked - flock.cycle_origin) * flock.rate_hz + 1e-9) / flock.rate_hz
+    _, pos, _ = src.poses(np.array([cycle]))
     assert np.allclose(p[0], -pos[0, 0], atol=2e-4)
 
 
