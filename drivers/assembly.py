@@ -275,9 +275,16 @@ class FrameAssembler:
     def _emit_group(self, rec: _Held, close_last: bool) -> None:
         if len(rec) == 0:
             return
+        cycle, keep = self._group_cycles(rec.addresses, rec.suspect)
+        if not keep.all():
+            self.rejected_records += int(np.count_nonzero(~keep))
+            rec = rec.select(keep)
+            cycle = cycle[keep]
+            if len(rec) == 0:
+                self.open = rec
+                return
         a = rec.addresses
-        new_cycle = np.concatenate([[True], a[1:] <= a[:-1]])
-        cycle = np.cumsum(new_cycle) - 1
+        new_cycle = np.concatenate([[True], cycle[1:] != cycle[:-1]])
         n = int(cycle[-1]) + 1
         # The last cycle stays open unless it already holds the highest address (nothing can follow).
         done = n if (close_last or a[-1] == max(self.setup.addresses)) else n - 1
@@ -288,6 +295,48 @@ class FrameAssembler:
         cyc = cycle[:k]
         first = np.flatnonzero(new_cycle[:k])
         self._emit(closed.times[first], cyc, self.index_of_address[closed.addresses], closed)
+
+    @staticmethod
+    def _group_cycles(a: np.ndarray, suspect: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Cycle number of each group-mode record (a cycle is a run of increasing addresses).
+
+        Only trusted records may end a cycle: a garbled record's address byte can be any bird's. A
+        suspect record joins the cycle around it if its address fits between its trusted neighbours,
+        and is dropped otherwise.
+        """
+        k = len(a)
+        trusted = ~suspect
+        idx = np.flatnonzero(trusted)
+        cycle = np.zeros(k, np.int64)
+        keep = np.ones(k, bool)
+        if len(idx):
+            at = a[idx]
+            ct = np.cumsum(np.concatenate([[True], at[1:] <= at[:-1]])) - 1
+            cycle[idx] = ct
+        if suspect.any():
+            s = np.flatnonzero(suspect)
+            pos = np.searchsorted(idx, s)  # trusted neighbours: idx[pos-1] before, idx[pos] after
+            has_prev, has_next = pos > 0, pos < len(idx)
+            a_prev = np.where(has_prev, a[idx[np.maximum(pos - 1, 0)]] if len(idx) else 0, 0)
+            c_prev = np.where(has_prev, cycle[idx[np.maximum(pos - 1, 0)]] if len(idx) else 0, 0)
+            a_next = np.where(has_next, a[idx[np.minimum(pos, len(idx) - 1)]] if len(idx) else 256, 256)
+            c_next = np.where(has_next, cycle[idx[np.minimum(pos, len(idx) - 1)]] if len(idx) else 0, c_prev + 1)
+            same = has_next & (c_next == c_prev)
+            fits_prev = (a[s] > a_prev) & (~same | (a[s] < a_next))
+            fits_next = ~same & (a[s] < a_next)
+            cycle[s] = np.where(fits_prev, c_prev, c_next)
+            keep[s] = fits_prev | fits_next
+            # Two suspects claiming one slot, or out of order among themselves: keep the first.
+            order = np.lexsort((np.arange(k), a, cycle))
+            dup = np.zeros(k, bool)
+            dup[order[1:]] = (cycle[order[1:]] == cycle[order[:-1]]) & (a[order[1:]] == a[order[:-1]])
+            keep &= ~(dup & suspect)
+            if keep.any():
+                kept = np.flatnonzero(keep)
+                bad = np.zeros(k, bool)
+                bad[kept[1:]] = cycle[kept[1:]] < cycle[kept[:-1]]
+                keep &= ~bad
+        return cycle, keep
 
     # -- one port per bird ---------------------------------------------------------------------
     def _assign(self, port: int, rec: _Held, final: bool = False) -> None:
