@@ -79,7 +79,8 @@ class FlockLink:
             port.dtr = True
             port.open()
         except (serial.SerialException, OSError, ValueError) as exc:
-            raise TrackerError(f"cannot open {self.url}: {exc} — check the device name, the cable, and that "
+            reason = getattr(exc, "strerror", None) or str(exc)
+            raise TrackerError(f"cannot open {self.url}: {reason} — check the device name, the cable, and that "
                                f"no other program holds the port") from None
         self.port = port
         return self

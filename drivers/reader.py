@@ -279,15 +279,16 @@ class TrackerReader:
                     self._close_links()
                     with self._lock:
                         self._status["connected"] = False
+                    if self._fail_fast and not self._connected_once.is_set():
+                        # The caller of start(wait=…) raises it; no event, no retry.
+                        self._first_failure = exc if isinstance(exc, TrackerError) else TrackerError(str(exc))
+                        return
                     if isinstance(exc, _Stalled):
                         pass  # already reported
                     elif isinstance(exc, LinkLost) or isinstance(exc, OSError):
                         self._emit("disconnected", f"{exc} — will reconnect")
                     else:
                         self._emit("error", str(exc))
-                    if self._fail_fast and not self._connected_once.is_set():
-                        self._first_failure = exc if isinstance(exc, TrackerError) else TrackerError(str(exc))
-                        return
                     attempt += 1
                     if self.cfg.max_reconnects is not None and attempt > self.cfg.max_reconnects:
                         self._emit("error", f"giving up after {attempt - 1} reconnection attempts: {exc}")

@@ -57,7 +57,9 @@ def _record(args) -> int:
 
     def on_event(event) -> None:
         events.append(event)
-        if event.kind not in ("resync", "hemisphere_flip", "stopped"):
+        started = any(e.kind == "connected" for e in events)
+        # Before the first connection a failure is raised and printed once by the command line.
+        if started and event.kind not in ("resync", "hemisphere_flip", "stopped"):
             print(f"flockcal record: {event}", file=sys.stderr)
 
     reader = TrackerReader(cfg, on_event=on_event)
