@@ -209,9 +209,12 @@ def _exercise(model: BodyModel, joints: list[int], period: float, rng: np.random
     p = _base(model, period, rng)
     slots = _disjoint_slots(model, joints)
     slot = period / max(len(slots), 1)
+    # At least ~1.5 sweeps per slot, so a routine squeezed into a short loop still turns every joint
+    # through its range (relaxed 0.35–0.6 Hz when there is time, up to 2.5 Hz when there is not).
+    lo_hz, hi_hz = min(max(0.35, 1.5 / slot), 2.0), min(max(0.6, 2.5 / slot), 2.5)
     for k, group in enumerate(slots):
         for i in group:
-            _sweep(p, i, rng, period, 0.35, 0.6)
+            _sweep(p, i, rng, period, lo_hz, hi_hz)
             p["w1"][i] = 1.0
             p["eps"][i] = 0.06
             p["slot_start"][i] = k * slot

@@ -113,7 +113,7 @@ class Performer:
         t = np.atleast_1d(np.asarray(times, dtype=float))
         with self._lock:
             state = self._faults
-        return self._slipped(t, state.slips)
+        return self._slipped(t, *self._exact(t), state.slips)
 
     def poses(self, times) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(rotations (n,m,3,3), positions (n,m,3) metres, valid (n,m)) as the tracker reports them.
@@ -122,15 +122,25 @@ class Performer:
         mirroring (if set), quantisation (if set) and dropouts are applied in that order.
         """
         t = np.atleast_1d(np.asarray(times, dtype=float))
+        n = len(t)
         with self._lock:
             state = self._faults
-            if len(t):
+            if n:
                 self._last_time = max(self._last_time, float(t.max()))
-        R, p = self._slipped(t, state.slips)
+        noisy = state.noise == "tracker" and state.noise_scale > 0
+        if noisy:
+            # One pass for the frames and their neighbours ±h: the dynamic error needs each sensor's
+            # speed, taken by central differences of the smooth motion (slips are steps, not motion).
+            h = _VELOCITY_STEP_S
+            R3, p3 = self._exact(np.concatenate([t, t - h, t + h]))
+            R, p = R3[:n], p3[:n]
+            vel = (p3[2 * n :] - p3[n : 2 * n]) * (state.unit_scale / (2 * h))
+        else:
+            R, p = self._exact(t)
+        R, p = self._slipped(t, R, p, state.slips)
         if state.unit_scale != 1.0:
             p = faults.unit_scale(p, state.unit_scale)
-        if state.noise == "tracker" and state.noise_scale > 0:
-            vel = self._velocities(t, state)
+        if noisy:
             R, p = faults.tracker_noise(R, p, t, seed=self.seed, velocities=vel, scale=state.noise_scale)
         if state.hemisphere is not None:
             p = faults.hemisphere_flips(p, state.hemisphere)
@@ -142,28 +152,19 @@ class Performer:
             valid = faults.dropouts(valid, t, state.dropout, seed=self.seed, burst_s=state.dropout_burst_s)
         return R, p, valid
 
-    def _slipped(self, t: np.ndarray, slips: tuple[SlipEvent, ...]) -> tuple[np.ndarray, np.ndarray]:
+    def _exact(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         L, root = self.motion.at(t)
         B, b = bone_poses(self.model, L, root)
-        S, s = self.model.sensor_rotation, self.model.sensor_offset
-        R = B @ S
-        p = b + np.einsum("nmij,mj->nmi", B, s)
-        S, s = S.copy(), s.copy()
+        return B @ self.model.sensor_rotation, b + np.einsum("nmij,mj->nmi", B, self.model.sensor_offset)
+
+    def _slipped(self, t, R, p, slips: tuple[SlipEvent, ...]) -> tuple[np.ndarray, np.ndarray]:
+        S = self.model.sensor_rotation.copy()
         for ev in sorted(slips, key=lambda e: e.time_s):
             i = ev.sensor
-            d_sensor = S[i].T @ ev.displacement_m
             dR = rot_z(ev.angle_rad)  # about the sensor's z axis, the skin normal
-            R, p = faults.slip(R, p, t, i, ev.time_s, d_sensor, dR)
-            s[i] = s[i] + ev.displacement_m
+            R, p = faults.slip(R, p, t, i, ev.time_s, S[i].T @ ev.displacement_m, dR)
             S[i] = S[i] @ dR
         return R, p
-
-    def _velocities(self, t: np.ndarray, state: _Faults) -> np.ndarray:
-        # Central differences of the smooth motion (slips are steps, not motion: leave them out).
-        h = _VELOCITY_STEP_S
-        _, p1 = self._slipped(t + h, ())
-        _, p0 = self._slipped(t - h, ())
-        return (p1 - p0) * (state.unit_scale / (2 * h))
 
     # -- faults injected at run time ------------------------------------------------------------
 
@@ -227,6 +228,10 @@ class Performer:
         if full_scale_in is not None:
             faults.quantise(np.eye(3)[None, None], np.zeros((1, 1, 3)), float(full_scale_in), orientation)
         self._update(quantise_in=None if full_scale_in is None else float(full_scale_in), orientation=orientation)
+
+    def set_routine(self, routine: str, period: float | None = None) -> None:
+        """Switch to another routine (same body and seed); frames asked for from now on follow it."""
+        self.motion = make_routine(self.model, routine, 60.0 if period is None else period, self.rate_hz, self.seed, period=period)
 
     def clear_faults(self) -> None:
         """Remove slips, dropouts, scale error, mirroring and quantisation (the noise setting stays)."""

@@ -49,16 +49,27 @@ def matrix_to_rotvec(R: np.ndarray) -> np.ndarray:
     return Rotation.from_matrix(flat).as_rotvec().reshape(R.shape[:-2] + (3,))
 
 
+def _elementary(a, i: int, j: int) -> np.ndarray:
+    """Rotations by angles `a` in the (i, j) coordinate plane (right-handed about the third axis)."""
+    a = np.asarray(a, dtype=float)
+    c, s = np.cos(a), np.sin(a)
+    out = np.zeros(a.shape + (3, 3))
+    out[..., 3 - i - j, 3 - i - j] = 1.0
+    out[..., i, i], out[..., j, j] = c, c
+    out[..., i, j], out[..., j, i] = -s, s
+    return out
+
+
 def rot_x(a) -> np.ndarray:
-    return axis_angle(np.array([1.0, 0.0, 0.0]), np.asarray(a, dtype=float))
+    return _elementary(a, 1, 2)
 
 
 def rot_y(a) -> np.ndarray:
-    return axis_angle(np.array([0.0, 1.0, 0.0]), np.asarray(a, dtype=float))
+    return _elementary(a, 2, 0)
 
 
 def rot_z(a) -> np.ndarray:
-    return axis_angle(np.array([0.0, 0.0, 1.0]), np.asarray(a, dtype=float))
+    return _elementary(a, 0, 1)
 
 
 def euler_zyx_to_matrix(azimuth, elevation, roll) -> np.ndarray:

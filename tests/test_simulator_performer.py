@@ -150,3 +150,12 @@ def test_simulate_returns_a_take_with_truth_for_the_chosen_birds():
 def test_bad_performer_requests_raise_a_simulator_error(call):
     with pytest.raises(SimulatorError):
         call()
+
+
+def test_set_routine_switches_what_the_performer_does_next():
+    perf = Performer(routine="exercise", seed=6, noise=None)
+    perf.set_routine("idle")
+    times = np.arange(0, 30, 0.05)
+    _, t, _ = perf.poses(times)
+    assert perf.motion.name == "idle"
+    assert np.ptp(t, axis=0).max() < 0.15  # idle: every sensor stays within a few centimetres
