@@ -1,0 +1,71 @@
+"""Driver throughput: serial bytes → decoded, assembled frames → Gram accumulator, against real time.
+
+The tracker's real-time rate is 16 birds at 144 Hz (2304 records/s); design.md §6 asks for ≥ 20× on
+one core. Run: python benchmarks/bench_driver.py [--seconds 30] [--chunk 512]
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+from flockcal.drivers import codec
+from flockcal.drivers.assembly import FrameAssembler
+from flockcal.drivers.link import FlockSetup
+from flockcal.solver.accumulator import GramAccumulator
+
+
+def stream_bytes(fmt: str, m: int, n: int, rate: float, group: bool) -> bytes:
+    t = np.arange(n)[:, None] / rate
+    ang = 0.7 * np.sin(2 * np.pi * 0.5 * t + np.arange(m))
+    R = codec.euler_to_rotation(ang, 0.5 * ang, -ang)
+    z = np.zeros((n, m))
+    p = np.stack([0.4 + 0.2 * np.sin(t + np.arange(m)), 0.2 * np.cos(t) + z, 0.1 * np.sin(2 * t) + z], -1)
+    addresses = np.tile(np.arange(1, m + 1), n) if group else None
+    return codec.encode_records(fmt, R.reshape(-1, 3, 3), p.reshape(-1, 3), addresses=addresses)
+
+
+def bench(fmt: str, m: int, rate: float, seconds: float, chunk: int) -> tuple[float, float]:
+    n = int(rate * seconds)
+    data = stream_bytes(fmt, m, n, rate, group=True)
+    setup = FlockSetup(urls=["bench"], birds=m, addresses=list(range(1, m + 1)), group=True, mode="stream",
+                       record_format=fmt, scale_inches=36.0, rate_hz=rate, hemisphere="forward", baud=115200)
+    asm = FrameAssembler(setup)
+    acc = GramAccumulator(m)
+    dt_chunk = chunk / (len(data) / seconds)
+    t0 = time.perf_counter()
+    frames = 0
+    for k, i in enumerate(range(0, len(data), chunk)):
+        asm.feed(0, k * dt_chunk, data[i:i + chunk])
+        if k % 8 == 7:  # the reader hands batches over every few reads
+            f = asm.take()
+            if len(f):
+                acc.update(f.rotations, f.positions, f.valid)
+                frames += len(f)
+    asm.flush()
+    f = asm.take()
+    acc.update(f.rotations, f.positions, f.valid)
+    frames += len(f)
+    elapsed = time.perf_counter() - t0
+    assert frames == n, (frames, n)
+    return frames * m / elapsed, elapsed
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__)
+    ap.add_argument("--seconds", type=float, default=30.0, help="seconds of tracker data to push through")
+    ap.add_argument("--chunk", type=int, default=512, help="bytes per serial read")
+    args = ap.parse_args()
+    m, rate = 16, 144.0
+    realtime = m * rate
+    print(f"real time: {m} birds at {rate:g} Hz = {realtime:.0f} records/s; target ≥ 20×")
+    for fmt in ("position_quaternion", "position_matrix", "position_angles"):
+        rps, el = bench(fmt, m, rate, args.seconds, args.chunk)
+        print(f"{fmt:22s} {rps:10.0f} records/s  {rps / realtime:6.1f}× real time  "
+              f"({args.seconds:g} s of data in {el:.2f} s, {args.chunk} B reads)")
+
+
+if __name__ == "__main__":
+    main()
