@@ -188,8 +188,12 @@ def articulation(calibration) -> Articulation:
             lacking.append(names[i])
     if lacking:
         raise ArticulationError(f"no joint given for sensor(s) {', '.join(lacking)} of the tree")
-    if not (np.isfinite(c).all() and np.isfinite(l[~rigid]).all()):
-        raise ArticulationError("joint centres hold NaN or inf")
+    bad = ~(np.isfinite(c).all(axis=1) & (np.isfinite(l).all(axis=1) | rigid))
+    if bad.any():
+        raise ArticulationError(
+            f"joint(s) of {', '.join(names[i] for i in np.flatnonzero(bad))} have no centre (null or NaN): "
+            "the take has no frames where both sensors were valid — record more, or leave those sensors out"
+        )
     return Articulation(names, parent, c, l, order, rigid if rigid.any() else None)
 
 

@@ -9,6 +9,7 @@ import base64
 import html
 import io
 import os
+import warnings
 from datetime import datetime, timezone
 from pathlib import Path
 
@@ -25,7 +26,7 @@ table{border-collapse:collapse;margin:.5em 0} td,th{padding:2px 10px;border-bott
 th{background:#f4f4f4} td.name,th.name{text-align:left} .meta{color:#666}
 .bar{display:inline-block;height:10px;background:#3a7;vertical-align:middle}
 .barbox{display:inline-block;width:60px;background:#eee;margin-right:4px}
-img{max-width:100%;border:1px solid #ddd} ul.tree{list-style:none;padding-left:1.2em} .warn{color:#b40}
+img{max-width:100%;border:1px solid #ddd} ul.tree{list-style:none;padding-left:1.2em}
 """
 
 
@@ -138,8 +139,9 @@ def _fmt(x, scale=1.0, digits=1) -> str:
 
 def _tree_html(art: Articulation, rms_by_child: dict[str, float]) -> str:
     def node(i: int) -> str:
-        name = html.escape(art.names[i])
-        label = name if art.parent[i] < 0 else f"{name} <span class=meta>(joint rms {_fmt(rms_by_child.get(art.names[i]), 1000, 2)} mm)</span>"
+        label = html.escape(art.names[i])
+        if art.parent[i] >= 0:
+            label += f" <span class=meta>(joint rms {_fmt(rms_by_child.get(art.names[i]), 1000, 2)} mm)</span>"
         kids = "".join(node(k) for k in art.children(i))
         return f"<li>{label}{f'<ul class=tree>{kids}</ul>' if kids else ''}</li>"
 
@@ -149,10 +151,29 @@ def _tree_html(art: Articulation, rms_by_child: dict[str, float]) -> str:
 def _bars(cov) -> str:
     if cov is None:
         return "–"
-    return "".join(
-        f'<span class=barbox title="{float(v):.2f}"><span class=bar style="width:{60 * min(max(float(v), 0), 1):.0f}px"></span></span>'
-        for v in cov
+    vals = [float(v) if v is not None else float("nan") for v in cov]
+    bars = "".join(
+        f'<span class=barbox title="{v:.3f}"><span class=bar style="width:{60 * min(max(v, 0), 1):.0f}px"></span></span>'
+        for v in np.nan_to_num(vals)
     )
+    return bars + " ".join(_fmt(v, 1, 2) for v in vals)
+
+
+class Text(str):
+    """A table cell of plain text, escaped and left-aligned (numbers are right-aligned, HTML kept)."""
+
+
+def _table(headers: list[str], rows: list[list]) -> str:
+    """An HTML table; a header starting with "<" or a `Text` cell is a left-aligned name column."""
+
+    def cell(tag: str, value) -> str:
+        if isinstance(value, Text):
+            return f"<{tag} class=name>{html.escape(value)}</{tag}>"
+        return f"<{tag}>{value}</{tag}>"
+
+    head = "".join(f"<th class=name>{h[1:]}</th>" if h.startswith("<") else f"<th>{h}</th>" for h in headers)
+    body = "".join("<tr>" + "".join(cell("td", v) for v in row) + "</tr>" for row in rows)
+    return f"<table><tr>{head}</tr>{body}</table>"
 
 
 def _find_slips(take, d: dict) -> list[dict]:
@@ -166,6 +187,15 @@ def _find_slips(take, d: dict) -> list[dict]:
     return [e.to_dict() if hasattr(e, "to_dict") else dict(e) for e in detect_slips(take, d)]
 
 
+def _longest_gap_s(valid: np.ndarray, rate_hz: float) -> np.ndarray:
+    """(m,) longest run of invalid frames per sensor, in seconds."""
+    out = []
+    for v in valid.T:  # one pass per sensor (m ≤ 16), vectorised over frames
+        gaps = np.diff(np.flatnonzero(np.concatenate([[True], v, [True]]))) - 1
+        out.append(gaps.max() if len(gaps) else 0)
+    return np.asarray(out, dtype=float) / rate_hz
+
+
 def report_html(
     calibration, take, *, title: str | None = None, source: str | None = None, slips=None, up: str = "-z"
 ) -> str:
@@ -175,6 +205,7 @@ def report_html(
 
     matplotlib.use("Agg")
     from flockcal.exports.bvh import bvh_world
+    from flockcal.solver.known_skeleton import bones as bones_of
 
     d = calibration.to_dict() if hasattr(calibration, "to_dict") else dict(calibration)
     art = articulation(d).reordered(take.names).completed(take.rotations, take.positions, take.valid)
@@ -184,10 +215,14 @@ def report_html(
     rec = reconstruct(take.rotations, take.positions, art, take.valid)
     joints = [int(j) for j in art.order[1:]]
     by_child = {j["child"]: j for j in d.get("joints", [])}
-    rms_by_child = {names[j]: float(np.sqrt(np.nanmean(sep[:, j] ** 2))) for j in joints}
+    with np.errstate(invalid="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a joint with no valid frame has no rms: shown as –
+        rms = np.sqrt(np.nanmean(sep**2, axis=0))
+        worst = np.nanmax(sep, axis=0)
     slips = _find_slips(take, d) if slips is None else list(slips)
     duration = float(take.times[-1] - take.times[0]) if take.n_frames > 1 else 0.0
     title = title or f"flockcal calibration report{f' — {source}' if source else ''}"
+    made = datetime.now(timezone.utc).isoformat(timespec="seconds")
 
     parts = [
         "<!doctype html><html lang=en><head><meta charset=utf-8>",
@@ -195,75 +230,65 @@ def report_html(
         f"<h1>{html.escape(title)}</h1>",
         f"<p class=meta>{take.n_frames} frames, {duration:.1f} s at {take.rate_hz:g} Hz, {len(names)} sensors; "
         f"root {html.escape(names[art.root])}; {100 * float(take.valid.mean()):.1f}% of sensor-frames valid; "
-        f"made {datetime.now(timezone.utc).isoformat(timespec='seconds')}</p>",
+        f"made {made}</p>",
         "<h2>Skeleton</h2>",
         _img(skeleton_figure(rec, _pose_frame(take.valid), bvh_world(up)), "skeleton drawing"),
         "<h2>Topology</h2>",
-        _tree_html(art, rms_by_child),
+        _tree_html(art, {names[j]: rms[j] for j in joints}),
     ]
     loops = d.get("loop_candidates") or []
     if loops:
-        parts.append("<p>Loop candidates (non-tree pairs that fit as well as tree joints):</p><table><tr><th class=name>a</th><th class=name>b</th><th>rms (mm)</th></tr>")
-        parts += [f"<tr><td class=name>{html.escape(x['a'])}</td><td class=name>{html.escape(x['b'])}</td><td>{_fmt(x.get('rms_m'), 1000, 2)}</td></tr>" for x in loops]
-        parts.append("</table>")
+        parts.append("<p>Loop candidates (non-tree pairs that fit as well as tree joints):</p>")
+        parts.append(_table(["<a", "<b", "rms (mm)"], [[Text(x["a"]), Text(x["b"]), _fmt(x.get("rms_m"), 1000, 2)] for x in loops]))
 
-    parts.append("<h2>Bones</h2><table><tr><th class=name>body</th><th class=name>from joint</th><th class=name>to joint</th><th>length (cm)</th><th>std err (mm)</th></tr>")
-    from flockcal.solver.known_skeleton import bones as bones_of
+    parts.append("<h2>Bones</h2>")
+    bone_rows = [
+        [Text(b["body"]), Text(str(b.get("from_joint"))), Text(b["to_joint"]),
+         _fmt(b.get("length_m"), 100, 2), _fmt(b.get("stderr_m"), 1000, 2)]
+        for b in d.get("bones") or bones_of(art)
+    ]  # fmt: skip
+    parts.append(_table(["<body", "<from joint", "<to joint", "length (cm)", "std err (mm)"], bone_rows))
 
-    for b in d.get("bones") or bones_of(art):
-        parts.append(
-            f"<tr><td class=name>{html.escape(str(b['body']))}</td><td class=name>{html.escape(str(b.get('from_joint')))}</td>"
-            f"<td class=name>{html.escape(str(b['to_joint']))}</td><td>{_fmt(b.get('length_m'), 100, 2)}</td><td>{_fmt(b.get('stderr_m'), 1000, 2)}</td></tr>"
-        )
-    parts.append("</table>")
-
-    parts.append(
-        "<h2>Joints and sensor placement</h2><table><tr><th class=name>joint (child)</th><th class=name>parent</th>"
-        "<th>rms (mm)</th><th>max (mm)</th><th>ε (mm)</th><th>sensor→joint (cm)</th><th>c std err (mm)</th>"
-        "<th class=name>hinge</th><th class=name>coverage (3 axes)</th></tr>"
-    )
+    parts.append("<h2>Joints and sensor placement</h2>")
+    joint_rows = []
     for j in joints:
         info = by_child.get(names[j], {})
-        s = sep[:, j]
-        worst = float(np.nanmax(s)) if np.isfinite(s).any() else float("nan")
-        hinge = "yes" if info.get("hinge") else "no"
-        parts.append(
-            f"<tr><td class=name>{html.escape(names[j])}</td><td class=name>{html.escape(names[art.parent[j]])}</td>"
-            f"<td>{_fmt(rms_by_child[names[j]], 1000, 2)}</td><td>{_fmt(worst, 1000, 2)}</td>"
-            f"<td>{_fmt(info.get('epsilon'), 1000, 4)}</td><td>{_fmt(float(np.linalg.norm(art.c[j])), 100, 2)}</td>"
-            f"<td>{_fmt(info.get('c_stderr_m'), 1000, 2)}</td><td class=name>{hinge}</td>"
-            f"<td class=name>{_bars(info.get('coverage'))}</td></tr>"
-        )
-    parts.append("</table><p class=meta>Coverage: 1 − σ of the mean relative rotation about each principal axis; "
-                 "an empty bar means that joint was never turned about that axis, so move it more.</p>")
+        joint_rows.append([
+            Text(names[j]), Text(names[art.parent[j]]), _fmt(rms[j], 1000, 2), _fmt(worst[j], 1000, 2),
+            _fmt(info.get("epsilon"), 1000, 4), _fmt(float(np.linalg.norm(art.c[j])), 100, 2),
+            _fmt(info.get("c_stderr_m"), 1000, 2), Text("yes" if info.get("hinge") else "no"), _bars(info.get("coverage")),
+        ])  # fmt: skip
+    headers = ["<joint (child)", "<parent", "rms (mm)", "max (mm)", "ε (mm)", "sensor→joint (cm)",
+               "c std err (mm)", "<hinge", "<coverage (3 axes)"]  # fmt: skip
+    parts.append(_table(headers, joint_rows))
+    parts.append(
+        "<p class=meta>Coverage: 1 − σ of the mean relative rotation about each principal axis; an empty bar "
+        "means that joint was never turned about that axis, so move it more.</p>"
+    )
 
     if joints:
         parts += [
-            "<h2>Residuals over time</h2><p class=meta>e = R<sub>child</sub> c + t<sub>child</sub> − R<sub>parent</sub> l − t<sub>parent</sub>, world axes (paper figs 6–7).</p>",
+            "<h2>Residuals over time</h2><p class=meta>e = R<sub>child</sub> c + t<sub>child</sub> − "
+            "R<sub>parent</sub> l − t<sub>parent</sub>, world axes (paper figs 6–7).</p>",
             _img(residual_time_figure(take.times, e, joints, names), "residuals over time"),
             "<h2>Residual magnitude histograms</h2><p class=meta>Paper fig 8.</p>",
             _img(residual_histogram_figure(sep, joints, names), "residual histograms"),
         ]
 
-    parts.append("<h2>Coverage of the data</h2><table><tr><th class=name>sensor</th><th>valid frames</th><th>longest gap (s)</th></tr>")
-    for i, name in enumerate(names):
-        v = take.valid[:, i]
-        gaps = np.diff(np.flatnonzero(np.concatenate([[True], v, [True]]))) - 1
-        gap_s = (gaps.max() if len(gaps) else 0) / take.rate_hz
-        parts.append(f"<tr><td class=name>{html.escape(name)}</td><td>{100 * v.mean():.1f}%</td><td>{gap_s:.2f}</td></tr>")
-    parts.append("</table>")
+    parts.append("<h2>Coverage of the data</h2>")
+    gaps = _longest_gap_s(take.valid, take.rate_hz)
+    cover_rows = [[Text(n), f"{100 * take.valid[:, i].mean():.1f}%", f"{gaps[i]:.2f}"] for i, n in enumerate(names)]
+    parts.append(_table(["<sensor", "valid frames", "longest gap (s)"], cover_rows))
 
     parts.append("<h2>Slip events</h2>")
     if slips:
-        parts.append("<table><tr><th>time (s)</th><th class=name>kind</th><th class=name>sensor</th><th class=name>joints</th><th>jump (mm)</th></tr>")
-        for s in slips:
-            who = " ↔ ".join(map(str, s["sensors"])) if s.get("sensors") else str(s.get("sensor"))
-            parts.append(
-                f"<tr><td>{_fmt(s.get('time_s'), 1, 2)}</td><td class=name>{html.escape(str(s.get('kind', 'slip')))}</td>"
-                f'<td class="name warn">{html.escape(who)}</td>'
-                f"<td class=name>{html.escape(', '.join(map(str, s.get('joints', []))))}</td><td>{_fmt(s.get('jump_mm'), 1, 1)}</td></tr>"
-            )
-        parts.append("</table>")
+        slip_rows = [
+            [_fmt(s.get("time_s"), 1, 2), Text(str(s.get("kind", "slip"))),
+             Text(" ↔ ".join(map(str, s["sensors"])) if s.get("sensors") else str(s.get("sensor"))),
+             Text(", ".join(map(str, s.get("joints", [])))), _fmt(s.get("jump_mm"), 1, 1)]
+            for s in slips
+        ]  # fmt: skip
+        parts.append(_table(["time (s)", "<kind", "<sensor", "<joints", "jump (mm)"], slip_rows))
     else:
         parts.append("<p>None detected.</p>")
     parts.append("</body></html>\n")
