@@ -197,11 +197,11 @@ def articulation(calibration) -> Articulation:
     return Articulation(names, parent, c, l, order, rigid if rigid.any() else None)
 
 
-def held_poses(rotations: np.ndarray, positions: np.ndarray, valid: np.ndarray | None = None):
+def held_poses(rotations: np.ndarray, positions: np.ndarray, valid: np.ndarray | None = None, missing: str = "raise"):
     """Rotations and positions with every invalid sensor-frame replaced by that sensor's last valid one.
 
-    Frames before a sensor's first valid record take its first valid one. Raises ArticulationError for
-    a sensor that is never valid (nothing to hold).
+    Frames before a sensor's first valid record take its first valid one. A sensor that is never valid
+    has nothing to hold: ArticulationError, or NaN throughout with `missing="nan"` (a live single frame).
     """
     R = np.asarray(rotations, dtype=float)
     t = np.asarray(positions, dtype=float)
@@ -212,14 +212,18 @@ def held_poses(rotations: np.ndarray, positions: np.ndarray, valid: np.ndarray |
         return R, t
     n, m = valid.shape
     never = np.flatnonzero(~valid.any(axis=0))
-    if len(never):
+    if len(never) and missing != "nan":
         raise ArticulationError(f"sensor index(es) {never.tolist()} never gave a valid record; nothing to play back")
     frame = np.arange(n)[:, None]
     last = np.maximum.accumulate(np.where(valid, frame, -1), axis=0)
     first = valid.argmax(axis=0)
     source = np.where(last < 0, first[None, :], last)  # (n, m) frame index to read from
     cols = np.broadcast_to(np.arange(m), (n, m))
-    return R[source, cols], t[source, cols]
+    R, t = R[source, cols], t[source, cols]
+    if len(never):
+        R[:, never] = np.nan
+        t[:, never] = np.nan
+    return R, t
 
 
 def tree_residuals(rotations, positions, art: Articulation, valid=None) -> np.ndarray:
@@ -260,15 +264,17 @@ class Reconstruction:
         return joint_separation(self.rotations, self.sensor_positions, self.articulation)
 
 
-def reconstruct(rotations, positions, art: Articulation, valid=None) -> Reconstruction:
+def reconstruct(rotations, positions, art: Articulation, valid=None, missing: str = "raise") -> Reconstruction:
     """Drive `art` by the take's rotations and its root sensor's translation (paper §3.4).
 
     Each body's sensor is placed so its inboard joint coincides with the parent's copy of that joint:
     t'_j = R_p l_j + t'_p − R_j c_j, walking the tree from the root (one vectorised step per body).
+    A sensor with no valid frame at all raises ArticulationError, or with `missing="nan"` leaves NaN in
+    its subtree (for a live single frame where a bird dropped out).
     """
     if art.incomplete.any():
         art = art.completed(rotations, positions, valid)
-    R, t = held_poses(rotations, positions, valid)
+    R, t = held_poses(rotations, positions, valid, missing)
     if R.ndim != 4 or R.shape[1] != art.n_bodies:
         raise ArticulationError(f"take has {R.shape[1] if R.ndim == 4 else '?'} sensors, the model {art.n_bodies}")
     sensor = np.empty_like(t)

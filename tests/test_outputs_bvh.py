@@ -219,3 +219,14 @@ def test_rigidly_attached_sensor_rides_on_its_parent_in_the_bvh(tmp_path):
     np.testing.assert_allclose(fk["sensor_b"] / 100.0 @ bvh_world("-z"), rec.joint_positions[:, 1], atol=1e-6)
     # Its pivot is its own sensor, placed from the pair's mean offset: within tracker noise of the data.
     assert np.median(np.linalg.norm(rec.sensor_positions[:, 1] - take.positions[:, 1], axis=1)) < 0.01
+
+
+def test_sensor_never_valid_is_refused_for_export_and_nan_for_a_live_frame():
+    take, art, _ = chain_take()
+    valid = take.valid.copy()
+    valid[:, 3] = False  # Tried: the "l arm" sensor never gave a record in the whole take.
+    with pytest.raises(ArticulationError, match="never gave a valid record"):
+        reconstruct(take.rotations, take.positions, art, valid)
+    rec = reconstruct(take.rotations[:1], take.positions[:1], art, valid[:1], missing="nan")
+    lost = np.isnan(rec.joint_positions[0]).any(axis=1)
+    assert lost.tolist() == [False, False, False, True, True, False]  # "l arm" and its child "l fore"
