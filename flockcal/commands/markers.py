@@ -1,0 +1,71 @@
+"""`flockcal fit-markers take.c3d|take.npz`: a skeleton from optical markers alone (Kirk et al. 2005).
+
+Prints a table, or with --json the object of `flockcal fit --json` (design.md §5) plus "bodies"
+{label: [marker names]}; --take writes the derived per-body poses as a take .npz for `flockcal fit`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+
+from flockcal.errors import UserError
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "fit-markers",
+        help="find rigid bodies, joints, bones and the tree from optical marker positions",
+        description="Fit a skeleton to optical marker trajectories (.c3d or the marker .npz of design.md §5).",
+    )
+    p.add_argument("file", metavar="TAKE", help="marker take: .c3d or .npz (markers, marker_names, rate_hz)")
+    p.add_argument("--json", action="store_true", help="print the JSON object (fit --json shape plus 'bodies')")
+    p.add_argument("--bodies", type=int, metavar="N", help="number of rigid bodies (default: chosen from the data)")
+    p.add_argument("--root", metavar="LABEL", help="hang the tree from this body label")
+    p.add_argument("--take", metavar="OUT.npz", help="also write the per-body poses as a take .npz (for fit, exports)")
+    p.set_defaults(func=run)
+
+
+def _clean(x):
+    """JSON has no NaN: a number that could not be estimated is written as null."""
+    if isinstance(x, float) and not math.isfinite(x):
+        return None
+    if isinstance(x, dict):
+        return {k: _clean(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_clean(v) for v in x]
+    return x
+
+
+def run(args) -> int:
+    from flockcal.markers import load_markers
+    from flockcal.solver.optical.pipeline import fit_markers
+
+    if args.bodies is not None and args.bodies < 2:
+        raise UserError(f"--bodies must be 2 or more, got {args.bodies}")
+    take = load_markers(args.file)
+    fit = fit_markers(take.markers, take.marker_names, take.rate_hz, take.times, n_groups=args.bodies, root=args.root)
+    out = _clean(fit.to_dict())
+    if args.take:
+        from flockcal.takes import save_take
+
+        save_take(args.take, fit.take())
+    if args.json:
+        json.dump(out, sys.stdout)
+        sys.stdout.write("\n")
+        return 0
+    w = sys.stdout.write
+    w(f"{take.source}: {take.n_markers} markers, {take.n_frames} frames at {take.rate_hz:g} Hz\n")
+    w(f"bodies ({len(out['bodies'])}), root {out['root']}:\n")
+    for label, names in out["bodies"].items():
+        parent = out["parent"].get(label, "-")
+        w(f"  {label:<16} parent {parent:<16} markers {', '.join(names)}\n")
+    w("bones:\n")
+    for b in out["bones"]:
+        w(f"  {b['body']:<16} {str(b['from_joint']):>16} → {b['to_joint']:<16} {b['length_m'] * 1000:8.1f} mm\n")
+    for e in out["swap_events"]:
+        w(f"marker swap {e['time_s']:.2f}–{e['stop_s']:.2f} s: {e['markers'][0]} ↔ {e['markers'][1]}\n")
+    if out["unused_markers"]:
+        w(f"left out (seen too rarely): {', '.join(out['unused_markers'])}\n")
+    return 0

@@ -1,0 +1,66 @@
+"""The Kirk joint-point problem, its solver, and the MST topology over pair residuals."""
+
+import numpy as np
+from scipy.optimize import least_squares
+
+from flockcal.simulator import optical as so
+from flockcal.simulator.body import bone_poses
+from flockcal.solver.optical.joints import joint_point, spanning_tree
+
+
+def rod_pair(noise=0.0, seed=0, per_body=(3, 3), seconds=6):
+    model = so.rods((0.4, 0.5), seed=seed)
+    L, root_t, times = so.rod_motion(model, seconds, 60, seed)
+    take, truth = so.simulate_markers(model, (L, root_t, times), per_body=per_body, noise_m=noise, seed=seed)
+    B, b = bone_poses(model, L, root_t)
+    body = np.array([0 if truth["marker_body"][m] == "rod0" else 1 for m in take.marker_names])
+    return take.markers, body, b[:, 1]  # joint 1 sits at rod1's bone origin
+
+
+def test_joint_point_on_exact_data_is_the_true_joint_centre():
+    M, body, joint = rod_pair()
+    fit = joint_point(M[:, body == 0], M[:, body == 1], penalty=0.0)
+    assert fit.rms < 1e-7
+    assert np.nanmax(np.linalg.norm(fit.points - joint, axis=1)) < 1e-5
+
+
+def test_joint_point_minimises_the_same_cost_as_scipy_least_squares():
+    M, body, _ = rod_pair(noise=0.002, seed=1, per_body=(2, 2), seconds=1)
+    lam = 1e-5
+    fit = joint_point(M[:, body == 0], M[:, body == 1], penalty=lam)
+    use = fit.frames
+    Mu = np.concatenate([M[:, body == 0], M[:, body == 1]], axis=1)[use]
+    F = len(use)
+
+    def fun(x):
+        p, r = x[: 3 * F].reshape(F, 3), x[3 * F :]
+        return np.concatenate([(np.linalg.norm(Mu - p[:, None], axis=-1) - r).ravel(), np.sqrt(lam * F) * r])
+
+    ours = np.concatenate([fit.points[use].ravel(), fit.radii])
+    ref = least_squares(fun, ours + 0.003, method="lm")
+    assert (fun(ours) ** 2).sum() <= 2 * ref.cost * (1 + 1e-4)
+
+
+def test_joint_point_at_one_mm_noise_stays_within_a_few_mm():
+    M, body, joint = rod_pair(noise=0.001, seed=2)
+    fit = joint_point(M[:, body == 0], M[:, body == 1], penalty=0.0)
+    err = np.linalg.norm(fit.points - joint, axis=1)
+    assert np.nanmedian(err) < 0.004
+
+
+def test_spanning_tree_keeps_edges_whose_residual_is_exactly_zero():
+    # exact data give zero residuals, which csgraph would read as "no edge"
+    cost = np.array([[np.inf, 0.0, 0.3, 0.4], [0.0, np.inf, 0.0, 0.5], [0.3, 0.0, np.inf, 0.0], [0.4, 0.5, 0.0, np.inf]])
+    tree = spanning_tree(cost, root=0)
+    assert tree.parent.tolist() == [-1, 0, 1, 2]
+    assert tree.order == [0, 1, 2, 3]
+
+
+def test_default_root_splits_the_tree_most_evenly():
+    # a chain of five: the middle body is the root
+    G = 5
+    cost = np.full((G, G), 1.0)
+    for i in range(G - 1):
+        cost[i, i + 1] = cost[i + 1, i] = 0.001
+    np.fill_diagonal(cost, np.inf)
+    assert spanning_tree(cost).root == 2
