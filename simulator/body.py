@@ -238,7 +238,7 @@ _HINGE_LIMITS = {"forearm": (0.05, 2.4), "shin": (-2.3, -0.05)}
 _HINGE_REST = {"forearm": 0.25, "shin": -0.12}
 
 
-def _segment(name: str) -> str:
+def segment(name: str) -> str:
     return name[2:] if name[:2] in ("l_", "r_") else name
 
 
@@ -272,7 +272,7 @@ def human(height: float = 1.75, seed: int = 0, variation: float = 0.05, n_bodies
     parent = np.array([idx[HUMAN_PARENTS[n]] if n in HUMAN_PARENTS else -1 for n in names])
     off = np.zeros((m, 3))
     for n in names:
-        seg, y = _segment(n), (-1.0 if n.startswith("l_") else 1.0)
+        seg, y = segment(n), (-1.0 if n.startswith("l_") else 1.0)
         i = idx[n]
         if n == "abdomen":
             off[i] = np.array([-0.015, 0.0, -0.045]) * H * f["trunk"]
@@ -300,7 +300,7 @@ def human(height: float = 1.75, seed: int = 0, variation: float = 0.05, n_bodies
     bone_dir = np.tile([0.0, 0.0, 1.0], (m, 1))
     jitter = variation / 0.05
     for n in names:
-        i, seg, y = idx[n], _segment(n), (-1.0 if n.startswith("l_") else 1.0)
+        i, seg, y = idx[n], segment(n), (-1.0 if n.startswith("l_") else 1.0)
         spin = 0.25 * jitter * rng.normal()
         slide = 0.08 * jitter * rng.normal()
         if n == "pelvis":
@@ -342,7 +342,7 @@ def human(height: float = 1.75, seed: int = 0, variation: float = 0.05, n_bodies
 
     jt, hinge_axis, limits, rest = [], np.zeros((m, 3)), np.zeros((m, 3, 2)), np.zeros((m, 3))
     for n in names:
-        i, seg = idx[n], _segment(n)
+        i, seg = idx[n], segment(n)
         if parent[i] < 0:
             jt.append("root")
         elif seg in _HINGE_LIMITS:

@@ -12,7 +12,7 @@ from functools import cached_property
 
 import numpy as np
 
-from flockcal.simulator.body import BodyModel, SimulatorError, _segment
+from flockcal.simulator.body import BodyModel, SimulatorError, segment
 from flockcal.simulator.rotations import axis_angle, rot_z, rotvec_to_matrix
 
 ROUTINES = ("exercise", "walk", "kiosk", "idle")
@@ -253,7 +253,7 @@ def _walk(model: BodyModel, joints: list[int], period: float, rng: np.random.Gen
     stride_hz = rng.uniform(0.8, 0.95)
     stride = _cycles(stride_hz, period)
     for i in joints:
-        name, seg = model.names[i], _segment(model.names[i])
+        name, seg = model.names[i], segment(model.names[i])
         side = np.pi if name.startswith("r_") else 0.0
         a = rng.dirichlet([4.0, 1.5, 1.5], size=3) * 0.97  # stride, double-stride, wander
         p["fast_a"][i] = a
@@ -287,7 +287,7 @@ def _kiosk(model: BodyModel, joints: list[int], period: float, rng: np.random.Ge
     if model.kind == "human":
         groups = []
         for g in _KIOSK_GROUPS:
-            groups.append([i for i in joints if _segment(model.names[i]) in g or model.names[i] in g])
+            groups.append([i for i in joints if segment(model.names[i]) in g or model.names[i] in g])
     else:
         groups = [list(c) for c in np.array_split(joints, min(5, len(joints)))]
     groups = [g for g in groups if g]

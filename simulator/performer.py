@@ -277,16 +277,3 @@ class Performer:
         out["period_s"] = self.motion.period
         out["seed"] = self.seed
         return out
-
-
-def axis_slip_direction(model: BodyModel, sensor: int) -> np.ndarray:
-    """The bone's long axis at a sensor (a slip straight down the limb), in the bone frame."""
-    kids = model.children(sensor)
-    if kids:
-        d = model.joint_offset[kids[0]]
-    else:
-        d = model.sensor_offset[sensor]
-    return d / np.linalg.norm(d)
-
-
-__all__ = ["Performer", "SlipEvent", "axis_slip_direction"]
