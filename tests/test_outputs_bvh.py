@@ -100,11 +100,11 @@ def bvh_forward_kinematics(mocap: Bvh) -> dict[str, np.ndarray]:
     return out
 
 
-@pytest.mark.parametrize("up", ["-z", "+z", "+y"])
-def test_bvh_round_trip_through_independent_parser_reproduces_reconstruction(tmp_path, up):
+@pytest.mark.parametrize("up, rest", [("-z", "first"), ("+z", "sensor"), ("+y", 17)])
+def test_bvh_round_trip_through_independent_parser_reproduces_reconstruction(tmp_path, up, rest):
     take, _, cal = chain_take()
     path = tmp_path / "take.bvh"
-    write_bvh(path, cal, take, up=up)
+    write_bvh(path, cal, take, up=up, rest=rest)
     mocap = Bvh(path.read_text())
     assert mocap.nframes == take.n_frames
     assert mocap.frame_time == pytest.approx(1 / 120.0, rel=1e-6)
@@ -114,6 +114,17 @@ def test_bvh_round_trip_through_independent_parser_reproduces_reconstruction(tmp
     for i, name in enumerate(take.names):
         got = fk[name.replace(" ", "_")] / 100.0 @ W  # file is centimetres in the Y-up frame
         np.testing.assert_allclose(got, rec.joint_positions[:, i], atol=1e-6, rtol=0)
+
+
+def test_bvh_rest_pose_is_the_chosen_frame(tmp_path):
+    take, _, cal = chain_take()
+    path = tmp_path / "take.bvh"
+    write_bvh(path, cal, take, rest=17)
+    mocap = Bvh(path.read_text())
+    frames = np.array(mocap.frames, dtype=float)
+    # Every joint's rotation channels are zero at the rest frame: the file's rest pose is that pose.
+    np.testing.assert_allclose(frames[17, 3:], 0.0, atol=1e-6)
+    assert np.abs(frames[0, 3:]).max() > 1.0
 
 
 def test_reconstructed_joints_never_separate_while_raw_separation_equals_residual():

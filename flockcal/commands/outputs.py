@@ -142,7 +142,8 @@ def cmd_export_bvh(args) -> int:
 
     take = load_scaled_take(args.take, args.scale)
     cal = fit_take(take, args.hierarchy, args.root, args.skeleton)
-    write_bvh(args.output, cal, take, units=args.units, up=args.up)
+    rest = int(args.rest) if args.rest.isdigit() else args.rest
+    write_bvh(args.output, cal, take, units=args.units, up=args.up, rest=rest)
     print(f"wrote {args.output}", file=sys.stderr)
     return 0
 
@@ -188,6 +189,8 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", required=True, metavar="OUT.bvh")
     p.add_argument("--units", default="cm", choices=["cm", "m", "mm", "in"], help="file units (default cm)")
     p.add_argument("--up", default="-z", choices=["-z", "+z", "+y"], help="tracker world's up axis (default -z, the Flock's)")
+    p.add_argument("--rest", default="first", metavar="first|sensor|FRAME",
+                   help="the file's rest pose: the take's first frame (default), a frame number, or raw sensor axes")
     p.set_defaults(func=cmd_export_bvh)
 
     p = subparsers.add_parser("skeleton", help="save the performer's calibrated skeleton for their next take")

@@ -1,7 +1,8 @@
 """BVH export of a take played back through its calibration (Blender, MotionBuilder, Maya import it).
 
-Each body's BVH frame is its sensor frame, pivoting at its inboard joint; the root pivots at its sensor
-and carries the position channels. Centimetres in the file, SI everywhere else; Y is up in the file.
+Each body pivots at its inboard joint (the root at its sensor, with the position channels); its BVH
+axes are its sensor axes turned so the rest pose is the take's first frame. Centimetres and Y-up in
+the file, SI everywhere else.
 """
 
 from __future__ import annotations
@@ -15,7 +16,12 @@ from pathlib import Path
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from flockcal.errors import FlockcalError
 from flockcal.solver.reconstruct import Articulation, Reconstruction, articulation, reconstruct
+
+class BvhError(FlockcalError, ValueError):
+    """An export option that makes no sense (unknown units, up axis or rest frame)."""
+
 
 UNITS_PER_METRE = {"cm": 100.0, "m": 1.0, "mm": 1000.0, "in": 100.0 / 2.54}
 
@@ -37,7 +43,7 @@ def bvh_world(up: str) -> np.ndarray:
     try:
         return UP_AXES[up]
     except KeyError:
-        raise ValueError(f"up must be one of {', '.join(UP_AXES)}, got {up!r}") from None
+        raise BvhError(f"up must be one of {', '.join(UP_AXES)}, got {up!r}") from None
 
 
 def bvh_names(names) -> list[str]:
@@ -75,10 +81,32 @@ def depth_first(art: Articulation) -> list[int]:
     return out
 
 
-def motion_channels(rec: Reconstruction, world: np.ndarray, scale: float) -> np.ndarray:
-    """(n, 3 + 3m) MOTION rows in hierarchy order: root position, then Z X Y angles of every body."""
+def rest_frames(rec: Reconstruction, world: np.ndarray, rest: str | int) -> np.ndarray:
+    """(m, 3, 3) A_j: each body's BVH frame in its sensor frame's terms, so BVH frame = R_j A_jᵀ.
+
+    rest="sensor": A = I, every BVH frame is its sensor frame (the rest pose is all sensors aligned,
+    which looks tangled). rest="first" (or a frame index): A_j = W R_j(k0), so the file's rest pose is
+    the performer's pose at that frame, upright in the Y-up file, which is what animators expect.
+    """
+    m = rec.articulation.n_bodies
+    if rest == "sensor":
+        return np.broadcast_to(np.eye(3), (m, 3, 3)).copy()
+    if rest == "first":
+        k0 = 0
+    elif isinstance(rest, (int, np.integer)) and 0 <= int(rest) < len(rec.rotations):
+        k0 = int(rest)
+    else:
+        raise BvhError(f"rest must be 'first', 'sensor' or a frame index in 0..{len(rec.rotations) - 1}, got {rest!r}")
+    return world @ rec.rotations[k0]  # held rotations: defined at every frame
+
+
+def motion_channels(rec: Reconstruction, world: np.ndarray, scale: float, A: np.ndarray) -> np.ndarray:
+    """(n, 3 + 3m) MOTION rows in hierarchy order: root position, then Z X Y angles of every body.
+
+    Local rotation of child j under p: A_p R_pᵀ R_j A_jᵀ; of the root: W R_root A_rootᵀ.
+    """
     art = rec.articulation
-    R = rec.rotations
+    R = rec.rotations @ np.swapaxes(A, -1, -2)[None]  # BVH frames in the tracker world, (n, m, 3, 3)
     local = np.empty_like(R)
     root = art.root
     local[:, root] = world @ R[:, root]
@@ -89,9 +117,10 @@ def motion_channels(rec: Reconstruction, world: np.ndarray, scale: float) -> np.
     return np.concatenate([position, angles.reshape(len(R), -1)], axis=1)
 
 
-def hierarchy_text(art: Articulation, scale: float, names: list[str] | None = None) -> str:
-    """The HIERARCHY section: offsets from the fit (l_j − c_parent), End Sites at leaf sensors."""
+def hierarchy_text(art: Articulation, scale: float, A: np.ndarray | None = None, names: list[str] | None = None) -> str:
+    """The HIERARCHY section: offsets from the fit (A_p (l_j − c_p)), End Sites at leaf sensors."""
     names = names or bvh_names(art.names)
+    A = np.broadcast_to(np.eye(3), (art.n_bodies, 3, 3)) if A is None else A
     origin = art.origin()
     lines = ["HIERARCHY"]
 
@@ -106,9 +135,10 @@ def hierarchy_text(art: Articulation, scale: float, names: list[str] | None = No
             lines.append(f"{pad}  OFFSET 0.000000 0.000000 0.000000")
             lines.append(f"{pad}  CHANNELS 6 Xposition Yposition Zposition {' '.join(ROTATION_CHANNELS)}")
         else:
+            p = art.parent[i]
             lines.append(f"{pad}JOINT {names[i]}")
             lines.append(f"{pad}{{")
-            lines.append(f"{pad}  OFFSET {f(art.l[i] - origin[art.parent[i]])}")
+            lines.append(f"{pad}  OFFSET {f(A[p] @ (art.l[i] - origin[p]))}")
             lines.append(f"{pad}  CHANNELS 3 {' '.join(ROTATION_CHANNELS)}")
         kids = art.children(i)
         for j in kids:
@@ -117,7 +147,7 @@ def hierarchy_text(art: Articulation, scale: float, names: list[str] | None = No
             # A leaf ends at its sensor, the one point of it the data pins down besides its joint.
             lines.append(f"{pad}  End Site")
             lines.append(f"{pad}  {{")
-            lines.append(f"{pad}    OFFSET {f(-origin[i])}")
+            lines.append(f"{pad}    OFFSET {f(A[i] @ -origin[i])}")
             lines.append(f"{pad}  }}")
         lines.append(f"{pad}}}")
 
@@ -125,20 +155,22 @@ def hierarchy_text(art: Articulation, scale: float, names: list[str] | None = No
     return "\n".join(lines) + "\n"
 
 
-def bvh_text(calibration, take, *, units: str = "cm", up: str = "-z") -> str:
+def bvh_text(calibration, take, *, units: str = "cm", up: str = "-z", rest: str | int = "first") -> str:
     """The BVH file for `take` (a flockcal.takes.Take) played through `calibration` (a Calibration or its
-    §5 dict, or an Articulation). `up` names the tracker world's up axis; the file is Y-up."""
+    §5 dict, or an Articulation). `up` names the tracker world's up axis; the file is Y-up. `rest`:
+    the file's rest pose, "first" (the take's first frame), a frame index, or "sensor" (see rest_frames)."""
     if units not in UNITS_PER_METRE:
-        raise ValueError(f"units must be one of {', '.join(UNITS_PER_METRE)}, got {units!r}")
+        raise BvhError(f"units must be one of {', '.join(UNITS_PER_METRE)}, got {units!r}")
     scale = UNITS_PER_METRE[units]
     world = bvh_world(up)
     art = calibration if isinstance(calibration, Articulation) else articulation(calibration)
     art = art.reordered(take.names)
     rec = reconstruct(take.rotations, take.positions, art, take.valid)
     art = rec.articulation  # rigidly attached sensors now have their offsets
-    rows = motion_channels(rec, world, scale)
+    A = rest_frames(rec, world, rest)
+    rows = motion_channels(rec, world, scale, A)
     out = io.StringIO()
-    out.write(hierarchy_text(art, scale))
+    out.write(hierarchy_text(art, scale, A))
     out.write("MOTION\n")
     out.write(f"Frames: {len(rows)}\n")
     out.write(f"Frame Time: {1.0 / take.rate_hz:.8f}\n")
