@@ -81,6 +81,8 @@ class GramAccumulator:
         n = R.shape[0]
         if n == 0:
             return self
+        if self.origin is None:
+            self._set_origin(t, w)
         if self._npend + n <= BLOCK:
             k = self._npend
             self._pend_R[k:k + n] = R

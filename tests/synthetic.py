@@ -79,6 +79,7 @@ def articulated(
     position_noise: float = 0.0,
     rotation_noise: float = 0.0,
     rate_hz: float = 100.0,
+    l_override: dict | None = None,
 ) -> Articulated:
     """Random exact articulated motion.
 
@@ -87,6 +88,7 @@ def articulated(
     `amplitude`·0.1 about the others — a lumbar joint or a toe). amplitude: radians, scalar or per body.
     dropout: fraction of sensor-frames marked invalid (their positions and rotations set to NaN).
     Noise (metres, radians per axis) is added after the joints are built, as a tracker would.
+    l_override {i: l} places joint i at a chosen point of its parent (e.g. two joints at one point).
     """
     rng = np.random.default_rng(seed)
     parent = random_parent(m, rng) if parent is None else np.asarray(parent, dtype=int)
@@ -98,6 +100,8 @@ def articulated(
     c = rng.normal(0, offset_scale, size=(m, 3))
     l = rng.normal(0, offset_scale, size=(m, 3))
     c[0] = l[0] = np.nan
+    for i, v in (l_override or {}).items():
+        l[i] = v
     axis_c = np.full((m, 3), np.nan)
     axis_p = np.full((m, 3), np.nan)
     R = np.empty((n, m, 3, 3))

@@ -1,0 +1,163 @@
+"""`flockcal fit FILE.npz`: calibrate a recorded take (joints, hinge axes, bones, topology) as a table or JSON.
+
+Reads the .npz interchange of design.md §5, feeds it to the Gram accumulator and prints the calibration;
+--json prints exactly the §5 object. Bad files and bad hierarchies end in one line naming the problem.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+from flockcal.errors import UserError
+
+CHUNK = 65536  # frames per accumulator update; also the progress bar's step
+
+
+def register(subparsers) -> None:
+    p = subparsers.add_parser(
+        "fit",
+        help="find joints, bones and the skeleton tree in a recorded take",
+        description="Fit joint centres, hinge axes, bone lengths and the skeleton tree to a take (.npz, design.md §5).",
+    )
+    p.add_argument("file", metavar="FILE.npz", help="recorded take")
+    p.add_argument("--hierarchy", metavar="MAP.json", help='a {"child": "parent", …} map (root omitted): fit only those joints')
+    p.add_argument("--root", metavar="NAME", help="hang the tree from this sensor (default: the body that splits it most evenly)")
+    p.add_argument("--json", action="store_true", help="print the JSON object of design.md §5 instead of a table")
+    p.add_argument("--bvh", metavar="OUT.bvh", help="also write the take as BVH through the fitted skeleton")
+    p.add_argument("--scale", metavar="FACTOR", type=float, help="multiply positions by FACTOR before fitting (unit scale, paper §4)")
+    p.set_defaults(func=run)
+
+
+def load_hierarchy(path: str) -> dict:
+    """The {child: parent} map from a JSON file; UserError for a missing or malformed file."""
+    p = Path(path)
+    if not p.exists():
+        raise UserError(f"{p}: no such hierarchy file")
+    try:
+        data = json.loads(p.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise UserError(f"{p}: not a readable JSON hierarchy ({exc})") from None
+    if not isinstance(data, dict) or not data:
+        raise UserError(f'{p}: a hierarchy must be a JSON object {{"child": "parent", …}} with at least one joint')
+    for child, parent in data.items():
+        if not (parent is None or isinstance(parent, str)):
+            raise UserError(f"{p}: the parent of {child!r} must be a sensor name (or null for the root), got {parent!r}")
+    return data
+
+
+def accumulate(take, progress: bool = True):
+    """A GramAccumulator over the whole take, with a progress bar on stderr once it takes over a second."""
+    from flockcal.solver.accumulator import GramAccumulator
+
+    acc = GramAccumulator(take.n_sensors)
+    n = take.n_frames
+    start = time.monotonic()
+    shown = False
+    for s in range(0, n, CHUNK):
+        e = min(n, s + CHUNK)
+        acc.update(take.rotations[s:e], take.positions[s:e], take.valid[s:e])
+        if progress and time.monotonic() - start > 1.0:
+            shown = True
+            bar = "#" * int(30 * e / n)
+            print(f"\rfitting [{bar:<30}] {100 * e / n:3.0f}%  {e}/{n} frames", end="", file=sys.stderr, flush=True)
+    if shown:
+        print(file=sys.stderr)
+    return acc
+
+
+def run(args: argparse.Namespace) -> int:
+    import dataclasses
+    import math
+
+    from flockcal.solver.calibration import calibrate
+    from flockcal.takes import load_take
+
+    take = load_take(args.file)
+    if args.scale is not None:
+        if not math.isfinite(args.scale) or args.scale <= 0:
+            raise UserError(f"--scale must be a positive number, got {args.scale}")
+        take = dataclasses.replace(take, positions=take.positions * args.scale)
+    hierarchy = load_hierarchy(args.hierarchy) if args.hierarchy else None
+    acc = accumulate(take)
+    cal = calibrate(acc, hierarchy=hierarchy, root=args.root, names=take.names)
+    if args.bvh:
+        try:
+            from flockcal.exports.bvh import write_bvh
+        except ModuleNotFoundError:
+            raise UserError("BVH export is not available in this installation (flockcal.exports.bvh is missing)") from None
+        write_bvh(args.bvh, cal, take)
+    if args.json:
+        print(json.dumps(cal.to_dict(), indent=2))
+    else:
+        print(table(cal, source=args.file))
+    return 0
+
+
+def _cm(v) -> str:
+    return "(" + ", ".join("   —  " if x != x else f"{100 * x:6.2f}" for x in v) + ")"
+
+
+def _mm(x) -> str:
+    return "—" if x != x else f"{1000 * x:.2f}"
+
+
+def table(cal, source: str = "") -> str:
+    """The readable report: topology as an indented tree, joints, bones in cm, loops and warnings."""
+    import numpy as np
+
+    nm = cal.names
+    J = cal.joints
+    row = {int(c): k for k, c in enumerate(J.pairs[:, 0])}
+    how = "given hierarchy" if cal.hierarchy_given else "searched (minimum spanning tree)"
+    out = [f"{source}: {cal.frames} frames, {cal.n_sensors} sensors; topology {how}, root {nm[cal.root]}", "", "Topology"]
+    depth = np.zeros(cal.n_sensors, dtype=int)
+    for x in cal.order:
+        depth[x] = 0 if cal.parent[x] < 0 else depth[cal.parent[x]] + 1
+    stack, dfs = [int(cal.root)], []
+    while stack:  # depth first, so each child prints under its parent
+        x = stack.pop()
+        dfs.append(x)
+        stack.extend(sorted(np.flatnonzero(cal.parent == x).tolist(), reverse=True))
+    for x in dfs:
+        p = cal.parent[x]
+        if p < 0:
+            note = "root"
+        elif x in row:
+            k = row[x]
+            kind = "hinge" if J.hinge[k] else "ball" if J.rank[k] == 6 else f"rank {J.rank[k]}"
+            note = f"{kind}, rms {_mm(J.rms[k])} mm"
+        else:
+            note = f"rigid with {nm[p]}"
+        out.append(f"  {'  ' * depth[x]}{nm[x]}  ({note})")
+    out += ["", "Joints (c in the child's frame, l in the parent's; cm)"]
+    out.append(f"  {'child':<12} {'parent':<12} {'c':<26} {'l':<26} {'rms mm':>7} {'±c mm':>6} {'coverage (least first)':<24} axis (child frame)")
+    for k in range(len(J)):
+        cov = " ".join(f"{x:.3f}" for x in J.coverage[k])
+        axis = " ".join(f"{x:+.3f}" for x in J.axis_i[k]) if J.hinge[k] else ""
+        out.append(
+            f"  {nm[J.pairs[k, 0]]:<12} {nm[J.pairs[k, 1]]:<12} {_cm(J.c[k]):<26} {_cm(J.l[k]):<26} "
+            f"{_mm(J.rms[k]):>7} {_mm(J.c_stderr[k]):>6} {cov:<24} {axis}"
+        )
+    b = cal.bones
+    out += ["", "Bones (cm)"]
+    if not len(b):
+        out.append("  none (no body has two joints)")
+    for k in range(len(b)):
+        out.append(f"  {nm[b.body[k]]:<12} {nm[b.from_joint[k]]} → {nm[b.to_joint[k]]:<12} {100 * b.length[k]:8.3f} ± {100 * b.stderr[k]:.3f}")
+    if cal.loop_candidates:
+        out += ["", "Loop candidates (pairs outside the tree that fit like joints)"]
+        out += [f"  {nm[a]} – {nm[bb]}  rms {_mm(r)} mm" for a, bb, r in cal.loop_candidates]
+    if cal.rigid_groups:
+        out += ["", "Rigid groups (never turned relative to each other: one body, not a joint)"]
+        out += ["  " + ", ".join(nm[i] for i in g) for g in cal.rigid_groups]
+    if cal.ambiguous:
+        out += ["", "Ambiguous parents (the tree picked the first; the data cannot tell them apart)"]
+        out += [f"  {nm[c]}: {', '.join(nm[p] for p in ps)} — {note}" for c, ps, note in cal.ambiguous]
+    under = [k for k in range(len(J)) if J.rank[k] < 5]
+    if under:
+        out += ["", "Move more: " + ", ".join(f"{nm[J.pairs[k, 0]]}" for k in under) + " barely turned; their joints are not determined"]
+    return "\n".join(out)
