@@ -84,6 +84,7 @@ class KnownFit:
     iterations: int
     joint_info: dict = field(default_factory=dict)  # child name -> extra §5 joint fields (coverage, hinge, …)
     bone_stderr: dict = field(default_factory=dict)
+    motion: tuple | None = None  # (Q (m,3,3), s (m,3)): saved body points → this take's sensor frames
 
     def to_dict(self) -> dict:
         art = self.articulation
@@ -125,11 +126,13 @@ def fit_known_skeleton(
     names,
     iterations: int = 20,
     bone_stderr: dict | None = None,
+    previous: KnownFit | None = None,
 ) -> KnownFit:
     """Fit the accumulated take (sensor order `names`) with `saved`'s topology and bone lengths.
 
     `acc` is a `GramAccumulator`; only its normal equations for the tree joints are read, so this costs
-    a handful of 6m×6m solves whatever the take's length.
+    a handful of 6m×6m solves whatever the take's length. A live refresh passes the `previous` result
+    (same skeleton, same names) to start from it: usually one or two Gauss–Newton steps then.
     """
     from flockcal.solver.fits import pair_fits  # the solver core; imported here to keep this module light
 
@@ -149,13 +152,16 @@ def fit_known_skeleton(
     free_c = np.asarray(free.c, dtype=float)
     free_l = np.asarray(free.l, dtype=float)
 
-    # Procrustes start: each body's saved joint points onto the same joints of the free fit.
-    row = {int(j): r for r, j in enumerate(child)}
-    Q = np.broadcast_to(np.eye(3), (m, 3, 3)).copy()
-    s = np.zeros((m, 3))
-    for bdy, (joints, old) in enumerate(body_points(art)):
-        new = np.array([free_c[row[k]] if k == bdy else free_l[row[k]] for k in joints]).reshape(-1, 3)
-        Q[bdy], s[bdy] = rigid_fit(old, new)
+    if previous is not None and previous.motion is not None and previous.articulation.names == art.names:
+        Q, s = (np.array(x, dtype=float) for x in previous.motion)
+    else:
+        # Procrustes start: each body's saved joint points onto the same joints of the free fit.
+        row = {int(j): r for r, j in enumerate(child)}
+        Q = np.broadcast_to(np.eye(3), (m, 3, 3)).copy()
+        s = np.zeros((m, 3))
+        for bdy, (joints, old) in enumerate(body_points(art)):
+            new = np.array([free_c[row[k]] if k == bdy else free_l[row[k]] for k in joints]).reshape(-1, 3)
+            Q[bdy], s[bdy] = rigid_fit(old, new)
 
     def placed(Q, s):
         c = np.einsum("pab,pb->pa", Q[child], art.c[child]) + s[child]
@@ -239,4 +245,4 @@ def fit_known_skeleton(
             else:
                 extra[key] = v.tolist() if np.ndim(v) else (bool(v) if v.dtype == bool else float(v))
         info[art.names[j]] = extra
-    return KnownFit(fitted, int(acc.frames), rms, eps, rms_free, done, info, dict(bone_stderr or {}))
+    return KnownFit(fitted, int(acc.frames), rms, eps, rms_free, done, info, dict(bone_stderr or {}), (Q, s))

@@ -188,3 +188,20 @@ def test_rigidly_attached_sensor_is_saved_at_its_sensor_and_refits():
     assert np.linalg.norm(joint["l"]) == pytest.approx(0.565, abs=0.01)
     refit = skeleton.fit(acc, take.names).to_dict()
     assert refit["parent"] == {"sensor_b": "sensor_a"}
+
+
+def test_live_refresh_from_the_previous_fit_lands_on_the_same_placements(performer):
+    skeleton = load_skeleton(performer["path"])
+    take2 = performer["take2"]
+    half = take2.n_frames // 2
+    acc = GramAccumulator(take2.n_sensors)
+    acc.update(take2.rotations[:half], take2.positions[:half], take2.valid[:half])
+    earlier = skeleton.fit(acc, take2.names)
+    acc.update(take2.rotations[half:], take2.positions[half:], take2.valid[half:])
+    cold = skeleton.fit(acc, take2.names)
+    warm = skeleton.fit(acc, take2.names, previous=earlier)
+    # Same least-squares optimum; placements agree to well under a millimetre (a hinge joint's position
+    # along its axis is free, so the two starts need not agree there exactly).
+    assert np.nansum(warm.rms) == pytest.approx(np.nansum(cold.rms), rel=1e-6)
+    np.testing.assert_allclose(warm.articulation.c, cold.articulation.c, atol=1e-3)
+    np.testing.assert_allclose(warm.articulation.l, cold.articulation.l, atol=1e-3)

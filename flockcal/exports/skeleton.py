@@ -144,12 +144,15 @@ class Skeleton:
         except ArticulationError as exc:
             raise SkeletonError(f"skeleton does not match the take: {exc}") from None
 
-    def fit(self, acc, names):
-        """Fit an accumulated take (sensor order `names`) with this skeleton -> KnownFit (`.to_dict()` §5)."""
+    def fit(self, acc, names, previous=None):
+        """Fit an accumulated take (sensor order `names`) with this skeleton -> KnownFit (`.to_dict()` §5).
+
+        Live refreshes pass the last KnownFit as `previous` to start from it.
+        """
         from flockcal.solver.known_skeleton import fit_known_skeleton
 
         self.check_names(names)
-        return fit_known_skeleton(acc, self.articulation, names, bone_stderr=self.bone_stderr)
+        return fit_known_skeleton(acc, self.articulation, names, bone_stderr=self.bone_stderr, previous=previous)
 
 
 def _vec3(value, where: str) -> list[float]:
