@@ -1,8 +1,9 @@
 """Sensor slippage and swap detection (design.md §4): a live `SlipMonitor` fed the same micro-batches as
 the accumulator plus the current joint estimates, and `detect_slips` for a recorded take.
 
-Per joint, a CUSUM on the residual's distance from that joint's own robust baseline (scaled by the
-noise the data shows) raises a suspicion; `slippage_attribution` then names the sensor whose joints
+Per joint, a window-limited GLR test for a step in the residual vector (seen from either sensor of
+the joint, against that joint's own robust baseline, weighted by the noise the data shows) raises a
+suspicion; `slippage_attribution` then names the sensor whose joints
 all stepped (or the pair that swapped) before an event is reported.
 """
 
@@ -14,7 +15,7 @@ import numpy as np
 
 from flockcal.errors import FlockcalError
 from flockcal.solver.slippage_attribution import attribute
-from flockcal.solver.slippage_stats import Baseline, cusum, deviation, robust_baseline, sensor_frame_residuals
+from flockcal.solver.slippage_stats import Baseline, affine_baseline, joint_frames, local_variance, window_glr
 
 
 class SlippageError(FlockcalError, ValueError):
@@ -128,22 +129,25 @@ class SlipMonitor:
     joints: (p, 2) sensor indices (child, parent). Feed `update` every batch of frames with the current
     joint estimates c, l (p, 3) (the child and parent frame coordinates of each joint centre); it returns
     the events confirmed in this batch. After an event the affected joints re-baseline from the slip
-    time on (they stay quiet for `warmup_s` + `lag_s`); the others keep their state.
+    time on (they stay quiet for `warmup_s`, at least `lag_s`); the others keep their state.
 
-    All thresholds are in units of each joint's own robust noise scale, except `min_jump_m` (the
-    smallest step worth reporting) and `scale_floor_m` (stops exact, noise-free data from dividing by 0).
+    The test is in units of each joint's own noise, measured from the data: `threshold` and
+    `min_evidence` are nats (log-likelihood ratios), `min_jump_m` is the smallest step worth reporting
+    and `scale_floor_m` stops exact, noise-free data from dividing by zero.
     """
 
     def __init__(self, joints, n_sensors: int, rate_hz: float, names=None, *,
-                 min_jump_m: float = 0.005, warmup_s: float = 2.0, baseline_s: float = 8.0,
-                 lag_s: float = 1.0, refresh_s: float = 0.25, kappa: float = 3.0, z_cap: float = 12.0,
-                 threshold: float = 30.0, confirm_s: float = 0.04, min_evidence: float = 20.0,
-                 max_misfit: float = 9.0, scale_floor_m: float = 2e-4):
+                 min_jump_m: float = 0.005, warmup_s: float = 5.0, baseline_s: float = 8.0,
+                 lag_s: float = 1.0, refresh_s: float = 0.5, window_s: float = 0.5, noise_s: float = 0.25,
+                 threshold: float = 25.0, attribute_s: float = 0.15, min_frames: int = 4,
+                 min_evidence: float = 20.0, max_misfit: float = 4.0, scale_floor_m: float = 2e-4):
         J = np.asarray(joints, dtype=int).reshape(-1, 2)
         if J.size and (J.min() < 0 or J.max() >= n_sensors or (J[:, 0] == J[:, 1]).any()):
             raise SlippageError(f"joints must be (child, parent) pairs of distinct sensor indices below {n_sensors}")
         if not rate_hz > 0:
             raise SlippageError(f"rate_hz must be positive, got {rate_hz!r}")
+        if not lag_s > window_s:
+            raise SlippageError("lag_s must exceed window_s, so a step is never inside its own baseline")
         self.joints = J
         self.m = int(n_sensors)
         self.rate_hz = float(rate_hz)
@@ -152,8 +156,9 @@ class SlipMonitor:
             raise SlippageError(f"{len(self.names)} names given for {self.m} sensors")
         self.min_jump = float(min_jump_m)
         self.warmup_s, self.baseline_s, self.lag_s, self.refresh_s = warmup_s, baseline_s, lag_s, refresh_s
-        self.kappa, self.z_cap, self.threshold = kappa, z_cap, threshold
-        self.confirm_frames = max(3, int(round(confirm_s * rate_hz)))
+        self.window = max(2, int(round(window_s * rate_hz)))
+        self.noise_frames = max(5, int(round(noise_s * rate_hz)))
+        self.threshold, self.attribute_s, self.min_frames = threshold, attribute_s, int(min_frames)
         self.min_evidence, self.max_misfit, self.scale_floor = min_evidence, max_misfit, scale_floor_m
         p = len(J)
         cap = int(np.ceil((baseline_s + lag_s + 1.0) * rate_hz))
@@ -165,8 +170,9 @@ class SlipMonitor:
         self._c_ref = np.full((p, 3), np.nan)
         self._l_ref = np.full((p, 3), np.nan)
         self._last_refresh = -np.inf
-        self.S = np.zeros(p)
-        self.onset = np.zeros(p, dtype=int)
+        self._quiet = np.full(p, -1, dtype=np.int64)  # global frame index: no step may start before it
+        self._pending: tuple[int, np.ndarray] | None = None  # (onset frame, joints that fired)
+        self.score = np.zeros(p)  # latest GLR score per joint (nats), for display
         self.events: list[SlipEvent | SwapEvent] = []
 
     # -- public -------------------------------------------------------------------------------------
@@ -185,6 +191,8 @@ class SlipMonitor:
             raise SlippageError(f"times must have shape ({n},), got {ts.shape}")
         v = np.ones((n, self.m), dtype=bool) if valid is None else np.asarray(valid, dtype=bool).reshape(n, self.m)
         p = len(self.joints)
+        if c is None or l is None:
+            raise SlippageError("update needs the current joint estimates c and l, each (p, 3)")
         c = np.asarray(c, dtype=float).reshape(p, 3)
         l = np.asarray(l, dtype=float).reshape(p, 3)
         v = v & np.isfinite(R).all(axis=(2, 3)) & np.isfinite(t).all(axis=2)
@@ -203,39 +211,68 @@ class SlipMonitor:
     def _process(self, ts, R, t, v, c, l) -> list:
         buf = self._buf
         g0 = buf.append(ts, R, t, v)
+        n = len(ts)
         now = float(ts[-1])
         finite = np.isfinite(c).all(axis=1) & np.isfinite(l).all(axis=1)
-        moved = np.abs(c - self._c_ref).sum(axis=1) + np.abs(l - self._l_ref).sum(axis=1)
-        tol = 0.5 * (self.base.sigma if self.base is not None else np.zeros(len(c)))
-        if now - self._last_refresh >= self.refresh_s or np.any(~(moved <= tol) & finite):
-            self._refresh(now, c, l)
+        cc, ll = np.where(finite[:, None], c, 0.0), np.where(finite[:, None], l, 0.0)
+        if now - self._last_refresh >= self.refresh_s or self.base is None:
+            self._refresh(now, cc, ll)
+        else:
+            # New estimates change every residual by δc − Q δl, which the baseline's form a − Q b
+            # follows exactly: shift it instead of recomputing.
+            self.base.a = self.base.a + (cc - self._c_ref)
+            self.base.b = self.base.b + (ll - self._l_ref)
+            self._c_ref, self._l_ref = cc.copy(), ll.copy()
         ready = self.ready & finite
-        u, w = sensor_frame_residuals(R, t, self.joints, np.where(finite[:, None], c, 0), np.where(finite[:, None], l, 0))
-        pv = v[:, self.joints[:, 0]] & v[:, self.joints[:, 1]]
-        base = self.base
-        d = deviation(u, w, base.base_u, base.base_w)
-        with np.errstate(invalid="ignore"):
-            z = (d - base.level) / base.scale
-        x = np.minimum(z, self.z_cap) - self.kappa
-        x = np.where(pv, x, 0.0)
-        x = np.where(ready[None, :], x, -1e9)
-        x = np.nan_to_num(x, nan=-1e9)
-        S, onset = cusum(x, self.S, self.onset, g0)
-        self.S, self.onset = S[-1].copy(), onset[-1].copy()
-        end = g0 + len(ts)
-        fired = ready & (self.S >= self.threshold) & (end - self.onset >= self.confirm_frames)
-        if not fired.any():
+        if self._pending is None and not ready.any():
             return []
-        start = int(self.onset[fired].min())
-        sl = buf.since(start)
-        att = attribute(buf.R[sl], buf.t[sl], buf.valid[sl], self.joints, c, l, base, ready, fired,
-                        self.m, self.min_jump, self.min_evidence, self.max_misfit)
+        # Residuals of the recent frames with the current estimates: the step test's window plus the
+        # frames the local noise level needs, all recomputed so that c, l moving never looks like a step.
+        sl = buf.since(g0 + n - (self.window + self.noise_frames + n))
+        gidx = buf.global_index(sl)
+        x, y, pv, weight = self._deviations(buf.R[sl], buf.t[sl], buf.valid[sl], cc, ll)
+        earliest = np.maximum(self._quiet, 0) - gidx[0]
+        xs = np.concatenate([x, y], axis=1)  # child-frame and parent-frame series side by side
+        ws = np.concatenate([weight, weight], axis=1)
+        score, start = window_glr(xs, ws, n, self.window, 0.5 * self.min_jump, self.min_frames,
+                                  np.concatenate([earliest, earliest]))
+        p = len(self.joints)
+        which = score[:, p:] > score[:, :p]
+        score = np.where(which, score[:, p:], score[:, :p])
+        start = np.where(which, start[:, p:], start[:, :p])
+        score = np.where(ready[None, :], score, 0.0)
+        self.score = score[-1]
+        if self._pending is None:
+            hit = score >= self.threshold
+            if not hit.any():
+                return []
+            k = int(np.flatnonzero(hit.any(axis=1))[0])
+            fired = hit[k]
+            onset = int(gidx[0] + start[k][fired].min())
+            self._pending = (onset, fired)
+        onset, fired = self._pending
+        wsl = buf.since(onset)
+        if now - float(buf.times[wsl.start]) < self.attribute_s:
+            return []  # gather a little more evidence before naming the sensor
+        self._pending = None
+        # The window since the onset, with the noise level measured on the frames before it as well.
+        full = buf.since(onset - self.noise_frames)
+        x2, y2, pv2, w2 = self._deviations(buf.R[full], buf.t[full], buf.valid[full], cc, ll)
+        cut = wsl.start - full.start
+        Rw, tw = buf.R[wsl], buf.t[wsl]
+
+        def swapped(perm, touched):
+            u, Q = joint_frames(Rw[:, perm], tw[:, perm], self.joints[touched], cc[touched], ll[touched])
+            sub = Baseline(self.base.a[touched], self.base.b[touched], self.base.sigma[touched], self.base.frames[touched])
+            return sub.deviations(u, Q)
+
+        att = attribute(x2[cut:], y2[cut:], pv2[cut:], w2[cut:], self.joints, ready, fired, self.m,
+                        self.min_jump, self.min_evidence, self.max_misfit, swapped)
         if att.kind is None:
-            self.S[fired] = 0.0
+            self._quiet[fired] = g0 + n  # look for a new step from here on, not the same evidence again
             return []
         affected = np.asarray(att.joints, dtype=int)
-        mine = affected[fired[affected]]
-        t_onset = float(buf.times[buf.since(int(self.onset[mine].min() if mine.size else start))][0])
+        t_onset = float(buf.times[wsl.start])
         names = tuple(self.names[int(self.joints[j, 0])] for j in affected)
         if att.kind == "slip":
             ev = SlipEvent(t_onset, self.names[att.sensor], tuple(self.names[k] for k, _ in att.candidates),
@@ -245,9 +282,21 @@ class SlipMonitor:
                            att.confidence, now, (att.sensor, att.other), tuple(affected.tolist()))
         self.segment_start[affected] = t_onset
         self.ready[affected] = False
-        self.S[affected] = 0.0
-        self.S[fired] = 0.0
+        self._quiet[fired] = g0 + n
+        self._quiet[affected] = onset
         return [ev]
+
+    def _deviations(self, R, t, v, c, l):
+        """Deviation of each frame's residual from the baseline in the child and the parent frame,
+        pair validity, and the weight 1/σ² per frame from the local noise level (n, p)."""
+        u, Q = joint_frames(R, t, self.joints, c, l)
+        x, y = self.base.deviations(u, Q)
+        pv = v[:, self.joints[:, 0]] & v[:, self.joints[:, 1]]
+        var = local_variance(x, pv, self.noise_frames)
+        floor = np.maximum(0.5 * np.nan_to_num(self.base.sigma, nan=0.0), self.scale_floor) ** 2
+        ok = np.isfinite(var)
+        weight = np.where(pv & ok, 1.0 / np.maximum(np.where(ok, var, 1.0), floor), 0.0)
+        return x, y, pv, weight
 
     def _refresh(self, now: float, c, l) -> None:
         """Recompute every joint's baseline with the current estimates from the lagged window."""
@@ -255,18 +304,13 @@ class SlipMonitor:
         sl = buf.between(now - self.lag_s - self.baseline_s, now - self.lag_s)
         R, t, v = buf.R[sl], buf.t[sl], buf.valid[sl]
         times = buf.times[sl]
-        gidx = buf.global_index(sl)
-        cc = np.nan_to_num(c)
-        ll = np.nan_to_num(l)
-        u, w = sensor_frame_residuals(R, t, self.joints, cc, ll)
+        u, Q = joint_frames(R, t, self.joints, c, l)
         mask = v[:, self.joints[:, 0]] & v[:, self.joints[:, 1]]
         mask &= times[:, None] >= self.segment_start[None, :]
-        # A run the CUSUM is still following may be the start of a slip: keep it out of the baseline.
-        mask &= ~((self.S > 0)[None, :] & (gidx[:, None] >= self.onset[None, :]))
-        self.base = robust_baseline(u, w, mask, self.scale_floor)
-        enough = self.base.frames >= 0.5 * min(self.warmup_s, self.baseline_s) * self.rate_hz
-        settled = now - self.segment_start >= self.warmup_s
-        self.ready = enough & settled & np.isfinite(self.base.level)
+        self.base = affine_baseline(u, Q, mask, self.scale_floor)
+        enough = self.base.frames >= 0.6 * min(self.warmup_s, self.baseline_s) * self.rate_hz
+        settled = now - self.segment_start >= max(self.warmup_s, self.lag_s)
+        self.ready = enough & settled & np.isfinite(self.base.sigma)
         self._c_ref, self._l_ref = np.array(c, dtype=float), np.array(l, dtype=float)
         self._last_refresh = now
 

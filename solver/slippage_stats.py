@@ -1,5 +1,5 @@
 """Numerical pieces of the slippage monitor: joint residuals seen from each sensor of the joint, a robust
-per-joint baseline (median / MAD) and a CUSUM run over many joints and frames at once.
+per-joint baseline (median / MAD), local noise from frame differences and a window-limited GLR step test.
 
 Pure numpy, vectorised over frames and joints; `flockcal.solver.slippage` puts them together.
 """
@@ -15,10 +15,10 @@ CHI3_MEDIAN = 1.5382
 MAD_TO_SD = 1.4826
 
 
-def sensor_frame_residuals(rotations: np.ndarray, positions: np.ndarray, joints: np.ndarray,
-                           c: np.ndarray, l: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per-frame joint residual e = R_i c + t_i − R_j l − t_j, expressed in the child's frame (R_iᵀ e)
-    and in the parent's frame (R_jᵀ e); each (n, p, 3).
+def joint_frames(rotations: np.ndarray, positions: np.ndarray, joints: np.ndarray, c: np.ndarray,
+                 l: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-frame joint residual e = R_i c + t_i − R_j l − t_j in the child's frame, u = R_iᵀ e (n, p, 3),
+    and the relative rotation Q = R_iᵀ R_j (n, p, 3, 3); in the parent's frame the residual is Qᵀ u.
 
     A sensor that slips moves the joint centre by a constant in its own frame, so in that frame the
     residual steps by a constant while in the other frame the step turns with the joint.
@@ -26,52 +26,63 @@ def sensor_frame_residuals(rotations: np.ndarray, positions: np.ndarray, joints:
     Ri = rotations[:, joints[:, 0]]  # (n, p, 3, 3)
     Rj = rotations[:, joints[:, 1]]
     d = positions[:, joints[:, 0]] - positions[:, joints[:, 1]]  # (n, p, 3)
-    e = (np.einsum("npab,pb->npa", Ri, c) - np.einsum("npab,pb->npa", Rj, l) + d)
-    u = np.einsum("npba,npb->npa", Ri, e)
-    w = np.einsum("npba,npb->npa", Rj, e)
-    return u, w
+    RiT = Ri.swapaxes(-1, -2)
+    Q = RiT @ Rj
+    u = c[None] + (RiT @ d[..., None])[..., 0] - (Q @ l[None, :, :, None])[..., 0]
+    return u, Q
 
 
-def deviation(u: np.ndarray, w: np.ndarray, base_u: np.ndarray, base_w: np.ndarray) -> np.ndarray:
-    """Distance of each frame's residual from the joint's baseline, the smaller of the two sensor frames
-    (n, p). With a fit blended across a slip, one frame's residual is steady before the slip and the
-    other's turns with the joint; the smaller deviation follows the steady one."""
-    du = np.linalg.norm(u - base_u, axis=-1)
-    dw = np.linalg.norm(w - base_w, axis=-1)
-    return np.minimum(du, dw)
+def sensor_frame_residuals(rotations, positions, joints, c, l) -> tuple[np.ndarray, np.ndarray]:
+    """The joint residual in the child's and in the parent's frame, each (n, p, 3)."""
+    u, Q = joint_frames(rotations, positions, joints, c, l)
+    return u, (Q.swapaxes(-1, -2) @ u[..., None])[..., 0]
 
 
 @dataclass
 class Baseline:
-    """Robust per-joint reference level of the residual, from a window of recent frames."""
+    """Each joint's recent residual as an affine function of its relative rotation, u ≈ a − Q b.
 
-    base_u: np.ndarray  # (p, 3) median residual in the child frame
-    base_w: np.ndarray  # (p, 3) median residual in the parent frame
-    level: np.ndarray  # (p,) median deviation
-    scale: np.ndarray  # (p,) robust sd of the deviation (1.4826 MAD), floored
-    sigma: np.ndarray  # (p,) per-axis noise sd implied by the median deviation, floored
+    That is a local re-fit of the joint (a, b correct c, l): where the running estimate is off along a
+    direction the motion hardly exercises, the residual wanders with the joint angle by several mm,
+    which a constant baseline would take for steps. A slip is a step that this form cannot follow.
+    """
+
+    a: np.ndarray  # (p, 3) child frame
+    b: np.ndarray  # (p, 3) parent frame
+    sigma: np.ndarray  # (p,) per-axis noise sd from the median deviation, floored
     frames: np.ndarray  # (p,) valid frames the baseline came from
 
+    def deviations(self, u: np.ndarray, Q: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Deviation of each frame from the baseline in the child frame and in the parent frame."""
+        x = u - self.a + (Q @ self.b[None, :, :, None])[..., 0]
+        return x, (Q.swapaxes(-1, -2) @ x[..., None])[..., 0]
 
-def robust_baseline(u: np.ndarray, w: np.ndarray, mask: np.ndarray, scale_floor: float) -> Baseline:
-    """Median / MAD baseline per joint from frames where `mask` (n, p) holds; NaN where none."""
-    mu = np.where(mask[..., None], u, np.nan)
-    mw = np.where(mask[..., None], w, np.nan)
-    count = mask.sum(axis=0)
-    p = u.shape[1]
-    if u.shape[0] == 0 or not count.any():
-        nan3, nan = np.full((p, 3), np.nan), np.full(p, np.nan)
-        return Baseline(nan3, nan3.copy(), nan, nan.copy(), nan.copy(), count)
-    with np.errstate(all="ignore"), _quiet_nan_warnings():
-        base_u = np.nanmedian(mu, axis=0)
-        base_w = np.nanmedian(mw, axis=0)
-        d = np.where(mask, deviation(u, w, base_u, base_w), np.nan)
-        level = np.nanmedian(d, axis=0)
-        mad = np.nanmedian(np.abs(d - level), axis=0)
-    scale = np.maximum(MAD_TO_SD * mad, scale_floor)
-    # The deviation is the smaller of two near-χ3 norms, whose median is about 0.77 × 1.538 σ.
-    sigma = np.maximum(level / (0.77 * CHI3_MEDIAN), scale_floor)
-    return Baseline(base_u, base_w, level, scale, sigma, count)
+
+def affine_baseline(u: np.ndarray, Q: np.ndarray, mask: np.ndarray, scale_floor: float,
+                    ridge: float = 1e-4) -> Baseline:
+    """Least-squares (a, b) per joint over the frames where `mask` (n, p) holds; the small ridge on b
+    keeps directions the window never exercised at the running estimate."""
+    n, p = mask.shape
+    wm = mask.astype(float)
+    N = wm.sum(axis=0)
+    SQ = np.einsum("np,npab->pab", wm, Q)
+    A = np.zeros((p, 6, 6))
+    eye = np.eye(3)
+    A[:, :3, :3] = N[:, None, None] * eye
+    A[:, 3:, 3:] = (N * (1.0 + ridge) + 1e-12)[:, None, None] * eye
+    A[:, :3, 3:] = -SQ
+    A[:, 3:, :3] = -SQ.transpose(0, 2, 1)
+    A[:, :3, :3] += 1e-12 * eye
+    rhs = np.concatenate([np.einsum("np,npa->pa", wm, u), -np.einsum("np,npba,npb->pa", wm, Q, u)], axis=1)
+    sol = np.linalg.solve(A, rhs[..., None])[..., 0]
+    base = Baseline(sol[:, :3], sol[:, 3:], np.full(p, np.nan), N)
+    x, _ = base.deviations(u, Q)
+    d = np.where(mask, np.linalg.norm(x, axis=-1), np.nan)
+    with _quiet_nan_warnings():
+        level = np.nanmedian(d, axis=0) if n else np.full(p, np.nan)
+    # Six fitted parameters use up a little of the spread; over hundreds of frames that is negligible.
+    base.sigma = np.where(N > 6, np.maximum(level / CHI3_MEDIAN, scale_floor), np.nan)
+    return base
 
 
 class _quiet_nan_warnings:
@@ -88,21 +99,59 @@ class _quiet_nan_warnings:
         return self._ctx.__exit__(*exc)
 
 
-def cusum(x: np.ndarray, s0: np.ndarray, onset0: np.ndarray, first_index: int) -> tuple[np.ndarray, np.ndarray]:
-    """One-sided CUSUM S_k = max(0, S_(k−1) + x_k) over frames (axis 0) for every joint at once.
+def local_variance(x: np.ndarray, pair_valid: np.ndarray, frames: int) -> np.ndarray:
+    """Per-frame, per-joint noise variance per axis (n, p) from the frame-to-frame changes of the
+    residual over the last `frames` frames, the largest change left out (NaN until enough are seen).
 
-    x (n, p) increments; s0 (p,) the sums carried in; onset0 (p,) the global frame index where each
-    carried run began. Returns S (n, p) and onset (n, p): the global index of the first frame of the
-    run each S_k belongs to (the frame after the last reset). Uses S_k = C_k − min(0, min_(i≤k) C_i)
-    with C the running sum, so there is no loop over frames.
+    Differences cancel a step (it shows in one difference only: the one left out) and any offset or
+    slow wander with the joint angle, while following noise that grows with range and speed. For white
+    noise Δx has variance 2σ² per axis, so E‖Δx‖² = 6σ².
     """
-    n, p = x.shape
-    C = s0[None, :] + np.cumsum(x, axis=0)
-    M = np.minimum(np.minimum.accumulate(C, axis=0), 0.0)
-    S = C - M
-    idx = np.arange(n)[:, None] + first_index
-    reset = np.where(C <= M, idx, -1)
-    last = np.maximum.accumulate(reset, axis=0)
-    start = np.where(s0 > 0, onset0, first_index)
-    onset = np.where(last >= 0, last + 1, start[None, :])
-    return S, onset
+    ok = np.zeros(pair_valid.shape, dtype=bool)
+    ok[1:] = pair_valid[1:] & pair_valid[:-1]
+    d2 = np.zeros(pair_valid.shape)
+    d2[1:] = ((x[1:] - x[:-1]) ** 2).sum(axis=-1)
+    d2 = np.where(ok, d2, 0.0)
+    n, p = d2.shape
+    k = max(2, min(frames, n))
+    S = np.concatenate([np.zeros((k, p)), np.cumsum(d2, axis=0)])
+    N = np.concatenate([np.zeros((k, p)), np.cumsum(ok, axis=0)])
+    total = S[k:] - S[:-k]
+    count = N[k:] - N[:-k]
+    pad = np.concatenate([np.zeros((k - 1, p)), d2])
+    biggest = np.lib.stride_tricks.sliding_window_view(pad, k, axis=0).max(axis=-1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        var = (total - biggest) / (6.0 * (count - 1))
+    return np.where(count >= max(3, k // 3), var, np.nan)
+
+
+def window_glr(x: np.ndarray, weight: np.ndarray, ends: int, window: int, margin: float,
+               min_frames: int, earliest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Window-limited GLR for a step of unknown 3-vector in each series, at each of the last `ends` frames.
+
+    x (L, p, 3) deviations from baseline; weight (L, p) = 1/σ² per frame (0 where invalid). For an end k
+    and a candidate start τ (k − window < τ ≤ k, τ ≥ earliest[j]), the weighted mean step μ over τ..k
+    scores ½ Σw · max(|μ| − margin, 0)²: nats of evidence for a step larger than `margin`, which
+    slow drifts of a few mm (a fit still settling) do not reach. Returns the best score (ends, p) and
+    its start index (ends, p), indices into x's first axis.
+    """
+    L, p = weight.shape
+    A = np.concatenate([np.zeros((1, p)), np.cumsum(weight, axis=0)])
+    B = np.concatenate([np.zeros((1, p, 3)), np.cumsum(weight[..., None] * x, axis=0)])
+    Nf = np.concatenate([np.zeros((1, p)), np.cumsum(weight > 0, axis=0)])
+    k = np.arange(L - ends, L)  # (e,) end frames
+    tau = k[:, None] - np.arange(window)[None, :]  # (e, W) start frames
+    ok = tau >= 0
+    tau_c = np.clip(tau, 0, None)
+    SA = A[k + 1][:, None, :] - A[tau_c]  # (e, W, p)
+    SB = B[k + 1][:, None, :, :] - B[tau_c]
+    SN = Nf[k + 1][:, None, :] - Nf[tau_c]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        size = np.linalg.norm(SB, axis=-1) / SA
+    g = 0.5 * SA * np.maximum(size - margin, 0.0) ** 2
+    allowed = ok[..., None] & (SN >= min_frames) & (tau_c[..., None] >= earliest[None, None, :]) & (SA > 0)
+    g = np.where(allowed, np.nan_to_num(g), 0.0)
+    best = g.argmax(axis=1)  # (e, p)
+    score = np.take_along_axis(g, best[:, None, :], axis=1)[:, 0, :]
+    start = np.take_along_axis(np.broadcast_to(tau_c[..., None], g.shape), best[:, None, :], axis=1)[:, 0, :]
+    return score, start

@@ -1,0 +1,204 @@
+"""Re-fit after a slip: the whole-take Gram plus, per slipped sensor, the Gram since its slip.
+
+Detection comes a little after the slip, so cumulative snapshots of the whole-take accumulator are kept
+at a few Hz; a segment is the whole minus the first snapshot taken at or after the slip (no frame from
+before it). Pairs touching a slipped sensor are fitted on its segment, every other pair on all the data.
+"""
+
+from __future__ import annotations
+
+from collections import deque
+from dataclasses import dataclass, fields
+
+import numpy as np
+
+from flockcal.solver.accumulator import GramAccumulator
+from flockcal.solver.errors import SolverError
+from flockcal.solver.fits import PairFits, pair_fits
+
+
+@dataclass
+class Segment:
+    """Frames of `sensor` since `start_s` (an event of `kind` "slip" or "swap")."""
+
+    sensor: int
+    start_s: float  # the event time
+    kind: str
+    base: GramAccumulator  # the whole take up to the first snapshot at or after start_s
+    before: GramAccumulator | None  # the whole take up to the last snapshot at or before start_s
+    base_s: float  # time of `base` (frames from here on are in the segment)
+
+
+class SegmentedAccumulator:
+    """A `GramAccumulator` over the whole take that also answers fits per segment after slips.
+
+    `update(times, rotations, positions, valid)` feeds every frame once; `start_segment(sensor, time_s)`
+    (or `apply(events)` with `SlipEvent`/`SwapEvent`s) opens a segment; `pair_fits(pairs)` fits each pair
+    on the latest segment among its two sensors (after a slip: the frames since; after a swap: the
+    frames before it, until the sensors are relabelled) and on the whole take otherwise.
+    """
+
+    def __init__(self, n_sensors: int, snapshot_hz: float = 5.0, history_s: float = 15.0, origin=None):
+        if not snapshot_hz > 0 or not history_s > 0:
+            raise SolverError("snapshot_hz and history_s must be positive")
+        self.whole = GramAccumulator(n_sensors, origin=origin)
+        self.n_sensors = int(n_sensors)
+        self.snapshot_every = 1.0 / float(snapshot_hz)
+        self._snaps: deque[tuple[float, GramAccumulator]] = deque(maxlen=max(2, int(np.ceil(history_s * snapshot_hz))))
+        self._next_snap = None
+        self.segments: dict[int, Segment] = {}
+        self.history: list[Segment] = []  # every segment ever opened, oldest first
+
+    @property
+    def frames(self) -> int:
+        return self.whole.frames
+
+    def update(self, times, rotations, positions, valid=None) -> "SegmentedAccumulator":
+        """Add a batch of frames; a snapshot is taken before the first frame at or after each grid time."""
+        ts = np.atleast_1d(np.asarray(times, dtype=float))
+        R = np.asarray(rotations, dtype=float)
+        t = np.asarray(positions, dtype=float)
+        if R.ndim == 3:
+            R, t = R[None], t[None]
+            valid = None if valid is None else np.asarray(valid)[None]
+        if len(ts) != len(R):
+            raise SolverError(f"{len(ts)} times for {len(R)} frames")
+        if not len(ts):
+            return self
+        if self._next_snap is None:
+            self._next_snap = ts[0]
+        a = 0
+        while a < len(ts):
+            # Frames before the next grid time go in as one batch; then snapshot, then move the grid on.
+            b = a + int(np.searchsorted(ts[a:], self._next_snap, side="left"))
+            if b > a:
+                self.whole.update(R[a:b], t[a:b], None if valid is None else valid[a:b])
+            if b < len(ts):
+                self._snaps.append((float(ts[b]), self.whole.copy()))
+                self._next_snap = max(self._next_snap + self.snapshot_every, ts[b] + 0.5 * self.snapshot_every)
+            a = b
+        return self
+
+    def start_segment(self, sensor: int, time_s: float, kind: str = "slip") -> Segment:
+        """Open a new segment for `sensor` from `time_s` on (replacing any earlier one of that sensor)."""
+        if not 0 <= int(sensor) < self.n_sensors:
+            raise SolverError(f"sensor index {sensor} out of range 0..{self.n_sensors - 1}")
+        after = [(s, a) for s, a in self._snaps if s >= time_s]
+        before = [(s, a) for s, a in self._snaps if s <= time_s]
+        if after:
+            base_s, base = after[0]
+        else:  # the slip is newer than the last snapshot: start from now
+            base_s, base = (float("inf"), self.whole.copy())
+        seg = Segment(int(sensor), float(time_s), kind, base, before[-1][1] if before else None, base_s)
+        self.segments[int(sensor)] = seg
+        self.history.append(seg)
+        return seg
+
+    def apply(self, events) -> None:
+        """Open segments for monitor events: a slip's sensor, or both sensors of a swap."""
+        for ev in events:
+            if getattr(ev, "kind", "slip") == "swap":
+                for s in ev.sensor_indices:
+                    self.start_segment(s, ev.time_s, "swap")
+            else:
+                self.start_segment(ev.sensor_index, ev.time_s, "slip")
+
+    def since(self, sensor: int) -> GramAccumulator:
+        """The frames of `sensor`'s current segment (the whole take when it has none)."""
+        seg = self.segments.get(int(sensor))
+        return self.whole.copy() if seg is None else self._segment_acc(seg)
+
+    def _segment_acc(self, seg: Segment) -> GramAccumulator:
+        if seg.kind == "swap":
+            # After a swap the sensors' data belongs to each other's bodies: keep what came before.
+            return seg.before.copy() if seg.before is not None else GramAccumulator(self.n_sensors, origin=self.whole.origin)
+        return self.whole - seg.base
+
+    def pair_segments(self, pairs) -> list:
+        """For each pair, the governing Segment (the later of its sensors' segments) or None."""
+        out = []
+        for i, j in np.asarray(pairs, dtype=int).reshape(-1, 2):
+            cand = [s for s in (self.segments.get(int(i)), self.segments.get(int(j))) if s is not None]
+            out.append(max(cand, key=lambda s: s.start_s) if cand else None)
+        return out
+
+    def accumulator_for(self, pair) -> GramAccumulator:
+        seg = self.pair_segments([pair])[0]
+        return self.whole if seg is None else self._segment_acc(seg)
+
+    def pair_fits(self, pairs, **options) -> PairFits:
+        """`fits.pair_fits` per pair on its segment (see class docstring), in the order of `pairs`."""
+        P = np.asarray(pairs, dtype=int).reshape(-1, 2)
+        segs = self.pair_segments(P)
+        groups: dict[int, list[int]] = {}
+        keyed: dict[int, Segment | None] = {}
+        for k, s in enumerate(segs):
+            groups.setdefault(id(s), []).append(k)
+            keyed[id(s)] = s
+        if len(groups) == 1:
+            s = segs[0] if len(segs) else None
+            return pair_fits(self.whole if s is None else self._segment_acc(s), P, **options)
+        parts, order = [], []
+        for key, rows in groups.items():
+            s = keyed[key]
+            acc = self.whole if s is None else self._segment_acc(s)
+            parts.append(pair_fits(acc, P[rows], **options))
+            order += rows
+        inv = np.argsort(np.asarray(order))
+        return PairFits(**{f.name: np.concatenate([getattr(p, f.name) for p in parts])[inv] for f in fields(PairFits)})
+
+    def calibration_dict(self, hierarchy=None, root=None, names=None, slip_events=None) -> dict:
+        """design.md §5 JSON: the whole-take calibration, with every joint and bone that involves a
+        segmented sensor taken from a calibration of that segment (same tree)."""
+        from flockcal.solver.calibration import calibrate
+
+        whole = calibrate(self.whole, hierarchy=hierarchy, root=root, names=names)
+        d = _to_dict(whole, slip_events)
+        if not self.segments:
+            return d
+        tree = dict(d["parent"])
+        index = {n: i for i, n in enumerate(d["sensors"])}
+        done: dict[int, dict] = {}
+        for entry in d["joints"]:
+            pair = (index[entry["child"]], index[entry["parent"]])
+            seg = self.pair_segments([pair])[0]
+            if seg is None:
+                continue
+            if id(seg) not in done:
+                done[id(seg)] = _to_dict(calibrate(self._segment_acc(seg), hierarchy=tree, root=d["root"],
+                                                   names=names), None)
+            seg_joints = {e["child"]: e for e in done[id(seg)]["joints"]}
+            entry.update(seg_joints[entry["child"]])
+            entry["segment_start_s"] = seg.start_s
+        _replace_bones(d, done, self, index)
+        return d
+
+
+def _to_dict(cal, slip_events) -> dict:
+    events = None if slip_events is None else [e.to_dict() if hasattr(e, "to_dict") else dict(e) for e in slip_events]
+    try:
+        d = cal.to_dict(slip_events=events)
+    except TypeError:
+        d = cal.to_dict()
+        d["slip_events"] = events or []
+    return d
+
+
+def _replace_bones(d: dict, seg_dicts: dict, seg: SegmentedAccumulator, index: dict) -> None:
+    """Bones that use a joint refitted on a segment come from that segment's calibration."""
+    joints = {e["child"]: e for e in d["joints"]}
+    for bone in d.get("bones", []):
+        used = [bone.get("from_joint"), bone.get("to_joint")]
+        pairs = [(index[joints[j]["child"]], index[joints[j]["parent"]]) for j in used if j in joints]
+        found = [s for s in seg.pair_segments(pairs) if s is not None]
+        if not found:
+            continue
+        s = max(found, key=lambda x: x.start_s)
+        src = seg_dicts.get(id(s))
+        if src is None:
+            continue
+        key = (bone["body"], bone.get("from_joint"), bone.get("to_joint"))
+        for other in src.get("bones", []):
+            if (other["body"], other.get("from_joint"), other.get("to_joint")) == key:
+                bone.update(other)
+                bone["segment_start_s"] = s.start_s
