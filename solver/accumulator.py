@@ -146,15 +146,16 @@ class GramAccumulator:
         if omega is not None:
             buf *= np.sqrt(omega)[:, None, None, None]
         X = buf.reshape(3 * nb, 4 * m)
-        gb = dsyrk(1.0, X.T, trans=0)  # upper triangle of XᵀX, without a copy of X
-        gb = gb + np.triu(gb, 1).T
+        # Upper triangle of XᵀX, without a copy of X; `_gram` holds the upper triangle, mirrored on read.
+        gb = dsyrk(1.0, X.T, trans=0)
         self._gram += gb
-        wf = w.astype(float)
         if all_valid:
-            diag = np.einsum("qapa->aqp", gb.reshape(4, m, 4, m))
+            diag = np.einsum("qapa->aqp", gb.reshape(4, m, 4, m))  # upper part of each sensor's 4×4
+            diag = diag + np.triu(diag, 1).transpose(0, 2, 1)
             self._self += diag[None]
             self._pair_frames += nb if omega is None else omega.sum()
         else:
+            wf = w.astype(float)
             own = np.einsum("krqa,krpa->kaqp", buf, buf)  # each sensor's own 4×4 Gram per frame
             self._self += (wf.T @ own.reshape(nb, m * 16)).reshape(m, m, 4, 4)
             self._pair_frames += wf.T @ (wf if omega is None else wf * omega[:, None])
@@ -179,7 +180,11 @@ class GramAccumulator:
         m = self.n_sensors
         a = np.arange(m)
         perm = np.concatenate([(np.arange(3)[None, :] * m + a[:, None]).ravel(), 3 * m + a])
-        return self._gram[np.ix_(perm, perm)]
+        return self._full()[np.ix_(perm, perm)]
+
+    def _full(self) -> np.ndarray:
+        g = self._gram
+        return np.triu(g) + np.triu(g, 1).T
 
     def normal_equations(self, pairs) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """For pairs (p, 2) of (i, j): A (p,6,6), b (p,6), Σ‖t_j − t_i‖² (p,), frames n (p,).
@@ -194,7 +199,7 @@ class GramAccumulator:
             raise SolverError(f"pair indices must be in 0..{m - 1}")
         i, j = P[:, 0], P[:, 1]
         p = len(P)
-        G, S = self._gram, self._self
+        G, S = self._full(), self._self
         q = np.arange(3) * m
         ri = q[None, :] + i[:, None]  # (p, 3) internal rotation columns
         rj = q[None, :] + j[:, None]
@@ -233,7 +238,7 @@ class GramAccumulator:
         d = np.asarray(dst, dtype=np.intp).reshape(-1)
         q = np.arange(3) * m
         rd, rs = q[None, :] + d[:, None], q[None, :] + s[:, None]
-        G = self._gram
+        G = self._full()
         Gds = G[rd[:, :, None], rs[:, None, :]]
         total = np.einsum("kab,kb->ka", Gds, x) + G[rd, 3 * m + s[:, None]] - self._self[s, d, :3, 3]
         n = self._pair_frames[s, d]
@@ -250,7 +255,7 @@ class GramAccumulator:
         d = np.asarray(dst, dtype=np.intp).reshape(-1)
         q = np.arange(3) * m
         rd, rs = q[None, :] + d[:, None], q[None, :] + s[:, None]
-        return nearest_rotation(self._gram[rd[:, :, None], rs[:, None, :]])
+        return nearest_rotation(self._full()[rd[:, :, None], rs[:, None, :]])
 
     # -- copies and arithmetic ---------------------------------------------------------------------
     def copy(self) -> "GramAccumulator":

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import breadth_first_order, connected_components, minimum_spanning_tree
+from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 
 from flockcal.solver.errors import SolverError
 from flockcal.solver.fits import PairFits
@@ -45,8 +45,7 @@ def tree_centre(parent_edges: np.ndarray, n_nodes: int, weight=None) -> int:
     if n_nodes == 1:
         return 0
     e = np.asarray(parent_edges, dtype=np.intp).reshape(-1, 2)
-    adj = csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n_nodes, n_nodes))
-    order, pred = breadth_first_order(adj, 0, directed=False)
+    pred, order = _orient(e, n_nodes, 0)
     sub = w.copy()
     for v in order[::-1][:-1]:  # children before parents; at most one pass over the bodies
         sub[pred[v]] += sub[v]
@@ -59,14 +58,27 @@ def tree_centre(parent_edges: np.ndarray, n_nodes: int, weight=None) -> int:
 
 
 def _orient(edges: np.ndarray, n: int, root: int) -> tuple[np.ndarray, np.ndarray]:
-    """Parent array and BFS order of the tree `edges` (k, 2) hung from `root`."""
-    adj = csr_matrix((np.ones(len(edges)), (edges[:, 0], edges[:, 1])), shape=(n, n)) if len(edges) else csr_matrix((n, n))
-    order, pred = breadth_first_order(adj, root, directed=False)
+    """Parent array and BFS order of the tree `edges` (k, 2) hung from `root`.
+
+    A plain breadth-first walk: for trees of tens of bodies it is cheaper than building a sparse graph.
+    """
+    nbrs: list[list[int]] = [[] for _ in range(n)]
+    for a, b in np.asarray(edges, dtype=np.intp).reshape(-1, 2).tolist():
+        nbrs[a].append(b)
+        nbrs[b].append(a)
+    parent = np.full(n, -1, dtype=np.intp)
+    seen = [False] * n
+    seen[root] = True
+    order = [root]
+    for x in order:  # the list grows while we walk it
+        for y in nbrs[x]:
+            if not seen[y]:
+                seen[y] = True
+                parent[y] = x
+                order.append(y)
     if len(order) != n:
         raise SolverError("the tree does not reach every sensor")
-    parent = np.where(pred < 0, -1, pred)
-    parent[root] = -1
-    return parent.astype(np.intp), order.astype(np.intp)
+    return parent, np.array(order, dtype=np.intp)
 
 
 def ancestors(parent: np.ndarray, order: np.ndarray) -> np.ndarray:
