@@ -117,3 +117,32 @@ def test_wrong_shapes_are_refused_with_a_solver_error(shapes):
     acc = GramAccumulator(5)
     with pytest.raises(SolverError):
         acc.update(np.zeros(shapes[0]), np.zeros(shapes[1]))
+
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    seed=st.integers(0, 10_000),
+    m=st.integers(2, 6),
+    cuts=st.lists(st.integers(1, 399), max_size=6),
+    worker_cut=st.integers(1, 399),
+)
+def test_property_any_batching_and_any_split_across_workers_give_the_same_normal_equations(seed, m, cuts, worker_cut):
+    d = articulated(m=m, n=400, seed=seed, dropout=0.1)
+    R, t, v = d.rotations, d.positions, d.valid
+    whole = GramAccumulator(m).update(R, t, v)
+    pieces = GramAccumulator(m)
+    edges = [0, *sorted(set(cuts)), 400]
+    for s, e in zip(edges[:-1], edges[1:]):
+        pieces.update(R[s:e], t[s:e], v[s:e])
+    a = GramAccumulator(m, origin=whole.origin).update(R[:worker_cut], t[:worker_cut], v[:worker_cut])
+    b = GramAccumulator(m, origin=whole.origin).update(R[worker_cut:], t[worker_cut:], v[worker_cut:])
+    pairs = np.array([[i, j] for i in range(m) for j in range(m) if i != j])
+    want = whole.normal_equations(pairs)
+    for acc in (pieces, a.merge(b)):
+        got = acc.normal_equations(pairs)
+        for x, y in zip(got, want):
+            assert np.allclose(x, y, rtol=1e-11, atol=1e-9)
