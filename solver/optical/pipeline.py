@@ -105,13 +105,29 @@ def add_rigid_route_joints(shapes, weak, parent, R, t, valid, jp):
     return shapes, jp
 
 
-def fit_joints(markers, groups, parent, frames=None) -> tuple[dict, dict]:
+def fit_joints(markers, groups, parent, frames=None, penalty: float = 1e-5):
+    """Kirk fit of every tree joint on all (or the given) frames. Returns (points, rms, suspects):
+    suspects (n, k) marks, in frames where a joint's residual jumps, the marker furthest from its
+    constant distance (a swap shows up this way as a discontinuity of the joint centre).
+
+    The penalty stays (small): at a hinge every point of the axis keeps constant distances, and the
+    penalty picks the one nearest the markers instead of letting it drift along the axis."""
+    n, k, _ = markers.shape
     joint_points, joint_rms = {}, {}
+    suspects = np.zeros((n, k), dtype=bool)
     for child in np.flatnonzero(parent >= 0):
-        fit = joint_point(markers[:, groups[child]], markers[:, groups[parent[child]]], penalty=0.0, frames=frames)
+        idx = np.concatenate([groups[child], groups[parent[child]]])
+        fit = joint_point(markers[:, groups[child]], markers[:, groups[parent[child]]], penalty=penalty, frames=frames)
         joint_points[int(child)] = fit.points
         joint_rms[int(child)] = fit.rms
-    return joint_points, joint_rms
+        res = np.abs(fit.residuals)
+        fin = res[np.isfinite(res)]
+        if fin.size:
+            thr = max(8 * 1.4826 * np.median(fin), 0.01)
+            worst = np.nanmax(np.nan_to_num(res, nan=0.0), axis=1)
+            bad = np.flatnonzero(worst > thr)
+            suspects[bad, idx[np.argmax(np.nan_to_num(res[bad], nan=0.0), axis=1)]] = True
+    return joint_points, joint_rms, suspects
 
 
 def fit_markers(
@@ -169,14 +185,18 @@ def fit_markers(
         if min(points) < 3:
             weak.discard(c)
     for _ in range(2):  # second pass: refit without the marker-frames the first pass found wrong
-        jp, jrms = fit_joints(work, groups, par, fit_frames)
+        jp, jrms, suspects = fit_joints(work, groups, par, fit_frames)
         strong = {c: v for c, v in jp.items() if c not in weak}
         shapes = skeleton_shapes(work, groups, par, strong, skip=weak)
         R, t, valid = body_poses(work, shapes, strong)
         if weak:
             shapes, jp = add_rigid_route_joints(shapes, weak, par, R, t, valid, jp)
         res, thr = robust_marker_residuals(work, shapes, jp)
+        # Bodies too small for a rigid check (NaN residual) fall back on the joint-centre test.
+        res = np.where(np.isnan(res) & suspects & np.isfinite(work).all(-1), np.inf, res)
         found = find_outliers(res, floor_m=thr)
+        for start, stop, a, b in found.swaps:  # both labels are wrong over the whole span, seen or not
+            found.mask[start:stop, [a, b]] = True
         if outliers is None:
             outliers = found
         if not found.mask.any():

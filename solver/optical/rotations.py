@@ -56,42 +56,31 @@ class Outliers:
     swaps: list[tuple[int, int, int, int]]  # (start, stop, marker a, marker b) for runs that overlap
 
 
-def robust_marker_residuals(markers, shapes, joint_points, floor_m: float = 0.006, factor: float = 8.0, rounds: int = 2):
-    """Like `marker_residuals`, but a frame whose worst marker is off by more than the threshold is
-    refitted without it (up to `rounds` markers per body-frame), so one swapped marker does not drag
-    the pose and make its honest neighbours look wrong too."""
+def robust_marker_residuals(markers, shapes, joint_points=None, floor_m: float = 0.006, factor: float = 8.0):
+    """(n, k) how far each marker is from where its body says, without trusting any pose: the smallest
+    change, against the body's fixed shape, of its distances to the other markers of its body.
+
+    A swapped marker changes all of its distances; an honest one keeps at least one (to another honest
+    marker), so one bad marker in a body of three or more is pinned on the right marker. Needs two
+    other markers of the body in view; NaN otherwise (and for bodies of one or two markers).
+    Returns (residuals, threshold) with threshold = max(factor × robust σ, floor)."""
     n, k, _ = markers.shape
     out = np.full((n, k), np.nan)
-    fits = []
-    for g, s in enumerate(shapes):
-        if len(s.markers) < 3:
-            continue
-        ref = np.concatenate([s.marker_offsets, s.joint_offsets], axis=0)
-        obs = body_points(markers, s.markers, joint_points, s.joints)
-        R, t, ok = rigid_fit(ref, obs)
-        fits.append((s, ref, obs, R, t, ok))
-    def res_of(s, R, t, ok):
-        pred = apply(R, t, s.marker_offsets)
-        return np.where(ok[:, None], np.linalg.norm(markers[:, s.markers] - pred, axis=-1), np.nan)
-    first = np.concatenate([res_of(s, R, t, ok).ravel() for s, _, _, R, t, ok in fits]) if fits else np.array([])
-    first = first[np.isfinite(first)]
-    sigma = 1.4826 * np.median(np.abs(first - np.median(first))) if first.size else 0.0
-    thr = max(factor * sigma, floor_m)
-    for s, ref, obs, R, t, ok in fits:
-        obs = obs.copy()
+    for s in shapes:
         q = len(s.markers)
-        for _ in range(rounds):
-            res = res_of(s, R, t, ok)
-            worst = np.nanargmax(np.nan_to_num(res, nan=-1.0), axis=1)
-            redo = np.flatnonzero(np.nan_to_num(res, nan=0.0).max(1) > thr)
-            if not len(redo):
-                break
-            obs[redo, worst[redo]] = np.nan
-            R2, t2, ok2 = rigid_fit(ref, obs[redo])
-            R, t, ok = R.copy(), t.copy(), ok.copy()
-            R[redo], t[redo], ok[redo] = R2, t2, ok2
-        out[:, s.markers[:q]] = res_of(s, R, t, ok)
-    return out, thr
+        if q < 3:
+            continue
+        ref = np.linalg.norm(s.marker_offsets[:, None] - s.marker_offsets[None], axis=-1)
+        m = markers[:, s.markers]
+        d = np.linalg.norm(m[:, :, None] - m[:, None], axis=-1)  # (n, q, q), NaN where unseen
+        dev = np.abs(d - ref[None])
+        dev[:, np.arange(q), np.arange(q)] = np.nan
+        partners = np.isfinite(dev).sum(2)
+        best = np.nanmin(np.where(np.isfinite(dev), dev, np.inf), axis=2)
+        out[:, s.markers] = np.where(partners >= 2, best, np.nan)
+    fin = out[np.isfinite(out)]
+    sigma = 1.4826 * np.median(np.abs(fin - np.median(fin))) if fin.size else 0.0
+    return out, max(factor * sigma, floor_m)
 
 
 def find_outliers(residuals: np.ndarray, factor: float = 8.0, floor_m: float = 0.006, min_run: int = 3) -> Outliers:
@@ -107,18 +96,25 @@ def find_outliers(residuals: np.ndarray, factor: float = 8.0, floor_m: float = 0
         col = np.concatenate([[0], mask[:, a].astype(np.int8), [0]])
         edges = np.flatnonzero(np.diff(col))
         for s, e in zip(edges[::2], edges[1::2]):
-            runs.append((int(a), int(s), int(e), float(np.nanmax(residuals[s:e, a]))))
-    swaps, used = [], set()
+            runs.append((int(a), int(s), int(e), float(np.nanmax(np.where(np.isinf(residuals[s:e, a]), np.nan, residuals[s:e, a]), initial=thr))))
+    # Pair runs of two different markers that cover nearly the same frames, best overlap first.
     long_runs = [r for r in runs if r[2] - r[1] >= min_run]
+    cand = []
     for i, (a, s, e, _) in enumerate(long_runs):
         for j in range(i + 1, len(long_runs)):
             b, s2, e2, _ = long_runs[j]
-            if j in used or i in used or b == a:
+            if b == a:
                 continue
-            overlap = min(e, e2) - max(s, s2)
-            if overlap > 0.5 * max(e - s, e2 - s2):
-                swaps.append((min(s, s2), max(e, e2), a, b))
-                used |= {i, j}
+            ratio = (min(e, e2) - max(s, s2)) / min(e - s, e2 - s2)  # a run may be cut short by a gap
+            if ratio > 0.5:
+                cand.append((ratio, i, j))
+    swaps, used = [], set()
+    for ratio, i, j in sorted(cand, reverse=True):
+        if i in used or j in used:
+            continue
+        (a, s, e, _), (b, s2, e2, _) = long_runs[i], long_runs[j]
+        swaps.append((min(s, s2), max(e, e2), a, b))
+        used |= {i, j}
     return Outliers(mask, float(thr), runs, swaps)
 
 
