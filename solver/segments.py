@@ -38,7 +38,7 @@ class SegmentedAccumulator:
     frames before it, until the sensors are relabelled) and on the whole take otherwise.
     """
 
-    def __init__(self, n_sensors: int, snapshot_hz: float = 5.0, history_s: float = 15.0, origin=None):
+    def __init__(self, n_sensors: int, snapshot_hz: float = 10.0, history_s: float = 15.0, origin=None):
         if not snapshot_hz > 0 or not history_s > 0:
             raise SolverError("snapshot_hz and history_s must be positive")
         self.whole = GramAccumulator(n_sensors, origin=origin)
@@ -46,6 +46,7 @@ class SegmentedAccumulator:
         self.snapshot_every = 1.0 / float(snapshot_hz)
         self._snaps: deque[tuple[float, GramAccumulator]] = deque(maxlen=max(2, int(np.ceil(history_s * snapshot_hz))))
         self._next_snap = None
+        self.last_time = float("nan")
         self.segments: dict[int, Segment] = {}
         self.history: list[Segment] = []  # every segment ever opened, oldest first
 
@@ -77,6 +78,7 @@ class SegmentedAccumulator:
                 self._snaps.append((float(ts[b]), self.whole.copy()))
                 self._next_snap = max(self._next_snap + self.snapshot_every, ts[b] + 0.5 * self.snapshot_every)
             a = b
+        self.last_time = float(ts[-1])
         return self
 
     def start_segment(self, sensor: int, time_s: float, kind: str = "slip") -> Segment:
@@ -87,8 +89,8 @@ class SegmentedAccumulator:
         before = [(s, a) for s, a in self._snaps if s <= time_s]
         if after:
             base_s, base = after[0]
-        else:  # the slip is newer than the last snapshot: start from now
-            base_s, base = (float("inf"), self.whole.copy())
+        else:  # the slip is newer than the last snapshot: start from the next frame
+            base_s, base = (self.last_time, self.whole.copy())
         seg = Segment(int(sensor), float(time_s), kind, base, before[-1][1] if before else None, base_s)
         self.segments[int(sensor)] = seg
         self.history.append(seg)

@@ -15,7 +15,8 @@ import numpy as np
 
 from flockcal.errors import FlockcalError
 from flockcal.solver.slippage_attribution import attribute
-from flockcal.solver.slippage_stats import Baseline, affine_baseline, joint_frames, local_variance, window_glr
+from flockcal.solver.slippage_stats import (Baseline, affine_baseline, joint_frames, local_variance,
+                                            step_design_sums, window_glr)
 
 
 class SlippageError(FlockcalError, ValueError):
@@ -137,10 +138,10 @@ class SlipMonitor:
     """
 
     def __init__(self, joints, n_sensors: int, rate_hz: float, names=None, *,
-                 min_jump_m: float = 0.005, warmup_s: float = 5.0, baseline_s: float = 8.0,
+                 min_jump_m: float = 0.01, warmup_s: float = 5.0, baseline_s: float = 8.0,
                  lag_s: float = 1.0, refresh_s: float = 0.5, window_s: float = 0.5, noise_s: float = 0.25,
                  threshold: float = 25.0, attribute_s: float = 0.15, min_frames: int = 4,
-                 min_evidence: float = 20.0, max_misfit: float = 4.0, scale_floor_m: float = 2e-4):
+                 min_evidence: float = 20.0, scale_floor_m: float = 2e-4):
         J = np.asarray(joints, dtype=int).reshape(-1, 2)
         if J.size and (J.min() < 0 or J.max() >= n_sensors or (J[:, 0] == J[:, 1]).any()):
             raise SlippageError(f"joints must be (child, parent) pairs of distinct sensor indices below {n_sensors}")
@@ -159,7 +160,7 @@ class SlipMonitor:
         self.window = max(2, int(round(window_s * rate_hz)))
         self.noise_frames = max(5, int(round(noise_s * rate_hz)))
         self.threshold, self.attribute_s, self.min_frames = threshold, attribute_s, int(min_frames)
-        self.min_evidence, self.max_misfit, self.scale_floor = min_evidence, max_misfit, scale_floor_m
+        self.min_evidence, self.scale_floor = min_evidence, scale_floor_m
         p = len(J)
         cap = int(np.ceil((baseline_s + lag_s + 1.0) * rate_hz))
         self._buf = _FrameBuffer(cap, self.m)
@@ -255,19 +256,21 @@ class SlipMonitor:
         if now - float(buf.times[wsl.start]) < self.attribute_s:
             return []  # gather a little more evidence before naming the sensor
         self._pending = None
-        # The window since the onset, with the noise level measured on the frames before it as well.
+        # The window since the onset, with the noise level measured on the frames before it as well;
+        # residuals with the estimates the baseline sums were made with, so the two halves agree.
         full = buf.since(onset - self.noise_frames)
-        x2, y2, pv2, w2 = self._deviations(buf.R[full], buf.t[full], buf.valid[full], cc, ll)
+        _, _, _, w2 = self._deviations(buf.R[full], buf.t[full], buf.valid[full], cc, ll)
         cut = wsl.start - full.start
-        Rw, tw = buf.R[wsl], buf.t[wsl]
+        Rw, tw, vw = buf.R[wsl], buf.t[wsl], buf.valid[wsl]
+        cp, lp = self._c_pre, self._l_pre
+        u2, Q2 = joint_frames(Rw, tw, self.joints, cp, lp)
+        pv2 = vw[:, self.joints[:, 0]] & vw[:, self.joints[:, 1]]
 
         def swapped(perm, touched):
-            u, Q = joint_frames(Rw[:, perm], tw[:, perm], self.joints[touched], cc[touched], ll[touched])
-            sub = Baseline(self.base.a[touched], self.base.b[touched], self.base.sigma[touched], self.base.frames[touched])
-            return sub.deviations(u, Q)
+            return joint_frames(Rw[:, perm], tw[:, perm], self.joints[touched], cp[touched], lp[touched])
 
-        att = attribute(x2[cut:], y2[cut:], pv2[cut:], w2[cut:], self.joints, ready, fired, self.m,
-                        self.min_jump, self.min_evidence, self.max_misfit, swapped)
+        att = attribute(self._pre, u2, Q2, pv2, w2[cut:], self.joints, ready, fired, self.m,
+                        self.min_jump, self.min_evidence, swapped)
         if att.kind is None:
             self._quiet[fired] = g0 + n  # look for a new step from here on, not the same evidence again
             return []
@@ -308,6 +311,9 @@ class SlipMonitor:
         mask = v[:, self.joints[:, 0]] & v[:, self.joints[:, 1]]
         mask &= times[:, None] >= self.segment_start[None, :]
         self.base = affine_baseline(u, Q, mask, self.scale_floor)
+        wpre = np.where(mask, 1.0 / np.nan_to_num(self.base.sigma, nan=np.inf)[None, :] ** 2, 0.0)
+        self._pre = step_design_sums(u, Q, wpre, None)
+        self._c_pre, self._l_pre = np.array(c, dtype=float), np.array(l, dtype=float)
         enough = self.base.frames >= 0.6 * min(self.warmup_s, self.baseline_s) * self.rate_hz
         settled = now - self.segment_start >= max(self.warmup_s, self.lag_s)
         self.ready = enough & settled & np.isfinite(self.base.sigma)

@@ -1,5 +1,6 @@
 """Numerical pieces of the slippage monitor: joint residuals seen from each sensor of the joint, a robust
-per-joint baseline (median / MAD), local noise from frame differences and a window-limited GLR step test.
+per-joint baseline (a local re-fit), local noise from frame differences, a window-limited GLR step
+test and the Chow-type comparison of step and no-step re-fits that confirms it.
 
 Pure numpy, vectorised over frames and joints; `flockcal.solver.slippage` puts them together.
 """
@@ -155,3 +156,48 @@ def window_glr(x: np.ndarray, weight: np.ndarray, ends: int, window: int, margin
     score = np.take_along_axis(g, best[:, None, :], axis=1)[:, 0, :]
     start = np.take_along_axis(np.broadcast_to(tau_c[..., None], g.shape), best[:, None, :], axis=1)[:, 0, :]
     return score, start
+
+
+def step_design_sums(u: np.ndarray, Q: np.ndarray, weight: np.ndarray, step: str | None) -> np.ndarray:
+    """Σ_k w_k M_kᵀ M_k per joint (p, K, K) for the model u_k = a − Q_k b (+ step) with the data as the
+    last column: M_k = [I, −Q_k, u_k] (K = 7), or with a step column block after −Q_k: I for a step
+    of a (the child's placement, constant in the child frame) or Q_k for a step of b (the parent's)."""
+    n, p = weight.shape
+    eye = np.broadcast_to(np.eye(3), (n, p, 3, 3))
+    blocks = [eye, -Q]
+    if step == "child":
+        blocks.append(eye)
+    elif step == "parent":
+        blocks.append(Q)
+    blocks.append(u[..., None])
+    M = np.concatenate(blocks, axis=-1)  # (n, p, 3, K)
+    return np.einsum("np,npik,npil->pkl", weight, M, M)
+
+
+def least_squares_rss(G: np.ndarray, ridge: float = 1e-9) -> tuple[np.ndarray, np.ndarray]:
+    """Minimum weighted residual sum of squares and the solution for augmented Grams G (p, K, K)
+    (data in the last row/column); directions the data never exercised are held at zero."""
+    A = G[:, :-1, :-1]
+    g = G[:, :-1, -1]
+    scale = np.maximum(np.trace(A, axis1=1, axis2=2) / A.shape[1], 1e-300)
+    A = A + (ridge * scale)[:, None, None] * np.eye(A.shape[1])
+    sol = np.linalg.solve(A, g[..., None])[..., 0]
+    return G[:, -1, -1] - np.einsum("pk,pk->p", g, sol), sol
+
+
+def chow_rss(pre: np.ndarray, u: np.ndarray, Q: np.ndarray, weight: np.ndarray) -> dict:
+    """RSS of three models over the baseline window (`pre`: its (p, 7, 7) sums) and the frames since a
+    suspected change: one (a, b) throughout ("none"), a step of a after the change ("child") or of b
+    ("parent"). Also the fitted step sizes. Motion that merely exercises a joint in a new way is
+    explained by "none" (a better a, b), which a test against a fixed baseline would call a step."""
+    post = {k: step_design_sums(u, Q, weight, k) for k in ("child", "parent")}
+    keep = list(range(6)) + [9]
+    null = pre + post["child"][:, keep][:, :, keep]
+    out = {"none": least_squares_rss(null)[0]}
+    for k, G in post.items():
+        full = G.copy()
+        full[np.ix_(range(len(G)), keep, keep)] += pre
+        rss, sol = least_squares_rss(full)
+        out[k] = rss
+        out[k + "_size"] = np.linalg.norm(sol[:, 6:9], axis=1)
+    return out
