@@ -3,7 +3,8 @@
 Kirk et al. 2005 §2: markers on one bone keep their mutual distances, so the standard deviation of each
 pair's distance over time is near the noise level inside a body and large across a joint. Several
 jittered frame samplings are clustered; the clustering with the smallest within-group spread wins
-(RANSAC-style), which also keeps a marker swap in part of the take from merging two bodies.
+(RANSAC-style). Spreads are taken robustly inside time windows and the largest kept, so a marker
+swap in part of the take does not split a body while a joint exercised only once still separates two.
 """
 
 from __future__ import annotations
@@ -135,21 +136,37 @@ def within_spread(std: np.ndarray, labels: np.ndarray) -> float:
     return float(np.mean(np.where(np.isfinite(vals), vals, 1.0)))
 
 
+def windowed_spread(markers: np.ndarray, windows: list[np.ndarray]) -> np.ndarray:
+    """(k, k) largest, over the windows, of the robust spread (MAD) of each distance inside a window.
+
+    A joint that moves for over half of some window shows; a swap or glitch shorter than half of every
+    window it touches does not. A joint exercised in one part of the take only (one joint at a time,
+    as in a calibration routine) is still seen, which a whole-take robust spread would miss."""
+    out = None
+    for frames in windows:
+        s = distance_std(markers, frames, robust=True)
+        s = np.where(np.isfinite(s), s, -np.inf)
+        out = s if out is None else np.maximum(out, s)
+    out = np.where(np.isfinite(out) & (out >= 0), out, np.inf)
+    np.fill_diagonal(out, 0.0)
+    return out
+
+
 def cluster_markers(
     markers: np.ndarray,
     n_groups: int | None = None,
     samplings: int = 8,
-    frames_per_sampling: int = 200,
-    window: float = 0.4,
+    frames_per_window: int = 40,
+    window_frames: int | None = None,
     seed: int = 0,
 ) -> Clustering:
     """Group the k markers of a take (n, k, 3) into rigid bodies.
 
-    Each sampling is `frames_per_sampling` jittered-uniform frames from a random window covering
-    `window` of the take. The number of groups is the most common eigengap choice over samplings
-    (or `n_groups`); among the samplings that chose it, the one with the smallest mean within-group
-    spread is kept. The affinity uses a robust spread (median absolute deviation) so that a
-    marker swap in part of the take does not split a body.
+    Each sampling cuts the take into windows of `window_frames` (default n/6, at least 60) at a random
+    offset and draws `frames_per_window` jittered-uniform frames in each; the affinity uses
+    `windowed_spread`. The number of groups is the most common eigengap choice over samplings (or
+    `n_groups`); among the samplings that chose it, the one with the smallest mean within-group plain
+    std over its frames is kept (RANSAC-style: a sampling that caught a swap scores worse).
     """
     markers = np.asarray(markers, dtype=float)
     if markers.ndim != 3 or markers.shape[2] != 3:
@@ -158,13 +175,22 @@ def cluster_markers(
     if k < 2:
         raise ClusteringError(f"need at least two markers to find rigid bodies, got {k}")
     rng = np.random.default_rng(seed)
+    wlen = max(60, n // 6) if window_frames is None else int(window_frames)
+    wlen = min(wlen, n)
     results = []
     for s in range(samplings):
-        frames = jittered_frames(n, frames_per_sampling, window if s else 1.0, rng)
-        # Robust spread for the affinity, plain std for the score: a sampling that caught a swap
-        # still clusters well but scores worse, so a clean one is preferred.
+        offset = int(rng.integers(0, wlen)) if n > wlen else 0
+        starts = np.arange(offset - wlen, n, wlen)
+        windows = []
+        for st in starts:
+            lo, hi = max(st, 0), min(st + wlen, n)
+            if hi - lo >= max(10, wlen // 2):
+                windows.append(lo + jittered_frames(hi - lo, frames_per_window, 1.0, rng))
+        if not windows:
+            windows = [jittered_frames(n, frames_per_window, 1.0, rng)]
+        frames = np.unique(np.concatenate(windows))
         std = distance_std(markers, frames)
-        labels, G, vals = spectral_labels(affinity(distance_std(markers, frames, robust=True)), n_groups, seed=seed + s)
+        labels, G, vals = spectral_labels(affinity(windowed_spread(markers, windows)), n_groups, seed=seed + s)
         results.append((labels, G, vals, std))
     votes = np.array([r[1] for r in results])
     counts = np.bincount(votes)
