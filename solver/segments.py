@@ -204,3 +204,28 @@ def _replace_bones(d: dict, seg_dicts: dict, seg: SegmentedAccumulator, index: d
             if (other["body"], other.get("from_joint"), other.get("to_joint")) == key:
                 bone.update(other)
                 bone["segment_start_s"] = s.start_s
+
+
+def calibration_after_slips(take, events, hierarchy=None, root=None) -> dict:
+    """design.md §5 JSON for a recorded take with slips: the whole-take calibration, except that every
+    joint and bone involving a slipped sensor is fitted on the frames since its (latest) slip, and
+    `slip_events` lists the events. `take` as for `detect_slips`; `events` from it."""
+    R = np.asarray(take.rotations, dtype=float)
+    t = np.asarray(take.positions, dtype=float)
+    n, m = R.shape[:2]
+    times = getattr(take, "times", None)
+    times = np.arange(n) / float(take.rate_hz) if times is None else np.asarray(times, dtype=float)
+    valid = getattr(take, "valid", None)
+    seg = SegmentedAccumulator(m)
+    seg._snaps = deque()  # offline: keep a snapshot at every event time, however far apart
+    cuts = sorted({float(e.time_s) for e in events})
+    bounds = [0] + [int(np.searchsorted(times, c, side="left")) for c in cuts] + [n]
+    for k, (a, b) in enumerate(zip(bounds[:-1], bounds[1:])):
+        if k > 0:
+            seg._snaps.append((cuts[k - 1], seg.whole.copy()))
+        if b > a:
+            seg.whole.update(R[a:b], t[a:b], None if valid is None else valid[a:b])
+    seg.last_time = float(times[-1]) if n else float("nan")
+    seg.apply(sorted(events, key=lambda e: e.time_s))
+    names = getattr(take, "names", None)
+    return seg.calibration_dict(hierarchy=hierarchy, root=root, names=names, slip_events=events)

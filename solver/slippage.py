@@ -321,7 +321,7 @@ class SlipMonitor:
         self._last_refresh = now
 
 
-def detect_slips(take, calibration=None, *, joints=None, c=None, l=None, batch_s: float = 1 / 30,
+def detect_slips(take, calibration=None, *, joints=None, c=None, l=None, batch_s: float = 0.25,
                  **options) -> list:
     """Slip and swap events in a recorded take, replayed through a `SlipMonitor` in live-sized batches.
 
