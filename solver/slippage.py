@@ -9,7 +9,7 @@ all stepped (or the pair that swapped) before an event is reported.
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -207,6 +207,15 @@ class SlipMonitor:
             out += self._process(ts[a:b], R[a:b], t[a:b], v[a:b], c, l)
         self.events += out
         return out
+
+    def status(self) -> dict:
+        """Per joint (by child name): watching yet, latest step evidence (nats) and the current
+        segment's start, plus every event so far, for a status page."""
+        joints = {
+            self.names[int(c)]: {"ready": bool(r), "score": round(float(sc), 2), "segment_start_s": None if st != st else float(st)}
+            for (c, _), r, sc, st in zip(self.joints, self.ready, self.score, self.segment_start)
+        }
+        return {"joints": joints, "threshold": self.threshold, "events": [e.to_dict() for e in self.events]}
 
     # -- internals ----------------------------------------------------------------------------------
     def _process(self, ts, R, t, v, c, l) -> list:

@@ -20,7 +20,7 @@ import numpy as np
 from flockcal.solver.slippage_stats import chow_rss
 
 
-# A hypothesis must beat "nothing happened" by this many nats, and report candidates down to this share.
+# Other sensors are listed as candidates down to this posterior share.
 CANDIDATE_SHARE = 0.05
 
 

@@ -7,6 +7,7 @@ Pure numpy, vectorised over frames and joints; `flockcal.solver.slippage` puts t
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -79,25 +80,12 @@ def affine_baseline(u: np.ndarray, Q: np.ndarray, mask: np.ndarray, scale_floor:
     base = Baseline(sol[:, :3], sol[:, 3:], np.full(p, np.nan), N)
     x, _ = base.deviations(u, Q)
     d = np.where(mask, np.linalg.norm(x, axis=-1), np.nan)
-    with _quiet_nan_warnings():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # a joint with no valid frame has no baseline
         level = np.nanmedian(d, axis=0) if n else np.full(p, np.nan)
     # Six fitted parameters use up a little of the spread; over hundreds of frames that is negligible.
     base.sigma = np.where(N > 6, np.maximum(level / CHI3_MEDIAN, scale_floor), np.nan)
     return base
-
-
-class _quiet_nan_warnings:
-    """Silence numpy's all-NaN-slice warnings: a joint with no valid frame simply has no baseline."""
-
-    def __enter__(self):
-        import warnings
-
-        self._ctx = warnings.catch_warnings()
-        self._ctx.__enter__()
-        warnings.simplefilter("ignore", RuntimeWarning)
-
-    def __exit__(self, *exc):
-        return self._ctx.__exit__(*exc)
 
 
 def local_variance(x: np.ndarray, pair_valid: np.ndarray, frames: int) -> np.ndarray:

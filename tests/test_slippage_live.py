@@ -5,6 +5,7 @@
 from __future__ import annotations
 
 import copy
+import json
 
 import numpy as np
 import pytest
@@ -136,3 +137,6 @@ def test_swapped_sensors_reported_as_a_swap_not_a_slip():
     assert {found[0].a, found[0].b} == {"l_hand", "r_hand"}
     d = found[0].to_dict()
     assert d["kind"] == "swap" and set(d["candidates"]) == {"l_hand", "r_hand"}
+    status = json.loads(json.dumps(replay.monitor.status()))  # what a status route would serve
+    assert status["events"] == [d]
+    assert not status["joints"]["l_hand"]["ready"] and status["joints"]["head"]["ready"]
