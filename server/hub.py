@@ -18,6 +18,7 @@ class SnapshotHub:
         self._event: asyncio.Event | None = None
         self._scheduled = False
         self.clients = 0
+        self.dropped_slow = 0  # clients dropped because they stopped reading
 
     def bind(self, loop: asyncio.AbstractEventLoop) -> None:
         self.loop = loop

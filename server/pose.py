@@ -41,9 +41,11 @@ def live_pose(names, rotations, positions, valid, fit: dict | None) -> dict:
         art = articulation(fit).reordered(names)
     except (ArticulationError, KeyError, ValueError):
         return base
-    if not valid.any():
+    try:
+        # The rotations are each sensor's newest valid pose (held through dropouts), so use them all.
+        rec = reconstruct(rotations[None], positions[None], art)
+    except (ArticulationError, ValueError):
         return base
-    rec = reconstruct(rotations[None], positions[None], art, valid[None] if not valid.all() else None)
     pivots = rec.joint_positions[0]  # inboard joint of each body, root sensor at the root
     sensor_at = rec.sensor_positions[0]
     m = len(names)

@@ -63,6 +63,8 @@ class Settings:
     baud: int = 115200
     hemisphere: str = "forward"
     ws_max_clients: int = 200
+    send_buffer_bytes: int | None = 256 * 1024  # kernel send buffer per connection (bounds a stalled client's backlog)
+    ws_send_timeout_s: float = 30.0  # a websocket client that takes no data for this long is dropped
     log_level: str = "info"
     fast_init: bool = False  # skip the manual's reset delays (simulators and fake trackers on a pty)
 

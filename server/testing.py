@@ -74,6 +74,10 @@ class ServerThread:
         return self.app.state.service
 
     def start(self, timeout: float = 30.0) -> "ServerThread":
+        from flockcal.server.listen import listen_socket
+
+        sock = listen_socket(self.settings.host, self.settings.http_port, self.settings.send_buffer_bytes)
+        self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [sock]}, name="uvicorn", daemon=True)
         self.thread.start()
         deadline = time.monotonic() + timeout
         while not self.server.started:

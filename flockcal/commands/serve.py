@@ -69,6 +69,7 @@ def run(args: argparse.Namespace) -> int:
 
     from flockcal.server.app import create_app
     from flockcal.server.errors import ConfigError
+    from flockcal.server.listen import listen_socket
 
     try:
         settings = settings_from_args(args).check()
@@ -91,8 +92,9 @@ def run(args: argparse.Namespace) -> int:
                             ws_max_size=64 * 1024, lifespan="on")
     server = uvicorn.Server(config)
     try:
-        server.run()
+        sock = listen_socket(settings.host, settings.http_port, settings.send_buffer_bytes)
     except OSError as exc:
         raise UserError(f"cannot listen on {settings.host}:{settings.http_port}: {exc.strerror}; "
-                        "choose another --http-port") from None
+                        "choose another --http-port or --host") from None
+    server.run(sockets=[sock])
     return 0

@@ -22,7 +22,6 @@ log = logging.getLogger(__name__)
 
 CONTENT = ("status", "fit", "residuals", "events", "pose")
 STATUS_PERIOD_S = 0.5  # status goes out at most twice a second (and at once when it changes)
-SEND_TIMEOUT_S = 30.0  # a client that takes no data for this long is dropped
 AUTH_TIMEOUT_S = 10.0
 REPLAY_EVENTS = 20  # recent events of the live session sent on subscribe
 
@@ -68,7 +67,13 @@ class Connection:
         return head[:-1] + ", " + body_json[1:]
 
     async def send(self, text: str) -> None:
-        await asyncio.wait_for(self.ws.send_text(text), SEND_TIMEOUT_S)
+        try:
+            await asyncio.wait_for(self.ws.send_text(text), self.service.settings.ws_send_timeout_s)
+        except asyncio.TimeoutError:
+            # The client stopped reading: drop it rather than hold its backlog.
+            self.service.hub.dropped_slow += 1
+            log.info("dropping a websocket client that took no data for %.0f s", self.service.settings.ws_send_timeout_s)
+            raise
 
     async def receive_loop(self) -> None:
         settings = self.service.settings
@@ -208,6 +213,7 @@ async def live(ws: WebSocket):
         done, pending = await asyncio.wait({receiver, sender}, return_when=asyncio.FIRST_COMPLETED)
         for task in pending:
             task.cancel()
+        await asyncio.gather(*pending, return_exceptions=True)
         for task in done:
             exc = task.exception()
             if exc is not None and not isinstance(exc, (WebSocketDisconnect, asyncio.TimeoutError, RuntimeError)):

@@ -1,0 +1,173 @@
+"""WebSocket /ws/live: subscriptions choose rate and content, every message has a type and a rising
+seq, 50 clients get snapshots at their rate while 16 birds stream, and a client that stops reading
+slows neither the others nor the pipeline (it is dropped once its sends block for too long).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import json
+import socket
+import time
+
+import httpx
+import pytest
+import websockets
+
+from flockcal.server.settings import Settings
+from flockcal.server.testing import ServerThread, free_port, wait_connected
+
+CLIENTS = 50
+RATE = 5.0
+WINDOW_S = 4.0
+
+
+@pytest.fixture(scope="module")
+def server(tmp_path_factory):
+    settings = Settings(device="sim://live?birds=16&motion=exercise&rate=144&baud=921600", birds=16,
+                        http_port=free_port(), data_dir=tmp_path_factory.mktemp("live"), ws_send_timeout_s=1.5, send_buffer_bytes=32768)
+    with ServerThread(settings) as srv:
+        wait_connected(srv.url)
+        r = httpx.post(srv.url + "/api/sessions", json={"performer": "Cy"})
+        assert r.status_code == 201
+        yield srv
+
+
+def ws_url(server) -> str:
+    return server.url.replace("http://", "ws://") + "/ws/live"
+
+
+async def subscriber(url: str, rate: float, content: list[str], seconds: float) -> list[dict]:
+    got = []
+    async with websockets.connect(url) as ws:
+        await ws.send(json.dumps({"type": "subscribe", "rate_hz": rate, "content": content}))
+        end = time.monotonic() + seconds
+        while (left := end - time.monotonic()) > 0:
+            try:
+                raw = await asyncio.wait_for(ws.recv(), left)
+            except asyncio.TimeoutError:
+                break
+            msg = json.loads(raw)
+            msg["_at"] = time.monotonic()
+            got.append(msg)
+    return got
+
+
+async def stalled_client(url: str, done: asyncio.Event) -> None:
+    """Subscribes to everything at the top rate, then never reads until `done` is set."""
+    sock = socket.socket()
+    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # a tiny window, so the server's sends block soon
+    host, port = url.split("//")[1].split("/")[0].split(":")
+    sock.connect((host, int(port)))
+    ws = await websockets.connect(url, sock=sock, max_queue=1)
+    await ws.send(json.dumps({"type": "subscribe", "rate_hz": 1000,
+                              "content": ["status", "fit", "residuals", "events", "pose"]}))
+    await done.wait()
+    ws.transport.abort()
+
+
+def test_fifty_clients_get_their_rate_while_a_stalled_client_is_dropped(server):
+    url = ws_url(server)
+    fits_before = server.service.pipeline.fits_done
+    dropped_before = server.service.hub.dropped_slow
+
+    async def main():
+        done = asyncio.Event()
+        stall = asyncio.create_task(stalled_client(url, done))
+        await asyncio.sleep(0.5)
+        results = await asyncio.gather(*[subscriber(url, RATE, ["status", "fit", "pose"], WINDOW_S)
+                                         for _ in range(CLIENTS)])
+        deadline = time.monotonic() + 20
+        while server.service.hub.dropped_slow == dropped_before and time.monotonic() < deadline:
+            await asyncio.sleep(0.1)
+        done.set()
+        await stall
+        return results
+
+    results = asyncio.run(main())
+    # The server noticed its sends to the stalled client blocking and gave up on that client only.
+    assert server.service.hub.dropped_slow == dropped_before + 1
+    # The pipeline kept refitting throughout (it never waits for a client).
+    assert server.service.pipeline.fits_done > fits_before + 10
+    for msgs in results:
+        seqs = [m["seq"] for m in msgs]
+        assert seqs == sorted(set(seqs)), "seq must rise strictly"
+        poses = [m for m in msgs if m["type"] == "pose"]
+        # Never faster than asked (one tick of slack), and a steady stream to the end of the window.
+        assert len(poses) <= RATE * WINDOW_S + 2
+        assert len(poses) >= 0.3 * RATE * WINDOW_S
+        assert poses[-1]["_at"] - msgs[0]["_at"] > WINDOW_S - 1.5
+        snapshots = [p["snapshot"] for p in poses]
+        assert snapshots == sorted(snapshots)
+        assert any(m["type"] == "fit" for m in msgs) and any(m["type"] == "status" for m in msgs)
+
+
+def test_messages_carry_what_the_subscription_asked_for(server):
+    msgs = asyncio.run(subscriber(ws_url(server), 20, ["fit", "pose", "residuals", "status"], 1.5))
+    types = {m["type"] for m in msgs}
+    assert {"subscribed", "fit", "pose", "residuals", "status"} <= types and "event" not in types
+    for m in msgs:
+        assert isinstance(m["seq"], int) and isinstance(m["time"], float)
+    fit = next(m for m in msgs if m["type"] == "fit")
+    assert {"sensors", "root", "parent", "joints", "bones"} <= set(fit["result"])
+    assert 0.0 <= fit["progress"] <= 1.0
+    for hint in fit["hints"]:
+        assert hint["joint"] in fit["result"]["sensors"] and hint["hint"].endswith(".")
+    pose = next(m for m in msgs if m["type"] == "pose")["pose"]
+    assert len(pose["sensors"]) == 16 and all(len(s["R"]) == 9 for s in pose["sensors"])
+    for a, b in pose["bones"]:
+        assert 0 <= a < len(pose["joints"]) and 0 <= b < len(pose["joints"])
+    res = [m for m in msgs if m["type"] == "residuals"]
+    for m in res:
+        assert all(len(v) == len(m["times"]) for v in m["joints"].values())
+
+
+def test_bad_subscriptions_get_an_error_message_and_the_socket_stays_usable(server):
+    async def main():
+        async with websockets.connect(ws_url(server)) as ws:
+            hello = json.loads(await ws.recv())
+            assert hello["type"] == "hello"
+            out = []
+            for bad in ("{not json", json.dumps({"type": "subscribe", "rate_hz": -1}),
+                        json.dumps({"type": "subscribe", "content": ["everything"]}),
+                        json.dumps({"type": "dance"})):
+                await ws.send(bad)
+                out.append(json.loads(await ws.recv()))
+            await ws.send(json.dumps({"type": "subscribe", "rate_hz": 5, "content": ["status"]}))
+            out.append(json.loads(await ws.recv()))
+            return out
+
+    *errors, ok = asyncio.run(main())
+    assert [e["type"] for e in errors] == ["error"] * 4
+    assert "rate_hz" in errors[1]["message"] and "everything" in errors[2]["message"]
+    assert ok["type"] == "subscribed" and ok["content"] == ["status"]
+
+
+def test_websocket_needs_a_token_when_the_service_has_one(tmp_path):
+    settings = Settings(device="sim://tok?birds=3&model=linkage&motion=exercise", birds=3, http_port=free_port(),
+                        data_dir=tmp_path, token="admin-token-1", read_token="read-token-22")
+    with ServerThread(settings) as srv:
+        url = srv.url.replace("http://", "ws://") + "/ws/live"
+
+        async def attempt(query: str, token_in_message: str | None):
+            async with websockets.connect(url + query) as ws:
+                msgs = [json.loads(await ws.recv())]
+                sub = {"type": "subscribe", "rate_hz": 5, "content": ["status"]}
+                if token_in_message:
+                    sub["token"] = token_in_message
+                try:
+                    await ws.send(json.dumps(sub))
+                    while len(msgs) < 3:
+                        msgs.append(json.loads(await asyncio.wait_for(ws.recv(), 5)))
+                except websockets.ConnectionClosed as exc:
+                    return msgs, exc.rcvd.code if exc.rcvd else None
+                return msgs, None
+
+        # No token anywhere: refused with policy-violation close code 1008.
+        msgs, code = asyncio.run(attempt("", None))
+        assert code == 1008 and msgs[-1]["type"] == "error"
+        # Read token in the query string, or in the subscribe message: accepted.
+        msgs, code = asyncio.run(attempt("?token=read-token-22", None))
+        assert code is None and msgs[1]["type"] == "subscribed"
+        msgs, code = asyncio.run(attempt("", "read-token-22"))
+        assert code is None and msgs[1]["type"] == "subscribed"
