@@ -39,23 +39,39 @@ class Frames:
         return Frames(*(np.concatenate([getattr(p, k) for p in parts]) for k in ("times", "rotations", "positions", "valid")))
 
 
-@dataclass
 class _Held:
-    """Records of one port decoded but not yet released (we wait to see what follows the last one)."""
+    """Records of one port framed but not yet released (we wait to see what follows the last one).
 
-    times: np.ndarray = field(default_factory=lambda: np.zeros(0))
-    addresses: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
-    rotations: np.ndarray = field(default_factory=lambda: np.zeros((0, 3, 3)))
-    positions: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
-    valid: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
-    suspect: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))
-    after_gap: np.ndarray = field(default_factory=lambda: np.zeros(0, bool))  # lost bytes just before it
+    Poses stay as raw record bytes until frames are handed out: decoding is done once per batch of
+    many reads, not once per read.
+    """
+
+    __slots__ = ("times", "addresses", "raw", "suspect", "after_gap")
+
+    def __init__(self, times, addresses, raw, suspect, after_gap):
+        self.times = times  # (k,) arrival (or back-dated) time of each record
+        self.addresses = addresses  # (k,) FBB address
+        self.raw = raw  # (k, L) uint8 record bytes
+        self.suspect = suspect  # (k,) bool: next to lost bytes, must continue the bird's motion
+        self.after_gap = after_gap  # (k,) bool: lost bytes just before it
+
+    @staticmethod
+    def empty(length: int) -> "_Held":
+        return _Held(np.zeros(0), np.zeros(0, np.int64), np.zeros((0, length), np.uint8),
+                     np.zeros(0, bool), np.zeros(0, bool))
 
     def __len__(self) -> int:
         return len(self.times)
 
+    @staticmethod
+    def concat(parts: list["_Held"]) -> "_Held":
+        parts = [p for p in parts if len(p)] or parts[:1]
+        if len(parts) == 1:
+            return parts[0]
+        return _Held(*(np.concatenate([getattr(p, k) for p in parts]) for k in _HELD_FIELDS))
+
     def append(self, other: "_Held") -> "_Held":
-        return _Held(*(np.concatenate([getattr(self, k), getattr(other, k)]) for k in _HELD_FIELDS))
+        return _Held.concat([self, other])
 
     def split(self, k: int) -> tuple["_Held", "_Held"]:
         return (_Held(*(getattr(self, f)[:k] for f in _HELD_FIELDS)),
@@ -65,7 +81,7 @@ class _Held:
         return _Held(*(getattr(self, f)[sel] for f in _HELD_FIELDS))
 
 
-_HELD_FIELDS = ("times", "addresses", "rotations", "positions", "valid", "suspect", "after_gap")
+_HELD_FIELDS = ("times", "addresses", "raw", "suspect", "after_gap")
 
 
 class _PortStream:
@@ -89,55 +105,57 @@ class _PortStream:
             self.decoder = codec.StreamDecoder(fmt, group=False, address=setup.addresses[index],
                                                scale_inches=setup.scale_inches)
         self.length = codec.record_length(fmt, group=setup.group)
+        self.none = _Held.empty(self.length)
         self.fed = 0  # stream bytes fed
         self.prev_end: int | None = None  # stream offset just after the last record released
-        self.held = _Held()
+        self.held = self.none
         self.held_end = -1
         self.resyncs_seen = 0
         self.dropped_seen = 0
 
     def feed(self, data: bytes, t: float) -> _Held:
-        rec = self.decoder.feed(data, t)
+        rec = self.decoder.frame(data, t)
         self.fed += len(data)
-        tail_start = self.fed - self.decoder.pending_bytes
-        if len(rec) == 0:
+        pending = self.decoder.pending_bytes
+        tail_start = self.fed - pending
+        k = len(rec)
+        if k == 0:
             if len(self.held) and tail_start != self.held_end:
                 return self._release_all(next_gap=True)  # bytes after the held record were lost
-            if len(self.held) and self.decoder.pending_bytes:
+            if len(self.held) and pending:
                 return self._release_all(next_gap=False)  # a new record starts right after it
-            return _Held()
+            return self.none
         offsets = rec.offsets
-        ends = offsets + self.length
         times = rec.times
         if not self.group:
             times = self._backdate(times)
-        new = _Held(times, rec.addresses, rec.rotations, rec.positions, rec.valid,
-                    np.zeros(len(rec), bool), np.zeros(len(rec), bool))
-        starts_all = offsets
-        if len(self.held):
-            prev_ends = np.concatenate([[self.held_end], ends[:-1]])
+        L = self.length
+        first_prev = self.held_end if len(self.held) else (int(offsets[0]) if self.prev_end is None
+                                                           else self.prev_end)
+        last_end = int(offsets[-1]) + L
+        if rec.contiguous and int(offsets[0]) == first_prev:
+            # Whole records back to back, right after the previous one: nothing lost around them.
+            flags = np.zeros(k, bool)
+            new = _Held(times, rec.addresses, rec.record_bytes(L), flags, flags.copy())
         else:
-            first_prev = offsets[0] if self.prev_end is None else self.prev_end
+            ends = offsets + L
             prev_ends = np.concatenate([[first_prev], ends[:-1]])
-        prev_gap = starts_all != prev_ends
-        next_gap = np.zeros(len(rec), bool)
-        next_gap[:-1] = offsets[1:] != ends[:-1]
-        new.suspect = prev_gap | next_gap
-        new.after_gap = prev_gap.copy()
-        out = _Held()
-        if len(self.held):
-            self.held.suspect = self.held.suspect | prev_gap[:1]
-            out = self.held
+            prev_gap = offsets != prev_ends
+            next_gap = np.zeros(k, bool)
+            next_gap[:-1] = offsets[1:] != ends[:-1]
+            new = _Held(times, rec.addresses, rec.record_bytes(L), prev_gap | next_gap, prev_gap)
+            if len(self.held):
+                self.held.suspect = self.held.suspect | prev_gap[:1]
+        out = self.held
         # The last record: known good on the right if a new record starts right after it.
-        last_end = int(ends[-1])
         if last_end != tail_start:
             new.suspect[-1] = True
-            release, keep = new, _Held()
-        elif self.decoder.pending_bytes:
-            release, keep = new, _Held()
+            release, keep = new, self.none
+        elif pending:
+            release, keep = new, self.none
         else:
-            release, keep = new.split(len(new) - 1)
-        out = out.append(release) if len(out) else release
+            release, keep = new.split(k - 1)
+        out = _Held.concat([out, release])
         self.held = keep
         self.held_end = last_end if len(keep) else -1
         self.prev_end = last_end
@@ -156,7 +174,7 @@ class _PortStream:
         out = self.held
         if next_gap and len(out):
             out.suspect[-1] = True
-        self.held = _Held()
+        self.held = self.none
         self.held_end = -1
         return out
 
@@ -173,12 +191,21 @@ class FrameAssembler:
 
     Group mode: a cycle is a run of strictly increasing bird addresses on the one port. One port per
     bird: records are grouped by arrival time (nearest to the cycle's median arrival, within half a
-    period). A bird whose record is missing, damaged, saturated or fails the motion check is invalid.
+    period). A bird whose record is missing, damaged, saturated, clipped at full scale or fails the
+    motion check is invalid.
+
+    Reads are framed and grouped into cycles as they come; the poses of finished cycles are decoded
+    and checked in one batch when frames are taken (or every `batch_cycles` cycles). That work is the
+    same whatever the batches, so frames depend only on the chunks fed, not on when `take` is called.
     """
 
+    batch_cycles = 1024  # decode at least this often even if nobody takes frames
+
     def __init__(self, setup: FlockSetup, *, hemisphere_tracking: bool = True, max_speed: float = 20.0,
-                 max_turn_rate: float = 60.0):
+                 max_turn_rate: float = 60.0, saturation_quiet: float = 1.0):
         self.setup = setup
+        self.format = codec.FORMATS[setup.record_format]
+        self.saturation_quiet = saturation_quiet
         self.m = setup.birds
         self.ports = [_PortStream(setup, i) for i in range(1 if setup.group else len(setup.urls))]
         self.period = 1.0 / max(setup.rate_hz, 1e-3)
@@ -189,7 +216,11 @@ class FrameAssembler:
         self.index_of_address[np.asarray(setup.addresses)] = np.arange(self.m)
         self.hemisphere = codec.hemisphere_vector(setup.hemisphere)
         # Group-mode records of the cycle still open.
-        self.open = _Held()
+        self.none = self.ports[0].none
+        self.open = self.none
+        # Cycles closed but not yet decoded: (cycle_times, cycle, bird, records) per batch.
+        self.pending: list[tuple[np.ndarray, np.ndarray, np.ndarray, _Held]] = []
+        self.pending_cycles = 0
         # One-port-per-bird queues of released records.
         self.port_cycle = [-1] * len(self.ports)  # cycle number of each port's last record
         self.port_time = [-np.inf] * len(self.ports)
@@ -202,7 +233,7 @@ class FrameAssembler:
         self.last_frame_time = -np.inf
         self.phase: float | None = None  # arrival time of cycle 0, once anchored
         self.anchor_records = 8
-        self.startup = [_Held() for _ in self.ports]
+        self.startup = [self.none for _ in self.ports]
         self.now = -np.inf
         # Per-bird memory for the motion check and the hemisphere tracker.
         self.last_time = np.full(self.m, -np.inf)
@@ -215,6 +246,8 @@ class FrameAssembler:
         self.frames = 0
         self.dropped_records = 0
         self.rejected_records = 0
+        self.saturated_records = 0  # bird-frames whose position was clipped at full scale
+        self.last_saturated = -np.inf  # time of the last frame with a clipped position
 
     # -- counters ------------------------------------------------------------------------------
     @property
@@ -245,19 +278,22 @@ class FrameAssembler:
         for i, ps in enumerate(self.ports):
             self._take_records(i, ps.flush(), final=False)
         if not self.setup.group and self.phase is None:
-            self._assign(0, _Held(), final=True)
+            self._assign(0, self.none, final=True)
         if self.setup.group:
             self._emit_group(self.open, close_last=True)
-            self.open = _Held()
+            self.open = self.none
         else:
             self._emit_ports(final=True)
+        self._finish()
 
     def take(self) -> Frames:
         """Frames assembled since the last call."""
+        self._finish()
         out, self.out = Frames.concat(self.out, self.m), []
         return out
 
     def take_events(self) -> list[tuple[str, str, dict]]:
+        self._finish()
         out, self.events = self.events, []
         return out
 
@@ -266,7 +302,7 @@ class FrameAssembler:
         if len(rec) == 0:
             return
         if self.setup.group:
-            self.open = self.open.append(rec) if len(self.open) else rec
+            self.open = _Held.concat([self.open, rec])
             self._emit_group(self.open, close_last=False)
         else:
             self._assign(port, rec, final)
@@ -349,7 +385,7 @@ class FrameAssembler:
         """
         P = self.period
         if self.phase is None:
-            self.startup[port] = self.startup[port].append(rec) if len(self.startup[port]) else rec
+            self.startup[port] = _Held.concat([self.startup[port], rec])
             counts = [len(h) for h in self.startup]
             if not (min(counts) >= self.anchor_records or max(counts) >= 3 * self.anchor_records or final):
                 return
@@ -362,7 +398,7 @@ class FrameAssembler:
                 if len(h):
                     first = int(round((phases[b] - self.phase) / P))
                     self._place(b, h, first + np.arange(len(h)))
-            self.startup = [_Held() for _ in self.ports]
+            self.startup = [self.none for _ in self.ports]
             return
         cycles = np.empty(len(rec), np.int64)
         last, last_t = self.port_cycle[port], self.port_time[port]
@@ -421,29 +457,55 @@ class FrameAssembler:
         for c in [c for c in self.cycle_slots if c <= self.emitted_upto]:  # late records of emitted cycles
             self.rejected_records += len(self.cycle_slots.pop(c))
             self.cycle_time.pop(c, None)
-        rec = parts[0]
-        for r in parts[1:]:
-            rec = rec.append(r)
+        rec = _Held.concat(parts)
         times = np.maximum.accumulate(np.maximum(np.asarray(times), self.last_frame_time))
         self.last_frame_time = float(times[-1])
         self._emit(times, np.asarray(cycle, np.int64), np.asarray(birds, np.int64), rec)
 
     # -- common: fill frames, check suspects, track hemisphere ---------------------------------
     def _emit(self, cycle_times: np.ndarray, cycle: np.ndarray, bird: np.ndarray, rec: _Held) -> None:
+        """Queue closed cycles (cycle numbers 0..n-1 within this call) for the next decode."""
+        self.pending.append((cycle_times, cycle, bird, rec))
+        self.pending_cycles += len(cycle_times)
+        if self.pending_cycles >= self.batch_cycles:
+            self._finish()
+
+    def _finish(self) -> None:
+        """Decode and check every queued cycle in one batch."""
+        if not self.pending:
+            return
+        pending, self.pending, self.pending_cycles = self.pending, [], 0
+        if len(pending) == 1:
+            cycle_times, cycle, bird, rec = pending[0]
+        else:
+            sizes = np.cumsum([0] + [len(x[0]) for x in pending[:-1]])
+            cycle_times = np.concatenate([x[0] for x in pending])
+            cycle = np.concatenate([x[1] + s for x, s in zip(pending, sizes)])
+            bird = np.concatenate([x[2] for x in pending])
+            rec = _Held.concat([x[3] for x in pending])
+        self._decode_cycles(cycle_times, cycle, bird, rec)
+
+    def _decode_cycles(self, cycle_times: np.ndarray, cycle: np.ndarray, bird: np.ndarray, rec: _Held) -> None:
         n, m = len(cycle_times), self.m
+        rotations, positions, rec_valid, rec_clipped = codec.decode_block(
+            self.format, rec.raw, scale_inches=self.setup.scale_inches)
         R = np.zeros((n, m, 3, 3))
         p = np.zeros((n, m, 3))
         valid = np.zeros((n, m), bool)
         suspect = np.zeros((n, m), bool)
         ok = bird >= 0
         c, b = cycle[ok], bird[ok]
-        R[c, b] = rec.rotations[ok]
-        p[c, b] = rec.positions[ok]
-        valid[c, b] = rec.valid[ok]
-        suspect[c, b] = rec.suspect[ok] & rec.valid[ok]
+        R[c, b] = rotations[ok]
+        p[c, b] = positions[ok]
+        valid[c, b] = rec_valid[ok]
+        suspect[c, b] = rec.suspect[ok] & rec_valid[ok]
         rec_time = np.zeros((n, m))
         rec_time[c, b] = rec.times[ok]
         np.maximum.at(self.last_seen, b, rec.times[ok])
+        if rec_clipped.any():
+            clipped = np.zeros((n, m), bool)
+            clipped[c, b] = rec_clipped[ok]
+            self._report_saturation(cycle_times, clipped)
         if suspect.any():
             self._check_suspects(R, p, valid, suspect, rec_time)
         if self.hemisphere_tracking and self.setup.record_format in ("position", "position_angles",
@@ -455,6 +517,25 @@ class FrameAssembler:
         self.frames += n
         self.dropped_records += int(np.count_nonzero(~valid))
         self.out.append(Frames(cycle_times.astype(float), R, p, valid))
+
+    def _report_saturation(self, cycle_times: np.ndarray, clipped: np.ndarray) -> None:
+        """Count clipped positions; one event per burst (clipping after `saturation_quiet` s without)."""
+        self.saturated_records += int(np.count_nonzero(clipped))
+        rows = np.flatnonzero(clipped.any(axis=1))
+        t = cycle_times[rows]
+        before = np.concatenate([[self.last_saturated], t[:-1]])
+        scale = self.setup.scale_inches
+        if scale < 72:
+            fix = "use the 72-inch scale (--scale 72) or move the transmitter closer to the performance area"
+        else:
+            fix = f"{scale:g} in is the largest scale: move the transmitter closer to the performance area"
+        for row in rows[t - before > self.saturation_quiet]:
+            birds = [int(b) for b in np.flatnonzero(clipped[row])]
+            self.events.append(("position_saturated",
+                                f"bird(s) {', '.join(map(str, birds))} beyond the {scale:g}-inch position full "
+                                f"scale: clipped positions are marked invalid — {fix}",
+                                {"birds": birds, "scale_inches": float(scale)}))
+        self.last_saturated = max(self.last_saturated, float(t[-1]))
 
     def _check_suspects(self, R, p, valid, suspect, rec_time) -> None:
         """Keep a suspect record only if it continues the bird's motion (a garbled one jumps far away)."""

@@ -345,10 +345,11 @@ class DecodedRecords:
     addresses: np.ndarray  # (k,) int
     rotations: np.ndarray  # (k, 3, 3) body → transmitter
     positions: np.ndarray  # (k, 3) metres
-    valid: np.ndarray  # (k,) bool — False for the all-zero (saturated) record
+    valid: np.ndarray  # (k,) bool — False for the all-zero record and for a position at full scale
     offsets: np.ndarray  # (k,) int64, stream offset of each record's first byte
     times: np.ndarray  # (k,) float, arrival time of each record's first byte (NaN if unknown)
     buttons: np.ndarray | None = None  # (k,) uint8 when button mode is on
+    clipped: np.ndarray | None = None  # (k,) bool, True where a position word sits at full scale
 
     def __len__(self) -> int:
         return len(self.addresses)
@@ -357,7 +358,61 @@ class DecodedRecords:
     def empty(button: bool = False) -> "DecodedRecords":
         return DecodedRecords(np.zeros(0, np.int64), np.zeros((0, 3, 3)), np.zeros((0, 3)),
                               np.zeros(0, bool), np.zeros(0, np.int64), np.zeros(0),
-                              np.zeros(0, np.uint8) if button else None)
+                              np.zeros(0, np.uint8) if button else None, np.zeros(0, bool))
+
+
+@dataclass
+class FramedRecords:
+    """Records found in a stream but not yet decoded: where their bytes are, and when they arrived.
+
+    Framing is cheap integer work done on every read; decoding poses can wait and be done for many
+    reads at once (`StreamDecoder.decode`, or `record_bytes` + `decode_block`).
+    """
+
+    buffer: np.ndarray  # uint8 bytes the starts index into
+    starts: np.ndarray  # (k,) index of each record's first byte in `buffer`
+    lengths: np.ndarray | int  # (k,) record lengths, or one int for all
+    addresses: np.ndarray  # (k,) int, the group address byte (or the stream's one address)
+    offsets: np.ndarray  # (k,) int64 stream offsets
+    times: np.ndarray  # (k,) arrival time of each record's first byte
+    contiguous: bool = False  # records of one length back to back from buffer[0]
+
+    def __len__(self) -> int:
+        return len(self.starts)
+
+    def record_bytes(self, length: int) -> np.ndarray:
+        """(k, length) uint8: the bytes of every record (all of this length)."""
+        k = len(self.starts)
+        if self.contiguous:
+            return self.buffer[:k * length].reshape(k, length)
+        return self.buffer[self.starts[:, None] + np.arange(length)]
+
+
+def position_clipped(fmt: RecordFormat | str, words: np.ndarray) -> np.ndarray:
+    """(n,) True where a position word sits at the clip limit (|word| ≥ 32764, i.e. |position| ≥
+    FS·(1 − 1 step)): the sensor was beyond full scale and that position is garbage."""
+    fmt = as_format(fmt)
+    if not fmt.position:
+        return np.zeros(len(words), bool)
+    return np.abs(words[:, :3]).max(axis=1) >= 32764
+
+
+def decode_block(fmt: RecordFormat | str, records: np.ndarray, *, scale_inches: float = 36.0,
+                 quaternion_convention: str = "fob") -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Record bytes (n, L) of one format → (rotations, positions, valid, clipped), all (n, …).
+
+    `valid` is False for the all-zero record (no data) and for a position clipped at full scale.
+    """
+    fmt = as_format(fmt)
+    data = records[:, :fmt.n_data_bytes]
+    words = decode_words(data)
+    rotations, positions = _poses_from_words(fmt, words, scale_inches, quaternion_convention)
+    clipped = position_clipped(fmt, words)
+    valid = np.any(words, axis=1) & ~clipped
+    return rotations, positions, valid, clipped
+
+
+_EMPTY_U8 = np.zeros(0, np.uint8)
 
 
 class StreamDecoder:
@@ -394,8 +449,13 @@ class StreamDecoder:
         self._format_index = np.full(256, -1, np.int64)
         for a, f in fmt_by_address.items():
             self._format_index[a & 0xFF] = self._distinct.index(f)
-        self._tail = np.zeros(0, np.uint8)
-        self._tail_times = np.zeros(0)
+        # One record length: a chunk of whole, clean records can skip the general framing.
+        self._single = self._lengths[0] if len(self._lengths) == 1 else 0
+        self._arange = np.arange(0)
+        # The unfinished tail is empty or one partial record: its only phasing byte is its first,
+        # so one arrival time (its first byte's) is all it needs.
+        self._tail = b""
+        self._tail_time = np.nan
         self._offset = 0  # stream offset of the tail's first byte
         self.resyncs = 0
         self.dropped_bytes = 0
@@ -409,25 +469,69 @@ class StreamDecoder:
     def reset(self) -> None:
         """Forget any unfinished record (after a flush or reconnect)."""
         self._offset += len(self._tail)
-        self._tail = np.zeros(0, np.uint8)
-        self._tail_times = np.zeros(0)
+        self._tail = b""
+        self._tail_time = np.nan
 
     def feed(self, data: bytes, arrival_time: float | None = None) -> DecodedRecords:
         """Records completed by `data` (bytes arrived at `arrival_time`), in stream order."""
-        new = _as_u8(data)
-        buf = np.concatenate([self._tail, new]) if len(self._tail) else new
-        times = np.concatenate([self._tail_times,
-                                np.full(len(new), np.nan if arrival_time is None else arrival_time)])
-        return self._frame(buf, times, final=False)
+        return self.decode(self.frame(data, arrival_time))
 
     def flush(self) -> DecodedRecords:
         """Decide the unfinished tail as if no more bytes were coming (after a POINT reply with
         mixed record lengths, where a short record could still be the start of a longer one)."""
-        return self._frame(self._tail, self._tail_times, final=True)
+        return self.decode(self.frame_flush())
 
-    def _frame(self, buf: np.ndarray, times: np.ndarray, final: bool) -> DecodedRecords:
+    def frame(self, data: bytes, arrival_time: float | None = None) -> FramedRecords:
+        """Like `feed`, without decoding poses: the records completed by `data`, framed."""
+        if not isinstance(data, bytes):
+            data = _as_u8(data).tobytes()
+        t = np.nan if arrival_time is None else float(arrival_time)
+        n_tail = len(self._tail)
+        buf = self._tail + data if n_tail else data
+        tail_time = self._tail_time if n_tail else t
+        return self._frame(buf, tail_time, t, final=False)
+
+    def frame_flush(self) -> FramedRecords:
+        """Like `flush`, without decoding poses."""
+        return self._frame(self._tail, self._tail_time, self._tail_time, final=True)
+
+    def _aranged(self, k: int) -> np.ndarray:
+        if len(self._arange) < k:
+            self._arange = np.arange(max(k, 2 * len(self._arange), 64), dtype=np.int64)
+        return self._arange[:k]
+
+    def _frame(self, data: bytes, tail_time: float, t: float, final: bool) -> FramedRecords:
+        buf = np.frombuffer(data, np.uint8)
         n = len(buf)
-        phase = (buf & PHASE_BIT) != 0
+        L = self._single
+        if L and not final and n:
+            # Fast path: whole records back to back from byte 0, then at most one partial record.
+            heads = buf[::L]
+            if heads.min() >= PHASE_BIT and np.count_nonzero(buf >= PHASE_BIT) == len(heads):
+                k = n // L
+                if self.group:
+                    addr = buf[L - 1:k * L:L]
+                    ok = k == 0 or self._length_of[addr].min() == L
+                else:
+                    ok = True
+                if ok:
+                    starts = self._aranged(k) * L
+                    self._tail = data[k * L:]
+                    self._tail_time = tail_time if k == 0 else t
+                    times = np.full(k, t)
+                    if k:
+                        times[0] = tail_time
+                    addresses = addr.astype(np.int64) if self.group else np.full(k, self.address, np.int64)
+                    out = FramedRecords(buf, starts, L, addresses, self._offset + starts, times, True)
+                    self._offset += k * L
+                    self.records += k
+                    return out
+        return self._frame_general(data, buf, tail_time, t, final)
+
+    def _frame_general(self, data: bytes, buf: np.ndarray, tail_time: float, t: float,
+                       final: bool) -> FramedRecords:
+        n = len(buf)
+        phase = buf >= PHASE_BIT
         starts = np.flatnonzero(phase)
         # A record runs from its phasing byte to at most the next one (inner bytes have bit 7
         # clear); an undamaged stream fills that gap exactly, garbage makes it longer.
@@ -465,44 +569,51 @@ class StreamDecoder:
         if n_lost:
             self.dropped_bytes += n_lost
             self.resyncs += int(lost[0]) + int(np.count_nonzero(lost[1:] & ~lost[:-1]))
-        out = self._decode(buf, times, accepted_starts, acc_l)
+        # Only the buffer's first byte can come from the tail (the tail's one phasing byte).
+        times = np.where(accepted_starts == 0, tail_time, t)
+        if self.group:
+            addresses = buf[accepted_starts + acc_l - 1].astype(np.int64)
+        else:
+            addresses = np.full(len(accepted_starts), self.address, np.int64)
+        out = FramedRecords(buf, accepted_starts, acc_l, addresses,
+                            self._offset + accepted_starts.astype(np.int64), times)
+        self.records += len(accepted_starts)
         self._offset += keep_from
-        self._tail = buf[keep_from:].copy()
-        self._tail_times = times[keep_from:].copy()
+        self._tail = data[keep_from:]
+        self._tail_time = tail_time if keep_from == 0 else t
         return out
 
-    def _decode(self, buf, times, starts, lengths) -> DecodedRecords:
-        k = len(starts)
-        self.records += k
+    def decode(self, framed: FramedRecords) -> DecodedRecords:
+        """Poses of framed records (one vectorised decode per distinct format)."""
+        k = len(framed)
         if k == 0:
             return DecodedRecords.empty(self.button)
         rotations = np.empty((k, 3, 3))
         positions = np.empty((k, 3))
         valid = np.empty(k, bool)
-        addresses = np.full(k, self.address, np.int64)
+        clipped = np.empty(k, bool)
         buttons = np.zeros(k, np.uint8) if self.button else None
-        if self.group:
-            addresses = buf[starts + lengths - 1].astype(np.int64)
-        if self.group:
-            kind = self._format_index[addresses]
+        if self.group and len(self._distinct) > 1:
+            kind = self._format_index[framed.addresses]
             groups = [(f, kind == i) for i, f in enumerate(self._distinct)]
         else:
             groups = [(self._distinct[0], slice(None))]
-        for fmt, sel in groups:  # one vectorised decode per distinct format
-            st = starts[sel]
-            if len(st) == 0:
-                continue
+        for fmt, sel in groups:
             L = record_length(fmt, group=self.group, button=self.button)
-            rec = buf[st[:, None] + np.arange(L)]
-            r, p, _ = decode_records(fmt, rec, scale_inches=self.scale_inches, group=self.group,
-                                     button=self.button,
-                                     quaternion_convention=self.quaternion_convention)
-            rotations[sel], positions[sel] = r, p
-            valid[sel] = ~saturated_records(fmt, rec)
+            if isinstance(sel, slice):
+                rec = framed.record_bytes(L)
+            else:
+                st = framed.starts[sel]
+                if len(st) == 0:
+                    continue
+                rec = framed.buffer[st[:, None] + np.arange(L)]
+            r, p, v, c = decode_block(fmt, rec, scale_inches=self.scale_inches,
+                                      quaternion_convention=self.quaternion_convention)
+            rotations[sel], positions[sel], valid[sel], clipped[sel] = r, p, v, c
             if self.button:
                 buttons[sel] = rec[:, fmt.n_data_bytes]
-        return DecodedRecords(addresses, rotations, positions, valid,
-                              self._offset + starts.astype(np.int64), times[starts], buttons)
+        return DecodedRecords(framed.addresses, rotations, positions, valid, framed.offsets,
+                              framed.times, buttons, clipped)
 
 
 # ---------------------------------------------------------------------------------------------

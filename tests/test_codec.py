@@ -298,3 +298,32 @@ def test_measurement_rate_helpers():
     count = codec.measurement_count_from_rate(103.0)
     assert codec.measurement_rate_from_count(count) == pytest.approx(103.0, rel=1e-3)
     assert codec.software_revision(bytes([3, 67])) == pytest.approx(3.67)
+
+
+def _framing_without_fast_path(dec):
+    dec._single = 0  # every chunk through the general framing
+    return dec
+
+
+@pytest.mark.parametrize("group", [True, False])
+def test_whole_record_fast_path_frames_exactly_like_the_general_framing(group):
+    # Clean chunks take the fast path, damaged ones the general one; both must agree record for record.
+    data, rot, pos, addr = _stream("position_matrix", n=400, group=group, birds=4)
+    buf = bytearray(data)
+    L = codec.record_length("position_matrix", group=group)
+    buf[L * 100 + 3:L * 100 + 3] = bytes([0x05, 0x91])  # garbage inside record 100
+    del buf[L * 250 + 7]  # a byte lost inside record 250
+    kw = dict(group=True, n_birds=4) if group else dict(group=False, address=3)
+    fast = codec.StreamDecoder("position_matrix", **kw)
+    slow = _framing_without_fast_path(codec.StreamDecoder("position_matrix", **kw))
+    cuts = np.sort(RNG.choice(len(buf), 80, replace=False))
+    chunks = [c.tobytes() for c in np.split(np.frombuffer(bytes(buf), np.uint8), cuts)]
+    # whole-record chunks too, so that the fast path runs on aligned reads
+    chunks += [bytes(data[i:i + 4 * L]) for i in range(0, 40 * L, 4 * L)]
+    outs = [[d.feed(c, arrival_time=0.01 * i) for i, c in enumerate(chunks)] for d in (fast, slow)]
+    for name in ("addresses", "offsets", "times", "rotations", "positions", "valid"):
+        a, b = (np.concatenate([getattr(o, name) for o in out]) for out in outs)
+        assert np.array_equal(a, b, equal_nan=True), name
+    assert (fast.resyncs, fast.dropped_bytes, fast.bad_records, fast.records, fast.pending_bytes) == \
+           (slow.resyncs, slow.dropped_bytes, slow.bad_records, slow.records, slow.pending_bytes)
+    assert fast.resyncs >= 2

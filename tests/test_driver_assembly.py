@@ -1,0 +1,133 @@
+"""Frame assembly promises: batching never changes the frames, and positions clipped at full scale are
+never handed out as poses."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from flockcal.drivers import codec
+from flockcal.drivers.assembly import FrameAssembler
+from flockcal.drivers.link import FlockSetup
+
+INCH = 0.0254
+
+
+def group_setup(m, fmt, rate=100.0, scale=36.0):
+    return FlockSetup(urls=["x"], birds=m, addresses=list(range(1, m + 1)), group=True, mode="stream",
+                      record_format=fmt, scale_inches=scale, rate_hz=rate, hemisphere="forward", baud=115200)
+
+
+def moving_poses(n, m, rate=100.0, reach=0.3):
+    t = np.arange(n)[:, None] / rate
+    ang = 0.5 * np.sin(2 * np.pi * 0.7 * t + np.arange(m))
+    R = codec.euler_to_rotation(ang, 0.5 * ang, -ang)
+    z = np.zeros((n, m))
+    p = np.stack([0.4 + reach * np.sin(t + np.arange(m)), 0.1 * np.cos(t) + z, 0.05 * np.sin(2 * t) + z], -1)
+    return R, p
+
+
+def group_bytes(fmt, R, p, scale=36.0):
+    n, m = p.shape[:2]
+    addr = np.tile(np.arange(1, m + 1), n)
+    return codec.encode_records(fmt, R.reshape(-1, 3, 3), p.reshape(-1, 3), addresses=addr, scale_inches=scale)
+
+
+def feed_all(asm, data, sizes, take_every=None, bytes_per_s=16000.0):
+    out, i, k = [], 0, 0
+    while i < len(data):
+        s = int(sizes[k % len(sizes)])
+        asm.feed(0, i / bytes_per_s, data[i:i + s])
+        i, k = i + s, k + 1
+        if take_every and k % take_every == 0:
+            out.append(asm.take())
+    asm.flush()
+    out.append(asm.take())
+    out = [f for f in out if len(f)]
+    return {name: np.concatenate([getattr(f, name) for f in out]) for name in ("times", "rotations", "positions",
+                                                                               "valid")}
+
+
+@pytest.mark.parametrize("fmt", ["position_matrix", "position_quaternion"])
+def test_frames_do_not_depend_on_how_reads_are_batched_or_when_frames_are_taken(fmt):
+    # Damaged stream (garbage inside records, lost bytes, a hemisphere crossing), read in uneven chunks;
+    # frames taken after every read, every 5th, or once at the end must be bit for bit the same.
+    n, m = 240, 6
+    R, p = moving_poses(n, m, reach=0.6)
+    p[:, 2, 0] -= 0.6  # bird 2 crosses x = 0: the bird reports mirrored positions
+    data = bytearray(group_bytes(fmt, R, codec.fold_to_hemisphere(p, "forward")))
+    L = codec.record_length(fmt, group=True)
+    rng = np.random.default_rng(3)
+    for r in sorted(rng.choice(np.arange(30, n * m - 30), 10, replace=False))[::-1]:
+        at = r * L + int(rng.integers(1, L))
+        if r % 2:
+            data[at:at] = rng.integers(0, 0x80, 3, dtype=np.uint8).tobytes()
+        else:
+            del data[at:at + 2]
+    data = bytes(data)
+    sizes = [3, 97, 1, 512, 40]
+    results = [feed_all(FrameAssembler(group_setup(m, fmt)), data, sizes, take_every=k) for k in (1, 5, None)]
+    assert len(results[0]["times"]) >= n - 2  # a damaged cycle boundary may merge or lose a cycle
+    assert not results[0]["valid"].all()  # the damage did cost records
+    for other in results[1:]:
+        for name, a in results[0].items():
+            assert np.array_equal(a, other[name], equal_nan=True), name
+
+
+def test_a_position_word_at_full_scale_is_invalid_and_one_step_inside_is_valid():
+    rot = np.tile(np.eye(3), (5, 1, 1))
+    fs = 36 * INCH
+    step = fs * 4 / 32768
+    pos = np.array([[fs - 2 * step, 0, 0],  # the last word below the limit: a real reading
+                    [fs + 0.2, 0, 0],  # beyond: clipped to +32764
+                    [0, -fs - 0.2, 0],  # beyond: clipped to −32768
+                    [0, 0, -fs + step],  # word −32764, as far from zero as +32764
+                    [0.1, 0.2, 0.3]])
+    rec = np.frombuffer(codec.encode_records("position_matrix", rot, pos), np.uint8).reshape(5, -1)
+    _, decoded, valid, clipped = codec.decode_block("position_matrix", rec)
+    assert list(clipped) == [False, True, True, True, False]
+    assert list(valid) == [True, False, False, False, True]
+    assert np.allclose(decoded[[0, 4]], pos[[0, 4]], atol=codec.quantisation_tolerance("position")[1])
+    out = codec.StreamDecoder("position_matrix", group=False).feed(rec.tobytes())
+    assert list(out.valid) == list(valid) and list(out.clipped) == list(clipped)
+
+
+def test_orientation_only_records_are_never_clipped():
+    rot = np.tile(np.eye(3), (2, 1, 1))
+    rec = np.frombuffer(codec.encode_records("quaternion", rot, np.zeros((2, 3))), np.uint8).reshape(2, -1)
+    _, _, valid, clipped = codec.decode_block("quaternion", rec)
+    assert valid.all() and not clipped.any()
+
+
+def test_clipped_positions_are_invalid_counted_and_reported_once_per_burst():
+    # Bird 1 reaches beyond 36 in twice (frames 100–149 and, after 2 s back in range, 350–379); the other
+    # birds stay inside. Frames are taken every few reads, so a burst spans several batches.
+    n, m, rate = 500, 4, 100.0
+    R, p = moving_poses(n, m, rate)
+    bursts = [(100, 150), (350, 380)]
+    for a, b in bursts:
+        p[a:b, 1, 0] = 36 * INCH + 0.05
+    data = group_bytes("position_quaternion", R, p)
+    asm = FrameAssembler(group_setup(m, "position_quaternion", rate))
+    f = feed_all(asm, data, [128], take_every=3, bytes_per_s=n * m * 15 / (n / rate))
+    expect = np.ones((n, m), bool)
+    for a, b in bursts:
+        expect[a:b, 1] = False
+    assert np.array_equal(f["valid"], expect)
+    assert asm.saturated_records == sum(b - a for a, b in bursts)
+    assert asm.dropped_records == asm.saturated_records
+    events = [e for e in asm.take_events() if e[0] == "position_saturated"]
+    assert len(events) == len(bursts)
+    kind, message, data = events[0]
+    assert data["birds"] == [1] and "72-inch scale" in message and "transmitter" in message
+
+
+def test_at_the_72_inch_scale_the_same_reach_is_a_valid_pose():
+    n, m, rate = 200, 4, 100.0
+    R, p = moving_poses(n, m, rate)
+    p[50:80, 1, 0] = 36 * INCH + 0.05
+    data = group_bytes("position_quaternion", R, p, scale=72.0)
+    asm = FrameAssembler(group_setup(m, "position_quaternion", rate, scale=72.0))
+    f = feed_all(asm, data, [512])
+    assert f["valid"].all() and asm.saturated_records == 0
+    assert np.max(np.abs(f["positions"] - p)) <= codec.quantisation_tolerance("position", 72.0)[1]
