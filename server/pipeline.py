@@ -135,6 +135,14 @@ class Pipeline:
         self._res_joints: tuple = ()
         self._res_last_emit: float | None = None
         self._last_fit_time = 0.0
+        self._fit_cond = threading.Condition()
+        self._joint_cache = None
+        self._slip_batch: list = []
+        self.slip_batch_s = 0.1
+        self._fit_job = None
+        self._fit_done = None
+        self._fit_busy = False
+        self._fit_thread: threading.Thread | None = None
         self._last_db_flush = 0.0
         self.pose_fit: dict | None = None
         self.fits_done = 0
@@ -174,14 +182,19 @@ class Pipeline:
 
     def start(self) -> None:
         self._thread = threading.Thread(target=self._run, name="flockcal-pipeline", daemon=True)
+        self._fit_thread = threading.Thread(target=self._fit_worker, name="flockcal-fit", daemon=True)
         self._thread.start()
+        self._fit_thread.start()
 
     def stop(self) -> None:
         with self._cond:
             self._stop = True
             self._cond.notify()
-        if self._thread:
-            self._thread.join(10)
+        with self._fit_cond:
+            self._fit_cond.notify()
+        for thread in (self._thread, self._fit_thread):
+            if thread:
+                thread.join(10)
 
     # --- session control (run on the pipeline thread through `call`) ----------------------------------
     def begin_session(self, live: LiveSession) -> None:
@@ -234,7 +247,7 @@ class Pipeline:
         while True:
             with self._cond:
                 while not self._stop and not self._commands:
-                    has_work = bool(self._pending or self._pending_events)
+                    has_work = bool(self._pending or self._pending_events or self._fit_done)
                     # Publish as soon as frames arrive, but no more than publish_hz; status twice a second.
                     due = last_publish + (self.min_publish_s if has_work else 0.5)
                     now = time.monotonic()
@@ -303,24 +316,33 @@ class Pipeline:
         live.acc.update(Rz, tz, valid)
         self._residual_step(times - live.t0, Rz, tz, valid)
 
+    def _joint_arrays(self, fit: dict):
+        """(joints ((child, parent) names), pairs (p,2), c (p,3), l (p,3)) of a fit, cached per fit."""
+        if self._joint_cache is not None and self._joint_cache[0] is fit:
+            return self._joint_cache[1]
+        index = {n: i for i, n in enumerate(self.names)}
+        joints = tuple((j["child"], j["parent"]) for j in fit["joints"])
+        pairs = np.array([[index[c], index[p]] for c, p in joints], dtype=int).reshape(-1, 2)
+        c = np.array([j["c"] for j in fit["joints"]], dtype=float).reshape(-1, 3)
+        l = np.array([j["l"] for j in fit["joints"]], dtype=float).reshape(-1, 3)
+        out = (joints, pairs, c, l)
+        self._joint_cache = (fit, out)
+        return out
+
     def _residual_step(self, ts, R, t, valid) -> None:
         live = self.live
         fit = live.fit
         if not fit or not fit.get("joints"):
             return
-        index = {n: i for i, n in enumerate(self.names)}
-        joints = tuple((j["child"], j["parent"]) for j in fit["joints"])
+        joints, pairs, c, l = self._joint_arrays(fit)
         if joints != self._res_joints:
             self._flush_residual_sample(force=True)
             self._res_joints = joints
-            self._res_pairs = np.array([[index[c], index[p]] for c, p in joints])
             self._res_sumsq = np.zeros(len(joints))
             self._res_count = np.zeros(len(joints))
-            live.slip_monitor = self._new_slip_monitor(self._res_pairs)
-        # The newest fit's joint centres; they move slowly, so reading them per batch is enough.
-        c = np.array([j["c"] for j in fit["joints"]], dtype=float)
-        l = np.array([j["l"] for j in fit["joints"]], dtype=float)
-        ci, pj = self._res_pairs[:, 0], self._res_pairs[:, 1]
+            live.slip_monitor = self._new_slip_monitor(pairs)
+            self._slip_batch = []
+        ci, pj = pairs[:, 0], pairs[:, 1]
         e = (np.einsum("npab,pb->npa", R[:, ci], c) + t[:, ci]
              - np.einsum("npab,pb->npa", R[:, pj], l) - t[:, pj])
         sq = np.einsum("npa,npa->np", e, e)
@@ -334,7 +356,11 @@ class Pipeline:
         if self._res_time - self._res_last_emit >= self.residual_period:
             self._flush_residual_sample()
         if live.slip_monitor is not None and np.isfinite(c).all() and np.isfinite(l).all():
-            self._slip_step(ts, R, t, valid, c, l)
+            # The monitor's cost is mostly per call: feed it every slip_batch_s, not every micro-batch.
+            self._slip_batch.append((ts, R, t, valid))
+            if ts[-1] - self._slip_batch[0][0][0] >= self.slip_batch_s:
+                batch, self._slip_batch = self._slip_batch, []
+                self._slip_step(*(np.concatenate([b[k] for b in batch]) for k in range(4)), c, l)
 
     def _new_slip_monitor(self, pairs):
         if not self.detect_slips:
@@ -417,29 +443,61 @@ class Pipeline:
                 live.framelog.flush()
             if now - self._last_db_flush >= 1.0:
                 self._flush_db()
-            if live.acc.frames > live.fit_frames and now - self._last_fit_time >= self.min_fit_s:
-                self._refit(live)
+            self._take_fit(live)
+            if (not self._fit_busy and live.acc.frames > live.fit_frames
+                    and now - self._last_fit_time >= self.min_fit_s):
+                # Hand a copy of the Gram matrix to the fit thread; frames keep flowing meanwhile.
+                self._fit_busy = True
                 self._last_fit_time = now
+                live.fit_frames = live.acc.frames
+                with self._fit_cond:
+                    self._fit_job = (live.id, live.acc.copy(), live.hierarchy, live.root)
+                    self._fit_cond.notify()
         self._snapshot = self._make_snapshot()
         if self.on_publish is not None:
             self.on_publish(self._snapshot)
 
-    def _refit(self, live: LiveSession) -> None:
-        start = time.perf_counter()
-        frames = live.acc.frames
-        try:
-            live.fit = calibrate_dict(live.acc, self.names, live.hierarchy, live.root)
-            live.fit_error = None
-            self.pose_fit = live.fit
-            self._fit_seq += 1
-        except FlockcalError as exc:
-            live.fit_error = str(exc)
-        except Exception as exc:  # a numerical failure must not stop publishing
-            log.exception("fit failed")
-            live.fit_error = f"fit failed: {exc}"
-        live.fit_frames = frames
+    def _take_fit(self, live: LiveSession) -> None:
+        with self._cond:
+            done, self._fit_done = self._fit_done, None
+        if done is None:
+            return
+        session_id, fit, error, seconds = done
         self.fits_done += 1
-        self.fit_seconds += time.perf_counter() - start
+        self.fit_seconds += seconds
+        if session_id != live.id:
+            return
+        if fit is not None:
+            live.fit = fit
+            live.fit_error = None
+            self.pose_fit = fit
+            self._fit_seq += 1
+        else:
+            live.fit_error = error
+
+    def _fit_worker(self) -> None:
+        """Refits on its own thread, so a slow fit never delays frames or snapshots."""
+        while True:
+            with self._fit_cond:
+                while self._fit_job is None and not self._stop:
+                    self._fit_cond.wait()
+                if self._stop:
+                    return
+                job, self._fit_job = self._fit_job, None
+            session_id, acc, hierarchy, root = job
+            start = time.perf_counter()
+            fit, error = None, None
+            try:
+                fit = calibrate_dict(acc, self.names, hierarchy, root)
+            except FlockcalError as exc:
+                error = str(exc)
+            except Exception as exc:  # a numerical failure must not stop the service
+                log.exception("fit failed")
+                error = f"fit failed: {exc}"
+            with self._cond:
+                self._fit_done = (session_id, fit, error, time.perf_counter() - start)
+                self._fit_busy = False
+                self._cond.notify()
 
     def _make_snapshot(self) -> Snapshot:
         self._seq += 1

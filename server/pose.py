@@ -27,6 +27,20 @@ def sensors_only(names, rotations, positions, valid) -> dict:
     }
 
 
+_cache: list = [None, None, None]  # (fit, names, articulation): a fit changes ~30 times/s, poses more often
+
+
+def _articulation(fit: dict, names: tuple[str, ...]):
+    if _cache[0] is fit and _cache[1] == names:
+        return _cache[2]
+    try:
+        art = articulation(fit).reordered(names)
+    except (ArticulationError, KeyError, ValueError, TypeError):
+        art = None
+    _cache[:] = [fit, names, art]
+    return art
+
+
 def live_pose(names, rotations, positions, valid, fit: dict | None) -> dict:
     """Pose message body for one frame: (m,3,3) rotations, (m,3) positions, (m,) valid; fit = §5 dict.
 
@@ -37,9 +51,8 @@ def live_pose(names, rotations, positions, valid, fit: dict | None) -> dict:
     base = sensors_only(names, rotations, positions, valid)
     if not fit or not fit.get("parent"):
         return base
-    try:
-        art = articulation(fit).reordered(names)
-    except (ArticulationError, KeyError, ValueError):
+    art = _articulation(fit, tuple(names))
+    if art is None:
         return base
     try:
         # The rotations are each sensor's newest valid pose (held through dropouts), so use them all.

@@ -146,7 +146,9 @@ class Connection:
             if snap.seq <= sent_seq and not self.changed.is_set():
                 continue
             self.changed.clear()
-            next_due = time.monotonic() + 1.0 / sub.rate_hz
+            # At the top rate every snapshot goes out as soon as it is published.
+            top = sub.rate_hz >= self.service.settings.publish_hz
+            next_due = 0.0 if top else time.monotonic() + 1.0 / sub.rate_hz
             sent_seq = snap.seq
             out = []
             content = sub.content

@@ -1,0 +1,132 @@
+"""End-to-end latency and CPU use of `flockcal serve` with 16 birds at 144 Hz on a fake tracker (pty).
+
+Latency: from the moment the fake tracker's clock reaches a sample (its record leaves within one 2 ms
+pump tick) to the websocket client receiving the first snapshot whose pose shows that sample. The
+sample time is encoded in sensor 0's x position (a 6 s sawtooth), so nothing but the wire format
+carries it. CPU: user+system time of the service process over the window, as % of one core.
+Targets (issue 5): p99 < 50 ms, CPU < 25 % of one core.
+
+    python benchmarks/bench_server.py [--seconds 20] [--dashboards 0]
+"""
+
+from __future__ import annotations
+
+import argparse
+import asyncio
+import json
+import os
+import sys
+import tempfile
+import time
+
+import httpx
+import numpy as np
+import websockets
+
+from flockcal.server.testing import ServerProcess, free_port, wait_connected
+from flockcal.simulator.performer import Performer
+from flockcal.simulator.pty_tracker import PtyTracker
+
+RATE = 144.0
+SAW_S, SLOPE, X0 = 6.0, 0.1, 0.2  # sensor 0 x = X0 + SLOPE * (t mod SAW_S)
+
+
+class MarkedSource:
+    """A performer whose sensor 0 carries the sample time in its x coordinate."""
+
+    def __init__(self, performer: Performer):
+        self.p = performer
+        self.names = performer.names
+        self.n_sensors = performer.n_sensors
+        self.full_scale_in = performer.full_scale_in
+
+    def poses(self, times):
+        R, x, v = self.p.poses(times)
+        x = x.copy()
+        x[:, 0, 0] = X0 + SLOPE * np.mod(np.asarray(times, dtype=float), SAW_S)
+        return R, x, v
+
+
+def cpu_seconds(pid: int) -> float:
+    with open(f"/proc/{pid}/stat") as fh:
+        fields = fh.read().rsplit(")", 1)[1].split()
+    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+async def measure(url: str, clock_t0: float, seconds: float, dashboards: int) -> list[float]:
+    latencies = []
+
+    async def dashboard():
+        async with websockets.connect(url) as ws:
+            await ws.send(json.dumps({"type": "subscribe", "rate_hz": 15,
+                                      "content": ["status", "fit", "residuals", "events", "pose"]}))
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                try:
+                    await asyncio.wait_for(ws.recv(), 1)
+                except asyncio.TimeoutError:
+                    pass
+
+    async def probe():
+        async with websockets.connect(url) as ws:
+            await ws.send(json.dumps({"type": "subscribe", "rate_hz": 1000, "content": ["pose"]}))
+            end = time.monotonic() + seconds
+            while time.monotonic() < end:
+                msg = json.loads(await ws.recv())
+                now = time.monotonic()
+                if msg.get("type") != "pose" or not msg["pose"]:
+                    continue
+                x = msg["pose"]["sensors"][0]["p"][0]
+                elapsed = now - clock_t0
+                phase = (x - X0) / SLOPE
+                k = np.round((elapsed - phase) / SAW_S)
+                latencies.append(elapsed - (k * SAW_S + phase))
+
+    await asyncio.gather(probe(), *[dashboard() for _ in range(dashboards)])
+    return latencies
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=20.0)
+    ap.add_argument("--dashboards", type=int, default=0, help="extra dashboard-like websocket clients")
+    args = ap.parse_args(argv)
+
+    performer = Performer("human", "exercise", seed=1, rate_hz=RATE)
+    pty = PtyTracker(MarkedSource(performer), birds=16, baud=921600, rate_hz=RATE).start()
+    clock_t0 = pty.flock.clock._t0
+    data = tempfile.mkdtemp(prefix="flockcal-bench-")
+    port = free_port()
+    proc = ServerProcess(["--device", pty.device, "--birds", "16", "--fast-init", "--data-dir", data,
+                          "--names", ",".join(performer.names)], port, log_path=os.path.join(data, "serve.log"))
+    try:
+        proc.start()
+        wait_connected(proc.url, frames=int(RATE))
+        httpx.post(proc.url + "/api/sessions", json={"performer": "bench"}).raise_for_status()
+        time.sleep(3.0)  # let the fit settle into its steady state
+        st0 = httpx.get(proc.url + "/api/status").json()
+        cpu0, wall0 = cpu_seconds(proc.proc.pid), time.monotonic()
+        url = proc.url.replace("http://", "ws://") + "/ws/live"
+        lat = np.array(asyncio.run(measure(url, clock_t0, args.seconds, args.dashboards))) * 1000
+        cpu1, wall1 = cpu_seconds(proc.proc.pid), time.monotonic()
+        st1 = httpx.get(proc.url + "/api/status").json()
+    finally:
+        proc.stop()
+        pty.stop()
+    cpu = 100 * (cpu1 - cpu0) / (wall1 - wall0)
+    frames_hz = (st1["frames"] - st0["frames"]) / (wall1 - wall0)
+    fits_hz = (st1["fits"] - st0["fits"]) / (wall1 - wall0)
+    p50, p99 = np.percentile(lat, [50, 99])
+    print(f"flockcal serve, 16 birds at {RATE:g} Hz on a pty, {args.seconds:g} s, {args.dashboards} extra dashboards")
+    print(f"  frames received     {frames_hz:8.1f} /s   (dropped records in the window: {st1['dropped_records'] - st0['dropped_records']})")
+    print(f"  full refits         {fits_hz:8.1f} /s   (target >= 30; {st1['fit_ms']} ms each)")
+    print(f"  latency samples     {len(lat):8d}")
+    print(f"  latency p50         {p50:8.1f} ms")
+    print(f"  latency p99         {p99:8.1f} ms   (target < 50 ms: {50 / p99:.2f}x margin)")
+    print(f"  latency max         {lat.max():8.1f} ms")
+    print(f"  service CPU         {cpu:8.1f} % of one core   (target < 25 %: {25 / cpu:.2f}x margin)")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
