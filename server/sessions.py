@@ -227,6 +227,24 @@ class SessionManager:
             rows = [(t, {joint: v[joint]}) for t, v in rows if joint in v]
         return rows
 
+    def take(self, session_id: str):
+        """The session's recorded frames as a flockcal.takes.Take (times from the session start)."""
+        from flockcal.takes import make_take
+
+        self._row(session_id)
+        path = self.frames_path(session_id)
+        if not path.exists():
+            raise NotFound(f"session {session_id} has no recording on disk")
+        data = read_frames(path)
+        n = len(data["times"])
+        if n == 0:
+            raise Conflict(f"session {session_id}'s recording holds no frames yet")
+        times = data["times"] - data["times"][0]
+        rate = data["rate_hz"] or (float((n - 1) / times[-1]) if n > 1 and times[-1] > 0 else 1.0)
+        # Arrival times can repeat (several records read at once); a take only needs them not to go back.
+        return make_take(data["rotations"], data["positions"], data["names"], rate, valid=data["valid"],
+                         times=times, source=f"session {session_id}")
+
     def events(self, session_id: str, since_id: int = 0) -> list[dict]:
         self._row(session_id)
         return self.store.events(session_id, since_id)

@@ -84,6 +84,10 @@ def test_full_session_matches_fit_and_survives_restart(tracker, performer, tmp_p
         assert take.status_code == 200
         events = httpx.get(srv.url + f"/api/sessions/{sid}/events").json()["events"]
         residuals = httpx.get(srv.url + f"/api/sessions/{sid}/residuals", params={"joint": "l_forearm"}).json()
+        bvh = httpx.get(srv.url + f"/api/sessions/{sid}/bvh", timeout=60)
+        skeleton = httpx.get(srv.url + f"/api/sessions/{sid}/skeleton", timeout=60)
+    assert bvh.status_code == 200 and bvh.text.startswith("HIERARCHY")
+    assert skeleton.status_code == 200 and skeleton.json()
 
     # The topology is the performer's body.
     assert undirected(result["parent"]) == undirected(performer.model.truth()["parent"])

@@ -12,7 +12,7 @@ from fastapi import APIRouter, Depends, Query
 from fastapi.responses import Response
 
 from flockcal.server.auth import require_admin, require_read, require_session_control
-from flockcal.server.errors import BadRequest, NotFound
+from flockcal.server.errors import BadRequest, Conflict, NotFound
 from flockcal.server.models import (
     CalibrationResult, ErrorReply, EventList, ResidualSeries, Session, SessionCreate, SessionList,
 )
@@ -116,21 +116,50 @@ def get_events(sid: str = Depends(session_id), since: int = Query(0, ge=0, descr
 @router.get("/{id}/take", responses={200: {"content": {"application/octet-stream": {}}}, **ERRORS},
             summary="the session's frames as a design.md §5 .npz take (what `flockcal fit` reads)")
 def get_take(sid: str = Depends(session_id), service=Depends(get_service), _role=Depends(require_read)):
-    from flockcal.server.framelog import read_frames
-
-    service.sessions.get(sid)
-    path = service.sessions.frames_path(sid)
-    if not path.exists():
-        raise NotFound(f"session {sid} has no recording on disk")
-    data = read_frames(path)
+    take = service.sessions.take(sid)
     buf = io.BytesIO()
-    np.savez_compressed(
-        buf, rotations=data["rotations"], positions=data["positions"], names=np.asarray(data["names"], dtype=str),
-        rate_hz=np.float64(data["rate_hz"] or 0.0) if data["rate_hz"] else np.float64(_rate(data["times"])),
-        valid=data["valid"], times=data["times"] - (data["times"][0] if len(data["times"]) else 0.0),
-    )
+    np.savez_compressed(buf, rotations=take.rotations, positions=take.positions,
+                        names=np.asarray(take.names, dtype=str), rate_hz=np.float64(take.rate_hz),
+                        valid=take.valid, times=take.times)
     return Response(buf.getvalue(), media_type="application/octet-stream",
                     headers={"Content-Disposition": f'attachment; filename="{sid}.npz"'})
+
+
+@router.get("/{id}/skeleton", responses={200: {"content": {"application/json": {}}}, **ERRORS},
+            summary="the calibrated skeleton file (flockcal.exports.skeleton) of the session")
+def get_skeleton(sid: str = Depends(session_id), service=Depends(get_service), _role=Depends(require_read)):
+    from flockcal.exports.skeleton import skeleton_bytes
+
+    result, _live = service.sessions.result(sid)
+    data = _export(lambda: skeleton_bytes(result, take=service.sessions.take(sid)))
+    return Response(data, media_type="application/json",
+                    headers={"Content-Disposition": f'attachment; filename="{sid}-skeleton.json"'})
+
+
+@router.get("/{id}/bvh", responses={200: {"content": {"text/plain": {}}}, **ERRORS},
+            summary="the session's motion played through its calibration, as BVH")
+def get_bvh(sid: str = Depends(session_id),
+            units: str = Query("cm", pattern="^(m|cm|mm|in)$"),
+            up: str = Query("-z", pattern="^[+-]?[xyz]$", description="the tracker world's up axis"),
+            service=Depends(get_service), _role=Depends(require_read)):
+    from flockcal.exports.bvh import bvh_bytes
+
+    result, _live = service.sessions.result(sid)
+    data = _export(lambda: bvh_bytes(result, service.sessions.take(sid), units=units, up=up))
+    return Response(data, media_type="text/plain",
+                    headers={"Content-Disposition": f'attachment; filename="{sid}.bvh"'})
+
+
+def _export(make):
+    from flockcal.errors import FlockcalError
+    from flockcal.server.errors import ServerError
+
+    try:
+        return make()
+    except ServerError:
+        raise
+    except FlockcalError as exc:
+        raise Conflict(f"cannot export this session: {exc}") from None
 
 
 @router.get("/{id}/raw", responses={200: {"content": {"application/octet-stream": {}}}, **ERRORS},
@@ -143,9 +172,3 @@ def get_raw(sid: str = Depends(session_id), service=Depends(get_service), _role=
     if not path.exists():
         raise NotFound(f"session {sid} has no raw recording")
     return FileResponse(path, media_type="application/octet-stream", filename=f"{sid}.fobraw")
-
-
-def _rate(times) -> float:
-    if len(times) < 2:
-        return 1.0
-    return float((len(times) - 1) / max(times[-1] - times[0], 1e-9))
