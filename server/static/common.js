@@ -1,5 +1,5 @@
 // Shared by the operator dashboard and the kiosk: REST and websocket access with automatic
-// reconnection, readable body names, and the 3D skeleton view (three.js, 2D canvas fallback).
+// reconnection, readable body and joint names, and the 3D skeleton view (three.js, 2D fallback).
 
 import * as THREE from './vendor/three/three.module.js';
 import { OrbitControls } from './vendor/three/OrbitControls.js';
@@ -9,41 +9,124 @@ const params = new URLSearchParams(location.search);
 if (params.get('token')) sessionStorage.setItem('flockcal-token', params.get('token'));
 export const token = sessionStorage.getItem('flockcal-token') || '';
 
+export class ApiError extends Error {
+  constructor(status, message) { super(message); this.status = status; }
+}
+
 export async function api(path, options = {}) {
-  const headers = Object.assign({ 'Accept': 'application/json' }, options.headers || {});
-  if (token) headers['Authorization'] = `Bearer ${token}`;
+  const headers = Object.assign({ Accept: 'application/json' }, options.headers || {});
+  if (token) headers.Authorization = `Bearer ${token}`;
+  const init = Object.assign({}, options, { headers });
   if (options.json !== undefined) {
     headers['Content-Type'] = 'application/json';
-    options.body = JSON.stringify(options.json);
+    init.body = JSON.stringify(options.json);
+    delete init.json;
   }
-  const response = await fetch(path, Object.assign({}, options, { headers }));
+  let response;
+  try {
+    response = await fetch(path, init);
+  } catch (e) {
+    throw new ApiError(0, 'the flockcal service is not reachable');
+  }
+  if (options.raw) {
+    if (!response.ok) throw new ApiError(response.status, `${response.status} ${response.statusText}`);
+    return response;
+  }
   const text = await response.text();
   let body = null;
   try { body = text ? JSON.parse(text) : null; } catch (e) { body = text; }
   if (!response.ok) {
-    const detail = body && (body.message || body.detail || body.error);
-    const message = typeof detail === 'string' ? detail : JSON.stringify(detail || body);
-    throw new Error(`${response.status}: ${message}`);
+    const detail = body && (body.detail || body.message || body.error);
+    throw new ApiError(response.status, typeof detail === 'string' ? detail : `${response.status} ${response.statusText}`);
   }
   return body;
 }
 
-// Body names arrive as snake_case ("l_forearm"); people read "left forearm".
-export function readable(name) {
-  if (!name) return '';
-  return String(name)
-    .replace(/^l_/, 'left ').replace(/^r_/, 'right ')
-    .replace(/_l$/, ' (left)').replace(/_r$/, ' (right)')
-    .replace(/_/g, ' ');
+// Downloads go through fetch so the bearer token travels in a header, never in a link.
+export async function download(path, filename) {
+  const response = await api(path, { raw: true });
+  const url = URL.createObjectURL(await response.blob());
+  const a = document.createElement('a');
+  a.href = url;
+  a.download = filename;
+  document.body.appendChild(a);
+  a.click();
+  a.remove();
+  setTimeout(() => URL.revokeObjectURL(url), 10000);
 }
 
-// The live websocket: subscribes on every (re)connection and backs off up to 5 s between tries, so
-// the page recovers by itself after the server restarts.
+// Body names arrive as "l_forearm", "RightUpLeg", "bird3"; people read "left forearm".
+// Mirrors flockcal.server.coaching.readable_body so page and hints agree.
+export function readable(name) {
+  if (!name) return '';
+  const s = String(name).replace(/([a-z])([A-Z])/g, '$1 $2').replace(/([A-Za-z])(\d)/g, '$1 $2');
+  const words = s.split(/[\s_.-]+/).filter(Boolean);
+  let out = words.map((w, k) => {
+    const lw = w.toLowerCase();
+    const edge = k === 0 || k === words.length - 1;
+    if (edge && (lw === 'l' || lw === 'lt')) return 'left';
+    if (edge && (lw === 'r' || lw === 'rt')) return 'right';
+    return lw;
+  });
+  if (out.length > 1 && (out[out.length - 1] === 'left' || out[out.length - 1] === 'right')) {
+    out = [out[out.length - 1]].concat(out.slice(0, -1));
+  }
+  return out.join(' ');
+}
+
+// Body keyword → the joint at its inboard end, with how far out along the body it sits (a joint
+// sits at the inboard end of the more distal of its two bodies, whichever way the tree is rooted).
+const BODY_JOINTS = [
+  [/hand|wrist/, 'wrist', 5], [/foot|ankle/, 'ankle', 5], [/toe/, 'toes', 6], [/head/, 'neck', 5],
+  [/fore ?arm|lower ?arm/, 'elbow', 4], [/shin|calf|lower ?leg|low ?leg|tibia/, 'knee', 4],
+  [/upper ?arm|up ?arm|humerus|\barm\b/, 'shoulder', 3], [/thigh|upper ?leg|up ?leg|femur/, 'hip', 3],
+  [/neck/, 'lower neck', 3], [/clavicle|shoulder/, 'collarbone', 2],
+  [/chest|thorax|upper ?back/, 'mid back', 2], [/abdomen|spine|torso|back|waist/, 'lower back', 1],
+  [/pelvis|hips?\b/, 'lower back', 0],
+];
+
+function bodyJoint(name) {
+  let body = readable(name);
+  let side = '';
+  for (const s of ['left ', 'right ']) if (body.startsWith(s)) { side = s; body = body.slice(s.length); }
+  for (const [re, joint, rank] of BODY_JOINTS) if (re.test(body)) return { label: `${side}${joint}`, rank };
+  return null;
+}
+
+// The joint between two bodies as people name it ("left elbow"), the same whichever body the fit
+// made the child (design.md §5 names a joint by its child); unknown bodies give "parent–child".
+export function jointLabel(child, parent) {
+  const a = bodyJoint(child);
+  const b = parent ? bodyJoint(parent) : null;
+  if (a && (!b || a.rank >= b.rank)) return a.label;
+  if (b && parent) return b.label;
+  return parent ? `${readable(parent)}–${readable(child)}` : readable(child);
+}
+
+// Coverage of the axes a joint needs (design.md §3): a hinge turns about one axis, a ball joint's
+// centre is pinned once it has turned about two (the third, twist, adds nothing to the centre).
+// Coverage arrives sorted ascending, so the second-largest value is index 1.
+export function neededCoverage(joint) {
+  const cov = (joint.coverage || [0, 0, 0]).map((x) => Number(x) || 0);
+  if (!cov.length) return 0;
+  return joint.hinge ? Math.max(...cov) : cov.slice().sort((a, b) => a - b)[Math.max(0, cov.length - 2)];
+}
+
+export function jointStderr(joint) {
+  const c = joint.c_stderr_m, l = joint.l_stderr_m;
+  const v = Math.max(Number.isFinite(c) ? c : Infinity, Number.isFinite(l) ? l : Infinity);
+  return v;
+}
+
+// The live websocket: subscribes on every (re)connection and backs off up to 4 s between tries, so
+// the page recovers by itself after the server restarts. onState gets 'connecting' | 'open' |
+// 'closed' | 'unauthorised'.
 export function connectLive({ content, rateHz = 15, onMessage, onState }) {
   let socket = null;
   let delay = 250;
   let closed = false;
   let lastSeq = -1;
+  let refused = false;
   const url = () => {
     const proto = location.protocol === 'https:' ? 'wss' : 'ws';
     const q = token ? `?token=${encodeURIComponent(token)}` : '';
@@ -52,11 +135,12 @@ export function connectLive({ content, rateHz = 15, onMessage, onState }) {
   const open = () => {
     if (closed) return;
     onState && onState('connecting');
+    refused = false;
     socket = new WebSocket(url());
     socket.onopen = () => {
       delay = 250;
-      lastSeq = -1;
-      socket.send(JSON.stringify({ type: 'subscribe', rate_hz: rateHz, content, token }));
+      lastSeq = -1;  // a new connection numbers its messages from 1 again
+      socket.send(JSON.stringify({ type: 'subscribe', rate_hz: rateHz, content, token: token || undefined }));
       onState && onState('open');
     };
     socket.onmessage = (ev) => {
@@ -66,13 +150,15 @@ export function connectLive({ content, rateHz = 15, onMessage, onState }) {
         if (msg.seq <= lastSeq) return;  // never go backwards
         lastSeq = msg.seq;
       }
+      if (msg.type === 'error' && /token/.test(msg.message || '')) refused = true;
       onMessage(msg);
     };
-    socket.onclose = () => {
-      onState && onState('closed');
+    socket.onclose = (ev) => {
+      const unauthorised = refused || ev.code === 1008;
+      onState && onState(unauthorised ? 'unauthorised' : 'closed');
       if (closed) return;
-      setTimeout(open, delay);
-      delay = Math.min(delay * 2, 5000);
+      setTimeout(open, unauthorised ? 5000 : delay);
+      delay = Math.min(delay * 2, 4000);
     };
     socket.onerror = () => { try { socket.close(); } catch (e) { /* closing anyway */ } };
   };
@@ -91,60 +177,105 @@ function hasWebGL() {
   } catch (e) { return false; }
 }
 
-// Accepts the server's "pose" message and returns {joints: [{name, p}], bones: [[a, b]], sensors: [{name, p, R}]}.
+// The server's pose message → {joints: [{name, kind, p}], bones: [[a, b]], sensors: [{name, p, R, valid}]}.
 export function normalisePose(msg) {
   const src = msg.pose || msg;
-  let joints = src.joints || [];
-  if (!Array.isArray(joints)) joints = Object.entries(joints).map(([name, p]) => ({ name, p }));
-  joints = joints.map((j) => (Array.isArray(j) ? { name: '', p: j } : { name: j.name || j.child || '', p: j.p || j.position }));
-  let sensors = src.sensors || [];
-  if (!Array.isArray(sensors)) sensors = Object.entries(sensors).map(([name, s]) => Object.assign({ name }, s));
-  sensors = sensors.map((s) => ({ name: s.name, p: s.p || s.position, R: s.R || s.rotation }));
-  const bones = (src.bones || []).map((b) => (Array.isArray(b) ? b : [b.from ?? b.a, b.to ?? b.b]));
-  return { joints, bones, sensors };
+  const joints = (src.joints || []).map((j) => ({ name: j.name || '', kind: j.kind || 'joint', p: j.p }));
+  const sensors = (src.sensors || []).map((s) => ({ name: s.name, p: s.p, R: s.R, valid: s.valid !== false }));
+  const bones = (src.bones || []).filter((b) => Array.isArray(b) && b.length === 2);
+  return { joints, bones, sensors, root: src.root || null };
 }
 
+// Where the fitted model puts each sensor: its body's joint centre minus R·c (c = that joint in the
+// sensor's frame), so the boxes ride on the residual-free skeleton; the root sensor and bodies
+// without a fitted joint stay where they were measured.
+function modelSensors(pose, placement) {
+  const pivot = {};
+  for (const j of pose.joints) if (j.kind !== 'end' && j.p) pivot[j.name] = j.p;
+  return pose.sensors.map((s) => {
+    const c = placement && placement[s.name];
+    const p0 = pivot[s.name];
+    if (!c || !p0 || !s.R || s.R.length !== 9 || pose.root === s.name) return s;
+    const R = s.R;
+    const p = [0, 1, 2].map((r) => p0[r] - (R[3 * r] * c[0] + R[3 * r + 1] * c[1] + R[3 * r + 2] * c[2]));
+    return Object.assign({}, s, { p, fitted: true });
+  });
+}
+
+const BG = 0x0d1117;
+const STATE_COLOURS = { done: 0x3fb950, work: 0xffc857, none: 0x6e7681 };
+
 export class SkeletonView {
-  constructor(container, { autoRotate = false, colour = 0x3fa9f5 } = {}) {
+  // follow: keep the camera on the performer and in front of them (kiosk); otherwise it is aimed
+  // once and left to the operator's orbit.
+  // mirror: show the performer as in a mirror (their left on the screen's left), for guests facing it.
+  constructor(container, { colour = 0x3fa9f5, follow = false, mirror = false, background = BG } = {}) {
     this.container = container;
+    this.mirror = mirror;
     this.colour = colour;
+    this.follow = follow;
+    this.background = background;
     this.webgl = hasWebGL();
     this.centre = null;
-    if (this.webgl) this._initThree(autoRotate); else this._init2d();
-    window.addEventListener('resize', () => this.resize());
+    this.placement = null;   // {body: c} from the newest fit
+    this.jointState = {};    // {body: 'done' | 'work' | 'none'} colours the joint spheres
+    this.frames = 0;         // poses drawn (tests and the status line read it)
+    container.dataset.renderer = this.webgl ? 'webgl' : '2d';
+    if (this.webgl) this._initThree(); else this._init2d();
+    new ResizeObserver(() => this.resize()).observe(container);
     this.resize();
   }
 
-  _initThree(autoRotate) {
+  setFit(result) {
+    const placement = {};
+    for (const j of (result && result.joints) || []) if (j.c && j.c.every(Number.isFinite)) placement[j.child] = j.c;
+    this.placement = placement;
+  }
+
+  setJointState(state) { this.jointState = state || {}; this.dirty = true; }
+
+  _initThree() {
     this.renderer = new THREE.WebGLRenderer({ antialias: true, preserveDrawingBuffer: true });
-    this.renderer.setPixelRatio(window.devicePixelRatio || 1);
+    this.renderer.setPixelRatio(Math.min(window.devicePixelRatio || 1, 2));
     this.container.appendChild(this.renderer.domElement);
     this.renderer.domElement.classList.add('skeleton-canvas');
     this.scene = new THREE.Scene();
-    this.scene.background = new THREE.Color(0x10141a);
-    this.camera = new THREE.PerspectiveCamera(45, 1, 0.01, 50);
+    this.scene.background = new THREE.Color(this.background);
+    // Everything drawn hangs from one group, so a mirror is one negative scale (three.js flips the
+    // face winding for it) and the camera maths below works in the same mirrored world.
+    this.world = new THREE.Group();
+    if (this.mirror) this.world.scale.x = -1;
+    this.scene.add(this.world);
+    this.camera = new THREE.PerspectiveCamera(40, 1, 0.01, 50);
     this.camera.position.set(1.6, 1.2, 2.4);
     this.controls = new OrbitControls(this.camera, this.renderer.domElement);
     this.controls.enableDamping = true;
-    this.controls.autoRotate = autoRotate;
-    this.controls.autoRotateSpeed = 1.0;
-    this.scene.add(new THREE.HemisphereLight(0xffffff, 0x334455, 2.2));
-    const sun = new THREE.DirectionalLight(0xffffff, 1.5);
+    this.controls.addEventListener('change', () => { this.dirty = true; });
+    this.scene.add(new THREE.HemisphereLight(0xffffff, 0x2a3440, 2.4));
+    const sun = new THREE.DirectionalLight(0xffffff, 1.6);
     sun.position.set(2, 4, 3);
     this.scene.add(sun);
-    const grid = new THREE.GridHelper(4, 20, 0x2b3440, 0x1d242d);
-    this.grid = grid;
-    this.scene.add(grid);
-    this.jointMat = new THREE.MeshStandardMaterial({ color: 0xffc857, roughness: 0.4 });
-    this.boneMat = new THREE.MeshStandardMaterial({ color: this.colour, roughness: 0.5 });
+    this.grid = new THREE.GridHelper(4, 16, 0x30363d, 0x1c2128);
+    this.world.add(this.grid);
+    this.mats = {};
+    for (const [k, c] of Object.entries(STATE_COLOURS)) this.mats[k] = new THREE.MeshStandardMaterial({ color: c, roughness: 0.35 });
+    this.boneMat = new THREE.MeshStandardMaterial({ color: this.colour, roughness: 0.45 });
     this.sensorMat = new THREE.MeshStandardMaterial({ color: 0xe4572e, roughness: 0.6 });
-    this.jointGeo = new THREE.SphereGeometry(0.025, 16, 12);
-    this.boneGeo = new THREE.CylinderGeometry(0.012, 0.012, 1, 10);
-    this.sensorGeo = new THREE.BoxGeometry(0.035, 0.02, 0.045);
+    this.sensorOffMat = new THREE.MeshStandardMaterial({ color: 0x484f58, roughness: 0.8 });
+    this.jointGeo = new THREE.SphereGeometry(0.03, 20, 14);
+    this.endGeo = new THREE.SphereGeometry(0.018, 14, 10);
+    this.boneGeo = new THREE.CylinderGeometry(0.014, 0.014, 1, 12);
+    this.sensorGeo = new THREE.BoxGeometry(0.04, 0.022, 0.05);
     this.meshes = { joints: [], bones: [], sensors: [] };
+    this.dirty = true;
+    // Draw only when something changed: the pose arrives 15–20 times a second, and a kiosk PC or a
+    // software renderer should not spend a core redrawing an unchanged scene.
     const tick = () => {
       this.controls.update();
-      this.renderer.render(this.scene, this.camera);
+      if (this.dirty) {
+        this.dirty = false;
+        this.renderer.render(this.scene, this.camera);
+      }
       requestAnimationFrame(tick);
     };
     tick();
@@ -175,6 +306,7 @@ export class SkeletonView {
       this.renderer.setSize(w, h);
       this.camera.aspect = w / h;
       this.camera.updateProjectionMatrix();
+      this.dirty = true;
     } else {
       this.canvas.width = w; this.canvas.height = h;
       this._draw2d();
@@ -183,36 +315,81 @@ export class SkeletonView {
 
   _pool(kind, n, make) {
     const list = this.meshes[kind];
-    while (list.length < n) { const m = make(); this.scene.add(m); list.push(m); }
+    while (list.length < n) { const m = make(); this.world.add(m); list.push(m); }
     list.forEach((m, i) => { m.visible = i < n; });
     return list;
   }
 
+  // The direction the performer faces (view coordinates), from left/right named bodies; null if unnamed.
+  _facing(pose) {
+    const left = new THREE.Vector3(), right = new THREE.Vector3();
+    let nl = 0, nr = 0;
+    for (const j of pose.joints) {
+      if (!j.p || j.kind === 'end') continue;
+      const r = readable(j.name);
+      if (r.startsWith('left ')) { left.add(toView(j.p)); nl += 1; }
+      if (r.startsWith('right ')) { right.add(toView(j.p)); nr += 1; }
+    }
+    if (!nl || !nr) return null;
+    const lateral = left.divideScalar(nl).sub(right.divideScalar(nr));
+    lateral.y = 0;
+    if (lateral.lengthSq() < 1e-6) return null;
+    // left = up × forward, so forward = left × up.
+    return lateral.normalize().cross(new THREE.Vector3(0, 1, 0)).normalize();
+  }
+
   update(poseMsg) {
     const pose = normalisePose(poseMsg);
+    pose.sensors = modelSensors(pose, this.placement);
     this.pose = pose;
+    this.frames += 1;
+    this.container.dataset.frames = this.frames;
+    this.container.dataset.joints = pose.joints.length;
     const pts = pose.joints.filter((j) => j.p).map((j) => toView(j.p));
-    if (pts.length && !this.centre) {
-      // Aim the camera once at the performer; after that the operator's orbit is left alone.
+    if (!pts.length) pose.sensors.forEach((s) => { if (s.p) pts.push(toView(s.p)); });
+    if (this.mirror) pts.forEach((p) => { p.x = -p.x; });
+    if (pts.length) {
       const c = new THREE.Vector3();
       pts.forEach((p) => c.add(p));
       c.divideScalar(pts.length);
-      this.centre = c;
-      if (this.webgl) {
-        this.controls.target.copy(c);
-        this.camera.position.set(c.x + 1.6, c.y + 0.6, c.z + 2.2);
-        let low = Infinity;
-        pts.forEach((p) => { low = Math.min(low, p.y); });
-        this.grid.position.set(c.x, low - 0.05, c.z);
+      let low = Infinity;
+      pts.forEach((p) => { low = Math.min(low, p.y); });
+      if (!this.centre) {
+        // Aim the camera once at the performer, from the front-left; the operator's orbit is then left alone.
+        this.centre = c.clone();
+        if (this.webgl) {
+          const f = this._facing(pose) || new THREE.Vector3(0, 0, 1);
+          if (this.mirror) f.x = -f.x;
+          const side = new THREE.Vector3(0, 1, 0).cross(f).normalize();
+          this.controls.target.copy(c);
+          const dist = this.follow ? 2.9 : 2.2;
+          const sideways = this.follow ? 0.25 : 0.7;
+          this.camera.position.copy(c).addScaledVector(f, dist).addScaledVector(side, sideways * dist).add(new THREE.Vector3(0, 0.5, 0));
+          this.grid.position.set(this.mirror ? -c.x : c.x, low - 0.04, c.z);
+        }
+      } else if (this.follow && this.webgl) {
+        // Glide after the guest: the target eases towards them, the camera keeps its offset.
+        const shift = c.clone().sub(this.controls.target).multiplyScalar(0.15);
+        this.controls.target.add(shift);
+        this.camera.position.add(shift);
+        this.grid.position.set((this.mirror ? -1 : 1) * this.controls.target.x, low - 0.04, this.controls.target.z);
       }
     }
     if (!this.webgl) { this._draw2d(); return; }
-    const joints = this._pool('joints', pose.joints.length, () => new THREE.Mesh(this.jointGeo, this.jointMat));
-    pose.joints.forEach((j, i) => { if (j.p) joints[i].position.copy(toView(j.p)); });
+    const named = pose.joints;
+    const joints = this._pool('joints', named.length, () => new THREE.Mesh(this.jointGeo, this.mats.work));
+    named.forEach((j, i) => {
+      const m = joints[i];
+      if (!j.p) { m.visible = false; return; }
+      m.position.copy(toView(j.p));
+      m.geometry = j.kind === 'end' ? this.endGeo : this.jointGeo;
+      const st = j.kind === 'end' || j.kind === 'root' ? 'done' : (this.jointState[j.name] || 'work');
+      m.material = this.mats[st] || this.mats.work;
+    });
     const bones = this._pool('bones', pose.bones.length, () => new THREE.Mesh(this.boneGeo, this.boneMat));
     const up = new THREE.Vector3(0, 1, 0);
     pose.bones.forEach(([a, b], i) => {
-      const pa = pose.joints[a] && pose.joints[a].p, pb = pose.joints[b] && pose.joints[b].p;
+      const pa = named[a] && named[a].p, pb = named[b] && named[b].p;
       if (!pa || !pb) { bones[i].visible = false; return; }
       const va = toView(pa), vb = toView(pb);
       const d = vb.clone().sub(va);
@@ -223,22 +400,23 @@ export class SkeletonView {
     });
     const sensors = this._pool('sensors', pose.sensors.length, () => new THREE.Mesh(this.sensorGeo, this.sensorMat));
     pose.sensors.forEach((s, i) => {
-      if (!s.p) return;
+      if (!s.p) { sensors[i].visible = false; return; }
       sensors[i].position.copy(toView(s.p));
+      sensors[i].material = s.valid ? this.sensorMat : this.sensorOffMat;
       if (s.R && s.R.length === 9) {
         // Sensor axes in tracker coordinates, mapped to view axes the same way as positions.
         const R = s.R;
         const col = (k) => toView([R[k], R[3 + k], R[6 + k]]);
-        const m = new THREE.Matrix4().makeBasis(col(0), col(1), col(2));
-        sensors[i].quaternion.setFromRotationMatrix(m);
+        sensors[i].quaternion.setFromRotationMatrix(new THREE.Matrix4().makeBasis(col(0), col(1), col(2)));
       }
     });
+    this.dirty = true;
   }
 
   _draw2d() {
     const ctx = this.canvas.getContext('2d');
     const w = this.canvas.width, h = this.canvas.height;
-    ctx.fillStyle = '#10141a';
+    ctx.fillStyle = '#0d1117';
     ctx.fillRect(0, 0, w, h);
     if (!this.pose) return;
     const cy = Math.cos(this.yaw), sy = Math.sin(this.yaw), cp = Math.cos(this.pitch), sp = Math.sin(this.pitch);
@@ -250,15 +428,19 @@ export class SkeletonView {
       const s = Math.min(w, h) / 2.2;
       return [w / 2 + x * s, h / 2 - y * s];
     };
-    ctx.strokeStyle = '#3fa9f5'; ctx.lineWidth = 4;
+    ctx.strokeStyle = '#' + this.colour.toString(16).padStart(6, '0'); ctx.lineWidth = 4;
     this.pose.bones.forEach(([a, b]) => {
       const pa = this.pose.joints[a] && this.pose.joints[a].p, pb = this.pose.joints[b] && this.pose.joints[b].p;
       if (!pa || !pb) return;
       const [x1, y1] = project(pa), [x2, y2] = project(pb);
       ctx.beginPath(); ctx.moveTo(x1, y1); ctx.lineTo(x2, y2); ctx.stroke();
     });
-    ctx.fillStyle = '#ffc857';
-    this.pose.joints.forEach((j) => { if (!j.p) return; const [x, y] = project(j.p); ctx.beginPath(); ctx.arc(x, y, 5, 0, 7); ctx.fill(); });
+    this.pose.joints.forEach((j) => {
+      if (!j.p) return;
+      const st = j.kind === 'end' || j.kind === 'root' ? 'done' : (this.jointState[j.name] || 'work');
+      ctx.fillStyle = '#' + STATE_COLOURS[st].toString(16).padStart(6, '0');
+      const [x, y] = project(j.p); ctx.beginPath(); ctx.arc(x, y, 5, 0, 7); ctx.fill();
+    });
     ctx.fillStyle = '#e4572e';
     this.pose.sensors.forEach((s) => { if (!s.p) return; const [x, y] = project(s.p); ctx.fillRect(x - 4, y - 4, 8, 8); });
   }

@@ -1,251 +1,487 @@
 // The operator dashboard: live skeleton, topology, bones, coverage hints, residual plot with slip
-// markers, tracker status and session controls. It only reads what the service publishes.
+// markers, tracker status and session controls. It only shows what the service publishes on
+// /ws/live (status, fit, residuals, events, pose) and calls the REST API for session control.
 
-import { api, connectLive, readable, SkeletonView } from './common.js';
+import { api, ApiError, connectLive, download, jointLabel, jointStderr, readable, SkeletonView } from './common.js';
 
 const $ = (id) => document.getElementById(id);
 const view = new SkeletonView($('view'));
-const WINDOW_S = 30;
+const WINDOW_S = 60;
+const PLOT_HEIGHT = 260;
 
-let liveSession = null;
-const slipTimes = [];           // slip event times (s, session clock) drawn on the residual plot
-const residualSeries = {};      // joint -> [[t, mm], ...]
-let plot = null;
-let plotJoints = [];
+const state = {
+  session: null,        // live session summary from the status messages
+  lastSessionId: null,  // newest session (live or stopped): what the download buttons fetch
+  lastPerformer: '',
+  fit: null,
+  hints: [],
+  trackerConnected: null,
+  rate: [],             // [wall seconds, frames] samples for the measured frame rate
+};
 
-function setPill(el, text, kind) {
+// ---------------------------------------------------------------------------------- tracker status
+
+function setPill(el, text, kind, dataState) {
   el.textContent = text;
   el.className = `pill pill-${kind}`;
+  if (dataState) el.dataset.state = dataState;
 }
 
-function showStatus(s) {
+function fmtInt(n) { return n === undefined || n === null ? '–' : Number(n).toLocaleString('en-GB'); }
+
+// Frames per second over the last few seconds, timed by the server's clock (message "time"), so
+// bursts in delivery do not show as rate swings.
+function measuredRate(frames, now) {
+  state.rate.push([now, frames]);
+  while (state.rate.length > 2 && now - state.rate[0][0] > 3) state.rate.shift();
+  const [t0, f0] = state.rate[0];
+  return now - t0 > 0.8 ? (frames - f0) / (now - t0) : null;
+}
+
+function showStatus(s, serverTime) {
   const connected = !!s.connected;
-  setPill($('tracker'), connected ? 'tracker connected' : 'tracker disconnected', connected ? 'ok' : 'bad');
-  $('tracker').dataset.state = connected ? 'connected' : 'disconnected';
-  const rate = s.rate_hz ? `${Number(s.rate_hz).toFixed(0)} Hz` : '– Hz';
-  const parts = [`${s.birds ?? '–'} birds`, rate, `${s.frames ?? 0} frames`,
-    `${s.dropped_records ?? 0} dropped`, `${s.resynced ?? 0} resyncs`];
-  $('tracker-detail').textContent = parts.join(' · ');
+  setPill($('tracker'), connected ? 'tracker connected' : 'tracker disconnected', connected ? 'ok' : 'bad',
+    connected ? 'connected' : 'disconnected');
+  const rate = serverTime ? measuredRate(s.frames || 0, serverTime) : null;
+  $('fig-rate').textContent = connected && rate !== null ? `${rate.toFixed(0)} Hz` : (connected ? '…' : '0 Hz');
+  $('fig-rate').title = s.rate_hz ? `tracker set to ${s.rate_hz} Hz` : '';
+  $('fig-birds').textContent = fmtInt(s.birds);
+  $('fig-frames').textContent = fmtInt(s.frames);
+  $('fig-dropped').textContent = fmtInt(s.dropped_records);
+  $('fig-dropped').classList.toggle('warn', (s.dropped_records || 0) > 0);
+  $('fig-resynced').textContent = fmtInt(s.resynced);
+  $('fig-reconnects').textContent = fmtInt(s.reconnects);
   const banner = $('banner');
   if (!connected) {
-    banner.textContent = `Tracker disconnected${s.last_error ? ': ' + s.last_error : ''} — reconnecting; the session keeps what it has.`;
+    const why = s.last_error ? ` (${s.last_error})` : '';
+    banner.textContent = `Tracker disconnected${why} — flockcal keeps trying to reconnect; the session keeps what it has.`;
     banner.classList.remove('hidden');
   } else {
     banner.classList.add('hidden');
   }
-  const session = s.session || s.live_session || null;
-  if (session && session.id !== undefined) setLiveSession(session);
-  else if (s.session === null || s.live_session === null) setLiveSession(null);
+  state.trackerConnected = connected;
+  setSession(s.session || null);
 }
 
-function setLiveSession(session) {
-  liveSession = session;
+function showLink(st) {
+  const text = { open: 'server live', connecting: 'server: connecting…', closed: 'server: reconnecting…',
+    unauthorised: 'server: token refused' }[st];
+  setPill($('link'), text, st === 'open' ? 'ok' : (st === 'unauthorised' ? 'bad' : 'warn'), st);
+  const b = $('link-banner');
+  if (st === 'open' || st === 'connecting') { b.classList.add('hidden'); return; }
+  b.textContent = st === 'unauthorised'
+    ? 'This service needs a token: open the dashboard as /?token=YOUR_TOKEN.'
+    : 'Lost the connection to the flockcal service — reconnecting by itself…';
+  b.classList.remove('hidden');
+}
+
+// ---------------------------------------------------------------------------------- session
+
+function fmtDuration(s) {
+  if (!Number.isFinite(s)) return '–';
+  const m = Math.floor(s / 60);
+  return `${m}:${String(Math.floor(s % 60)).padStart(2, '0')}`;
+}
+
+function setSession(session) {
+  const prev = state.session;
+  if (session && (!prev || prev.id !== session.id)) {
+    // A new session (from here, the kiosk or the API): start its plots afresh.
+    resetSessionViews();
+    state.lastSessionId = session.id;
+    state.lastPerformer = session.performer;
+  }
+  state.session = session;
   $('start').disabled = !!session;
   $('stop').disabled = !session;
+  $('performer').disabled = !!session;
+  $('hierarchy').disabled = !!session;
+  const pill = $('session-state');
+  if (session) setPill(pill, 'recording', 'ok', 'live');
+  else if (state.lastSessionId) setPill(pill, 'stopped', 'unknown', 'stopped');
+  else setPill(pill, 'no session', 'unknown', 'none');
+  $('s-performer').textContent = session ? session.performer : (state.lastPerformer || '–');
+  if (session) $('s-time').textContent = fmtDuration(session.time_s);
   $('session-info').textContent = session
-    ? `live: ${session.performer || session.name || ''} (session ${session.id})`
-    : 'no live session';
-  const dl = $('downloads');
-  dl.innerHTML = '';
-  const id = session ? session.id : lastStoppedId;
-  if (id !== null && id !== undefined) {
-    for (const [label, path] of [['skeleton.json', 'skeleton'], ['take.bvh', 'bvh'], ['result.json', 'result']]) {
-      const a = document.createElement('a');
-      a.href = `/api/sessions/${encodeURIComponent(id)}/${path}`;
-      a.textContent = `download ${label}`;
-      a.setAttribute('download', `${session ? session.performer || 'session' : 'session'}-${id}-${label}`);
-      dl.appendChild(a);
+    ? `session ${session.id} · ${fmtInt(session.frames)} frames${session.fit_error ? ' · ' + session.fit_error : ''}`
+    : (state.lastSessionId ? `last session ${state.lastSessionId} (stopped)` : 'no live session');
+  $('dl-skeleton').disabled = !state.lastSessionId;
+  $('dl-take').disabled = !state.lastSessionId;
+}
+
+function resetSessionViews() {
+  state.fit = null;
+  residuals.clear();
+  $('alerts').innerHTML = '<div class="muted small none">No alerts.</div>';
+}
+
+async function loadPresets() {
+  try {
+    const presets = await api('/api/sessions/presets');
+    const sel = $('hierarchy');
+    for (const name of Object.keys(presets)) {
+      if (name === 'auto') continue;
+      const o = document.createElement('option');
+      o.value = name;
+      o.textContent = `known skeleton: ${name}`;
+      sel.appendChild(o);
     }
-  }
+  } catch (e) { /* presets are optional */ }
 }
-let lastStoppedId = null;
-
-function showTopology(result) {
-  const children = {};
-  for (const [child, parent] of Object.entries(result.parent || {})) (children[parent] = children[parent] || []).push(child);
-  const hinge = {};
-  for (const j of result.joints || []) hinge[j.child] = j.hinge;
-  const build = (name) => {
-    const li = document.createElement('li');
-    li.textContent = readable(name);
-    if (hinge[name]) { const s = document.createElement('span'); s.className = 'hinge'; s.textContent = ' hinge'; li.appendChild(s); }
-    const kids = (children[name] || []).sort();
-    if (kids.length) { const ul = document.createElement('ul'); kids.forEach((k) => ul.appendChild(build(k))); li.appendChild(ul); }
-    return li;
-  };
-  const el = $('topology');
-  el.classList.remove('muted');
-  el.innerHTML = '';
-  if (!result.root) { el.textContent = 'waiting for data…'; return; }
-  const ul = document.createElement('ul');
-  ul.appendChild(build(result.root));
-  el.appendChild(ul);
-}
-
-function showBones(result) {
-  const tbody = $('bones').querySelector('tbody');
-  tbody.innerHTML = '';
-  for (const b of result.bones || []) {
-    const tr = document.createElement('tr');
-    tr.dataset.body = b.body;
-    tr.dataset.lengthM = b.length_m;
-    const from = b.from_joint ? readable(b.from_joint) : '—';
-    tr.innerHTML = `<td></td><td></td><td class="num"></td><td class="num"></td>`;
-    tr.children[0].textContent = readable(b.body);
-    tr.children[1].textContent = `${from} → ${readable(b.to_joint)}`;
-    tr.children[2].textContent = `${(b.length_m * 100).toFixed(1)} cm`;
-    tr.children[3].textContent = Number.isFinite(b.stderr_m) ? `${(b.stderr_m * 1000).toFixed(1)} mm` : '–';
-    tbody.appendChild(tr);
-  }
-}
-
-function showCoverage(result, hints) {
-  const el = $('coverage');
-  el.innerHTML = '';
-  const hintFor = {};
-  for (const h of hints || []) hintFor[h.joint || h.child] = h.hint || h.text;
-  for (const j of result.joints || []) {
-    const cov = j.coverage || [0, 0, 0];
-    // A ball joint needs all three axes exercised, a hinge only its own: judge by the weakest needed axis.
-    const needed = j.hinge ? [Math.max(...cov)] : cov;
-    const level = Math.max(0, Math.min(1, Math.min(...needed) / 0.15));
-    const row = document.createElement('div');
-    row.className = 'cov';
-    row.innerHTML = `<span></span><div class="bar"><div></div></div>`;
-    row.children[0].textContent = readable(j.child);
-    row.children[1].children[0].style.width = `${(level * 100).toFixed(0)}%`;
-    if (level < 0.5) row.children[1].classList.add('low');
-    el.appendChild(row);
-    const hint = hintFor[j.child];
-    if (hint) { const h = document.createElement('div'); h.className = 'hint'; h.textContent = hint; row.appendChild(h); }
-  }
-}
-
-function slipMarkersPlugin() {
-  return {
-    hooks: {
-      draw: (u) => {
-        const ctx = u.ctx;
-        ctx.save();
-        ctx.strokeStyle = '#f85149';
-        ctx.lineWidth = 2 * (window.devicePixelRatio || 1);
-        for (const t of slipTimes) {
-          const x = u.valToPos(t, 'x', true);
-          if (x < u.bbox.left || x > u.bbox.left + u.bbox.width) continue;
-          ctx.beginPath(); ctx.moveTo(x, u.bbox.top); ctx.lineTo(x, u.bbox.top + u.bbox.height); ctx.stroke();
-        }
-        ctx.restore();
-      },
-    },
-  };
-}
-
-const palette = ['#3fa9f5', '#ffc857', '#7ee787', '#ff7b72', '#d2a8ff', '#79c0ff', '#ffa657', '#56d4dd',
-  '#f778ba', '#a5d6ff', '#e3b341', '#8ddb8c', '#ffb3ad', '#bc8cff', '#39c5cf', '#f0883e'];
-
-function rebuildPlot(joints) {
-  plotJoints = joints;
-  const el = $('residuals');
-  el.innerHTML = '';
-  const opts = {
-    width: el.clientWidth || 800, height: 240,
-    scales: { x: { time: false } },
-    axes: [{ stroke: '#8b98a5', label: 's' }, { stroke: '#8b98a5', label: 'mm' }],
-    series: [{}].concat(joints.map((j, i) => ({ label: readable(j), stroke: palette[i % palette.length], width: 1.2 }))),
-    plugins: [slipMarkersPlugin()],
-    legend: { live: false },
-  };
-  plot = new uPlot(opts, [[]].concat(joints.map(() => [])), el);
-  el.dataset.series = joints.length;
-}
-
-function addResiduals(msg) {
-  // {times: [...], joints: {child: [mm, ...]}} — samples since the last message.
-  const times = msg.times || msg.t || [];
-  const joints = msg.joints || {};
-  const names = Object.keys(joints).sort();
-  if (!plot || names.join() !== plotJoints.join()) rebuildPlot(names);
-  for (const name of names) {
-    const s = residualSeries[name] = residualSeries[name] || [];
-    joints[name].forEach((v, k) => s.push([times[k], v]));
-  }
-  const tEnd = times.length ? times[times.length - 1] : 0;
-  for (const name of names) {
-    const s = residualSeries[name];
-    while (s.length && s[0][0] < tEnd - WINDOW_S) s.shift();
-  }
-  const xs = (residualSeries[names[0]] || []).map((p) => p[0]);
-  const data = [xs].concat(names.map((n) => {
-    const byT = new Map(residualSeries[n].map((p) => [p[0], p[1]]));
-    return xs.map((t) => (byT.has(t) ? byT.get(t) : null));
-  }));
-  plot.setData(data);
-  $('residuals').dataset.samples = xs.length;
-}
-
-function showEvent(ev) {
-  const e = ev.event || ev;
-  const kind = e.type || e.kind;
-  const div = document.createElement('div');
-  if (kind === 'slip') {
-    slipTimes.push(e.time_s);
-    div.className = 'alert slip';
-    const who = e.candidates && e.candidates.length > 1 ? e.candidates.map(readable).join(' or ') : readable(e.sensor);
-    div.textContent = `Sensor slipped: ${who} at ${Number(e.time_s).toFixed(1)} s (jump ${Number(e.jump_mm).toFixed(0)} mm) — check the strap; those joints are re-fitting.`;
-    if (plot) plot.redraw();
-  } else if (kind === 'swap') {
-    div.className = 'alert swap';
-    div.textContent = `Sensors swapped: ${readable(e.a || (e.sensors || [])[0])} ⇄ ${readable(e.b || (e.sensors || [])[1])} at ${Number(e.time_s).toFixed(1)} s — check the cables.`;
-  } else {
-    div.className = 'alert info';
-    div.textContent = e.message || `${kind}`;
-  }
-  const alerts = $('alerts');
-  alerts.prepend(div);
-  while (alerts.children.length > 8) alerts.lastChild.remove();
-}
-
-connectLive({
-  content: ['status', 'fit', 'residuals', 'events', 'pose'],
-  rateHz: 15,
-  onState: (state) => setPill($('link'), state === 'open' ? 'server: live' : 'server: reconnecting…', state === 'open' ? 'ok' : 'warn'),
-  onMessage: (msg) => {
-    switch (msg.type) {
-      case 'status': showStatus(msg.status || msg); break;
-      case 'fit': {
-        const result = msg.result || msg.fit || msg;
-        showTopology(result); showBones(result); showCoverage(result, msg.hints || result.hints);
-        break;
-      }
-      case 'pose': view.update(msg); break;
-      case 'residuals': addResiduals(msg); break;
-      case 'event': showEvent(msg); break;
-      case 'error': showEvent({ type: 'info', message: msg.message }); break;
-      default: break;
-    }
-  },
-});
 
 $('session-form').addEventListener('submit', async (e) => {
   e.preventDefault();
   const body = { performer: $('performer').value.trim() };
   if ($('hierarchy').value !== 'auto') body.skeleton = $('hierarchy').value;
+  $('start').disabled = true;
   try {
     const s = await api('/api/sessions', { method: 'POST', json: body });
-    setLiveSession(s);
-    Object.keys(residualSeries).forEach((k) => delete residualSeries[k]);
-    slipTimes.length = 0;
-  } catch (err) { showEvent({ type: 'info', message: `Could not start: ${err.message}` }); }
+    setSession({ id: s.id, performer: s.performer, frames: 0, time_s: 0 });
+  } catch (err) {
+    $('start').disabled = false;
+    addAlert('error', `Could not start the session: ${err.message}`);
+  }
 });
 
 $('stop').addEventListener('click', async () => {
-  if (!liveSession) return;
+  if (!state.session) return;
+  const id = state.session.id;
+  $('stop').disabled = true;
   try {
-    await api(`/api/sessions/${encodeURIComponent(liveSession.id)}/stop`, { method: 'POST' });
-    lastStoppedId = liveSession.id;
-    setLiveSession(null);
-  } catch (err) { showEvent({ type: 'info', message: `Could not stop: ${err.message}` }); }
+    await api(`/api/sessions/${encodeURIComponent(id)}/stop`, { method: 'POST' });
+    setSession(null);
+  } catch (err) {
+    $('stop').disabled = false;
+    addAlert('error', `Could not stop the session: ${err.message}`);
+  }
 });
 
+async function downloadFile(kind) {
+  const id = state.lastSessionId;
+  if (!id) return;
+  const who = (state.lastPerformer || 'session').replace(/[^A-Za-z0-9_.-]+/g, '_');
+  try {
+    if (kind === 'skeleton') await download(`/api/sessions/${encodeURIComponent(id)}/result`, `${who}-${id}-skeleton.json`);
+    else await download(`/api/sessions/${encodeURIComponent(id)}/take`, `${who}-${id}.npz`);
+  } catch (err) {
+    const why = err instanceof ApiError && err.status === 409 ? 'no fit yet — move a little first' : err.message;
+    addAlert('error', `Could not download the ${kind}: ${why}`);
+  }
+}
+$('dl-skeleton').addEventListener('click', () => downloadFile('skeleton'));
+$('dl-take').addEventListener('click', () => downloadFile('take'));
+
+// ---------------------------------------------------------------------------------- the fit
+
+// Server hints carry each unfinished joint's progress; a joint without a hint is done.
+function progressOf(child) {
+  const h = state.hints.find((x) => x.joint === child);
+  return h ? Number(h.progress) : 1;
+}
+
+function showFit(msg) {
+  const result = msg.result;
+  if (!result) return;
+  state.fit = result;
+  state.hints = msg.hints || [];
+  view.setFit(result);
+  const jointState = {};
+  for (const name of result.sensors || []) jointState[name] = 'none';
+  for (const j of result.joints || []) jointState[j.child] = progressOf(j.child) >= 1 ? 'done' : 'work';
+  view.setJointState(jointState);
+  showTopology(result);
+  showBones(result);
+  showCoverage(result);
+  const joints = result.joints || [];
+  const expected = Math.max(0, (result.sensors || []).length - 1);
+  const done = joints.filter((j) => progressOf(j.child) >= 1).length;
+  $('s-joints').textContent = `${done} / ${expected}`;
+  $('s-fit').textContent = `${fmtInt(result.frames)} frames`;
+}
+
+function showTopology(result) {
+  const el = $('topology');
+  el.classList.remove('muted');
+  el.innerHTML = '';
+  if (!result.root) { el.textContent = 'No fit yet.'; return; }
+  const children = {};
+  for (const [child, parent] of Object.entries(result.parent || {})) (children[parent] = children[parent] || []).push(child);
+  const joint = {};
+  for (const j of result.joints || []) joint[j.child] = j;
+  const build = (name) => {
+    const li = document.createElement('li');
+    const label = document.createElement('span');
+    label.className = 'node';
+    label.textContent = readable(name);
+    li.appendChild(label);
+    const j = joint[name];
+    if (name === result.root) li.appendChild(badge('root', 'root'));
+    else if (!j) li.appendChild(badge('rigid', 'moves rigidly with its parent so far — not fitted yet'));
+    else {
+      if (j.hinge) li.appendChild(badge('hinge', 'turns about one axis only'));
+      li.appendChild(badge(progressOf(name) >= 1 ? 'ok' : 'todo', jointLabel(name, j.parent)));
+    }
+    const kids = (children[name] || []).sort();
+    if (kids.length) { const ul = document.createElement('ul'); kids.forEach((k) => ul.appendChild(build(k))); li.appendChild(ul); }
+    return li;
+  };
+  const ul = document.createElement('ul');
+  ul.appendChild(build(result.root));
+  el.appendChild(ul);
+  const loops = result.loop_candidates || [];
+  const notes = [];
+  if (loops.length) notes.push(`closed loop? ${loops.map((l) => `${readable(l.a)}–${readable(l.b)}`).join(', ')}`);
+  if (result.ambiguous && result.ambiguous.length) notes.push(`${result.ambiguous.length} ambiguous parent(s)`);
+  $('topology-note').textContent = notes.join(' · ');
+}
+
+function badge(kind, text) {
+  const s = document.createElement('span');
+  s.className = `badge badge-${kind}`;
+  s.textContent = kind === 'rigid' ? 'not fitted' : text;
+  if (kind === 'rigid') s.title = text;
+  if (kind === 'hinge') { s.textContent = 'hinge'; s.title = text; }
+  return s;
+}
+
+function showBones(result) {
+  const tbody = $('bones').querySelector('tbody');
+  tbody.innerHTML = '';
+  const parent = result.parent || {};
+  for (const b of result.bones || []) {
+    if (!Number.isFinite(b.length_m)) continue;
+    const tr = document.createElement('tr');
+    tr.dataset.body = b.body;
+    tr.dataset.from = b.from_joint || '';
+    tr.dataset.to = b.to_joint;
+    tr.dataset.lengthM = b.length_m;
+    tr.dataset.stderrM = b.stderr_m;
+    const from = b.from_joint ? jointLabel(b.from_joint, parent[b.from_joint]) : '—';
+    const cells = [readable(b.body), `${from} → ${jointLabel(b.to_joint, parent[b.to_joint])}`,
+      `${(b.length_m * 100).toFixed(1)} cm`, Number.isFinite(b.stderr_m) ? `${(b.stderr_m * 1000).toFixed(1)} mm` : '–'];
+    cells.forEach((text, k) => {
+      const td = document.createElement('td');
+      td.textContent = text;
+      if (k >= 2) td.className = 'num';
+      tr.appendChild(td);
+    });
+    tbody.appendChild(tr);
+  }
+  if (!tbody.children.length) tbody.innerHTML = '<tr class="placeholder"><td colspan="4" class="muted">No joints fitted yet: move the performer.</td></tr>';
+}
+
+function showCoverage(result) {
+  const el = $('coverage');
+  el.innerHTML = '';
+  const hintFor = {};
+  for (const h of state.hints) hintFor[h.joint] = h.hint;
+  const joints = (result.joints || []).slice().sort((a, b) => progressOf(a.child) - progressOf(b.child));
+  const fitted = new Set(joints.map((j) => j.child));
+  const unfitted = (result.sensors || []).filter((n) => n !== result.root && !fitted.has(n));
+  // What to do next, in plain words: the three weakest joints' hints, then bodies not moving at all.
+  const todo = document.createElement('div');
+  todo.id = 'next-moves';
+  todo.className = 'next-moves';
+  const lines = state.hints.slice(0, 3).map((h) => h.hint);
+  if (unfitted.length) lines.push(`Not moving yet: ${unfitted.map(readable).join(', ')} — move them so their joints can be found.`);
+  if (lines.length) {
+    const title = document.createElement('div');
+    title.className = 'next-title';
+    title.textContent = 'Move next';
+    todo.appendChild(title);
+    for (const line of lines) { const d = document.createElement('div'); d.className = 'hint'; d.textContent = line; todo.appendChild(d); }
+  } else if (joints.length) {
+    todo.classList.add('all-done');
+    todo.textContent = 'Every joint is exercised and pinned down.';
+  }
+  el.appendChild(todo);
+  for (const j of joints) {
+    const p = Math.max(0, Math.min(1, progressOf(j.child)));
+    const row = document.createElement('div');
+    row.className = 'cov';
+    row.dataset.joint = j.child;
+    row.dataset.progress = p;
+    const name = document.createElement('span');
+    name.className = 'cov-name';
+    name.textContent = jointLabel(j.child, j.parent);
+    name.title = `${readable(j.parent)} → ${readable(j.child)}${hintFor[j.child] ? ': ' + hintFor[j.child] : ''}`;
+    const bar = document.createElement('div');
+    bar.className = `bar ${p >= 1 ? 'full' : p < 0.5 ? 'low' : ''}`;
+    const fill = document.createElement('div');
+    fill.style.width = `${Math.max(2, p * 100).toFixed(0)}%`;
+    bar.appendChild(fill);
+    const err = jointStderr(j);
+    const value = document.createElement('span');
+    value.className = 'cov-value';
+    value.textContent = p >= 1 ? '✓' : `${(p * 100).toFixed(0)}%`;
+    const sd = document.createElement('span');
+    sd.className = 'cov-sd';
+    sd.textContent = Number.isFinite(err) ? `±${(err * 1000).toFixed(1)} mm` : '';
+    sd.title = 'standard error of the joint centre';
+    row.append(name, bar, value, sd);
+    el.appendChild(row);
+  }
+}
+
+// ---------------------------------------------------------------------------------- residual plot
+
+const palette = ['#58a6ff', '#ffc857', '#7ee787', '#ff7b72', '#d2a8ff', '#79c0ff', '#ffa657', '#56d4dd',
+  '#f778ba', '#a5d6ff', '#e3b341', '#8ddb8c', '#ffb3ad', '#bc8cff', '#39c5cf', '#f0883e'];
+
+// Residual samples on one time axis, one column per joint ever seen this session; slips as markers.
+const residuals = {
+  times: [], cols: {}, names: [], slips: [], plot: null, built: '',
+  clear() {
+    this.times = []; this.cols = {}; this.names = []; this.slips = [];
+    this.draw();
+  },
+  add(msg) {
+    const times = msg.times || [];
+    const joints = msg.joints || {};
+    for (const name of Object.keys(joints)) {
+      if (!this.cols[name]) { this.cols[name] = this.times.map(() => null); this.names.push(name); this.names.sort(); }
+    }
+    let last = this.times.length ? this.times[this.times.length - 1] : -Infinity;
+    times.forEach((t, k) => {
+      if (!(t > last)) return;  // a replayed or duplicate sample
+      last = t;
+      this.times.push(t);
+      for (const name of this.names) this.cols[name].push(joints[name] ? joints[name][k] ?? null : null);
+    });
+    const cut = this.times.findIndex((t) => t >= last - WINDOW_S);
+    if (cut > 0) {
+      this.times.splice(0, cut);
+      for (const name of this.names) this.cols[name].splice(0, cut);
+    }
+    this.draw();
+  },
+  addSlip(ev) {
+    if (this.slips.some((s) => s.id === ev.id)) return;
+    this.slips.push(ev);
+    $('residuals').dataset.slips = this.slips.length;
+    this.draw();
+  },
+  draw() {
+    const el = $('residuals');
+    el.dataset.samples = this.times.length;
+    el.dataset.slips = this.slips.length;
+    const key = this.names.join(',');
+    if (!this.plot || key !== this.built) this.build();
+    const data = [this.times].concat(this.names.map((n) => this.cols[n]));
+    this.plot.setData(data);
+  },
+  build() {
+    const el = $('residuals');
+    el.innerHTML = '';
+    this.built = this.names.join(',');
+    const slips = this;
+    const parent = (state.fit && state.fit.parent) || {};
+    const opts = {
+      width: el.clientWidth || 900,
+      height: PLOT_HEIGHT,
+      scales: { x: { time: false }, y: { range: (u, lo, hi) => [0, Math.max(5, (hi || 0) * 1.1)] } },
+      axes: [
+        { stroke: '#8b98a5', grid: { stroke: '#21262d' }, ticks: { stroke: '#30363d' }, label: 'session time (s)', labelSize: 18 },
+        { stroke: '#8b98a5', grid: { stroke: '#21262d' }, ticks: { stroke: '#30363d' }, label: 'residual (mm)', labelSize: 18, size: 50 },
+      ],
+      series: [{ label: 't' }].concat(this.names.map((j, i) => ({
+        label: jointLabel(j, parent[j]), stroke: palette[i % palette.length], width: 1.4, spanGaps: false,
+        value: (u, v) => (v === null || v === undefined ? '–' : `${v.toFixed(1)} mm`),
+      }))),
+      cursor: { drag: { x: false, y: false } },
+      legend: { live: false },
+      plugins: [{ hooks: { draw: [(u) => drawSlips(u, slips.slips)] } }],
+    };
+    this.plot = new uPlot(opts, [[]].concat(this.names.map(() => [])), el);
+  },
+};
+
+function drawSlips(u, slips) {
+  const ctx = u.ctx;
+  const dpr = window.devicePixelRatio || 1;
+  ctx.save();
+  ctx.strokeStyle = '#f85149';
+  ctx.fillStyle = '#f85149';
+  ctx.lineWidth = 2 * dpr;
+  ctx.setLineDash([6 * dpr, 4 * dpr]);
+  ctx.font = `${11 * dpr}px system-ui, sans-serif`;
+  slips.forEach((s, k) => {
+    const x = u.valToPos(s.time_s, 'x', true);
+    if (!(x >= u.bbox.left && x <= u.bbox.left + u.bbox.width)) return;
+    ctx.beginPath(); ctx.moveTo(x, u.bbox.top); ctx.lineTo(x, u.bbox.top + u.bbox.height); ctx.stroke();
+    // Stagger the labels so slips close together stay readable.
+    ctx.fillText(` slip: ${readable(s.sensor)}`, x + 2 * dpr, u.bbox.top + (12 + 13 * (k % 4)) * dpr);
+  });
+  ctx.restore();
+}
+
+new ResizeObserver(() => {
+  if (residuals.plot) residuals.plot.setSize({ width: $('residuals').clientWidth, height: PLOT_HEIGHT });
+}).observe($('residuals'));
+
+// ---------------------------------------------------------------------------------- alerts
+
+function addAlert(kind, text, id) {
+  const alerts = $('alerts');
+  if (id !== undefined && alerts.querySelector(`[data-id="${id}"]`)) return;
+  alerts.querySelectorAll('.none').forEach((n) => n.remove());
+  const div = document.createElement('div');
+  div.className = `alert ${kind}`;
+  if (id !== undefined) div.dataset.id = id;
+  const text_ = document.createElement('span');
+  text_.textContent = text;
+  const close = document.createElement('button');
+  close.type = 'button';
+  close.className = 'close';
+  close.setAttribute('aria-label', 'dismiss');
+  close.textContent = '×';
+  close.addEventListener('click', () => div.remove());
+  div.append(text_, close);
+  alerts.prepend(div);
+  while (alerts.children.length > 6) alerts.lastChild.remove();
+}
+
+function showEvent(msg) {
+  const e = msg.event || msg;
+  const kind = e.type;
+  if (kind === 'slip') {
+    const who = e.candidates && e.candidates.length > 1 ? e.candidates.map(readable).join(' or ') : readable(e.sensor);
+    const joints = (e.joints || []).map((j) => jointLabel(j, state.fit && state.fit.parent && state.fit.parent[j])).join(', ');
+    addAlert('slip', `Sensor slipped: ${who} at ${Number(e.time_s).toFixed(1)} s, residual jump ${Number(e.jump_mm).toFixed(0)} mm` +
+      `${joints ? ` (${joints})` : ''} — check its strap; those joints re-fit from here.`, e.id);
+    if (!state.session || e.session_id === state.session.id) residuals.addSlip(e);
+  } else if (kind === 'swap') {
+    const [a, b] = e.sensors || e.candidates || [e.a, e.b];
+    addAlert('slip', `Sensors swapped: ${readable(a)} ⇄ ${readable(b)} at ${Number(e.time_s).toFixed(1)} s — check the cables.`, e.id);
+    if (!state.session || e.session_id === state.session.id) residuals.addSlip(Object.assign({ sensor: `${a}⇄${b}` }, e));
+  } else if (kind === 'tracker') {
+    if (['disconnected', 'connected', 'reconnecting', 'error', 'stalled', 'bird_error'].includes(e.kind)) {
+      addAlert(e.kind === 'connected' ? 'info' : 'warn', `Tracker ${e.kind.replace('_', ' ')}${e.message ? ': ' + e.message : ''}`, e.id);
+    }
+  } else if (kind === 'session') {
+    addAlert('info', e.message || `session ${e.action}`, e.id);
+  }
+}
+
+// ---------------------------------------------------------------------------------- wiring
+
+connectLive({
+  content: ['status', 'fit', 'residuals', 'events', 'pose'],
+  rateHz: 15,
+  onState: showLink,
+  onMessage: (msg) => {
+    switch (msg.type) {
+      case 'status': showStatus(msg.status, msg.time); break;
+      case 'fit': showFit(msg); break;
+      case 'pose': if (msg.pose) { view.update(msg.pose); $('view-empty').classList.add('hidden'); } break;
+      case 'residuals': residuals.add(msg); break;
+      case 'event': showEvent(msg); break;
+      case 'error': addAlert('error', msg.message); break;
+      default: break;
+    }
+  },
+});
+
+residuals.draw();
+loadPresets();
 api('/api/status').then(showStatus).catch(() => {});
-window.addEventListener('resize', () => { if (plot) plot.setSize({ width: $('residuals').clientWidth, height: 240 }); });

@@ -1,125 +1,255 @@
 // The guest-facing kiosk: an avatar that follows the guest, a progress ring fed by coverage and
 // uncertainty, what to move next, and a "done" state; one session per guest, then it resets itself.
-// URL options: ?token=… (kiosk token), &stderr_mm=5 (joint uncertainty counted as calibrated),
-// &reset_s=10 (how long "done" stays up before the next guest).
+// URL options: ?token=… (a kiosk token starts and stops sessions; a read-only token follows the
+// sessions a host starts), stderr_mm=5 (joint-centre uncertainty counted as calibrated),
+// coverage=0.01 (1 − σ(M) on the axes a joint needs, design.md §3), reset_s=10 (how long "done"
+// stays up), max_s=300 (a guest who walks away: start afresh), joints=N (joints expected; default
+// one per sensor but the root), mirror=0 (show the avatar as others see the guest, not as a mirror).
 
-import { api, connectLive, readable, SkeletonView } from './common.js';
+import { api, ApiError, connectLive, jointStderr, neededCoverage, readable, SkeletonView } from './common.js';
 
 const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.search);
-const TARGET_STDERR_M = Number(params.get('stderr_mm') || 5) / 1000;
-const RESET_S = Number(params.get('reset_s') || 10);
-const COVERAGE_FULL = 0.15;   // 1 − σ(M) per axis counted as "moved enough" (design.md §3)
+const num = (key, fallback) => {
+  const v = Number(params.get(key));
+  return params.has(key) && Number.isFinite(v) && v > 0 ? v : fallback;
+};
+const TARGET_STDERR_M = num('stderr_mm', 5) / 1000;
+const COVERAGE_TARGET = num('coverage', 0.01);
+const RESET_S = num('reset_s', 10);
+const MAX_S = num('max_s', 300);
+const EXPECTED_JOINTS = params.has('joints') ? num('joints', null) : null;
 
-const avatar = new SkeletonView($('avatar'), { autoRotate: false, colour: 0x7ee787 });
+const avatar = new SkeletonView($('avatar'), { colour: 0x7ee787, follow: true, mirror: params.get('mirror') !== '0' });
 const ring = $('ring-fill');
-const CIRC = 2 * Math.PI * 84;
+const CIRC = 2 * Math.PI * 86;
 ring.style.strokeDasharray = `${CIRC}`;
 ring.style.strokeDashoffset = `${CIRC}`;
 
-let session = null;
-let state = 'starting';
-let trackerOk = true;
+const kiosk = {
+  state: 'starting',       // starting | live | done | waiting | error
+  session: null,           // the session being shown {id, performer}
+  owned: false,            // started by a kiosk, so the kiosk stops it when the guest is done
+  canControl: true,        // false with a read-only token: follow the host's sessions instead
+  best: {},                // 'child|parent' → best progress this session (information only grows)
+  startedAt: 0,
+  timer: null,
+  lastStatus: null,
+};
 
 function setState(s, text) {
-  state = s;
-  $('kiosk-state').dataset.state = s;
-  $('kiosk-state').textContent = text;
+  kiosk.state = s;
+  const el = $('kiosk-state');
+  el.dataset.state = s;
+  el.textContent = text;
   document.body.classList.toggle('done', s === 'done');
 }
 
 function setProgress(p) {
   const clamped = Math.max(0, Math.min(1, p));
   ring.style.strokeDashoffset = `${CIRC * (1 - clamped)}`;
-  $('percent').textContent = `${Math.floor(clamped * 100)}%`;
+  // Never show 100 % before the page says done.
+  const shown = kiosk.state === 'done' ? 100 : Math.min(99, Math.floor(clamped * 100));
+  $('percent').textContent = `${shown}%`;
+  $('percent').dataset.value = clamped.toFixed(3);
 }
 
-// Per joint: how far both coverage (all needed axes exercised) and uncertainty (stderr under the
-// target) have come; the guest is done when every joint is there.
-export function jointProgress(j) {
-  const cov = j.coverage || [0, 0, 0];
-  const needed = j.hinge ? [Math.max(...cov)] : cov;
-  const c = Math.min(1, Math.min(...needed) / COVERAGE_FULL);
-  const err = Math.max(j.c_stderr_m ?? Infinity, j.l_stderr_m ?? Infinity);
+// A joint counts once its needed axes are exercised (coverage) and its centre is pinned down
+// (standard error under the target); the ring shows how far the weaker of the two has come.
+function jointProgress(j) {
+  const c = Math.min(1, neededCoverage(j) / COVERAGE_TARGET);
+  const err = jointStderr(j);
   const u = Number.isFinite(err) ? Math.min(1, TARGET_STDERR_M / Math.max(err, 1e-9)) : 0;
   return Math.min(c, u);
 }
 
-function instructionFor(joints) {
-  let worst = null;
-  for (const j of joints) { const p = jointProgress(j); if (!worst || p < worst.p) worst = { j, p }; }
-  if (!worst) return 'Wave your arms and march on the spot!';
-  const name = readable(worst.j.child);
-  if (/foot|shin|thigh|knee|leg/.test(name)) return `Lift your ${name.replace('shin', 'knee')} and wiggle it!`;
-  if (/hand|forearm|arm|elbow/.test(name)) return `Swing your ${name} in big circles!`;
-  if (/head|neck/.test(name)) return 'Nod and shake your head slowly!';
-  return `Twist and bend your ${name}!`;
+// What a guest should do to move a body's joint, in words a guest uses.
+function actionFor(body) {
+  const name = readable(body);
+  const side = /^(left|right) /.exec(name);
+  const s = side ? `${side[1]} ` : '';
+  const part = side ? name.slice(side[0].length) : name;
+  if (/head|neck/.test(part)) return 'Nod and turn your head slowly!';
+  if (/hand|wrist/.test(part)) return `Wave your ${s}hand and roll your wrist!`;
+  if (/fore ?arm|lower ?arm|elbow/.test(part)) return `Bend and stretch your ${s}elbow!`;
+  if (/arm|shoulder|clavicle/.test(part)) return `Swing your ${s}arm in big circles!`;
+  if (/foot|ankle|toe/.test(part)) return `Point your ${s}toes and circle your ${s}foot!`;
+  if (/shin|calf|knee|lower ?leg/.test(part)) return `Bend your ${s}knee — kick your heel back!`;
+  if (/thigh|leg|hip/.test(part)) return `March! Lift your ${s}knee up high!`;
+  if (/pelvis|hips?/.test(part)) return 'Wiggle your hips side to side!';
+  if (/chest|abdomen|spine|torso|back|waist/.test(part)) return 'Twist and bend at your waist!';
+  return `Move your ${name}!`;
+}
+
+function showChips(rows, next) {
+  const el = $('chips');
+  el.innerHTML = '';
+  for (const r of rows) {
+    const chip = document.createElement('span');
+    chip.className = `chip${r.p >= 1 ? ' done' : ''}${r.body === next ? ' next' : ''}`;
+    chip.dataset.body = r.body;
+    chip.textContent = `${r.p >= 1 ? '✓ ' : ''}${readable(r.body)}`;
+    el.appendChild(chip);
+  }
+}
+
+function onFit(msg) {
+  const result = msg.result;
+  if (kiosk.state !== 'live' || !result || !kiosk.session) return;
+  if (msg.session && msg.session.id !== kiosk.session.id) return;
+  avatar.setFit(result);
+  const byChild = {};
+  for (const j of result.joints || []) byChild[j.child] = j;
+  // Every sensor but the root should end up with a joint; one still riding rigidly on its
+  // neighbour has not moved yet, so it counts as nothing.
+  const bodies = (result.sensors || []).filter((n) => n !== result.root);
+  const rows = bodies.map((body) => {
+    const j = byChild[body];
+    if (!j) return { body, p: 0 };
+    const key = `${body}|${j.parent}`;
+    kiosk.best[key] = Math.max(kiosk.best[key] || 0, jointProgress(j));
+    return { body, p: kiosk.best[key] };
+  });
+  const expected = EXPECTED_JOINTS || rows.length;
+  const fitted = rows.filter((r) => byChild[r.body]);
+  const overall = rows.length ? rows.reduce((a, r) => a + r.p, 0) / Math.max(expected, rows.length) : 0;
+  const jointState = {};
+  for (const r of rows) jointState[r.body] = r.p >= 1 ? 'done' : (byChild[r.body] ? 'work' : 'none');
+  avatar.setJointState(jointState);
+  const weakest = rows.slice().sort((a, b) => a.p - b.p)[0];
+  showChips(rows, weakest && weakest.p < 1 ? weakest.body : null);
+  // joints=N lets a rig with sensors sharing a body finish without those; otherwise all must be fitted.
+  const allFitted = EXPECTED_JOINTS ? fitted.length >= expected : fitted.length === rows.length;
+  if (allFitted && fitted.length && fitted.every((r) => r.p >= 1)) {
+    finishGuest();
+    return;
+  }
+  setProgress(overall);
+  if (weakest) $('instruction').textContent = actionFor(weakest.body);
+}
+
+function clearTimer() { if (kiosk.timer) { clearTimeout(kiosk.timer); kiosk.timer = null; } }
+
+function follow(session, owned) {
+  kiosk.session = session;
+  kiosk.owned = owned;
+  kiosk.best = {};
+  kiosk.startedAt = performance.now();
+  setProgress(0);
+  $('chips').innerHTML = '';
+  setState('live', owned ? 'calibrating — keep moving!' : `calibrating ${session.performer}`);
+  $('instruction').textContent = 'Wave your arms and march on the spot!';
 }
 
 async function startGuest() {
+  clearTimer();
+  if (!kiosk.canControl) { waitForHost(); return; }
   setState('starting', 'getting ready…');
   setProgress(0);
   try {
-    const stamp = new Date().toTimeString().slice(0, 8);
-    session = await api('/api/sessions', { method: 'POST', json: { performer: `guest ${stamp}` } });
-    setState('live', 'calibrating');
-    $('instruction').textContent = 'Wave your arms and march on the spot!';
+    const stamp = new Date().toTimeString().slice(0, 8).replace(/:/g, '.');
+    const s = await api('/api/sessions', { method: 'POST', json: { performer: `guest ${stamp}` } });
+    follow({ id: s.id, performer: s.performer }, true);
   } catch (err) {
-    // A session may already be live (an operator's, or ours after a reload): follow it instead.
-    try {
-      const st = await api('/api/status');
-      session = st.session || st.live_session || null;
-    } catch (e) { session = null; }
-    if (session) setState('live', 'calibrating');
-    else { setState('error', `waiting for the service (${err.message})`); setTimeout(startGuest, 3000); }
+    if (err instanceof ApiError && (err.status === 403 || err.status === 401)) {
+      // A read-only token: this kiosk shows the sessions a host starts.
+      kiosk.canControl = false;
+      waitForHost();
+      return;
+    }
+    const live = kiosk.lastStatus && kiosk.lastStatus.session;
+    if (err instanceof ApiError && err.status === 409 && live) {
+      // Someone else's session is live (an operator, or a reload of this page): show it.
+      follow(live, /^guest /.test(live.performer));
+      return;
+    }
+    setState('error', `waiting for the calibration service (${err.message})`);
+    kiosk.timer = setTimeout(startGuest, 3000);
   }
+}
+
+function waitForHost() {
+  const live = kiosk.lastStatus && kiosk.lastStatus.session;
+  if (live) { follow(live, false); return; }
+  setState('waiting', 'waiting for the host to start your calibration');
+  setProgress(0);
+  $('instruction').textContent = 'Welcome! A host will start your calibration in a moment.';
 }
 
 async function finishGuest() {
+  const session = kiosk.session;
   setState('done', 'done!');
-  $('instruction').textContent = 'All set — enjoy the show!';
   setProgress(1);
-  try { if (session) await api(`/api/sessions/${encodeURIComponent(session.id)}/stop`, { method: 'POST' }); } catch (e) { /* already stopped */ }
-  session = null;
-  setTimeout(startGuest, RESET_S * 1000);
+  $('instruction').textContent = "You're all set — enjoy the show!";
+  avatar.setJointState(Object.fromEntries(Object.keys(avatar.jointState).map((k) => [k, 'done'])));
+  $('chips').querySelectorAll('.chip').forEach((c) => { c.className = 'chip done'; c.textContent = `✓ ${readable(c.dataset.body)}`; });
+  if (session && kiosk.owned) {
+    try { await api(`/api/sessions/${encodeURIComponent(session.id)}/stop`, { method: 'POST' }); } catch (e) { /* already stopped */ }
+  }
+  kiosk.session = null;
+  clearTimer();
+  const until = performance.now() + RESET_S * 1000;
+  const countdown = () => {
+    const left = Math.ceil((until - performance.now()) / 1000);
+    if (left <= 0) { startGuest(); return; }
+    $('kiosk-state').textContent = `done! next guest in ${left} s`;
+    kiosk.timer = setTimeout(countdown, 250);
+  };
+  countdown();
 }
 
-function onFit(result) {
-  if (state !== 'live') return;
-  const joints = result.joints || [];
-  if (!joints.length) return;
-  const ps = joints.map(jointProgress);
-  const overall = ps.reduce((a, b) => a + b, 0) / ps.length;
-  setProgress(overall);
-  if (ps.every((p) => p >= 1)) finishGuest();
-  else $('instruction').textContent = instructionFor(joints);
+async function giveUp() {
+  // The guest walked away before finishing: end their session and start afresh.
+  const session = kiosk.session;
+  if (session && kiosk.owned) {
+    try { await api(`/api/sessions/${encodeURIComponent(session.id)}/stop`, { method: 'POST' }); } catch (e) { /* gone */ }
+  }
+  kiosk.session = null;
+  startGuest();
 }
 
 function onStatus(s) {
-  trackerOk = !!s.connected;
-  const banner = $('banner');
-  if (!trackerOk) {
-    banner.textContent = 'The tracker is disconnected — please ask a host for help.';
-    banner.classList.remove('hidden');
-    $('kiosk-state').dataset.tracker = 'disconnected';
-  } else {
-    banner.classList.add('hidden');
-    $('kiosk-state').dataset.tracker = 'connected';
+  kiosk.lastStatus = s;
+  const trackerOk = !!s.connected;
+  const el = $('kiosk-state');
+  el.dataset.tracker = trackerOk ? 'connected' : 'disconnected';
+  showBanner();
+  const live = s.session || null;
+  if (kiosk.state === 'live' && kiosk.session && (!live || live.id !== kiosk.session.id)) {
+    // The session ended without us (service restarted, host stopped it): next guest.
+    kiosk.session = null;
+    if (live && !kiosk.canControl) follow(live, false);
+    else { clearTimer(); kiosk.timer = setTimeout(startGuest, 500); setState('starting', 'getting ready…'); }
+  } else if (kiosk.state === 'waiting' && live) {
+    follow(live, false);
+  } else if (kiosk.state === 'live' && kiosk.owned && performance.now() - kiosk.startedAt > MAX_S * 1000) {
+    giveUp();
   }
 }
 
+let linkState = 'connecting';
+function showBanner() {
+  const b = $('banner');
+  const s = kiosk.lastStatus;
+  let text = '';
+  if (linkState === 'unauthorised') text = 'This kiosk needs its token: open /kiosk?token=…';
+  else if (linkState !== 'open') text = 'Reconnecting to the calibration service…';
+  else if (s && !s.connected) text = 'The tracker is disconnected — please ask a host for help.';
+  b.textContent = text;
+  b.classList.toggle('hidden', !text);
+  $('kiosk-state').dataset.link = linkState;
+}
+
+let started = false;
 connectLive({
   content: ['status', 'fit', 'pose'],
-  rateHz: 10,
-  onState: (st) => {
-    if (st !== 'open') { $('banner').textContent = 'Reconnecting to the calibration service…'; $('banner').classList.remove('hidden'); }
-    else if (trackerOk) $('banner').classList.add('hidden');
-  },
+  rateHz: 20,
+  onState: (st) => { linkState = st; showBanner(); },
   onMessage: (msg) => {
-    if (msg.type === 'status') onStatus(msg.status || msg);
-    else if (msg.type === 'fit') onFit(msg.result || msg.fit || msg);
-    else if (msg.type === 'pose') avatar.update(msg);
+    if (msg.type === 'status') {
+      onStatus(msg.status);
+      if (!started) { started = true; startGuest(); }
+    } else if (msg.type === 'fit') onFit(msg);
+    else if (msg.type === 'pose' && msg.pose) avatar.update(msg.pose);
   },
 });
-
-startGuest();

@@ -1,0 +1,297 @@
+"""The operator dashboard and the guest kiosk in a real browser (Debian's chromium, headless, WebGL
+through SwiftShader) against a real `flockcal serve` process reading the simulated performer on a pty:
+the skeleton renders, the bones table matches the simulator's body, an injected slip appears on the
+residual plot and as an alert, an unplugged tracker and a restarted server are shown and recovered
+from by the pages themselves, and the kiosk reaches "done" on the kiosk routine and takes the next guest.
+
+Screenshots go to $FLOCKCAL_ARTIFACTS (default: artifacts/ in the repository, git-ignored).
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import time
+from pathlib import Path
+
+import httpx
+import numpy as np
+import pytest
+
+from flockcal.server.testing import ServerProcess, free_port, wait_connected
+from flockcal.simulator.performer import Performer
+from flockcal.simulator.pty_tracker import PtyTracker
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+                 "--disable-sync", "--no-first-run", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+pytestmark = [
+    pytest.mark.browser,
+    pytest.mark.skipif(not os.path.exists(CHROMIUM), reason=f"needs Debian's chromium at {CHROMIUM} (apt-get install chromium)"),
+]
+
+RATE = 144.0
+ADMIN, KIOSK, READ = "admin-secret-1", "kiosk-secret-1", "read-secret-1"
+SLIP_SENSOR = "l_forearm"
+BONE_TOLERANCE_M = 0.03  # "a few cm": hinge bones depend on the min-norm point along the axis
+BALL_BONE_TOLERANCE_M = 0.01
+# Kiosk test settings: every joint must be pinned to 2 mm and have turned ~6° rms about the axes it
+# needs (two for a ball joint, one for a hinge); the kiosk routine exercises each limb once a loop.
+KIOSK_QUERY = f"token={KIOSK}&stderr_mm=2&coverage=0.005&reset_s=3"
+KIOSK_STDERR_M = 0.002
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def artifacts() -> Path:
+    path = Path(os.environ.get("FLOCKCAL_ARTIFACTS") or ROOT / "artifacts")
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def admin() -> dict:
+    return {"Authorization": f"Bearer {ADMIN}"}
+
+
+@pytest.fixture(scope="module")
+def performer():
+    # The exercise routine compressed to an 8 s loop moves every joint within a few seconds.
+    return Performer("human", "exercise", seed=1, rate_hz=RATE, period=8.0)
+
+
+@pytest.fixture(scope="module")
+def tracker(performer):
+    pty = PtyTracker(performer, birds=16, baud=921600, rate_hz=RATE).start()
+    yield pty
+    pty.stop()
+
+
+@pytest.fixture(scope="module")
+def server(tracker, performer, tmp_path_factory):
+    data = tmp_path_factory.mktemp("dashboard")
+    args = ["--device", tracker.device, "--birds", "16", "--data-dir", str(data), "--fast-init",
+            "--names", ",".join(performer.names), "--token", ADMIN, "--kiosk-token", KIOSK, "--read-token", READ]
+    proc = ServerProcess(args, free_port(), log_path=data / "serve.log").start(token=ADMIN)
+    wait_connected(proc.url, token=ADMIN)
+    yield proc
+    proc.stop()
+
+
+@pytest.fixture(scope="module")
+def browser():
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        yield b
+        b.close()
+
+
+def open_page(browser, url: str, width: int = 1440, height: int = 1000):
+    page = browser.new_page(viewport={"width": width, "height": height})
+    page.errors = []
+    page.on("pageerror", lambda e: page.errors.append(str(e)))
+    page.goto(url)
+    return page
+
+
+@pytest.fixture(scope="module")
+def dashboard(browser, server):
+    """The dashboard with a session started from its own form, once the fit has every joint."""
+    page = open_page(browser, f"{server.url}/?token={ADMIN}")
+    page.wait_for_selector("#tracker[data-state=connected]", timeout=20000)
+    page.fill("#performer", "Ann")
+    page.click("#start")
+    page.wait_for_selector("#session-state[data-state=live]", timeout=10000)
+    # 15 joints fitted (none still riding rigidly on a neighbour) means 15+ bone rows.
+    page.wait_for_function("document.querySelectorAll('#coverage .cov').length >= 15", timeout=40000)
+    yield page
+    page.close()
+
+
+def wait_until(predicate, timeout: float, what: str, interval: float = 0.25):
+    deadline = time.monotonic() + timeout
+    value = None
+    while time.monotonic() < deadline:
+        value = predicate()
+        if value:
+            return value
+        time.sleep(interval)
+    raise AssertionError(f"{what} did not happen within {timeout:g} s (last: {value!r})")
+
+
+def canvas_pixels(page, selector: str, colours: list[str], tolerance: int = 40) -> dict:
+    """Counts of pixels in a canvas: total, differing from its background (top-left pixel), near each colour."""
+    return page.evaluate(
+        """([sel, colours, tol]) => {
+            const src = document.querySelector(sel);
+            const c = document.createElement('canvas');
+            c.width = src.width; c.height = src.height;
+            const ctx = c.getContext('2d');
+            ctx.drawImage(src, 0, 0);
+            const d = ctx.getImageData(0, 0, c.width, c.height).data;
+            const bg = [d[0], d[1], d[2]];
+            const want = colours.map((h) => [1, 3, 5].map((k) => parseInt(h.slice(k, k + 2), 16)));
+            const near = (i, rgb) => Math.abs(d[i] - rgb[0]) + Math.abs(d[i + 1] - rgb[1]) + Math.abs(d[i + 2] - rgb[2]) < tol;
+            const out = { total: d.length / 4, changed: 0, colours: colours.map(() => 0) };
+            for (let i = 0; i < d.length; i += 4) {
+                if (!near(i, bg)) out.changed += 1;
+                want.forEach((rgb, k) => { if (near(i, rgb)) out.colours[k] += 1; });
+            }
+            return out;
+        }""",
+        [selector, colours, tolerance],
+    )
+
+
+def bone_rows(page) -> list[dict]:
+    return page.eval_on_selector_all(
+        "#bones tbody tr[data-body]",
+        "rows => rows.map(r => ({body: r.dataset.body, from: r.dataset.from || null, to: r.dataset.to, "
+        "length: Number(r.dataset.lengthM)}))",
+    )
+
+
+def true_joint_points(truth: dict) -> dict:
+    """{(body, frozenset(joint bodies)): the joint centre in that body's sensor frame} from the simulator."""
+    out = {}
+    for j in truth["joints"]:
+        pair = frozenset((j["child"], j["parent"]))
+        out[(j["child"], pair)] = np.asarray(j["c"], dtype=float)
+        out[(j["parent"], pair)] = np.asarray(j["l"], dtype=float)
+    return out
+
+
+def test_dashboard_draws_the_skeleton_and_bones_match_the_simulator(dashboard, performer, server):
+    page = dashboard
+    assert page.get_attribute("#view", "data-renderer") == "webgl"
+    page.wait_for_function("Number(document.querySelector('#view').dataset.frames) > 10", timeout=10000)
+    # The 3D view draws spheres (green when calibrated, amber otherwise), bones and sensor boxes.
+    px = canvas_pixels(page, "#view canvas", ["#3fb950", "#ffc857", "#3fa9f5", "#e4572e"], tolerance=60)
+    assert px["changed"] > 0.01 * px["total"], px
+    assert sum(px["colours"][:2]) > 50 and px["colours"][2] > 200 and px["colours"][3] > 20, px
+
+    truth = performer.truth()
+    points = true_joint_points(truth)
+    hinges = {frozenset((n, truth["parent"][n])) for n, t in zip(performer.model.names, performer.model.joint_type)
+              if t == "hinge"}
+    n_bodies = len(performer.names)
+
+    def shown_bones():
+        sid = httpx.get(f"{server.url}/api/status", headers=admin()).json()["session"]["id"]
+        parent = httpx.get(f"{server.url}/api/sessions/{sid}/result", headers=admin()).json()["parent"]
+        rows = bone_rows(page)
+        # The fit may root the tree elsewhere than the simulator: name each joint by its two bodies.
+        for r in rows:
+            r["joints"] = [frozenset((c, parent[c])) for c in (r["from"], r["to"]) if c]
+        return rows if len(rows) >= n_bodies - 2 and all(len(r["joints"]) == 2 for r in rows) else None
+
+    rows = wait_until(shown_bones, 30, "a bone row for every body")
+    for r in rows:
+        a, b = (points.get((r["body"], j)) for j in r["joints"])
+        assert a is not None and b is not None, f"the table joins joints the simulated body does not have: {r}"
+        true_length = float(np.linalg.norm(a - b))
+        # A bone ending at a hinge's centre depends on the min-norm point chosen along the hinge axis.
+        tol = BONE_TOLERANCE_M if any(j in hinges for j in r["joints"]) else BALL_BONE_TOLERANCE_M
+        assert abs(r["length"] - true_length) < tol, (r, true_length)
+    page.screenshot(path=str(artifacts() / "dashboard-bones.png"), full_page=True)
+    assert not page.errors
+
+
+def test_injected_slip_shows_on_the_residual_plot_and_as_an_alert(dashboard, performer, server):
+    page = dashboard
+    page.wait_for_function("Number(document.querySelector('#residuals').dataset.samples) > 20", timeout=10000)
+    before = page.eval_on_selector_all(".alert.slip", "els => els.filter(e => /left forearm/.test(e.textContent)).length")
+    performer.inject_slip(SLIP_SENSOR, 0.03)
+    page.wait_for_function(
+        "[...document.querySelectorAll('.alert.slip')].filter(e => /left forearm/.test(e.textContent)).length > %d" % before,
+        timeout=15000,
+    )
+    slips = int(page.get_attribute("#residuals", "data-slips"))
+    assert slips >= 1
+    # The marker is drawn on the plot: dashed red lines in the uPlot canvas.
+    time.sleep(0.5)
+    px = canvas_pixels(page, "#residuals canvas", ["#f85149"], tolerance=60)
+    assert px["colours"][0] > 30, px
+    text = page.text_content("#alerts")
+    assert re.search(r"Sensor slipped: [^—]*left forearm", text), text
+    time.sleep(2)  # a little more plot after the slip, for the picture
+    page.screenshot(path=str(artifacts() / "dashboard.png"), full_page=True)
+    assert not page.errors
+
+
+def test_pages_show_an_unplugged_tracker_and_recover(dashboard, browser, server, tracker):
+    page = dashboard
+    kiosk = open_page(browser, f"{server.url}/kiosk?token={READ}", 1600, 900)  # read-only: follows the live session
+    try:
+        kiosk.wait_for_selector("#kiosk-state[data-tracker=connected]", timeout=15000)
+        tracker.disconnect()
+        try:
+            page.wait_for_selector("#tracker[data-state=disconnected]", timeout=15000)
+            assert page.is_visible("#banner") and "Tracker disconnected" in page.text_content("#banner")
+            kiosk.wait_for_selector("#kiosk-state[data-tracker=disconnected]", timeout=15000)
+            assert "tracker is disconnected" in kiosk.text_content("#banner")
+            page.screenshot(path=str(artifacts() / "dashboard-unplugged.png"))
+        finally:
+            tracker.reconnect()
+        page.wait_for_selector("#tracker[data-state=connected]", timeout=30000)
+        kiosk.wait_for_selector("#kiosk-state[data-tracker=connected]", timeout=30000)
+        assert page.is_hidden("#banner") and kiosk.is_hidden("#banner")
+        assert not page.errors and not kiosk.errors
+    finally:
+        kiosk.close()
+
+
+def test_pages_reconnect_by_themselves_after_a_server_restart(dashboard, browser, server):
+    page = dashboard
+    kiosk = open_page(browser, f"{server.url}/kiosk?token={READ}", 1600, 900)
+    try:
+        kiosk.wait_for_selector("#kiosk-state[data-link=open]", timeout=15000)
+        server.stop()
+        page.wait_for_selector("#link[data-state=closed]", timeout=15000)
+        assert page.is_visible("#link-banner")
+        kiosk.wait_for_function("document.querySelector('#kiosk-state').dataset.link !== 'open'", timeout=15000)
+        assert "Reconnecting" in kiosk.text_content("#banner")
+        server.start(token=ADMIN)
+        # No reload: each page reconnects and streams again (frames count moves on).
+        page.wait_for_selector("#link[data-state=open]", timeout=30000)
+        page.wait_for_selector("#tracker[data-state=connected]", timeout=30000)
+        first = int(page.text_content("#fig-frames").replace(",", ""))
+        page.wait_for_function(f"Number(document.querySelector('#fig-frames').textContent.replace(/,/g, '')) > {first}",
+                               timeout=15000)
+        kiosk.wait_for_selector("#kiosk-state[data-link=open]", timeout=30000)
+        assert page.is_hidden("#link-banner")
+        assert not page.errors and not kiosk.errors
+    finally:
+        kiosk.close()
+
+
+def test_kiosk_reaches_done_on_the_kiosk_routine_and_starts_the_next_guest(browser, server, performer):
+    live = httpx.get(f"{server.url}/api/sessions", headers=admin()).json()["live"]
+    if live:
+        httpx.post(f"{server.url}/api/sessions/{live}/stop", headers=admin(), timeout=30)
+    performer.clear_faults()
+    performer.set_routine("kiosk")
+    page = open_page(browser, f"{server.url}/kiosk?{KIOSK_QUERY}", 1600, 900)
+    try:
+        page.wait_for_selector("#kiosk-state[data-state=live]", timeout=15000)
+        guest = httpx.get(f"{server.url}/api/sessions", headers=admin()).json()["live"]
+        assert guest is not None
+        page.wait_for_selector("#kiosk-state[data-state=done]", timeout=75000)
+        time.sleep(0.7)  # let the ring finish its transition for the picture
+        page.screenshot(path=str(artifacts() / "kiosk.png"))
+        # "Done" is honest: the guest's stored calibration has every joint, each pinned to the target.
+        session = wait_until(lambda: (s := httpx.get(f"{server.url}/api/sessions/{guest}", headers=admin()).json())
+                             ["state"] == "stopped" and s, 15, "the kiosk stopping the guest's session")
+        assert session["performer"].startswith("guest")
+        result = httpx.get(f"{server.url}/api/sessions/{guest}/result", headers=admin()).json()
+        assert len(result["joints"]) == len(performer.names) - 1
+        assert max(max(j["c_stderr_m"], j["l_stderr_m"]) for j in result["joints"]) <= KIOSK_STDERR_M * 1.5
+        # After reset_s the kiosk starts a fresh session for the next guest by itself.
+        page.wait_for_selector("#kiosk-state[data-state=live]", timeout=15000)
+        nxt = wait_until(lambda: httpx.get(f"{server.url}/api/sessions", headers=admin()).json()["live"], 10,
+                         "a new guest session")
+        assert nxt != guest
+        assert page.eval_on_selector("body", "b => !b.classList.contains('done')")
+        assert not page.errors
+    finally:
+        page.close()
