@@ -8,6 +8,7 @@ before it). Pairs touching a slipped sensor are fitted on its segment, every oth
 from __future__ import annotations
 
 from collections import deque
+from collections.abc import Mapping
 from dataclasses import dataclass, fields
 
 import numpy as np
@@ -177,13 +178,20 @@ class SegmentedAccumulator:
 
 
 def _to_dict(cal, slip_events) -> dict:
-    events = None if slip_events is None else [e.to_dict() if hasattr(e, "to_dict") else dict(e) for e in slip_events]
+    events = None if slip_events is None else [_event_dict(e) for e in slip_events]
     try:
         d = cal.to_dict(slip_events=events)
     except TypeError:
         d = cal.to_dict()
         d["slip_events"] = events or []
     return d
+
+
+def _event_dict(ev) -> dict:
+    """An event as its §5 JSON entry: a SlipEvent/SwapEvent, a dict, or any object with attributes."""
+    if hasattr(ev, "to_dict"):
+        return ev.to_dict()
+    return dict(ev) if isinstance(ev, Mapping) else dict(vars(ev))
 
 
 def _replace_bones(d: dict, seg_dicts: dict, seg: SegmentedAccumulator, index: dict) -> None:

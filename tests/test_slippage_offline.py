@@ -122,3 +122,15 @@ def test_bad_input_is_reported_as_a_slippage_error(slipped_take):
     other = {"joints": [{"child": "left_knee", "parent": "pelvis", "c": [0, 0, 0], "l": [0, 0, 0]}]}
     with pytest.raises(SlippageError, match="left_knee"):
         detect_slips(take, other)
+
+
+def test_refit_accepts_stored_events_without_the_event_classes(slipped_take):
+    # A session re-solved from its database rows has only time_s and the sensor's index.
+    from types import SimpleNamespace
+
+    take, truth = slipped_take
+    stored = [SimpleNamespace(kind="slip", time_s=SLIP_AT, sensor_index=take.index("r_shin"))]
+    out = calibration_after_slips(take, stored, hierarchy=truth["parent"], root=truth["root"])
+    refit = sorted(j["child"] for j in out["joints"] if "segment_start_s" in j)
+    assert refit == ["r_foot", "r_shin"]
+    assert out["slip_events"][0]["time_s"] == SLIP_AT
