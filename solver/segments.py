@@ -82,6 +82,17 @@ class SegmentedAccumulator:
         self.last_time = float(ts[-1])
         return self
 
+    def copy(self) -> "SegmentedAccumulator":
+        """An independent copy (e.g. for a fit on another thread). Cheap: snapshots and segment bases
+        never change once taken, so they are shared; only the whole-take sums are copied."""
+        new = object.__new__(SegmentedAccumulator)
+        new.__dict__.update(self.__dict__)
+        new.whole = self.whole.copy()
+        new._snaps = deque(self._snaps, maxlen=self._snaps.maxlen)
+        new.segments = dict(self.segments)
+        new.history = list(self.history)
+        return new
+
     def start_segment(self, sensor: int, time_s: float, kind: str = "slip") -> Segment:
         """Open a new segment for `sensor` from `time_s` on (replacing any earlier one of that sensor)."""
         if not 0 <= int(sensor) < self.n_sensors:

@@ -99,6 +99,11 @@ def test_segment_holds_exactly_the_frames_since_the_slip(slipped_take):
     assert s.base_s >= s.start_s
     ref.update(take.rotations[keep], take.positions[keep], take.valid[keep])
     np.testing.assert_allclose(seg.since(3).gram, ref.gram, rtol=1e-9, atol=1e-9)
+    # A copy answers the same and does not move when the original keeps growing.
+    frozen = seg.copy()
+    seg.update(take.times[-1:] + 0.01, take.rotations[-1:], take.positions[-1:])
+    np.testing.assert_allclose(frozen.since(3).gram, ref.gram, rtol=1e-9, atol=1e-9)
+    assert frozen.frames == seg.frames - 1
 
 
 def test_bad_input_is_reported_as_a_slippage_error(slipped_take):
