@@ -27,6 +27,7 @@ from flockcal.server.store import Store
 log = logging.getLogger(__name__)
 
 RECENT_EVENTS = 200
+SLIP_FIELDS = ("time_s", "sensor", "candidates", "joints", "jump_mm", "confidence", "detected_s")
 RECENT_RESIDUALS = 400
 
 
@@ -74,16 +75,49 @@ def _finite(obj):
 
 
 def calibrate_dict(acc, names, hierarchy=None, root=None) -> dict:
-    """The §5 JSON of a fit of `acc` (solver's calibrate), JSON-safe; SolverError etc. propagate."""
+    """The §5 JSON of a fit of `acc` (solver's calibrate), JSON-safe; SolverError etc. propagate.
+
+    A SegmentedAccumulator fits joints of slipped sensors on the frames since their slip."""
     from flockcal.solver.calibration import calibrate
 
+    if hasattr(acc, "calibration_dict"):
+        return _finite(acc.calibration_dict(hierarchy=hierarchy, root=root, names=list(names)))
     return _finite(calibrate(acc, hierarchy=hierarchy, root=root, names=list(names)).to_dict())
 
 
-def new_accumulator(m: int):
+def new_accumulator(m: int, segmented: bool = False):
+    """The session's accumulator; segmented ones can restart a slipped sensor's joints (design.md §4)."""
+    if segmented:
+        try:
+            from flockcal.solver.segments import SegmentedAccumulator
+
+            return SegmentedAccumulator(m)
+        except ImportError:
+            pass
     from flockcal.solver.accumulator import GramAccumulator
 
     return GramAccumulator(m)
+
+
+def accumulate(acc, times, rotations, positions, valid) -> None:
+    if hasattr(acc, "whole"):
+        acc.update(times, rotations, positions, valid)
+    else:
+        acc.update(rotations, positions, valid)
+
+
+def fit_copy(acc):
+    """A copy that a fit on another thread can read while `acc` keeps growing (cheap: 4m×4m matrices)."""
+    if not hasattr(acc, "whole"):
+        return acc.copy()
+    # A SegmentedAccumulator: its segments' base snapshots never change, only `whole` grows.
+    clone = object.__new__(type(acc))
+    clone.__dict__.update(acc.__dict__)
+    clone.whole = acc.whole.copy()
+    clone.segments = dict(acc.segments)
+    clone.history = list(acc.history)
+    clone._snaps = type(acc._snaps)(maxlen=acc._snaps.maxlen)
+    return clone
 
 
 class Pipeline:
@@ -201,7 +235,7 @@ class Pipeline:
         def install():
             if self.live is not None:
                 raise FlockcalError(f"session {self.live.id} is still live")
-            live.acc = new_accumulator(self.m)
+            live.acc = new_accumulator(self.m, segmented=self.detect_slips)
             self.live = live
             self._reset_residuals()
             self._residuals.clear()
@@ -223,7 +257,7 @@ class Pipeline:
                 try:
                     result = calibrate_dict(live.acc, self.names, live.hierarchy, live.root)
                     slips = [
-                        {k: e[k] for k in ("time_s", "sensor", "candidates", "joints", "jump_mm") if k in e}
+                        {k: e[k] for k in SLIP_FIELDS if k in e}
                         for e in self._events if e.get("type") == "slip" and e.get("session_id") == live.id
                     ]
                     if slips:
@@ -313,7 +347,7 @@ class Pipeline:
         live.frames += n
         Rz = np.where(valid[..., None, None], R, 0.0)
         tz = np.where(valid[..., None], t, 0.0)
-        live.acc.update(Rz, tz, valid)
+        accumulate(live.acc, times - live.t0, Rz, tz, valid)
         self._residual_step(times - live.t0, Rz, tz, valid)
 
     def _joint_arrays(self, fit: dict):
@@ -384,6 +418,11 @@ class Pipeline:
             log.warning("slip monitor failed, disabling it for this session: %s", exc)
             live.slip_monitor = None
             return
+        if found and hasattr(live.acc, "apply"):
+            try:
+                live.acc.apply(found)  # the slipped sensor's joints refit on frames since the slip
+            except Exception as exc:
+                log.warning("could not open a segment after the slip: %s", exc)
         events = []
         for ev in found or []:
             d = ev.to_dict() if hasattr(ev, "to_dict") else dict(ev)
@@ -451,7 +490,7 @@ class Pipeline:
                 self._last_fit_time = now
                 live.fit_frames = live.acc.frames
                 with self._fit_cond:
-                    self._fit_job = (live.id, live.acc.copy(), live.hierarchy, live.root)
+                    self._fit_job = (live.id, fit_copy(live.acc), live.hierarchy, live.root)
                     self._fit_cond.notify()
         self._snapshot = self._make_snapshot()
         if self.on_publish is not None:

@@ -15,7 +15,7 @@ from pathlib import Path
 from flockcal.errors import FlockcalError
 from flockcal.server.errors import BadRequest, Conflict, NotFound
 from flockcal.server.framelog import FrameLog, read_frames
-from flockcal.server.pipeline import LiveSession, Pipeline, calibrate_dict, new_accumulator
+from flockcal.server.pipeline import SLIP_FIELDS, LiveSession, Pipeline, _finite, calibrate_dict, new_accumulator
 from flockcal.server.settings import NAME_RE
 from flockcal.server.store import Store
 
@@ -153,14 +153,23 @@ class SessionManager:
             path = self.frames_path(session_id)
             if not path.exists():
                 raise NotFound(f"session {session_id} has no recording on disk ({path.name}); it cannot be re-solved")
-            data = read_frames(path)
-            n = len(data["times"])
-            if n == 0:
-                raise Conflict(f"session {session_id}'s recording holds no frames; nothing to solve")
-            acc = new_accumulator(len(data["names"]))
-            acc.update(data["rotations"], data["positions"], data["valid"])
+            take = self.take(session_id)
+            n = take.n_frames
+            slips = [e for e in self.store.events(session_id) if e["type"] == "slip" and e.get("sensor") in take.names]
             try:
-                result = calibrate_dict(acc, data["names"], row["hierarchy"], row["root"])
+                if slips:
+                    from types import SimpleNamespace
+
+                    from flockcal.solver.segments import calibration_after_slips
+
+                    events = [SimpleNamespace(kind="slip", time_s=float(e["time_s"]),
+                                              sensor_index=take.names.index(e["sensor"])) for e in slips]
+                    result = _finite(calibration_after_slips(take, events, row["hierarchy"], row["root"]))
+                    result["slip_events"] = [{k: e[k] for k in SLIP_FIELDS if k in e} for e in slips]
+                else:
+                    acc = new_accumulator(take.n_sensors)
+                    acc.update(take.rotations, take.positions, take.valid)
+                    result = calibrate_dict(acc, take.names, row["hierarchy"], row["root"])
             except FlockcalError as exc:
                 raise Conflict(f"session {session_id} could not be solved: {exc}") from None
             state = "stopped" if row["state"] == "interrupted" else row["state"]

@@ -66,6 +66,7 @@ class Settings:
     send_buffer_bytes: int | None = 256 * 1024  # kernel send buffer per connection (bounds a stalled client's backlog)
     ws_send_timeout_s: float = 30.0  # a websocket client that takes no data for this long is dropped
     log_level: str = "info"
+    scale_inches: int | None = None  # position full scale; None: 72 for the simulator (it reaches further), else 36
     fast_init: bool = False  # skip the manual's reset delays (simulators and fake trackers on a pty)
 
     @property

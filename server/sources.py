@@ -145,6 +145,7 @@ class TrackerSource:
             rate_hz=self.settings.rate_hz,
             baud=self.settings.baud,
             hemisphere=self.settings.hemisphere,
+            scale_inches=self.settings.scale_inches or (72 if self.simulator is not None else 36),
             recording_path=self.recording_path,
         )
         try:

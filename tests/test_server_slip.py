@@ -54,3 +54,6 @@ def test_injected_slip_is_reported_live_and_stored(tmp_path):
     assert any(e["type"] == "slip" and e["id"] == event["id"] for e in stored)
     assert any(s["sensor"] == event["sensor"] and abs(s["time_s"] - event["time_s"]) < 1e-3
                for s in result["slip_events"])
+    # The slipped sensor's joints were refitted on the frames since the slip (a new segment).
+    touched = [j for j in result["joints"] if event["sensor"] in (j["child"], j["parent"])]
+    assert touched and all(abs(j.get("segment_start_s", -1) - event["time_s"]) < 1e-3 for j in touched)

@@ -30,7 +30,7 @@ def test_unplugged_tracker_keeps_the_session_and_every_received_frame(tmp_path):
     pty = PtyTracker(performer, birds=6, baud=115200, rate_hz=100.0).start()
     try:
         settings = Settings(device=pty.device, birds=6, names=tuple(performer.names), http_port=free_port(),
-                            data_dir=tmp_path, fast_init=True)
+                            data_dir=tmp_path, fast_init=True, scale_inches=72)
         with ServerThread(settings) as srv:
             wait_connected(srv.url)
             sid = httpx.post(srv.url + "/api/sessions", json={"performer": "Di"}).json()["id"]

@@ -35,6 +35,8 @@ def register(subparsers) -> None:
     p.add_argument("--kiosk-token", help="token that can read and start/stop sessions, nothing else")
     p.add_argument("--names", help="comma-separated sensor names, one per bird (default: the simulator's "
                    "body names for sim://, else bird1..birdN)")
+    p.add_argument("--scale", type=int, choices=(36, 72), help="position full scale in inches "
+                   "(default 72 for the simulator, else 36)")
     p.add_argument("--fit-hz", type=float, default=30.0, help="full refits per second (default 30)")
     p.add_argument("--fast-init", action="store_true", default=bool(os.environ.get("FLOCKCAL_FAST_INIT")),
                    help="skip the tracker's reset delays (for simulated trackers on a pty)")
@@ -61,6 +63,7 @@ def settings_from_args(args: argparse.Namespace):
         fit_hz=args.fit_hz,
         cors_origins=tuple(args.cors_origin),
         fast_init=args.fast_init,
+        scale_inches=args.scale,
     )
 
 
