@@ -365,17 +365,22 @@ const residuals = {
     const el = $('residuals');
     el.dataset.samples = this.times.length;
     el.dataset.slips = this.slips.length;
-    const key = this.names.join(',');
+    // Labels depend on the newest topology ("mid back" vs "lower back"): rebuild when they change.
+    const key = this.labels().join(',');
     if (!this.plot || key !== this.built) this.build();
     const data = [this.times].concat(this.names.map((n) => this.cols[n]));
     this.plot.setData(data);
   },
+  labels() {
+    const parent = (state.fit && state.fit.parent) || {};
+    return this.names.map((j) => jointLabel(j, parent[j]));
+  },
   build() {
     const el = $('residuals');
     el.innerHTML = '';
-    this.built = this.names.join(',');
+    const labels = this.labels();
+    this.built = labels.join(',');
     const slips = this;
-    const parent = (state.fit && state.fit.parent) || {};
     const opts = {
       width: el.clientWidth || 900,
       height: PLOT_HEIGHT,
@@ -385,7 +390,7 @@ const residuals = {
         { stroke: '#8b98a5', grid: { stroke: '#21262d' }, ticks: { stroke: '#30363d' }, label: 'residual (mm)', labelSize: 18, size: 50 },
       ],
       series: [{ label: 't' }].concat(this.names.map((j, i) => ({
-        label: jointLabel(j, parent[j]), stroke: palette[i % palette.length], width: 1.4, spanGaps: false,
+        label: labels[i], stroke: palette[i % palette.length], width: 1.4, spanGaps: false,
         value: (u, v) => (v === null || v === undefined ? '–' : `${v.toFixed(1)} mm`),
       }))),
       cursor: { drag: { x: false, y: false } },

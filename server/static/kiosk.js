@@ -37,8 +37,11 @@ const kiosk = {
   lastStatus: null,
 };
 
+const TITLES = { done: 'Calibrated!', waiting: 'Welcome!', error: 'One moment…' };
+
 function setState(s, text) {
   kiosk.state = s;
+  $('title').textContent = TITLES[s] || "Let's get you calibrated";
   const el = $('kiosk-state');
   el.dataset.state = s;
   el.textContent = text;
