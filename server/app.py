@@ -49,7 +49,8 @@ def _validation_message(exc: RequestValidationError) -> tuple[int, str]:
         if e.get("type") == "extra_forbidden":
             msg = "unknown field; remove it (see /docs for the fields this request takes)"
         elif e.get("type") == "string_pattern_mismatch":
-            msg = "only letters, digits, space, _ . - are allowed (1–64 characters, starting with a letter or digit)"
+            msg = ("has characters that are not allowed (sensor names: 1–64 letters, digits, space _ . -; "
+                   "performer: no slashes, quotes or < >)")
         parts.append(f"{loc}: {msg}")
     more = f" (and {len(errors) - 5} more)" if len(errors) > 5 else ""
     return 422, "invalid request — " + "; ".join(parts) + more

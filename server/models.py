@@ -10,6 +10,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from flockcal.server.settings import PERFORMER_PATTERN
+
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9 _.\-]{0,63}$"
 Name = str  # validated against NAME_PATTERN where it enters
 
@@ -76,7 +78,8 @@ class CalibrationResult(Open):
 
 # --- sessions ------------------------------------------------------------------------------------
 class SessionCreate(Strict):
-    performer: str = Field(pattern=NAME_PATTERN, description="who is wearing the sensors (1–64 letters, digits, space _ . -)")
+    performer: str = Field(min_length=1, max_length=64, pattern=PERFORMER_PATTERN,
+                           description="who is wearing the sensors (1–64 characters, no slashes, quotes or < >)")
     hierarchy: dict[str, str] | None = Field(
         None, description="known {child: parent} map, root omitted; leave out for automatic topology")
     root: str | None = Field(None, pattern=NAME_PATTERN, description="root body; default chosen by the solver")

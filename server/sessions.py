@@ -16,7 +16,7 @@ from flockcal.errors import FlockcalError
 from flockcal.server.errors import BadRequest, Conflict, NotFound
 from flockcal.server.framelog import FrameLog, read_frames
 from flockcal.server.pipeline import SLIP_FIELDS, LiveSession, Pipeline, _finite, calibrate_dict, new_accumulator
-from flockcal.server.settings import NAME_RE
+from flockcal.server.settings import PERFORMER_RE
 from flockcal.server.store import Store
 
 log = logging.getLogger(__name__)
@@ -85,8 +85,8 @@ class SessionManager:
 
     # --- lifecycle ---------------------------------------------------------------------------------
     def start(self, performer: str, hierarchy: dict | None = None, root: str | None = None) -> dict:
-        if not NAME_RE.match(performer):
-            raise BadRequest("performer name must be 1–64 letters, digits, spaces, _ . - and start with a letter or digit")
+        if not PERFORMER_RE.match(performer) or not performer.strip():
+            raise BadRequest("performer name must be 1–64 characters without slashes, quotes or < >")
         self.check_hierarchy(hierarchy, root)
         with self._lock:
             live = self.live_id()

@@ -19,6 +19,9 @@ DEFAULT_RATE_HZ = 144.0
 
 # Names of sensors, performers and joints travel into file names and SQL; keep them to a safe alphabet.
 NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9 _.\-]{0,63}$")
+# Performer names are only ever data (never a file name): any printable text but markup and slashes.
+PERFORMER_PATTERN = r"^[^\x00-\x1f\x7f/\\<>\"]{1,64}$"
+PERFORMER_RE = re.compile(PERFORMER_PATTERN)
 
 
 def default_device(birds: int = DEFAULT_BIRDS, rate_hz: float = DEFAULT_RATE_HZ) -> str:
