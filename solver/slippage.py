@@ -268,7 +268,7 @@ class SlipMonitor:
         # The window since the onset, with the noise level measured on the frames before it as well;
         # residuals with the estimates the baseline sums were made with, so the two halves agree.
         full = buf.since(onset - self.noise_frames)
-        _, _, _, w2 = self._deviations(buf.R[full], buf.t[full], buf.valid[full], cc, ll)
+        x2, _, _, w2 = self._deviations(buf.R[full], buf.t[full], buf.valid[full], cc, ll)
         cut = wsl.start - full.start
         Rw, tw, vw = buf.R[wsl], buf.t[wsl], buf.valid[wsl]
         cp, lp = self._c_pre, self._l_pre
@@ -278,7 +278,8 @@ class SlipMonitor:
         def swapped(perm, touched):
             return joint_frames(Rw[:, perm], tw[:, perm], self.joints[touched], cp[touched], lp[touched])
 
-        att = attribute(self._pre, u2, Q2, pv2, w2[cut:], self.joints, ready, fired, self.m,
+        w2 = _with_own_noise(x2[cut:], w2[cut:])
+        att = attribute(self._pre, u2, Q2, pv2, w2, self.joints, ready, fired, self.m,
                         self.min_jump, self.min_evidence, swapped)
         if att.kind is None:
             self._quiet[fired] = g0 + n  # look for a new step from here on, not the same evidence again
@@ -328,6 +329,18 @@ class SlipMonitor:
         self.ready = enough & settled & np.isfinite(self.base.sigma)
         self._c_ref, self._l_ref = np.array(c, dtype=float), np.array(l, dtype=float)
         self._last_refresh = now
+
+
+def _with_own_noise(x: np.ndarray, weight: np.ndarray) -> np.ndarray:
+    """Weights 1/σ² no larger than the window's own noise allows: σ² per joint from the differences
+    inside the window, where that exceeds the trailing estimate (a limb speeding up)."""
+    live = weight > 0
+    both = live[1:] & live[:-1]
+    d2 = np.where(both, ((x[1:] - x[:-1]) ** 2).sum(axis=-1), 0.0)
+    n = both.sum(axis=0)
+    own = np.where(n >= 2, d2.sum(axis=0) / (6.0 * np.maximum(n, 1)), 0.0)
+    with np.errstate(divide="ignore"):
+        return np.where(live, 1.0 / np.maximum(1.0 / np.where(live, weight, 1.0), own[None, :]), 0.0)
 
 
 def detect_slips(take, calibration=None, *, joints=None, c=None, l=None, batch_s: float = 0.25,

@@ -135,9 +135,23 @@ def window_glr(x: np.ndarray, weight: np.ndarray, ends: int, window: int, margin
     SA = A[k + 1][:, None, :] - A[tau_c]  # (e, W, p)
     SB = B[k + 1][:, None, :, :] - B[tau_c]
     SN = Nf[k + 1][:, None, :] - Nf[tau_c]
+    # The window's own noise, from differences inside it (a step at τ is not among them): where it
+    # is larger than the trailing estimate (noise rising as a limb speeds up), the evidence shrinks.
+    live = weight > 0
+    both = np.zeros((L, p), dtype=bool)
+    both[1:] = live[1:] & live[:-1]
+    d2 = np.zeros((L, p))
+    d2[1:] = np.where(both[1:], ((x[1:] - x[:-1]) ** 2).sum(axis=-1), 0.0)
+    D = np.concatenate([np.zeros((1, p)), np.cumsum(d2, axis=0)])
+    ND = np.concatenate([np.zeros((1, p)), np.cumsum(both, axis=0)])
+    SD = D[k + 1][:, None, :] - D[tau_c + 1]
+    SND = ND[k + 1][:, None, :] - ND[tau_c + 1]
     with np.errstate(invalid="ignore", divide="ignore"):
         size = np.linalg.norm(SB, axis=-1) / SA
-    g = 0.5 * SA * np.maximum(size - margin, 0.0) ** 2
+        own = SD / (6.0 * SND)
+        trailing = SN / SA
+        factor = np.where(SND >= 2, np.minimum(1.0, trailing / own), 1.0)
+    g = 0.5 * SA * np.maximum(size - margin, 0.0) ** 2 * np.nan_to_num(factor, nan=1.0)
     allowed = ok[..., None] & (SN >= min_frames) & (tau_c[..., None] >= earliest[None, None, :]) & (SA > 0)
     g = np.where(allowed, np.nan_to_num(g), 0.0)
     best = g.argmax(axis=1)  # (e, p)
