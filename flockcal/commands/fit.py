@@ -152,7 +152,7 @@ def table(cal, source: str = "") -> str:
         width = max(len(x) for x in spans)
         out.append(f"  {'body':<12} {'between joints':<{width}} {'length':>8}   {'±':>5}")
         for k in range(len(b)):
-            out.append(f"  {nm[b.body[k]]:<12} {spans[k]:<{width}} {100 * b.length[k]:8.2f}   {100 * b.stderr[k]:5.2f}")
+            out.append(f"  {nm[b.body[k]]:<12} {spans[k]:<{width}} {100 * b.length[k]:8.3f}   {100 * b.stderr[k]:5.3f}")
     if cal.loop_candidates:
         out += ["", "Loop candidates (pairs outside the tree that fit like joints)"]
         out += [f"  {nm[a]} – {nm[bb]}  rms {_mm(r)} mm" for a, bb, r in cal.loop_candidates]
