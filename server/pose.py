@@ -17,13 +17,14 @@ def _round(a, nd: int = 5):
 
 def sensors_only(names, rotations, positions, valid) -> dict:
     """Pose with no fit yet: only where the sensors are (as measured)."""
+    # Round and convert whole arrays at once: this runs for every pose message.
+    p = _round(positions)
+    R = _round(np.asarray(rotations).reshape(-1, 9))
+    v = np.asarray(valid, dtype=bool).tolist()
     return {
         "joints": [],
         "bones": [],
-        "sensors": [
-            {"name": n, "p": _round(positions[i]), "R": _round(rotations[i].reshape(9)), "valid": bool(valid[i])}
-            for i, n in enumerate(names)
-        ],
+        "sensors": [{"name": n, "p": p[i], "R": R[i], "valid": v[i]} for i, n in enumerate(names)],
     }
 
 
@@ -59,8 +60,8 @@ def live_pose(names, rotations, positions, valid, fit: dict | None) -> dict:
         rec = reconstruct(rotations[None], positions[None], art)
     except (ArticulationError, ValueError):
         return base
-    pivots = rec.joint_positions[0]  # inboard joint of each body, root sensor at the root
-    sensor_at = rec.sensor_positions[0]
+    pivots = _round(rec.joint_positions[0])  # inboard joint of each body, root sensor at the root
+    sensor_at = _round(rec.sensor_positions[0])
     m = len(names)
     root = art.root
     points = []
@@ -68,7 +69,7 @@ def live_pose(names, rotations, positions, valid, fit: dict | None) -> dict:
     for i in range(m):
         index[i] = len(points)
         kind = "root" if i == root else "joint"
-        points.append({"name": names[i], "kind": kind, "p": _round(pivots[i])})
+        points.append({"name": names[i], "kind": kind, "p": pivots[i]})
     bones = []
     has_child = np.zeros(m, dtype=bool)
     for j in range(m):
@@ -79,7 +80,7 @@ def live_pose(names, rotations, positions, valid, fit: dict | None) -> dict:
     for j in range(m):
         if j != root and not has_child[j]:
             # A leaf (hand, foot, head) ends at its sensor: draw the bone out to it.
-            points.append({"name": f"{names[j]} sensor", "kind": "end", "p": _round(sensor_at[j])})
+            points.append({"name": f"{names[j]} sensor", "kind": "end", "p": sensor_at[j]})
             bones.append([index[j], len(points) - 1])
     base["joints"] = points
     base["bones"] = bones

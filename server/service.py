@@ -6,9 +6,12 @@ tracker reader; `stop()` closes any live session cleanly. FastAPI reads it from 
 
 from __future__ import annotations
 
+import fcntl
 import logging
+import os
 from pathlib import Path
 
+from flockcal.server.errors import ConfigError
 from flockcal.server.hub import SnapshotHub
 from flockcal.server.pipeline import Pipeline
 from flockcal.server.sessions import SessionManager
@@ -19,12 +22,28 @@ from flockcal.server.store import Store
 log = logging.getLogger(__name__)
 
 
+def _lock_data_dir(data: Path) -> int:
+    """One service per data directory: two writing the same sessions would corrupt each other's state."""
+    fd = os.open(data / "service.lock", os.O_RDWR | os.O_CREAT, 0o644)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        other = os.read(fd, 32).decode(errors="replace").strip() or "?"
+        os.close(fd)
+        raise ConfigError(f"another flockcal serve (pid {other}) uses the data directory {data}; "
+                          "stop it or give --data-dir") from None
+    os.ftruncate(fd, 0)
+    os.write(fd, str(os.getpid()).encode())
+    return fd
+
+
 class Service:
     def __init__(self, settings: Settings, source: FrameSource | None = None):
         self.settings = settings.check()
         data = Path(settings.data_dir)
         data.mkdir(parents=True, exist_ok=True)
         self.data_dir = data
+        self._lock_fd = _lock_data_dir(data)
         self.store = Store(data / "flockcal.sqlite3")
         self.source = source if source is not None else TrackerSource(settings)
         self.interrupted = self.store.mark_interrupted()
@@ -78,3 +97,4 @@ class Service:
         finally:
             self.pipeline.stop()
             self.store.close()
+            os.close(self._lock_fd)

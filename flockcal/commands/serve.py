@@ -82,7 +82,20 @@ def run(args: argparse.Namespace) -> int:
         settings.data_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UserError(f"cannot create the data directory {settings.data_dir}: {exc.strerror}; pick another with --data-dir") from None
-    app = create_app(settings)
+    from flockcal.errors import FlockcalError
+    from flockcal.server.service import Service
+
+    try:
+        sock = listen_socket(settings.host, settings.http_port, settings.send_buffer_bytes)
+    except OSError as exc:
+        raise UserError(f"cannot listen on {settings.host}:{settings.http_port}: {exc.strerror}; "
+                        "choose another --http-port or --host") from None
+    try:
+        service = Service(settings)  # opens the database and checks the device before serving
+    except FlockcalError as exc:
+        sock.close()
+        raise UserError(str(exc)) from None
+    app = create_app(settings, service)
     host = f"[{settings.host}]" if ":" in settings.host else settings.host
     log = logging.getLogger("flockcal.serve")
     logging.getLogger("flockcal").setLevel(logging.INFO)
@@ -94,10 +107,5 @@ def run(args: argparse.Namespace) -> int:
     config = uvicorn.Config(app, host=settings.host, port=settings.http_port, log_level="warning",
                             ws_max_size=64 * 1024, lifespan="on")
     server = uvicorn.Server(config)
-    try:
-        sock = listen_socket(settings.host, settings.http_port, settings.send_buffer_bytes)
-    except OSError as exc:
-        raise UserError(f"cannot listen on {settings.host}:{settings.http_port}: {exc.strerror}; "
-                        "choose another --http-port or --host") from None
     server.run(sockets=[sock])
     return 0
