@@ -214,6 +214,7 @@ class FrameAssembler:
         self.max_turn_rate = max_turn_rate
         self.index_of_address = np.full(256, -1, np.int64)
         self.index_of_address[np.asarray(setup.addresses)] = np.arange(self.m)
+        self.max_address = max(setup.addresses)
         self.hemisphere = codec.hemisphere_vector(setup.hemisphere)
         # Group-mode records of the cycle still open.
         self.none = self.ports[0].none
@@ -321,9 +322,18 @@ class FrameAssembler:
                 return
         a = rec.addresses
         new_cycle = np.concatenate([[True], cycle[1:] != cycle[:-1]])
-        n = int(cycle[-1]) + 1
-        # The last cycle stays open unless it already holds the highest address (nothing can follow).
-        done = n if (close_last or a[-1] == max(self.setup.addresses)) else n - 1
+        # Only a trusted record closes a cycle: suspects after the last trusted one (say, garbage that
+        # framed as bird 1) stay open until trusted records show which cycle they belong to. The last
+        # cycle stays open unless it already holds the highest address (nothing can follow).
+        last = len(rec) - 1
+        if not close_last and rec.suspect[-1]:
+            trusted = np.flatnonzero(~rec.suspect)
+            if len(trusted) and last - trusted[-1] <= 2 * self.m:  # (a long run of suspects: decide anyway)
+                last = int(trusted[-1])
+            elif not len(trusted) and len(rec) <= 2 * self.m:
+                return
+        n = int(cycle[last]) + 1
+        done = n if (close_last or a[last] == self.max_address) else n - 1
         if done == 0:
             return
         k = int(np.searchsorted(cycle, done))

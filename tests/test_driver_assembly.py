@@ -131,3 +131,27 @@ def test_at_the_72_inch_scale_the_same_reach_is_a_valid_pose():
     f = feed_all(asm, data, [512])
     assert f["valid"].all() and asm.saturated_records == 0
     assert np.max(np.abs(f["positions"] - p)) <= codec.quantisation_tolerance("position", 72.0)[1]
+
+
+def test_garbage_framing_as_bird_1_after_lost_bytes_does_not_end_the_cycle():
+    # Records of birds 5 and 6 in cycle 2 are destroyed: in their place, garbage around a fake record
+    # whose address byte says bird 1. The read ends just after the fake record (on a stray phasing byte),
+    # so nothing yet shows which cycle it is in; it must not close cycle 2 and push birds 7 and 8 into a
+    # cycle of their own.
+    n, m, fmt = 5, 8, "position_quaternion"
+    R, p = moving_poses(n, m)
+    data = group_bytes(fmt, R, p)
+    L = codec.record_length(fmt, group=True)
+    fake = bytes([0x85]) + bytes(range(20, 33)) + bytes([1])
+    cut = (2 * m + 4) * L
+    broken = data[:cut] + bytes([3, 4, 5]) + fake + bytes([0x9A])
+    rest = bytes([6, 7, 8]) + data[cut + 2 * L:]
+    asm = FrameAssembler(group_setup(m, fmt))
+    asm.feed(0, 0.0, broken)
+    asm.feed(0, 0.001, rest)
+    asm.flush()
+    f = asm.take()
+    expect = np.ones((n, m), bool)
+    expect[2, [4, 5]] = False
+    assert len(f) == n and np.array_equal(f.valid, expect)
+    assert np.max(np.abs(f.positions[f.valid] - p[f.valid])) <= codec.quantisation_tolerance(fmt)[1]
