@@ -382,7 +382,7 @@ def configure_flock(links: list[FlockLink], *, birds: int, rate_hz: float | None
     Sequence (fob-protocol.md §6, with the manual's delays): RTS reset where possible, STREAM STOP and
     drain; check the master answers (software revision); FBB AUTO-CONFIG for N birds; check every bird
     is accessible and running (flock status); measurement rate; per bird: position scale, record format,
-    hemisphere; group mode on/off; read and name any error code.
+    hemisphere; group mode on/off; read back every bird's position scale; read and name any error code.
     """
     if hemisphere not in codec.HEMISPHERES:
         raise TrackerError(f"unknown hemisphere {hemisphere!r}; choose one of {', '.join(codec.HEMISPHERES)}")
@@ -463,8 +463,23 @@ def configure_flock(links: list[FlockLink], *, birds: int, rate_hz: float | None
         master.change(35, 1 if setup.group else 0)
     for link in links:
         link.drain()
+    check_position_scale(links, setup)
     check_bird_errors(links, setup, emit)
     return setup
+
+
+def check_position_scale(links: list[FlockLink], setup: FlockSetup) -> None:
+    """Read back every bird's position scale (EXAMINE p3): positions are decoded at `setup.scale_inches`,
+    so a bird left at the other scale would report every position off by a factor of two."""
+    want = 1 if setup.scale_inches == 72 else 0
+    for i in range(setup.birds):
+        link, addr = _route(links, setup, i)
+        got = _examine(link, 3, addr, setup.addressing)
+        if got[0] != want:
+            has = {0: "36-inch", 1: "72-inch"}.get(got[0], f"unknown ({got[0]})")
+            raise TrackerError(f"bird {i} (address {setup.addresses[i]}) kept the {has} position scale after being "
+                               f"set to {setup.scale_inches:g} in — check that it is not behind an extended range "
+                               f"controller, or power-cycle it")
 
 
 def start_stream(links: list[FlockLink], setup: FlockSetup) -> None:

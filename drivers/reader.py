@@ -100,7 +100,7 @@ class TrackerConfig:
 @dataclass(frozen=True)
 class TrackerEvent:
     """Something the operator should know: connected, disconnected, stalled, reconnecting, resync,
-    bird_error, format_fallback, link_overload, hemisphere_flip, error, stopped."""
+    bird_error, format_fallback, link_overload, hemisphere_flip, position_saturated, error, stopped."""
 
     kind: str
     message: str
@@ -160,8 +160,10 @@ class TrackerReader:
         self._status = dict(connected=False, birds=cfg.birds, rate_hz=None, frames=0, dropped_records=0,
                             resynced=0, reconnects=0, last_error=None, record_format=None, urls=list(cfg.urls),
                             mode=cfg.mode, group=cfg.resolved_group(), rejected_records=0, dropped_bytes=0,
-                            bird_errors=0, recording_path=cfg.recording_path)
-        self._totals = dict(frames=0, dropped_records=0, resynced=0, rejected_records=0, dropped_bytes=0)
+                            bird_errors=0, recording_path=cfg.recording_path, saturated_records=0,
+                            scale_inches=cfg.scale_inches)
+        self._totals = dict(frames=0, dropped_records=0, resynced=0, rejected_records=0, dropped_bytes=0,
+                            saturated_records=0)
 
     # -- public --------------------------------------------------------------------------------
     def start(self, wait: float | None = None) -> "TrackerReader":
@@ -237,6 +239,7 @@ class TrackerReader:
             s["resynced"] = self._totals["resynced"] + asm.resyncs
             s["rejected_records"] = self._totals["rejected_records"] + asm.rejected_records
             s["dropped_bytes"] = self._totals["dropped_bytes"] + asm.dropped_bytes
+            s["saturated_records"] = self._totals["saturated_records"] + asm.saturated_records
         if self._recorder is not None:
             self._recorder.flush()
         if len(frames) and self.on_frames is not None:
@@ -256,7 +259,7 @@ class TrackerReader:
         with self._lock:
             for k, v in (("frames", asm.frames), ("dropped_records", asm.dropped_records),
                          ("resynced", asm.resyncs), ("rejected_records", asm.rejected_records),
-                         ("dropped_bytes", asm.dropped_bytes)):
+                         ("dropped_bytes", asm.dropped_bytes), ("saturated_records", asm.saturated_records)):
                 self._totals[k] += v
 
     # -- the thread ----------------------------------------------------------------------------
