@@ -1,7 +1,10 @@
 """Driver throughput: serial bytes → decoded, assembled frames → Gram accumulator, against real time.
 
 The tracker's real-time rate is 16 birds at 144 Hz (2304 records/s); design.md §6 asks for ≥ 20× on
-one core. Run: python benchmarks/bench_driver.py [--seconds 30] [--chunk 512]
+one core. Run: python benchmarks/bench_driver.py [--seconds 30] [--chunk 512] [--take-every 8]
+
+Reads are framed as they come; poses are decoded when frames are taken (the live reader takes them every
+20 ms, a few reads' worth), so --take-every 1 is the worst case: a decode after every read.
 """
 
 from __future__ import annotations
@@ -27,7 +30,7 @@ def stream_bytes(fmt: str, m: int, n: int, rate: float, group: bool) -> bytes:
     return codec.encode_records(fmt, R.reshape(-1, 3, 3), p.reshape(-1, 3), addresses=addresses)
 
 
-def bench(fmt: str, m: int, rate: float, seconds: float, chunk: int) -> tuple[float, float]:
+def bench(fmt: str, m: int, rate: float, seconds: float, chunk: int, take_every: int = 8) -> tuple[float, float]:
     n = int(rate * seconds)
     data = stream_bytes(fmt, m, n, rate, group=True)
     setup = FlockSetup(urls=["bench"], birds=m, addresses=list(range(1, m + 1)), group=True, mode="stream",
@@ -39,7 +42,7 @@ def bench(fmt: str, m: int, rate: float, seconds: float, chunk: int) -> tuple[fl
     frames = 0
     for k, i in enumerate(range(0, len(data), chunk)):
         asm.feed(0, k * dt_chunk, data[i:i + chunk])
-        if k % 8 == 7:  # the reader hands batches over every few reads
+        if k % take_every == take_every - 1:  # the reader hands batches over every few reads
             f = asm.take()
             if len(f):
                 acc.update(f.rotations, f.positions, f.valid)
@@ -57,14 +60,16 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--seconds", type=float, default=30.0, help="seconds of tracker data to push through")
     ap.add_argument("--chunk", type=int, default=512, help="bytes per serial read")
+    ap.add_argument("--take-every", type=int, default=8, help="reads between taking frames into the accumulator")
     args = ap.parse_args()
     m, rate = 16, 144.0
     realtime = m * rate
     print(f"real time: {m} birds at {rate:g} Hz = {realtime:.0f} records/s; target ≥ 20×")
     for fmt in ("position_quaternion", "position_matrix", "position_angles"):
-        rps, el = bench(fmt, m, rate, args.seconds, args.chunk)
+        rps, el = bench(fmt, m, rate, args.seconds, args.chunk, args.take_every)
         print(f"{fmt:22s} {rps:10.0f} records/s  {rps / realtime:6.1f}× real time  "
-              f"({args.seconds:g} s of data in {el:.2f} s, {args.chunk} B reads)")
+              f"({args.seconds:g} s of data in {el:.2f} s, {args.chunk} B reads, frames taken every "
+              f"{args.take_every} reads)")
 
 
 if __name__ == "__main__":
