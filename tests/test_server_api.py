@@ -48,7 +48,8 @@ def assert_error(r: httpx.Response, status: int, *words: str):
 
 
 @pytest.mark.parametrize("case", ["malformed_json", "wrong_type", "missing_field", "unknown_field",
-                                  "traversal_name", "bad_hierarchy", "unknown_root", "oversized"])
+                                  "traversal_name", "bad_hierarchy", "unknown_root", "oversized",
+                                  "oversized_chunked"])
 def test_bad_session_requests_get_4xx_and_change_nothing(server, case):
     before = db_rows(server)
     url = server.url + "/api/sessions"
@@ -75,6 +76,10 @@ def test_bad_session_requests_get_4xx_and_change_nothing(server, case):
         assert_error(r, 400, "root")
     elif case == "oversized":  # 10 kB of performer name against a 4 kB limit
         r = httpx.post(url, json={"performer": "a" * 10_000}, headers=hdr(ADMIN))
+        assert_error(r, 413, "too large")
+    elif case == "oversized_chunked":  # the same without a Content-Length header (chunked upload)
+        body = (b'{"performer": "' + b"a" * 10_000 + b'"}',)
+        r = httpx.post(url, content=iter(body), headers={**hdr(ADMIN), "content-type": "application/json"})
         assert_error(r, 413, "too large")
     assert db_rows(server) == before
 
