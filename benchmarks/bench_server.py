@@ -47,6 +47,21 @@ class MarkedSource:
         return R, x, v
 
 
+def thread_cpu(pid: int) -> dict[str, float]:
+    """CPU seconds per thread name (reader, pipeline, fit, event loop…) of the service process."""
+    out: dict[str, float] = {}
+    for tid in os.listdir(f"/proc/{pid}/task"):
+        try:
+            with open(f"/proc/{pid}/task/{tid}/comm") as fh:
+                name = fh.read().strip()
+            with open(f"/proc/{pid}/task/{tid}/stat") as fh:
+                fields = fh.read().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        out[name] = out.get(name, 0.0) + (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    return out
+
+
 def cpu_seconds(pid: int) -> float:
     with open(f"/proc/{pid}/stat") as fh:
         fields = fh.read().rsplit(")", 1)[1].split()
@@ -105,10 +120,10 @@ def main(argv=None) -> int:
         httpx.post(proc.url + "/api/sessions", json={"performer": "bench"}).raise_for_status()
         time.sleep(3.0)  # let the fit settle into its steady state
         st0 = httpx.get(proc.url + "/api/status").json()
-        cpu0, wall0 = cpu_seconds(proc.proc.pid), time.monotonic()
+        cpu0, wall0, threads0 = cpu_seconds(proc.proc.pid), time.monotonic(), thread_cpu(proc.proc.pid)
         url = proc.url.replace("http://", "ws://") + "/ws/live"
         lat = np.array(asyncio.run(measure(url, clock_t0, args.seconds, args.dashboards))) * 1000
-        cpu1, wall1 = cpu_seconds(proc.proc.pid), time.monotonic()
+        cpu1, wall1, threads1 = cpu_seconds(proc.proc.pid), time.monotonic(), thread_cpu(proc.proc.pid)
         st1 = httpx.get(proc.url + "/api/status").json()
     finally:
         proc.stop()
@@ -125,6 +140,11 @@ def main(argv=None) -> int:
     print(f"  latency p99         {p99:8.1f} ms   (target < 50 ms: {50 / p99:.2f}x margin)")
     print(f"  latency max         {lat.max():8.1f} ms")
     print(f"  service CPU         {cpu:8.1f} % of one core   (target < 25 %: {25 / cpu:.2f}x margin)")
+    for name in sorted(threads1, key=lambda k: threads0.get(k, 0.0) - threads1[k]):
+        share = 100 * (threads1[name] - threads0.get(name, 0.0)) / (wall1 - wall0)
+        if share >= 0.5:
+            print(f"    thread {name:18s} {share:5.1f} %")
+    print(f"  load average        {os.getloadavg()[0]:8.2f}   (on {os.cpu_count()} cores; other work inflates the latency)")
     return 0
 
 

@@ -59,6 +59,16 @@ class LiveSession:
         }
 
 
+def _name_os_thread(name: str) -> None:
+    """Name the OS thread (top -H, /proc/PID/task/*/comm) so CPU use can be told apart per stage."""
+    try:
+        import ctypes
+
+        ctypes.CDLL(None).prctl(15, name.encode()[:15], 0, 0, 0)  # PR_SET_NAME
+    except (OSError, AttributeError):
+        pass
+
+
 def _finite(obj):
     """JSON-safe copy: NaN and ±inf become None (browsers cannot parse them), numpy scalars become floats."""
     if isinstance(obj, dict):
@@ -277,6 +287,7 @@ class Pipeline:
 
     # --- the thread ----------------------------------------------------------------------------------
     def _run(self) -> None:
+        _name_os_thread("fc-pipeline")
         last_publish = 0.0
         while True:
             with self._cond:
@@ -516,6 +527,7 @@ class Pipeline:
 
     def _fit_worker(self) -> None:
         """Refits on its own thread, so a slow fit never delays frames or snapshots."""
+        _name_os_thread("fc-fit")
         while True:
             with self._fit_cond:
                 while self._fit_job is None and not self._stop:
