@@ -34,8 +34,12 @@ pytestmark = [
 RATE = 144.0
 ADMIN, KIOSK, READ = "admin-secret-1", "kiosk-secret-1", "read-secret-1"
 SLIP_SENSOR = "l_forearm"
-BONE_TOLERANCE_M = 0.03  # "a few cm": hinge bones depend on the min-norm point along the axis
+SLIP_AFTER_S = 14.0
+# A bone ending at a hinge (elbow, knee) is only known up to where along the hinge axis its centre
+# is put (the min-norm point, not the anatomical one): "a few cm". Bones between ball joints: 1 cm.
+BONE_TOLERANCE_M = 0.05
 BALL_BONE_TOLERANCE_M = 0.01
+LIMIT = {"hinge": BONE_TOLERANCE_M, "ball": BALL_BONE_TOLERANCE_M}
 # Kiosk test settings: every joint must be pinned to 2 mm and have turned ~6° rms about the axes it
 # needs (two for a ball joint, one for a hinge); the kiosk routine exercises each limb once a loop.
 KIOSK_QUERY = f"token={KIOSK}&stderr_mm=2&coverage=0.005&reset_s=3"
@@ -78,7 +82,7 @@ def tracker(performer):
 def server(tracker, performer, tmp_path_factory):
     data = tmp_path_factory.mktemp("dashboard")
     args = ["--device", tracker.device, "--birds", "16", "--data-dir", str(data), "--fast-init",
-            "--names", ",".join(performer.names), "--token", ADMIN, "--kiosk-token", KIOSK, "--read-token", READ]
+            "--names", ",".join(performer.names), "--scale", "72", "--token", ADMIN, "--kiosk-token", KIOSK, "--read-token", READ]
     proc = ServerProcess(args, free_port(), log_path=data / "serve.log").start(token=ADMIN)
     wait_connected(proc.url, token=ADMIN)
     yield proc
@@ -194,17 +198,33 @@ def test_dashboard_draws_the_skeleton_and_bones_match_the_simulator(dashboard, p
             r["joints"] = [frozenset((c, parent[c])) for c in (r["from"], r["to"]) if c]
         return rows if len(rows) >= n_bodies - 2 and all(len(r["joints"]) == 2 for r in rows) else None
 
-    rows = wait_until(shown_bones, 30, "a bone row for every body")
-    worst = {"ball": 0.0, "hinge": 0.0}
-    for r in rows:
-        a, b = (points.get((r["body"], j)) for j in r["joints"])
-        assert a is not None and b is not None, f"the table joins joints the simulated body does not have: {r}"
-        true_length = float(np.linalg.norm(a - b))
-        # A bone ending at a hinge's centre depends on the min-norm point chosen along the hinge axis.
-        kind = "hinge" if any(j in hinges for j in r["joints"]) else "ball"
-        tol = BONE_TOLERANCE_M if kind == "hinge" else BALL_BONE_TOLERANCE_M
-        assert abs(r["length"] - true_length) < tol, (r, true_length)
-        worst[kind] = max(worst[kind], abs(r["length"] - true_length))
+    def errors():
+        rows = shown_bones()
+        if rows is None:
+            return None
+        out = []
+        for r in rows:
+            a, b = (points.get((r["body"], j)) for j in r["joints"])
+            if a is None or b is None:  # a joint the simulated body does not have (a wrong tree)
+                out.append(("no such joint", r, np.inf))
+                continue
+            # A bone ending at a hinge depends on the min-norm point chosen along the hinge axis.
+            kind = "hinge" if any(j in hinges for j in r["joints"]) else "ball"
+            out.append((kind, r, abs(r["length"] - float(np.linalg.norm(a - b)))))
+        return out
+
+    def converged():
+        errs = errors()
+        return errs if errs and all(e < LIMIT.get(k, 0.0) for k, _, e in errs) else None
+
+    # The live fit improves as the performer moves: every bone must come within tolerance.
+    try:
+        errs = wait_until(converged, 30, "every bone within tolerance of the simulator's")
+    except AssertionError:
+        bad = [(k, r["body"], sorted(map(sorted, r["joints"])), round(e, 4)) for k, r, e in errors() or []
+               if e >= LIMIT.get(k, 0.0)]
+        raise AssertionError(f"bones still off after 30 s: {bad}") from None
+    worst = {k: max([e for kk, _, e in errs if kk == k], default=0.0) for k in ("ball", "hinge")}
     record("bones_worst_error_m", worst)
     page.screenshot(path=str(artifacts() / "dashboard-bones.png"), full_page=True)
     assert not page.errors
@@ -214,11 +234,22 @@ def test_injected_slip_shows_on_the_residual_plot_and_as_an_alert(dashboard, per
     page = dashboard
     page.wait_for_function("Number(document.querySelector('#residuals').dataset.samples) > 20", timeout=10000)
     before = page.eval_on_selector_all(".alert.slip", "els => els.filter(e => /left forearm/.test(e.textContent)).length")
+    sid = httpx.get(f"{server.url}/api/status", headers=admin()).json()["session"]["id"]
+
+    def service_slip():
+        events = httpx.get(f"{server.url}/api/sessions/{sid}/events", headers=admin()).json()["events"]
+        return [e for e in events if e["type"] == "slip" and SLIP_SENSOR in [e.get("sensor"), *e.get("candidates", [])]]
+
+    # Slip once the tree has settled and the detector has a full loop of motion as its baseline (a
+    # slip while the topology still changes is missed: the monitor restarts with every new tree).
+    wait_until(lambda: httpx.get(f"{server.url}/api/status", headers=admin()).json()["session"]["time_s"] >= SLIP_AFTER_S,
+               30, f"{SLIP_AFTER_S} s of session")
     performer.inject_slip(SLIP_SENSOR, 0.03)
+    wait_until(service_slip, 10, "the service reporting the slip")
+    # Whatever the service reports reaches the page within a few seconds.
     page.wait_for_function(
-        "[...document.querySelectorAll('.alert.slip')].filter(e => /left forearm/.test(e.textContent)).length > %d" % before,
-        timeout=15000,
-    )
+        "[...document.querySelectorAll('.alert.slip')].filter(e => /left forearm/.test(e.textContent)).length > %d"
+        % before, timeout=5000)
     slips = int(page.get_attribute("#residuals", "data-slips"))
     assert slips >= 1
     # The marker is drawn on the plot: dashed red lines in the uPlot canvas.
@@ -237,6 +268,12 @@ def test_pages_show_an_unplugged_tracker_and_recover(dashboard, browser, server,
     kiosk = open_page(browser, f"{server.url}/kiosk?token={READ}", 1600, 900)  # read-only: follows the live session
     try:
         kiosk.wait_for_selector("#kiosk-state[data-tracker=connected]", timeout=15000)
+        # A read-only kiosk cannot start a guest session: it shows the one the operator started.
+        # (live, or already done by its own targets: either way it names her and started nothing).
+        kiosk.wait_for_function("['live', 'done'].includes(document.querySelector('#kiosk-state').dataset.state)",
+                                timeout=15000)
+        assert "Ann" in kiosk.text_content("#kiosk-state")
+        assert httpx.get(f"{server.url}/api/status", headers=admin()).json()["session"]["performer"] == "Ann"
         tracker.disconnect()
         try:
             page.wait_for_selector("#tracker[data-state=disconnected]", timeout=15000)
@@ -273,6 +310,9 @@ def test_pages_reconnect_by_themselves_after_a_server_restart(dashboard, browser
                                timeout=15000)
         kiosk.wait_for_selector("#kiosk-state[data-link=open]", timeout=30000)
         assert page.is_hidden("#link-banner")
+        # The restart ended the operator's session; the read-only kiosk waits for a host, starting nothing.
+        kiosk.wait_for_selector("#kiosk-state[data-state=waiting]", timeout=15000)
+        assert httpx.get(f"{server.url}/api/sessions", headers=admin()).json()["live"] is None
         assert not page.errors and not kiosk.errors
     finally:
         kiosk.close()

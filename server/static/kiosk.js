@@ -35,6 +35,7 @@ const kiosk = {
   startedAt: 0,
   timer: null,
   lastStatus: null,
+  doneSession: null,       // a host's session shown as done until it ends
 };
 
 const TITLES = { done: 'Calibrated!', waiting: 'Welcome!', error: 'One moment…' };
@@ -186,11 +187,17 @@ async function finishGuest() {
   $('instruction').textContent = "You're all set — enjoy the show!";
   avatar.setJointState(Object.fromEntries(Object.keys(avatar.jointState).map((k) => [k, 'done'])));
   $('chips').querySelectorAll('.chip').forEach((c) => { c.className = 'chip done'; c.textContent = `✓ ${readable(c.dataset.body)}`; });
-  if (session && kiosk.owned) {
+  clearTimer();
+  if (session && !kiosk.owned) {
+    // A host's session: it is theirs to stop. Stay "done" until it ends, then wait for the next.
+    kiosk.doneSession = session.id;
+    $('kiosk-state').textContent = `done! ${session.performer} is calibrated`;
+    return;
+  }
+  if (session) {
     try { await api(`/api/sessions/${encodeURIComponent(session.id)}/stop`, { method: 'POST' }); } catch (e) { /* already stopped */ }
   }
   kiosk.session = null;
-  clearTimer();
   const until = performance.now() + RESET_S * 1000;
   const countdown = () => {
     const left = Math.ceil((until - performance.now()) / 1000);
@@ -225,6 +232,10 @@ function onStatus(s) {
     else { clearTimer(); kiosk.timer = setTimeout(startGuest, 500); setState('starting', 'getting ready…'); }
   } else if (kiosk.state === 'waiting' && live) {
     follow(live, false);
+  } else if (kiosk.state === 'done' && kiosk.doneSession && (!live || live.id !== kiosk.doneSession)) {
+    kiosk.doneSession = null;
+    kiosk.session = null;
+    waitForHost();
   } else if (kiosk.state === 'live' && kiosk.owned && performance.now() - kiosk.startedAt > MAX_S * 1000) {
     giveUp();
   }
