@@ -14,6 +14,7 @@ from typing import Callable, Protocol
 
 from flockcal.errors import FlockcalError
 from flockcal.server.errors import ConfigError, ServerError
+from flockcal.server.rawlog import SessionRawRecorder
 from flockcal.server.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -133,6 +134,7 @@ class TrackerSource:
         self.names = sensor_names(settings, self.simulator.names if self.simulator else None)
         self.reader = None
         self.recording_path = recording_path
+        self.raw: SessionRawRecorder | None = None
 
     def start(self, on_frames: OnFrames, on_event: OnEvent) -> None:
         from flockcal.drivers.link import Timing
@@ -152,6 +154,11 @@ class TrackerSource:
             self.reader = TrackerReader(cfg, on_frames=on_frames, on_event=lambda ev: on_event(event_dict(ev)))
         except FlockcalError as exc:
             raise ConfigError(f"--device {self.url}: {exc}") from None
+        if cfg.recording_path is None and hasattr(self.reader, "_recorder"):
+            # The reader has no call to switch recordings per session; fill its recorder slot once
+            # with a forwarder that the session manager points at each session's .fobraw.
+            self.raw = SessionRawRecorder(cfg.to_dict())
+            self.reader._recorder = self.raw
         self.reader.start()
 
     def stop(self) -> None:

@@ -16,6 +16,7 @@ import httpx
 import numpy as np
 import pytest
 
+from flockcal.drivers.recording import read_recording, replay
 from flockcal.server.framelog import read_frames
 from flockcal.server.settings import Settings
 from flockcal.server.testing import ServerProcess, ServerThread, free_port, wait_connected
@@ -84,9 +85,16 @@ def test_full_session_matches_fit_and_survives_restart(tracker, performer, tmp_p
         assert take.status_code == 200
         events = httpx.get(srv.url + f"/api/sessions/{sid}/events").json()["events"]
         residuals = httpx.get(srv.url + f"/api/sessions/{sid}/residuals", params={"joint": "l_forearm"}).json()
+        raw = httpx.get(srv.url + f"/api/sessions/{sid}/raw")
         bvh = httpx.get(srv.url + f"/api/sessions/{sid}/bvh", timeout=60)
         skeleton = httpx.get(srv.url + f"/api/sessions/{sid}/skeleton", timeout=60)
     assert bvh.status_code == 200 and bvh.text.startswith("HIERARCHY")
+    # The session's raw tracker bytes replay through the driver's own decoder into the same frames
+    # (give or take the batches in flight at start and stop: the bytes are cut at arrival time).
+    assert raw.status_code == 200
+    (tmp_path / "s.fobraw").write_bytes(raw.content)
+    replayed = replay(read_recording(tmp_path / "s.fobraw")).frames
+    assert abs(len(replayed) - stopped["frames"]) <= 0.2 * RATE
     assert skeleton.status_code == 200 and skeleton.json()
 
     # The topology is the performer's body.
