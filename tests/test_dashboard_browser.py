@@ -318,6 +318,26 @@ def test_pages_reconnect_by_themselves_after_a_server_restart(dashboard, browser
         kiosk.close()
 
 
+def test_session_controls_start_stop_and_download_the_skeleton(dashboard, server):
+    page = dashboard
+    page.wait_for_selector("#link[data-state=open]", timeout=30000)
+    page.wait_for_selector("#start:not([disabled])", timeout=15000)
+    page.fill("#performer", "Bo")
+    page.click("#start")
+    page.wait_for_selector("#session-state[data-state=live]", timeout=10000)
+    sid = httpx.get(f"{server.url}/api/status", headers=admin()).json()["session"]["id"]
+    page.wait_for_function("document.querySelectorAll('#bones tbody tr[data-body]').length >= 4", timeout=20000)
+    page.click("#stop")
+    page.wait_for_selector("#session-state[data-state=stopped]", timeout=30000)
+    assert httpx.get(f"{server.url}/api/sessions/{sid}", headers=admin()).json()["state"] == "stopped"
+    with page.expect_download(timeout=15000) as info:
+        page.click("#dl-skeleton")
+    downloaded = json.loads(Path(info.value.path()).read_text())
+    assert downloaded == httpx.get(f"{server.url}/api/sessions/{sid}/result", headers=admin()).json()
+    assert info.value.suggested_filename == f"Bo-{sid}-skeleton.json"
+    assert not page.errors
+
+
 def test_kiosk_reaches_done_on_the_kiosk_routine_and_starts_the_next_guest(browser, server, performer):
     live = httpx.get(f"{server.url}/api/sessions", headers=admin()).json()["live"]
     if live:

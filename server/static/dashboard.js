@@ -330,7 +330,7 @@ const palette = ['#58a6ff', '#ffc857', '#7ee787', '#ff7b72', '#d2a8ff', '#79c0ff
 
 // Residual samples on one time axis, one column per joint ever seen this session; slips as markers.
 const residuals = {
-  times: [], cols: {}, names: [], slips: [], plot: null, built: '',
+  times: [], cols: {}, names: [], slips: [], plot: null, built: '', ymax: 5,
   clear() {
     this.times = []; this.cols = {}; this.names = []; this.slips = [];
     this.draw();
@@ -368,6 +368,12 @@ const residuals = {
     // Labels depend on the newest topology ("mid back" vs "lower back"): rebuild when they change.
     const key = this.labels().join(',');
     if (!this.plot || key !== this.built) this.build();
+    // Scale to the bulk of the data: the first second of a young fit can read hundreds of mm and
+    // would flatten everything after it (those spikes run off the top instead).
+    const values = [];
+    for (const n of this.names) for (const v of this.cols[n]) if (Number.isFinite(v)) values.push(v);
+    values.sort((x, y) => x - y);
+    this.ymax = values.length ? Math.max(5, 1.25 * values[Math.floor(0.995 * (values.length - 1))]) : 5;
     const data = [this.times].concat(this.names.map((n) => this.cols[n]));
     this.plot.setData(data);
   },
@@ -380,11 +386,11 @@ const residuals = {
     el.innerHTML = '';
     const labels = this.labels();
     this.built = labels.join(',');
-    const slips = this;
+    const self = this;
     const opts = {
       width: el.clientWidth || 900,
       height: PLOT_HEIGHT,
-      scales: { x: { time: false }, y: { range: (u, lo, hi) => [0, Math.max(5, (hi || 0) * 1.1)] } },
+      scales: { x: { time: false }, y: { range: () => [0, self.ymax || 5] } },
       axes: [
         { stroke: '#8b98a5', grid: { stroke: '#21262d' }, ticks: { stroke: '#30363d' }, label: 'session time (s)', labelSize: 18 },
         { stroke: '#8b98a5', grid: { stroke: '#21262d' }, ticks: { stroke: '#30363d' }, label: 'residual (mm)', labelSize: 18, size: 50 },
@@ -395,7 +401,7 @@ const residuals = {
       }))),
       cursor: { drag: { x: false, y: false } },
       legend: { live: false },
-      plugins: [{ hooks: { draw: [(u) => drawSlips(u, slips.slips)] } }],
+      plugins: [{ hooks: { draw: [(u) => drawSlips(u, self.slips)] } }],
     };
     this.plot = new uPlot(opts, [[]].concat(this.names.map(() => [])), el);
   },
