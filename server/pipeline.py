@@ -266,10 +266,8 @@ class Pipeline:
             if live.acc.frames > 0:
                 try:
                     result = calibrate_dict(live.acc, self.names, live.hierarchy, live.root)
-                    slips = [
-                        {k: e[k] for k in SLIP_FIELDS if k in e}
-                        for e in self._events if e.get("type") == "slip" and e.get("session_id") == live.id
-                    ]
+                    slips = [{k: e[k] for k in SLIP_FIELDS if k in e}
+                             for e in self.store.events(live.id, limit=100_000) if e["type"] == "slip"]
                     if slips:
                         result["slip_events"] = slips
                 except FlockcalError as exc:
