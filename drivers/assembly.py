@@ -91,9 +91,12 @@ class _PortStream:
     inside a record push its tail out of the window. Such a record is always followed (or preceded) by
     lost bytes, so every record next to lost bytes is marked suspect and must agree with the bird's
     motion before it is used. The last record of a chunk is held until the next bytes show what follows.
+
+    Tiny reads are queued and framed together once `coalesce_bytes` have arrived or the queue spans
+    `coalesce_seconds` of arrival time: the decision depends only on the chunks, so replay agrees.
     """
 
-    def __init__(self, setup: FlockSetup, index: int):
+    def __init__(self, setup: FlockSetup, index: int, coalesce_bytes: int = 0, coalesce_seconds: float = 0.0):
         fmt = setup.record_format
         self.group = setup.group
         self.period = 1.0 / max(setup.rate_hz, 1e-3)
@@ -112,10 +115,27 @@ class _PortStream:
         self.held_end = -1
         self.resyncs_seen = 0
         self.dropped_seen = 0
+        self.coalesce_bytes = coalesce_bytes
+        self.coalesce_seconds = coalesce_seconds
+        self.queue: list[bytes] = []
+        self.queue_times: list[float] = []
+        self.queued = 0
 
-    def feed(self, data: bytes, t: float) -> _Held:
-        rec = self.decoder.frame(data, t)
-        self.fed += len(data)
+    def put(self, data: bytes, t: float) -> bool:
+        """Queue a read; True when the queue should be framed now."""
+        self.queue.append(bytes(data))
+        self.queue_times.append(t)
+        self.queued += len(data)
+        return self.queued >= self.coalesce_bytes or t - self.queue_times[0] >= self.coalesce_seconds
+
+    def frame_queued(self) -> _Held:
+        """Frame every queued read; the records it releases."""
+        if not self.queue:
+            return self.none
+        chunks, times, n = self.queue, self.queue_times, self.queued
+        self.queue, self.queue_times, self.queued = [], [], 0
+        rec = self.decoder.frame_chunks(chunks, times)
+        self.fed += n
         pending = self.decoder.pending_bytes
         tail_start = self.fed - pending
         k = len(rec)
@@ -180,7 +200,8 @@ class _PortStream:
 
     def flush(self) -> _Held:
         """Release what is held (the line went quiet or is being reset) and forget partial records."""
-        out = self._release_all(next_gap=False)
+        queued = self.frame_queued()
+        out = _Held.concat([queued, self._release_all(next_gap=False)])
         self.decoder.reset()
         self.prev_end = None
         return out
@@ -202,12 +223,16 @@ class FrameAssembler:
     batch_cycles = 1024  # decode at least this often even if nobody takes frames
 
     def __init__(self, setup: FlockSetup, *, hemisphere_tracking: bool = True, max_speed: float = 20.0,
-                 max_turn_rate: float = 60.0, saturation_quiet: float = 1.0):
+                 max_turn_rate: float = 60.0, saturation_quiet: float = 1.0, coalesce_bytes: int = 512,
+                 coalesce_seconds: float = 0.01):
         self.setup = setup
         self.format = codec.FORMATS[setup.record_format]
         self.saturation_quiet = saturation_quiet
         self.m = setup.birds
-        self.ports = [_PortStream(setup, i) for i in range(1 if setup.group else len(setup.urls))]
+        if setup.mode == "point":  # a poll's answer should come out before the next poll
+            coalesce_bytes, coalesce_seconds = 0, 0.0
+        self.ports = [_PortStream(setup, i, coalesce_bytes, coalesce_seconds)
+                      for i in range(1 if setup.group else len(setup.urls))]
         self.period = 1.0 / max(setup.rate_hz, 1e-3)
         self.hemisphere_tracking = hemisphere_tracking
         self.max_speed = max_speed
@@ -266,7 +291,12 @@ class FrameAssembler:
             return
         self.now = max(self.now, t)
         ps = self.ports[port]
-        released = ps.feed(data, t)
+        if not ps.put(data, t):
+            return
+        self._framed(port, ps.frame_queued())
+
+    def _framed(self, port: int, released: _Held) -> None:
+        ps = self.ports[port]
         if ps.decoder.resyncs != ps.resyncs_seen:
             lost = ps.decoder.dropped_bytes - ps.dropped_seen
             self.events.append(("resync", f"port {port}: {lost} byte(s) lost or garbled; resynchronised on the "
@@ -276,6 +306,9 @@ class FrameAssembler:
 
     def flush(self) -> None:
         """The stream ended or broke: emit everything pending (its missing birds invalid) and start afresh."""
+        for i, ps in enumerate(self.ports):
+            if ps.queue:
+                self._framed(i, ps.frame_queued())
         for i, ps in enumerate(self.ports):
             self._take_records(i, ps.flush(), final=False)
         if not self.setup.group and self.phase is None:
