@@ -327,3 +327,18 @@ def test_whole_record_fast_path_frames_exactly_like_the_general_framing(group):
     assert (fast.resyncs, fast.dropped_bytes, fast.bad_records, fast.records, fast.pending_bytes) == \
            (slow.resyncs, slow.dropped_bytes, slow.bad_records, slow.records, slow.pending_bytes)
     assert fast.resyncs >= 2
+
+
+def test_framing_several_reads_at_once_gives_the_records_and_arrival_times_of_framing_them_one_by_one():
+    data, rot, pos, addr = _stream("position_angles", n=200, birds=4)
+    cuts = np.sort(RNG.choice(len(data), 50, replace=False))
+    chunks = [c.tobytes() for c in np.split(np.frombuffer(data, np.uint8), cuts)]
+    times = list(0.002 * np.arange(len(chunks)))
+    one = codec.StreamDecoder("position_angles", group=True, n_birds=4)
+    singles = [one.frame(c, t) for c, t in zip(chunks, times)]
+    many = codec.StreamDecoder("position_angles", group=True, n_birds=4)
+    batches = [many.frame_chunks(chunks[i:i + 7], times[i:i + 7]) for i in range(0, len(chunks), 7)]
+    for name in ("addresses", "offsets", "times"):
+        a, b = (np.concatenate([getattr(f, name) for f in fs]) for fs in (singles, batches))
+        assert np.array_equal(a, b), name
+    assert len(np.concatenate([f.offsets for f in batches])) == 200

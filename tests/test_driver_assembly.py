@@ -155,3 +155,26 @@ def test_garbage_framing_as_bird_1_after_lost_bytes_does_not_end_the_cycle():
     expect[2, [4, 5]] = False
     assert len(f) == n and np.array_equal(f.valid, expect)
     assert np.max(np.abs(f.positions[f.valid] - p[f.valid])) <= codec.quantisation_tolerance(fmt)[1]
+
+
+@pytest.mark.parametrize("mode", ["stream", "point"])
+def test_a_cycle_is_out_within_10_ms_of_arrival_in_stream_mode_and_at_once_in_point_mode(mode):
+    # Tiny stream reads are framed together (once 512 bytes or 10 ms of arrival time are queued); a POINT
+    # answer is framed as soon as it is read.
+    m, fmt = 4, "position_quaternion"
+    R, p = moving_poses(3, m)
+    data = group_bytes(fmt, R, p)
+    L = codec.record_length(fmt, group=True)
+    setup = group_setup(m, fmt)
+    setup.mode = mode
+    asm = FrameAssembler(setup)
+    asm.feed(0, 0.000, data[:m * L])  # cycle 0, complete (its last bird is the highest address)
+    first = len(asm.take())
+    asm.feed(0, 0.004, data[m * L:m * L + 5])
+    still = len(asm.take())
+    asm.feed(0, 0.011, data[m * L + 5:2 * m * L])
+    later = len(asm.take())
+    if mode == "point":
+        assert first + still == 1  # cycle 0 is out before 10 ms have passed
+    else:
+        assert first + still == 0 and later >= 1
