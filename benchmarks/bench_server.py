@@ -68,7 +68,7 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-async def measure(url: str, clock_t0: float, seconds: float, dashboards: int) -> list[float]:
+async def measure(url: str, clock_t0: float, seconds: float, dashboards: int, probe_hz: float) -> list[float]:
     latencies = []
 
     async def dashboard():
@@ -84,7 +84,7 @@ async def measure(url: str, clock_t0: float, seconds: float, dashboards: int) ->
 
     async def probe():
         async with websockets.connect(url) as ws:
-            await ws.send(json.dumps({"type": "subscribe", "rate_hz": 1000, "content": ["pose"]}))
+            await ws.send(json.dumps({"type": "subscribe", "rate_hz": probe_hz, "content": ["pose"]}))
             end = time.monotonic() + seconds
             while time.monotonic() < end:
                 msg = json.loads(await ws.recv())
@@ -105,6 +105,8 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--dashboards", type=int, default=0, help="extra dashboard-like websocket clients")
+    ap.add_argument("--probe-hz", type=float, default=1000.0,
+                    help="rate the latency probe subscribes at (default: every snapshot, up to 100/s)")
     args = ap.parse_args(argv)
 
     performer = Performer("human", "exercise", seed=1, rate_hz=RATE)
@@ -122,7 +124,7 @@ def main(argv=None) -> int:
         st0 = httpx.get(proc.url + "/api/status").json()
         cpu0, wall0, threads0 = cpu_seconds(proc.proc.pid), time.monotonic(), thread_cpu(proc.proc.pid)
         url = proc.url.replace("http://", "ws://") + "/ws/live"
-        lat = np.array(asyncio.run(measure(url, clock_t0, args.seconds, args.dashboards))) * 1000
+        lat = np.array(asyncio.run(measure(url, clock_t0, args.seconds, args.dashboards, args.probe_hz))) * 1000
         cpu1, wall1, threads1 = cpu_seconds(proc.proc.pid), time.monotonic(), thread_cpu(proc.proc.pid)
         st1 = httpx.get(proc.url + "/api/status").json()
     finally:
@@ -132,7 +134,8 @@ def main(argv=None) -> int:
     frames_hz = (st1["frames"] - st0["frames"]) / (wall1 - wall0)
     fits_hz = (st1["fits"] - st0["fits"]) / (wall1 - wall0)
     p50, p99 = np.percentile(lat, [50, 99])
-    print(f"flockcal serve, 16 birds at {RATE:g} Hz on a pty, {args.seconds:g} s, {args.dashboards} extra dashboards")
+    print(f"flockcal serve, 16 birds at {RATE:g} Hz on a pty, {args.seconds:g} s, {args.dashboards} extra dashboards, "
+          f"latency probe at {min(args.probe_hz, 100):g} Hz")
     print(f"  frames received     {frames_hz:8.1f} /s   (dropped records in the window: {st1['dropped_records'] - st0['dropped_records']})")
     print(f"  full refits         {fits_hz:8.1f} /s   (target >= 30; {st1['fit_ms']} ms each)")
     print(f"  latency samples     {len(lat):8d}")

@@ -496,7 +496,8 @@ class Pipeline:
                     and now - self._last_fit_time >= self.min_fit_s):
                 # Hand a copy of the Gram matrix to the fit thread; frames keep flowing meanwhile.
                 self._fit_busy = True
-                self._last_fit_time = now
+                # Keep a fixed grid (not "period after the last start") so the rate holds at fit_hz.
+                self._last_fit_time = max(self._last_fit_time + self.min_fit_s, now - self.min_fit_s)
                 live.fit_frames = live.acc.frames
                 with self._fit_cond:
                     self._fit_job = (live.id, fit_copy(live.acc), live.hierarchy, live.root)

@@ -143,6 +143,7 @@ class TrackerSource:
         cfg = TrackerConfig(
             urls=self.urls,
             timing=Timing.fast() if self.settings.fast_init else None,
+            batch_interval=self.settings.reader_batch_s,
             birds=self.settings.birds,
             rate_hz=self.settings.rate_hz,
             baud=self.settings.baud,
