@@ -156,5 +156,14 @@ def test_kill9_mid_session_loses_under_a_second_and_can_be_resolved(tracker, tmp
         assert solved.json()["state"] == "stopped" and solved.json()["frames"] == logged
         result = httpx.get(proc.url + f"/api/sessions/{sid}/result").json()
         assert result["frames"] == logged and result["joints"]
+        # A clean stop (Ctrl-C) with a session live stops that session and keeps its result.
+        sid2 = httpx.post(proc.url + "/api/sessions", json={"performer": "Cal"}).json()["id"]
+        wait_session_time(proc.url, 1.0)
+    finally:
+        proc.stop()
+    proc = ServerProcess(args, port, log_path=tmp_path / "serve.log").start()
+    try:
+        s2 = httpx.get(proc.url + f"/api/sessions/{sid2}").json()
+        assert s2["state"] == "stopped" and s2["has_result"] and s2["frames"] > 0
     finally:
         proc.stop()
