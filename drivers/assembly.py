@@ -532,22 +532,33 @@ class FrameAssembler:
         n, m = len(cycle_times), self.m
         rotations, positions, rec_valid, rec_clipped = codec.decode_block(
             self.format, rec.raw, scale_inches=self.setup.scale_inches)
-        R = np.zeros((n, m, 3, 3))
-        p = np.zeros((n, m, 3))
-        valid = np.zeros((n, m), bool)
-        suspect = np.zeros((n, m), bool)
-        ok = bird >= 0
-        c, b = cycle[ok], bird[ok]
-        R[c, b] = rotations[ok]
-        p[c, b] = positions[ok]
-        valid[c, b] = rec_valid[ok]
-        suspect[c, b] = rec.suspect[ok] & rec_valid[ok]
-        rec_time = np.zeros((n, m))
-        rec_time[c, b] = rec.times[ok]
-        np.maximum.at(self.last_seen, b, rec.times[ok])
-        if rec_clipped.any():
+        grid = np.arange(n * m)
+        if len(bird) == n * m and np.array_equal(bird, grid % m) and np.array_equal(cycle, grid // m):
+            # Every bird of every cycle, in order (the usual case): the records already are the frames.
+            R = rotations.reshape(n, m, 3, 3)
+            p = positions.reshape(n, m, 3)
+            valid = rec_valid.reshape(n, m)
+            suspect = (rec.suspect & rec_valid).reshape(n, m)
+            rec_time = rec.times.reshape(n, m)
+            np.maximum(self.last_seen, rec_time.max(axis=0), out=self.last_seen)
+            clipped = rec_clipped.reshape(n, m)
+        else:
+            R = np.zeros((n, m, 3, 3))
+            p = np.zeros((n, m, 3))
+            valid = np.zeros((n, m), bool)
+            suspect = np.zeros((n, m), bool)
+            ok = bird >= 0
+            c, b = cycle[ok], bird[ok]
+            R[c, b] = rotations[ok]
+            p[c, b] = positions[ok]
+            valid[c, b] = rec_valid[ok]
+            suspect[c, b] = rec.suspect[ok] & rec_valid[ok]
+            rec_time = np.zeros((n, m))
+            rec_time[c, b] = rec.times[ok]
+            np.maximum.at(self.last_seen, b, rec.times[ok])
             clipped = np.zeros((n, m), bool)
             clipped[c, b] = rec_clipped[ok]
+        if rec_clipped.any():
             self._report_saturation(cycle_times, clipped)
         if suspect.any():
             self._check_suspects(R, p, valid, suspect, rec_time)
@@ -611,21 +622,30 @@ class FrameAssembler:
         real move would have to pass through the transmitter). Positions are corrected in place.
         """
         n = len(p)
-        rows = np.arange(n)[:, None]
-        idx = np.where(valid, rows, -1)
-        last = np.maximum.accumulate(idx, axis=0)
-        prev_idx = np.vstack([np.full((1, self.m), -1), last[:-1]])
-        cols = np.arange(self.m)[None, :]
-        prev = np.where((prev_idx >= 0)[..., None], p[np.maximum(prev_idx, 0), cols], self.last_raw_pos())
+        if valid.all():  # the usual case: each bird's previous position is the row above
+            prev = np.concatenate([self.last_raw_pos()[None], p[:-1]])
+            raw_last = p[-1].copy()
+        else:
+            rows = np.arange(n)[:, None]
+            idx = np.where(valid, rows, -1)
+            last = np.maximum.accumulate(idx, axis=0)
+            prev_idx = np.vstack([np.full((1, self.m), -1), last[:-1]])
+            cols = np.arange(self.m)[None, :]
+            prev = np.where((prev_idx >= 0)[..., None], p[np.maximum(prev_idx, 0), cols], self.last_raw_pos())
+            raw_last = np.where((last[-1] >= 0)[:, None], p[np.maximum(last[-1], 0), np.arange(self.m)],
+                                self.last_raw_pos())
         toggle = valid & (np.einsum("nmi,nmi->nm", p, prev) < 0)
         if toggle.any():
             for b in np.flatnonzero(toggle.any(axis=0)):
                 self.events.append(("hemisphere_flip", f"bird {b} crossed the hemisphere boundary "
                                     f"{int(toggle[:, b].sum())} time(s); positions corrected",
                                     {"bird": int(b), "count": int(toggle[:, b].sum())}))
-        raw_last = np.where((last[-1] >= 0)[:, None], p[np.maximum(last[-1], 0), np.arange(self.m)], self.last_raw_pos())
-        parity = (np.cumsum(toggle, axis=0) + self.flipped[None, :]) % 2 == 1
         self._raw_last = raw_last
+        if not toggle.any():
+            if self.flipped.any():
+                p[:, self.flipped] *= -1.0
+            return
+        parity = (np.cumsum(toggle, axis=0) + self.flipped[None, :]) % 2 == 1
         self.flipped = parity[-1].copy()
         p[parity] *= -1.0
 
@@ -633,6 +653,11 @@ class FrameAssembler:
         return getattr(self, "_raw_last", np.full((self.m, 3), np.nan))
 
     def _remember(self, R, p, valid, rec_time) -> None:
+        if valid[-1].all():
+            self.last_pos[:] = p[-1]
+            self.last_rot[:] = R[-1]
+            self.last_time[:] = rec_time[-1]
+            return
         seen = valid.any(axis=0)
         if not seen.any():
             return

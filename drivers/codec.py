@@ -139,12 +139,22 @@ def nearest_rotation(m: np.ndarray) -> np.ndarray:
     m = np.asarray(m, dtype=float)
     r = m
     for _ in range(3):
-        r = r @ (1.5 * np.eye(3) - 0.5 * np.swapaxes(r, -1, -2) @ r)
-    err = np.abs(np.swapaxes(r, -1, -2) @ r - np.eye(3)).max(axis=(-2, -1))
-    bad = ~(err < 1e-12) | (np.linalg.det(r) < 0)
+        r = r @ (1.5 * _I3 - 0.5 * np.swapaxes(r, -1, -2) @ r)
+    err = np.abs(np.swapaxes(r, -1, -2) @ r - _I3).max(axis=(-2, -1))
+    bad = ~(err < 1e-12) | (_det3(r) < 0)
     if np.any(bad):
         r[bad] = _svd_rotation(m[bad])
     return r
+
+
+_I3 = np.eye(3)
+
+
+def _det3(r: np.ndarray) -> np.ndarray:
+    """Determinants of (..., 3, 3) matrices, written out (np.linalg.det costs more than this for a few)."""
+    return (r[..., 0, 0] * (r[..., 1, 1] * r[..., 2, 2] - r[..., 1, 2] * r[..., 2, 1])
+            - r[..., 0, 1] * (r[..., 1, 0] * r[..., 2, 2] - r[..., 1, 2] * r[..., 2, 0])
+            + r[..., 0, 2] * (r[..., 1, 0] * r[..., 2, 1] - r[..., 1, 1] * r[..., 2, 0]))
 
 
 def _svd_rotation(m: np.ndarray) -> np.ndarray:
