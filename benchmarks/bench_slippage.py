@@ -86,9 +86,9 @@ def detection(seeds: int, rate: float, distance: float, follow_s: float) -> None
     print(f"  ({took:.1f} s)")
 
 
-def soak(hours: float, rate: float, chunk_s: float = 60.0) -> None:
+def soak(hours: float, rate: float, routine: str = "walk", seed: int = 11, chunk_s: float = 60.0) -> None:
     seconds = hours * 3600.0
-    perf = Performer("human", routine="walk", seed=11, noise="tracker", rate_hz=rate, seconds=seconds,
+    perf = Performer("human", routine=routine, seed=seed, noise="tracker", rate_hz=rate, seconds=seconds,
                      period=max(seconds, 60.0))
     replay = SlipReplay(tree(perf.model), perf.n_sensors, rate, perf.names)
     start = time.perf_counter()
@@ -99,7 +99,7 @@ def soak(hours: float, rate: float, chunk_s: float = 60.0) -> None:
         t0 = t1
     took = time.perf_counter() - start
     n = len(replay.events)
-    print(f"soak: {seconds / 3600:.2f} h of clean walk at tracker noise, {rate:.0f} Hz, live loop in 1/30 s batches")
+    print(f"soak: {seconds / 3600:.2f} h of clean {routine} (seed {seed}) at tracker noise, {rate:.0f} Hz, live loop in 1/30 s batches")
     print(f"  false alarms: {n}  ({n / hours:.2f} per hour)")
     for e in replay.events[:10]:
         print("  ", e.to_dict())
@@ -113,11 +113,13 @@ def main() -> None:
     ap.add_argument("--rate", type=float, default=100.0)
     ap.add_argument("--distance", type=float, default=0.02)
     ap.add_argument("--follow", type=float, default=1.0, help="seconds watched after each slip")
+    ap.add_argument("--routine", default="walk", help="motion for the soak")
+    ap.add_argument("--seed", type=int, default=11, help="performer seed for the soak")
     args = ap.parse_args()
     if args.seeds > 0:
         detection(args.seeds, args.rate, args.distance, args.follow)
     if args.hours > 0:
-        soak(args.hours, args.rate)
+        soak(args.hours, args.rate, args.routine, args.seed)
 
 
 if __name__ == "__main__":
