@@ -8,6 +8,7 @@ open, which `Settings.check` only allows on a loopback address.
 from __future__ import annotations
 
 import secrets
+import urllib.parse
 from typing import Literal
 
 from fastapi import Request
@@ -39,6 +40,23 @@ def bearer(request: Request) -> str | None:
     return value.strip()
 
 
+def origin_allowed(settings: Settings, headers) -> bool:
+    """A browser's cross-site request (a page elsewhere posting to, or opening a socket on, this service)
+    is refused unless its origin was listed with --cors-origin. Non-browser clients send no Origin."""
+    origin = headers.get("origin")
+    if not origin:
+        return True
+    if origin in settings.cors_origins:
+        return True
+    return urllib.parse.urlsplit(origin).netloc == headers.get("host", "")
+
+
+def _check_origin(request: Request) -> None:
+    if not origin_allowed(request.app.state.settings, request.headers):
+        raise Forbidden(f"requests from the web page at {request.headers.get('origin')} are not allowed; "
+                        "start the service with --cors-origin for that page")
+
+
 def _role(request: Request) -> Role:
     settings: Settings = request.app.state.settings
     if not settings.token:
@@ -57,6 +75,7 @@ def require_read(request: Request) -> Role:
 
 
 def require_session_control(request: Request) -> Role:
+    _check_origin(request)
     role = _role(request)
     if role not in ("admin", "kiosk"):
         raise Forbidden("this token is read-only; starting or stopping sessions needs the admin or kiosk token")
@@ -64,6 +83,7 @@ def require_session_control(request: Request) -> Role:
 
 
 def require_admin(request: Request) -> Role:
+    _check_origin(request)
     role = _role(request)
     if role != "admin":
         raise Forbidden(f"this {role} token cannot do that; it needs the admin token (--token)")

@@ -137,6 +137,20 @@ def test_kiosk_token_starts_and_stops_but_cannot_delete(server):
     assert not (server.settings.data_dir / "recordings" / f"{sid}.frames").exists()
 
 
+def test_cross_site_pages_cannot_change_anything(server):
+    # A page on another site posting with the admin token a browser might hold: refused, nothing changes.
+    before = db_rows(server)
+    r = httpx.post(server.url + "/api/sessions", json={"performer": "ann"},
+                   headers={**hdr(ADMIN), "Origin": "http://evil.example"})
+    assert_error(r, 403, "cors-origin")
+    assert db_rows(server) == before
+    # The service's own pages (same origin) may.
+    r = httpx.post(server.url + "/api/sessions", json={"performer": "ann"},
+                   headers={**hdr(ADMIN), "Origin": server.url})
+    assert r.status_code == 201
+    assert httpx.post(server.url + f"/api/sessions/{r.json()['id']}/stop", headers=hdr(ADMIN)).status_code == 200
+
+
 def test_cors_is_closed_by_default(server):
     r = httpx.options(server.url + "/api/sessions", headers={
         "Origin": "http://evil.example", "Access-Control-Request-Method": "POST"})

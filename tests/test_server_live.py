@@ -163,6 +163,14 @@ def test_websocket_needs_a_token_when_the_service_has_one(tmp_path):
                     return msgs, exc.rcvd.code if exc.rcvd else None
                 return msgs, None
 
+        # Another site's page: refused before anything is sent.
+        async def foreign():
+            async with websockets.connect(url + "?token=read-token-22",
+                                          additional_headers={"Origin": "http://evil.example"}) as ws:
+                await ws.recv()
+
+        with pytest.raises((websockets.InvalidStatus, websockets.ConnectionClosed)):
+            asyncio.run(foreign())
         # No token anywhere: refused with policy-violation close code 1008.
         msgs, code = asyncio.run(attempt("", None))
         assert code == 1008 and msgs[-1]["type"] == "error"

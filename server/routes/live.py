@@ -14,7 +14,7 @@ import time
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
-from flockcal.server.auth import token_role
+from flockcal.server.auth import origin_allowed, token_role
 from flockcal.server.snapshot import Snapshot, residual_message
 
 router = APIRouter()
@@ -196,6 +196,9 @@ async def live(ws: WebSocket):
     settings = service.settings
     if service.hub.clients >= settings.ws_max_clients:
         await ws.close(code=1013)
+        return
+    if not origin_allowed(settings, ws.headers):
+        await ws.close(code=1008)  # another site's page trying to read the live data
         return
     await ws.accept()
     conn = Connection(ws, service)
