@@ -24,7 +24,8 @@ _JOINT_OF_BODY = [
     (r"head", "neck"),
     (r"neck", "lower neck"),
     (r"clavicle|shoulder", "collarbone"),
-    (r"chest|thorax|spine|torso|back|abdomen", "back"),
+    (r"chest|thorax|upper ?back", "upper back"),
+    (r"spine|torso|back|abdomen|pelvis|hips?\b", "lower back"),
 ]
 
 
