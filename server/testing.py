@@ -64,7 +64,7 @@ class ServerThread:
         self.settings = settings
         self.app = create_app(settings, service)
         config = uvicorn.Config(self.app, host=settings.host, port=settings.http_port, log_level="warning",
-                                lifespan="on")
+                                lifespan="on", ws_per_message_deflate=False)
         self.server = uvicorn.Server(config)
         self.thread = threading.Thread(target=self.server.run, name="uvicorn", daemon=True)
         self.url = f"http://127.0.0.1:{settings.http_port}"

@@ -104,8 +104,10 @@ def run(args: argparse.Namespace) -> int:
     print(f"flockcal serve: dashboard {base}/   kiosk {base}/kiosk   API docs {base}/docs", flush=True)
     print(f"flockcal serve: data in {settings.data_dir}", flush=True)
     log.info("listening on %s", base)
+    # No per-message deflate: compressing every snapshot once per client costs more CPU than the
+    # loopback or LAN bandwidth it saves.
     config = uvicorn.Config(app, host=settings.host, port=settings.http_port, log_level="warning",
-                            ws_max_size=64 * 1024, lifespan="on")
+                            ws_max_size=64 * 1024, ws_per_message_deflate=False, lifespan="on")
     server = uvicorn.Server(config)
     server.run(sockets=[sock])
     return 0
