@@ -57,8 +57,8 @@ class Settings:
     read_token: str | None = None  # read-only: GET and the websocket (kiosks, dashboards)
     kiosk_token: str | None = None  # read + start/stop sessions, nothing else
     names: tuple[str, ...] | None = None  # sensor names; None = from the simulator model, else bird1..N
-    publish_hz: float = 100.0  # upper bound on snapshot rate; the pipeline publishes when frames arrive
-    reader_batch_s: float = 0.01  # how often the reader hands frames over (latency vs. per-batch cost)
+    publish_hz: float = 200.0  # upper bound on snapshot rate; the pipeline publishes when frames arrive
+    reader_batch_s: float = 0.005  # how often the reader hands frames over (latency vs. per-batch cost)
     fit_hz: float = 30.0  # full refit (all pairs + topology + bones) rate, ≥ 30 per the issue
     residual_hz: float = 20.0  # residual rms samples per second kept for the time series
     residual_window_s: float = 120.0  # live residual history kept in memory
