@@ -1,7 +1,8 @@
 """Plain-language coaching from a fit: which joints need more movement, and overall progress in [0, 1].
 
-Coverage per axis is 1 − σ_k(M) (design.md §3). A ball joint needs all three axes exercised, a hinge
-only its own; a joint is done when that coverage and its standard error both reach their targets.
+Coverage per axis is 1 − σ_k(M) (design.md §3). A hinge needs its own axis exercised; a ball joint's centre
+is pinned once it has turned about two axes (twist about the third adds nothing to the centre). A joint is
+done when that coverage and its standard error both reach their targets — the same rule the pages apply.
 """
 
 from __future__ import annotations
@@ -9,7 +10,9 @@ from __future__ import annotations
 import math
 import re
 
-COVERAGE_FULL = 0.15  # 1 − σ(M) on an axis counted as "moved enough" (matches the kiosk page)
+# 1 − σ(M) on a needed axis counted as "moved enough" (≈ 8° rms; the pages' `coverage` default). The
+# standard-error target, not this, decides how much more data a joint needs.
+COVERAGE_FULL = 0.01
 STDERR_TARGET_M = 0.005  # joint centre uncertainty counted as calibrated
 
 # The joint is named by its child body; people name it by the joint itself.
@@ -61,9 +64,14 @@ def joint_label(child: str, parent: str) -> str:
     return f"the joint between the {readable_body(parent)} and the {readable_body(child)}"
 
 
+def needed_coverage(joint: dict) -> float:
+    """Coverage of the axes the joint needs: a hinge's largest, a ball joint's second largest."""
+    cov = sorted(float(x) for x in joint.get("coverage") or (0.0, 0.0, 0.0))
+    return cov[-1] if joint.get("hinge") else cov[-2]
+
+
 def joint_progress(joint: dict) -> float:
-    cov = [float(x) for x in joint.get("coverage") or (0.0, 0.0, 0.0)]
-    needed = max(cov) if joint.get("hinge") else min(cov)
+    needed = needed_coverage(joint)
     c = min(1.0, max(0.0, needed / COVERAGE_FULL))
     err = max(float(joint.get("c_stderr_m") or math.inf), float(joint.get("l_stderr_m") or math.inf))
     u = min(1.0, STDERR_TARGET_M / max(err, 1e-12)) if math.isfinite(err) else 0.0
@@ -81,7 +89,7 @@ def hints(fit: dict) -> list[dict]:
         label = joint_label(j["child"], j["parent"])
         if max(cov) < COVERAGE_FULL / 3:
             text = f"Move {label} more: it has hardly turned yet."
-        elif not j.get("hinge") and min(cov) < COVERAGE_FULL:
+        elif needed_coverage(j) < COVERAGE_FULL:
             text = f"Move {label} more, in other directions too (twist and swing it, not only bend)."
         else:
             text = f"Keep moving {label}: a little more and it is pinned down."
