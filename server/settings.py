@@ -9,6 +9,7 @@ from __future__ import annotations
 import ipaddress
 import os
 import re
+from urllib.parse import parse_qs, urlsplit
 from dataclasses import dataclass, field, replace
 from pathlib import Path
 
@@ -64,7 +65,7 @@ class Settings:
     residual_window_s: float = 120.0  # live residual history kept in memory
     max_body_bytes: int = 64 * 1024
     cors_origins: tuple[str, ...] = ()  # CORS closed unless origins are listed
-    baud: int = 115200
+    baud: int | None = None  # line speed; None: a URL's own baud= (the simulator's emulated line), else 115200
     hemisphere: str = "forward"
     ws_max_clients: int = 200
     send_buffer_bytes: int | None = 256 * 1024  # kernel send buffer per connection (bounds a stalled client's backlog)
@@ -78,6 +79,17 @@ class Settings:
         if self.device:
             return self.device
         return default_device(self.birds, self.rate_hz or DEFAULT_RATE_HZ)
+
+    @property
+    def line_baud(self) -> int:
+        """Baud the driver plans the link's capacity with: --baud, else the URL's baud=, else 115200."""
+        if self.baud:
+            return self.baud
+        query = parse_qs(urlsplit(self.device_urls[0]).query) if self.device_urls else {}
+        try:
+            return int(query["baud"][0])
+        except (KeyError, ValueError):
+            return 115200
 
     @property
     def device_urls(self) -> list[str]:

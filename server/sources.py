@@ -146,7 +146,7 @@ class TrackerSource:
             batch_interval=self.settings.reader_batch_s,
             birds=self.settings.birds,
             rate_hz=self.settings.rate_hz,
-            baud=self.settings.baud,
+            baud=self.settings.line_baud,
             hemisphere=self.settings.hemisphere,
             scale_inches=self.settings.scale_inches or (72 if self.simulator is not None else 36),
             recording_path=self.recording_path,

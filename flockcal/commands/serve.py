@@ -37,6 +37,8 @@ def register(subparsers) -> None:
                    "body names for sim://, else bird1..birdN)")
     p.add_argument("--scale", type=int, choices=(36, 72), help="position full scale in inches "
                    "(default 72 for the simulator, else 36)")
+    p.add_argument("--baud", type=int, metavar="BAUD", help="serial line speed (default 115200, or the baud= of "
+                   "a sim:// URL); the driver picks a record format the line can carry")
     p.add_argument("--fit-hz", type=float, default=30.0, help="full refits per second (default 30)")
     p.add_argument("--fast-init", action="store_true", default=bool(os.environ.get("FLOCKCAL_FAST_INIT")),
                    help="skip the tracker's reset delays (for simulated trackers on a pty)")
@@ -64,6 +66,7 @@ def settings_from_args(args: argparse.Namespace):
         cors_origins=tuple(args.cors_origin),
         fast_init=args.fast_init,
         scale_inches=args.scale,
+        baud=args.baud,
     )
 
 
