@@ -333,8 +333,17 @@ def test_session_controls_start_stop_and_download_the_skeleton(dashboard, server
     with page.expect_download(timeout=15000) as info:
         page.click("#dl-skeleton")
     downloaded = json.loads(Path(info.value.path()).read_text())
-    assert downloaded == httpx.get(f"{server.url}/api/sessions/{sid}/result", headers=admin()).json()
+    served = httpx.get(f"{server.url}/api/sessions/{sid}/skeleton", headers=admin()).json()
+    downloaded.pop("created_utc"), served.pop("created_utc")  # stamped when each file is made
+    assert downloaded == served
+    # The skeleton file is the one `flockcal serve --skeleton` loads for the performer's next take.
+    from flockcal.exports.skeleton import parse_skeleton
+    assert parse_skeleton(Path(info.value.path()).read_text()).hierarchy
     assert info.value.suggested_filename == f"Bo-{sid}-skeleton.json"
+    with page.expect_download(timeout=15000) as info:
+        page.click("#dl-bvh")
+    assert Path(info.value.path()).read_text().startswith("HIERARCHY")
+    assert info.value.suggested_filename == f"Bo-{sid}.bvh"
     assert not page.errors
 
 

@@ -107,6 +107,7 @@ function setSession(session) {
     : (state.lastSessionId ? `last session ${state.lastSessionId} (stopped)` : 'no live session');
   $('dl-skeleton').disabled = !state.lastSessionId;
   $('dl-take').disabled = !state.lastSessionId;
+  $('dl-bvh').disabled = !state.lastSessionId;
 }
 
 function resetSessionViews() {
@@ -161,8 +162,10 @@ async function downloadFile(kind) {
   if (!id) return;
   const who = (state.lastPerformer || 'session').replace(/[^A-Za-z0-9_.-]+/g, '_');
   try {
-    if (kind === 'skeleton') await download(`/api/sessions/${encodeURIComponent(id)}/result`, `${who}-${id}-skeleton.json`);
-    else await download(`/api/sessions/${encodeURIComponent(id)}/take`, `${who}-${id}.npz`);
+    const base = `/api/sessions/${encodeURIComponent(id)}`;
+    if (kind === 'skeleton') await download(`${base}/skeleton`, `${who}-${id}-skeleton.json`);
+    else if (kind === 'bvh') await download(`${base}/bvh`, `${who}-${id}.bvh`);
+    else await download(`${base}/take`, `${who}-${id}.npz`);
   } catch (err) {
     const why = err instanceof ApiError && err.status === 409 ? 'no fit yet — move a little first' : err.message;
     addAlert('error', `Could not download the ${kind}: ${why}`);
@@ -170,6 +173,7 @@ async function downloadFile(kind) {
 }
 $('dl-skeleton').addEventListener('click', () => downloadFile('skeleton'));
 $('dl-take').addEventListener('click', () => downloadFile('take'));
+$('dl-bvh').addEventListener('click', () => downloadFile('bvh'));
 
 // ---------------------------------------------------------------------------------- the fit
 
