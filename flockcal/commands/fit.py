@@ -28,7 +28,9 @@ def register(subparsers) -> None:
     p.add_argument("--root", metavar="NAME", help="hang the tree from this sensor (default: the body that splits it most evenly)")
     p.add_argument("--json", action="store_true", help="print the JSON object of design.md §5 instead of a table")
     p.add_argument("--bvh", metavar="OUT.bvh", help="also write the take as BVH through the fitted skeleton")
-    p.add_argument("--scale", metavar="FACTOR", type=float, help="multiply positions by FACTOR before fitting (unit scale, paper §4)")
+    p.add_argument("--scale", metavar="FACTOR", help="multiply positions by FACTOR before fitting (unit scale, paper §4): "
+                   "a number or the JSON file `flockcal scale --json` wrote")
+    p.add_argument("--no-slips", action="store_true", help="skip the sensor-slip search (faster on long takes)")
     p.set_defaults(func=run)
 
 
@@ -71,19 +73,28 @@ def accumulate(take, progress: bool = True):
 
 def run(args: argparse.Namespace) -> int:
     import dataclasses
-    import math
 
     from flockcal.solver.calibration import calibrate
     from flockcal.takes import load_take
 
     take = load_take(args.file)
     if args.scale is not None:
-        if not math.isfinite(args.scale) or args.scale <= 0:
-            raise UserError(f"--scale must be a positive number, got {args.scale}")
-        take = dataclasses.replace(take, positions=take.positions * args.scale)
+        from flockcal.commands.outputs import scale_factor
+
+        take = dataclasses.replace(take, positions=take.positions * scale_factor(args.scale))
     hierarchy = load_hierarchy(args.hierarchy) if args.hierarchy else None
     acc = accumulate(take)
     cal = calibrate(acc, hierarchy=hierarchy, root=args.root, names=take.names)
+    slips, result = [], cal.to_dict()
+    if not args.no_slips and len(cal.joints.pairs):
+        from flockcal.solver.segments import calibration_after_slips
+        from flockcal.solver.slippage import detect_slips
+
+        slips = detect_slips(take, cal)
+        if slips:
+            # The slipped sensors' joints and bones are re-fitted on the frames since their slip
+            # (design.md §4); everything else keeps the whole take.
+            result = calibration_after_slips(take, slips, hierarchy=result["parent"], root=result["root"])
     if args.bvh:
         try:
             from flockcal.exports.bvh import write_bvh
@@ -91,10 +102,26 @@ def run(args: argparse.Namespace) -> int:
             raise UserError("BVH export is not available in this installation (flockcal.exports.bvh is missing)") from None
         write_bvh(args.bvh, cal, take)
     if args.json:
-        print(json.dumps(cal.to_dict(), indent=2))
+        print(json.dumps(result, indent=2))
     else:
         print(table(cal, source=args.file))
+        if slips:
+            print(slip_table(slips, result))
     return 0
+
+
+def slip_table(slips, result: dict) -> str:
+    """Slip and swap events, and the joints re-fitted from each slip on."""
+    out = ["", "Sensor slips (joints of a slipped sensor are re-fitted from the slip on in --json)"]
+    for e in slips:
+        d = e.to_dict()
+        who = " or ".join(d["candidates"]) if len(d.get("candidates") or []) > 1 else d["sensor"]
+        kind = "swap" if d.get("kind") == "swap" else "slip"
+        out.append(f"  {d['time_s']:7.2f} s  {kind} of {who}: jump {d['jump_mm']:.0f} mm at joints {', '.join(d['joints'])}")
+    refit = [j for j in result.get("joints", []) if j.get("segment_start_s") is not None]
+    for j in refit:
+        out.append(f"    re-fitted from {j['segment_start_s']:.2f} s: {j['child']}–{j['parent']}  c {_cm(j['c'])}  l {_cm(j['l'])}")
+    return "\n".join(out)
 
 
 def _cm(v) -> str:
