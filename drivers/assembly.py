@@ -6,7 +6,7 @@ Decisions depend only on the chunks (their bytes and arrival times), never on th
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 

@@ -82,8 +82,10 @@ class TrackerConfig:
             raise TrackerError(f"unknown hemisphere {self.hemisphere!r}; choose one of {', '.join(codec.HEMISPHERES)}")
         if self.scale_inches not in (36, 72):
             raise TrackerError(f"position scale must be 36 or 72 inches, got {self.scale_inches}")
-        if self.baud not in (2400, 4800, 9600, 19200, 38400, 57600, 115200):
-            raise TrackerError(f"a Flock of Birds talks at 2400…115200 baud; {self.baud} is not one of its rates")
+        # RS-232 tops out at 115200; faster lines are the RS-485 host interface or an emulated line.
+        if self.baud not in (2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 921600):
+            raise TrackerError(f"a Flock of Birds talks at 2400…115200 baud over RS-232 (up to 500000 over "
+                               f"RS-485, 921600 for an emulated line); {self.baud} is not one of its rates")
         group = self.resolved_group()
         if not group and len(self.urls) != self.birds:
             raise TrackerError(f"one port per bird needs {self.birds} URLs, got {len(self.urls)}; give one --port "
@@ -382,8 +384,13 @@ class TrackerReader:
         poll_sent = now
         session_start = now
         try:
-            while not self._stop.is_set():
-                if point:
+            while True:
+                if self._stop.is_set():
+                    # In point mode the last poll's answer may be on its way: let it finish (briefly),
+                    # so the last frame is whole rather than missing its later birds.
+                    if not point or (got_since_poll >= expect).all() or time.monotonic() - poll_sent > 0.25:
+                        break
+                elif point:
                     now = time.monotonic()
                     answered = (got_since_poll >= expect).all() or now - poll_sent > max(2 * poll_period, 0.25)
                     if now >= next_poll and answered:
