@@ -105,7 +105,7 @@ class BodyLimit:
 
 def create_app(settings: Settings, service=None) -> FastAPI:
     """The app; `service` may be given (tests), else one is built from `settings` at startup."""
-    from flockcal.server.routes import live, sessions, simulator, status
+    from flockcal.server.routes import live, sessions, simulator, skeletons, status
     from flockcal.server.service import Service
 
     settings = settings.check()
@@ -151,6 +151,7 @@ def create_app(settings: Settings, service=None) -> FastAPI:
 
     app.include_router(status.router)
     app.include_router(sessions.router)
+    app.include_router(skeletons.router)
     app.include_router(simulator.router)
     app.include_router(live.router)
 

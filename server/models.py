@@ -84,8 +84,9 @@ class SessionCreate(Strict):
         None, description="known {child: parent} map, root omitted; leave out for automatic topology")
     root: str | None = Field(None, pattern=NAME_PATTERN, description="root body; default chosen by the solver")
     skeleton: str | None = Field(
-        None, pattern=r"^[a-z_]{1,32}$",
-        description="named hierarchy preset instead of `hierarchy`: 'auto' (default) or 'human' (the simulator's body)")
+        None, pattern=NAME_PATTERN,
+        description="named preset instead of `hierarchy` (GET /api/sessions/presets): 'auto' (default), 'human' "
+                    "(the simulator's body) or a saved skeleton (its tree and bones kept, only placements fitted)")
 
 
 class SessionSummary(Open):
@@ -117,6 +118,7 @@ class Session(Open):
     has_result: bool = False
     has_recording: bool = False
     has_raw_recording: bool = False
+    skeleton: str | None = Field(None, description="the saved skeleton the session was started with, if any")
 
 
 class SessionList(BaseModel):

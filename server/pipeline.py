@@ -41,6 +41,7 @@ class LiveSession:
     hierarchy: dict | None
     root: str | None
     framelog: FrameLog
+    skeleton: object = None  # a saved Skeleton: topology and bones fixed, only placements are fitted
     acc: object = None  # GramAccumulator, made on install
     t0: float | None = None  # reader time of the session's first frame
     frames: int = 0
@@ -56,6 +57,7 @@ class LiveSession:
             "id": self.id, "performer": self.performer, "state": "live", "frames": self.frames,
             "started_at": self.started_wall,
             "hierarchy": self.hierarchy, "root": self.root,
+            "known_skeleton": self.skeleton is not None,
         }
 
 
@@ -84,15 +86,26 @@ def _finite(obj):
     return obj
 
 
-def calibrate_dict(acc, names, hierarchy=None, root=None) -> dict:
+def calibrate_dict(acc, names, hierarchy=None, root=None, skeleton=None) -> dict:
     """The §5 JSON of a fit of `acc` (solver's calibrate), JSON-safe; SolverError etc. propagate.
 
-    A SegmentedAccumulator fits joints of slipped sensors on the frames since their slip."""
+    A SegmentedAccumulator fits joints of slipped sensors on the frames since their slip. With a saved
+    `skeleton` only the sensor placements are fitted (its tree and bones are kept)."""
     from flockcal.solver.calibration import calibrate
 
+    if skeleton is not None:
+        return known_dict_of(skeleton, acc, names)[0]
     if hasattr(acc, "calibration_dict"):
         return _finite(acc.calibration_dict(hierarchy=hierarchy, root=root, names=list(names)))
     return _finite(calibrate(acc, hierarchy=hierarchy, root=root, names=list(names)).to_dict())
+
+
+def known_dict_of(skeleton, acc, names, previous=None) -> tuple[dict, object]:
+    """(JSON-safe §5 dict, KnownFit) of a fit with a saved skeleton; `previous` KnownFit warm-starts it."""
+    from flockcal.server.skeletons import known_dict, known_fit
+
+    fit = known_fit(skeleton, acc, names, previous)
+    return _finite(known_dict(fit, acc, list(names))), fit
 
 
 def new_accumulator(m: int, segmented: bool = False):
@@ -187,6 +200,7 @@ class Pipeline:
         self._fit_done = None
         self._fit_busy = False
         self._fit_thread: threading.Thread | None = None
+        self._known_prev = None  # (session id, KnownFit): the fit thread's warm start
         self._last_db_flush = 0.0
         self.pose_fit: dict | None = None
         self.fits_done = 0
@@ -265,7 +279,7 @@ class Pipeline:
             result, error = None, None
             if live.acc.frames > 0:
                 try:
-                    result = calibrate_dict(live.acc, self.names, live.hierarchy, live.root)
+                    result = calibrate_dict(live.acc, self.names, live.hierarchy, live.root, live.skeleton)
                     slips = [{k: e[k] for k in SLIP_FIELDS if k in e}
                              for e in self.store.events(live.id, limit=100_000) if e["type"] == "slip"]
                     if slips:
@@ -500,7 +514,7 @@ class Pipeline:
                 self._last_fit_time = max(self._last_fit_time + self.min_fit_s, now - self.min_fit_s)
                 live.fit_frames = live.acc.frames
                 with self._fit_cond:
-                    self._fit_job = (live.id, fit_copy(live.acc), live.hierarchy, live.root)
+                    self._fit_job = (live.id, fit_copy(live.acc), live.hierarchy, live.root, live.skeleton)
                     self._fit_cond.notify()
         self._snapshot = self._make_snapshot()
         if self.on_publish is not None:
@@ -534,11 +548,17 @@ class Pipeline:
                 if self._stop:
                     return
                 job, self._fit_job = self._fit_job, None
-            session_id, acc, hierarchy, root = job
+            session_id, acc, hierarchy, root, skeleton = job
             start = time.perf_counter()
             fit, error = None, None
             try:
-                fit = calibrate_dict(acc, self.names, hierarchy, root)
+                if skeleton is not None:
+                    # Start from this session's last known-skeleton fit: one or two Gauss–Newton steps.
+                    prev = self._known_prev[1] if self._known_prev and self._known_prev[0] == session_id else None
+                    fit, known = known_dict_of(skeleton, acc, self.names, prev)
+                    self._known_prev = (session_id, known)
+                else:
+                    fit = calibrate_dict(acc, self.names, hierarchy, root)
             except FlockcalError as exc:
                 error = str(exc)
             except Exception as exc:  # a numerical failure must not stop the service

@@ -16,6 +16,7 @@ from flockcal.server.hub import SnapshotHub
 from flockcal.server.pipeline import Pipeline
 from flockcal.server.sessions import SessionManager
 from flockcal.server.settings import Settings
+from flockcal.server.skeletons import SkeletonLibrary
 from flockcal.server.sources import FrameSource, TrackerSource
 from flockcal.server.store import Store
 
@@ -81,6 +82,15 @@ class Service:
         self.sessions = SessionManager(self.store, self.pipeline, data / "recordings", settings.device_url,
                                        settings.rate_hz)
         self.sessions.raw_recorder = _RawLater(self.source)
+        try:
+            self.skeletons = SkeletonLibrary(data / "skeletons", self.pipeline.names)
+            for path in settings.skeletons:
+                self.skeletons.load_file(path)
+        except BaseException:
+            # A bad --skeleton file stops the start: leave the data directory to the next attempt.
+            self.store.close()
+            os.close(self._lock_fd)
+            raise
         self.started = False
 
     def tracker_rate(self) -> float:

@@ -23,6 +23,7 @@ log = logging.getLogger(__name__)
 
 FRAMES_SUFFIX = ".frames"
 RAW_SUFFIX = ".fobraw"
+SKELETON_SUFFIX = ".skeleton.json"  # the saved skeleton a session was started with (for stop and resolve)
 
 
 def new_session_id() -> str:
@@ -50,6 +51,21 @@ class SessionManager:
 
     def raw_path(self, session_id: str) -> Path:
         return self.recordings / f"{session_id}{RAW_SUFFIX}"
+
+    def skeleton_path(self, session_id: str) -> Path:
+        return self.recordings / f"{session_id}{SKELETON_SUFFIX}"
+
+    def session_skeleton(self, session_id: str):
+        """(preset name, Skeleton) the session was started with, or (None, None) for a free fit."""
+        import json
+
+        from flockcal.exports.skeleton import parse_skeleton
+
+        path = self.skeleton_path(session_id)
+        if not path.exists():
+            return None, None
+        data = json.loads(path.read_text())
+        return data.get("preset"), parse_skeleton(data, origin=path.name)
 
     def live_id(self) -> str | None:
         s = self.pipeline.snapshot.session
@@ -84,9 +100,16 @@ class SessionManager:
                 x = hierarchy[x]
 
     # --- lifecycle ---------------------------------------------------------------------------------
-    def start(self, performer: str, hierarchy: dict | None = None, root: str | None = None) -> dict:
+    def start(self, performer: str, hierarchy: dict | None = None, root: str | None = None,
+              skeleton=None, skeleton_name: str | None = None) -> dict:
+        """Start a session; with a saved `skeleton` (flockcal.exports.skeleton.Skeleton) its tree and
+        bones are kept and only the sensor placements are fitted."""
         if not PERFORMER_RE.match(performer) or not performer.strip():
             raise BadRequest("performer name must be 1–64 characters without slashes, quotes or < >")
+        if skeleton is not None:
+            if root is not None and root != skeleton.root:
+                raise BadRequest(f"skeleton {skeleton_name!r} is rooted at {skeleton.root!r}; leave 'root' out")
+            hierarchy, root = skeleton.hierarchy, skeleton.root
         self.check_hierarchy(hierarchy, root)
         with self._lock:
             live = self.live_id()
@@ -99,18 +122,23 @@ class SessionManager:
                 "created_at": time.time(), "frames": 0, "recording": self.frames_path(sid).name,
             }
             framelog = FrameLog(self.frames_path(sid), list(self.names), self.rate_hz)
+            if skeleton is not None:
+                import json
+
+                self.skeleton_path(sid).write_text(json.dumps(dict(skeleton.data, preset=skeleton_name)))
             self.store.insert_session(row)
             if self.raw_recorder is not None:
                 try:
                     self.raw_recorder.start(self.raw_path(sid))
                 except FlockcalError as exc:
                     log.warning("raw recording unavailable: %s", exc)
-            session = LiveSession(sid, performer, self.names, hierarchy, root, framelog)
+            session = LiveSession(sid, performer, self.names, hierarchy, root, framelog, skeleton=skeleton)
             try:
                 self.pipeline.begin_session(session)
             except BaseException:
                 framelog.close()
                 self.store.delete_session(sid)
+                self.skeleton_path(sid).unlink(missing_ok=True)
                 raise
             self.pipeline.add_event({"type": "session", "session_id": sid, "time_s": 0.0, "action": "started",
                                      "message": f"session {sid} started for {performer}"})
@@ -141,7 +169,7 @@ class SessionManager:
             if row["state"] == "live" and self.live_id() == session_id:
                 raise Conflict(f"session {session_id} is live; stop it before deleting it")
             self.store.delete_session(session_id)
-            for p in (self.frames_path(session_id), self.raw_path(session_id)):
+            for p in (self.frames_path(session_id), self.raw_path(session_id), self.skeleton_path(session_id)):
                 p.unlink(missing_ok=True)
 
     def resolve(self, session_id: str) -> dict:
@@ -157,7 +185,10 @@ class SessionManager:
             n = take.n_frames
             slips = [e for e in self.store.events(session_id) if e["type"] == "slip" and e.get("sensor") in take.names]
             try:
-                if slips:
+                _name, skeleton = self.session_skeleton(session_id)
+                if skeleton is not None:
+                    result = self._resolve_known(take, skeleton, slips)
+                elif slips:
                     from types import SimpleNamespace
 
                     from flockcal.solver.segments import calibration_after_slips
@@ -177,6 +208,22 @@ class SessionManager:
                                       note=f"re-solved from its recording ({n} frames)")
             return self.get(session_id)
 
+    @staticmethod
+    def _resolve_known(take, skeleton, slips) -> dict:
+        """Re-fit a recording with the session's saved skeleton; a slipped sensor's joints on the frames
+        since its slip, as live."""
+        from types import SimpleNamespace
+
+        from flockcal.server.pipeline import known_dict_of
+        from flockcal.server.skeletons import segmented_from_take
+
+        events = [SimpleNamespace(kind="slip", time_s=float(e["time_s"]), sensor_index=take.names.index(e["sensor"]))
+                  for e in slips]
+        acc = segmented_from_take(take, events)
+        result, _fit = known_dict_of(skeleton, acc, take.names)
+        result["slip_events"] = [{k: e[k] for k in SLIP_FIELDS if k in e} for e in slips]
+        return result
+
     # --- reading -----------------------------------------------------------------------------------
     def _row(self, session_id: str) -> dict:
         row = self.store.session(session_id)
@@ -192,7 +239,18 @@ class SessionManager:
             row["has_result"] = snap.fit is not None
         row["has_recording"] = self.frames_path(session_id).exists()
         row["has_raw_recording"] = self.raw_path(session_id).exists()
+        row["skeleton"] = self._skeleton_name(session_id)
         return row
+
+    def _skeleton_name(self, session_id: str) -> str | None:
+        if not self.skeleton_path(session_id).exists():
+            return None
+        import json
+
+        try:  # the name only: no need to validate the whole file for a listing
+            return json.loads(self.skeleton_path(session_id).read_text()).get("preset") or "?"
+        except (ValueError, OSError):
+            return "?"
 
     def list(self) -> list[dict]:
         snap = self.pipeline.snapshot
@@ -200,6 +258,7 @@ class SessionManager:
         for row in rows:
             row["has_recording"] = self.frames_path(row["id"]).exists()
             row["has_raw_recording"] = self.raw_path(row["id"]).exists()
+            row["skeleton"] = self._skeleton_name(row["id"])
             if snap.session and snap.session["id"] == row["id"]:
                 row["frames"] = snap.session["frames"]
                 row["has_result"] = snap.fit is not None

@@ -73,6 +73,7 @@ class Settings:
     log_level: str = "info"
     scale_inches: int | None = None  # position full scale; None: 72 for the simulator (it reaches further), else 36
     fast_init: bool = False  # skip the manual's reset delays (simulators and fake trackers on a pty)
+    skeletons: tuple[Path, ...] = ()  # --skeleton files: saved performers offered as session presets
 
     @property
     def device_url(self) -> str:

@@ -42,6 +42,10 @@ def register(subparsers) -> None:
     p.add_argument("--fit-hz", type=float, default=30.0, help="full refits per second (default 30)")
     p.add_argument("--fast-init", action="store_true", default=bool(os.environ.get("FLOCKCAL_FAST_INIT")),
                    help="skip the tracker's reset delays (for simulated trackers on a pty)")
+    p.add_argument("--skeleton", action="append", default=[], type=Path, metavar="FILE",
+                   help="a performer's skeleton file (from `flockcal skeleton` or a session's download), "
+                        "offered as a session preset: topology and bones kept, only sensor placements fitted "
+                        "(repeatable)")
     p.add_argument("--cors-origin", action="append", default=[], metavar="ORIGIN",
                    help="allow browser pages from this origin (repeatable; CORS is closed by default)")
     p.set_defaults(func=run)
@@ -67,6 +71,7 @@ def settings_from_args(args: argparse.Namespace):
         fast_init=args.fast_init,
         scale_inches=args.scale,
         baud=args.baud,
+        skeletons=tuple(args.skeleton),
     )
 
 
@@ -106,6 +111,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"flockcal serve: tracker {settings.device_url}", flush=True)
     print(f"flockcal serve: dashboard {base}/   kiosk {base}/kiosk   API docs {base}/docs", flush=True)
     print(f"flockcal serve: data in {settings.data_dir}", flush=True)
+    for entry in service.skeletons.list():
+        print(f"flockcal serve: skeleton preset {entry['name']!r} ({entry['origin']})", flush=True)
     log.info("listening on %s", base)
     # No per-message deflate: compressing every snapshot once per client costs more CPU than the
     # loopback or LAN bandwidth it saves.

@@ -25,7 +25,8 @@ ERRORS = {code: {"model": ErrorReply} for code in (400, 401, 403, 404, 409, 413,
 
 
 def presets(service) -> dict[str, dict | None]:
-    """Named hierarchies a session can start with: 'auto', and 'human' when the sensors are the simulator's."""
+    """Named hierarchies a session can start with: 'auto', 'human' when the sensors are the simulator's,
+    and every saved skeleton (GET /api/skeletons)."""
     out: dict[str, dict | None] = {"auto": None}
     try:
         from flockcal.simulator.body import human
@@ -35,6 +36,7 @@ def presets(service) -> dict[str, dict | None]:
             out["human"] = dict(truth["parent"])
     except Exception:  # no simulator body for this sensor set: only automatic topology
         pass
+    out.update(service.skeletons.hierarchies())
     return out
 
 
@@ -47,6 +49,11 @@ def list_sessions(service=Depends(get_service), _role=Depends(require_read)):
 def start_session(body: SessionCreate, service=Depends(get_service), _role=Depends(require_session_control)):
     """Start recording a performer: automatic topology, or a known `hierarchy` ({child: parent}) / `skeleton` preset."""
     hierarchy = body.hierarchy
+    saved = service.skeletons.get(body.skeleton) if body.skeleton is not None else None
+    if saved is not None:
+        if hierarchy is not None:
+            raise BadRequest("give either 'hierarchy' or 'skeleton', not both")
+        return service.sessions.start(body.performer, root=body.root, skeleton=saved, skeleton_name=body.skeleton)
     if body.skeleton is not None:
         if hierarchy is not None:
             raise BadRequest("give either 'hierarchy' or 'skeleton', not both")
@@ -131,7 +138,16 @@ def get_skeleton(sid: str = Depends(session_id), service=Depends(get_service), _
     from flockcal.exports.skeleton import skeleton_bytes
 
     result, _live = service.sessions.result(sid)
-    data = _export(lambda: skeleton_bytes(result, take=service.sessions.take(sid)))
+    row = service.sessions.get(sid)
+
+    def make():
+        take = service.sessions.take(sid)
+        # The performer names the file's preset when it is loaded back (`--skeleton`, POST /api/skeletons).
+        source = {"session": sid, "performer": row["performer"], "take": f"{sid}.npz",
+                  "frames": int(take.n_frames), "rate_hz": float(take.rate_hz)}
+        return skeleton_bytes(result, source=source, take=take)
+
+    data = _export(make)
     return Response(data, media_type="application/json",
                     headers={"Content-Disposition": f'attachment; filename="{sid}-skeleton.json"'})
 

@@ -1,0 +1,196 @@
+"""A performer's saved skeleton as the known hierarchy of their next take: the first session's skeleton
+download, loaded back with `--skeleton` (Settings.skeletons) or uploaded, fixes the second session's
+topology and bones and fits only the sensor placements; bad or mismatched files change nothing.
+
+A real uvicorn, the simulated performer on a fake tracker behind a real pty (as test_server_session).
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import time
+
+import httpx
+import numpy as np
+import pytest
+
+from flockcal.server.settings import Settings
+from flockcal.server.testing import ServerThread, free_port, wait_connected
+from flockcal.simulator.performer import Performer
+from flockcal.simulator.pty_tracker import PtyTracker
+
+RATE = 144.0
+FIRST_S = 7.0  # the exercise routine compressed to an 8 s loop: the free fit finds the right tree by ~6 s
+SECOND_S = 7.5
+
+
+@pytest.fixture(scope="module")
+def performer():
+    return Performer("human", "exercise", seed=1, rate_hz=RATE, period=8.0)
+
+
+@pytest.fixture(scope="module")
+def tracker(performer):
+    pty = PtyTracker(performer, birds=16, baud=921600, rate_hz=RATE).start()
+    yield pty
+    pty.stop()
+
+
+def settings_for(tracker, data_dir, **kw) -> Settings:
+    return Settings(device=tracker.device, birds=16, names=tuple(tracker.flock.source.names), http_port=free_port(),
+                    data_dir=data_dir, fast_init=True, scale_inches=72, baud=921600, **kw)
+
+
+def wait_session_time(url: str, seconds: float, timeout: float = 60.0) -> None:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        st = httpx.get(url + "/api/status").json()
+        if st["session"] and st["session"]["time_s"] >= seconds and st["session"].get("fit_error") is None:
+            return
+        time.sleep(0.1)
+    raise TimeoutError(f"session did not reach {seconds} s")
+
+
+def record(url: str, seconds: float, **start) -> str:
+    r = httpx.post(url + "/api/sessions", json={"performer": "Ann", **start})
+    assert r.status_code == 201, r.text
+    sid = r.json()["id"]
+    wait_session_time(url, seconds)
+    return sid
+
+
+@pytest.fixture(scope="module")
+def saved(tracker, tmp_path_factory):
+    """The first session (automatic topology) and its skeleton download, as a file."""
+    data = tmp_path_factory.mktemp("serve")
+    with ServerThread(settings_for(tracker, data)) as srv:
+        wait_connected(srv.url)
+        sid = record(srv.url, FIRST_S)
+        httpx.post(srv.url + f"/api/sessions/{sid}/stop", timeout=30)
+        r = httpx.get(srv.url + f"/api/sessions/{sid}/skeleton", timeout=60)
+    assert r.status_code == 200, r.text
+    path = data / "ann.json"
+    path.write_bytes(r.content)
+    return data, path, r.json()
+
+
+def bone_lengths(fit: dict) -> dict:
+    # A root bone joins two outboard joints, listed in either order.
+    return {(b["body"], frozenset((b["from_joint"], b["to_joint"]))): b["length_m"] for b in fit["bones"]}
+
+
+def placement_errors(fit: dict, truth: dict) -> np.ndarray:
+    """Per joint: distance of the fitted joint centre (in the child sensor's frame) from the truth; for a
+    hinge, only across its axis (the data cannot place a hinge along its own axis)."""
+    tj = {(j["child"], j["parent"]): j for j in truth["joints"]}
+    out = []
+    for j in fit["joints"]:
+        t = tj.get((j["child"], j["parent"]))
+        true_c = t["c"] if t else tj[(j["parent"], j["child"])]["l"]
+        d = np.subtract(j["c"], true_c)
+        axis = j.get("axis_child")
+        if j.get("hinge") and axis:
+            a = np.asarray(axis) / np.linalg.norm(axis)
+            d = d - a * (d @ a)
+        out.append(np.linalg.norm(d))
+    return np.array(out)
+
+
+def test_saved_skeleton_fixes_tree_and_bones_and_fits_only_placements(tracker, performer, saved):
+    data, path, skeleton = saved
+    settings = settings_for(tracker, data, skeletons=(path,))
+    with ServerThread(settings) as srv:
+        wait_connected(srv.url)
+        presets = httpx.get(srv.url + "/api/sessions/presets").json()
+        assert presets["Ann"] == skeleton["parent"]  # named for the performer in the file
+        sid = record(srv.url, SECOND_S, skeleton="Ann")
+        live = httpx.get(srv.url + f"/api/sessions/{sid}/result").json()
+        httpx.post(srv.url + f"/api/sessions/{sid}/stop", timeout=30)
+        stored = httpx.get(srv.url + f"/api/sessions/{sid}/result").json()
+        row = httpx.post(srv.url + f"/api/sessions/{sid}/resolve", timeout=60).json()
+        resolved = httpx.get(srv.url + f"/api/sessions/{sid}/result").json()
+    assert row["skeleton"] == "Ann" and row["root"] == skeleton["root"]
+    saved_bones = bone_lengths(skeleton)
+    for fit in (live, stored, resolved):
+        assert fit["known_skeleton"] and fit["parent"] == skeleton["parent"] and fit["root"] == skeleton["root"]
+        got = bone_lengths(fit)
+        assert got.keys() == saved_bones.keys()
+        for key, length in saved_bones.items():
+            assert got[key] == pytest.approx(length, abs=1e-9)
+    # The placements moved to fit this take and sit near the simulated performer's true joint centres.
+    # Judged where the take pins a joint down (its second-weakest direction exercised): a joint the
+    # performer hardly moved (the lower back here) is not placed by any fit of a short take.
+    err = placement_errors(stored, performer.model.truth())
+    exercised = np.array([sorted(j["coverage"])[1] >= 0.05 for j in stored["joints"]])
+    assert exercised.sum() >= 8 and np.median(err) < 0.005 and err[exercised].max() < 0.01, np.round(err * 1000, 1)
+    assert stored["frames"] > 0 and stored["frames"] != skeleton["source"]["frames"]
+
+
+def test_uploaded_skeleton_is_kept_and_bad_ones_change_nothing(tracker, saved, tmp_path):
+    data, path, skeleton = saved
+    settings = settings_for(tracker, tmp_path / "data")
+    url = None
+    with ServerThread(settings) as srv:
+        url = srv.url
+        wait_connected(url)
+
+        def state():
+            files = sorted(p.name for p in (settings.data_dir / "skeletons").glob("*")) \
+                if (settings.data_dir / "skeletons").exists() else []
+            return httpx.get(url + "/api/skeletons").json(), httpx.get(url + "/api/sessions/presets").json(), files
+
+        before = state()
+        # Not JSON at all (a file cut short).
+        r = httpx.post(url + "/api/skeletons", content=path.read_bytes()[:200])
+        assert r.status_code == 400 and "not valid JSON" in r.json()["detail"], r.text
+        # Another sensor set: one sensor renamed.
+        wrong = json.loads(path.read_text().replace('"l_hand"', '"left_hand"'))
+        r = httpx.post(url + "/api/skeletons", json=wrong)
+        assert r.status_code == 400, r.text
+        assert "unknown sensor(s) left_hand" in r.json()["detail"] and "missing sensor(s) l_hand" in r.json()["detail"]
+        # Bones hand-edited away from the joint centres.
+        edited = json.loads(path.read_text())
+        edited["bones"][0]["length_m"] += 0.05
+        r = httpx.post(url + "/api/skeletons", json=edited)
+        assert r.status_code == 400 and "inconsistently" in r.json()["detail"], r.text
+        # A name that walks out of the data directory, and a preset name the service owns.
+        r = httpx.post(url + "/api/skeletons", params={"name": "../../etc/passwd"}, content=path.read_bytes())
+        assert r.status_code == 422, r.text
+        r = httpx.post(url + "/api/skeletons", params={"name": "auto"}, content=path.read_bytes())
+        assert r.status_code == 400 and "reserved" in r.json()["detail"], r.text
+        # An unknown preset name when starting.
+        r = httpx.post(url + "/api/sessions", json={"performer": "Ann", "skeleton": "Nobody"})
+        assert r.status_code == 400 and "unknown skeleton" in r.json()["detail"], r.text
+        assert state() == before
+
+        r = httpx.post(url + "/api/skeletons", params={"name": "Ann take 1"}, content=path.read_bytes())
+        assert r.status_code == 201, r.text
+        assert r.json()["name"] == "Ann take 1" and r.json()["performer"] == "Ann"
+        again = httpx.post(url + "/api/skeletons", params={"name": "Ann take 1"}, content=path.read_bytes())
+        assert again.status_code == 409, again.text  # no silent overwrite
+    # It survives a restart of the service on the same data directory.
+    with ServerThread(settings_for(tracker, settings.data_dir)) as srv:
+        listed = httpx.get(srv.url + "/api/skeletons").json()["skeletons"]
+        presets = httpx.get(srv.url + "/api/sessions/presets").json()
+        download = httpx.get(srv.url + "/api/skeletons/Ann take 1")
+    assert [s["name"] for s in listed] == ["Ann take 1"] and listed[0]["origin"] == "upload"
+    assert presets["Ann take 1"] == skeleton["parent"]
+    assert download.status_code == 200 and download.json()["bones"] == skeleton["bones"]
+
+
+def test_serve_with_a_mismatched_skeleton_file_exits_with_one_line(tracker, saved, tmp_path):
+    _data, path, _skeleton = saved
+    # A skeleton for other sensors: one renamed.
+    bad = tmp_path / "bob.json"
+    bad.write_text(path.read_text().replace('"head"', '"skull"'))
+    data = tmp_path / "data"
+    out = subprocess.run(
+        [sys.executable, "-m", "flockcal", "serve", "--device", "sim://sk?birds=16", "--birds", "16",
+         "--http-port", str(free_port()), "--data-dir", str(data), "--skeleton", str(bad)],
+        capture_output=True, text=True, timeout=60)
+    assert out.returncode == 2, out.stderr
+    lines = [x for x in out.stderr.splitlines() if x.strip()]
+    assert len(lines) == 1 and "unknown sensor(s) skull" in lines[0] and "missing sensor(s) head" in lines[0], out.stderr
+    assert not (data / "skeletons").exists()
