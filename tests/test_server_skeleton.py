@@ -194,3 +194,34 @@ def test_serve_with_a_mismatched_skeleton_file_exits_with_one_line(tracker, save
     lines = [x for x in out.stderr.splitlines() if x.strip()]
     assert len(lines) == 1 and "unknown sensor(s) skull" in lines[0] and "missing sensor(s) head" in lines[0], out.stderr
     assert not (data / "skeletons").exists()
+
+
+def test_after_a_slip_the_known_fit_places_the_slipped_sensor_from_the_frames_since():
+    from types import SimpleNamespace
+
+    from flockcal.exports.skeleton import parse_skeleton, skeleton_dict
+    from flockcal.server.skeletons import known_dict, known_fit, segmented_from_take
+    from flockcal.simulator.faults import slip
+    from flockcal.simulator.take import simulate
+    from flockcal.solver.accumulator import GramAccumulator
+    from flockcal.solver.calibration import calibrate
+
+    take, truth = simulate("human", motion="exercise", seconds=16, rate_hz=60, seed=2, period=8.0)
+    names = list(take.names)
+    acc = GramAccumulator(len(names))
+    acc.update(take.rotations, take.positions, take.valid)
+    skeleton = parse_skeleton(skeleton_dict(calibrate(acc, hierarchy=truth["parent"], names=names), take=take))
+    # The left forearm's sensor slides 3 cm along its own x axis half way through the take.
+    k, d = names.index("l_forearm"), np.array([0.03, 0.0, 0.0])
+    R, t = slip(take.rotations, take.positions, take.times, k, 8.0, d)
+    slipped = take.__class__(**{**take.__dict__, "rotations": R, "positions": t})
+    seg = segmented_from_take(slipped, [SimpleNamespace(kind="slip", time_s=8.0, sensor_index=k)])
+    fit = known_dict(known_fit(skeleton, seg, names), seg, names)
+    assert bone_lengths(fit) == pytest.approx(bone_lengths(skeleton.data), abs=1e-9)
+    joint = {j["child"]: j for j in fit["joints"]}["l_forearm"]
+    saved = {j["child"]: j for j in skeleton.data["joints"]}["l_forearm"]
+    # The elbow, in the slipped sensor's frame, moved by the slip (−d), as the frames since show it.
+    moved = np.subtract(joint["c"], saved["c"])
+    assert np.linalg.norm(moved + d) < 0.004, moved
+    assert joint["segment_start_s"] == 8.0
+    assert all("segment_start_s" not in j for j in fit["joints"] if "l_forearm" not in (j["child"], j["parent"]))
