@@ -11,6 +11,7 @@ import json
 import logging
 import os
 import re
+import threading
 from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
@@ -57,12 +58,14 @@ def safe_name(text: str) -> str | None:
 
 
 class SkeletonLibrary:
-    """Named skeletons for the tracker's `names`; thread-safe enough for the API (dict swaps only)."""
+    """Named skeletons for the tracker's `names`. Readers see a dict that is replaced, never changed,
+    so API threads can list while another uploads."""
 
     def __init__(self, directory: Path, names: tuple[str, ...]):
         self.directory = Path(directory)
         self.names = tuple(names)
         self._entries: dict[str, Entry] = {}
+        self._lock = threading.Lock()  # one upload or delete at a time
         self._load_stored()
 
     def _load_stored(self) -> None:
@@ -80,7 +83,7 @@ class SkeletonLibrary:
                 log.warning("stored skeleton %s not loaded: %s", path.name, exc)
                 continue
             if NAME_RE.match(name) and name not in RESERVED:
-                self._entries[name] = Entry(name, skel, "upload")
+                self._entries = {**self._entries, name: Entry(name, skel, "upload")}
 
     # --- reading -------------------------------------------------------------------------------------
     def get(self, name: str):
@@ -125,7 +128,7 @@ class SkeletonLibrary:
         if name in self._entries and self._entries[name].origin != "upload":
             raise SkeletonError(f"{path}: a skeleton named {name!r} is already loaded from "
                                 f"{self._entries[name].origin}; give each performer's file once")
-        self._entries[name] = Entry(name, skel, str(path))
+        self._entries = {**self._entries, name: Entry(name, skel, str(path))}
         return name
 
     def upload(self, body: bytes, name: str | None = None, replace: bool = False) -> dict:
@@ -147,6 +150,10 @@ class SkeletonLibrary:
             raise BadRequest("skeleton name must be 1–64 of letters, digits, space, _ . - (starting with a letter or digit)")
         if name in RESERVED:
             raise BadRequest(f"the name {name!r} is reserved; choose another with ?name=")
+        with self._lock:
+            return self._store(skel, name, replace)
+
+    def _store(self, skel, name: str, replace: bool) -> dict:
         old = self._entries.get(name)
         if old is not None and old.origin != "upload":
             raise Conflict(f"skeleton {name!r} comes from {old.origin} (--skeleton); choose another ?name=")
@@ -158,17 +165,21 @@ class SkeletonLibrary:
         tmp.write_text(json.dumps(skel.data, indent=1) + "\n")
         os.replace(tmp, path)
         entry = Entry(name, skel, "upload")
-        self._entries[name] = entry
+        self._entries = {**self._entries, name: entry}
         return entry.summary()
 
     def delete(self, name: str) -> None:
+        with self._lock:
+            self._delete(name)
+
+    def _delete(self, name: str) -> None:
         entry = self._entries.get(name)
         if entry is None:
             raise NotFound(f"no skeleton {name!r}; GET /api/skeletons lists them")
         if entry.origin != "upload":
             raise Conflict(f"skeleton {name!r} comes from {entry.origin} (--skeleton); restart without it instead")
         (self.directory / f"{name}.json").unlink(missing_ok=True)
-        del self._entries[name]
+        self._entries = {k: v for k, v in self._entries.items() if k != name}
 
 
 # --- fitting a session with a saved skeleton ---------------------------------------------------------

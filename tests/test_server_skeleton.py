@@ -175,6 +175,10 @@ def test_uploaded_skeleton_is_kept_and_bad_ones_change_nothing(tracker, saved, t
         listed = httpx.get(srv.url + "/api/skeletons").json()["skeletons"]
         presets = httpx.get(srv.url + "/api/sessions/presets").json()
         download = httpx.get(srv.url + "/api/skeletons/Ann take 1")
+        deleted = httpx.delete(srv.url + "/api/skeletons/Ann take 1")
+        after = httpx.get(srv.url + "/api/sessions/presets").json()
+    assert deleted.status_code == 204 and "Ann take 1" not in after
+    assert not (settings.data_dir / "skeletons" / "Ann take 1.json").exists()
     assert [s["name"] for s in listed] == ["Ann take 1"] and listed[0]["origin"] == "upload"
     assert presets["Ann take 1"] == skeleton["parent"]
     assert download.status_code == 200 and download.json()["bones"] == skeleton["bones"]
