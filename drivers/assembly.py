@@ -250,7 +250,7 @@ class FrameAssembler:
         # One-port-per-bird queues of released records.
         self.port_cycle = [-1] * len(self.ports)  # cycle number of each port's last record
         self.port_time = [-np.inf] * len(self.ports)
-        self.cycle_slots: dict[int, dict[int, _Held]] = {}
+        self.cycle_slots: dict[int, dict[int, tuple[_Held, int]]] = {}  # cycle → port → (records, index)
         self.cycle_time: dict[int, float] = {}
         self.newest = -1
         self.emitted_upto = -1
@@ -457,6 +457,7 @@ class FrameAssembler:
         self._place(port, rec, cycles)
 
     def _place(self, port: int, rec: _Held, cycles: np.ndarray) -> None:
+        times = rec.times.tolist()
         for k, c in enumerate(cycles.tolist()):
             if c <= self.emitted_upto:
                 self.rejected_records += 1  # its cycle is already out
@@ -464,8 +465,8 @@ class FrameAssembler:
             slot = self.cycle_slots.setdefault(c, {})
             if port in slot:
                 self.rejected_records += 1  # two records claim one cycle: keep the later one
-            slot[port] = rec.select(slice(k, k + 1))
-            t = float(rec.times[k])
+            slot[port] = (rec, k)  # gathered per source batch when the cycle is emitted
+            t = times[k]
             self.cycle_time[c] = min(self.cycle_time.get(c, t), t)
             self.newest = max(self.newest, c)
         if len(cycles):
@@ -489,21 +490,26 @@ class FrameAssembler:
         if not ready:
             return
         self.emitted_upto = ready[-1]
-        times, cycle, birds, parts = [], [], [], []
+        times = []
+        by_source: dict[int, tuple[_Held, list[int], list[int], list[int]]] = {}  # records, index, cycle, bird
         for i, c in enumerate(ready):
             slot = self.cycle_slots.pop(c)
             times.append(self.cycle_time.pop(c))
-            for b, r in slot.items():
-                cycle.append(i)
-                birds.append(b)
-                parts.append(r)
+            for b, (r, k) in slot.items():
+                _, index, cyc, bird = by_source.setdefault(id(r), (r, [], [], []))
+                index.append(k)
+                cyc.append(i)
+                bird.append(b)
         for c in [c for c in self.cycle_slots if c <= self.emitted_upto]:  # late records of emitted cycles
             self.rejected_records += len(self.cycle_slots.pop(c))
             self.cycle_time.pop(c, None)
-        rec = _Held.concat(parts)
+        sources = list(by_source.values())
+        rec = _Held.concat([r.select(np.asarray(index)) for r, index, _, _ in sources])
+        cycle = np.concatenate([np.asarray(cyc, np.int64) for _, _, cyc, _ in sources])
+        birds = np.concatenate([np.asarray(bird, np.int64) for _, _, _, bird in sources])
         times = np.maximum.accumulate(np.maximum(np.asarray(times), self.last_frame_time))
         self.last_frame_time = float(times[-1])
-        self._emit(times, np.asarray(cycle, np.int64), np.asarray(birds, np.int64), rec)
+        self._emit(times, cycle, birds, rec)
 
     # -- common: fill frames, check suspects, track hemisphere ---------------------------------
     def _emit(self, cycle_times: np.ndarray, cycle: np.ndarray, bird: np.ndarray, rec: _Held) -> None:
