@@ -215,7 +215,7 @@ class SessionManager:
         from types import SimpleNamespace
 
         from flockcal.server.pipeline import known_dict_of
-        from flockcal.server.skeletons import segmented_from_take
+        from flockcal.solver.segments import segmented_from_take
 
         events = [SimpleNamespace(kind="slip", time_s=float(e["time_s"]), sensor_index=take.names.index(e["sensor"]))
                   for e in slips]

@@ -12,7 +12,6 @@ import logging
 import os
 import re
 import threading
-from collections import deque
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -263,24 +262,3 @@ def known_dict(fit, acc, names) -> dict:
             if seg is not None:
                 entry["segment_start_s"] = seg.start_s
     return d
-
-
-def segmented_from_take(take, events):
-    """A SegmentedAccumulator over a recorded take with a segment opened at each slip event."""
-    from flockcal.solver.segments import SegmentedAccumulator
-
-    R, t, valid = take.rotations, take.positions, take.valid
-    times = np.asarray(take.times, dtype=float)
-    n, m = R.shape[:2]
-    seg = SegmentedAccumulator(m)
-    seg._snaps = deque()  # offline: a snapshot at every event time, however far apart
-    cuts = sorted({float(e.time_s) for e in events})
-    bounds = [0] + [int(np.searchsorted(times, c, side="left")) for c in cuts] + [n]
-    for k, (a, b) in enumerate(zip(bounds[:-1], bounds[1:])):
-        if k > 0:
-            seg._snaps.append((cuts[k - 1], seg.whole.copy()))
-        if b > a:
-            seg.whole.update(R[a:b], t[a:b], valid[a:b])
-    seg.last_time = float(times[-1]) if n else float("nan")
-    seg.apply(sorted(events, key=lambda e: e.time_s))
-    return seg

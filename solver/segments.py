@@ -225,10 +225,9 @@ def _replace_bones(d: dict, seg_dicts: dict, seg: SegmentedAccumulator, index: d
                 bone["segment_start_s"] = s.start_s
 
 
-def calibration_after_slips(take, events, hierarchy=None, root=None) -> dict:
-    """design.md §5 JSON for a recorded take with slips: the whole-take calibration, except that every
-    joint and bone involving a slipped sensor is fitted on the frames since its (latest) slip, and
-    `slip_events` lists the events. `take` as for `detect_slips`; `events` from it."""
+def segmented_from_take(take, events) -> SegmentedAccumulator:
+    """A SegmentedAccumulator over a whole recorded take, with a segment opened at each slip event
+    (`take` as for `detect_slips`; `events` from it, or stored events with time_s and sensor_index)."""
     R = np.asarray(take.rotations, dtype=float)
     t = np.asarray(take.positions, dtype=float)
     n, m = R.shape[:2]
@@ -246,5 +245,13 @@ def calibration_after_slips(take, events, hierarchy=None, root=None) -> dict:
             seg.whole.update(R[a:b], t[a:b], None if valid is None else valid[a:b])
     seg.last_time = float(times[-1]) if n else float("nan")
     seg.apply(sorted(events, key=lambda e: e.time_s))
+    return seg
+
+
+def calibration_after_slips(take, events, hierarchy=None, root=None) -> dict:
+    """design.md §5 JSON for a recorded take with slips: the whole-take calibration, except that every
+    joint and bone involving a slipped sensor is fitted on the frames since its (latest) slip, and
+    `slip_events` lists the events. `take` as for `detect_slips`; `events` from it."""
+    seg = segmented_from_take(take, events)
     names = getattr(take, "names", None)
     return seg.calibration_dict(hierarchy=hierarchy, root=root, names=names, slip_events=events)

@@ -204,7 +204,8 @@ def test_after_a_slip_the_known_fit_places_the_slipped_sensor_from_the_frames_si
     from types import SimpleNamespace
 
     from flockcal.exports.skeleton import parse_skeleton, skeleton_dict
-    from flockcal.server.skeletons import known_dict, known_fit, segmented_from_take
+    from flockcal.server.skeletons import known_dict, known_fit
+    from flockcal.solver.segments import segmented_from_take
     from flockcal.simulator.faults import slip
     from flockcal.simulator.take import simulate
     from flockcal.solver.accumulator import GramAccumulator
