@@ -110,6 +110,26 @@ class _Line:
         return self.baud / 10.0
 
 
+
+class LineFaults:
+    """Line faults of the `flock` an object owns (a pty server, a sim:// simulation), forwarded so that
+    callers need only that object; `port=None` means every port."""
+
+    flock: "FakeFlock"
+
+    def inject_garbage(self, nbytes: int, port: int | None = None) -> None:
+        self.flock.inject_garbage(nbytes, port)
+
+    def drop_bytes(self, n: int, port: int | None = None) -> None:
+        self.flock.drop_bytes(n, port)
+
+    def stall(self, seconds: float, port: int | None = None) -> None:
+        self.flock.stall(seconds, port)
+
+    def set_error(self, code: int, address: int = 0) -> None:
+        self.flock.set_error(code, address)
+
+
 class FakeFlock:
     """A flock of birds on one or more RS-232 ports, answering the FOB command set.
 

@@ -16,14 +16,14 @@ from dataclasses import dataclass, field
 
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException, Timeout, to_bytes
 
-from flockcal.simulator.fake_tracker import FakeFlock, SmoothSource, WallClock
+from flockcal.simulator.fake_tracker import FakeFlock, LineFaults, SmoothSource, WallClock
 
 URL_HELP = ("sim://[NAME]?birds=N&motion=walk&seed=S&noise=tracker|none&model=human&rate=HZ&baud=B&ert=0|1"
             "&scale=36|72&port=K&quaternion=fob|conjugate&rts=reset|standby|ignore")
 
 
 @dataclass
-class Simulation:
+class Simulation(LineFaults):
     """One simulated flock that sim:// ports attach to."""
 
     name: str
@@ -47,18 +47,6 @@ class Simulation:
     def _ports(self, port):
         return range(self.flock.n_ports) if port is None else [port]
 
-    # Line faults, forwarded so that callers need only this object.
-    def inject_garbage(self, nbytes: int, port: int | None = None) -> None:
-        self.flock.inject_garbage(nbytes, port)
-
-    def drop_bytes(self, n: int, port: int | None = None) -> None:
-        self.flock.drop_bytes(n, port)
-
-    def stall(self, seconds: float, port: int | None = None) -> None:
-        self.flock.stall(seconds, port)
-
-    def set_error(self, code: int, address: int = 0) -> None:
-        self.flock.set_error(code, address)
 
 
 SIMULATIONS: dict[str, Simulation] = {}

@@ -15,7 +15,7 @@ import termios
 import threading
 import tty
 
-from flockcal.simulator.fake_tracker import FakeFlock, FakeTrackerError, PoseSource
+from flockcal.simulator.fake_tracker import FakeFlock, FakeTrackerError, LineFaults, PoseSource
 
 # termios speed constants → baud, to follow the speed the client sets when baud=None.
 _SPEEDS = {getattr(termios, f"B{b}"): b for b in (
@@ -40,7 +40,7 @@ class _Pty:
                 pass
 
 
-class PtyTracker:
+class PtyTracker(LineFaults):
     """A fake flock behind one pty per port, served by a background thread.
 
     source: a PoseSource (ignored when `flock` is given). baud: line speed to emulate (ptys
@@ -133,17 +133,6 @@ class PtyTracker:
                 self._open(k)
             self.flock.reconnect(k)
 
-    def inject_garbage(self, nbytes: int, port: int | None = None) -> None:
-        self.flock.inject_garbage(nbytes, port)
-
-    def drop_bytes(self, n: int, port: int | None = None) -> None:
-        self.flock.drop_bytes(n, port)
-
-    def stall(self, seconds: float, port: int | None = None) -> None:
-        self.flock.stall(seconds, port)
-
-    def set_error(self, code: int, address: int = 0) -> None:
-        self.flock.set_error(code, address)
 
     # ------------------------------------------------------------------ internals
 
