@@ -20,8 +20,6 @@ import numpy as np
 import pytest
 
 from flockcal.server.testing import ServerProcess, free_port, wait_connected
-from flockcal.simulator.performer import Performer
-from flockcal.simulator.pty_tracker import PtyTracker
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
@@ -31,7 +29,6 @@ pytestmark = [
     pytest.mark.skipif(not os.path.exists(CHROMIUM), reason=f"needs Debian's chromium at {CHROMIUM} (apt-get install chromium)"),
 ]
 
-RATE = 144.0
 ADMIN, KIOSK, READ = "admin-secret-1", "kiosk-secret-1", "read-secret-1"
 SLIP_SENSOR = "l_forearm"
 SLIP_AFTER_S = 14.0
@@ -63,19 +60,6 @@ def record(key: str, value) -> None:
 
 def admin() -> dict:
     return {"Authorization": f"Bearer {ADMIN}"}
-
-
-@pytest.fixture(scope="module")
-def performer():
-    # The exercise routine compressed to an 8 s loop moves every joint within a few seconds.
-    return Performer("human", "exercise", seed=1, rate_hz=RATE, period=8.0)
-
-
-@pytest.fixture(scope="module")
-def tracker(performer):
-    pty = PtyTracker(performer, birds=16, baud=921600, rate_hz=RATE).start()
-    yield pty
-    pty.stop()
 
 
 @pytest.fixture(scope="module")

@@ -20,24 +20,9 @@ from flockcal.drivers.recording import read_recording, replay
 from flockcal.server.framelog import read_frames
 from flockcal.server.settings import Settings
 from flockcal.server.testing import ServerProcess, ServerThread, free_port, wait_connected
-from flockcal.simulator.performer import Performer
-from flockcal.simulator.pty_tracker import PtyTracker
 
 RATE = 144.0
 MOVE_S = 7.0  # the exercise routine compressed to an 8 s loop pins down all 15 joints in about 6 s
-
-
-@pytest.fixture(scope="module")
-def performer():
-    return Performer("human", "exercise", seed=1, rate_hz=RATE, period=8.0)
-
-
-@pytest.fixture(scope="module")
-def tracker(performer):
-    # 16 birds at 144 Hz need a faster line than 115200 baud: emulate 921600 on the pty.
-    pty = PtyTracker(performer, birds=16, baud=921600, rate_hz=RATE).start()
-    yield pty
-    pty.stop()
 
 
 def settings_for(tracker, data_dir, **kw) -> Settings:

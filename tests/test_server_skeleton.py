@@ -18,24 +18,9 @@ import pytest
 
 from flockcal.server.settings import Settings
 from flockcal.server.testing import ServerThread, free_port, wait_connected
-from flockcal.simulator.performer import Performer
-from flockcal.simulator.pty_tracker import PtyTracker
 
-RATE = 144.0
 FIRST_S = 7.0  # the exercise routine compressed to an 8 s loop: the free fit finds the right tree by ~6 s
 SECOND_S = 7.5
-
-
-@pytest.fixture(scope="module")
-def performer():
-    return Performer("human", "exercise", seed=1, rate_hz=RATE, period=8.0)
-
-
-@pytest.fixture(scope="module")
-def tracker(performer):
-    pty = PtyTracker(performer, birds=16, baud=921600, rate_hz=RATE).start()
-    yield pty
-    pty.stop()
 
 
 def settings_for(tracker, data_dir, **kw) -> Settings:
