@@ -8,6 +8,7 @@ edge); non-tree pairs that fit as well as the tree are reported as loop candidat
 from __future__ import annotations
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 from scipy.sparse import csr_matrix
@@ -92,6 +93,27 @@ def ancestors(parent: np.ndarray, order: np.ndarray) -> np.ndarray:
     return anc
 
 
+# The live service refits ~30×/s and the tree rarely changes between refits, while csgraph's sparse
+# set-up costs far more than its algorithms on 16 nodes: the two graph steps are memoised on their
+# exact inputs (the rigid mask; the links with their rank-order weights), so a result is only reused
+# for an identical graph.
+@lru_cache(maxsize=16)
+def _rigid_bodies(rigid: bytes, m: int) -> tuple[int, np.ndarray]:
+    n_groups, label = connected_components(csr_matrix(np.frombuffer(rigid, dtype=bool).reshape(m, m)), directed=False)
+    label.setflags(write=False)
+    return int(n_groups), label
+
+
+@lru_cache(maxsize=16)
+def _tree_links(n_groups: int, gi: bytes, gj: bytes, weights: bytes) -> np.ndarray:
+    """Which links (gi, gj) the minimum spanning tree over these weights uses."""
+    a, b, w = np.frombuffer(gi, dtype=np.intp), np.frombuffer(gj, dtype=np.intp), np.frombuffer(weights)
+    mst = minimum_spanning_tree(csr_matrix((w, (a, b)), shape=(n_groups, n_groups))).toarray()
+    used = (mst[a, b] > 0) | (mst[b, a] > 0)
+    used.setflags(write=False)
+    return used
+
+
 def spanning_tree(fits: PairFits, n_sensors: int, root: int | None = None) -> Topology:
     """The skeleton tree over all sensors from fits of (ideally) all pairs, hung from `root` (auto if None)."""
     m = int(n_sensors)
@@ -107,7 +129,7 @@ def spanning_tree(fits: PairFits, n_sensors: int, root: int | None = None) -> To
 
     # Rigid bodies: pairs that never turned relative to each other yet fit like a joint would.
     rigid = measured & (rank <= 3) & (rms <= RIGID_FACTOR * scale + tol)
-    n_groups, label = connected_components(csr_matrix(rigid), directed=False)
+    n_groups, label = _rigid_bodies(rigid.tobytes(), m)
 
     # Contracted graph: each pair of bodies is linked by its best-fitting sensor pair.
     iu, ju = np.triu_indices(m, k=1)
@@ -123,9 +145,7 @@ def spanning_tree(fits: PairFits, n_sensors: int, root: int | None = None) -> To
     finite = np.isfinite(lw)
     weights = np.empty(len(link))
     weights[np.argsort(np.where(finite, lw, np.inf), kind="stable")] = np.arange(1, len(link) + 1)
-    graph = csr_matrix((weights, (gi[link], gj[link])), shape=(n_groups, n_groups))
-    mst = minimum_spanning_tree(graph).toarray()
-    used = (mst[gi[link], gj[link]] > 0) | (mst[gj[link], gi[link]] > 0)
+    used = _tree_links(n_groups, gi[link].astype(np.intp).tobytes(), gj[link].astype(np.intp).tobytes(), weights.tobytes())
     joint_edges = np.stack([pi[link][used], pj[link][used]], axis=1) if used.any() else np.zeros((0, 2), np.intp)
     if n_groups > 1 and len(joint_edges) != n_groups - 1:
         raise SolverError("the sensors do not form one connected skeleton")
