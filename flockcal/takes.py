@@ -118,6 +118,9 @@ def load_take(path: str | os.PathLike) -> Take:
     path = Path(path)
     if not path.exists():
         raise TakeError(f"{path}: no such file")
+    if not zipfile.is_zipfile(path):
+        raise TakeError(f"{path}: not a .npz take (no complete zip archive of arrays: truncated, or not a take; takes come from np.savez, "
+                        "flockcal simulate or flockcal convert)")
     try:
         with np.load(path, allow_pickle=False) as data:
             arrays = {k: data[k] for k in data.files}
