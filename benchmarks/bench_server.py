@@ -114,7 +114,7 @@ def main(argv=None) -> int:
     clock_t0 = pty.flock.clock._t0
     data = tempfile.mkdtemp(prefix="flockcal-bench-")
     port = free_port()
-    proc = ServerProcess(["--device", pty.device, "--birds", "16", "--fast-init", "--scale", "72", "--data-dir", data,
+    proc = ServerProcess(["--device", pty.device, "--birds", "16", "--fast-init", "--scale", "72", "--baud", "921600", "--data-dir", data,
                           "--names", ",".join(performer.names)], port, log_path=os.path.join(data, "serve.log"))
     try:
         proc.start()

@@ -28,7 +28,7 @@ MOVE_S = 7.0  # the exercise routine compressed to an 8 s loop pins down all 15 
 def settings_for(tracker, data_dir, **kw) -> Settings:
     names = tuple(tracker.flock.source.names)
     return Settings(device=tracker.device, birds=16, names=names, http_port=free_port(), data_dir=data_dir,
-                    fast_init=True, scale_inches=72, **kw)
+                    fast_init=True, scale_inches=72, baud=921600, **kw)
 
 
 def wait_session_time(url: str, seconds: float, timeout: float = 60.0) -> dict:
@@ -112,7 +112,7 @@ def test_full_session_matches_fit_and_survives_restart(tracker, performer, tmp_p
 def test_kill9_mid_session_loses_under_a_second_and_can_be_resolved(tracker, tmp_path):
     data = tmp_path / "data"
     port = free_port()
-    args = ["--device", tracker.device, "--birds", "16", "--data-dir", str(data), "--fast-init", "--scale", "72",
+    args = ["--device", tracker.device, "--birds", "16", "--data-dir", str(data), "--fast-init", "--scale", "72", "--baud", "921600",
             "--names", ",".join(tracker.flock.source.names)]
     proc = ServerProcess(args, port, log_path=tmp_path / "serve.log").start()
     try:
