@@ -7,13 +7,13 @@ problem found gets a one-line `MarkerError` that names the file and the fix.
 from __future__ import annotations
 
 import os
-import zipfile
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from flockcal.errors import FlockcalError
+from flockcal.takes import read_npz, write_npz
 
 
 class MarkerError(FlockcalError, ValueError):
@@ -98,11 +98,7 @@ def load_markers(path: str | os.PathLike) -> MarkerTake:
 
 def load_marker_npz(path: str | os.PathLike) -> MarkerTake:
     path = Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files}
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
-        raise MarkerError(f"{path}: not a readable .npz ({exc})") from None
+    arrays = read_npz(path, MarkerError, "marker takes come from np.savez or flockcal fit-markers")
     if "markers" not in arrays and "rotations" in arrays:
         raise MarkerError(f"{path}: this is a sensor take (rotations/positions); fit it with `flockcal fit`")
     missing = [k for k in ("markers", "marker_names", "rate_hz") if k not in arrays]
@@ -113,17 +109,13 @@ def load_marker_npz(path: str | os.PathLike) -> MarkerTake:
 
 def save_markers(path: str | os.PathLike, take: MarkerTake) -> None:
     """Write a marker .npz (atomically)."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".part")
-    with open(tmp, "wb") as fh:
-        np.savez_compressed(
-            fh,
-            markers=take.markers,
-            marker_names=np.asarray(take.marker_names, dtype=str),
-            rate_hz=np.float64(take.rate_hz),
-            times=take.times,
-        )
-    os.replace(tmp, path)
+    write_npz(
+        path,
+        markers=take.markers,
+        marker_names=np.asarray(take.marker_names, dtype=str),
+        rate_hz=np.float64(take.rate_hz),
+        times=take.times,
+    )
 
 
 _UNIT_SCALE = {"mm": 1e-3, "millimeters": 1e-3, "millimetres": 1e-3, "cm": 1e-2, "m": 1.0, "meters": 1.0, "metres": 1.0}

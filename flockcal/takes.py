@@ -118,14 +118,7 @@ def load_take(path: str | os.PathLike) -> Take:
     path = Path(path)
     if not path.exists():
         raise TakeError(f"{path}: no such file")
-    if not zipfile.is_zipfile(path):
-        raise TakeError(f"{path}: not a .npz take (no complete zip archive of arrays: truncated, or not a take; takes come from np.savez, "
-                        "flockcal simulate or flockcal convert)")
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            arrays = {k: data[k] for k in data.files}
-    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
-        raise TakeError(f"{path}: not a readable .npz take ({exc})") from None
+    arrays = read_npz(path, TakeError, "takes come from np.savez, flockcal simulate or flockcal convert")
     missing = [k for k in ("rotations", "positions", "names", "rate_hz") if k not in arrays]
     if missing:
         raise TakeError(f"{path}: missing array(s) {', '.join(missing)} (design.md §5 lists what a take holds)")
@@ -144,17 +137,33 @@ def load_take(path: str | os.PathLike) -> Take:
 
 def save_take(path: str | os.PathLike, take: Take) -> None:
     """Write a take .npz (atomically: a crash never leaves a half-written file under `path`)."""
+    write_npz(
+        path,
+        rotations=take.rotations,
+        positions=take.positions,
+        names=np.asarray(take.names, dtype=str),
+        rate_hz=np.float64(take.rate_hz),
+        valid=take.valid,
+        times=take.times,
+        **take.extra,
+    )
+
+
+def read_npz(path: Path, error: type[Exception], hint: str) -> dict:
+    """Every array of an .npz file, or `error` saying it is truncated or not an .npz at all."""
+    if not zipfile.is_zipfile(path):
+        raise error(f"{path}: not a .npz take (no complete zip archive of arrays: truncated, or not a take; {hint})")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            return {k: data[k] for k in data.files}
+    except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
+        raise error(f"{path}: not a readable .npz take ({exc})") from None
+
+
+def write_npz(path: str | os.PathLike, **arrays) -> None:
+    """Write arrays to a compressed .npz atomically: a crash never leaves a half-written file at `path`."""
     path = Path(path)
     tmp = path.with_name(path.name + ".part")
     with open(tmp, "wb") as fh:
-        np.savez_compressed(
-            fh,
-            rotations=take.rotations,
-            positions=take.positions,
-            names=np.asarray(take.names, dtype=str),
-            rate_hz=np.float64(take.rate_hz),
-            valid=take.valid,
-            times=take.times,
-            **take.extra,
-        )
+        np.savez_compressed(fh, **arrays)
     os.replace(tmp, path)
