@@ -8,11 +8,13 @@ sensor → transmitter; the bird sends M = Rᵀ column by column; q_FOB is M's q
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from enum import IntEnum
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+from flockcal.solver.transforms import nearest_rotation as svd_nearest_rotation
 
 INCH = 0.0254  # metres
 PHASE_BIT = 0x80
@@ -143,7 +145,7 @@ def nearest_rotation(m: np.ndarray) -> np.ndarray:
     err = np.abs(np.swapaxes(r, -1, -2) @ r - _I3).max(axis=(-2, -1))
     bad = ~(err < 1e-12) | (_det3(r) < 0)
     if np.any(bad):
-        r[bad] = _svd_rotation(m[bad])
+        r[bad] = svd_nearest_rotation(m[bad])
     return r
 
 
@@ -155,15 +157,6 @@ def _det3(r: np.ndarray) -> np.ndarray:
     return (r[..., 0, 0] * (r[..., 1, 1] * r[..., 2, 2] - r[..., 1, 2] * r[..., 2, 1])
             - r[..., 0, 1] * (r[..., 1, 0] * r[..., 2, 2] - r[..., 1, 2] * r[..., 2, 0])
             + r[..., 0, 2] * (r[..., 1, 0] * r[..., 2, 1] - r[..., 1, 1] * r[..., 2, 0]))
-
-
-def _svd_rotation(m: np.ndarray) -> np.ndarray:
-    u, _, vt = np.linalg.svd(m)
-    d = np.sign(np.linalg.det(u @ vt))
-    d[d == 0] = 1.0
-    u = u.copy()
-    u[..., :, 2] *= d[..., None]
-    return u @ vt
 
 
 def quaternion_to_rotation(q: np.ndarray) -> np.ndarray:

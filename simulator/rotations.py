@@ -8,6 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
+# Quaternions (w, x, y, z) → matrices: the codec's conversion, so the simulator and the wire agree.
+from flockcal.drivers.codec import quaternion_to_rotation as quat_to_matrix
+
 
 def hat(v: np.ndarray) -> np.ndarray:
     """Cross-product matrices (..., 3, 3) of vectors (..., 3)."""
@@ -103,23 +106,6 @@ def random_rotations(rng: np.random.Generator, shape: tuple[int, ...] = ()) -> n
     q = rng.normal(size=shape + (4,))
     q /= np.linalg.norm(q, axis=-1, keepdims=True)
     return quat_to_matrix(q)
-
-
-def quat_to_matrix(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices from unit quaternions (..., 4) ordered (w, x, y, z)."""
-    q = np.asarray(q, dtype=float)
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    out = np.empty(q.shape[:-1] + (3, 3))
-    out[..., 0, 0] = 1 - 2 * (y * y + z * z)
-    out[..., 0, 1] = 2 * (x * y - w * z)
-    out[..., 0, 2] = 2 * (x * z + w * y)
-    out[..., 1, 0] = 2 * (x * y + w * z)
-    out[..., 1, 1] = 1 - 2 * (x * x + z * z)
-    out[..., 1, 2] = 2 * (y * z - w * x)
-    out[..., 2, 0] = 2 * (x * z - w * y)
-    out[..., 2, 1] = 2 * (y * z + w * x)
-    out[..., 2, 2] = 1 - 2 * (x * x + y * y)
-    return out
 
 
 def matrix_to_quat(R: np.ndarray) -> np.ndarray:
