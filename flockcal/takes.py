@@ -13,6 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
+from flockcal.atomic import replacing
 from flockcal.errors import FlockcalError
 
 
@@ -162,8 +163,5 @@ def read_npz(path: Path, error: type[Exception], hint: str) -> dict:
 
 def write_npz(path: str | os.PathLike, **arrays) -> None:
     """Write arrays to a compressed .npz atomically: a crash never leaves a half-written file at `path`."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".part")
-    with open(tmp, "wb") as fh:
+    with replacing(path) as tmp, open(tmp, "wb") as fh:
         np.savez_compressed(fh, **arrays)
-    os.replace(tmp, path)

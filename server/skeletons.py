@@ -17,6 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
+from flockcal.atomic import write_atomic
 from flockcal.errors import FlockcalError
 from flockcal.server.errors import BadRequest, Conflict, NotFound
 from flockcal.server.settings import NAME_RE
@@ -160,9 +161,7 @@ class SkeletonLibrary:
             raise Conflict(f"a skeleton named {name!r} exists; add ?replace=true to overwrite it or choose another ?name=")
         self.directory.mkdir(parents=True, exist_ok=True)
         path = self.directory / f"{name}.json"
-        tmp = path.with_name(path.name + ".part")
-        tmp.write_text(json.dumps(skel.data, indent=1) + "\n")
-        os.replace(tmp, path)
+        write_atomic(path, json.dumps(skel.data, indent=1) + "\n")
         entry = Entry(name, skel, "upload")
         self._entries = {**self._entries, name: entry}
         return entry.summary()

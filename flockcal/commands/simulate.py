@@ -81,6 +81,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _write_take(args: argparse.Namespace) -> int:
     from flockcal.simulator.take import simulate
+    from flockcal.atomic import write_atomic
     from flockcal.takes import save_take
 
     faults: dict = {}
@@ -106,9 +107,7 @@ def _write_take(args: argparse.Namespace) -> int:
     )  # fmt: skip
     save_take(out, take)
     tp = truth_path(out)
-    tmp = tp.with_name(tp.name + ".part")
-    tmp.write_text(json.dumps(truth, indent=1) + "\n")
-    tmp.replace(tp)
+    write_atomic(tp, json.dumps(truth, indent=1) + "\n")
     print(f"wrote {out} ({take.n_frames} frames × {take.n_sensors} sensors, {args.motion}, {args.seconds:g} s) and {tp}")
     return 0
 

@@ -11,11 +11,11 @@ import io
 import os
 import re
 import warnings
-from pathlib import Path
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from flockcal.atomic import write_atomic
 from flockcal.errors import FlockcalError
 from flockcal.solver.reconstruct import Articulation, Reconstruction, articulation, reconstruct
 
@@ -185,8 +185,4 @@ def bvh_bytes(calibration, take, **options) -> bytes:
 
 def write_bvh(path: str | os.PathLike, calibration, take, **options) -> None:
     """Write the BVH file to `path` (atomically: a failure never leaves a half-written file)."""
-    path = Path(path)
-    text = bvh_text(calibration, take, **options)
-    tmp = path.with_name(path.name + ".part")
-    tmp.write_text(text, encoding="ascii")
-    os.replace(tmp, path)
+    write_atomic(path, bvh_text(calibration, take, **options), encoding="ascii")

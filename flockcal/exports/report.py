@@ -11,10 +11,10 @@ import io
 import os
 import warnings
 from datetime import datetime, timezone
-from pathlib import Path
 
 import numpy as np
 
+from flockcal.atomic import write_atomic
 from flockcal.solver.reconstruct import Articulation, articulation, reconstruct, tree_residuals
 
 MAX_PLOT_POINTS = 4000  # per joint trace: enough to see every burst, small enough to draw quickly
@@ -297,8 +297,4 @@ def report_html(
 
 def write_report(path: str | os.PathLike, calibration, take, **options) -> None:
     """Write the report page to `path` (atomically)."""
-    path = Path(path)
-    text = report_html(calibration, take, **options)
-    tmp = path.with_name(path.name + ".part")
-    tmp.write_text(text, encoding="utf-8")
-    os.replace(tmp, path)
+    write_atomic(path, report_html(calibration, take, **options))

@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from flockcal.atomic import write_atomic
 from flockcal.errors import FlockcalError
 from flockcal.solver.known_skeleton import bones as bones_of
 from flockcal.solver.reconstruct import Articulation, ArticulationError, articulation
@@ -103,10 +104,7 @@ def skeleton_bytes(calibration, source: dict | None = None, take=None, acc=None)
 
 def write_skeleton(path: str | os.PathLike, calibration, source: dict | None = None, take=None, acc=None) -> None:
     """Write the skeleton file to `path` (atomically)."""
-    path = Path(path)
-    tmp = path.with_name(path.name + ".part")
-    tmp.write_bytes(skeleton_bytes(calibration, source, take, acc))
-    os.replace(tmp, path)
+    write_atomic(path, skeleton_bytes(calibration, source, take, acc))
 
 
 @dataclass(frozen=True)
