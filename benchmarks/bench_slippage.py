@@ -17,6 +17,7 @@ import time
 import numpy as np
 
 from flockcal.simulator.performer import Performer
+from flockcal.solver.slippage import attributes_slip_to
 from flockcal.solver.slippage_replay import SlipReplay
 
 
@@ -28,18 +29,6 @@ def frames(perf: Performer, rate: float, t0: float, t1: float):
     times = np.arange(int(round(t0 * rate)), int(round(t1 * rate))) / rate
     R, t, v = perf.poses(times)
     return times, R, t, v
-
-
-def acceptable(ev, sensor: str, model) -> bool:
-    """Right sensor, or the pair (leaf, its parent) a leaf's single joint can leave ambiguous."""
-    if ev.sensor == sensor:
-        return True
-    c = set(ev.candidates)
-    if sensor not in c or len(c) != 2:
-        return False
-    a, b = (model.index(x) for x in c)
-    leaf = a if model.parent[a] == b else b if model.parent[b] == a else None
-    return leaf is not None and not model.children(leaf)
 
 
 def detection(seeds: int, rate: float, distance: float, follow_s: float) -> None:
@@ -66,7 +55,7 @@ def detection(seeds: int, rate: float, distance: float, follow_s: float) -> None
             delays.append(ev.detected_s - slip_at)
             onset_err.append(ev.time_s - slip_at)
             strict += ev.sensor == name
-            if acceptable(ev, name, perf.model) and ev.detected_s - slip_at <= 0.5:
+            if attributes_slip_to(ev, name, perf.model.names, perf.model.parent) and ev.detected_s - slip_at <= 0.5:
                 ok += 1
             else:
                 wrong.append((seed, name, ev.sensor, ev.candidates, round(ev.detected_s - slip_at, 3)))

@@ -13,6 +13,7 @@ import pytest
 from flockcal.simulator.performer import Performer
 from flockcal.solver.accumulator import GramAccumulator
 from flockcal.solver.fits import pair_fits
+from flockcal.solver.slippage import attributes_slip_to
 from flockcal.solver.slippage_replay import SlipReplay
 
 RATE = 100.0
@@ -38,18 +39,6 @@ def warmed_up(seed: int):
     return perf, replay
 
 
-def acceptable(ev, sensor: str, model) -> bool:
-    """Right sensor, or the pair (leaf, its parent) when a leaf's single joint leaves it ambiguous."""
-    if ev.sensor == sensor:
-        return True
-    c = set(ev.candidates)
-    if sensor not in c or len(c) != 2:
-        return False
-    a, b = (model.index(x) for x in c)
-    leaf = a if model.parent[a] == b else b if model.parent[b] == a else None
-    return leaf is not None and not model.children(leaf)
-
-
 def test_two_cm_slip_of_any_sensor_found_within_half_a_second_and_attributed():
     trials, good, delays = 0, 0, []
     for seed in SEEDS:
@@ -61,7 +50,7 @@ def test_two_cm_slip_of_any_sensor_found_within_half_a_second_and_attributed():
             perf.inject_slip(name, 0.02, at_time=SLIP_AT)
             found = replay.feed(*frames(perf, SLIP_AT, SLIP_AT + 0.6))
             trials += 1
-            ok = [e for e in found if e.detected_s - SLIP_AT <= 0.5 and acceptable(e, name, perf.model)]
+            ok = [e for e in found if e.detected_s - SLIP_AT <= 0.5 and attributes_slip_to(e, name, perf.model.names, perf.model.parent)]
             if ok:
                 good += 1
                 delays.append(ok[0].detected_s - SLIP_AT)
