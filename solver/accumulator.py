@@ -7,6 +7,8 @@ so a live stream, one batch and an archive split across workers all give the sam
 
 from __future__ import annotations
 
+from functools import lru_cache
+
 import numpy as np
 from scipy.linalg.blas import dsyrk
 
@@ -14,6 +16,13 @@ from flockcal.solver.errors import SolverError
 
 # Frames per block: big enough for BLAS to run at full speed, small enough that the block stays in cache.
 BLOCK = 256
+
+
+@lru_cache(maxsize=8)
+def _below_diagonal(n: int) -> np.ndarray:
+    mask = np.tri(n, n, -1, dtype=bool)
+    mask.setflags(write=False)
+    return mask
 
 
 def as_frames(rotations, positions, valid=None, n_sensors: int | None = None):
@@ -64,15 +73,22 @@ class GramAccumulator:
         self.forgetting = float(forgetting)
         self.origin = None if origin is None else np.asarray(origin, dtype=float).reshape(3).copy()
         self._gram = np.zeros((4 * m, 4 * m))
+        self._sym = None  # `_full()`'s mirrored copy of `_gram`, until the sums next change
         self._self = np.zeros((m, m, 4, 4))
         self._pair_frames = np.zeros((m, m))
         self._frames = 0
+        # Work buffers (~0.8 MB at 16 sensors) come with the first update: the copies taken for every refit
+        # and every segment snapshot are never fed, and need none.
+        self._xbuf = self._pend_R = self._pend_t = self._pend_w = None
+        self._npend = 0
+
+    def _make_buffers(self) -> None:
+        m = self.n_sensors
         self._xbuf = np.empty((BLOCK, 3, 4, m))
         # Small updates wait here until a block is full (or a result is read): a 1-frame update costs a copy.
         self._pend_R = np.empty((BLOCK, m, 3, 3))
         self._pend_t = np.empty((BLOCK, m, 3))
         self._pend_w = np.empty((BLOCK, m), dtype=bool)
-        self._npend = 0
 
     # -- feeding -----------------------------------------------------------------------------------
     def update(self, rotations, positions, valid=None) -> "GramAccumulator":
@@ -81,6 +97,8 @@ class GramAccumulator:
         n = R.shape[0]
         if n == 0:
             return self
+        if self._xbuf is None:
+            self._make_buffers()
         if self.origin is None:
             self._set_origin(t, w)
         if self._npend + n <= BLOCK:
@@ -127,6 +145,7 @@ class GramAccumulator:
             return None
         f = self.forgetting ** n
         self._gram *= f
+        self._sym = None
         self._self *= f
         self._pair_frames *= f
         return self.forgetting ** np.arange(n - 1, -1, -1, dtype=float)
@@ -149,6 +168,7 @@ class GramAccumulator:
         # Upper triangle of XᵀX, without a copy of X; `_gram` holds the upper triangle, mirrored on read.
         gb = dsyrk(1.0, X.T, trans=0)
         self._gram += gb
+        self._sym = None
         if all_valid:
             diag = np.einsum("qapa->aqp", gb.reshape(4, m, 4, m))  # upper part of each sensor's 4×4
             diag = diag + np.triu(diag, 1).transpose(0, 2, 1)
@@ -182,9 +202,21 @@ class GramAccumulator:
         perm = np.concatenate([(np.arange(3)[None, :] * m + a[:, None]).ravel(), 3 * m + a])
         return self._full()[np.ix_(perm, perm)]
 
+    def _blocks(self) -> np.ndarray:
+        """The mirrored Gram as (4, m, 4, m): [q, a, p, b] pairs column q of sensor a's [R | t] with column p of b's."""
+        m = self.n_sensors
+        return self._full().reshape(4, m, 4, m)
+
     def _full(self) -> np.ndarray:
-        g = self._gram
-        return np.triu(g) + np.triu(g, 1).T
+        # One refit reads the mirrored Gram several times (normal equations, placements, bones): mirror once.
+        if self._sym is None:
+            n = 4 * self.n_sensors
+            up = np.where(_below_diagonal(n), 0.0, self._gram)  # np.triu, with its mask built once per size
+            sym = up + up.T
+            sym.flat[:: n + 1] = up.flat[:: n + 1]  # the diagonal once, not twice
+            sym.setflags(write=False)
+            self._sym = sym
+        return self._sym
 
     def normal_equations(self, pairs) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """For pairs (p, 2) of (i, j): A (p,6,6), b (p,6), Σ‖t_j − t_i‖² (p,), frames n (p,).
@@ -199,21 +231,19 @@ class GramAccumulator:
             raise SolverError(f"pair indices must be in 0..{m - 1}")
         i, j = P[:, 0], P[:, 1]
         p = len(P)
-        G, S = self._full(), self._self
-        q = np.arange(3) * m
-        ri = q[None, :] + i[:, None]  # (p, 3) internal rotation columns
-        rj = q[None, :] + j[:, None]
+        S = self._self
         Sji, Sij = S[j, i], S[i, j]  # sensor i's self terms over frames where j is valid, and vice versa
-        Gij = G[ri[:, :, None], rj[:, None, :]]
+        Bij = self._blocks()[:, i, :, j]  # (p, 4, 4): Σ [R_i | t_i]ᵀ[R_j | t_j]
+        Gij = Bij[:, :3, :3]
         A = np.empty((p, 6, 6))
         A[:, :3, :3] = Sji[:, :3, :3]
         A[:, 3:, 3:] = Sij[:, :3, :3]
         A[:, :3, 3:] = -Gij
         A[:, 3:, :3] = -Gij.transpose(0, 2, 1)
         b = np.empty((p, 6))
-        b[:, :3] = G[ri, 3 * m + j[:, None]] - Sji[:, :3, 3]
-        b[:, 3:] = G[rj, 3 * m + i[:, None]] - Sij[:, :3, 3]
-        dd = Sji[:, 3, 3] - 2.0 * G[3 * m + i, 3 * m + j] + Sij[:, 3, 3]
+        b[:, :3] = Bij[:, :3, 3] - Sji[:, :3, 3]
+        b[:, 3:] = Bij[:, 3, :3] - Sij[:, :3, 3]
+        dd = Sji[:, 3, 3] - 2.0 * Bij[:, 3, 3] + Sij[:, 3, 3]
         return A, b, dd, self._pair_frames[i, j].copy()
 
     def translation_power(self, pairs) -> np.ndarray:
@@ -222,8 +252,8 @@ class GramAccumulator:
         P = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
         i, j = P[:, 0], P[:, 1]
         n = self._pair_frames[i, j]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(n > 0, (self._self[j, i, 3, 3] + self._self[i, j, 3, 3]) / n, 0.0)
+        has = n > 0
+        return np.where(has, (self._self[j, i, 3, 3] + self._self[i, j, 3, 3]) / np.where(has, n, 1.0), 0.0)
 
     def pair_point(self, point, src, dst) -> np.ndarray:
         """Mean over frames of a point fixed in sensor `src`'s frame, expressed in sensor `dst`'s frame.
@@ -232,30 +262,23 @@ class GramAccumulator:
         over (k, 3) points with (k,) src and dst indices.
         """
         self._flush()
-        m = self.n_sensors
         x = np.asarray(point, dtype=float).reshape(-1, 3)
         s = np.asarray(src, dtype=np.intp).reshape(-1)
         d = np.asarray(dst, dtype=np.intp).reshape(-1)
-        q = np.arange(3) * m
-        rd, rs = q[None, :] + d[:, None], q[None, :] + s[:, None]
-        G = self._full()
-        Gds = G[rd[:, :, None], rs[:, None, :]]
-        total = np.einsum("kab,kb->ka", Gds, x) + G[rd, 3 * m + s[:, None]] - self._self[s, d, :3, 3]
-        n = self._pair_frames[s, d]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(n[:, None] > 0, total / n[:, None], np.nan)
+        G = self._blocks()
+        total = np.einsum("kab,kb->ka", G[:3, d, :3, s], x) + G[3, s, :3, d] - self._self[s, d, :3, 3]
+        n = self._pair_frames[s, d][:, None]
+        has = n > 0
+        return np.where(has, total / np.where(has, n, 1.0), np.nan)
 
     def relative_rotation(self, src, dst) -> np.ndarray:
         """(k, 3, 3) mean over frames of R_dstᵀ R_src, projected to a rotation: maps src-frame vectors to dst."""
         from flockcal.solver.transforms import nearest_rotation
 
         self._flush()
-        m = self.n_sensors
         s = np.asarray(src, dtype=np.intp).reshape(-1)
         d = np.asarray(dst, dtype=np.intp).reshape(-1)
-        q = np.arange(3) * m
-        rd, rs = q[None, :] + d[:, None], q[None, :] + s[:, None]
-        return nearest_rotation(self._full()[rd[:, :, None], rs[:, None, :]])
+        return nearest_rotation(self._blocks()[:3, d, :3, s])
 
     # -- copies and arithmetic ---------------------------------------------------------------------
     def copy(self) -> "GramAccumulator":
@@ -287,6 +310,7 @@ class GramAccumulator:
         if self.origin is None:
             self.origin = None if other.origin is None else other.origin.copy()
         self._gram += other._gram
+        self._sym = None
         self._self += other._self
         self._pair_frames += other._pair_frames
         self._frames += other._frames
@@ -301,6 +325,7 @@ class GramAccumulator:
         new = self.copy()
         other._flush()
         new._gram -= other._gram
+        new._sym = None
         new._self -= other._self
         new._pair_frames -= other._pair_frames
         new._frames -= other._frames

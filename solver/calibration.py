@@ -10,12 +10,10 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import connected_components
 
 from flockcal.solver.errors import SolverError
 from flockcal.solver.fits import PairFits, pair_fits
-from flockcal.solver.topology import _orient, spanning_tree
+from flockcal.solver.topology import _orient, _rigid_bodies, spanning_tree
 
 
 @dataclass(frozen=True)
@@ -82,35 +80,40 @@ class Calibration:
         """The `flockcal fit --json` object of design.md §5; `slip_events` is filled by the slippage detector.
 
         Extends the contract with "rigid_groups" (names of sensors that never turned relative to each other)
-        and "ambiguous" (children with more than one equally good parent). NaN becomes null.
+        and "ambiguous" (children with more than one equally good parent). NaN becomes null, and every
+        number is a Python int or float: the dict is valid JSON as it stands (slip_events are as given).
         """
         nm = self.names
         j = self.joints
-        joints = []
-        for k in range(len(j)):
-            joints.append({
-                "child": nm[j.pairs[k, 0]],
-                "parent": nm[j.pairs[k, 1]],
-                "c": _vec(j.c[k]),
-                "l": _vec(j.l[k]),
-                "rms_m": _num(j.rms[k]),
-                "epsilon": _num(j.epsilon[k]),
-                "singular_values": _vec(j.singular_values[k]),
-                "hinge": bool(j.hinge[k]),
-                "axis_child": _vec(j.axis_i[k]) if j.hinge[k] else None,
-                "axis_parent": _vec(j.axis_j[k]) if j.hinge[k] else None,
-                "coverage": _vec(j.coverage[k]),
-                "c_stderr_m": _num(j.c_stderr[k]),
-                "l_stderr_m": _num(j.l_stderr[k]),
-            })
+        # Fields are converted together for all joints (the live server calls this ~30×/s), to Python
+        # floats with None for NaN: the dict is JSON-safe as it stands, with no second pass over it.
+        vec = _json(np.stack([j.c, j.l, j.axis_i, j.axis_j, j.coverage]))
+        num = _json(np.stack([j.rms, j.epsilon, j.c_stderr, j.l_stderr]))
+        sv = _json(j.singular_values)
+        joints = [{
+            "child": nm[child],
+            "parent": nm[parent],
+            "c": vec[0][k],
+            "l": vec[1][k],
+            "rms_m": num[0][k],
+            "epsilon": num[1][k],
+            "singular_values": sv[k],
+            "hinge": hinge,
+            "axis_child": vec[2][k] if hinge else None,
+            "axis_parent": vec[3][k] if hinge else None,
+            "coverage": vec[4][k],
+            "c_stderr_m": num[2][k],
+            "l_stderr_m": num[3][k],
+        } for k, ((child, parent), hinge) in enumerate(zip(j.pairs.tolist(), j.hinge.tolist()))]
         b = self.bones
+        length, stderr = _json(np.stack([b.length, b.stderr]))
         bones = [{
-            "body": nm[b.body[k]],
-            "from_joint": nm[b.from_joint[k]] if b.from_joint[k] >= 0 else None,
-            "to_joint": nm[b.to_joint[k]],
-            "length_m": _num(b.length[k]),
-            "stderr_m": _num(b.stderr[k]),
-        } for k in range(len(b))]
+            "body": nm[body],
+            "from_joint": nm[frm] if frm >= 0 else None,
+            "to_joint": nm[to],
+            "length_m": length[k],
+            "stderr_m": stderr[k],
+        } for k, (body, frm, to) in enumerate(zip(b.body.tolist(), b.from_joint.tolist(), b.to_joint.tolist()))]
         return {
             "sensors": list(nm),
             "root": nm[self.root],
@@ -130,8 +133,10 @@ def _num(x) -> float | None:
     return x if np.isfinite(x) else None
 
 
-def _vec(v) -> list:
-    return [_num(x) for x in np.asarray(v).ravel()]
+def _json(a) -> list:
+    """An array as (nested) lists of Python floats, None where not finite: JSON has no NaN or infinity."""
+    a = np.asarray(a, dtype=float)
+    return np.where(np.isfinite(a), a, None).tolist()
 
 
 def _index(name, names: Sequence[str], what: str) -> int:
@@ -172,10 +177,11 @@ def parse_hierarchy(hierarchy, names: Sequence[str]) -> np.ndarray:
         if ((parent < -1) | (parent >= m)).any() or (parent == np.arange(m)).any():
             raise SolverError("hierarchy: parent indices must be −1 (root) or another sensor's index")
     roots = np.flatnonzero(parent < 0)
-    # Walk up from every sensor at once; after m steps only sensors on a cycle have not reached a root.
+    # Walk up from every sensor at once, doubling the stride (up = the 2^k-th ancestor, −1 past a root):
+    # once 2^k ≥ m only sensors on or below a cycle have not reached a root.
     up = parent.copy()
-    for _ in range(m):
-        up = np.where(up >= 0, parent[np.maximum(up, 0)], up)
+    for _ in range(max(m - 1, 1).bit_length()):
+        up = np.where(up >= 0, up[np.maximum(up, 0)], up)
     cyc = np.flatnonzero(up >= 0)
     if len(cyc):
         raise SolverError(f"hierarchy: {', '.join(names[i] for i in cyc)} form a cycle; a skeleton must be a tree")
@@ -211,8 +217,13 @@ def calibrate(acc, hierarchy=None, root=None, names=None) -> Calibration:
         rigid_groups = []
         if flat.any():
             e = joints.pairs[flat]
-            n_g, lab = connected_components(csr_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(m, m)), directed=False)
-            rigid_groups = [list(map(int, np.flatnonzero(lab == g))) for g in range(n_g) if (lab == g).sum() > 1]
+            rigid = np.zeros((m, m), dtype=bool)
+            rigid[e[:, 0], e[:, 1]] = True
+            n_g, lab = _rigid_bodies(rigid.tobytes(), m)  # memoised: the same joints stay rigid refit after refit
+            groups: list[list[int]] = [[] for _ in range(n_g)]
+            for i, g in enumerate(lab.tolist()):
+                groups[g].append(i)
+            rigid_groups = [g for g in groups if len(g) > 1]
         cal = Calibration(names, hroot, parent, order, acc.frames, joints, _no_bones(), np.full((m, 3), np.nan),
                           rigid_groups=rigid_groups, hierarchy_given=True)
     else:
@@ -259,32 +270,32 @@ def _bones(acc, cal: Calibration) -> Bones:
     # The body an outboard joint hangs from, named by its entry sensor (a rigid member defers to its entry).
     body = np.where(is_joint[jp] | (jp == cal.root), jp, cal.parent[jp])
     moved = body != jp
-    pt = J.l.copy()
-    cov = J.l_cov.copy()
+    pt, cov = J.l, J.l_cov
     if moved.any():
+        pt, cov = pt.copy(), cov.copy()
         pt[moved] = acc.pair_point(J.l[moved], jp[moved], body[moved])
         Q = acc.relative_rotation(jp[moved], body[moved])
         cov[moved] = Q @ J.l_cov[moved] @ Q.transpose(0, 2, 1)
-    row = {int(c): k for k, c in enumerate(jc)}
-    out_body, out_from, out_to, length, stderr, at_root = [], [], [], [], [], []
 
-    def add(bd, a, b, pa, pb, ca, cb, rooted):
-        d = pa - pb
-        L = float(np.linalg.norm(d))
-        g = d / L if L > 0 else np.zeros(3)
-        out_body.append(bd), out_from.append(a), out_to.append(b), at_root.append(rooted)
-        length.append(L)
-        stderr.append(float(np.sqrt(max(g @ (ca + cb) @ g, 0.0))))
+    # Every bone at once. A body with an inboard joint (row k_in) has a bone from that joint's c to each
+    # outboard joint o; a body without one (the root) has one between every two outboard joints a < b.
+    # A bone's first end indexes [c of every joint; outboard points], its second end the outboard points.
+    row_of = np.full(m, -1)
+    row_of[jc] = np.arange(len(jc))
+    k_in = row_of[body]
+    o = np.flatnonzero(k_in >= 0)
+    rows = np.arange(len(jc))
+    a, b = np.nonzero((body[:, None] == body[None, :]) & (k_in < 0)[:, None] & (rows[:, None] < rows[None, :]))
+    first = np.concatenate([k_in[o], len(jc) + a])
+    second = np.concatenate([o, b])
+    from_joint = np.concatenate([body[o], jc[a]])
+    by_body = np.argsort(body[second], kind="stable")  # bodies ascending, each in the joint order above
+    first, second, from_joint = first[by_body], second[by_body], from_joint[by_body]
 
-    for bd in np.unique(body):  # one pass per body (≤ m)
-        outs = np.flatnonzero(body == bd)
-        if bd in row:  # the body has an inboard joint: c of that joint, in bd's frame
-            k = row[int(bd)]
-            for o in outs:
-                add(int(bd), int(bd), int(jc[o]), J.c[k], pt[o], J.c_cov[k], cov[o], False)
-        else:
-            for x, a in enumerate(outs):
-                for b in outs[x + 1:]:
-                    add(int(bd), int(jc[a]), int(jc[b]), pt[a], pt[b], cov[a], cov[b], True)
-    return Bones(np.array(out_body, dtype=int), np.array(out_from, dtype=int), np.array(out_to, dtype=int),
-                 np.array(length, dtype=float), np.array(stderr, dtype=float), np.array(at_root, dtype=bool))
+    d = np.concatenate([J.c, pt])[first] - pt[second]
+    length = np.sqrt((d[:, None, :] @ d[:, :, None])[:, 0, 0])  # a dot product, as np.linalg.norm takes it
+    pos = length > 0
+    g = np.where(pos[:, None], d / np.where(pos, length, 1.0)[:, None], 0.0)
+    C = np.concatenate([J.c_cov, cov])[first] + cov[second]
+    var = (g[:, None, :] @ C @ g[:, :, None])[:, 0, 0]  # the length's variance, along the bone
+    return Bones(body[second], from_joint, jc[second], length, np.sqrt(np.maximum(var, 0.0)), first >= len(jc))

@@ -7,6 +7,7 @@ frame, l in j's. All pairs are solved together: one batched 6×6 eigendecomposit
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
+from functools import lru_cache
 
 import numpy as np
 
@@ -21,6 +22,7 @@ HINGE_MARGIN = 4.0
 
 # Rounding budget of SSE/n read from the Gram, in units of Σ(‖t_i‖² + ‖t_j‖²)/(n μ_min): 64 × machine epsilon.
 ROUNDING = 64 * np.finfo(float).eps
+_TINY = np.finfo(float).tiny
 
 
 @dataclass(frozen=True)
@@ -53,9 +55,9 @@ class PairFits:
     def take(self, index, swap=None) -> "PairFits":
         """Rows `index`; where `swap` is True the pair is reversed to (j, i) (c↔l, axis_i↔axis_j)."""
         idx = np.asarray(index, dtype=np.intp).reshape(-1)
-        out = {f.name: getattr(self, f.name)[idx] for f in fields(self)}
-        if swap is not None:
-            sw = np.asarray(swap, dtype=bool).reshape(-1)
+        out = {name: getattr(self, name)[idx] for name in _FIELDS}
+        sw = None if swap is None else np.asarray(swap, dtype=bool).reshape(-1)
+        if sw is not None and sw.any():
             for a, b in (("c", "l"), ("axis_i", "axis_j"), ("c_stderr", "l_stderr"), ("c_cov", "l_cov")):
                 x, y = out[a], out[b]
                 s = sw.reshape((-1,) + (1,) * (x.ndim - 1))
@@ -72,10 +74,21 @@ class PairFits:
         return out
 
 
+_FIELDS = tuple(f.name for f in fields(PairFits))
+
+
 def all_pairs(n_sensors: int) -> np.ndarray:
     """Every pair (i, j) with i < j, in row-major order: (m(m−1)/2, 2)."""
-    i, j = np.triu_indices(n_sensors, k=1)
-    return np.stack([i, j], axis=1)
+    return _all_pairs(int(n_sensors)).copy()
+
+
+@lru_cache(maxsize=8)
+def _all_pairs(m: int) -> np.ndarray:
+    # triu_indices costs more than a whole refit step on 16 sensors; the live service asks ~30×/s.
+    i, j = np.triu_indices(m, k=1)
+    P = np.stack([i, j], axis=1)
+    P.setflags(write=False)
+    return P
 
 
 def pair_fits(acc, pairs=None, hinge_margin: float = HINGE_MARGIN) -> PairFits:
@@ -120,7 +133,7 @@ def pair_fits(acc, pairs=None, hinge_margin: float = HINGE_MARGIN) -> PairFits:
     r_num = floor_ok.sum(axis=1)
     sse_num = np.maximum(ddn - gain.sum(axis=1), 0.0) * nn
     dof_num = np.maximum(3.0 * nn - r_num, 1.0)
-    lever2 = np.maximum(ddn / 4.0, np.finfo(float).tiny)
+    lever2 = np.maximum(ddn / 4.0, _TINY)
     noise_floor = (sse_num / dof_num) / lever2
 
     keep = floor_ok.copy()
@@ -135,7 +148,7 @@ def pair_fits(acc, pairs=None, hinge_margin: float = HINGE_MARGIN) -> PairFits:
     eps = np.sqrt(sse) / nn
     sigma2 = sse / np.maximum(3.0 * nn - rank, 1.0)
     inv = np.where(keep, 1.0 / safe_mu, 0.0)
-    cov = np.einsum("pik,pk,pjk->pij", V, inv, V) * (sigma2 / nn)[:, None, None]
+    cov = ((V * inv[:, None, :]) @ V.transpose(0, 2, 1)) * (sigma2 / nn)[:, None, None]  # V diag(inv) Vᵀ σ²/n
     c_cov, l_cov = cov[:, :3, :3], cov[:, 3:, 3:]
 
     # SSE = Σ‖d‖² − Σ (v_kᵀb)²/λ_k loses about ε·Σ‖t‖²/μ_min to rounding (μ_min: smallest kept eigenvalue).
@@ -143,20 +156,17 @@ def pair_fits(acc, pairs=None, hinge_margin: float = HINGE_MARGIN) -> PairFits:
     mu_kept = np.where(np.isfinite(mu_kept), np.minimum(mu_kept, 1.0), 1.0)
 
     hinge = rank == 5
-    axis = V[:, :, 0]  # the dropped direction of a hinge is the smallest eigenvalue's
-    ai, aj = axis[:, :3], axis[:, 3:]
+    axis = V[:, :, 0].reshape(p, 2, 3)  # the dropped direction of a hinge is the smallest eigenvalue's: (a_i, a_j)
     with np.errstate(invalid="ignore", divide="ignore"):
-        ai = ai / np.linalg.norm(ai, axis=1, keepdims=True)
-        aj = aj / np.linalg.norm(aj, axis=1, keepdims=True)
+        axis = axis / np.sqrt((axis * axis).sum(axis=2, keepdims=True))
     # An eigenvector's sign is arbitrary: make a_i's largest component positive (a_j follows, same world axis).
-    sign = np.sign(np.take_along_axis(ai, np.abs(ai).argmax(axis=1)[:, None], axis=1))
+    sign = np.sign(axis[np.arange(p), 0, np.abs(axis[:, 0]).argmax(axis=1)])
     sign = np.where(sign == 0, 1.0, sign)
-    ai, aj = ai * sign, aj * sign
-    ai = np.where(hinge[:, None], ai, np.nan)
-    aj = np.where(hinge[:, None], aj, np.nan)
+    axis = np.where(hinge[:, None, None], axis * sign[:, None, None], np.nan)
+    ai, aj = axis[:, 0], axis[:, 1]
 
     sv = np.sqrt(np.maximum(mu, 0.0))[:, ::-1]
-    coverage = np.clip(mu[:, :3], 0.0, 1.0)
+    coverage = np.minimum(np.maximum(mu[:, :3], 0.0), 1.0)
     nan3 = np.where(has[:, None], 0.0, np.nan)
     nan1 = np.where(has, 0.0, np.nan)
     return PairFits(

@@ -130,11 +130,13 @@ class SegmentedAccumulator:
 
     def pair_segments(self, pairs) -> list:
         """For each pair, the governing Segment (the later of its sensors' segments) or None."""
-        out = []
-        for i, j in np.asarray(pairs, dtype=int).reshape(-1, 2):
-            cand = [s for s in (self.segments.get(int(i)), self.segments.get(int(j))) if s is not None]
-            out.append(max(cand, key=lambda s: s.start_s) if cand else None)
-        return out
+        return [self._pair_segment(i, j) for i, j in np.asarray(pairs, dtype=int).reshape(-1, 2).tolist()]
+
+    def _pair_segment(self, i: int, j: int) -> Segment | None:
+        a, b = self.segments.get(i), self.segments.get(j)
+        if a is None or b is None:
+            return a if b is None else b
+        return b if b.start_s > a.start_s else a  # max() keeps the first of equals
 
     def accumulator_for(self, pair) -> GramAccumulator:
         seg = self.pair_segments([pair])[0]
@@ -174,8 +176,7 @@ class SegmentedAccumulator:
         index = {n: i for i, n in enumerate(d["sensors"])}
         done: dict[int, dict] = {}
         for entry in d["joints"]:
-            pair = (index[entry["child"]], index[entry["parent"]])
-            seg = self.pair_segments([pair])[0]
+            seg = self._pair_segment(index[entry["child"]], index[entry["parent"]])
             if seg is None:
                 continue
             if id(seg) not in done:

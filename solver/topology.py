@@ -15,7 +15,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 
 from flockcal.solver.errors import SolverError
-from flockcal.solver.fits import PairFits
+from flockcal.solver.fits import PairFits, _all_pairs
 
 # A pair "fits as well as" another when its rms is within this fraction (plus rounding) of the other's.
 TIE_FRACTION = 0.05
@@ -114,52 +114,36 @@ def _tree_links(n_groups: int, gi: bytes, gj: bytes, weights: bytes) -> np.ndarr
     return used
 
 
-def spanning_tree(fits: PairFits, n_sensors: int, root: int | None = None) -> Topology:
-    """The skeleton tree over all sensors from fits of (ideally) all pairs, hung from `root` (auto if None)."""
-    m = int(n_sensors)
-    if root is not None and not 0 <= int(root) < m:
-        raise SolverError(f"root index {root} is out of range for {m} sensors")
-    measured = fits.square("n", m, fill=0.0) > 0
-    np.fill_diagonal(measured, False)
-    rms = np.where(measured, fits.square("rms", m, fill=np.inf), np.inf)
-    rank = fits.square("rank", m, fill=0.0)
-    tol = np.nan_to_num(fits.square("rms_floor", m, fill=0.0)) + 1e-12  # rms below this is 0 to rounding
-    best = np.min(rms, axis=1)
-    scale = float(np.median(best[np.isfinite(best)])) if np.isfinite(best).any() else 0.0
+@dataclass(frozen=True)
+class _Hung:
+    """Everything that follows from the tree's links and the root alone (read-only arrays; see `_hang`)."""
 
-    # Rigid bodies: pairs that never turned relative to each other yet fit like a joint would.
-    rigid = measured & (rank <= 3) & (rms <= RIGID_FACTOR * scale + tol)
-    n_groups, label = _rigid_bodies(rigid.tobytes(), m)
+    root: int
+    parent: np.ndarray
+    order: np.ndarray
+    is_joint: np.ndarray
+    rigid_groups: tuple  # ((i, …), …) groups of two or more sensors
+    jc: np.ndarray  # the joint children, ascending
+    unlinked: np.ndarray  # (m(m−1)/2,) over all_pairs: the two sensors are in bodies the tree does not link
+    may_tie: np.ndarray  # (len(jc), m): sensors that could be another parent of each joint child
 
-    # Contracted graph: each pair of bodies is linked by its best-fitting sensor pair.
-    iu, ju = np.triu_indices(m, k=1)
-    cross = label[iu] != label[ju]
-    pi, pj, pr = iu[cross], ju[cross], rms[iu, ju][cross]
-    gi, gj = np.minimum(label[pi], label[pj]), np.maximum(label[pi], label[pj])
-    srt = np.lexsort((pr, gj, gi))  # within each body pair, best rms first
-    first = np.ones(len(srt), dtype=bool)
-    first[1:] = (gi[srt][1:] != gi[srt][:-1]) | (gj[srt][1:] != gj[srt][:-1])
-    link = srt[first]
-    lw = pr[link]
-    # csgraph reads a zero weight as "no edge": feed rank order (1, 2, …), unmeasured pairs last.
-    finite = np.isfinite(lw)
-    weights = np.empty(len(link))
-    weights[np.argsort(np.where(finite, lw, np.inf), kind="stable")] = np.arange(1, len(link) + 1)
-    used = _tree_links(n_groups, gi[link].astype(np.intp).tobytes(), gj[link].astype(np.intp).tobytes(), weights.tobytes())
-    joint_edges = np.stack([pi[link][used], pj[link][used]], axis=1) if used.any() else np.zeros((0, 2), np.intp)
-    if n_groups > 1 and len(joint_edges) != n_groups - 1:
-        raise SolverError("the sensors do not form one connected skeleton")
 
-    # Root: the user's sensor, or the body that splits the tree most evenly.
-    if root is None:
-        gedges = np.stack([label[joint_edges[:, 0]], label[joint_edges[:, 1]]], axis=1)
-        sizes = np.bincount(label, minlength=n_groups)
-        rg = tree_centre(gedges, n_groups, sizes)
+@lru_cache(maxsize=16)
+def _hang(m: int, n_groups: int, label_b: bytes, edges_b: bytes, root: int) -> _Hung:
+    """The tree over sensors from the bodies' joint links (k, 2), hung from `root` (−1: the centre body).
+
+    Memoised like the graph steps: between refits the links and root rarely change, and the Python walks
+    here (orientation, ancestors, groups) cost more than the float work that remains per refit.
+    """
+    label = np.frombuffer(label_b, dtype=np.intp)
+    joint_edges = np.frombuffer(edges_b, dtype=np.intp).reshape(-1, 2)
+    gedges = label[joint_edges]
+    if root < 0:  # the body that splits the tree most evenly
+        rg = tree_centre(gedges, n_groups, np.bincount(label, minlength=n_groups))
         root = int(np.flatnonzero(label == rg)[0])
-    root = int(root)
 
     # Within a rigid body every member hangs from the member where the body's inboard joint attaches.
-    gparent, gorder = _orient(np.stack([label[joint_edges[:, 0]], label[joint_edges[:, 1]]], axis=1), n_groups, label[root])
+    gparent, _ = _orient(gedges, n_groups, label[root])
     entry = np.full(n_groups, -1)
     entry[label[root]] = root
     jparent = np.full(m, -1)
@@ -177,37 +161,113 @@ def spanning_tree(fits: PairFits, n_sensors: int, root: int | None = None) -> To
     edges = np.stack([np.flatnonzero(parent >= 0), parent[parent >= 0]], axis=1)
     _, order = _orient(edges, m, root)
 
-    topo = Topology(root, parent, order, is_joint, label)
-    topo.rigid_groups = [list(map(int, np.flatnonzero(label == g))) for g in range(n_groups) if (label == g).sum() > 1]
+    groups: list[list[int]] = [[] for _ in range(n_groups)]
+    for i, g in enumerate(label.tolist()):
+        groups[g].append(i)
+
+    # Loop candidates can only join bodies that the tree does not link directly.
+    jc = np.flatnonzero(is_joint)
+    linked = np.zeros((n_groups, n_groups), dtype=bool)
+    linked[label[jc], label[parent[jc]]] = linked[label[parent[jc]], label[jc]] = True
+    iu, ju = _all_pairs(m).T
+    unlinked = (label[iu] != label[ju]) & ~linked[label[iu], label[ju]]
+
+    # Another parent of a joint child: a sensor not below the child, in neither the child's nor its parent's body.
+    anc = ancestors(parent, order)
+    may_tie = ~anc.T[jc] & (label[None, :] != label[jc][:, None]) & (label[None, :] != label[parent[jc]][:, None])
+
+    for x in (parent, order, is_joint, jc, unlinked, may_tie):
+        x.setflags(write=False)
+    return _Hung(int(root), parent, order, is_joint, tuple(tuple(g) for g in groups if len(g) > 1), jc, unlinked,
+                 may_tie)
+
+
+def _squares(fits: PairFits, m: int) -> np.ndarray:
+    """`fits.square` of "n", "rms", "rank" and "rms_floor" (filled 0, inf, 0, 0), in one scatter: (4, m, m)."""
+    out = np.empty((4, m, m))
+    out[...] = np.array([0.0, np.inf, 0.0, 0.0])[:, None, None]
+    v = np.stack([fits.n, fits.rms, fits.rank, fits.rms_floor]).astype(float)
+    out[:, fits.pairs[:, 0], fits.pairs[:, 1]] = v
+    out[:, fits.pairs[:, 1], fits.pairs[:, 0]] = v
+    return out
+
+
+def _median(x: np.ndarray) -> float:
+    """np.median of a short 1-D array without its generic machinery (the same value, a few times faster)."""
+    s = np.sort(x)
+    h = len(s) // 2
+    return float(s[h]) if len(s) % 2 else float((s[h - 1] + s[h]) / 2.0)
+
+
+def spanning_tree(fits: PairFits, n_sensors: int, root: int | None = None) -> Topology:
+    """The skeleton tree over all sensors from fits of (ideally) all pairs, hung from `root` (auto if None)."""
+    m = int(n_sensors)
+    if root is not None and not 0 <= int(root) < m:
+        raise SolverError(f"root index {root} is out of range for {m} sensors")
+    n, rms, rank, floor = _squares(fits, m)
+    measured = n > 0
+    np.fill_diagonal(measured, False)
+    rms = np.where(measured, rms, np.inf)
+    tol = np.nan_to_num(floor) + 1e-12  # rms below this is 0 to rounding
+    best = np.min(rms, axis=1)
+    found = np.isfinite(best)
+    scale = _median(best[found]) if found.any() else 0.0
+
+    # Rigid bodies: pairs that never turned relative to each other yet fit like a joint would.
+    rigid = measured & (rank <= 3) & (rms <= RIGID_FACTOR * scale + tol)
+    n_groups, label = _rigid_bodies(rigid.tobytes(), m)
+
+    # Contracted graph: each pair of bodies is linked by its best-fitting sensor pair.
+    upper = _all_pairs(m)
+    iu, ju = upper.T
+    rms_u = rms[iu, ju]
+    cross = label[iu] != label[ju]
+    cross_pairs, pr = upper[cross], rms_u[cross]
+    pi, pj = cross_pairs.T
+    gi, gj = np.minimum(label[pi], label[pj]), np.maximum(label[pi], label[pj])
+    srt = np.lexsort((pr, gj, gi))  # within each body pair, best rms first
+    first = np.ones(len(srt), dtype=bool)
+    first[1:] = (gi[srt][1:] != gi[srt][:-1]) | (gj[srt][1:] != gj[srt][:-1])
+    link = srt[first]
+    lw = pr[link]
+    # csgraph reads a zero weight as "no edge": feed rank order (1, 2, …), unmeasured pairs last.
+    finite = np.isfinite(lw)
+    weights = np.empty(len(link))
+    weights[np.argsort(np.where(finite, lw, np.inf), kind="stable")] = np.arange(1, len(link) + 1)
+    used = _tree_links(n_groups, gi[link].astype(np.intp).tobytes(), gj[link].astype(np.intp).tobytes(), weights.tobytes())
+    joint_edges = cross_pairs[link[used]]
+    if n_groups > 1 and len(joint_edges) != n_groups - 1:
+        raise SolverError("the sensors do not form one connected skeleton")
+
+    # Root (the user's sensor, or the body that splits the tree most evenly) and the tree hung from it.
+    h = _hang(m, n_groups, label.astype(np.intp).tobytes(), joint_edges.astype(np.intp).tobytes(),
+              -1 if root is None else int(root))
+    parent = h.parent.copy()
+    topo = Topology(h.root, parent, h.order.copy(), h.is_joint.copy(), label)
+    topo.rigid_groups = [list(g) for g in h.rigid_groups]
 
     # Loop candidates: pairs between bodies not linked by the tree that fit like its joints.
-    tree_rms = rms[np.flatnonzero(is_joint), parent[is_joint]]
+    jc = h.jc
+    tree_rms = rms[jc, parent[jc]]
     tree_rms = tree_rms[np.isfinite(tree_rms)]
     if len(tree_rms):
-        limit = LOOP_FACTOR * float(np.median(tree_rms))
-        linked = np.zeros((n_groups, n_groups), dtype=bool)
-        jc = np.flatnonzero(is_joint)
-        linked[label[jc], label[parent[jc]]] = linked[label[parent[jc]], label[jc]] = True
-        cand = (label[iu] != label[ju]) & ~linked[label[iu], label[ju]] & (rms[iu, ju] <= limit + tol[iu, ju]) & (rank[iu, ju] >= 5)
+        limit = LOOP_FACTOR * _median(tree_rms)
+        cand = h.unlinked & (rms_u <= limit + tol[iu, ju]) & (rank[iu, ju] >= 5)
         topo.loop_candidates = [(int(a), int(b), float(rms[a, b])) for a, b in zip(iu[cand], ju[cand])]
 
     # Ambiguous parents: another body, not below the child, that the child's sensor fits as well as its parent.
-    anc = ancestors(parent, order)
-    jc = np.flatnonzero(is_joint)
     if len(jc):
         ref = rms[jc, parent[jc]]
-        alt = rms[jc] <= ref[:, None] * (1 + TIE_FRACTION) + tol[jc] + tol[jc, parent[jc]][:, None]
-        alt &= ~anc.T[jc]  # not in the child's own subtree
-        alt &= label[None, :] != label[jc][:, None]
-        alt &= label[None, :] != label[parent[jc]][:, None]
+        alt = h.may_tie & (rms[jc] <= ref[:, None] * (1 + TIE_FRACTION) + tol[jc] + tol[jc, parent[jc]][:, None])
         alt &= np.isfinite(rms[jc])
-        for r, x in enumerate(jc):
+        unmeasured = ~np.isfinite(ref)
+        for r in np.flatnonzero(unmeasured | alt.any(axis=1)):  # usually none: no loop over every joint
+            x, p = int(jc[r]), int(parent[jc[r]])
             others = np.flatnonzero(alt[r])
-            p = int(parent[x])
-            if not np.isfinite(ref[r]):
-                topo.ambiguous.append((int(x), [p], "no frame has both sensors valid: this joint was never measured"))
-            elif len(others):
+            if unmeasured[r]:
+                topo.ambiguous.append((x, [p], "no frame has both sensors valid: this joint was never measured"))
+            else:
                 hinged = rank[x, p] == 5 or (rank[x, others] == 5).any()
                 note = "intersecting hinge axes" if hinged else "coincident joint centres"
-                topo.ambiguous.append((int(x), [p] + [int(q) for q in others], f"fits equally well to each: {note}"))
+                topo.ambiguous.append((x, [p] + [int(q) for q in others], f"fits equally well to each: {note}"))
     return topo
