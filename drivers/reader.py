@@ -23,6 +23,7 @@ from flockcal.drivers.assembly import FrameAssembler, Frames
 from flockcal.drivers.link import (FlockLink, FlockSetup, LinkLost, Timing, TrackerError, check_bird_errors,
                                    configure_flock, poll, start_stream, stop_stream)
 from flockcal.drivers.recording import RecordingWriter
+from flockcal.threads import name_os_thread
 
 log = logging.getLogger(__name__)
 
@@ -266,6 +267,7 @@ class TrackerReader:
 
     # -- the thread ----------------------------------------------------------------------------
     def _run(self) -> None:
+        name_os_thread("fc-tracker")
         attempt = 0
         try:
             while not self._stop.is_set():
@@ -362,21 +364,50 @@ class TrackerReader:
         cfg = self.cfg
         q: queue.Queue = queue.Queue()
         quit_pumps = threading.Event()
-        if len(self._links) > 1 and all(link.fileno() is not None for link in self._links):
-            # One select() loop stamps every port read in the same wake-up with the same time, so
+        by_fd = {link.fileno(): link for link in self._links}
+        direct = None not in by_fd
+        if direct:
+            # Ports with a descriptor (device paths, ptys) are read on this thread with select(): no
+            # hand-over per read, and every port read in one wake-up is stamped with the same time, so
             # records of one cycle on different ports agree however late the thread runs.
-            pumps = [threading.Thread(target=self._pump_select, args=(self._links, q, quit_pumps), daemon=True,
-                                      name="flockcal-pump")]
+            pumps = []
         else:
             pumps = [threading.Thread(target=self._pump, args=(link, q, quit_pumps), daemon=True,
                                       name=f"flockcal-pump-{link.index}") for link in self._links]
         for p in pumps:
             p.start()
+        point = cfg.mode == "point"
+
+        def receive(timeout: float) -> list:
+            """(port, arrival time, bytes) read within `timeout` s; LinkLost (raised or queued) if a port is gone."""
+            if direct:
+                try:
+                    ready, _, _ = select.select(list(by_fd), [], [], timeout)
+                except (OSError, ValueError) as exc:
+                    raise LinkLost(f"waiting for data failed: {exc}") from None
+                t = time.monotonic()
+                return [(by_fd[fd].index, t, by_fd[fd].read_available()) for fd in ready]
+            items = []
+            if point:
+                try:
+                    items.append(q.get(timeout=timeout))
+                except queue.Empty:
+                    pass
+            else:
+                # Sleep until the next hand-over rather than waking for every read: the pumps stamp
+                # each chunk on arrival, so batching here costs no timing precision.
+                self._stop.wait(timeout)
+            while len(items) < 4096:
+                try:
+                    items.append(q.get_nowait())
+                except queue.Empty:
+                    break
+            return items
+
         now = time.monotonic()
         last_rx = np.full(len(self._links), now)
         last_batch = now
         setup = self.setup
-        point = cfg.mode == "point"
         poll_period = 1.0 / setup.rate_hz
         expect = (setup.birds if setup.group else 1) * codec.record_length(setup.record_format, group=setup.group)
         got_since_poll = np.full(len(self._links), expect)
@@ -398,16 +429,8 @@ class TrackerReader:
                         poll_sent = now
                         got_since_poll[:] = 0
                         next_poll = max(next_poll + poll_period, now)
-                try:
-                    items = [q.get(timeout=0.005)]
-                except queue.Empty:
-                    items = []
-                while len(items) < 512:
-                    try:
-                        items.append(q.get_nowait())
-                    except queue.Empty:
-                        break
-                for port, t, data in items:
+                wait = 0.005 if point else max(0.0, last_batch + cfg.batch_interval - time.monotonic())
+                for port, t, data in receive(wait):
                     if isinstance(data, Exception):
                         raise data
                     self._record(b"R", port, t, data)
@@ -415,9 +438,10 @@ class TrackerReader:
                     last_rx[port] = t
                     got_since_poll[port] += len(data)
                 now = time.monotonic()
-                if now - last_batch >= cfg.batch_interval:
-                    last_batch = now
-                    self._deliver(asm)
+                if now - last_batch < cfg.batch_interval:
+                    continue
+                last_batch = now
+                self._deliver(asm)
                 quiet = now - last_rx
                 if (quiet > cfg.stall_timeout).any():
                     port = int(np.argmax(quiet))
@@ -436,11 +460,11 @@ class TrackerReader:
             for p in pumps:
                 p.join(1.0)
         # Stopping: decode what already arrived, then leave the flock quiet.
-        while True:
-            try:
-                port, t, data = q.get_nowait()
-            except queue.Empty:
-                break
+        try:
+            arrived = receive(0.0)
+        except TrackerError:
+            arrived = []
+        for port, t, data in arrived:
             if not isinstance(data, Exception):
                 self._record(b"R", port, t, data)
                 asm.feed(port, t, data)
@@ -461,27 +485,8 @@ class TrackerReader:
             self._emit("error", f"while asking for error codes after a stall: {exc}")
 
     @staticmethod
-    def _pump_select(links: list[FlockLink], q: queue.Queue, quit_pumps: threading.Event) -> None:
-        by_fd = {link.fileno(): link for link in links}
-        while not quit_pumps.is_set():
-            try:
-                ready, _, _ = select.select(list(by_fd), [], [], 0.05)
-            except (OSError, ValueError) as exc:
-                q.put((0, time.monotonic(), LinkLost(f"waiting for data failed: {exc}")))
-                return
-            t = time.monotonic()
-            for fd in ready:
-                link = by_fd[fd]
-                try:
-                    data = link.read_available()
-                except TrackerError as exc:
-                    q.put((link.index, t, exc))
-                    return
-                if data:
-                    q.put((link.index, t, data))
-
-    @staticmethod
     def _pump(link: FlockLink, q: queue.Queue, quit_pumps: threading.Event) -> None:
+        name_os_thread(f"fc-pump-{link.index}")
         while not quit_pumps.is_set():
             try:
                 t, data = link.read_some(record=False)

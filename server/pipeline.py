@@ -23,6 +23,7 @@ from flockcal.errors import FlockcalError
 from flockcal.server.framelog import FrameLog
 from flockcal.server.snapshot import ResidualSample, Snapshot
 from flockcal.server.store import Store
+from flockcal.threads import name_os_thread
 
 log = logging.getLogger(__name__)
 
@@ -59,16 +60,6 @@ class LiveSession:
             "hierarchy": self.hierarchy, "root": self.root,
             "known_skeleton": self.skeleton is not None,
         }
-
-
-def _name_os_thread(name: str) -> None:
-    """Name the OS thread (top -H, /proc/PID/task/*/comm) so CPU use can be told apart per stage."""
-    try:
-        import ctypes
-
-        ctypes.CDLL(None).prctl(15, name.encode()[:15], 0, 0, 0)  # PR_SET_NAME
-    except (OSError, AttributeError):
-        pass
 
 
 def _finite(obj):
@@ -224,7 +215,8 @@ class Pipeline:
         """Reader callback: hand over a batch of frames (arrays over n frames); never blocks for long."""
         with self._cond:
             self._pending.append((times, rotations, positions, valid))
-            self._cond.notify()
+            if len(self._pending) == 1:  # later batches find the pipeline already counting down to publish
+                self._cond.notify()
 
     def tracker_event(self, event: dict) -> None:
         with self._cond:
@@ -306,7 +298,7 @@ class Pipeline:
 
     # --- the thread ----------------------------------------------------------------------------------
     def _run(self) -> None:
-        _name_os_thread("fc-pipeline")
+        name_os_thread("fc-pipeline")
         last_publish = 0.0
         while True:
             with self._cond:
@@ -547,7 +539,7 @@ class Pipeline:
 
     def _fit_worker(self) -> None:
         """Refits on its own thread, so a slow fit never delays frames or snapshots."""
-        _name_os_thread("fc-fit")
+        name_os_thread("fc-fit")
         while True:
             with self._fit_cond:
                 while self._fit_job is None and not self._stop:
