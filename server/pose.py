@@ -28,18 +28,36 @@ def sensors_only(names, rotations, positions, valid) -> dict:
     }
 
 
-_cache: list = [None, None, None]  # (fit, names, articulation): a fit changes ~30 times/s, poses more often
+class _Layout:
+    """What a fit fixes about the drawing: the articulation, point names and kinds, bones, leaves."""
+
+    def __init__(self, art, names: tuple[str, ...]):
+        self.art = art
+        m = len(names)
+        root = art.root
+        has_child = np.zeros(m, dtype=bool)
+        has_child[art.parent[art.parent >= 0]] = True
+        self.leaves = [j for j in range(m) if j != root and not has_child[j]]
+        # Points: every body's pivot (index = body), then the far end of each leaf bone at its sensor.
+        self.heads = [(names[i], "root" if i == root else "joint") for i in range(m)]
+        self.heads += [(f"{names[j]} sensor", "end") for j in self.leaves]
+        self.bones = [[int(art.parent[j]), j] for j in range(m) if art.parent[j] >= 0]
+        self.bones += [[j, m + k] for k, j in enumerate(self.leaves)]
+        self.root = names[root]
 
 
-def _articulation(fit: dict, names: tuple[str, ...]):
+_cache: list = [None, None, None]  # (fit, names, layout): a fit changes ~30 times/s, poses more often
+
+
+def _layout(fit: dict, names: tuple[str, ...]) -> _Layout | None:
     if _cache[0] is fit and _cache[1] == names:
         return _cache[2]
     try:
-        art = articulation(fit).reordered(names)
+        layout = _Layout(articulation(fit).reordered(names), names)
     except (ArticulationError, KeyError, ValueError, TypeError):
-        art = None
-    _cache[:] = [fit, names, art]
-    return art
+        layout = None
+    _cache[:] = [fit, names, layout]
+    return layout
 
 
 def live_pose(names, rotations, positions, valid, fit: dict | None) -> dict:
@@ -52,37 +70,17 @@ def live_pose(names, rotations, positions, valid, fit: dict | None) -> dict:
     base = sensors_only(names, rotations, positions, valid)
     if not fit or not fit.get("parent"):
         return base
-    art = _articulation(fit, tuple(names))
-    if art is None:
+    layout = _layout(fit, tuple(names))
+    if layout is None:
         return base
     try:
         # The rotations are each sensor's newest valid pose (held through dropouts), so use them all.
-        rec = reconstruct(rotations[None], positions[None], art)
+        rec = reconstruct(rotations[None], positions[None], layout.art)
     except (ArticulationError, ValueError):
         return base
-    pivots = _round(rec.joint_positions[0])  # inboard joint of each body, root sensor at the root
-    sensor_at = _round(rec.sensor_positions[0])
-    m = len(names)
-    root = art.root
-    points = []
-    index = {}
-    for i in range(m):
-        index[i] = len(points)
-        kind = "root" if i == root else "joint"
-        points.append({"name": names[i], "kind": kind, "p": pivots[i]})
-    bones = []
-    has_child = np.zeros(m, dtype=bool)
-    for j in range(m):
-        p = int(art.parent[j])
-        if p >= 0:
-            has_child[p] = True
-            bones.append([index[p], index[j]])
-    for j in range(m):
-        if j != root and not has_child[j]:
-            # A leaf (hand, foot, head) ends at its sensor: draw the bone out to it.
-            points.append({"name": f"{names[j]} sensor", "kind": "end", "p": sensor_at[j]})
-            bones.append([index[j], len(points) - 1])
-    base["joints"] = points
-    base["bones"] = bones
-    base["root"] = names[root]
+    # Pivots (inboard joint of each body, root sensor at the root), then the leaves' sensors.
+    at = _round(np.concatenate([rec.joint_positions[0], rec.sensor_positions[0, layout.leaves]]))
+    base["joints"] = [{"name": n, "kind": k, "p": p} for (n, k), p in zip(layout.heads, at)]
+    base["bones"] = layout.bones
+    base["root"] = layout.root
     return base
