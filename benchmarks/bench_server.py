@@ -14,10 +14,12 @@ from __future__ import annotations
 import argparse
 import asyncio
 import json
+import multiprocessing
 import os
 import sys
 import tempfile
 import time
+from concurrent.futures import ProcessPoolExecutor
 
 import httpx
 import numpy as np
@@ -32,7 +34,12 @@ SAW_S, SLOPE, X0 = 6.0, 0.1, 0.2  # sensor 0 x = X0 + SLOPE * (t mod SAW_S)
 
 
 class MarkedSource:
-    """A performer whose sensor 0 carries the sample time in its x coordinate."""
+    """A performer whose sensor 0 carries the sample time in its x coordinate.
+
+    The whole body is shifted along x, every sensor by the same amount, so that sensor 0 lands on the
+    sawtooth: joints stay joints (a common translation cancels in every pair's residual) and the
+    slip monitor sees no slip. Overwriting sensor 0 alone would tear its joints apart at every wrap.
+    """
 
     def __init__(self, performer: Performer):
         self.p = performer
@@ -42,8 +49,9 @@ class MarkedSource:
 
     def poses(self, times):
         R, x, v = self.p.poses(times)
+        shift = X0 + SLOPE * np.mod(np.asarray(times, dtype=float), SAW_S) - x[..., 0, 0]
         x = x.copy()
-        x[:, 0, 0] = X0 + SLOPE * np.mod(np.asarray(times, dtype=float), SAW_S)
+        x[..., 0] += shift[..., None]
         return R, x, v
 
 
@@ -68,8 +76,9 @@ def cpu_seconds(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
-async def measure(url: str, clock_t0: float, seconds: float, dashboards: int, probe_hz: float) -> list[float]:
+async def measure(url: str, clock_t0: float, seconds: float, dashboards: int, probe_hz: float) -> tuple[list[float], float]:
     latencies = []
+    granted = [probe_hz]
 
     async def dashboard():
         async with websockets.connect(url) as ws:
@@ -89,6 +98,8 @@ async def measure(url: str, clock_t0: float, seconds: float, dashboards: int, pr
             while time.monotonic() < end:
                 msg = json.loads(await ws.recv())
                 now = time.monotonic()
+                if msg.get("type") == "subscribed":
+                    granted[0] = msg["rate_hz"]
                 if msg.get("type") != "pose" or not msg["pose"]:
                     continue
                 x = msg["pose"]["sensors"][0]["p"][0]
@@ -98,7 +109,18 @@ async def measure(url: str, clock_t0: float, seconds: float, dashboards: int, pr
                 latencies.append(elapsed - (k * SAW_S + phase))
 
     await asyncio.gather(probe(), *[dashboard() for _ in range(dashboards)])
-    return latencies
+    return latencies, granted[0]
+
+
+def measure_apart(*args) -> tuple[list[float], float]:
+    """`measure` in a process of its own: in this one the fake tracker's thread would hold the GIL
+    while the probe's message waits, and that delay is the benchmark's, not the service's."""
+    with ProcessPoolExecutor(1, mp_context=multiprocessing.get_context("spawn")) as pool:
+        return pool.submit(_measure_sync, *args).result()
+
+
+def _measure_sync(*args) -> tuple[list[float], float]:
+    return asyncio.run(measure(*args))
 
 
 def main(argv=None) -> int:
@@ -106,7 +128,7 @@ def main(argv=None) -> int:
     ap.add_argument("--seconds", type=float, default=20.0)
     ap.add_argument("--dashboards", type=int, default=0, help="extra dashboard-like websocket clients")
     ap.add_argument("--probe-hz", type=float, default=1000.0,
-                    help="rate the latency probe subscribes at (default: every snapshot, up to 100/s)")
+                    help="rate the latency probe subscribes at (default: every snapshot the service publishes)")
     args = ap.parse_args(argv)
 
     performer = Performer("human", "exercise", seed=1, rate_hz=RATE)
@@ -124,9 +146,13 @@ def main(argv=None) -> int:
         st0 = httpx.get(proc.url + "/api/status").json()
         cpu0, wall0, threads0 = cpu_seconds(proc.proc.pid), time.monotonic(), thread_cpu(proc.proc.pid)
         url = proc.url.replace("http://", "ws://") + "/ws/live"
-        lat = np.array(asyncio.run(measure(url, clock_t0, args.seconds, args.dashboards, args.probe_hz))) * 1000
+        lat, probe_rate = measure_apart(url, clock_t0, args.seconds, args.dashboards, args.probe_hz)
+        lat = np.array(lat) * 1000
         cpu1, wall1, threads1 = cpu_seconds(proc.proc.pid), time.monotonic(), thread_cpu(proc.proc.pid)
         st1 = httpx.get(proc.url + "/api/status").json()
+        session = st1["session"]["id"]
+        slips = [e for e in httpx.get(f"{proc.url}/api/sessions/{session}/events").json()["events"]
+                 if e["type"] == "slip"]
     finally:
         proc.stop()
         pty.stop()
@@ -135,9 +161,10 @@ def main(argv=None) -> int:
     fits_hz = (st1["fits"] - st0["fits"]) / (wall1 - wall0)
     p50, p99 = np.percentile(lat, [50, 99])
     print(f"flockcal serve, 16 birds at {RATE:g} Hz on a pty, {args.seconds:g} s, {args.dashboards} extra dashboards, "
-          f"latency probe at {min(args.probe_hz, 100):g} Hz")
+          f"latency probe subscribed at {probe_rate:g} Hz (in its own process)")
     print(f"  frames received     {frames_hz:8.1f} /s   (dropped records in the window: {st1['dropped_records'] - st0['dropped_records']})")
     print(f"  full refits         {fits_hz:8.1f} /s   (target >= 30; {st1['fit_ms']} ms each)")
+    print(f"  slip alarms         {len(slips):8d}     (none expected: the performer's sensors stay put)")
     print(f"  latency samples     {len(lat):8d}")
     print(f"  latency p50         {p50:8.1f} ms")
     print(f"  latency p99         {p99:8.1f} ms   (target < 50 ms: {50 / p99:.2f}x margin)")
