@@ -326,6 +326,11 @@ class FrameAssembler:
         out, self.out = Frames.concat(self.out, self.m), []
         return out
 
+    @property
+    def ready(self) -> bool:
+        """Whether `take` or `take_events` has anything to hand out (closed cycles or news)."""
+        return bool(self.pending or self.out or self.events)
+
     def take_events(self) -> list[tuple[str, str, dict]]:
         self._finish()
         out, self.events = self.events, []

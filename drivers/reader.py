@@ -406,7 +406,9 @@ class TrackerReader:
 
         now = time.monotonic()
         last_rx = np.full(len(self._links), now)
-        last_batch = now
+        last_batch = last_check = last_wake = now
+        # Hand-overs happen only when there is something to hand over; stalls are looked for on this beat.
+        check_period = min(0.05, cfg.stall_timeout / 4)
         setup = self.setup
         poll_period = 1.0 / setup.rate_hz
         expect = (setup.birds if setup.group else 1) * codec.record_length(setup.record_format, group=setup.group)
@@ -429,8 +431,17 @@ class TrackerReader:
                         poll_sent = now
                         got_since_poll[:] = 0
                         next_poll = max(next_poll + poll_period, now)
-                wait = 0.005 if point else max(0.0, last_batch + cfg.batch_interval - time.monotonic())
-                for port, t, data in receive(wait):
+                if point:
+                    wait = 0.005
+                elif not direct:  # pumps do not wake this thread: look again one hand-over interval on
+                    wait = max(0.0, last_wake + cfg.batch_interval - time.monotonic())
+                elif asm.ready:
+                    wait = max(0.0, last_batch + cfg.batch_interval - time.monotonic())
+                else:  # nothing to hand over: sleep until bytes come (or it is time to look for a stall)
+                    wait = max(0.0, last_check + check_period - time.monotonic())
+                arrived = receive(wait)
+                last_wake = time.monotonic()
+                for port, t, data in arrived:
                     if isinstance(data, Exception):
                         raise data
                     self._record(b"R", port, t, data)
@@ -438,10 +449,12 @@ class TrackerReader:
                     last_rx[port] = t
                     got_since_poll[port] += len(data)
                 now = time.monotonic()
-                if now - last_batch < cfg.batch_interval:
+                if asm.ready and now - last_batch >= cfg.batch_interval:
+                    last_batch = now
+                    self._deliver(asm)
+                if now - last_check < check_period:
                     continue
-                last_batch = now
-                self._deliver(asm)
+                last_check = now
                 quiet = now - last_rx
                 if (quiet > cfg.stall_timeout).any():
                     port = int(np.argmax(quiet))
