@@ -189,6 +189,7 @@ class Pipeline:
         self._res_count = None
         self._res_joints: tuple = ()
         self._res_last_emit: float | None = None
+        self._res_pending: list = []  # session frames (times, R, t, valid) not yet in a residual sample
         self._last_fit_time = 0.0
         self._fit_cond = threading.Condition()
         self._joint_cache = None
@@ -273,6 +274,7 @@ class Pipeline:
             live = self.live
             if live is None:
                 raise FlockcalError("no session is live")
+            self._drain_residuals()
             self._flush_residual_sample(force=True)
             self._flush_db()
             result, error = None, None
@@ -370,7 +372,16 @@ class Pipeline:
         Rz = np.where(valid[..., None, None], R, 0.0)
         tz = np.where(valid[..., None], t, 0.0)
         accumulate(live.acc, times - live.t0, Rz, tz, valid)
-        self._residual_step(times - live.t0, Rz, tz, valid)
+        # Residual samples come out residual_hz times a second, so work them out once per sample rather
+        # than once per reader hand-over (~100/s): the cost of these small array steps is per call.
+        self._res_pending.append((times - live.t0, Rz, tz, valid))
+        if self._res_pending[-1][0][-1] - self._res_pending[0][0][0] >= self.residual_period:
+            self._drain_residuals()
+
+    def _drain_residuals(self) -> None:
+        pending, self._res_pending = self._res_pending, []
+        if pending:
+            self._residual_step(*(np.concatenate([p[k] for p in pending]) for k in range(4)))
 
     def _joint_arrays(self, fit: dict):
         """(joints ((child, parent) names), pairs (p,2), c (p,3), l (p,3)) of a fit, cached per fit."""
@@ -467,6 +478,7 @@ class Pipeline:
         self._res_last_emit = self._res_time
 
     def _reset_residuals(self) -> None:
+        self._res_pending = []
         self._res_joints = ()
         self._res_sumsq = self._res_count = None
         self._res_last_emit = None
