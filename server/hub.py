@@ -46,7 +46,8 @@ class SnapshotHub:
         while self.latest.seq <= seq:
             event = self._event
             try:
-                await asyncio.wait_for(event.wait(), timeout)
-            except asyncio.TimeoutError:
+                async with asyncio.timeout(timeout):  # no extra task per wait, unlike wait_for
+                    await event.wait()
+            except TimeoutError:
                 break
         return self.latest

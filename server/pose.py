@@ -33,6 +33,7 @@ class _Layout:
 
     def __init__(self, art, names: tuple[str, ...]):
         self.art = art
+        art.levels  # worked out once here; the per-frame completed copies of `art` inherit it
         m = len(names)
         root = art.root
         has_child = np.zeros(m, dtype=bool)

@@ -68,8 +68,10 @@ class Connection:
 
     async def send(self, text: str) -> None:
         try:
-            await asyncio.wait_for(self.ws.send_text(text), self.service.settings.ws_send_timeout_s)
-        except asyncio.TimeoutError:
+            # asyncio.timeout, not wait_for: no extra task per message (this runs for every snapshot).
+            async with asyncio.timeout(self.service.settings.ws_send_timeout_s):
+                await self.ws.send_text(text)
+        except TimeoutError:
             # The client stopped reading: drop it rather than hold its backlog.
             self.service.hub.dropped_slow += 1
             log.info("dropping a websocket client that took no data for %.0f s", self.service.settings.ws_send_timeout_s)
@@ -137,10 +139,11 @@ class Connection:
             now = time.monotonic()
             if now < next_due:
                 try:
-                    await asyncio.wait_for(self.changed.wait(), next_due - now)
+                    async with asyncio.timeout(next_due - now):
+                        await self.changed.wait()
                     self.changed.clear()
                     continue
-                except asyncio.TimeoutError:
+                except TimeoutError:
                     pass
             snap = await hub.wait_newer(sent_seq, timeout=1.0)
             if snap.seq <= sent_seq and not self.changed.is_set():
