@@ -141,8 +141,9 @@ class _Stalled(Exception):
 class TrackerReader:
     """Reads the tracker on a background thread and calls `on_frames(times, rotations, positions, valid)`.
 
-    Callbacks run on the reader thread every `batch_interval` (tens of ms): they must return quickly
-    (copy the arrays or push them to a queue), or bytes back up in the serial driver.
+    Callbacks run on the reader thread at most every `batch_interval` (tens of ms), when there are frames
+    or news: they must return quickly (copy the arrays or push them to a queue), or bytes back up in the
+    serial driver.
     """
 
     def __init__(self, cfg: TrackerConfig, on_frames: FramesCallback | None = None,
