@@ -17,6 +17,7 @@ class SnapshotHub:
         self.loop: asyncio.AbstractEventLoop | None = None
         self._event: asyncio.Event | None = None
         self._scheduled = False
+        self._waiting = 0  # senders parked in wait_newer: only they need the event loop woken
         self.clients = 0
         self.dropped_slow = 0  # clients dropped because they stopped reading
 
@@ -28,7 +29,9 @@ class SnapshotHub:
         """From any thread: make `snapshot` the newest and wake the senders (once per loop turn)."""
         self.latest = snapshot
         loop = self.loop
-        if loop is None or self._scheduled or loop.is_closed():
+        # A sender that is not parked (a 15 Hz dashboard between its sends) reads `latest` when it wakes
+        # on its own; waking the event loop for every snapshot (~100/s) would be work for nobody.
+        if loop is None or self._scheduled or not self._waiting or loop.is_closed():
             return
         self._scheduled = True
         try:
@@ -43,11 +46,17 @@ class SnapshotHub:
 
     async def wait_newer(self, seq: int, timeout: float | None = None) -> Snapshot:
         """The newest snapshot once its seq exceeds `seq` (or after `timeout` seconds, whatever it is)."""
-        while self.latest.seq <= seq:
-            event = self._event
-            try:
-                async with asyncio.timeout(timeout):  # no extra task per wait, unlike wait_for
-                    await event.wait()
-            except TimeoutError:
-                break
+        # Counted as waiting before `latest` is looked at: a snapshot published in between then
+        # either shows in that look or finds the count up and wakes the loop (no lost wake-up).
+        self._waiting += 1
+        try:
+            while self.latest.seq <= seq:
+                event = self._event
+                try:
+                    async with asyncio.timeout(timeout):  # no extra task per wait, unlike wait_for
+                        await event.wait()
+                except TimeoutError:
+                    break
+        finally:
+            self._waiting -= 1
         return self.latest
