@@ -37,25 +37,9 @@ def bench(fmt: str, m: int, rate: float, seconds: float, chunk: int, take_every:
     data = stream_bytes(fmt, m, n, rate, group=True)
     setup = FlockSetup(urls=["bench"], birds=m, addresses=list(range(1, m + 1)), group=True, mode="stream",
                        record_format=fmt, scale_inches=36.0, rate_hz=rate, hemisphere="forward", baud=115200)
-    asm = FrameAssembler(setup)
-    acc = GramAccumulator(m)
     dt_chunk = chunk / (len(data) / seconds)
-    t0 = time.perf_counter()
-    frames = 0
-    for k, i in enumerate(range(0, len(data), chunk)):
-        asm.feed(0, k * dt_chunk, data[i:i + chunk])
-        if k % take_every == take_every - 1:  # the reader hands batches over every few reads
-            f = asm.take()
-            if len(f):
-                acc.update(f.rotations, f.positions, f.valid)
-                frames += len(f)
-    asm.flush()
-    f = asm.take()
-    acc.update(f.rotations, f.positions, f.valid)
-    frames += len(f)
-    elapsed = time.perf_counter() - t0
-    assert frames == n, (frames, n)
-    return frames * m / elapsed, elapsed
+    reads = ([(0, k * dt_chunk, data[i:i + chunk])] for k, i in enumerate(range(0, len(data), chunk)))
+    return _run(FrameAssembler(setup), m, n, reads, take_every)
 
 
 def bench_ports(fmt: str, m: int, rate: float, seconds: float, take_every: int = 8) -> tuple[float, float]:
@@ -66,13 +50,19 @@ def bench_ports(fmt: str, m: int, rate: float, seconds: float, take_every: int =
     setup = FlockSetup(urls=[f"bench{b}" for b in range(m)], birds=m, addresses=list(range(1, m + 1)), group=False,
                        mode="stream", record_format=fmt, scale_inches=36.0, rate_hz=rate, hemisphere="forward",
                        baud=115200)
-    asm = FrameAssembler(setup)
+    reads = ([(b, k / rate + 0.0005, per_bird[b][k * L:(k + 1) * L]) for b in range(m)] for k in range(n))
+    return _run(FrameAssembler(setup), m, n, reads, take_every)
+
+
+def _run(asm: FrameAssembler, m: int, n: int, reads, take_every: int) -> tuple[float, float]:
+    """Feed `reads` (per step: a list of (port, arrival time, bytes)) into `asm`, taking frames into an
+    accumulator every `take_every` steps as the reader hands batches over; (bird-records/s, seconds)."""
     acc = GramAccumulator(m)
     t0 = time.perf_counter()
     frames = 0
-    for k in range(n):
-        for b in range(m):
-            asm.feed(b, k / rate + 0.0005, per_bird[b][k * L:(k + 1) * L])
+    for k, step in enumerate(reads):
+        for port, t, data in step:
+            asm.feed(port, t, data)
         if k % take_every == take_every - 1:
             f = asm.take()
             if len(f):
