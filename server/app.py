@@ -17,6 +17,7 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
 from fastapi.staticfiles import StaticFiles
+from fastapi_offline import FastAPIOffline
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from flockcal import __version__
@@ -26,6 +27,7 @@ from flockcal.server.settings import Settings
 log = logging.getLogger(__name__)
 
 STATIC = Path(__file__).with_name("static")
+DOCS_ASSETS = "/static-docs"  # where Swagger UI's and ReDoc's scripts are served from
 
 PLACEHOLDER = """<!doctype html><meta charset="utf-8"><title>flockcal</title>
 <h1>flockcal is running</h1><p>The {what} page is not installed. The API is described at
@@ -103,6 +105,33 @@ class BodyLimit:
         await self.app(scope, replay, send)
 
 
+# The docs pages may load only what the service serves: ReDoc's bundle would fetch its "powered by" logo
+# from its makers' CDN, which an offline kiosk cannot reach (the browser now refuses it without asking the
+# network). Inline scripts and styles stay allowed: the pages are FastAPI's, built that way.
+DOCS_POLICY = ("default-src 'self'; script-src 'self' 'unsafe-inline'; style-src 'self' 'unsafe-inline'; "
+               "img-src 'self' data:; font-src 'self' data:; worker-src 'self' blob:; connect-src 'self'")
+
+
+class DocsPolicy:
+    """Add DOCS_POLICY as the Content-Security-Policy of the API docs pages."""
+
+    def __init__(self, app, paths: tuple[str, ...]):
+        self.app = app
+        self.paths = paths
+
+    async def __call__(self, scope, receive, send):
+        if scope["type"] != "http" or scope.get("path") not in self.paths:
+            return await self.app(scope, receive, send)
+
+        async def with_policy(message):
+            if message["type"] == "http.response.start":
+                message = dict(message, headers=[*message.get("headers", []),
+                                                 (b"content-security-policy", DOCS_POLICY.encode())])
+            await send(message)
+
+        await self.app(scope, receive, with_policy)
+
+
 def create_app(settings: Settings, service=None) -> FastAPI:
     """The app; `service` may be given (tests), else one is built from `settings` at startup."""
     from flockcal.server.routes import live, sessions, simulator, skeletons, status
@@ -122,12 +151,17 @@ def create_app(settings: Settings, service=None) -> FastAPI:
         finally:
             await asyncio.get_running_loop().run_in_executor(None, svc.stop)
 
-    app = FastAPI(
+    # FastAPI's own /docs and /redoc load Swagger UI and ReDoc from a CDN, a blank page on an offline
+    # kiosk; fastapi-offline serves the same pages from assets in its installed package.
+    app: FastAPI = FastAPIOffline(
         title="flockcal",
         version=__version__,
         description="Live skeleton calibration for 6-DOF magnetic trackers. "
                     "Live data: websocket /ws/live (protocol in the README's server section).",
         lifespan=lifespan,
+        static_url=DOCS_ASSETS,
+        # Swagger UI would otherwise ask validator.swagger.io for a badge about the spec.
+        swagger_ui_parameters={"validatorUrl": None},
     )
     app.state.settings = settings
 
@@ -176,4 +210,5 @@ def create_app(settings: Settings, service=None) -> FastAPI:
             allow_headers=["Authorization", "Content-Type"],
         )
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
+    app.add_middleware(DocsPolicy, paths=("/docs", "/redoc"))
     return app

@@ -92,6 +92,7 @@ class Service:
             os.close(self._lock_fd)
             raise
         self.started = False
+        self.stopped_session: dict | None = None  # the session stop() closed, for `serve` to report
 
     def tracker_rate(self) -> float:
         rate = self.source.status().get("rate_hz") or self.settings.rate_hz
@@ -118,7 +119,7 @@ class Service:
         live = self.sessions.live_id()
         if live is not None:
             try:
-                self.sessions.stop(live)
+                self.stopped_session = self.sessions.stop(live)
             except Exception:
                 log.exception("could not stop session %s cleanly", live)
         try:

@@ -75,6 +75,38 @@ def settings_from_args(args: argparse.Namespace):
     )
 
 
+def websocket_library() -> str:
+    """The websocket implementation uvicorn will use; UserError when none is installed (uvicorn alone
+    answers /ws/live with 404, and the dashboard and kiosk wait for a live feed forever)."""
+    import importlib.util
+
+    for name in ("websockets", "wsproto"):
+        if importlib.util.find_spec(name) is not None:
+            return name
+    raise UserError("no websocket library is installed, so /ws/live could not stream to the dashboard and kiosk; "
+                    "install one with `pip install websockets` (a dependency of flockcal: reinstall flockcal)")
+
+
+def stop_report(service) -> list[str]:
+    """What a stopped service kept, one line each: the session it closed (and where its files are), or
+    that no session was live."""
+    data = service.data_dir
+    row = service.stopped_session
+    lines = []
+    if row is None:
+        lines.append("no session was live; nothing new to save")
+    else:
+        kept = "result stored" if row.get("has_result") else (row.get("note") or "no result")
+        lines.append(f"stopped session {row['id']} ({row.get('performer') or '?'}, {row.get('frames', 0)} frames): "
+                     f"{kept}")
+        rec = service.sessions
+        for path in (rec.frames_path(row["id"]), rec.raw_path(row["id"])):
+            if path.exists():
+                lines.append(f"saved {path}")
+    lines.append(f"sessions, results and events in {data / 'flockcal.sqlite3'}")
+    return lines
+
+
 def run(args: argparse.Namespace) -> int:
     import uvicorn
 
@@ -82,6 +114,7 @@ def run(args: argparse.Namespace) -> int:
     from flockcal.server.errors import ConfigError
     from flockcal.server.listen import listen_socket
 
+    websocket_library()
     try:
         settings = settings_from_args(args).check()
     except ConfigError as exc:
@@ -103,6 +136,8 @@ def run(args: argparse.Namespace) -> int:
     except FlockcalError as exc:
         sock.close()
         raise UserError(str(exc)) from None
+    if settings.http_port == 0:  # the port the system picked is the one to print
+        settings = settings.with_(http_port=sock.getsockname()[1])
     app = create_app(settings, service)
     host = f"[{settings.host}]" if ":" in settings.host else settings.host
     log = logging.getLogger("flockcal.serve")
@@ -119,5 +154,9 @@ def run(args: argparse.Namespace) -> int:
     config = uvicorn.Config(app, host=settings.host, port=settings.http_port, log_level="warning",
                             ws_max_size=64 * 1024, ws_per_message_deflate=False, lifespan="on")
     server = uvicorn.Server(config)
-    server.run(sockets=[sock])
+    try:
+        server.run(sockets=[sock])
+    finally:
+        for line in stop_report(service):
+            print(f"flockcal serve: {line}", flush=True)
     return 0
