@@ -291,6 +291,8 @@ class FlockSetup:
     software_revision: float = 0.0
     addressing: str = "normal"
     notes: list[str] = field(default_factory=list)
+    model: str = ""  # the master's model ID (EXAMINE p15), e.g. "6DFOB"
+    scale_from_tracker: bool = False  # the position scale was the tracker's own, not one asked for
 
     def to_dict(self) -> dict:
         return asdict(self)
@@ -383,19 +385,52 @@ def _route(links: list[FlockLink], setup: "FlockSetup", bird: int) -> tuple[Floc
     return links[bird], 0
 
 
+@dataclass(frozen=True)
+class FlockIdentity:
+    """What the master says it is, read before anything is changed (EXAMINE p15, p0, p3)."""
+
+    model: str  # model ID, space padding removed: "6DFOB", "6DERC", "PCBIRD", …
+    status: codec.BirdStatus
+    scale_inches: float  # the position scale it is set to now, 36 or 72
+
+
+# Model IDs that speak the Flock's RS-232 command set with sensors at addresses 1..N (fob-protocol.md §8).
+FLOCK_MODELS = ("6DFOB", "6DBOF", "PCBIRD", "SPACEPAD")
+
+
+def identify(master: FlockLink) -> FlockIdentity:
+    """Ask the master what it is: model ID (p15), bird status (p0) and position scaling (p3)."""
+    model = _examine(master, 15).decode("ascii", "replace").strip(" \x00")
+    status = codec.decode_status_word(_examine(master, 0))
+    scale = _examine(master, 3)
+    return FlockIdentity(model=model, status=status, scale_inches=72.0 if scale[0] == 1 else 36.0)
+
+
+def check_identity(ident: FlockIdentity, link: FlockLink, birds: int) -> None:
+    """Refuse a unit this driver cannot read, naming what it is and the fix."""
+    if ident.model == "6DERC":
+        raise TrackerError(f"the unit on {link.url} is an extended range controller (model 6DERC): flockcal reads "
+                           f"standard Flock transmitters only — connect to a Flock of Birds master instead")
+    if birds > 1 and not ident.status.master:
+        raise TrackerError(f"the unit on {link.url} says it is not the flock's master (bird status, EXAMINE 0) — "
+                           f"connect the cable to the master (FBB address 1) or read it with --birds 1")
+
+
 def configure_flock(links: list[FlockLink], *, birds: int, rate_hz: float | None, record_format: str,
-                    group: bool, mode: str, hemisphere: str, scale_inches: float,
+                    group: bool, mode: str, hemisphere: str, scale_inches: float | None,
                     emit: Emit) -> FlockSetup:
     """Reset and initialise the flock; returns how it was set up. Raises TrackerError on any problem.
 
     Sequence (fob-protocol.md §6, with the manual's delays): RTS reset where possible, STREAM STOP and
-    drain; check the master answers (software revision); FBB AUTO-CONFIG for N birds; check every bird
-    is accessible and running (flock status); measurement rate; per bird: position scale, record format,
-    hemisphere; group mode on/off; read back every bird's position scale; read and name any error code.
+    drain; check the master answers (software revision) and ask what it is (model, status, position
+    scale); FBB AUTO-CONFIG for N birds; check every bird is accessible and running (flock status);
+    measurement rate; per bird: position scale, record format, hemisphere; group mode on/off; read back
+    every bird's position scale; read and name any error code. `scale_inches=None` keeps the scale the
+    master is set to; `rate_hz=None` keeps its measurement rate.
     """
     if hemisphere not in codec.HEMISPHERES:
         raise TrackerError(f"unknown hemisphere {hemisphere!r}; choose one of {', '.join(codec.HEMISPHERES)}")
-    if scale_inches not in (36, 72):
+    if scale_inches is not None and scale_inches not in (36, 72):
         raise TrackerError(f"position scale must be 36 or 72 inches, got {scale_inches}")
     if not group and len(links) != birds:
         raise TrackerError(f"one port per bird needs {birds} ports, got {len(links)}; give one --port per bird "
@@ -416,6 +451,16 @@ def configure_flock(links: list[FlockLink], *, birds: int, rate_hz: float | None
     addressing = "normal"
     if revision >= 3.67:
         addressing = codec.ADDRESSING_MODES.get(_examine(master, 19)[0], "normal")
+    ident = identify(master)
+    check_identity(ident, master, birds)
+    if ident.model not in FLOCK_MODELS:
+        emit("tracker_model", f"the unit on {master.url} reports model {ident.model!r}, not a Flock of Birds model "
+                              f"({', '.join(FLOCK_MODELS)}); reading it with the Flock's commands")
+    if ident.status.sleeping:  # SLEEP keeps the transmitter off: the data would never change
+        master.write(bytes([codec.Command.RUN]))
+    from_tracker = scale_inches is None
+    if from_tracker:
+        scale_inches = ident.scale_inches
     limit = codec.MAX_ADDRESS[addressing]
     if birds > limit:
         raise TrackerError(f"{birds} birds need more than the {limit} addresses of {addressing} addressing — set "
@@ -441,7 +486,7 @@ def configure_flock(links: list[FlockLink], *, birds: int, rate_hz: float | None
     setup = FlockSetup(urls=[l.url for l in links], birds=birds, addresses=addresses, group=bool(group),
                        mode=mode, record_format="", scale_inches=float(scale_inches), rate_hz=0.0,
                        hemisphere=hemisphere, baud=master.baud, software_revision=revision,
-                       addressing=addressing)
+                       addressing=addressing, model=ident.model, scale_from_tracker=from_tracker)
     if birds == 1:
         setup.group = False
 

@@ -40,7 +40,7 @@ class TrackerConfig:
     record_format: str = "auto"  # "auto" or a codec.FORMATS name
     group: bool | None = None  # None: group mode with one URL, one port per bird with one URL per bird
     hemisphere: str = "forward"
-    scale_inches: int = 36  # 36 or 72
+    scale_inches: int | None = 36  # 36 or 72; None keeps the scale the tracker is set to
     baud: int = 115200
     mode: str = "stream"  # "stream" | "point"
     recording_path: str | None = None
@@ -81,7 +81,7 @@ class TrackerConfig:
                                f"{', '.join(codec.FORMATS)}")
         if self.hemisphere not in codec.HEMISPHERES:
             raise TrackerError(f"unknown hemisphere {self.hemisphere!r}; choose one of {', '.join(codec.HEMISPHERES)}")
-        if self.scale_inches not in (36, 72):
+        if self.scale_inches is not None and self.scale_inches not in (36, 72):
             raise TrackerError(f"position scale must be 36 or 72 inches, got {self.scale_inches}")
         # RS-232 tops out at 115200; faster lines are the RS-485 host interface or an emulated line.
         if self.baud not in (2400, 4800, 9600, 19200, 38400, 57600, 115200, 230400, 460800, 500000, 921600):
@@ -138,6 +138,78 @@ class _Stalled(Exception):
         self.birds = birds
 
 
+class RateCheck:
+    """Frames per second actually streamed, measured once over a window early in each session, against
+    the measurement rate the flock was set to; the warning names the cause (the line's speed for the
+    record format) and the fixes."""
+
+    SETTLE_S = 0.5  # the stream's first records are skipped: the setup's drain and first cycles
+    WINDOW_S = 2.0
+    SHORTFALL = 0.9  # below 90 % of the asked rate is worth telling the operator
+
+    def __init__(self, setup: FlockSetup, start: float):
+        self.setup = setup
+        self.start = start
+        self.bytes = 0
+        self.mark: tuple[float, int, int] | None = None  # (time, frames, bytes) at the window's start
+        self.measured_hz: float | None = None
+        self.done = False
+
+    def check(self, now: float, frames: int) -> str | None:
+        if self.done or now - self.start < self.SETTLE_S:
+            return None
+        if self.mark is None:
+            self.mark = (now, frames, self.bytes)
+            return None
+        t0, f0, b0 = self.mark
+        if now - t0 < self.WINDOW_S:
+            return None
+        self.done = True
+        self.measured_hz = (frames - f0) / (now - t0)
+        return rate_warning(self.setup, self.measured_hz, (self.bytes - b0) / (now - t0))
+
+
+def rate_warning(setup: FlockSetup, measured_hz: float, bytes_per_s: float | None = None) -> str | None:
+    """None when `measured_hz` is near the flock's rate, else one line: what was asked, what came, why
+    (the line's speed for the record format, or the flock itself), and the fixes."""
+    from flockcal.drivers.link import BAUD_RATES, LINK_MARGIN, link_capacity
+
+    asked = setup.rate_hz
+    if not asked or measured_hz >= RateCheck.SHORTFALL * asked:
+        return None
+    on_port = setup.birds if setup.group else 1
+    per_set = lambda fmt: on_port * codec.record_length(fmt, group=setup.group)  # noqa: E731
+    need = per_set(setup.record_format) * asked
+    claimed = link_capacity(setup.baud)
+    got = bytes_per_s if bytes_per_s is not None else per_set(setup.record_format) * measured_hz
+    text = (f"{measured_hz:.1f} frames/s arrive but the flock measures at {asked:g} Hz: {setup.record_format} for "
+            f"{on_port} bird(s) on one line needs {need:.0f} B/s")
+    fixes = []
+    if need > claimed * LINK_MARGIN:
+        text += f", more than {setup.baud} baud carries ({claimed:.0f} B/s)"
+        capacity = claimed
+    elif got < 0.8 * claimed:
+        # The line should carry it but brings far less: the unit's DIP switches set a slower speed than --baud.
+        real = next((b for b in BAUD_RATES if link_capacity(b) >= got), BAUD_RATES[-1])
+        text += (f", which {setup.baud} baud would carry, but the line delivers only {got:.0f} B/s: it runs "
+                 f"slower than --baud says (at most {real} baud)")
+        fixes.append("--baud matching the unit's DIP switches (RS-232 tops out at 115200), so the driver picks a "
+                     "record format that fits")
+        capacity = link_capacity(real)
+    else:
+        return text + (f"; the line carries that, so the flock itself falls behind — look for bird errors "
+                       f"(error 31: lower --rate)")
+    budget = capacity * LINK_MARGIN
+    compact = [f for f in ("position_quaternion", "position_angles")
+               if per_set(f) < per_set(setup.record_format) and per_set(f) * asked <= budget]
+    if compact:
+        fixes.append(f"--format {compact[0]}")
+    fixes.append(f"--rate {max(1, int(budget // per_set(setup.record_format)))} or lower")
+    if setup.group and setup.birds > 1:
+        fixes.append("one port per bird (--per-port)")
+    return f"{text} — use {', or '.join(fixes)}"
+
+
 class TrackerReader:
     """Reads the tracker on a background thread and calls `on_frames(times, rotations, positions, valid)`.
 
@@ -147,9 +219,10 @@ class TrackerReader:
     """
 
     def __init__(self, cfg: TrackerConfig, on_frames: FramesCallback | None = None,
-                 on_event: EventCallback | None = None):
+                 on_event: EventCallback | None = None, recording_header: dict | None = None):
         cfg.validate()
         self.cfg = cfg
+        self.recording_header = dict(recording_header or {})  # more header entries (e.g. sensor names)
         self.on_frames = on_frames
         self.on_event = on_event
         self.timing = cfg.resolved_timing()
@@ -165,7 +238,7 @@ class TrackerReader:
                             resynced=0, reconnects=0, last_error=None, record_format=None, urls=list(cfg.urls),
                             mode=cfg.mode, group=cfg.resolved_group(), rejected_records=0, dropped_bytes=0,
                             bird_errors=0, recording_path=cfg.recording_path, saturated_records=0,
-                            scale_inches=cfg.scale_inches)
+                            scale_inches=cfg.scale_inches, model=None)
         self._totals = dict(frames=0, dropped_records=0, resynced=0, rejected_records=0, dropped_bytes=0,
                             saturated_records=0)
 
@@ -176,8 +249,9 @@ class TrackerReader:
         if self._thread is not None:
             raise TrackerError("this reader was already started; make a new TrackerReader")
         if self.cfg.recording_path:
-            settings = {"flockcal": __version__, "config": self.cfg.to_dict()}
-            self._recorder = RecordingWriter(self.cfg.recording_path, settings)
+            settings = {**self.recording_header, "flockcal": __version__, "config": self.cfg.to_dict()}
+            # Pending until the flock streams: a start that fails leaves no stub behind.
+            self._recorder = RecordingWriter(self.cfg.recording_path, settings, pending=True)
         self._fail_fast = wait is not None
         self._thread = threading.Thread(target=self._run, name="flockcal-tracker", daemon=True)
         self._thread.start()
@@ -346,18 +420,21 @@ class TrackerReader:
                        max_turn_rate=cfg.max_turn_rate)
         if self._recorder is not None:
             self._recorder.mark(time.monotonic(), {"stream": setup.to_dict(), "assembler": options})
+            self._recorder.commit()
         asm = FrameAssembler(setup, **options)
         if cfg.mode == "stream":
             start_stream(self._links, setup)
         with self._lock:
             self._status.update(connected=True, rate_hz=setup.rate_hz, record_format=setup.record_format,
-                                group=setup.group)
+                                group=setup.group, scale_inches=setup.scale_inches, model=setup.model)
         self._connected_once.set()
         where = setup.urls[0] if len(setup.urls) == 1 else f"{len(setup.urls)} ports ({setup.urls[0]}, …)"
         self._emit("connected", f"{setup.birds} bird(s) on {where}: {setup.record_format}, "
                                 f"{'group mode' if setup.group else 'one port per bird'}, {setup.rate_hz:.1f} Hz, "
-                                f"{setup.mode} mode", birds=setup.birds, rate_hz=setup.rate_hz,
-                   record_format=setup.record_format, group=setup.group)
+                                f"{setup.mode} mode; {setup.model or 'unknown model'}, {setup.scale_inches:g}-inch "
+                                f"scale{' (as the tracker was set)' if setup.scale_from_tracker else ''}",
+                   birds=setup.birds, rate_hz=setup.rate_hz, record_format=setup.record_format, group=setup.group,
+                   model=setup.model, scale_inches=setup.scale_inches)
         return asm
 
     def _session(self, asm: FrameAssembler) -> None:
@@ -414,6 +491,7 @@ class TrackerReader:
         poll_period = 1.0 / setup.rate_hz
         expect = (setup.birds if setup.group else 1) * codec.record_length(setup.record_format, group=setup.group)
         got_since_poll = np.full(len(self._links), expect)
+        rate = RateCheck(setup, now) if not point else None
         next_poll = now
         poll_sent = now
         session_start = now
@@ -449,6 +527,8 @@ class TrackerReader:
                     asm.feed(port, t, data)
                     last_rx[port] = t
                     got_since_poll[port] += len(data)
+                    if rate is not None:
+                        rate.bytes += len(data)
                 now = time.monotonic()
                 if asm.ready and now - last_batch >= cfg.batch_interval:
                     last_batch = now
@@ -456,6 +536,8 @@ class TrackerReader:
                 if now - last_check < check_period:
                     continue
                 last_check = now
+                if rate is not None and (warning := rate.check(now, asm.frames)):
+                    self._emit("rate_low", warning, rate_hz=rate.measured_hz, asked_hz=setup.rate_hz)
                 quiet = now - last_rx
                 if (quiet > cfg.stall_timeout).any():
                     port = int(np.argmax(quiet))

@@ -65,17 +65,24 @@ class RecordingWriter:
 
     Chunks are buffered in memory and written out at most `flush_interval` seconds after they came
     in (and on `flush()`/`close()`), so a killed process loses at most that much.
+
+    With `pending=True` the file is written beside its name (`NAME.part`) until `commit()` renames it
+    into place, and `close()` before a commit removes it: a recording whose tracker never started
+    leaves nothing behind and does not replace an earlier file of that name.
     """
 
-    def __init__(self, path: str | os.PathLike, settings: dict, flush_interval: float = 0.05):
+    def __init__(self, path: str | os.PathLike, settings: dict, flush_interval: float = 0.05,
+                 pending: bool = False):
         self.path = Path(path)
+        self.pending = bool(pending)
+        self._file = self.path.with_name(self.path.name + ".part") if pending else self.path
         self.flush_interval = float(flush_interval)
         head = dict(settings)
         head.setdefault("wall_start", time.strftime("%Y-%m-%dT%H:%M:%S%z"))
         head.setdefault("monotonic_start", time.monotonic())
         text = json.dumps(head, sort_keys=True, default=str).encode("utf-8")
         try:
-            self._fh = open(self.path, "wb")
+            self._fh = open(self._file, "wb")
         except OSError as exc:
             raise RecordingError(f"cannot create the recording {self.path}: {exc.strerror} — check the folder exists and is writable") from None
         self._fh.write(MAGIC + _U32.pack(len(text)) + text + _U32.pack(zlib.crc32(text)))
@@ -128,9 +135,22 @@ class RecordingWriter:
             if not self.closed:
                 self._flush_locked(time.monotonic())
 
+    def commit(self) -> None:
+        """Put a pending recording under its name (the tracker started: it is worth keeping)."""
+        with self._lock:
+            if self.pending and not self.closed:
+                os.replace(self._file, self.path)
+                self._file = self.path
+                self.pending = False
+
     def close(self) -> None:
         with self._lock:
             if self.closed:
+                return
+            self.closed = True
+            if self.pending:  # never committed: nothing worth keeping
+                self._fh.close()
+                self._file.unlink(missing_ok=True)
                 return
             self._flush_locked(time.monotonic())
             try:
@@ -138,7 +158,6 @@ class RecordingWriter:
             except OSError:
                 pass
             self._fh.close()
-            self.closed = True
 
     def __enter__(self) -> "RecordingWriter":
         return self

@@ -16,8 +16,9 @@ from flockcal import __version__
 
 
 class SessionRawRecorder:
-    def __init__(self, config: dict):
+    def __init__(self, config: dict, names: list[str] | None = None):
         self.config = config
+        self.names = list(names) if names else None  # kept in each file's header for replay and convert
         self._writer = None
         self._stream_marker: dict | None = None
         self._lock = threading.Lock()
@@ -45,6 +46,9 @@ class SessionRawRecorder:
         if w is not None:
             w.flush()
 
+    def commit(self) -> None:
+        """Session files are written under their own names from the start."""
+
     def close(self) -> None:
         """The reader stopping does not end a session's file; `stop` does."""
 
@@ -52,7 +56,10 @@ class SessionRawRecorder:
     def start(self, path: str | Path) -> None:
         from flockcal.drivers.recording import RecordingWriter
 
-        writer = RecordingWriter(path, {"flockcal": __version__, "config": self.config, "session_file": True})
+        header = {"flockcal": __version__, "config": self.config, "session_file": True}
+        if self.names:
+            header["names"] = self.names
+        writer = RecordingWriter(path, header)
         if self._stream_marker is not None:
             writer.mark(time.monotonic(), self._stream_marker)
         with self._lock:

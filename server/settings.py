@@ -71,7 +71,7 @@ class Settings:
     send_buffer_bytes: int | None = 256 * 1024  # kernel send buffer per connection (bounds a stalled client's backlog)
     ws_send_timeout_s: float = 30.0  # a websocket client that takes no data for this long is dropped
     log_level: str = "info"
-    scale_inches: int | None = None  # position full scale; None: 72 for the simulator (it reaches further), else 36
+    scale_inches: int | None = None  # position full scale; None: 72 for the simulator (it reaches further), else the tracker's own
     fast_init: bool = False  # skip the manual's reset delays (simulators and fake trackers on a pty)
     skeletons: tuple[Path, ...] = ()  # --skeleton files: saved performers offered as session presets
 

@@ -148,7 +148,8 @@ class TrackerSource:
             rate_hz=self.settings.rate_hz,
             baud=self.settings.line_baud,
             hemisphere=self.settings.hemisphere,
-            scale_inches=self.settings.scale_inches or (72 if self.simulator is not None else 36),
+            # The simulator's performer reaches past 36 in; a real tracker keeps the scale it is set to.
+            scale_inches=self.settings.scale_inches or (72 if self.simulator is not None else None),
             recording_path=self.recording_path,
         )
         try:
@@ -158,7 +159,7 @@ class TrackerSource:
         if cfg.recording_path is None and hasattr(self.reader, "_recorder"):
             # The reader has no call to switch recordings per session; fill its recorder slot once
             # with a forwarder that the session manager points at each session's .fobraw.
-            self.raw = SessionRawRecorder(cfg.to_dict())
+            self.raw = SessionRawRecorder(cfg.to_dict(), names=list(self.names))
             self.reader._recorder = self.raw
         self.reader.start()
 

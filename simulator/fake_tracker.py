@@ -76,6 +76,7 @@ class _Bird:
     button_mode: bool = False
     metal: bool = False
     running: bool = False
+    scale_p3: int = 0  # position scaling (p3 byte 0): 0 = 36 in, 1 = 72 in; each bird keeps its own
     params: dict[int, bytes] = field(default_factory=dict)
 
 
@@ -198,7 +199,6 @@ class FakeFlock:
         self.sleep_time = self.now
         self.report_divisor = 1
         self.rate_hz = min(self._power_up_rate, MAX_RATE_HZ)
-        self.scale_p3 = 1 if self._power_up_scale == 72.0 else 0
         self.initialised = False
         self.configured_units = 0
         self.cycle_origin = self.now
@@ -207,6 +207,7 @@ class FakeFlock:
         for b in self.birds.values():
             b.fmt, b.hemisphere, b.hemisphere_via_p22 = codec.DEFAULT_FORMAT, "forward", False
             b.button_mode = b.metal = False
+            b.scale_p3 = 1 if self._power_up_scale == 72.0 else 0
             b.params = {}
             # The master (and only it) runs before AUTO-CONFIG.
             b.running = b.address == 1
@@ -215,9 +216,14 @@ class FakeFlock:
             line.pending.clear()
             line.prefix, line.super_prefix = None, False
 
+    def bird_scale_inches(self, bird: _Bird) -> float:
+        """Position full scale of one bird's records (every bird has its own p3; an ERT fixes 144 in)."""
+        return 144.0 if self.ert else (72.0 if bird.scale_p3 else 36.0)
+
     @property
     def scale_inches(self) -> float:
-        return 144.0 if self.ert else (72.0 if self.scale_p3 else 36.0)
+        """The first sensor bird's position full scale (all of them, once a driver has set them alike)."""
+        return self.bird_scale_inches(self.birds[self.sensor_addresses[0]])
 
     @property
     def n_ports(self) -> int:
@@ -489,7 +495,7 @@ class FakeFlock:
             bird = self.birds[a]
             i = bird.sensor_index
             p = codec.fold_to_hemisphere(pos[:, i], bird.hemisphere)
-            words = codec.data_words(bird.fmt, rot[:, i], p, scale_inches=self.scale_inches,
+            words = codec.data_words(bird.fmt, rot[:, i], p, scale_inches=self.bird_scale_inches(bird),
                                      quaternion_convention=self.quaternion_convention)
             words[~valid[:, i]] = 0  # a saturated/absent sensor sends all-zero data
             rec = codec.encode_words(words)
@@ -701,7 +707,7 @@ class FakeFlock:
             0: lambda: word(self._status_word(bird)),
             1: lambda: codec.software_revision_bytes(SOFTWARE_REVISION),
             2: lambda: bytes([CRYSTAL_MHZ, 0]),
-            3: lambda: bytes([self.scale_p3, 0]),
+            3: lambda: bytes([bird.scale_p3, 0]),
             4: lambda: b"\x04\x00",
             5: lambda: codec.pack_words([0x028F] * 7),
             6: lambda: word(codec.measurement_count_from_rate(self.rate_hz, CRYSTAL_MHZ)),
@@ -759,7 +765,7 @@ class FakeFlock:
             self._set_rate(codec.measurement_rate_from_count(int(codec.unpack_words(data, signed=False)[0]),
                                                              CRYSTAL_MHZ))
         elif p == 3:
-            self.scale_p3 = 1 if data[0] == 1 else 0
+            bird.scale_p3 = 1 if data[0] == 1 else 0
         elif p == 22:
             self._set_hemisphere(bird, data, via_p22=True)
         elif p == 29:

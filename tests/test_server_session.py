@@ -78,8 +78,10 @@ def test_full_session_matches_fit_and_survives_restart(tracker, performer, tmp_p
     # (give or take the batches in flight at start and stop: the bytes are cut at arrival time).
     assert raw.status_code == 200
     (tmp_path / "s.fobraw").write_bytes(raw.content)
-    replayed = replay(read_recording(tmp_path / "s.fobraw")).frames
+    recording = read_recording(tmp_path / "s.fobraw")
+    replayed = replay(recording).frames
     assert abs(len(replayed) - stopped["frames"]) <= 0.2 * RATE
+    assert recording.settings["names"] == list(performer.names)  # so `flockcal convert` names the sensors
     assert skeleton.status_code == 200 and skeleton.json()
 
     # The topology is the performer's body.

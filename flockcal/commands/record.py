@@ -23,10 +23,14 @@ def register(subparsers) -> None:
     p.add_argument("--group", dest="group", action="store_true", default=None, help="force group mode")
     p.add_argument("--per-port", dest="group", action="store_false", help="one port per bird")
     p.add_argument("--hemisphere", default="forward", help="forward, aft, upper, lower, left or right")
-    p.add_argument("--scale", type=int, default=36, choices=(36, 72), help="position full scale in inches")
+    p.add_argument("--scale", type=int, default=None, choices=(36, 72),
+                   help="position full scale in inches (default: keep the scale the tracker is set to)")
     p.add_argument("--baud", type=int, default=115200, help="baud rate set by the unit's DIP switches")
     p.add_argument("--mode", default="stream", choices=("stream", "point"))
     p.add_argument("--seconds", type=float, default=None, help="stop after this long (default: until Ctrl-C)")
+    p.add_argument("--names", default=None, metavar="A,B,…",
+                   help="sensor names, one per bird in address order; kept in the recording for convert and "
+                        "replay (default bird1, bird2, …)")
     p.set_defaults(func=_record)
 
     p = subparsers.add_parser("replay", help="decode a .fobraw recording again",
@@ -42,28 +46,83 @@ def register(subparsers) -> None:
                               description="Decode a .fobraw recording and write the .npz take interchange.")
     p.add_argument("recording")
     p.add_argument("-o", "--output", required=True, help="take to write (.npz)")
-    p.add_argument("--names", default=None, help="comma-separated sensor names (default bird0, bird1, …)")
+    p.add_argument("--names", default=None, help="comma-separated sensor names (default: the names the recording "
+                   "carries, else bird1, bird2, …)")
     p.add_argument("--salvage", action="store_true", help="convert what precedes a corrupt chunk")
     p.set_defaults(func=_convert)
 
 
+def parse_names(text: str | None, birds: int, option: str = "--names") -> list[str] | None:
+    """Sensor names from a comma-separated option, checked against the number of birds."""
+    if text is None:
+        return None
+    from flockcal.server.settings import NAME_RE
+
+    names = [x.strip() for x in text.split(",")]
+    if len(names) != birds:
+        raise UserError(f"{option} gives {len(names)} names but there are {birds} birds; give one name per bird")
+    bad = [x for x in names if not NAME_RE.match(x)]
+    if bad:
+        raise UserError(f"{option}: sensor name {bad[0]!r} is not allowed; use 1–64 letters, digits, space _ . -")
+    if len(set(names)) != len(names):
+        raise UserError(f"{option}: sensor names must be unique")
+    return names
+
+
+def default_names(m: int) -> list[str]:
+    """Names of sensors nobody named: bird1…birdN, as the FBB addresses (and `flockcal serve`) count them."""
+    return [f"bird{i + 1}" for i in range(m)]
+
+
 def _record(args) -> int:
-    from flockcal.drivers.reader import TrackerConfig, TrackerReader
+    import logging
+
+    names = parse_names(args.names, args.birds)
+    if args.seconds is not None and args.seconds <= 0:
+        raise UserError("--seconds must be positive")
+    # Events are printed below, once each; the reader's own log would repeat them (shown with -v).
+    reader_log = logging.getLogger("flockcal.drivers.reader")
+    level = reader_log.level
+    if not getattr(args, "verbose", 0):
+        reader_log.setLevel(logging.ERROR)
+    try:
+        return _record_with(args, names)
+    finally:
+        reader_log.setLevel(level)
+
+
+def _record_with(args, names: list[str] | None) -> int:
+    from flockcal.drivers.reader import TrackerConfig, TrackerReader, rate_warning
 
     cfg = TrackerConfig(urls=args.port, birds=args.birds, rate_hz=args.rate, record_format=args.format,
                         group=args.group, hemisphere=args.hemisphere, scale_inches=args.scale, baud=args.baud,
                         mode=args.mode, recording_path=args.output)
     events = []
+    span = [None, None, 0]  # first and last frame time, frames
+
+    def on_frames(times, rotations, positions, valid) -> None:
+        if span[0] is None:
+            span[0] = float(times[0])
+        span[1] = float(times[-1])
+        span[2] += len(times)
 
     def on_event(event) -> None:
         events.append(event)
         started = any(e.kind == "connected" for e in events)
+        if event.kind in ("resync", "hemisphere_flip", "stopped", "connected"):
+            return
         # Before the first connection a failure is raised and printed once by the command line.
-        if started and event.kind not in ("resync", "hemisphere_flip", "stopped"):
-            print(f"flockcal record: {event}", file=sys.stderr)
+        if started or event.kind not in ("error", "disconnected", "reconnecting", "stalled"):
+            print(f"flockcal record: {event}", file=sys.stderr, flush=True)
 
-    reader = TrackerReader(cfg, on_event=on_event)
+    reader = TrackerReader(cfg, on_frames=on_frames, on_event=on_event,
+                           recording_header={"names": names} if names else None)
     reader.start(wait=60.0)
+    setup = reader.setup
+    scale = f"{setup.scale_inches:g}-inch scale" + (" (the tracker's own)" if setup.scale_from_tracker else "")
+    print(f"flockcal record: {setup.birds} birds on {', '.join(setup.urls)}: {setup.model or 'unknown model'}, "
+          f"software {setup.software_revision:.2f}, {scale}, {setup.rate_hz:g} Hz, {setup.record_format} at "
+          f"{setup.baud} baud; recording to {args.output} (Ctrl-C stops)", file=sys.stderr, flush=True)
     try:
         end = time.monotonic() + args.seconds if args.seconds else None
         while reader.running and (end is None or time.monotonic() < end):
@@ -73,9 +132,17 @@ def _record(args) -> int:
     finally:
         reader.stop()
     s = reader.status()
-    print(f"recorded {s['frames']} frames of {s['birds']} birds at {s['rate_hz'] or 0:.1f} Hz ({s['record_format']}) "
-          f"to {args.output}; {s['dropped_records']} bird-frames invalid, {s['resynced']} resyncs, "
-          f"{s['reconnects']} reconnects")
+    first, last, n = span
+    seconds = (last - first) if n > 1 else 0.0
+    got = (n - 1) / seconds if seconds > 0 else 0.0
+    print(f"flockcal record: wrote {args.output}: {n} frames of {s['birds']} birds in {seconds:.1f} s "
+          f"({got:.1f} frames/s; the flock measures at {setup.rate_hz:g} Hz), {setup.record_format}, {scale}; "
+          f"{s['dropped_records']} bird-frames invalid, {s['resynced']} resyncs, {s['reconnects']} reconnects",
+          file=sys.stderr)
+    # Judged over the whole take (the live check looks at its first seconds only), unless it was short.
+    warning = rate_warning(setup, got) if seconds >= 1.0 and setup.mode == "stream" else None
+    if warning and not any(e.kind == "rate_low" for e in events):
+        print(f"flockcal record: warning: {warning}", file=sys.stderr)
     return 0
 
 
@@ -99,10 +166,12 @@ def _replay(args) -> int:
     valid = f.valid.mean() if len(f) else 0.0
     span = f.times[-1] - f.times[0] if len(f) > 1 else 0.0
     setup = out.setups[-1]
+    names = rec.settings.get("names")
     print(f"{rec.summary()}")
     print(f"{len(f)} frames of {setup['birds']} birds over {span:.2f} s ({setup['record_format']}, "
           f"{'group mode' if setup['group'] else 'one port per bird'}, {setup['rate_hz']:.1f} Hz); "
           f"{valid:.1%} of bird-frames valid; {out.resyncs} resyncs; {out.sessions} session(s)")
+    print(f"sensors: {', '.join(names) if names else 'not named in the recording (convert --names names them)'}")
     for e in out.events:
         if e.get("event") not in ("resync", "hemisphere_flip"):
             print(f"  {e['event']}: {e.get('message', '')}")
@@ -122,9 +191,10 @@ def _convert(args) -> int:
         raise RecordingError(f"{args.recording}: no complete frame could be decoded")
     setup = out.setups[-1]
     m = f.valid.shape[1]
-    names = args.names.split(",") if args.names else [f"bird{i}" for i in range(m)]
+    names = parse_names(args.names, m) or rec.settings.get("names") or default_names(m)
     if len(names) != m:
-        raise UserError(f"--names gives {len(names)} names but the recording has {m} birds")
+        raise RecordingError(f"{args.recording}: its header names {len(names)} sensors but it holds {m} birds; "
+                             f"name them with --names")
     carried = np.isfinite(f.positions).all(axis=2) & np.isfinite(f.rotations).all(axis=(2, 3))
     if (f.valid & ~carried).any():
         raise RecordingError(f"{args.recording}: its record format {setup['record_format']} lacks position or "
@@ -132,6 +202,6 @@ def _convert(args) -> int:
     take = make_take(f.rotations, f.positions, names, setup["rate_hz"], valid=f.valid, times=f.times - f.times[0],
                      source=args.recording)
     save_take(args.output, take)
-    print(f"wrote {args.output}: {take.n_frames} frames of {take.n_sensors} sensors, "
-          f"{take.valid.mean():.1%} valid")
+    print(f"wrote {args.output}: {take.n_frames} frames of {take.n_sensors} sensors ({', '.join(take.names)}), "
+          f"{take.valid.mean():.1%} valid", file=sys.stderr)
     return 0

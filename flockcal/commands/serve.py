@@ -36,7 +36,7 @@ def register(subparsers) -> None:
     p.add_argument("--names", help="comma-separated sensor names, one per bird (default: the simulator's "
                    "body names for sim://, else bird1..birdN)")
     p.add_argument("--scale", type=int, choices=(36, 72), help="position full scale in inches "
-                   "(default 72 for the simulator, else 36)")
+                   "(default 72 for the simulator, else the scale the tracker is set to)")
     p.add_argument("--baud", type=int, metavar="BAUD", help="serial line speed (default 115200, or the baud= of "
                    "a sim:// URL); the driver picks a record format the line can carry")
     p.add_argument("--fit-hz", type=float, default=30.0, help="full refits per second (default 30)")
