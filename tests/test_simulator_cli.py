@@ -26,7 +26,8 @@ def test_simulate_writes_the_npz_take_and_truth_json_beside_it(tmp_path, capsys)
     assert truth["parent"] == {"chest": "pelvis", "head": "chest", "l_upper_arm": "chest",
                                "l_forearm": "l_upper_arm", "l_hand": "l_forearm"}  # fmt: skip
     assert truth["simulation"]["motion"] == "exercise" and truth["simulation"]["seed"] == 1
-    assert "take.truth.json" in capsys.readouterr().out
+    err = capsys.readouterr().err  # every file written is named on stderr
+    assert f"wrote {out}" in err and "take.truth.json" in err
 
 
 def test_simulate_options_reach_the_take(tmp_path):

@@ -120,3 +120,4 @@ def test_bvh_option_writes_a_file_or_says_it_is_unavailable(take_file, capsys, t
         assert rc == 2 and "BVH export is not available" in err
     else:
         assert rc == 0 and out.read_text().startswith("HIERARCHY")
+        assert f"wrote {out}" in err

@@ -12,6 +12,7 @@ import sys
 import time
 from pathlib import Path
 
+from flockcal.commands.takecheck import PARTIAL_EXIT, add_option, stop_for, too_short, too_still
 from flockcal.errors import UserError
 
 CHUNK = 65536  # frames per accumulator update; also the progress bar's step
@@ -31,6 +32,7 @@ def register(subparsers) -> None:
     p.add_argument("--scale", metavar="FACTOR", help="multiply positions by FACTOR before fitting (unit scale, paper §4): "
                    "a number or the JSON file `flockcal scale --json` wrote")
     p.add_argument("--no-slips", action="store_true", help="skip the sensor-slip search (faster on long takes)")
+    add_option(p)
     p.set_defaults(func=run)
 
 
@@ -84,7 +86,10 @@ def run(args: argparse.Namespace) -> int:
         take = dataclasses.replace(take, positions=take.positions * scale_factor(args.scale))
     hierarchy = load_hierarchy(args.hierarchy) if args.hierarchy else None
     acc = accumulate(take)
+    # Fitted first, so bad input (names, hierarchy) is reported as such before the take is judged.
     cal = calibrate(acc, hierarchy=hierarchy, root=args.root, names=take.names)
+    if stop_for("fit", args.file, too_short(take) or too_still(cal), args.allow_partial):
+        return PARTIAL_EXIT
     slips, result = [], cal.to_dict()
     if not args.no_slips and len(cal.joints.pairs):
         from flockcal.solver.segments import calibration_after_slips
@@ -101,6 +106,7 @@ def run(args: argparse.Namespace) -> int:
         except ModuleNotFoundError:
             raise UserError("BVH export is not available in this installation (flockcal.exports.bvh is missing)") from None
         write_bvh(args.bvh, cal, take)
+        print(f"wrote {args.bvh}", file=sys.stderr)
     if args.json:
         print(json.dumps(result, indent=2))
     else:

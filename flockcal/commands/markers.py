@@ -51,6 +51,7 @@ def run(args) -> int:
         from flockcal.takes import save_take
 
         save_take(args.take, fit.take())
+        print(f"wrote {args.take}", file=sys.stderr)
     if args.json:
         json.dump(out, sys.stdout)
         sys.stdout.write("\n")

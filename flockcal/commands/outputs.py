@@ -10,6 +10,7 @@ import json
 import sys
 from pathlib import Path
 
+from flockcal.commands.takecheck import PARTIAL_EXIT
 from flockcal.errors import UserError
 
 
@@ -57,12 +58,16 @@ def _hierarchy(path: str | None) -> dict | None:
     return data
 
 
-def fit_take(take, hierarchy: str | None = None, root: str | None = None, skeleton: str | None = None):
+def fit_take(take, hierarchy: str | None = None, root: str | None = None, skeleton: str | None = None,
+             with_free: bool = False):
     """Fit `take` for an output: with a saved skeleton file, a `{child: parent}` file, or a full search.
 
-    Returns a Calibration or a KnownFit; both give the design.md §5 dict through `.to_dict()`.
+    Returns a Calibration or a KnownFit; both give the design.md §5 dict through `.to_dict()`. With
+    `with_free`, returns (fit, free calibration of the same take), the free one judging whether the
+    take moved enough (it is the fit itself unless a skeleton file was given).
     """
     from flockcal.solver.accumulator import GramAccumulator
+    from flockcal.solver.calibration import calibrate
 
     acc = GramAccumulator(take.n_sensors)
     acc.update(take.rotations, take.positions, take.valid)
@@ -71,14 +76,30 @@ def fit_take(take, hierarchy: str | None = None, root: str | None = None, skelet
             raise UserError("--skeleton fixes the tree; leave out --hierarchy and --root")
         from flockcal.exports.skeleton import load_skeleton
 
-        return load_skeleton(skeleton).fit(acc, take.names)
-    from flockcal.solver.calibration import calibrate
+        fit = load_skeleton(skeleton).fit(acc, take.names)
+        return (fit, calibrate(acc, names=list(take.names))) if with_free else fit
+    fit = calibrate(acc, hierarchy=_hierarchy(hierarchy), root=root, names=list(take.names))
+    return (fit, fit) if with_free else fit
 
-    return calibrate(acc, hierarchy=_hierarchy(hierarchy), root=root, names=list(take.names))
+
+def fitted_take(args, command: str):
+    """The take of `args` and its fit, or (take, None) when it is too short or too still to fit and
+    --allow-partial was not given (the warning is printed)."""
+    from flockcal.commands.takecheck import stop_for, too_short, too_still
+
+    take = load_scaled_take(args.take, args.scale)
+    # Fitted first, so bad input (names, hierarchy, skeleton file) is reported as such before the take is judged.
+    cal, free = fit_take(take, args.hierarchy, args.root, args.skeleton, with_free=True)
+    if stop_for(command, args.take, too_short(take) or too_still(free), args.allow_partial):
+        return take, None
+    return take, cal
 
 
 def _add_fit_options(p: argparse.ArgumentParser) -> None:
+    from flockcal.commands.takecheck import add_option
+
     p.add_argument("take", help="take file (.npz, design.md §5)")
+    add_option(p)
     p.add_argument("--hierarchy", metavar="FILE.json", help="{child: parent} map: skip the topology search")
     p.add_argument("--root", metavar="NAME", help="root body of the tree")
     p.add_argument("--skeleton", metavar="FILE.json", help="a saved skeleton of this performer: fit placements only")
@@ -130,8 +151,9 @@ def cmd_scale(args) -> int:
 def cmd_report(args) -> int:
     from flockcal.exports.report import write_report
 
-    take = load_scaled_take(args.take, args.scale)
-    cal = fit_take(take, args.hierarchy, args.root, args.skeleton)
+    take, cal = fitted_take(args, "report")
+    if cal is None:
+        return PARTIAL_EXIT
     write_report(args.output, cal, take, source=Path(args.take).name, up=args.up)
     print(f"wrote {args.output}", file=sys.stderr)
     return 0
@@ -140,8 +162,9 @@ def cmd_report(args) -> int:
 def cmd_export_bvh(args) -> int:
     from flockcal.exports.bvh import write_bvh
 
-    take = load_scaled_take(args.take, args.scale)
-    cal = fit_take(take, args.hierarchy, args.root, args.skeleton)
+    take, cal = fitted_take(args, "export-bvh")
+    if cal is None:
+        return PARTIAL_EXIT
     rest = int(args.rest) if args.rest.isdigit() else args.rest
     write_bvh(args.output, cal, take, units=args.units, up=args.up, rest=rest)
     print(f"wrote {args.output}", file=sys.stderr)
@@ -151,8 +174,9 @@ def cmd_export_bvh(args) -> int:
 def cmd_skeleton(args) -> int:
     from flockcal.exports.skeleton import write_skeleton
 
-    take = load_scaled_take(args.take, args.scale)
-    cal = fit_take(take, args.hierarchy, args.root, args.skeleton)
+    take, cal = fitted_take(args, "skeleton")
+    if cal is None:
+        return PARTIAL_EXIT
     source = {"take": Path(args.take).name, "frames": take.n_frames, "rate_hz": take.rate_hz}
     if args.scale is not None:
         source["scale"] = scale_factor(args.scale)

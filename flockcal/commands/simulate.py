@@ -108,7 +108,8 @@ def _write_take(args: argparse.Namespace) -> int:
     save_take(out, take)
     tp = truth_path(out)
     write_atomic(tp, json.dumps(truth, indent=1) + "\n")
-    print(f"wrote {out} ({take.n_frames} frames × {take.n_sensors} sensors, {args.motion}, {args.seconds:g} s) and {tp}")
+    print(f"wrote {out} ({take.n_frames} frames × {take.n_sensors} sensors, {args.motion}, {args.seconds:g} s) and {tp}",
+          file=sys.stderr)
     return 0
 
 
