@@ -40,6 +40,7 @@ SYNC = b"CK"
 READ, WRITE, MARK = b"R", b"W", b"M"
 _CHUNK = struct.Struct("<2sccdI")
 _U32 = struct.Struct("<I")
+PROGRESS_CHUNKS = 2048  # replay reports its progress this often
 MAX_CHUNK = 1 << 24  # no single read is this large; a bigger length means a damaged header
 
 
@@ -293,12 +294,13 @@ class Replay:
 
 
 def replay(recording: Recording, on_frames=None, realtime: bool = False, speed: float = 1.0,
-           batch_seconds: float = 0.05) -> Replay:
+           batch_seconds: float = 0.05, on_progress=None) -> Replay:
     """Decode a recording through the same assembler as the live read (same bytes, same order, same
     arrival times), so the frames are identical to the ones the live reader delivered.
 
     `on_frames(times, rotations, positions, valid)` is called in batches; with `realtime` the batches
-    are paced by the recorded arrival times (divided by `speed`).
+    are paced by the recorded arrival times (divided by `speed`). `on_progress(chunks done)` is called
+    every PROGRESS_CHUNKS chunks and at the end (for a progress bar).
     """
     from flockcal.drivers.assembly import FrameAssembler, Frames  # the decoding path of the live reader
     from flockcal.drivers.link import FlockSetup
@@ -337,7 +339,9 @@ def replay(recording: Recording, on_frames=None, realtime: bool = False, speed: 
         totals["rejected"] += asm.rejected_records
         asm = None
 
-    for chunk in recording.chunks:
+    for k, chunk in enumerate(recording.chunks):
+        if on_progress is not None and k % PROGRESS_CHUNKS == 0 and k:
+            on_progress(k)
         if chunk.kind == MARK:
             info = chunk.marker()
             if "stream" in info:
@@ -356,5 +360,7 @@ def replay(recording: Recording, on_frames=None, realtime: bool = False, speed: 
             asm.feed(chunk.port, chunk.time, chunk.payload)
             collect(chunk.time)
     retire()
+    if on_progress is not None:
+        on_progress(len(recording.chunks))
     frames = Frames.concat(parts, m)
     return Replay(frames, setups, events, len(setups), totals["resyncs"], totals["dropped"], totals["rejected"])

@@ -9,11 +9,11 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-import time
 from pathlib import Path
 
 from flockcal.commands.takecheck import PARTIAL_EXIT, add_option, stop_for, too_short, too_still
 from flockcal.errors import UserError
+from flockcal.progress import Stages
 
 CHUNK = 65536  # frames per accumulator update; also the progress bar's step
 
@@ -54,22 +54,18 @@ def load_hierarchy(path: str) -> dict:
 
 
 def accumulate(take, progress: bool = True):
-    """A GramAccumulator over the whole take, with a progress bar on stderr once it takes over a second."""
+    """A GramAccumulator over the whole take, with a progress bar on a terminal once it takes a while."""
+    from flockcal.progress import bar
     from flockcal.solver.accumulator import GramAccumulator
 
     acc = GramAccumulator(take.n_sensors)
     n = take.n_frames
-    start = time.monotonic()
-    shown = False
-    for s in range(0, n, CHUNK):
-        e = min(n, s + CHUNK)
-        acc.update(take.rotations[s:e], take.positions[s:e], take.valid[s:e])
-        if progress and time.monotonic() - start > 1.0:
-            shown = True
-            bar = "#" * int(30 * e / n)
-            print(f"\rfitting [{bar:<30}] {100 * e / n:3.0f}%  {e}/{n} frames", end="", file=sys.stderr, flush=True)
-    if shown:
-        print(file=sys.stderr)
+    with bar(n, "accumulating", unit="frame", unit_scale=True) as shown:
+        shown.disable = shown.disable or not progress
+        for s in range(0, n, CHUNK):
+            e = min(n, s + CHUNK)
+            acc.update(take.rotations[s:e], take.positions[s:e], take.valid[s:e])
+            shown.update(e - s)
     return acc
 
 
@@ -91,21 +87,26 @@ def run(args: argparse.Namespace) -> int:
     if stop_for("fit", args.file, too_short(take) or too_still(cal), args.allow_partial):
         return PARTIAL_EXIT
     slips, result = [], cal.to_dict()
-    if not args.no_slips and len(cal.joints.pairs):
-        from flockcal.solver.segments import calibration_after_slips
-        from flockcal.solver.slippage import detect_slips
+    with Stages("fit", ["searching for slips", "re-fitting after slips", "writing BVH"]) as stages:
+        if not args.no_slips and len(cal.joints.pairs):
+            from flockcal.solver.segments import calibration_after_slips
+            from flockcal.solver.slippage import detect_slips
 
-        slips = detect_slips(take, cal)
-        if slips:
-            # The slipped sensors' joints and bones are re-fitted on the frames since their slip
-            # (design.md §4); everything else keeps the whole take.
-            result = calibration_after_slips(take, slips, hierarchy=result["parent"], root=result["root"])
+            stages.step("searching for slips")
+            slips = detect_slips(take, cal)
+            if slips:
+                # The slipped sensors' joints and bones are re-fitted on the frames since their slip
+                # (design.md §4); everything else keeps the whole take.
+                stages.step("re-fitting after slips")
+                result = calibration_after_slips(take, slips, hierarchy=result["parent"], root=result["root"])
+        if args.bvh:
+            try:
+                from flockcal.exports.bvh import write_bvh
+            except ModuleNotFoundError:
+                raise UserError("BVH export is not available in this installation (flockcal.exports.bvh is missing)") from None
+            stages.step("writing BVH")
+            write_bvh(args.bvh, cal, take)
     if args.bvh:
-        try:
-            from flockcal.exports.bvh import write_bvh
-        except ModuleNotFoundError:
-            raise UserError("BVH export is not available in this installation (flockcal.exports.bvh is missing)") from None
-        write_bvh(args.bvh, cal, take)
         print(f"wrote {args.bvh}", file=sys.stderr)
     if args.json:
         print(json.dumps(result, indent=2))

@@ -40,17 +40,23 @@ def _clean(x):
 
 def run(args) -> int:
     from flockcal.markers import load_markers
-    from flockcal.solver.optical.pipeline import fit_markers
+    from flockcal.progress import Stages
+    from flockcal.solver.optical.pipeline import STAGES, fit_markers
 
     if args.bodies is not None and args.bodies < 2:
         raise UserError(f"--bodies must be 2 or more, got {args.bodies}")
-    take = load_markers(args.file)
-    fit = fit_markers(take.markers, take.marker_names, take.rate_hz, take.times, n_groups=args.bodies, root=args.root)
-    out = _clean(fit.to_dict())
-    if args.take:
-        from flockcal.takes import save_take
+    with Stages("fit-markers", ["reading", *STAGES, "poses and JSON"]) as stages:
+        stages.step("reading")
+        take = load_markers(args.file)
+        fit = fit_markers(take.markers, take.marker_names, take.rate_hz, take.times, n_groups=args.bodies,
+                          root=args.root, progress=stages.step)
+        stages.step("poses and JSON")
+        out = _clean(fit.to_dict())
+        if args.take:
+            from flockcal.takes import save_take
 
-        save_take(args.take, fit.take())
+            save_take(args.take, fit.take())
+    if args.take:
         print(f"wrote {args.take}", file=sys.stderr)
     if args.json:
         json.dump(out, sys.stdout)

@@ -149,12 +149,15 @@ def cmd_scale(args) -> int:
 
 
 def cmd_report(args) -> int:
-    from flockcal.exports.report import write_report
+    from flockcal.exports.report import REPORT_STAGES, write_report
+    from flockcal.progress import Stages
 
-    take, cal = fitted_take(args, "report")
-    if cal is None:
-        return PARTIAL_EXIT
-    write_report(args.output, cal, take, source=Path(args.take).name, up=args.up)
+    with Stages("report", ["fitting", *REPORT_STAGES]) as stages:
+        stages.step("fitting")
+        take, cal = fitted_take(args, "report")
+        if cal is None:
+            return PARTIAL_EXIT
+        write_report(args.output, cal, take, source=Path(args.take).name, up=args.up, progress=stages.step)
     print(f"wrote {args.output}", file=sys.stderr)
     return 0
 
@@ -162,25 +165,34 @@ def cmd_report(args) -> int:
 def cmd_export_bvh(args) -> int:
     from flockcal.exports.bvh import write_bvh
 
-    take, cal = fitted_take(args, "export-bvh")
-    if cal is None:
-        return PARTIAL_EXIT
-    rest = int(args.rest) if args.rest.isdigit() else args.rest
-    write_bvh(args.output, cal, take, units=args.units, up=args.up, rest=rest)
+    from flockcal.progress import Stages
+
+    with Stages("export-bvh", ["fitting", "writing"]) as stages:
+        stages.step("fitting")
+        take, cal = fitted_take(args, "export-bvh")
+        if cal is None:
+            return PARTIAL_EXIT
+        stages.step("writing")
+        rest = int(args.rest) if args.rest.isdigit() else args.rest
+        write_bvh(args.output, cal, take, units=args.units, up=args.up, rest=rest)
     print(f"wrote {args.output}", file=sys.stderr)
     return 0
 
 
 def cmd_skeleton(args) -> int:
     from flockcal.exports.skeleton import write_skeleton
+    from flockcal.progress import Stages
 
-    take, cal = fitted_take(args, "skeleton")
-    if cal is None:
-        return PARTIAL_EXIT
-    source = {"take": Path(args.take).name, "frames": take.n_frames, "rate_hz": take.rate_hz}
-    if args.scale is not None:
-        source["scale"] = scale_factor(args.scale)
-    write_skeleton(args.output, cal, source, take=take)
+    with Stages("skeleton", ["fitting", "writing"]) as stages:
+        stages.step("fitting")
+        take, cal = fitted_take(args, "skeleton")
+        if cal is None:
+            return PARTIAL_EXIT
+        stages.step("writing")
+        source = {"take": Path(args.take).name, "frames": take.n_frames, "rate_hz": take.rate_hz}
+        if args.scale is not None:
+            source["scale"] = scale_factor(args.scale)
+        write_skeleton(args.output, cal, source, take=take)
     print(f"wrote {args.output}", file=sys.stderr)
     return 0
 

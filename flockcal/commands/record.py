@@ -146,6 +146,20 @@ def _record_with(args, names: list[str] | None) -> int:
     return 0
 
 
+def _decode(rec, replay, **options):
+    """`replay(rec)` with a progress bar over its chunks on a terminal (long recordings take a while)."""
+    from flockcal.progress import bar
+
+    with bar(len(rec.chunks), "decoding", unit="chunk", unit_scale=True) as shown:
+        done = [0]
+
+        def advance(k: int) -> None:
+            shown.update(k - done[0])
+            done[0] = k
+
+        return replay(rec, on_progress=advance, **options)
+
+
 def _load(path: str, salvage: bool):
     from flockcal.drivers.recording import read_recording, replay
 
@@ -161,7 +175,7 @@ def _replay(args) -> int:
     rec, replay = _load(args.recording, args.salvage)
     if args.speed <= 0:
         raise UserError("--speed must be positive")
-    out = replay(rec, realtime=args.realtime, speed=args.speed)
+    out = _decode(rec, replay, realtime=args.realtime, speed=args.speed)
     f = out.frames
     valid = f.valid.mean() if len(f) else 0.0
     span = f.times[-1] - f.times[0] if len(f) > 1 else 0.0
@@ -185,7 +199,7 @@ def _convert(args) -> int:
     from flockcal.takes import make_take, save_take
 
     rec, replay = _load(args.recording, args.salvage)
-    out = replay(rec)
+    out = _decode(rec, replay)
     f = out.frames
     if len(f) == 0:
         raise RecordingError(f"{args.recording}: no complete frame could be decoded")

@@ -101,13 +101,18 @@ def _write_take(args: argparse.Namespace) -> int:
     if not out.parent.exists():
         raise UserError(f"{out.parent}: no such directory; create it or write elsewhere with -o")
     birds = args.birds if args.birds is not None else (16 if args.model == "human" else None)
-    take, truth = simulate(
-        model=args.model, motion=args.motion, seconds=args.seconds, rate_hz=args.rate, birds=birds,
-        seed=args.seed, noise=None if args.noise == "none" else "tracker", faults=faults, height=args.height,
-    )  # fmt: skip
-    save_take(out, take)
+    from flockcal.progress import Stages
+
     tp = truth_path(out)
-    write_atomic(tp, json.dumps(truth, indent=1) + "\n")
+    with Stages("simulate", ["simulating", "writing"]) as stages:
+        stages.step("simulating")
+        take, truth = simulate(
+            model=args.model, motion=args.motion, seconds=args.seconds, rate_hz=args.rate, birds=birds,
+            seed=args.seed, noise=None if args.noise == "none" else "tracker", faults=faults, height=args.height,
+        )  # fmt: skip
+        stages.step("writing")
+        save_take(out, take)
+        write_atomic(tp, json.dumps(truth, indent=1) + "\n")
     print(f"wrote {out} ({take.n_frames} frames × {take.n_sensors} sensors, {args.motion}, {args.seconds:g} s) and {tp}",
           file=sys.stderr)
     return 0

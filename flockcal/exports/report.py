@@ -196,17 +196,24 @@ def _longest_gap_s(valid: np.ndarray, rate_hz: float) -> np.ndarray:
     return np.asarray(out, dtype=float) / rate_hz
 
 
+REPORT_STAGES = ("residuals", "slips", "figures")
+
+
 def report_html(
-    calibration, take, *, title: str | None = None, source: str | None = None, slips=None, up: str = "-z"
+    calibration, take, *, title: str | None = None, source: str | None = None, slips=None, up: str = "-z",
+    progress=None,
 ) -> str:
     """The report page for `take` (a flockcal.takes.Take) fitted as `calibration` (Calibration or its
-    §5 dict). `slips` overrides the slip events (list of §5 slip dicts); `up` is the world's up axis."""
+    §5 dict). `slips` overrides the slip events (list of §5 slip dicts); `up` is the world's up axis;
+    `progress(stage)` is told each of REPORT_STAGES as it begins (for a progress bar)."""
+    step = progress or (lambda stage: None)
     import matplotlib
 
     matplotlib.use("Agg")
     from flockcal.exports.bvh import bvh_world
     from flockcal.solver.known_skeleton import bones as bones_of
 
+    step(REPORT_STAGES[0])
     d = calibration.to_dict() if hasattr(calibration, "to_dict") else dict(calibration)
     art = articulation(d).reordered(take.names).completed(take.rotations, take.positions, take.valid)
     names = art.names
@@ -219,7 +226,9 @@ def report_html(
         warnings.simplefilter("ignore", RuntimeWarning)  # a joint with no valid frame has no rms: shown as –
         rms = np.sqrt(np.nanmean(sep**2, axis=0))
         worst = np.nanmax(sep, axis=0)
+    step(REPORT_STAGES[1])
     slips = _find_slips(take, d) if slips is None else list(slips)
+    step(REPORT_STAGES[2])
     duration = float(take.times[-1] - take.times[0]) if take.n_frames > 1 else 0.0
     title = title or f"flockcal calibration report{f' — {source}' if source else ''}"
     made = datetime.now(timezone.utc).isoformat(timespec="seconds")

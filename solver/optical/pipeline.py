@@ -8,6 +8,7 @@ jump of the joint centre); those marker-frames are blanked and the joints refitt
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from dataclasses import dataclass, field, replace
 
 import numpy as np
@@ -130,6 +131,9 @@ def fit_joints(markers, groups, parent, frames=None, penalty: float = 1e-5):
     return joint_points, joint_rms, suspects
 
 
+STAGES = ("clustering", "topology", "joints and poses", "second pass without swaps")
+
+
 def fit_markers(
     markers: np.ndarray,
     marker_names,
@@ -141,10 +145,13 @@ def fit_markers(
     max_frames: int | None = 6000,
     min_seen: float = 0.2,
     seed: int = 0,
+    progress: Callable[[str], None] | None = None,
 ) -> OpticalFit:
     """Skeleton from an (n, k, 3) marker take. Markers seen in under `min_seen` of the frames are left
     out (listed in `unused_markers`); takes longer than `max_frames` are thinned evenly for the joint
-    fits (the poses are still produced for every frame)."""
+    fits (the poses are still produced for every frame). `progress(stage)` is told each of STAGES as
+    it begins (for a progress bar)."""
+    step = progress or (lambda stage: None)
     markers = np.asarray(markers, dtype=float)
     names = tuple(str(x) for x in marker_names)
     n, k, _ = markers.shape
@@ -157,6 +164,7 @@ def fit_markers(
     M = markers[:, keep]
     kept_names = tuple(names[i] for i in keep)
 
+    step(STAGES[0])
     clus = cluster_markers(M, n_groups=n_groups, seed=seed)
     groups = clus.groups
     if len(groups) < 2:
@@ -168,6 +176,7 @@ def fit_markers(
         root = labels.index(root)
 
     fit_frames = None if max_frames is None or n <= max_frames else np.linspace(0, n - 1, max_frames).astype(int)
+    step(STAGES[1])
     topo = topology_frames(np.isfinite(M).all(-1), topology_frame_count)
     tree = spanning_tree(pair_costs(M, groups, topo), root=root)
 
@@ -184,7 +193,8 @@ def fit_markers(
         points = [sizes[b] + sum(1 for j in range(len(par)) if j not in weak and (j == b or par[j] == b) and par[j] >= 0) for b in (c, p)]
         if min(points) < 3:
             weak.discard(c)
-    for _ in range(2):  # second pass: refit without the marker-frames the first pass found wrong
+    for k in range(2):  # second pass: refit without the marker-frames the first pass found wrong
+        step(STAGES[2 + k])
         jp, jrms, suspects = fit_joints(work, groups, par, fit_frames)
         strong = {c: v for c, v in jp.items() if c not in weak}
         shapes = skeleton_shapes(work, groups, par, strong, skip=weak)
