@@ -92,3 +92,32 @@ def test_simulate_pty_serves_a_fake_tracker_that_answers_point(tmp_path):
             proc.kill()
             raise
     assert rc == 0  # Ctrl-C is the documented way to stop it: a clean exit
+
+
+def test_the_record_line_simulate_pty_prints_fits_the_fake_and_keeps_its_names(tmp_path):
+    # The README tour: `flockcal simulate --pty`, then the `flockcal record` it suggests, then convert.
+    proc = subprocess.Popen([sys.executable, "-m", "flockcal", "simulate", "--pty", "--motion", "exercise"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        device = proc.stdout.readline().strip()
+        proc.stderr.readline()
+        suggested = proc.stderr.readline().strip()
+        assert suggested.startswith("record it with: flockcal record --port " + device), suggested
+        argv = suggested.split(": ", 1)[1].split()[1:]
+        argv[argv.index("recorded.fobraw")] = str(tmp_path / "recorded.fobraw")
+        rec = subprocess.run([sys.executable, "-m", "flockcal", *argv, "--seconds", "4"], capture_output=True,
+                             text=True, timeout=120)
+    finally:
+        proc.send_signal(signal.SIGINT)
+        proc.wait(timeout=10)
+    assert rec.returncode == 0, rec.stderr
+    # The tracker's own 72-inch scale is kept (nothing saturates) and the line carries the rate asked.
+    assert "72-inch scale (the tracker's own)" in rec.stderr
+    assert "frames/s arrive" not in rec.stderr and "saturated" not in rec.stderr and "warning" not in rec.stderr
+    npz = tmp_path / "recorded.npz"
+    conv = subprocess.run([sys.executable, "-m", "flockcal", "convert", str(tmp_path / "recorded.fobraw"), "-o", str(npz)],
+                          capture_output=True, text=True, timeout=120)
+    assert conv.returncode == 0, conv.stderr
+    take = load_take(npz)
+    assert take.names == Performer(birds=16, seed=1).names
+    assert take.valid.mean() > 0.97  # a few bird-frames at the ends of the stream, none beyond full scale

@@ -63,6 +63,22 @@ def _slips(specs: list[str]) -> list[dict]:
     return out
 
 
+PTY_BAUD = 115200  # the fake's line runs at the RS-232 top speed, as a Flock's DIP switches allow
+
+
+def record_command(device: str, names, rate_hz: float) -> str:
+    """A `flockcal record` line for the fake: its sensor names, and the highest whole rate up to the
+    fake's own that one 115200-baud line carries for the whole flock (group mode, position/quaternion)."""
+    from flockcal.drivers import codec
+    from flockcal.drivers.link import LINK_MARGIN, link_capacity
+
+    per_set = len(names) * codec.record_length("position_quaternion", group=len(names) > 1)
+    fits = int(link_capacity(PTY_BAUD) * LINK_MARGIN // per_set)
+    rate = f" --rate {fits}" if fits < rate_hz else ""
+    return (f"flockcal record --port {device} --birds {len(names)}{rate} --names {','.join(names)} "
+            f"-o recorded.fobraw")
+
+
 def truth_path(take_path: Path) -> Path:
     """Where the truth of `take.npz` goes: `take.truth.json` beside it."""
     return take_path.with_name(take_path.stem + ".truth.json")
@@ -141,7 +157,8 @@ def _serve_pty(args: argparse.Namespace) -> int:
         source.set_unit_scale(args.unit_scale)
     for s in _slips(args.slip):
         source.inject_slip(s["sensor"], s["distance_m"], at_time=s["at_time"], angle_deg=s["angle_deg"])
-    tracker = PtyTracker(source, birds=source.n_sensors, rate_hz=args.rate, scale_inches=source.full_scale_in)
+    tracker = PtyTracker(source, birds=source.n_sensors, rate_hz=args.rate, scale_inches=source.full_scale_in,
+                         baud=PTY_BAUD)
     tracker.start()
     stop = threading.Event()
     signal.signal(signal.SIGTERM, lambda *_: stop.set())
@@ -149,10 +166,11 @@ def _serve_pty(args: argparse.Namespace) -> int:
         print(tracker.device, flush=True)
         print(
             f"fake Flock of Birds: {source.n_sensors} birds ({', '.join(source.names)}), {args.motion}, "
-            f"{args.rate:g} Hz, {source.full_scale_in:g}-inch scale; Ctrl-C to stop",
+            f"{args.rate:g} Hz, {source.full_scale_in:g}-inch scale, {PTY_BAUD} baud; Ctrl-C to stop",
             file=sys.stderr,
             flush=True,
         )
+        print(f"record it with: {record_command(tracker.device, source.names, args.rate)}", file=sys.stderr, flush=True)
         while not stop.wait(0.5):
             pass
     except KeyboardInterrupt:
