@@ -394,7 +394,7 @@ class FlockIdentity:
     scale_inches: float  # the position scale it is set to now, 36 or 72
 
 
-# Model IDs that speak the Flock's RS-232 command set with sensors at addresses 1..N (fob-protocol.md §8).
+# Model IDs that speak the Flock's RS-232 command set with sensors at addresses 1..N (its close relatives).
 FLOCK_MODELS = ("6DFOB", "6DBOF", "PCBIRD", "SPACEPAD")
 
 

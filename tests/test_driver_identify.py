@@ -28,7 +28,7 @@ def _ask(flock, clock, data, dt=0.05):
 def test_fake_answers_model_status_and_per_bird_scale_as_the_hardware_does():
     clock = ManualClock()
     flock = FakeFlock(SmoothSource(3), clock=clock, scale_inches=36.0)
-    # Model ID: 10 bytes of space-padded ASCII (fob-protocol.md §3, p15).
+    # Model ID (p15): 10 bytes of space-padded ASCII, as the Flock manual gives it.
     assert _ask(flock, clock, codec.examine_command(15)) == b"6DFOB     "
     # Status word: master bit only on address 1; the format bits follow a format command.
     master = codec.decode_status_word(_ask(flock, clock, codec.examine_command(0)))

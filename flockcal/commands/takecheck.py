@@ -25,7 +25,7 @@ def add_option(parser) -> None:
 def determined_joints(cal) -> np.ndarray:
     """Which joints of the fitted tree are determined, one bool per `cal.joints` entry.
 
-    The one place that decides it. Until design.md §5 carries `joints[].determined`, a joint counts as
+    The one place that decides it. Until the fit JSON carries `joints[].determined`, a joint counts as
     determined when its pair fit solved at least one rotation direction (rank > 3 in the solver's
     PairFits): its two sensors turned relative to each other. Bodies that never turned are contracted
     into rigid groups and have no tree joint at all.
