@@ -90,6 +90,9 @@ def fresh_serve(fresh_venv, tmp_path_factory):
     try:
         wait_ready(url, 60, proc=proc)
         wait_connected(url, 30)
+        # A session, as an operator would start one, so fits stream and the pages have one to show.
+        r = httpx.post(url + "/api/sessions", json={"performer": "Fresh"}, timeout=10)
+        assert r.status_code == 201, r.text
         proc.url, proc.log = url, log
         yield proc
     finally:
@@ -113,9 +116,6 @@ def test_fresh_install_has_a_websocket_library_and_no_test_extras(fresh_venv):
 
 
 def test_live_websocket_streams_fit_and_pose(fresh_serve):
-    r = httpx.post(fresh_serve.url + "/api/sessions", json={"performer": "Fresh"}, timeout=10)
-    assert r.status_code == 201, r.text
-
     async def listen() -> dict[str, int]:
         seen: dict[str, int] = {}
         async with websockets.connect(fresh_serve.url.replace("http://", "ws://") + "/ws/live") as ws:
