@@ -20,7 +20,7 @@ _JOINT_OF_BODY = [
     (r"fore ?arm|lower ?arm", "elbow"),
     (r"upper ?arm|up ?arm|humerus|\barm\b", "shoulder"),
     (r"hand|wrist", "wrist"),
-    (r"shin|calf|lower ?leg|low ?leg|tibia", "knee"),
+    (r"shin|shank|calf|lower ?leg|low ?leg|tibia", "knee"),
     (r"thigh|upper ?leg|up ?leg|femur", "hip"),
     (r"foot|ankle", "ankle"),
     (r"toe", "toes"),

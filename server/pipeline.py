@@ -82,7 +82,7 @@ def _finite(obj):
     return obj
 
 
-def calibrate_dict(acc, names, hierarchy=None, root=None, skeleton=None) -> dict:
+def calibrate_dict(acc, names, hierarchy=None, root=None, skeleton=None, tolerance: float = 0.005) -> dict:
     """The §5 JSON of a fit of `acc` (solver's calibrate), JSON-safe; SolverError etc. propagate.
 
     A SegmentedAccumulator fits joints of slipped sensors on the frames since their slip. With a saved
@@ -94,8 +94,8 @@ def calibrate_dict(acc, names, hierarchy=None, root=None, skeleton=None) -> dict
     # The solver builds these dicts JSON-safe (Calibration.to_dict: Python scalars, None for NaN; the tests
     # hold it to that), so they are not walked again: this runs ~30×/s, and the walk cost as much as the MST.
     if hasattr(acc, "calibration_dict"):
-        return acc.calibration_dict(hierarchy=hierarchy, root=root, names=list(names))
-    return calibrate(acc, hierarchy=hierarchy, root=root, names=list(names)).to_dict()
+        return acc.calibration_dict(hierarchy=hierarchy, root=root, names=list(names), tolerance=tolerance)
+    return calibrate(acc, hierarchy=hierarchy, root=root, names=list(names), tolerance=tolerance).to_dict()
 
 
 def known_dict_of(skeleton, acc, names, previous=None) -> tuple[dict, object]:
@@ -155,8 +155,10 @@ class Pipeline:
         on_publish: Callable[[Snapshot], None] | None = None,
         detect_slips: bool = True,
         rate_hz: Callable[[], float] | None = None,
+        tolerance: float = 0.005,
     ):
         self.names = tuple(names)
+        self.tolerance = float(tolerance)
         self.m = len(self.names)
         self.store = store
         self.source_status = source_status
@@ -280,7 +282,8 @@ class Pipeline:
             result, error = None, None
             if live.acc.frames > 0:
                 try:
-                    result = calibrate_dict(live.acc, self.names, live.hierarchy, live.root, live.skeleton)
+                    result = calibrate_dict(live.acc, self.names, live.hierarchy, live.root, live.skeleton,
+                                            self.tolerance)
                     slips = [{k: e[k] for k in SLIP_FIELDS if k in e}
                              for e in self.store.events(live.id, limit=100_000) if e["type"] == "slip"]
                     if slips:
@@ -569,7 +572,7 @@ class Pipeline:
                     fit, known = known_dict_of(skeleton, acc, self.names, prev)
                     self._known_prev = (session_id, known)
                 else:
-                    fit = calibrate_dict(acc, self.names, hierarchy, root)
+                    fit = calibrate_dict(acc, self.names, hierarchy, root, tolerance=self.tolerance)
             except FlockcalError as exc:
                 error = str(exc)
             except Exception as exc:  # a numerical failure must not stop the service

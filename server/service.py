@@ -76,6 +76,7 @@ class Service:
             fit_hz=settings.fit_hz,
             residual_hz=settings.residual_hz,
             rate_hz=self.tracker_rate,
+            tolerance=settings.tolerance_m,
         )
         self.hub = SnapshotHub(self.pipeline.snapshot)
         self.pipeline.on_publish = self.hub.publish

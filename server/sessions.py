@@ -195,12 +195,14 @@ class SessionManager:
 
                     events = [SimpleNamespace(kind="slip", time_s=float(e["time_s"]),
                                               sensor_index=take.names.index(e["sensor"])) for e in slips]
-                    result = _finite(calibration_after_slips(take, events, row["hierarchy"], row["root"]))
+                    result = _finite(calibration_after_slips(take, events, row["hierarchy"], row["root"],
+                                                             tolerance=self.pipeline.tolerance))
                     result["slip_events"] = [{k: e[k] for k in SLIP_FIELDS if k in e} for e in slips]
                 else:
                     acc = new_accumulator(take.n_sensors)
                     acc.update(take.rotations, take.positions, take.valid)
-                    result = calibrate_dict(acc, take.names, row["hierarchy"], row["root"])
+                    result = calibrate_dict(acc, take.names, row["hierarchy"], row["root"],
+                                            tolerance=self.pipeline.tolerance)
             except FlockcalError as exc:
                 raise Conflict(f"session {session_id} could not be solved: {exc}") from None
             state = "stopped" if row["state"] == "interrupted" else row["state"]

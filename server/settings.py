@@ -61,6 +61,7 @@ class Settings:
     publish_hz: float = 200.0  # upper bound on snapshot rate; the pipeline publishes when frames arrive
     reader_batch_s: float = 0.005  # how often the reader hands frames over (latency vs. per-batch cost)
     fit_hz: float = 30.0  # full refit (all pairs + topology + bones) rate, ≥ 30 per the issue
+    tolerance_m: float = 0.005  # a joint is determined when its centre is pinned this closely (design.md §3a)
     residual_hz: float = 20.0  # residual rms samples per second kept for the time series
     residual_window_s: float = 120.0  # live residual history kept in memory
     max_body_bytes: int = 64 * 1024
@@ -111,6 +112,8 @@ class Settings:
             raise ConfigError(f"--rate must be between 1 and 1000 Hz, got {self.rate_hz:g}")
         if not 0 <= self.http_port <= 65535:
             raise ConfigError(f"--http-port must be 0..65535, got {self.http_port}")
+        if not 0 < self.tolerance_m < 1:
+            raise ConfigError(f"--tolerance-mm must be between 0 and 1000 mm, got {self.tolerance_m * 1000:g}")
         if self.fit_hz <= 0 or self.publish_hz <= 0:
             raise ConfigError("fit and publish rates must be positive")
         if not is_loopback(self.host) and not self.token:

@@ -222,6 +222,9 @@ class SegmentView:
     def translation_power(self, pairs):
         return self._grouped(pairs, "translation_power")
 
+    def block_moments(self, pairs):
+        return self._grouped(pairs, "block_moments")
+
 
 def saved_placement(skeleton, names):
     """A stand-in previous fit that starts the Gauss–Newton at the saved placements themselves."""

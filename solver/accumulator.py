@@ -1,8 +1,10 @@
 """The all-pairs Gram accumulator of design.md §2: one 4m×4m matrix from which every pair's normal equations are read.
 
 Frames are summed in blocks into G = Σ X_kᵀX_k, plus each sensor's self terms restricted to the frames where
-the other sensor of a pair is valid. Accumulators copy, merge (add), subtract (windows) and optionally forget,
-so a live stream, one batch and an archive split across workers all give the same sums.
+the other sensor of a pair is valid, and the two statistics a fit needs to judge itself from the data (§3a):
+each sensor's rotation jitter and every pair's block moments (for standard errors that hold when residuals
+are correlated in time). Accumulators copy, merge (add), subtract (windows) and optionally forget, so a live
+stream, one batch and an archive split across workers all give the same sums.
 """
 
 from __future__ import annotations
@@ -16,6 +18,15 @@ from flockcal.solver.errors import SolverError
 
 # Frames per block: big enough for BLAS to run at full speed, small enough that the block stays in cache.
 BLOCK = 256
+# Frames per score block: the unit of the batch-means standard error (design.md §3a). About half a second of
+# tracker data, long enough to hold the time correlation of soft-tissue residuals; BLOCK is a multiple.
+SCORE_BLOCK = 64
+# Per-pair terms of one score block: n, Σ R_iᵀR_j (9, row-major), Σ R_iᵀ(t_j − t_i) (3), Σ R_jᵀ(t_i − t_j) (3).
+BLOCK_TERMS = 16
+# Rotation jitter histogram: log10 of the squared third difference of the frame-to-frame rotation.
+_JIT_LO, _JIT_HI, _JIT_BINS = -20.0, 1.0, 210
+# A white per-axis jitter s² makes the third difference's squared norm 20 s² × χ²(3); χ²(3)'s median is 2.366.
+_JIT_SCALE = 20.0 * 2.3660
 
 
 @lru_cache(maxsize=8)
@@ -81,6 +92,21 @@ class GramAccumulator:
         # and every segment snapshot are never fed, and need none.
         self._xbuf = self._pend_R = self._pend_t = self._pend_w = None
         self._npend = 0
+        # Score blocks: the open block's Gram (upper, internal layout), self terms and pair frames, and the
+        # finished blocks' moments Σ w wᵀ per pair. `_moments` is replaced, never written in place, so copies
+        # (a refit's, a segment snapshot's) share it until the next block completes.
+        self._open_gram = np.zeros((4 * m, 4 * m))
+        self._open_self = np.zeros((m, m, 4, 4))
+        self._open_pf = np.zeros((m, m))
+        self._open_n = 0
+        p = m * (m - 1) // 2
+        self._moments = np.zeros((p, BLOCK_TERMS, BLOCK_TERMS))
+        self._moment_frames = np.zeros(p)  # frames of the finished blocks, per pair
+        self._moment_blocks = np.zeros(p)  # finished blocks with at least one frame of the pair
+        # Rotation jitter: per-sensor histogram of third differences, and the last frames to difference with.
+        self._jitter = np.zeros((m, _JIT_BINS))
+        self._tail_R = np.zeros((0, m, 3, 3))
+        self._tail_w = np.zeros((0, m), dtype=bool)
 
     def _make_buffers(self) -> None:
         m = self.n_sensors
@@ -148,6 +174,12 @@ class GramAccumulator:
         self._sym = None
         self._self *= f
         self._pair_frames *= f
+        self._open_gram *= f
+        self._open_self *= f
+        self._open_pf *= f
+        self._moments = self._moments * f * f
+        self._moment_frames = self._moment_frames * f
+        self._jitter *= f
         return self.forgetting ** np.arange(n - 1, -1, -1, dtype=float)
 
     def _block(self, R: np.ndarray, t: np.ndarray, w: np.ndarray) -> None:
@@ -161,25 +193,87 @@ class GramAccumulator:
             all_valid = False
         if not all_valid:
             np.copyto(buf, 0.0, where=~w[:, None, None, :])  # copyto, not multiply: 0 × NaN is NaN
+        self._add_jitter(R, w)
         omega = self._decay(nb)
         if omega is not None:
             buf *= np.sqrt(omega)[:, None, None, None]
+        # The block is summed in pieces that end on score-block boundaries, so each finished score block
+        # leaves its own sums behind; their total is the block's, as one dsyrk would give it.
+        a = 0
+        while a < nb:
+            b = min(nb, a + SCORE_BLOCK - self._open_n)
+            self._piece(buf[a:b], w[a:b], all_valid, None if omega is None else omega[a:b])
+            a = b
+        self._frames += nb
+
+    def _piece(self, buf: np.ndarray, w: np.ndarray, all_valid: bool, omega) -> None:
+        nb, m = buf.shape[0], self.n_sensors
         X = buf.reshape(3 * nb, 4 * m)
         # Upper triangle of XᵀX, without a copy of X; `_gram` holds the upper triangle, mirrored on read.
         gb = dsyrk(1.0, X.T, trans=0)
         self._gram += gb
+        self._open_gram += gb
         self._sym = None
         if all_valid:
             diag = np.einsum("qapa->aqp", gb.reshape(4, m, 4, m))  # upper part of each sensor's 4×4
             diag = diag + np.triu(diag, 1).transpose(0, 2, 1)
-            self._self += diag[None]
-            self._pair_frames += nb if omega is None else omega.sum()
+            self_terms = np.broadcast_to(diag[None], (m, m, 4, 4))
+            pf = nb if omega is None else omega.sum()
         else:
             wf = w.astype(float)
             own = np.einsum("krqa,krpa->kaqp", buf, buf)  # each sensor's own 4×4 Gram per frame
-            self._self += (wf.T @ own.reshape(nb, m * 16)).reshape(m, m, 4, 4)
-            self._pair_frames += wf.T @ (wf if omega is None else wf * omega[:, None])
-        self._frames += nb
+            self_terms = (wf.T @ own.reshape(nb, m * 16)).reshape(m, m, 4, 4)
+            pf = wf.T @ (wf if omega is None else wf * omega[:, None])
+        self._self += self_terms
+        self._pair_frames += pf
+        self._open_self += self_terms
+        self._open_pf += pf
+        self._open_n += nb
+        if self._open_n >= SCORE_BLOCK:
+            self._close_score_block()
+
+    def _close_score_block(self) -> None:
+        """Fold the finished score block's per-pair terms into the moments Σ w wᵀ and start a new block."""
+        m = self.n_sensors
+        P = _all_pairs_of(m)
+        blocks = _mirrored(self._open_gram).reshape(4, m, 4, m)
+        wt = _pair_terms(blocks, self._open_self, self._open_pf, P)
+        self._moments = self._moments + wt[:, :, None] * wt[:, None, :]
+        self._moment_frames = self._moment_frames + wt[:, 0]
+        self._moment_blocks = self._moment_blocks + (wt[:, 0] > 0)
+        self._open_gram = np.zeros_like(self._open_gram)
+        self._open_self = np.zeros_like(self._open_self)
+        self._open_pf = np.zeros_like(self._open_pf)
+        self._open_n = 0
+
+    def _add_jitter(self, R: np.ndarray, w: np.ndarray) -> None:
+        """Histogram each sensor's third difference of the frame-to-frame rotation (design.md §3a).
+
+        ω_k = vee(R_{k−1}ᵀ R_k) is the rotation between frames in the sensor's own frame; its second
+        difference cancels any smooth motion (to the motion's jerk × dt³) and keeps 20× the per-axis
+        jitter variance. Position noise does not enter: this is rotation noise alone.
+        """
+        m = self.n_sensors
+        RR = np.concatenate([self._tail_R, R]) if len(self._tail_R) else R
+        ww = np.concatenate([self._tail_w, w]) if len(self._tail_w) else w
+        keep = min(3, len(RR))
+        self._tail_R, self._tail_w = RR[len(RR) - keep:].copy(), ww[len(ww) - keep:].copy()
+        if len(RR) < 4:
+            return
+        ok = ww & np.isfinite(RR).all(axis=(2, 3))
+        D = np.einsum("kaji,kajl->kail", RR[:-1], RR[1:])  # R_{k−1}ᵀ R_k
+        omega = 0.5 * np.stack([D[..., 2, 1] - D[..., 1, 2], D[..., 0, 2] - D[..., 2, 0], D[..., 1, 0] - D[..., 0, 1]], axis=-1)
+        d3 = omega[2:] - 2.0 * omega[1:-1] + omega[:-2]
+        valid = ok[3:] & ok[2:-1] & ok[1:-2] & ok[:-3]
+        x = np.einsum("kai,kai->ka", d3, d3)
+        sel = valid & np.isfinite(x)
+        if not sel.any():
+            return
+        with np.errstate(divide="ignore"):
+            lg = np.log10(np.maximum(x[sel], 1e-300))
+        bins = np.clip(((lg - _JIT_LO) * (_JIT_BINS / (_JIT_HI - _JIT_LO))).astype(np.intp), 0, _JIT_BINS - 1)
+        sensor = np.nonzero(sel)[1]
+        self._jitter += np.bincount(sensor * _JIT_BINS + bins, minlength=m * _JIT_BINS).reshape(m, _JIT_BINS)
 
     # -- results -----------------------------------------------------------------------------------
     @property
@@ -255,6 +349,42 @@ class GramAccumulator:
         has = n > 0
         return np.where(has, (self._self[j, i, 3, 3] + self._self[i, j, 3, 3]) / np.where(has, n, 1.0), 0.0)
 
+    def rotation_noise(self) -> np.ndarray:
+        """(m,) each sensor's rotation jitter, variance per axis in rad², from the take itself (NaN until
+        a few frames have arrived): the median third difference of its frame-to-frame rotation, read as
+        white noise. What rotation noise alone adds to a pair's μ_k is about the sum of its two sensors'."""
+        self._flush()
+        h = self._jitter
+        total = h.sum(axis=1)
+        cum = np.cumsum(h, axis=1)
+        k = np.argmax(cum >= 0.5 * total[:, None], axis=1)
+        below = np.where(k > 0, cum[np.arange(len(k)), k - 1], 0.0)
+        inside = h[np.arange(len(k)), k]
+        frac = np.where(inside > 0, (0.5 * total - below) / np.where(inside > 0, inside, 1.0), 0.5)
+        lg = _JIT_LO + (k + frac) * ((_JIT_HI - _JIT_LO) / _JIT_BINS)
+        return np.where(total >= 8, 10.0 ** lg / _JIT_SCALE, np.nan)
+
+    def block_moments(self, pairs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """For pairs (p, 2) of (i, j): the moments Σ_b w_b w_bᵀ (p, 16, 16) of each finished score block's
+        terms w_b = (n, Σ R_iᵀR_j, Σ R_iᵀ(t_j − t_i), Σ R_jᵀ(t_i − t_j)), the frames those blocks hold
+        and how many blocks had the pair. A pair's block score A_b u − b_b is linear in w_b, so these give
+        the batch-means variance of any fit u (design.md §3a) without keeping the blocks."""
+        self._flush()
+        m = self.n_sensors
+        P = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
+        if P.size and (P.min() < 0 or P.max() >= m):
+            raise SolverError(f"pair indices must be in 0..{m - 1}")
+        i, j = P[:, 0], P[:, 1]
+        lo, hi = np.minimum(i, j), np.maximum(i, j)
+        row = lo * m - lo * (lo + 1) // 2 + (hi - lo - 1)
+        Hm = self._moments[row]
+        swap = i > j
+        if swap.any():  # the terms of (j, i) are those of (i, j) with R_iᵀR_j transposed and the b halves swapped
+            perm = _SWAP_TERMS
+            Hm = Hm.copy()
+            Hm[swap] = Hm[swap][:, perm][:, :, perm]
+        return Hm, self._moment_frames[row].copy(), self._moment_blocks[row].copy()
+
     def pair_point(self, point, src, dst) -> np.ndarray:
         """Mean over frames of a point fixed in sensor `src`'s frame, expressed in sensor `dst`'s frame.
 
@@ -289,7 +419,21 @@ class GramAccumulator:
         new._self = self._self.copy()
         new._pair_frames = self._pair_frames.copy()
         new._frames = self._frames
+        # The moments array is shared, not copied: it is replaced whenever a block completes, never written.
+        new._moments, new._moment_frames = self._moments, self._moment_frames.copy()
+        new._moment_blocks, new._jitter = self._moment_blocks.copy(), self._jitter.copy()
+        new._open_gram, new._open_self = self._open_gram.copy(), self._open_self.copy()
+        new._open_pf, new._open_n = self._open_pf.copy(), self._open_n
+        new._tail_R, new._tail_w = self._tail_R.copy(), self._tail_w.copy()
         return new
+
+    def _add_statistics(self, other: "GramAccumulator", sign: float = 1.0) -> None:
+        """Add (or subtract) another accumulator's jitter and finished score blocks; open blocks stay
+        apart (their frames are in the Gram, and the batch-means variance scales for them)."""
+        self._moments = self._moments + sign * other._moments
+        self._moment_frames = self._moment_frames + sign * other._moment_frames
+        self._moment_blocks = self._moment_blocks + sign * other._moment_blocks
+        self._jitter = np.maximum(self._jitter + sign * other._jitter, 0.0)
 
     snapshot = copy
 
@@ -314,6 +458,7 @@ class GramAccumulator:
         self._self += other._self
         self._pair_frames += other._pair_frames
         self._frames += other._frames
+        self._add_statistics(other)
         return self
 
     def __add__(self, other: "GramAccumulator") -> "GramAccumulator":
@@ -329,7 +474,41 @@ class GramAccumulator:
         new._self -= other._self
         new._pair_frames -= other._pair_frames
         new._frames -= other._frames
+        new._add_statistics(other, -1.0)
         return new
 
     def __repr__(self) -> str:
         return f"GramAccumulator(n_sensors={self.n_sensors}, frames={self.frames}, forgetting={self.forgetting})"
+
+
+@lru_cache(maxsize=8)
+def _all_pairs_of(m: int) -> np.ndarray:
+    i, j = np.triu_indices(m, k=1)
+    P = np.stack([i, j], axis=1)
+    P.setflags(write=False)
+    return P
+
+
+def _mirrored(upper: np.ndarray) -> np.ndarray:
+    n = len(upper)
+    up = np.where(_below_diagonal(n), 0.0, upper)
+    sym = up + up.T
+    sym.flat[:: n + 1] = up.flat[:: n + 1]
+    return sym
+
+
+def _pair_terms(blocks: np.ndarray, self_terms: np.ndarray, pair_frames: np.ndarray, P: np.ndarray) -> np.ndarray:
+    """(p, 16) per-pair terms w = (n, Σ R_iᵀR_j row-major, Σ R_iᵀ(t_j − t_i), Σ R_jᵀ(t_i − t_j)) from a Gram in
+    the (4, m, 4, m) layout with its self terms: the parts of A and b that vary (A's diagonal blocks are n·I)."""
+    i, j = P[:, 0], P[:, 1]
+    Bij = blocks[:, i, :, j]  # (p, 4, 4)
+    out = np.empty((len(P), BLOCK_TERMS))
+    out[:, 0] = pair_frames[i, j]
+    out[:, 1:10] = Bij[:, :3, :3].reshape(-1, 9)
+    out[:, 10:13] = Bij[:, :3, 3] - self_terms[j, i, :3, 3]
+    out[:, 13:16] = Bij[:, 3, :3] - self_terms[i, j, :3, 3]
+    return out
+
+
+# Reordering of the 16 terms when a pair is read as (j, i): Σ R_jᵀR_i = (Σ R_iᵀR_j)ᵀ and the b halves swap.
+_SWAP_TERMS = np.array([0] + [1 + 3 * c + r for r in range(3) for c in range(3)] + [13, 14, 15, 10, 11, 12])

@@ -12,7 +12,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from flockcal.solver.errors import SolverError
-from flockcal.solver.fits import PairFits, pair_fits
+from flockcal.solver.fits import TOLERANCE_M, PairFits, pair_fits
 from flockcal.solver.topology import _orient, _rigid_bodies, spanning_tree
 
 
@@ -62,6 +62,7 @@ class Calibration:
     epsilon = property(lambda self: self.joints.epsilon)
     singular_values = property(lambda self: self.joints.singular_values)
     hinge = property(lambda self: self.joints.hinge)
+    determined = property(lambda self: self.joints.determined)
     axis_child = property(lambda self: self.joints.axis_i)
     axis_parent = property(lambda self: self.joints.axis_j)
     coverage = property(lambda self: self.joints.coverage)
@@ -80,16 +81,19 @@ class Calibration:
         """The `flockcal fit --json` object of design.md §5; `slip_events` is filled by the slippage detector.
 
         Extends the contract with "rigid_groups" (names of sensors that never turned relative to each other)
-        and "ambiguous" (children with more than one equally good parent). NaN becomes null, and every
+        and "ambiguous" (children with more than one equally good parent), and each joint with "determined"
+        (design.md §3a) and "direction_error_m" (how closely the data pin the centre along its three
+        least-turned directions, ascending; null where nothing turned). NaN becomes null, and every
         number is a Python int or float: the dict is valid JSON as it stands (slip_events are as given).
         """
         nm = self.names
         j = self.joints
         # Fields are converted together for all joints (the live server calls this ~30×/s), to Python
         # floats with None for NaN: the dict is JSON-safe as it stands, with no second pass over it.
-        vec = _json(np.stack([j.c, j.l, j.axis_i, j.axis_j, j.coverage]))
+        vec = _json(np.stack([j.c, j.l, j.axis_i, j.axis_j, j.coverage, j.direction_error]))
         num = _json(np.stack([j.rms, j.epsilon, j.c_stderr, j.l_stderr]))
         sv = _json(j.singular_values)
+        det = j.determined.tolist()
         joints = [{
             "child": nm[child],
             "parent": nm[parent],
@@ -104,6 +108,8 @@ class Calibration:
             "coverage": vec[4][k],
             "c_stderr_m": num[2][k],
             "l_stderr_m": num[3][k],
+            "determined": det[k],
+            "direction_error_m": vec[5][k],
         } for k, ((child, parent), hinge) in enumerate(zip(j.pairs.tolist(), j.hinge.tolist()))]
         b = self.bones
         length, stderr = _json(np.stack([b.length, b.stderr]))
@@ -193,11 +199,12 @@ def parse_hierarchy(hierarchy, names: Sequence[str]) -> np.ndarray:
     return parent
 
 
-def calibrate(acc, hierarchy=None, root=None, names=None) -> Calibration:
+def calibrate(acc, hierarchy=None, root=None, names=None, tolerance: float = TOLERANCE_M) -> Calibration:
     """Fit the skeleton from accumulator `acc`: the given `hierarchy` ({child: parent}) or a searched tree.
 
     `root` (name or index) hangs a searched tree from that sensor; with a hierarchy it must be its root.
-    With a hierarchy only its m − 1 joints are solved (the paper's fast path).
+    With a hierarchy only its m − 1 joints are solved (the paper's fast path). `tolerance` (m): how closely
+    a joint's centre must be pinned to count as determined (design.md §3a); only determined joints end bones.
     """
     m = acc.n_sensors
     names = tuple(str(x) for x in (names if names is not None else range(m)))
@@ -212,7 +219,7 @@ def calibrate(acc, hierarchy=None, root=None, names=None) -> Calibration:
         kids = np.flatnonzero(parent >= 0)
         _, order = _orient(np.stack([kids, parent[kids]], axis=1), m, hroot)
         jc = order[1:]
-        joints = pair_fits(acc, np.stack([jc, parent[jc]], axis=1))
+        joints = pair_fits(acc, np.stack([jc, parent[jc]], axis=1), tolerance=tolerance)
         flat = joints.rank <= 3
         rigid_groups = []
         if flat.any():
@@ -227,7 +234,7 @@ def calibrate(acc, hierarchy=None, root=None, names=None) -> Calibration:
         cal = Calibration(names, hroot, parent, order, acc.frames, joints, _no_bones(), np.full((m, 3), np.nan),
                           rigid_groups=rigid_groups, hierarchy_given=True)
     else:
-        fits = pair_fits(acc)
+        fits = pair_fits(acc, tolerance=tolerance)
         topo = spanning_tree(fits, m, root_i)
         jc = topo.order[topo.joint[topo.order]]
         pj = topo.parent[jc]
@@ -291,6 +298,11 @@ def _bones(acc, cal: Calibration) -> Bones:
     from_joint = np.concatenate([body[o], jc[a]])
     by_body = np.argsort(body[second], kind="stable")  # bodies ascending, each in the joint order above
     first, second, from_joint = first[by_body], second[by_body], from_joint[by_body]
+
+    # Only determined joints end a bone: an undetermined centre is a rule's point, not a measurement.
+    det = np.asarray(J.determined, dtype=bool)
+    ok = np.concatenate([det, det])[first] & det[second]
+    first, second, from_joint = first[ok], second[ok], from_joint[ok]
 
     d = np.concatenate([J.c, pt])[first] - pt[second]
     length = np.sqrt((d[:, None, :] @ d[:, :, None])[:, 0, 0])  # a dot product, as np.linalg.norm takes it

@@ -12,13 +12,23 @@ from functools import lru_cache
 import numpy as np
 
 # Eigenvalues of A/n at or below this are zero to rounding (A/n has eigenvalues in [0, 2]; the Gram's own
-# rounding leaves ~1e-15 where the data hold nothing). Its square root, 1e-5, is the matching cut-off on the
-# normalised singular values of the stacked system, used by the reference SVD solve.
+# rounding leaves ~1e-15 where the data hold nothing).
 NUMERIC_FLOOR = 1e-10
 
-# Hinge test (see `pair_fits`): an axis counts as exercised when A/n's eigenvalue exceeds HINGE_MARGIN times
-# the rotation variance the residual noise alone could produce (at most ~1.5× σ²/L², derived below).
-HINGE_MARGIN = 4.0
+# How closely the data must pin the joint centre along a direction for it to count (design.md §3a): the
+# standard error there, with the bias rotation noise leaves in least squares, at most this. Option of
+# `flockcal fit` and `serve` (`--tolerance-mm`).
+TOLERANCE_M = 0.005
+
+# A direction carries rotation beyond noise when μ_k is at least this multiple of what the two sensors'
+# measured rotation jitter alone adds to it (≈ s_i² + s_j²). Below that the least-squares value along it is
+# noise fitting noise, so the estimate keeps the minimum-norm point there, as the paper does for a hinge.
+ROTATION_MARGIN = 4.0
+
+# Batch-means standard errors come from few blocks early in a take: they are read at this one-sided upper
+# confidence level, so a joint is called pinned only when the data say so with some confidence.
+SE_CONFIDENCE = 0.8
+_Z_SE = 0.8416  # the standard normal quantile of SE_CONFIDENCE
 
 # Rounding budget of SSE/n read from the Gram, in units of Σ(‖t_i‖² + ‖t_j‖²)/(n μ_min): 64 × machine epsilon.
 ROUNDING = 64 * np.finfo(float).eps
@@ -35,7 +45,8 @@ class PairFits:
     rms: np.ndarray  # (p,) m, sqrt(Σ‖e_k‖²/n)
     epsilon: np.ndarray  # (p,) m, the paper's ε = sqrt(Σ‖e_k‖²)/n (eq. 19)
     singular_values: np.ndarray  # (p, 6) of the stacked 3n×6 system, ÷√n, descending
-    hinge: np.ndarray  # (p,) bool: exactly one direction left unexercised
+    hinge: np.ndarray  # (p,) bool: a determined hinge — exactly one free direction, its axis pinned
+    determined: np.ndarray  # (p,) bool: a ball with every direction pinned, or a hinge (design.md §3a)
     axis_i: np.ndarray  # (p, 3) hinge axis in i's frame (NaN when not a hinge)
     axis_j: np.ndarray  # (p, 3) the same axis in j's frame
     coverage: np.ndarray  # (p, 3) 1 − σ_k(M), ascending: coverage[:, 0] is the least exercised axis
@@ -44,8 +55,9 @@ class PairFits:
     c_cov: np.ndarray  # (p, 3, 3) m²
     l_cov: np.ndarray  # (p, 3, 3) m²
     n: np.ndarray  # (p,) frames used (both sensors valid)
-    rank: np.ndarray  # (p,) directions solved: 6 ball, 5 hinge, 3 no relative rotation, 0 no data
-    noise_floor: np.ndarray  # (p,) σ²/L², the rotation variance the residual noise alone would explain
+    rank: np.ndarray  # (p,) directions with rotation beyond noise (solved; the rest take the min-norm point)
+    direction_error: np.ndarray  # (p, 3) m: the centre's error along the three least-turned directions (inf: none)
+    rotation_noise: np.ndarray  # (p,) what the two sensors' rotation jitter adds to μ_k (rad²)
     separation: np.ndarray  # (p,) m, rms distance between the two sensors (2L)
     rms_floor: np.ndarray  # (p,) m, rounding level of rms read from the Gram: smaller values mean 0
 
@@ -91,28 +103,29 @@ def _all_pairs(m: int) -> np.ndarray:
     return P
 
 
-def pair_fits(acc, pairs=None, hinge_margin: float = HINGE_MARGIN) -> PairFits:
-    """Fit the joint of every pair in `pairs` ((p, 2) indices; default all pairs) from accumulator `acc`.
+def pair_fits(acc, pairs=None, tolerance: float = TOLERANCE_M) -> PairFits:
+    """Fit the joint of every pair in `pairs` ((p, 2) indices; default all pairs) from accumulator `acc`,
+    and decide from the data's own noise whether each joint is determined (design.md §3a).
 
-    Solve. A/n = V diag(μ) Vᵀ (μ ascending); u = Σ_kept v_k (v_kᵀ b/n) / μ_k — the pseudo-inverse restricted
-    to the kept directions, i.e. the minimum-norm solution, the paper's point "closest to the sensor origins".
-    Dropped directions get no component, so a near-singular direction can never push the centre away.
+    Solve. A/n = V diag(μ) Vᵀ (μ ascending); u = Σ_kept v_k (v_kᵀ b/n) / μ_k — the pseudo-inverse over the
+    kept directions, i.e. the minimum-norm solution, the paper's point "closest to the sensor origins".
+    Only the three smallest, μ_k = 1 − σ_k(M), can be missing (design.md §3). A direction is kept when μ_k is
+    above rounding and at least ROTATION_MARGIN × the rotation noise μ₀ = s_i² + s_j², measured per sensor
+    from the take (`acc.rotation_noise()`), apart from position noise. Kept directions are plain least squares.
 
-    Which directions are kept. A/n's eigenvalues are 1 ± σ_k(M) (design.md §3), so only the three smallest,
-    μ_k = 1 − σ_k(M) — how far the joint turned about each principal axis — can be missing:
-      * μ_k ≤ NUMERIC_FLOOR: nothing there at all (rounding level);
-      * μ_k < hinge_margin · σ²/L²: no more than the residual noise alone explains. σ² is the residual
-        variance per coordinate of the fit with every numerically present direction kept (SSE/(3n − r)),
-        L the lever: half the rms sensor separation, L² = Σ‖t_j − t_i‖²/(4n), which never exceeds the rms of
-        |c|, |l|. Rotation jitter of variance s² per axis on each sensor gives μ ≈ 2s² about an unexercised
-        axis, and a residual variance of at least (2/3)s²(|c|²+|l|²) ≥ (4/3)s²L², so noise alone makes
-        μ/(σ²/L²) ≤ 1.5; HINGE_MARGIN = 4 leaves room. An axis turned through a few degrees rms at 10 cm
-        levers and tracker-level noise (0.5 mm) gives a ratio of tens to hundreds: it stays 3-D.
-    One direction dropped is a hinge; its eigenvector (a_i, a_j) is the axis in both frames.
+    Decide. Along each kept direction the centre's standard error is the larger of the classical
+    σ̂/√(n μ_k) and the batch-means one from the accumulator's score blocks (which holds when residuals are
+    correlated in time, as soft tissue makes them), read at SE_CONFIDENCE for the blocks it comes from; the
+    bias rotation noise leaves in least squares, |v_kᵀu| μ₀/μ_k, adds to it. A direction is pinned when that
+    error is within `tolerance`. Ball: all three pinned. Hinge: only the least-turned one free, and its axis
+    pinned — the axis tilts by about (μ₀ + √(μ₁μ₂'/n_eff))/(μ₂' − μ₁) rad, which must not move the centre by
+    more than `tolerance` at the sensors' lever. Anything else is undetermined: it keeps its numbers for
+    inspection but is not a joint anybody should draw.
 
-    Standard errors. Cov(u) = σ̂² A⁺_kept with σ̂² = SSE/(3n − r) and A⁺_kept = Σ_kept v_k v_kᵀ / λ_k;
-    c_stderr = sqrt(trace Cov(c)). Directions pinned by the min-norm rule carry no variance (a rule, not a
-    measurement): for a hinge, c_stderr is the uncertainty of the point picked on the axis.
+    Standard errors. Cov(u) = Σ_kept v_k v_kᵀ se_k² (se_k the larger estimate, without the confidence
+    scaling the decision applies); c_stderr = sqrt(trace Cov(c)), infinite for an
+    undetermined joint with a direction the data did not turn about (the point there is a rule, not a
+    measurement); for a hinge the axis direction is left out (its point on the axis is the paper's rule).
     """
     m = acc.n_sensors
     P = all_pairs(m) if pairs is None else np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
@@ -127,36 +140,63 @@ def pair_fits(acc, pairs=None, hinge_margin: float = HINGE_MARGIN) -> PairFits:
     coef = np.einsum("pik,pi->pk", V, bn)  # v_kᵀ b / n
     floor_ok = mu > NUMERIC_FLOOR
     safe_mu = np.where(floor_ok, mu, 1.0)
-    gain = np.where(floor_ok, coef**2 / safe_mu, 0.0)  # SSE/n removed by each direction
 
-    # Residual variance with every numerically present direction kept, and the lever.
-    r_num = floor_ok.sum(axis=1)
-    sse_num = np.maximum(ddn - gain.sum(axis=1), 0.0) * nn
-    dof_num = np.maximum(3.0 * nn - r_num, 1.0)
-    lever2 = np.maximum(ddn / 4.0, _TINY)
-    noise_floor = (sse_num / dof_num) / lever2
-
+    noise = acc.rotation_noise()
+    mu0 = noise[P[:, 0]] + noise[P[:, 1]]
+    mu0 = np.where(np.isfinite(mu0), mu0, np.inf)  # no jitter estimate yet: nothing counts as turned
     keep = floor_ok.copy()
-    keep[:, :3] &= mu[:, :3] >= hinge_margin * noise_floor[:, None]
+    keep[:, :3] &= mu[:, :3] >= ROTATION_MARGIN * mu0[:, None]
     keep &= has[:, None]
     rank = keep.sum(axis=1)
 
     w = np.where(keep, coef / safe_mu, 0.0)
     u = np.einsum("pik,pk->pi", V, w)
-    sse = np.maximum(ddn - np.where(keep, gain, 0.0).sum(axis=1), 0.0) * nn
+    gain = np.where(keep, coef**2 / safe_mu, 0.0)  # SSE/n removed by each kept direction
+    sse = np.maximum(ddn - gain.sum(axis=1), 0.0) * nn
     rms = np.sqrt(sse / nn)
     eps = np.sqrt(sse) / nn
     sigma2 = sse / np.maximum(3.0 * nn - rank, 1.0)
-    inv = np.where(keep, 1.0 / safe_mu, 0.0)
-    cov = ((V * inv[:, None, :]) @ V.transpose(0, 2, 1)) * (sigma2 / nn)[:, None, None]  # V diag(inv) Vᵀ σ²/n
+
+    # Classical and batch-means variance of u along each eigenvector.
+    var_cl = sigma2[:, None] / (nn[:, None] * safe_mu)
+    var_bm, blocks = _batch_means_variance(acc, P, u, V, nn, safe_mu)
+    ok_bm = np.isfinite(var_bm)
+    factor = _upper_chi2_factor(np.maximum(blocks - 1.0, 1.0))
+    var = np.maximum(var_cl, np.where(ok_bm, var_bm, 0.0))  # the estimate, as reported
+    var_hi = np.maximum(var_cl, np.where(ok_bm, var_bm * factor[:, None], 0.0))  # its upper bound, for deciding
+    se = np.where(keep, np.sqrt(var_hi), np.inf)
+    with np.errstate(invalid="ignore"):
+        bias = np.abs(np.einsum("pik,pi->pk", V, u)) * np.where(np.isfinite(mu0), mu0, 0.0)[:, None] / safe_mu
+    err = np.where(keep, np.hypot(se, np.where(np.isfinite(bias), bias, 0.0)), np.inf)[:, :3]
+    pinned = err <= tolerance
+    ball = pinned.all(axis=1)
+
+    # Hinge: the least-turned direction free, the other two pinned, and the axis steady enough.
+    one_free = ~pinned[:, 0] & pinned[:, 1] & pinned[:, 2]
+    gap = np.maximum(mu[:, 1] - mu[:, 0], _TINY)
+    # Frames that count as independent along the least-turned direction: the classical/batch-means ratio,
+    # at least one per block (blocks are the batch-means' independent units), at most every frame.
+    ratio = np.where(ok_bm[:, 0] & (var_bm[:, 0] > 0), var_cl[:, 0] / np.where(var_bm[:, 0] > 0, var_bm[:, 0], 1.0), 1.0)
+    n_eff = np.clip(nn * ratio, np.maximum(blocks, 1.0), nn)
+    tilt = (np.minimum(mu0, mu[:, 0]) + np.sqrt(np.maximum(mu[:, 0], 0.0) * mu[:, 1] / n_eff)) / gap
+    lever = np.maximum(np.linalg.norm(u[:, :3], axis=1), np.linalg.norm(u[:, 3:], axis=1))
+    hinge = one_free & (lever * tilt <= tolerance) & has
+    determined = (ball | hinge) & has
+
+    # Covariance over the kept directions (a hinge's free axis is the rule's, not the data's).
+    inv = np.where(keep, var, 0.0)
+    inv[:, 0] = np.where(hinge, 0.0, inv[:, 0])
+    cov = (V * inv[:, None, :]) @ V.transpose(0, 2, 1)
     c_cov, l_cov = cov[:, :3, :3], cov[:, 3:, 3:]
+    blind = ~determined & ~keep[:, :3].all(axis=1)  # a direction nothing turned about: no error bar exists
+    c_se = np.where(blind, np.inf, np.sqrt(np.trace(c_cov, axis1=1, axis2=2)))
+    l_se = np.where(blind, np.inf, np.sqrt(np.trace(l_cov, axis1=1, axis2=2)))
 
     # SSE = Σ‖d‖² − Σ (v_kᵀb)²/λ_k loses about ε·Σ‖t‖²/μ_min to rounding (μ_min: smallest kept eigenvalue).
     mu_kept = np.where(keep, mu, np.inf).min(axis=1)
     mu_kept = np.where(np.isfinite(mu_kept), np.minimum(mu_kept, 1.0), 1.0)
 
-    hinge = rank == 5
-    axis = V[:, :, 0].reshape(p, 2, 3)  # the dropped direction of a hinge is the smallest eigenvalue's: (a_i, a_j)
+    axis = V[:, :, 0].reshape(p, 2, 3)  # a hinge's axis is the least-turned direction's: (a_i, a_j)
     with np.errstate(invalid="ignore", divide="ignore"):
         axis = axis / np.sqrt((axis * axis).sum(axis=2, keepdims=True))
     # An eigenvector's sign is arbitrary: make a_i's largest component positive (a_j follows, same world axis).
@@ -176,17 +216,52 @@ def pair_fits(acc, pairs=None, hinge_margin: float = HINGE_MARGIN) -> PairFits:
         rms=rms + nan1,
         epsilon=eps + nan1,
         singular_values=sv + np.where(has[:, None], 0.0, np.nan),
-        hinge=hinge & has,
+        hinge=hinge,
+        determined=determined,
         axis_i=ai,
         axis_j=aj,
         coverage=coverage + nan3,
-        c_stderr=np.sqrt(np.trace(c_cov, axis1=1, axis2=2)) + nan1,
-        l_stderr=np.sqrt(np.trace(l_cov, axis1=1, axis2=2)) + nan1,
+        c_stderr=c_se + nan1,
+        l_stderr=l_se + nan1,
         c_cov=c_cov + nan1[:, None, None],
         l_cov=l_cov + nan1[:, None, None],
         n=n,
         rank=np.where(has, rank, 0),
-        noise_floor=noise_floor + nan1,
+        direction_error=np.where(has[:, None], err, np.inf),
+        rotation_noise=np.where(np.isfinite(mu0), mu0, np.nan) + nan1,
         separation=np.sqrt(np.maximum(ddn, 0.0)) + nan1,
         rms_floor=np.sqrt(ROUNDING * (np.maximum(ddn, 0.0) + acc.translation_power(P)) / mu_kept) + nan1,
     )
+
+
+def _batch_means_variance(acc, P, u, V, n, mu) -> tuple[np.ndarray, np.ndarray]:
+    """(p, 6) batch-means variance of u along each eigenvector, and the blocks it rests on (p,).
+
+    A block's score is A_b u − b_b = L(u) w_b with w_b the block's 16 terms, A_b = [[n_b I, −M_b],
+    [−M_bᵀ, n_b I]]; Σ_b (score)(score)ᵀ = L Σ w wᵀ Lᵀ comes from the accumulator's moments. The sandwich
+    A⁻¹ S A⁻¹ along v_k is v_kᵀ S v_k / (n μ_k)², scaled up for frames not yet in a finished block.
+    """
+    H, covered, blocks = acc.block_moments(P)
+    p = len(P)
+    c, l = u[:, :3], u[:, 3:]
+    L = np.zeros((p, 6, 16))
+    L[:, :3, 0], L[:, 3:, 0] = c, l
+    # −M_b l in the first half: row r takes −l_s from M_b[r, s]; −M_bᵀ c in the second: row s takes −c_r.
+    for r in range(3):
+        L[:, r, 1 + 3 * r:4 + 3 * r] = -l
+        L[:, 3:, 1 + 3 * r:4 + 3 * r] -= c[:, r, None, None] * np.eye(3)
+    L[:, :3, 10:13] = -np.eye(3)
+    L[:, 3:, 13:16] = -np.eye(3)
+    LV = np.einsum("pik,pia->pka", V, L)  # v_kᵀ L, (p, 6, 16)
+    s = np.einsum("pka,pab,pkb->pk", LV, H, LV)
+    enough = (blocks >= 2) & (covered > 0)
+    scale = np.where(enough, n / np.where(covered > 0, covered, 1.0) * blocks / np.maximum(blocks - 1.0, 1.0), np.nan)
+    return np.maximum(s, 0.0) * scale[:, None] / (n[:, None] * mu) ** 2, blocks
+
+
+def _upper_chi2_factor(dof: np.ndarray) -> np.ndarray:
+    """ν / χ²_ν at 1 − SE_CONFIDENCE (Wilson–Hilferty): a variance read from ν degrees of freedom scaled to
+    its one-sided SE_CONFIDENCE upper bound. scipy.stats is not imported for this: it costs the CLI ~0.3 s."""
+    k = 2.0 / (9.0 * dof)
+    q = dof * np.maximum(1.0 - k - _Z_SE * np.sqrt(k), 0.05) ** 3
+    return dof / q

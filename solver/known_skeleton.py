@@ -33,8 +33,10 @@ def body_points(art: Articulation) -> list[tuple[list[int], np.ndarray]]:
     return out
 
 
-def bones(art: Articulation, stderr: dict[tuple[str, str | None], float] | None = None) -> list[dict]:
-    """design.md §5 `bones`: per body, inboard joint to each outboard joint (root: pairs of outboard joints)."""
+def bones(art: Articulation, stderr: dict[tuple[str, str | None], float] | None = None,
+          only: frozenset | None = None) -> list[dict]:
+    """design.md §5 `bones`: per body, inboard joint to each outboard joint (root: pairs of outboard joints);
+    `only` keeps just the bones whose (from_joint, to_joint) it holds (a file's measured bones)."""
     out = []
     names = art.names
     rigid = art.rigid if art.rigid is not None else np.zeros(art.n_bodies, dtype=bool)
@@ -49,6 +51,8 @@ def bones(art: Articulation, stderr: dict[tuple[str, str | None], float] | None 
             if rigid[a] or rigid[k]:
                 continue  # a rigidly attached sensor has no joint, only a stand-in point at the sensor
             key = (names[a], names[k])
+            if only is not None and key not in only:
+                continue
             out.append(
                 {
                     "body": names[b],
@@ -85,6 +89,7 @@ class KnownFit:
     joint_info: dict = field(default_factory=dict)  # child name -> extra §5 joint fields (coverage, hinge, …)
     bone_stderr: dict = field(default_factory=dict)
     motion: tuple | None = None  # (Q (m,3,3), s (m,3)): saved body points → this take's sensor frames
+    bone_keys: frozenset | None = None  # the bones the saved file measured: (from_joint, to_joint); None: all
 
     def to_dict(self) -> dict:
         art = self.articulation
@@ -109,7 +114,7 @@ class KnownFit:
             "parent": {names[j]: names[art.parent[j]] for j in art.order[1:]},
             "frames": int(self.frames),
             "joints": joints,
-            "bones": bones(art, self.bone_stderr),
+            "bones": bones(art, self.bone_stderr, self.bone_keys),
             "loop_candidates": [],
             "slip_events": [],
             "known_skeleton": True,
@@ -127,6 +132,7 @@ def fit_known_skeleton(
     iterations: int = 20,
     bone_stderr: dict | None = None,
     previous: KnownFit | None = None,
+    bone_keys: frozenset | None = None,
 ) -> KnownFit:
     """Fit the accumulated take (sensor order `names`) with `saved`'s topology and bone lengths.
 
@@ -235,6 +241,8 @@ def fit_known_skeleton(
             ("coverage", "coverage"),
             ("c_stderr_m", "c_stderr"),
             ("l_stderr_m", "l_stderr"),
+            ("determined", "determined"),
+            ("direction_error_m", "direction_error"),
         ):
             value = getattr(free, attr, None)
             if value is None:
@@ -242,7 +250,10 @@ def fit_known_skeleton(
             v = np.asarray(value)[r_]
             if key.startswith("axis") and not np.all(np.isfinite(v)):
                 extra[key] = None
+            elif key == "direction_error_m":
+                extra[key] = [float(x) if np.isfinite(x) else None for x in v]
             else:
-                extra[key] = v.tolist() if np.ndim(v) else (bool(v) if v.dtype == bool else float(v))
+                extra[key] = v.tolist() if np.ndim(v) else (bool(v) if v.dtype == bool else float(v) if np.isfinite(v) else None)
         info[art.names[j]] = extra
-    return KnownFit(fitted, int(acc.frames), rms, eps, rms_free, done, info, dict(bone_stderr or {}), (Q, s))
+    return KnownFit(fitted, int(acc.frames), rms, eps, rms_free, done, info, dict(bone_stderr or {}), (Q, s),
+                    bone_keys)

@@ -15,7 +15,7 @@ import numpy as np
 
 from flockcal.solver.accumulator import GramAccumulator
 from flockcal.solver.errors import SolverError
-from flockcal.solver.fits import PairFits, pair_fits
+from flockcal.solver.fits import TOLERANCE_M, PairFits, pair_fits
 
 
 @dataclass
@@ -163,12 +163,13 @@ class SegmentedAccumulator:
         inv = np.argsort(np.asarray(order))
         return PairFits(**{f.name: np.concatenate([getattr(p, f.name) for p in parts])[inv] for f in fields(PairFits)})
 
-    def calibration_dict(self, hierarchy=None, root=None, names=None, slip_events=None) -> dict:
+    def calibration_dict(self, hierarchy=None, root=None, names=None, slip_events=None,
+                         tolerance: float = TOLERANCE_M) -> dict:
         """design.md §5 JSON: the whole-take calibration, with every joint and bone that involves a
         segmented sensor taken from a calibration of that segment (same tree)."""
         from flockcal.solver.calibration import calibrate
 
-        whole = calibrate(self.whole, hierarchy=hierarchy, root=root, names=names)
+        whole = calibrate(self.whole, hierarchy=hierarchy, root=root, names=names, tolerance=tolerance)
         d = _to_dict(whole, slip_events)
         if not self.segments:
             return d
@@ -181,7 +182,7 @@ class SegmentedAccumulator:
                 continue
             if id(seg) not in done:
                 done[id(seg)] = _to_dict(calibrate(self._segment_acc(seg), hierarchy=tree, root=d["root"],
-                                                   names=names), None)
+                                                   names=names, tolerance=tolerance), None)
             seg_joints = {e["child"]: e for e in done[id(seg)]["joints"]}
             entry.update(seg_joints[entry["child"]])
             entry["segment_start_s"] = seg.start_s
@@ -249,10 +250,10 @@ def segmented_from_take(take, events) -> SegmentedAccumulator:
     return seg
 
 
-def calibration_after_slips(take, events, hierarchy=None, root=None) -> dict:
+def calibration_after_slips(take, events, hierarchy=None, root=None, tolerance: float = TOLERANCE_M) -> dict:
     """design.md §5 JSON for a recorded take with slips: the whole-take calibration, except that every
     joint and bone involving a slipped sensor is fitted on the frames since its (latest) slip, and
     `slip_events` lists the events. `take` as for `detect_slips`; `events` from it."""
     seg = segmented_from_take(take, events)
     names = getattr(take, "names", None)
-    return seg.calibration_dict(hierarchy=hierarchy, root=root, names=names, slip_events=events)
+    return seg.calibration_dict(hierarchy=hierarchy, root=root, names=names, slip_events=events, tolerance=tolerance)

@@ -183,10 +183,11 @@ def _hang(m: int, n_groups: int, label_b: bytes, edges_b: bytes, root: int) -> _
 
 
 def _squares(fits: PairFits, m: int) -> np.ndarray:
-    """`fits.square` of "n", "rms", "rank" and "rms_floor" (filled 0, inf, 0, 0), in one scatter: (4, m, m)."""
-    out = np.empty((4, m, m))
-    out[...] = np.array([0.0, np.inf, 0.0, 0.0])[:, None, None]
-    v = np.stack([fits.n, fits.rms, fits.rank, fits.rms_floor]).astype(float)
+    """`fits.square` of "n", "rms", "rank", "rms_floor", "determined" and "hinge" (filled 0, inf, 0, 0, 0,
+    0), in one scatter: (6, m, m)."""
+    out = np.empty((6, m, m))
+    out[...] = np.array([0.0, np.inf, 0.0, 0.0, 0.0, 0.0])[:, None, None]
+    v = np.stack([fits.n, fits.rms, fits.rank, fits.rms_floor, fits.determined, fits.hinge]).astype(float)
     out[:, fits.pairs[:, 0], fits.pairs[:, 1]] = v
     out[:, fits.pairs[:, 1], fits.pairs[:, 0]] = v
     return out
@@ -204,7 +205,8 @@ def spanning_tree(fits: PairFits, n_sensors: int, root: int | None = None) -> To
     m = int(n_sensors)
     if root is not None and not 0 <= int(root) < m:
         raise SolverError(f"root index {root} is out of range for {m} sensors")
-    n, rms, rank, floor = _squares(fits, m)
+    n, rms, rank, floor, determined, hinge = _squares(fits, m)
+    determined, hinge = determined > 0, hinge > 0
     measured = n > 0
     np.fill_diagonal(measured, False)
     rms = np.where(measured, rms, np.inf)
@@ -213,7 +215,7 @@ def spanning_tree(fits: PairFits, n_sensors: int, root: int | None = None) -> To
     found = np.isfinite(best)
     scale = _median(best[found]) if found.any() else 0.0
 
-    # Rigid bodies: pairs that never turned relative to each other yet fit like a joint would.
+    # Rigid bodies: pairs that never turned relative to each other beyond noise, yet fit like a joint would.
     rigid = measured & (rank <= 3) & (rms <= RIGID_FACTOR * scale + tol)
     n_groups, label = _rigid_bodies(rigid.tobytes(), m)
 
@@ -252,7 +254,7 @@ def spanning_tree(fits: PairFits, n_sensors: int, root: int | None = None) -> To
     tree_rms = tree_rms[np.isfinite(tree_rms)]
     if len(tree_rms):
         limit = LOOP_FACTOR * _median(tree_rms)
-        cand = h.unlinked & (rms_u <= limit + tol[iu, ju]) & (rank[iu, ju] >= 5)
+        cand = h.unlinked & (rms_u <= limit + tol[iu, ju]) & determined[iu, ju]
         topo.loop_candidates = [(int(a), int(b), float(rms[a, b])) for a, b in zip(iu[cand], ju[cand])]
 
     # Ambiguous parents: another body, not below the child, that the child's sensor fits as well as its parent.
@@ -267,7 +269,7 @@ def spanning_tree(fits: PairFits, n_sensors: int, root: int | None = None) -> To
             if unmeasured[r]:
                 topo.ambiguous.append((x, [p], "no frame has both sensors valid: this joint was never measured"))
             else:
-                hinged = rank[x, p] == 5 or (rank[x, others] == 5).any()
+                hinged = hinge[x, p] or hinge[x, others].any()
                 note = "intersecting hinge axes" if hinged else "coincident joint centres"
                 topo.ambiguous.append((x, [p] + [int(q) for q in others], f"fits equally well to each: {note}"))
     return topo

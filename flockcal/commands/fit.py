@@ -33,7 +33,23 @@ def register(subparsers) -> None:
                    "a number or the JSON file `flockcal scale --json` wrote")
     p.add_argument("--no-slips", action="store_true", help="skip the sensor-slip search (faster on long takes)")
     add_option(p)
+    add_tolerance(p)
     p.set_defaults(func=run)
+
+
+def add_tolerance(p) -> None:
+    """The --tolerance-mm option `fit` and `serve` share (design.md §3a)."""
+    p.add_argument("--tolerance-mm", type=float, default=5.0, metavar="MM",
+                   help="a joint counts as determined when the data pin its centre to within MM along every "
+                        "direction it needs (default 5)")
+
+
+def tolerance_m(args: argparse.Namespace) -> float:
+    """--tolerance-mm in metres; UserError unless it is a positive number."""
+    mm = float(args.tolerance_mm)
+    if not mm > 0 or mm != mm or mm == float("inf"):
+        raise UserError(f"--tolerance-mm must be a positive number of millimetres, got {args.tolerance_mm}")
+    return mm / 1000.0
 
 
 def load_hierarchy(path: str) -> dict:
@@ -83,7 +99,8 @@ def run(args: argparse.Namespace) -> int:
     hierarchy = load_hierarchy(args.hierarchy) if args.hierarchy else None
     acc = accumulate(take)
     # Fitted first, so bad input (names, hierarchy) is reported as such before the take is judged.
-    cal = calibrate(acc, hierarchy=hierarchy, root=args.root, names=take.names)
+    tol = tolerance_m(args)
+    cal = calibrate(acc, hierarchy=hierarchy, root=args.root, names=take.names, tolerance=tol)
     if stop_for("fit", args.file, too_short(take) or too_still(cal), args.allow_partial):
         return PARTIAL_EXIT
     slips, result = [], cal.to_dict()
@@ -98,7 +115,8 @@ def run(args: argparse.Namespace) -> int:
                 # The slipped sensors' joints and bones are re-fitted on the frames since their slip
                 # (design.md §4); everything else keeps the whole take.
                 stages.step("re-fitting after slips")
-                result = calibration_after_slips(take, slips, hierarchy=result["parent"], root=result["root"])
+                result = calibration_after_slips(take, slips, hierarchy=result["parent"], root=result["root"],
+                                                 tolerance=tol)
         if args.bvh:
             try:
                 from flockcal.exports.bvh import write_bvh
@@ -136,7 +154,7 @@ def _cm(v) -> str:
 
 
 def _mm(x) -> str:
-    return "—" if x != x else f"{1000 * x:.2f}"
+    return "—" if x != x or x == float("inf") else f"{1000 * x:.2f}"
 
 
 def table(cal, source: str = "") -> str:
@@ -162,7 +180,7 @@ def table(cal, source: str = "") -> str:
             note = "root"
         elif x in row:
             k = row[x]
-            kind = "hinge" if J.hinge[k] else "ball" if J.rank[k] == 6 else f"rank {J.rank[k]}"
+            kind = "hinge" if J.hinge[k] else "ball" if J.determined[k] else "undetermined"
             note = f"{kind}, rms {_mm(J.rms[k])} mm"
         else:
             note = f"rigid with {nm[p]}"
@@ -196,7 +214,11 @@ def table(cal, source: str = "") -> str:
     if cal.ambiguous:
         out += ["", "Ambiguous parents (the tree picked the first; the data cannot tell them apart)"]
         out += [f"  {nm[c]}: {', '.join(nm[p] for p in ps)} — {note}" for c, ps, note in cal.ambiguous]
-    under = [k for k in range(len(J)) if J.rank[k] < 5]
+    under = [k for k in range(len(J)) if not J.determined[k]]
     if under:
-        out += ["", "Move more: " + ", ".join(f"{nm[J.pairs[k, 0]]}" for k in under) + " barely turned; their joints are not determined"]
+        from flockcal.server.coaching import joint_label
+
+        names = ", ".join(joint_label(nm[J.pairs[k, 0]], nm[J.pairs[k, 1]]).removeprefix("the ") for k in under)
+        out += ["", f"Move more: {names} — not determined yet (the data do not pin the centre to the tolerance); "
+                "no bone ends there"]
     return "\n".join(out)

@@ -11,6 +11,7 @@ import os
 from pathlib import Path
 
 from flockcal.errors import UserError
+from flockcal.commands.fit import add_tolerance
 
 
 def register(subparsers) -> None:
@@ -40,6 +41,7 @@ def register(subparsers) -> None:
     p.add_argument("--baud", type=int, metavar="BAUD", help="serial line speed (default 115200, or the baud= of "
                    "a sim:// URL); the driver picks a record format the line can carry")
     p.add_argument("--fit-hz", type=float, default=30.0, help="full refits per second (default 30)")
+    add_tolerance(p)
     p.add_argument("--fast-init", action="store_true", default=bool(os.environ.get("FLOCKCAL_FAST_INIT")),
                    help="skip the tracker's reset delays (for simulated trackers on a pty)")
     p.add_argument("--skeleton", action="append", default=[], type=Path, metavar="FILE",
@@ -52,6 +54,8 @@ def register(subparsers) -> None:
 
 
 def settings_from_args(args: argparse.Namespace):
+    from flockcal.commands.fit import tolerance_m
+
     from flockcal.server.settings import Settings, default_data_dir
 
     names = tuple(x.strip() for x in args.names.split(",")) if args.names else None
@@ -67,6 +71,7 @@ def settings_from_args(args: argparse.Namespace):
         kiosk_token=args.kiosk_token or os.environ.get("FLOCKCAL_KIOSK_TOKEN") or None,
         names=names,
         fit_hz=args.fit_hz,
+        tolerance_m=tolerance_m(args),
         cors_origins=tuple(args.cors_origin),
         fast_init=args.fast_init,
         scale_inches=args.scale,

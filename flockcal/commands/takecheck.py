@@ -23,14 +23,9 @@ def add_option(parser) -> None:
 
 
 def determined_joints(cal) -> np.ndarray:
-    """Which joints of the fitted tree are determined, one bool per `cal.joints` entry.
-
-    The one place that decides it. Until the fit JSON carries `joints[].determined`, a joint counts as
-    determined when its pair fit solved at least one rotation direction (rank > 3 in the solver's
-    PairFits): its two sensors turned relative to each other. Bodies that never turned are contracted
-    into rigid groups and have no tree joint at all.
-    """
-    return np.asarray(cal.joints.rank) > 3
+    """Which joints of the fitted tree are determined (design.md §3a), one bool per `cal.joints` entry:
+    the solver's own decision, so the warning, the table and the JSON never disagree."""
+    return np.asarray(cal.joints.determined, dtype=bool)
 
 
 def too_short(take) -> str | None:
@@ -48,7 +43,8 @@ def too_still(cal) -> str | None:
     if determined_joints(cal).any():
         return None
     joints = len(cal.joints)
-    what = (f"none of the {joints} joint(s) of the fitted tree turned" if joints else
+    what = (f"none of the {joints} joint(s) of the fitted tree is determined (none turned enough to pin its "
+            "centre)" if joints else
             "no two sensors turned relative to each other (they moved as one rigid body)")
     return f"too still to fit: {what} — record the performer moving each joint"
 

@@ -77,7 +77,8 @@ def skeleton_dict(calibration, source: dict | None = None, take=None, acc=None) 
         "root": names[art.root],
         "parent": {names[j]: names[art.parent[j]] for j in art.order[1:]},
         "joints": [joint_of[names[j]] for j in art.order[1:]],
-        "bones": d.get("bones") or bones_of(art),
+        # Only the bones the calibration measured: a bone ending at an undetermined joint was not.
+        "bones": d["bones"] if "bones" in d else bones_of(art),
         "rigid_groups": d.get("rigid_groups") or [],
         "placements": placements,
         "bodies": bodies,
@@ -135,6 +136,11 @@ class Skeleton:
                 out[(b["from_joint"], b["to_joint"])] = out[(b["to_joint"], b["from_joint"])] = float(b["stderr_m"])
         return out
 
+    @property
+    def bone_keys(self) -> frozenset:
+        """(from_joint, to_joint) of every bone the file holds: the ones its take measured."""
+        return frozenset((b["from_joint"], b["to_joint"]) for b in self.data["bones"])
+
     def check_names(self, names) -> None:
         """SkeletonError unless the take's sensors are exactly the skeleton's (any order)."""
         try:
@@ -150,7 +156,8 @@ class Skeleton:
         from flockcal.solver.known_skeleton import fit_known_skeleton
 
         self.check_names(names)
-        return fit_known_skeleton(acc, self.articulation, names, bone_stderr=self.bone_stderr, previous=previous)
+        return fit_known_skeleton(acc, self.articulation, names, bone_stderr=self.bone_stderr, previous=previous,
+                                  bone_keys=self.bone_keys)
 
 
 def _vec3(value, where: str) -> list[float]:
