@@ -11,32 +11,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from flockcal.drivers import codec
+from flockcal.frames import Frames
 from flockcal.drivers.link import FlockSetup
-
-
-@dataclass
-class Frames:
-    """A batch of n frames of m birds; invalid slots hold zeros (parts a format lacks are NaN)."""
-
-    times: np.ndarray  # (n,) monotonic seconds, arrival of the cycle's first byte
-    rotations: np.ndarray  # (n, m, 3, 3) body → transmitter
-    positions: np.ndarray  # (n, m, 3) metres, transmitter frame (+Z down)
-    valid: np.ndarray  # (n, m) bool
-
-    def __len__(self) -> int:
-        return len(self.times)
-
-    @staticmethod
-    def empty(m: int) -> "Frames":
-        return Frames(np.zeros(0), np.zeros((0, m, 3, 3)), np.zeros((0, m, 3)), np.zeros((0, m), bool))
-
-    @staticmethod
-    def concat(parts: list["Frames"], m: int) -> "Frames":
-        if not parts:
-            return Frames.empty(m)
-        if len(parts) == 1:
-            return parts[0]
-        return Frames(*(np.concatenate([getattr(p, k) for p in parts]) for k in ("times", "rotations", "positions", "valid")))
 
 
 class _Held:

@@ -1,0 +1,54 @@
+"""Frames: the one shape sensor data travels in, from the driver through the solver to the server.
+
+n frames of m sensors as arrays (as scipy's Rotation holds many rotations in one object): times (n,),
+rotations (n, m, 3, 3) body → world, positions (n, m, 3) metres, valid (n, m). No layer unpacks it into
+loose arrays to hand it on.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+
+@dataclass(frozen=True)
+class Frames:
+    """A batch of n frames of m sensors, SI units. Slots that are not valid hold zeros (parts a record
+    format lacks may be NaN); readers of `rotations`/`positions` must look at `valid`."""
+
+    times: np.ndarray  # (n,) seconds (the driver: monotonic arrival of the cycle's first byte)
+    rotations: np.ndarray  # (n, m, 3, 3) body → world (the transmitter frame for a tracker)
+    positions: np.ndarray  # (n, m, 3) metres
+    valid: np.ndarray  # (n, m) bool
+
+    def __len__(self) -> int:
+        return len(self.times)
+
+    @property
+    def n_frames(self) -> int:
+        return len(self.times)
+
+    @property
+    def n_sensors(self) -> int:
+        return self.rotations.shape[1]
+
+    def __getitem__(self, index) -> "Frames":
+        """Frames `index` (a slice, an index array or a boolean mask over frames), as Frames."""
+        if isinstance(index, (int, np.integer)):
+            index = slice(int(index), int(index) + 1 or None)
+        return Frames(self.times[index], self.rotations[index], self.positions[index], self.valid[index])
+
+    @staticmethod
+    def empty(m: int) -> "Frames":
+        return Frames(np.zeros(0), np.zeros((0, m, 3, 3)), np.zeros((0, m, 3)), np.zeros((0, m), bool))
+
+    @staticmethod
+    def concat(parts: list["Frames"], m: int) -> "Frames":
+        """One Frames from consecutive batches (`m` sensors when there are none)."""
+        if not parts:
+            return Frames.empty(m)
+        if len(parts) == 1:
+            return parts[0]
+        return Frames(*(np.concatenate([getattr(p, k) for p in parts])
+                        for k in ("times", "rotations", "positions", "valid")))
