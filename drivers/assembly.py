@@ -6,7 +6,6 @@ Decisions depend only on the chunks (their bytes and arrival times), never on th
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 
 import numpy as np
 
