@@ -27,7 +27,6 @@ import inspect
 import json
 import sys
 import tempfile
-import threading
 import time
 
 import numpy as np
@@ -138,34 +137,15 @@ def run_pipeline(perf: Performer, max_s: float, tolerance_m: float, target_m: fl
     return {"done_s": None, "fit": None, "docs": docs}
 
 
-class GuestStream:
-    """The pose source behind the fake tracker: the current guest, their routine starting at `begin()`."""
-
-    def __init__(self, perf: Performer, clock):
-        self.names, self.n_sensors, self.full_scale_in = perf.names, perf.n_sensors, perf.full_scale_in
-        self.clock = clock
-        self._now = (perf, 0.0)
-
-    def begin(self, perf: Performer) -> None:
-        if perf.names != self.names:
-            raise SystemExit("every guest must wear the same sensors")
-        self._now = (perf, float(self.clock()))
-
-    def poses(self, times):
-        perf, start = self._now
-        return perf.poses(np.asarray(times, dtype=float) - start)
-
-
 def run_service(guest_list, options, max_s: float, tolerance_m: float, target_m: float) -> list[dict]:
     import httpx
-    import websockets
 
-    from flockcal.server.testing import ServerProcess, free_port, wait_connected
+    from flockcal.server.testing import GuestSource, ServerProcess, free_port, wait_connected
     from flockcal.simulator.pty_tracker import PtyTracker
 
     first = Performer("human", "kiosk", seed=guest_list[0][0], rate_hz=RATE, height=guest_list[0][1], **options)
     tracker = PtyTracker(first, birds=first.n_sensors, baud=921600, rate_hz=RATE)
-    stream = GuestStream(first, tracker.flock.clock)
+    stream = GuestSource(first, tracker.flock.clock)
     tracker.flock.source = stream
     tracker.start()
     out = []

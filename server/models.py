@@ -10,6 +10,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from flockcal.server.progress import STATES
 from flockcal.server.settings import PERFORMER_PATTERN
 
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9 _.\-]{0,63}$"
@@ -132,7 +133,7 @@ class MissingJoint(Open):
     joint: str = Field(description="the joint, named by its child body (= the sensor it belongs to)")
     parent: str | None = None
     label: str = Field(description="the joint as people name it ('left elbow')")
-    state: Literal["rigid", "not_turned", "undetermined", "pinning", "done"]
+    state: Literal[STATES] = Field(description="how far it is from calibrated (README.md, \"Progress\")")
     why: str | None = Field(None, description="why it is not calibrated yet, in plain words")
     undone: dict | None = Field(None, description="{reason: slip | loss | tree, time_s, sensor}: it was calibrated "
                                                   "once and this undid it")

@@ -30,8 +30,9 @@ CONFIRM_S = 1.0
 # newest fit still waits on one of them to be pinned again.
 NOT_DONE_CAP = 0.99
 
-_STATE_ORDER = {"rigid": 0, "not_turned": 1, "undetermined": 2, "unsettled": 3, "pinning": 4, "confirming": 5,
-                "done": 6}
+# A sensor's standing, furthest from calibrated first (the order `missing` lists ties in).
+STATES = ("rigid", "not_turned", "undetermined", "unsettled", "pinning", "confirming", "done")
+_STATE_ORDER = {s: k for k, s in enumerate(STATES)}
 
 
 def needed_errors(joint: dict, hinge: bool | None = None) -> list[float]:
