@@ -21,7 +21,7 @@ import numpy as np
 
 from flockcal.errors import FlockcalError
 from flockcal.server.framelog import FrameLog
-from flockcal.server.progress import ProgressTracker, waiting
+from flockcal.server.progress import ProgressTracker, default_target, waiting
 from flockcal.server.snapshot import ResidualSample, Snapshot
 from flockcal.server.store import Store
 from flockcal.threads import name_os_thread
@@ -167,7 +167,7 @@ class Pipeline:
         self.names = tuple(names)
         self.tolerance = float(tolerance)
         # The joint-centre error at which a joint counts as calibrated (progress, done): at most the tolerance.
-        self.target = self.tolerance if target is None else float(target)
+        self.target = default_target(self.tolerance) if target is None else float(target)
         self.m = len(self.names)
         self.store = store
         self.source_status = source_status
@@ -594,8 +594,8 @@ class Pipeline:
             n = live.progress["joints_needed"]
             self._process_events([{
                 "type": "session", "session_id": live.id, "action": "calibrated", "time_s": time_s,
-                "message": f"{live.performer} is calibrated: all {n} joints determined to "
-                           f"{1000 * self.target:g} mm after {time_s:.1f} s"}])
+                "message": f"{live.performer} is calibrated: all {n} joints pinned to "
+                           f"{1000 * self.target:.1f} mm after {time_s:.1f} s"}])
         elif was_done and not done:
             why = next((m["why"] for m in live.progress["missing"] if m.get("undone")), None)
             if why is None and live.progress["missing"]:

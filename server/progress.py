@@ -17,13 +17,15 @@ import math
 from flockcal.server.coaching import hint_sentence, joint_name, readable_body
 
 # A done joint is undone by a loss of fit, not a wobble: when it is no longer determined and the error
-# along a direction it needs exceeds this multiple of the target, or nothing turned along it any more.
+# along a direction it needs exceeds this multiple of the target, or nothing turned along it any more. A
+# joint's error is an upper confidence bound that moves as batch-means blocks complete; twice the target is
+# well outside that (a 4x variance), while a sensor moved on the skin is the slip monitor's to report.
 LOSS_FACTOR = 2.0
 
-# A joint is counted done once it has met the target over this much session time, fit after fit. In the
-# first second of a take the solver's batch-means errors rest on one or two 64-frame blocks and a joint can
-# read determined and lose it again a few fits later (seen on simulated kiosk guests, the elbow at 0.4–0.9 s);
-# holding the claim for a second keeps such a joint from being counted and then taken back.
+# A joint is counted once it has met the target over this much session time, fit after fit. In the first
+# second of a take the solver's batch-means errors rest on one or two 64-frame blocks and a joint can read
+# determined and lose it again a few fits later (the elbow at 0.4–0.9 s on a simulated kiosk guest). Over 20
+# simulated guests the ring went back 19 times with no hold, once with 0.5 s and never with 1 s.
 CONFIRM_S = 1.0
 
 # Below 1 until done: a ring at "100 %" must mean done, even when every joint has been done once but the
@@ -33,6 +35,15 @@ NOT_DONE_CAP = 0.99
 # A sensor's standing, furthest from calibrated first (the order `missing` lists ties in).
 STATES = ("rigid", "not_turned", "undetermined", "unsettled", "pinning", "confirming", "done")
 _STATE_ORDER = {s: k for k, s in enumerate(STATES)}
+
+
+def default_target(tolerance_m: float) -> float:
+    """The joint-centre error counted as calibrated unless one is given: the tolerance / √2. A bone spans two
+    joint centres, each pinned to the target along every direction; errors of its two ends add in quadrature,
+    so the bone is then held to the tolerance (5 mm by default: bones within 5 mm at done, the kiosk's aim).
+    On 20 simulated kiosk guests the full 5 mm left one hinge-ended bone 5.8 mm off at done, 3.5 mm none
+    over 4.3 mm, for 0.3 s more (benchmarks/bench_calibrate_time.py)."""
+    return float(tolerance_m) / math.sqrt(2.0)
 
 
 def needed_errors(joint: dict, hinge: bool | None = None) -> list[float]:
@@ -182,6 +193,8 @@ class ProgressTracker:
         self.meeting: dict[frozenset, float] = {}  # pair → session time since which it has met the target
         self.undone: dict[frozenset, dict] = {}  # pair → {reason, time_s, sensor}: done once, undone since
         self.slipped: dict[str, int] = {}  # sensor → epoch of its latest slip
+        self.best: dict[frozenset, dict] = {}  # pair → {value, hinge}: the best share a pinning joint reached
+        self.pinning: dict[frozenset, float] = {}  # pair → session time since which it has been determined
         self.done_parent: dict[str, str] = {}  # sensor → the parent it was last done against
         self.done = False
         self.done_at_s: float | None = None
@@ -195,6 +208,10 @@ class ProgressTracker:
             self.slipped[s] = int(epoch)
         for pair in [p for p in self.meeting if p & sensors]:
             del self.meeting[pair]
+        for pair in [p for p in self.best if p & sensors]:
+            del self.best[pair]
+        for pair in [p for p in self.pinning if p & sensors]:
+            del self.pinning[pair]
         hit = []
         for pair in [p for p in self.latched if p & sensors]:
             latch = self.latched.pop(pair)
@@ -233,6 +250,8 @@ class ProgressTracker:
                     self.meeting.pop(pair, None)
             it["done"] = latch is not None
             it["undone"] = None
+            if not it["done"]:
+                self._hold(it, pair, j, time_s, stale)
             if it["done"]:
                 it["state"] = "done"  # done stays done through a wobble of the newest fit
                 self.done_parent[it["joint"]] = it["parent"]
@@ -249,6 +268,26 @@ class ProgressTracker:
             self.done, self.done_at_s = False, None
         self.latest = summarise(items, self.target_m, self.done, self.done_at_s)
         return self.latest
+
+    def _hold(self, it: dict, pair: frozenset, j: dict | None, time_s: float, stale: bool) -> None:
+        """A joint on its way to a stricter target than the tolerance shows the best share it has reached
+        ("pinning"), so the ring does not follow its error's wobbles back either; a real loss resets it. As
+        for done, the share counts once the joint has been determined for CONFIRM_S."""
+        if it["state"] in ("pinning", "confirming"):
+            since = self.pinning.setdefault(pair, float(time_s))
+        else:
+            since = None
+            self.pinning.pop(pair, None)
+        best = self.best.get(pair)
+        if best is not None and j is not None and not j.get("determined"):
+            if max(needed_errors(j, hinge=best["hinge"])) > LOSS_FACTOR * self.tolerance_m:
+                del self.best[pair]
+                self.undone[pair] = {"reason": "loss", "time_s": float(time_s), "sensor": it["joint"]}
+                best = None
+        held = since is not None and time_s - since >= self.confirm_s - 1e-9
+        if it["state"] == "pinning" and held and not stale and (best is None or it["progress"] > best["value"]):
+            best = self.best[pair] = {"value": it["progress"], "hinge": bool(j.get("hinge"))}
+        it["progress"] = best["value"] if best is not None else 0.0
 
     def _carry_over(self, items: list[dict]) -> None:
         """Re-key done joints whose rigid group came apart: a joint done between bodies A and B (each a rigid

@@ -62,7 +62,7 @@ class Settings:
     reader_batch_s: float = 0.005  # how often the reader hands frames over (latency vs. per-batch cost)
     fit_hz: float = 30.0  # full refit (all pairs + topology + bones) rate, ≥ 30 per the issue
     tolerance_m: float = 0.005  # a joint is determined when its centre is pinned this closely (design.md §3a)
-    target_m: float | None = None  # ...and calibrated (progress, done) when pinned this closely; None: tolerance_m
+    target_m: float | None = None  # ...and calibrated (progress, done) when pinned this closely; None: tolerance/√2
     residual_hz: float = 20.0  # residual rms samples per second kept for the time series
     residual_window_s: float = 120.0  # live residual history kept in memory
     max_body_bytes: int = 64 * 1024
@@ -79,8 +79,11 @@ class Settings:
 
     @property
     def progress_target_m(self) -> float:
-        """The joint-centre error at which a joint counts as calibrated: --target-mm, else --tolerance-mm."""
-        return self.tolerance_m if self.target_m is None else self.target_m
+        """The joint-centre error at which a joint counts as calibrated: --target-mm, else --tolerance-mm / √2
+        (server.progress.default_target: bones then within the tolerance)."""
+        from flockcal.server.progress import default_target
+
+        return default_target(self.tolerance_m) if self.target_m is None else self.target_m
 
     @property
     def device_url(self) -> str:

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from flockcal.server.pipeline import accumulate, calibrate_dict, new_accumulator
-from flockcal.server.progress import ProgressTracker, progress_of
+from flockcal.server.progress import ProgressTracker, default_target, progress_of
+from flockcal.server.settings import Settings
 from flockcal.simulator.performer import Performer
 
 MM = 0.001
@@ -68,6 +69,12 @@ def test_a_stricter_target_ramps_with_the_share_of_frames_still_needed():
     assert doc["joint_progress"][0]["state"] == "pinning"
     assert doc["progress"] == pytest.approx(0.25, abs=1e-4)
     assert "4.0 mm" in doc["missing"][0]["why"]
+
+
+def test_the_default_target_holds_a_bone_between_two_such_joints_to_the_tolerance():
+    # A bone's two ends add in quadrature: each pinned to t, the bone to t·√2 = the tolerance.
+    assert default_target(TARGET) * math.sqrt(2) == pytest.approx(TARGET)
+    assert Settings(device="sim://x?birds=3", birds=3, tolerance_m=0.004).progress_target_m == pytest.approx(0.004 / math.sqrt(2))
 
 
 def track(tracker, fits, t0=0.0, dt=0.1, epoch=0):
@@ -137,6 +144,23 @@ def test_a_slip_undoes_its_sensors_joints_and_a_fit_begun_before_it_cannot_redo_
     # Fits from after the slip re-pin them (from fresh frames) and, held a second, they count again.
     doc = track(tr, [arm] * 12, t0=3.0, epoch=1)
     assert doc["done"] and doc["missing"] == []
+
+
+def test_a_joint_pinning_towards_a_stricter_target_never_shows_less_than_it_reached():
+    tr = ProgressTracker(2 * MM, tolerance_m=TARGET)
+
+    def at(err):
+        return fit([joint("l_thigh", "pelvis", err_mm=(err, 1.0, 1.0))])
+
+    doc = track(tr, [at(4.0)] * 11)  # determined for a second: (2/4)² of the frames it needs
+    assert doc["progress"] == pytest.approx(0.25, abs=1e-4)
+    doc = tr.update(at(4.5), 1.1)  # the error wobbles up: the share shown stays
+    assert doc["progress"] == pytest.approx(0.25, abs=1e-4)
+    doc = tr.update(at(3.0), 1.2)
+    assert doc["progress"] == pytest.approx((2 / 3) ** 2, abs=1e-4)
+    # Undetermined far beyond the tolerance (over twice it): lost, shown as such.
+    doc = tr.update(fit([joint("l_thigh", "pelvis", err_mm=(11.0, 1.0, 1.0), determined=False)]), 1.3)
+    assert doc["progress"] == 0.0 and doc["missing"][0]["undone"]["reason"] == "loss"
 
 
 def test_a_joint_done_against_a_rigid_group_stays_done_when_the_group_comes_apart():

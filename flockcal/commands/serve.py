@@ -44,7 +44,8 @@ def register(subparsers) -> None:
     add_tolerance(p)
     p.add_argument("--target-mm", type=float, metavar="MM",
                    help="a joint counts as calibrated (progress, done, the kiosk ring) once the data pin its centre "
-                        "to within MM along every direction it needs (default: --tolerance-mm)")
+                        "to within MM along every direction it needs (default: --tolerance-mm / 1.414, so bones "
+                        "between two such joints are within the tolerance)")
     p.add_argument("--fast-init", action="store_true", default=bool(os.environ.get("FLOCKCAL_FAST_INIT")),
                    help="skip the tracker's reset delays (for simulated trackers on a pty)")
     p.add_argument("--skeleton", action="append", default=[], type=Path, metavar="FILE",

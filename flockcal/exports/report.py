@@ -218,7 +218,7 @@ def report_html(
     from flockcal.exports.bvh import bvh_world
     from flockcal.solver.known_skeleton import bones as bones_of
 
-    from flockcal.server.progress import progress_of
+    from flockcal.server.progress import default_target, progress_of
     from flockcal.solver.fits import TOLERANCE_M
 
     d = calibration.to_dict() if hasattr(calibration, "to_dict") else dict(calibration)
@@ -226,7 +226,7 @@ def report_html(
     names = art.names
     # The service's one definition of progress, for this one fit (a given tree cannot re-link).
     fixed = bool(getattr(calibration, "hierarchy_given", False) or d.get("known_skeleton"))
-    progress = progress_of(d, TOLERANCE_M, tree_fixed=fixed)
+    progress = progress_of(d, default_target(TOLERANCE_M), TOLERANCE_M, tree_fixed=fixed)
     standing = {j["joint"]: j for j in progress["joint_progress"]}
     e = tree_residuals(take.rotations, take.positions, art, take.valid)
     sep = np.linalg.norm(e, axis=-1)
@@ -322,7 +322,7 @@ def report_html(
 def _progress_html(doc: dict) -> str:
     """The progress document as the kiosk and dashboard show it: the figure, done, and what is missing."""
     head = (f"<p>{doc['joints_done']} of {doc['joints_needed']} joints calibrated ({doc['percent']} %), each "
-            f"determined with its centre pinned to {1000 * doc['target_m']:g} mm: "
+            f"determined with its centre pinned to {1000 * doc['target_m']:.1f} mm: "
             f"<b>{'done' if doc['done'] else 'not done'}</b>.</p>")
     if not doc["missing"]:
         return head
