@@ -31,10 +31,12 @@ import time
 
 import numpy as np
 
+from flockcal.server.progress import default_target
 from flockcal.simulator.performer import Performer
 
 RATE = 144.0
 TARGET_MEDIAN_S, TARGET_P90_S, TARGET_BONE_M = 20.0, 30.0, 0.005
+GUEST_LEAD_S = 0.3  # see server.testing.GuestSource
 
 
 def performer_options(pairs: list[str]) -> dict:
@@ -159,7 +161,8 @@ def run_service(guest_list, options, max_s: float, tolerance_m: float, target_m:
             wait_connected(server.url, timeout=60)
             for seed, height in guest_list:
                 perf = Performer("human", "kiosk", seed=seed, rate_hz=RATE, height=height, **options)
-                stream.begin(perf)
+                stream.begin(perf, lead_s=GUEST_LEAD_S)  # no frame of the last guest's body in this session
+                time.sleep(GUEST_LEAD_S)
                 sid = httpx.post(f"{server.url}/api/sessions", json={"performer": f"guest {seed}"}).json()["id"]
                 docs = asyncio.run(_follow(server.url, sid, max_s))
                 httpx.post(f"{server.url}/api/sessions/{sid}/stop", timeout=60)
@@ -230,13 +233,13 @@ def main() -> None:
     ap.add_argument("--heights", default="1.5:1.95", metavar="LOW:HIGH", help="guests' heights, metres (uniform)")
     ap.add_argument("--max-s", type=float, default=60.0, help="give a guest up after this much session time")
     ap.add_argument("--tolerance-mm", type=float, default=5.0)
-    ap.add_argument("--target-mm", type=float, default=None, help="default: --tolerance-mm")
+    ap.add_argument("--target-mm", type=float, default=None, help="default: the service's, --tolerance-mm / √2")
     ap.add_argument("--performer-option", action="append", default=[], metavar="KEY=VALUE")
     args = ap.parse_args()
     options = performer_options(args.performer_option)
     lo, hi = (float(x) for x in args.heights.split(":"))
     tol = args.tolerance_mm / 1000.0
-    target = tol if args.target_mm is None else args.target_mm / 1000.0
+    target = default_target(tol) if args.target_mm is None else args.target_mm / 1000.0
     guest_list = guests(args.guests, args.seed, (lo, hi))
     print(f"{args.guests} guests, kiosk routine, {RATE:g} Hz, 16 sensors, tolerance {tol * 1000:g} mm, target "
           f"{target * 1000:g} mm, mode {args.mode}, performer options {options or 'none'}")

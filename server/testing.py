@@ -56,8 +56,12 @@ def wait_connected(url: str, timeout: float = 30.0, token: str | None = None, fr
 
 class GuestSource:
     """A simulated performer as the pose source of a fake tracker, whose routine starts over at `begin()`
-    (a kiosk guest starts moving when their session starts); `begin(other)` swaps in the next guest, who
-    must wear the same sensors. Pass it as the tracker's source: `tracker.flock.source = GuestSource(…)`.
+    (a kiosk guest starts moving when their session starts); `begin(other, lead_s)` swaps in the next
+    guest, who must wear the same sensors. Pass it as the tracker's source: `tracker.flock.source = …`.
+
+    A new guest has another body: frames of the last one in a session would mix two skeletons. So swap
+    with a lead (`lead_s` ≈ 0.3 s: the tracker computes poses up to 0.1 s ahead, and frames in flight),
+    wait that long, then start the session; the routine's clock starts at the end of the lead.
     """
 
     def __init__(self, performer, clock):
@@ -70,11 +74,11 @@ class GuestSource:
     def performer(self):
         return self._now[0]
 
-    def begin(self, performer=None) -> None:
+    def begin(self, performer=None, lead_s: float = 0.0) -> None:
         performer = self._now[0] if performer is None else performer
         if tuple(performer.names) != tuple(self.names):
             raise ValueError(f"the next guest wears {list(performer.names)}, not the tracker's {list(self.names)}")
-        self._now = (performer, float(self.clock()))
+        self._now = (performer, float(self.clock()) + float(lead_s))
 
     def poses(self, times):
         performer, start = self._now
