@@ -6,6 +6,7 @@ server/progress.py; the pages' names (static/common.js) mirror the ones here.
 from __future__ import annotations
 
 import re
+from functools import lru_cache
 
 # Body keyword → the joint at its inboard end, and how far out along the body that joint sits: a joint is
 # named after the more distal of its two bodies, whichever way the tree happens to be rooted (design.md §5
@@ -21,6 +22,8 @@ _BODY_JOINTS = [
 ]
 
 
+# Names are a session's few sensors, asked about on every fit (~30/s): worked out once each.
+@lru_cache(maxsize=1024)
 def readable_body(name: str) -> str:
     """'l_forearm' → 'left forearm', 'RightUpLeg' → 'right up leg', 'bird3' → 'bird 3'."""
     s = re.sub(r"([a-z])([A-Z])", r"\1 \2", str(name))
@@ -40,6 +43,7 @@ def readable_body(name: str) -> str:
     return " ".join(out)
 
 
+@lru_cache(maxsize=1024)
 def _body_joint(name: str) -> tuple[str, int] | None:
     body = readable_body(name)
     side = ""
