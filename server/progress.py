@@ -60,11 +60,12 @@ def standing(fit: dict, target_m: float, tolerance_m: float | None = None, tree_
     unsettled}.
 
     state: "done" (determined, pinned to `target_m`, its place in the tree settled); "unsettled" (pinned,
-    but its child fits another parent as well, so which two bodies it joins may change: 0); "pinning" (determined to the solver's tolerance, not yet to a
-    stricter target: progress (target/error)², the share of the frames it needs at this rate, the error
-    falling as 1/√frames); "undetermined" (0); "not_turned" (nothing turned beyond noise about a direction it
-    needs: 0); "rigid" (no joint yet, it moves rigidly with its neighbour: 0). `tree_fixed`: the tree was
-    given (a hierarchy or a saved skeleton), so it cannot be unsettled.
+    but its child fits another parent as well, so which two bodies it joins may change: 0); "pinning"
+    (determined to the solver's tolerance, not yet to the target: progress (target/error)², the share of the
+    frames it needs at this rate, the error falling as 1/√frames); "undetermined" (0); "not_turned" (nothing
+    turned beyond noise about a direction it needs: 0); "rigid" (no joint yet, it moves rigidly with its
+    neighbour: 0). `tree_fixed`: the tree was given (a hierarchy or a saved skeleton), so it cannot be
+    unsettled.
     """
     tol = target_m if tolerance_m is None else tolerance_m
     parent = fit.get("parent") or {}
