@@ -215,3 +215,30 @@ def _artifacts():
     path = Path(os.environ.get("FLOCKCAL_ARTIFACTS") or Path(__file__).resolve().parents[1] / "artifacts")
     path.mkdir(parents=True, exist_ok=True)
     return path
+
+
+def test_a_read_only_kiosk_showing_a_hosts_session_done_goes_back_and_says_why_when_a_sensor_slips(
+        browser, server, guest):
+    performer, tracker, stream = guest
+    r = httpx.post(f"{server.url}/api/sessions", json={"performer": "Host guest"}, headers=admin())
+    assert r.status_code == 201, r.text
+    sid = r.json()["id"]
+    stream.begin()
+    kiosk = open_capturing(browser, f"{server.url}/kiosk?token={READ}", 1600, 900)
+    try:
+        kiosk.wait_for_selector("#kiosk-state[data-state=done]", timeout=DONE_WITHIN_S * 1000)
+        assert kiosk.text_content("#percent") == "100%"
+        # Tried: the forearm sensor slides 3 cm on the skin after the guest was calibrated.
+        performer.inject_slip("l_forearm", 0.03)
+        kiosk.wait_for_selector("#kiosk-state[data-state=live]", timeout=10000)
+        kiosk.wait_for_function("/sensor moved/.test(document.querySelector('#instruction').textContent)",
+                                timeout=5000)
+        assert "left forearm" in kiosk.text_content("#instruction")
+        assert kiosk.text_content("#percent") != "100%"
+        doc = httpx.get(f"{server.url}/api/sessions/{sid}/progress", headers=admin()).json()
+        assert not doc["done"] and any((m.get("undone") or {}).get("reason") == "slip" for m in doc["missing"])
+        assert not kiosk.errors
+    finally:
+        kiosk.close()
+        performer.clear_faults()
+        httpx.post(f"{server.url}/api/sessions/{sid}/stop", headers=admin(), timeout=30)

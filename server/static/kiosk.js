@@ -97,6 +97,11 @@ function instructionFor(m) {
 
 function onFit(msg) {
   const result = msg.result;
+  // A host's session shown as done that a slip has undone: back to calibrating, saying why (below).
+  if (kiosk.state === 'done' && kiosk.doneSession && msg.session && msg.session.id === kiosk.doneSession && !msg.done) {
+    kiosk.doneSession = null;
+    setState('live', `calibrating ${kiosk.session.performer}`);
+  }
   if (kiosk.state !== 'live' || !result || !kiosk.session) return;
   if (msg.session && msg.session.id !== kiosk.session.id) return;
   avatar.setFit(result);
