@@ -1,37 +1,29 @@
-"""Plain-language coaching from a fit: which joints need more movement, and overall progress in [0, 1].
-
-Coverage per axis is 1 − σ_k(M) (design.md §3). A hinge needs its own axis exercised; a ball joint's centre
-is pinned once it has turned about two axes (twist about the third adds nothing to the centre). A joint is
-done when that coverage and its standard error both reach their targets — the same rule the pages apply.
+"""Plain words for the calibration: readable body and joint names, and the sentences that tell an operator
+what to move next. The numbers behind them (progress, done, what is missing) are defined in
+server/progress.py; the pages' names (static/common.js) mirror the ones here.
 """
 
 from __future__ import annotations
 
-import math
 import re
+from functools import lru_cache
 
-# 1 − σ(M) on a needed axis counted as "moved enough" (≈ 8° rms; the pages' `coverage` default). The
-# standard-error target, not this, decides how much more data a joint needs.
-COVERAGE_FULL = 0.01
-STDERR_TARGET_M = 0.005  # joint centre uncertainty counted as calibrated
-
-# The joint is named by its child body; people name it by the joint itself.
-_JOINT_OF_BODY = [
-    (r"fore ?arm|lower ?arm", "elbow"),
-    (r"upper ?arm|up ?arm|humerus|\barm\b", "shoulder"),
-    (r"hand|wrist", "wrist"),
-    (r"shin|shank|calf|lower ?leg|low ?leg|tibia", "knee"),
-    (r"thigh|upper ?leg|up ?leg|femur", "hip"),
-    (r"foot|ankle", "ankle"),
-    (r"toe", "toes"),
-    (r"head", "neck"),
-    (r"neck", "lower neck"),
-    (r"clavicle|shoulder", "collarbone"),
-    (r"chest|thorax|upper ?back", "upper back"),
-    (r"spine|torso|back|abdomen|pelvis|hips?\b", "lower back"),
+# Body keyword → the joint at its inboard end, and how far out along the body that joint sits: a joint is
+# named after the more distal of its two bodies, whichever way the tree happens to be rooted (design.md §5
+# names a joint by its child, and the fitted tree's root need not be the pelvis). Same table as
+# static/common.js BODY_JOINTS.
+_BODY_JOINTS = [
+    (r"hand|wrist", "wrist", 5), (r"foot|ankle", "ankle", 5), (r"toe", "toes", 6), (r"head", "neck", 5),
+    (r"fore ?arm|lower ?arm", "elbow", 4), (r"shin|shank|calf|lower ?leg|low ?leg|tibia", "knee", 4),
+    (r"upper ?arm|up ?arm|humerus|\barm\b", "shoulder", 3), (r"thigh|upper ?leg|up ?leg|femur", "hip", 3),
+    (r"neck", "lower neck", 3), (r"clavicle|shoulder", "collarbone", 2),
+    (r"chest|thorax|upper ?back", "mid back", 2), (r"abdomen|spine|torso|back|waist", "lower back", 1),
+    (r"pelvis|hips?\b", "lower back", 0),
 ]
 
 
+# Names are a session's few sensors, asked about on every fit (~30/s): worked out once each.
+@lru_cache(maxsize=1024)
 def readable_body(name: str) -> str:
     """'l_forearm' → 'left forearm', 'RightUpLeg' → 'right up leg', 'bird3' → 'bird 3'."""
     s = re.sub(r"([a-z])([A-Z])", r"\1 \2", str(name))
@@ -51,56 +43,62 @@ def readable_body(name: str) -> str:
     return " ".join(out)
 
 
-def joint_label(child: str, parent: str) -> str:
-    """Readable name of the joint between `parent` and its child body `child` ('the left elbow')."""
-    body = readable_body(child)
+@lru_cache(maxsize=1024)
+def _body_joint(name: str) -> tuple[str, int] | None:
+    body = readable_body(name)
     side = ""
     for s in ("left ", "right "):
         if body.startswith(s):
             side, body = s, body[len(s):]
-    for pattern, joint in _JOINT_OF_BODY:
+    for pattern, joint, rank in _BODY_JOINTS:
         if re.search(pattern, body):
-            return f"the {side}{joint}"
+            return f"{side}{joint}", rank
+    return None
+
+
+def joint_name(child: str, parent: str | None) -> str:
+    """The joint between `parent` and `child` as people name it ('left elbow'), the same whichever of the
+    two bodies the fit made the child; bodies with no known name give 'parent–child' ('bird 1–bird 2')."""
+    a = _body_joint(child)
+    b = _body_joint(parent) if parent else None
+    if a and (not b or a[1] >= b[1]):
+        return a[0]
+    if b:
+        return b[0]
+    return f"{readable_body(parent)}–{readable_body(child)}" if parent else readable_body(child)
+
+
+def joint_label(child: str, parent: str | None) -> str:
+    """The joint's name for a sentence: 'the left elbow', 'the joint between the bird 1 and the bird 2'."""
+    if _body_joint(child) or (parent and _body_joint(parent)):
+        return f"the {joint_name(child, parent)}"
+    if not parent:
+        return f"the {readable_body(child)}"
     return f"the joint between the {readable_body(parent)} and the {readable_body(child)}"
 
 
-def needed_coverage(joint: dict) -> float:
-    """Coverage of the axes the joint needs: a hinge's largest, a ball joint's second largest."""
-    cov = sorted(float(x) for x in joint.get("coverage") or (0.0, 0.0, 0.0))
-    return cov[-1] if joint.get("hinge") else cov[-2]
-
-
-def joint_progress(joint: dict) -> float:
-    needed = needed_coverage(joint)
-    c = min(1.0, max(0.0, needed / COVERAGE_FULL))
-    err = max(float(joint.get("c_stderr_m") or math.inf), float(joint.get("l_stderr_m") or math.inf))
-    u = min(1.0, STDERR_TARGET_M / max(err, 1e-12)) if math.isfinite(err) else 0.0
-    return min(c, u)
-
-
-def hints(fit: dict) -> list[dict]:
-    """One sentence per joint that needs more movement, weakest first: {joint, progress, hint}."""
-    out = []
-    for j in fit.get("joints", []):
-        p = joint_progress(j)
-        if p >= 1.0:
-            continue
-        cov = [float(x) for x in j.get("coverage") or (0.0, 0.0, 0.0)]
-        label = joint_label(j["child"], j["parent"])
-        if max(cov) < COVERAGE_FULL / 3:
-            text = f"Move {label} more: it has hardly turned yet."
-        elif needed_coverage(j) < COVERAGE_FULL:
-            text = f"Move {label} more, in other directions too (twist and swing it, not only bend)."
-        else:
-            text = f"Keep moving {label}: a little more and it is pinned down."
-        out.append({"joint": j["child"], "label": label, "progress": round(p, 3), "hint": text})
-    out.sort(key=lambda h: h["progress"])
-    return out
-
-
-def progress(fit: dict) -> float:
-    """Overall progress in [0, 1]: the mean of the joints' progress (0 with no joints yet)."""
-    joints = fit.get("joints", [])
-    if not joints:
-        return 0.0
-    return round(sum(joint_progress(j) for j in joints) / len(joints), 4)
+def hint_sentence(item: dict) -> str:
+    """The operator's sentence for one sensor whose joint is not calibrated yet (an entry of
+    progress.standing: state, joint, parent, pinned, error_m, target_m, undone)."""
+    label = joint_label(item["joint"], item.get("parent"))
+    child, parent = readable_body(item["joint"]), readable_body(item.get("parent") or "")
+    undone = item.get("undone")
+    if undone and undone.get("reason") == "slip":
+        return (f"The {readable_body(undone['sensor'])} sensor slipped at {undone['time_s']:.1f} s: "
+                f"move {label} again so it is measured afresh.")
+    if undone and undone.get("reason") == "loss":
+        return f"Keep moving {label}: it no longer fits as well as when it was calibrated."
+    state = item["state"]
+    if state == "rigid":
+        return f"Move {label}: the {child} has not moved relative to the {parent} yet."
+    if state == "not_turned":
+        return f"Move {label} more: it has hardly turned yet."
+    if state == "undetermined":
+        return (f"Move {label} more, in other directions too (twist and swing it, not only bend): "
+                f"its centre is pinned along {item.get('pinned', 0)} of the 3 directions so far.")
+    if state == "unsettled":
+        return (f"Move the joints next to {label} too: it is pinned, but {item.get('unsettled')}, so which "
+                "two bodies it joins is not settled yet.")
+    if state == "confirming":
+        return f"Keep moving {label}: it is pinned and counts in a moment."
+    return f"Keep moving {label}: a little more and it is pinned down."

@@ -10,6 +10,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from flockcal.server.progress import STATES
 from flockcal.server.settings import PERFORMER_PATTERN
 
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9 _.\-]{0,63}$"
@@ -119,11 +120,58 @@ class Session(Open):
     has_recording: bool = False
     has_raw_recording: bool = False
     skeleton: str | None = Field(None, description="the saved skeleton the session was started with, if any")
+    progress: float | None = Field(None, description="calibration progress 0..1 (GET /api/sessions/{id}/progress)")
+    done: bool | None = Field(None, description="every joint calibrated (null: not known for this session)")
 
 
 class SessionList(BaseModel):
     sessions: list[Session]
     live: str | None = Field(None, description="id of the live session, if any")
+
+
+class MissingJoint(Open):
+    joint: str = Field(description="the joint, named by its child body (= the sensor it belongs to)")
+    parent: str | None = None
+    label: str = Field(description="the joint as people name it ('left elbow')")
+    state: Literal[STATES] = Field(description="how far it is from calibrated (README.md, \"Progress\")")
+    why: str | None = Field(None, description="why it is not calibrated yet, in plain words")
+    undone: dict | None = Field(None, description="{reason: slip | loss | tree, time_s, sensor}: it was calibrated "
+                                                  "once and this undid it")
+
+
+class JointProgress(MissingJoint):
+    progress: float
+    done: bool
+    error_m: float | None = Field(None, description="the centre's error along the worst direction it needs")
+
+
+class Hint(Open):
+    joint: str
+    label: str
+    progress: float
+    hint: str
+
+
+class Progress(Open):
+    """One definition of calibration progress (README.md, "Progress"): what the kiosk ring and the dashboard show."""
+
+    session_id: str
+    live: bool = Field(description="the live session (figures move on), or a stopped one (as it ended)")
+    time_s: float | None = Field(None, description="session clock of the newest fit (live sessions)")
+    fit_seq: int | None = Field(None, description="the fit this belongs to: the same as the websocket's fit message")
+    frames: int = 0
+    state: Literal["no_fit", "calibrating", "done"]
+    progress: float = Field(description="0..1: every sensor but the root counts; 1 only when done")
+    percent: int = Field(description="progress as whole percent, rounded down: what the kiosk ring shows")
+    done: bool = Field(description="every sensor but the root has its joint determined to the target")
+    done_at_s: float | None = Field(None, description="session time at which it became done")
+    target_m: float = Field(description="the joint-centre error counted as calibrated (serve --target-mm)")
+    joints_done: int
+    joints_needed: int
+    missing: list[MissingJoint] = Field(description="the joints not calibrated yet, the one furthest from it first")
+    joint_progress: list[JointProgress] = Field(description="every sensor but the root, in the tree's order")
+    hints: list[Hint] = []
+    note: str | None = None
 
 
 class Status(Open):

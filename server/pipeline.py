@@ -21,6 +21,7 @@ import numpy as np
 
 from flockcal.errors import FlockcalError
 from flockcal.server.framelog import FrameLog
+from flockcal.server.progress import ProgressTracker, default_target, waiting
 from flockcal.server.snapshot import ResidualSample, Snapshot
 from flockcal.server.store import Store
 from flockcal.threads import name_os_thread
@@ -52,6 +53,9 @@ class LiveSession:
     fit_frames: int = 0  # accumulator frames the newest fit used
     slip_monitor: object = None
     residual_rows: list = field(default_factory=list)  # (time_s, {joint: mm}) not yet in the store
+    tracker: ProgressTracker | None = None  # the session's progress, made on install
+    progress: dict | None = None  # its newest document (server/progress.py); None before the first fit
+    slip_epoch: int = 0  # slips applied to the accumulator so far: fits carry the epoch they were begun in
 
     def summary(self) -> dict:
         return {
@@ -59,6 +63,8 @@ class LiveSession:
             "started_at": self.started_wall,
             "hierarchy": self.hierarchy, "root": self.root,
             "known_skeleton": self.skeleton is not None,
+            "progress": self.progress["progress"] if self.progress else 0.0,
+            "done": bool(self.progress and self.progress["done"]),
         }
 
 
@@ -156,9 +162,12 @@ class Pipeline:
         detect_slips: bool = True,
         rate_hz: Callable[[], float] | None = None,
         tolerance: float = 0.005,
+        target: float | None = None,
     ):
         self.names = tuple(names)
         self.tolerance = float(tolerance)
+        # The joint-centre error at which a joint counts as calibrated (progress, done): at most the tolerance.
+        self.target = default_target(self.tolerance) if target is None else float(target)
         self.m = len(self.names)
         self.store = store
         self.source_status = source_status
@@ -262,6 +271,9 @@ class Pipeline:
             if self.live is not None:
                 raise FlockcalError(f"session {self.live.id} is still live")
             live.acc = new_accumulator(self.m, segmented=self.detect_slips)
+            # A given tree (hierarchy or saved skeleton) cannot re-link, so its joints need not wait for it to settle.
+            live.tracker = ProgressTracker(self.target, self.tolerance,
+                                           tree_fixed=live.hierarchy is not None or live.skeleton is not None)
             self.live = live
             self._reset_residuals()
             self._residuals.clear()
@@ -288,6 +300,8 @@ class Pipeline:
                              for e in self.store.events(live.id, limit=100_000) if e["type"] == "slip"]
                     if slips:
                         result["slip_events"] = slips
+                    # What the session had reached, as the stored result has it (done joints stay done).
+                    self._progress_step(live, result, self._session_time(live), live.slip_epoch)
                 except FlockcalError as exc:
                     error = str(exc)
             else:
@@ -465,6 +479,12 @@ class Pipeline:
             d["type"] = d.pop("kind", "slip")
             events.append(_finite(d))
         if events:
+            live.slip_epoch += 1  # fits begun from here on see the new segments
+            was_done = bool(live.progress and live.progress["done"])
+            for d in events:
+                live.tracker.slip(d, live.slip_epoch)
+            if live.fit is not None:
+                self._progress_step(live, live.fit, self._session_time(live), live.slip_epoch - 1, was_done)
             self._process_events(events)
 
     def _flush_residual_sample(self, force: bool = False) -> None:
@@ -527,8 +547,9 @@ class Pipeline:
                 # Keep a fixed grid (not "period after the last start") so the rate holds at fit_hz.
                 self._last_fit_time = max(self._last_fit_time + self.min_fit_s, now - self.min_fit_s)
                 live.fit_frames = live.acc.frames
+                stamp = (self._session_time(live), live.slip_epoch)
                 with self._fit_cond:
-                    self._fit_job = (live.id, fit_copy(live.acc), live.hierarchy, live.root, live.skeleton)
+                    self._fit_job = (live.id, fit_copy(live.acc), live.hierarchy, live.root, live.skeleton, stamp)
                     self._fit_cond.notify()
         self._snapshot = self._make_snapshot()
         if self.on_publish is not None:
@@ -539,7 +560,7 @@ class Pipeline:
             done, self._fit_done = self._fit_done, None
         if done is None:
             return
-        session_id, fit, error, seconds = done
+        session_id, fit, error, seconds, (time_s, epoch) = done
         self.fits_done += 1
         self.fit_seconds += seconds
         if session_id != live.id:
@@ -549,8 +570,39 @@ class Pipeline:
             live.fit_error = None
             self.pose_fit = fit
             self._fit_seq += 1
+            self._progress_step(live, fit, time_s, epoch)
         else:
             live.fit_error = error
+
+    def _session_time(self, live: LiveSession) -> float:
+        if live.t0 is None or self.last_frame_time is None:
+            return 0.0
+        return self.last_frame_time - live.t0
+
+    def _progress_step(self, live: LiveSession, fit: dict, time_s: float, epoch: int,
+                       was_done: bool | None = None) -> None:
+        """Fold a fit into the session's progress; becoming done (or undone) is an event of its own."""
+        if was_done is None:
+            was_done = bool(live.progress and live.progress["done"])
+        try:
+            live.progress = live.tracker.update(fit, time_s, epoch)
+        except (KeyError, TypeError, ValueError) as exc:  # a malformed fit must not stop the pipeline
+            log.warning("progress not updated: %s", exc)
+            return
+        done = live.progress["done"]
+        if done and not was_done:
+            n = live.progress["joints_needed"]
+            self._process_events([{
+                "type": "session", "session_id": live.id, "action": "calibrated", "time_s": time_s,
+                "message": f"{live.performer} is calibrated: all {n} joints pinned to "
+                           f"{1000 * self.target:.1f} mm after {time_s:.1f} s"}])
+        elif was_done and not done:
+            why = next((m["why"] for m in live.progress["missing"] if m.get("undone")), None)
+            if why is None and live.progress["missing"]:
+                why = f"{live.progress['missing'][0]['label']}: {live.progress['missing'][0]['why']}"
+            self._process_events([{
+                "type": "session", "session_id": live.id, "action": "calibration_undone", "time_s": time_s,
+                "message": f"{live.performer} is no longer calibrated: {why or 'a joint was undone'}"}])
 
     def _fit_worker(self) -> None:
         """Refits on its own thread, so a slow fit never delays frames or snapshots."""
@@ -562,7 +614,7 @@ class Pipeline:
                 if self._stop:
                     return
                 job, self._fit_job = self._fit_job, None
-            session_id, acc, hierarchy, root, skeleton = job
+            session_id, acc, hierarchy, root, skeleton, stamp = job
             start = time.perf_counter()
             fit, error = None, None
             try:
@@ -579,7 +631,7 @@ class Pipeline:
                 log.exception("fit failed")
                 error = f"fit failed: {exc}"
             with self._cond:
-                self._fit_done = (session_id, fit, error, time.perf_counter() - start)
+                self._fit_done = (session_id, fit, error, time.perf_counter() - start, stamp)
                 self._fit_busy = False
                 self._cond.notify()
 
@@ -591,10 +643,12 @@ class Pipeline:
         except Exception as exc:  # the status of a source that failed is itself news
             tracker = {"connected": False, "last_error": f"status unavailable: {exc}"}
         session = None
+        progress = None
         if live is not None:
             session = live.summary()
-            session["time_s"] = (self.last_frame_time - live.t0) if live.t0 is not None and self.last_frame_time is not None else 0.0
+            session["time_s"] = self._session_time(live)
             session["fit_error"] = live.fit_error
+            progress = live.progress or waiting(self.names, self.target, live.fit_error or "no fit yet: keep moving")
         status = dict(tracker)
         status.update(
             frames=self.frames,
@@ -619,4 +673,5 @@ class Pipeline:
             positions=self._t.copy() if self._have_pose else None,
             valid=self._valid.copy(),
             pose_fit=self.pose_fit,
+            progress=progress,
         )

@@ -1,7 +1,9 @@
 """The live skeleton a browser draws: joint world positions with the residual removed (paper §3.4).
 
 Each body is placed from its parent's pose, starting at the root sensor, so bones never stretch; the
-message holds plain points, index pairs and sensor poses so the page needs no math of its own.
+message holds plain points, index pairs and sensor poses so the page needs no math of its own. As in the
+solver's bones, only determined joints end a bone (design.md §3a): an undetermined one is still placed
+(its children hang from it) but drawn as a point, not joined.
 """
 
 from __future__ import annotations
@@ -31,7 +33,7 @@ def sensors_only(names, rotations, positions, valid) -> dict:
 class _Layout:
     """What a fit fixes about the drawing: the articulation, point names and kinds, bones, leaves."""
 
-    def __init__(self, art, names: tuple[str, ...]):
+    def __init__(self, art, names: tuple[str, ...], determined: set[str] | None = None):
         self.art = art
         art.levels  # worked out once here; the per-frame completed copies of `art` inherit it
         m = len(names)
@@ -39,11 +41,13 @@ class _Layout:
         has_child = np.zeros(m, dtype=bool)
         has_child[art.parent[art.parent >= 0]] = True
         self.leaves = [j for j in range(m) if j != root and not has_child[j]]
+        # A body's pivot is a measured point at the root (its sensor) or at a determined joint.
+        ok = [i == root or determined is None or names[i] in determined for i in range(m)]
         # Points: every body's pivot (index = body), then the far end of each leaf bone at its sensor.
-        self.heads = [(names[i], "root" if i == root else "joint") for i in range(m)]
-        self.heads += [(f"{names[j]} sensor", "end") for j in self.leaves]
-        self.bones = [[int(art.parent[j]), j] for j in range(m) if art.parent[j] >= 0]
-        self.bones += [[j, m + k] for k, j in enumerate(self.leaves)]
+        self.heads = [(names[i], "root" if i == root else "joint", ok[i]) for i in range(m)]
+        self.heads += [(f"{names[j]} sensor", "end", True) for j in self.leaves]
+        self.bones = [[int(art.parent[j]), j] for j in range(m) if art.parent[j] >= 0 and ok[j] and ok[art.parent[j]]]
+        self.bones += [[j, m + k] for k, j in enumerate(self.leaves) if ok[j]]
         self.root = names[root]
 
 
@@ -54,7 +58,11 @@ def _layout(fit: dict, names: tuple[str, ...]) -> _Layout | None:
     if _cache[0] is fit and _cache[1] == names:
         return _cache[2]
     try:
-        layout = _Layout(articulation(fit).reordered(names), names)
+        # A saved skeleton's bones are known whatever this take has pinned yet; joints of fits made before
+        # "determined" existed count as determined.
+        determined = None if fit.get("known_skeleton") else {
+            j["child"] for j in fit.get("joints") or [] if j.get("determined", True)}
+        layout = _Layout(articulation(fit).reordered(names), names, determined)
     except (ArticulationError, KeyError, ValueError, TypeError):
         layout = None
     _cache[:] = [fit, names, layout]
@@ -64,9 +72,10 @@ def _layout(fit: dict, names: tuple[str, ...]) -> _Layout | None:
 def live_pose(names, rotations, positions, valid, fit: dict | None) -> dict:
     """Pose message body for one frame: (m,3,3) rotations, (m,3) positions, (m,) valid; fit = §5 dict.
 
-    joints: one point per tree joint (named by its child body), one for the root sensor and one for
-    each leaf's sensor (so end bones have a far end); bones: index pairs into joints; sensors: measured
-    position and row-major rotation (body → world) of each sensor.
+    joints: one point per tree joint (named by its child body; `determined` false for one the data do not
+    pin yet), one for the root sensor and one for each leaf's sensor (so end bones have a far end); bones:
+    index pairs into joints, none ending at an undetermined joint; sensors: measured position and row-major
+    rotation (body → world) of each sensor.
     """
     base = sensors_only(names, rotations, positions, valid)
     if not fit or not fit.get("parent"):
@@ -81,7 +90,7 @@ def live_pose(names, rotations, positions, valid, fit: dict | None) -> dict:
         return base
     # Pivots (inboard joint of each body, root sensor at the root), then the leaves' sensors.
     at = _round(np.concatenate([rec.joint_positions[0], rec.sensor_positions[0, layout.leaves]]))
-    base["joints"] = [{"name": n, "kind": k, "p": p} for (n, k), p in zip(layout.heads, at)]
+    base["joints"] = [{"name": n, "kind": k, "p": p, "determined": d} for (n, k, d), p in zip(layout.heads, at)]
     base["bones"] = layout.bones
     base["root"] = layout.root
     return base

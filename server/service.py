@@ -77,6 +77,7 @@ class Service:
             residual_hz=settings.residual_hz,
             rate_hz=self.tracker_rate,
             tolerance=settings.tolerance_m,
+            target=settings.progress_target_m,
         )
         self.hub = SnapshotHub(self.pipeline.snapshot)
         self.pipeline.on_publish = self.hub.publish

@@ -16,6 +16,7 @@ from flockcal.errors import FlockcalError
 from flockcal.server.errors import BadRequest, Conflict, NotFound
 from flockcal.server.framelog import FrameLog, read_frames
 from flockcal.server.pipeline import SLIP_FIELDS, LiveSession, Pipeline, _finite, calibrate_dict, new_accumulator
+from flockcal.server.progress import progress_of, waiting
 from flockcal.server.settings import PERFORMER_RE
 from flockcal.server.store import Store
 
@@ -157,7 +158,7 @@ class SessionManager:
             live, result, error = self.pipeline.end_session()
             self.store.update_session(
                 session_id, state="stopped", stopped_at=time.time(), frames=live.frames, result=result,
-                note=None if result else f"no result: {error}",
+                note=None if result else f"no result: {error}", progress=live.progress if result else None,
             )
             self.pipeline.add_event({"type": "session", "session_id": session_id, "action": "stopped",
                                      "time_s": None, "message": f"session {session_id} stopped after {live.frames} frames"})
@@ -206,7 +207,9 @@ class SessionManager:
             except FlockcalError as exc:
                 raise Conflict(f"session {session_id} could not be solved: {exc}") from None
             state = "stopped" if row["state"] == "interrupted" else row["state"]
-            self.store.update_session(session_id, result=result, frames=n, state=state,
+            # A re-solve is one fit of the whole recording: its progress has no session history to keep.
+            progress = progress_of(result, self.pipeline.target, self.pipeline.tolerance)
+            self.store.update_session(session_id, result=result, frames=n, state=state, progress=progress,
                                       note=f"re-solved from its recording ({n} frames)")
             return self.get(session_id)
 
@@ -239,6 +242,7 @@ class SessionManager:
         if snap.session and snap.session["id"] == session_id:
             row["frames"] = snap.session["frames"]
             row["has_result"] = snap.fit is not None
+            row["progress"], row["done"] = snap.session["progress"], snap.session["done"]
         row["has_recording"] = self.frames_path(session_id).exists()
         row["has_raw_recording"] = self.raw_path(session_id).exists()
         row["skeleton"] = self._skeleton_name(session_id)
@@ -264,6 +268,7 @@ class SessionManager:
             if snap.session and snap.session["id"] == row["id"]:
                 row["frames"] = snap.session["frames"]
                 row["has_result"] = snap.fit is not None
+                row["progress"], row["done"] = snap.session["progress"], snap.session["done"]
         return rows
 
     def result(self, session_id: str) -> tuple[dict, bool]:
@@ -281,6 +286,26 @@ class SessionManager:
                 if row["state"] == "interrupted" else ""
             raise Conflict(f"session {session_id} has no result ({row['note'] or row['state']}){hint}")
         return result, False
+
+    def progress(self, session_id: str) -> dict:
+        """The session's progress document (server/progress.py) with where it comes from: the live one as
+        the service keeps it, a stopped one as it stood at its stop (or its re-solve)."""
+        row = self._row(session_id)
+        snap = self.pipeline.snapshot
+        head = {"session_id": session_id, "live": False, "time_s": None, "fit_seq": None, "frames": row["frames"]}
+        if snap.session and snap.session["id"] == session_id and snap.progress is not None:
+            head.update(live=True, time_s=snap.session["time_s"], fit_seq=snap.fit_seq if snap.fit else None,
+                        frames=snap.session["frames"])
+            return {**head, **snap.progress}
+        doc = self.store.progress(session_id)
+        if doc is None:
+            result = self.store.result(session_id)
+            if result is None:
+                why = row["note"] or (f"the session is {row['state']} and has no result")
+                return {**head, **waiting(row["names"], self.pipeline.target, why)}
+            # Stopped before sessions kept their progress: its stored result, on its own.
+            doc = progress_of(result, self.pipeline.target, self.pipeline.tolerance)
+        return {**head, **doc}
 
     def residuals(self, session_id: str, joint: str | None, since: float | None) -> list[tuple[float, dict]]:
         self._row(session_id)

@@ -62,6 +62,7 @@ class Settings:
     reader_batch_s: float = 0.005  # how often the reader hands frames over (latency vs. per-batch cost)
     fit_hz: float = 30.0  # full refit (all pairs + topology + bones) rate, ≥ 30 per the issue
     tolerance_m: float = 0.005  # a joint is determined when its centre is pinned this closely (design.md §3a)
+    target_m: float | None = None  # ...and calibrated (progress, done) when pinned this closely; None: tolerance/√2
     residual_hz: float = 20.0  # residual rms samples per second kept for the time series
     residual_window_s: float = 120.0  # live residual history kept in memory
     max_body_bytes: int = 64 * 1024
@@ -75,6 +76,14 @@ class Settings:
     scale_inches: int | None = None  # position full scale; None: 72 for the simulator (it reaches further), else the tracker's own
     fast_init: bool = False  # skip the manual's reset delays (simulators and fake trackers on a pty)
     skeletons: tuple[Path, ...] = ()  # --skeleton files: saved performers offered as session presets
+
+    @property
+    def progress_target_m(self) -> float:
+        """The joint-centre error at which a joint counts as calibrated: --target-mm, else --tolerance-mm / √2
+        (server.progress.default_target: bones then within the tolerance)."""
+        from flockcal.server.progress import default_target
+
+        return default_target(self.tolerance_m) if self.target_m is None else self.target_m
 
     @property
     def device_url(self) -> str:
@@ -114,6 +123,10 @@ class Settings:
             raise ConfigError(f"--http-port must be 0..65535, got {self.http_port}")
         if not 0 < self.tolerance_m < 1:
             raise ConfigError(f"--tolerance-mm must be between 0 and 1000 mm, got {self.tolerance_m * 1000:g}")
+        if self.target_m is not None and not 0 < self.target_m <= self.tolerance_m:
+            raise ConfigError(
+                f"--target-mm must be above 0 and at most --tolerance-mm ({self.tolerance_m * 1000:g} mm): a joint "
+                f"counts as calibrated only once it is determined; got {self.target_m * 1000:g}")
         if self.fit_hz <= 0 or self.publish_hz <= 0:
             raise ConfigError("fit and publish rates must be positive")
         if not is_loopback(self.host) and not self.token:

@@ -12,7 +12,6 @@ from functools import cached_property
 
 import numpy as np
 
-from flockcal.server import coaching
 from flockcal.server.pose import live_pose
 
 
@@ -40,14 +39,11 @@ class Snapshot:
     positions: np.ndarray | None  # (m,3)
     valid: np.ndarray | None  # (m,) whether the newest frame held a valid record for each sensor
     pose_fit: dict | None = None  # fit used to draw the skeleton (live or the last stopped session's)
+    progress: dict | None = None  # the live session's progress document (server/progress.py), None without one
 
-    @cached_property
+    @property
     def hints(self) -> list[dict]:
-        return coaching.hints(self.fit) if self.fit else []
-
-    @cached_property
-    def progress(self) -> float:
-        return coaching.progress(self.fit) if self.fit else 0.0
+        return self.progress["hints"] if self.progress else []
 
     @cached_property
     def pose(self) -> dict | None:
@@ -62,8 +58,10 @@ class Snapshot:
 
     @cached_property
     def fit_json(self) -> str:
+        # The progress document's fields ride at the top level next to the fit: "progress" stays the number
+        # it always was, now the service's one definition (README.md, "Progress").
         return json.dumps({
-            "result": self.fit, "hints": self.hints, "progress": self.progress,
+            "result": self.fit, **(self.progress or {}), "hints": self.hints,
             "session": self.session, "fit_seq": self.fit_seq, "snapshot": self.seq, "frames": self.frames,
         })
 

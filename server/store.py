@@ -27,7 +27,8 @@ CREATE TABLE IF NOT EXISTS sessions (
     frames INTEGER NOT NULL DEFAULT 0,
     recording TEXT,                 -- file name inside the recordings directory
     result TEXT,                    -- JSON of design.md §5, NULL until stopped or re-solved
-    note TEXT
+    note TEXT,
+    progress TEXT                   -- JSON of server/progress.py as the session ended (or was re-solved)
 );
 CREATE TABLE IF NOT EXISTS events (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -66,6 +67,10 @@ class Store:
         self._db.execute("PRAGMA foreign_keys=ON")
         with self._lock:
             self._db.executescript(SCHEMA)
+            # Databases made before sessions kept their progress gain the column (empty for old sessions).
+            columns = {r["name"] for r in self._db.execute("PRAGMA table_info(sessions)")}
+            if "progress" not in columns:
+                self._db.execute("ALTER TABLE sessions ADD COLUMN progress TEXT")
 
     def close(self) -> None:
         with self._lock:
@@ -82,18 +87,26 @@ class Store:
         self._run(f"INSERT INTO sessions ({', '.join(cols)}) VALUES ({', '.join('?' * len(cols))})", vals)
 
     def update_session(self, session_id: str, **fields) -> None:
-        if "result" in fields and fields["result"] is not None and not isinstance(fields["result"], str):
-            fields["result"] = json.dumps(fields["result"])
+        for key in ("result", "progress"):
+            if key in fields and fields[key] is not None and not isinstance(fields[key], str):
+                fields[key] = json.dumps(fields[key])
         sets = ", ".join(f"{k} = ?" for k in fields)
         self._run(f"UPDATE sessions SET {sets} WHERE id = ?", [*fields.values(), session_id])
 
     def session(self, session_id: str) -> dict | None:
-        rows = self._run(f"SELECT {', '.join(SESSION_COLUMNS)}, result IS NOT NULL AS has_result FROM sessions WHERE id = ?", (session_id,))
+        rows = self._run(f"SELECT {', '.join(SESSION_COLUMNS)}, result IS NOT NULL AS has_result, progress "
+                         "FROM sessions WHERE id = ?", (session_id,))
         return _session_dict(rows[0]) if rows else None
 
     def sessions(self) -> list[dict]:
-        rows = self._run(f"SELECT {', '.join(SESSION_COLUMNS)}, result IS NOT NULL AS has_result FROM sessions ORDER BY created_at DESC")
+        rows = self._run(f"SELECT {', '.join(SESSION_COLUMNS)}, result IS NOT NULL AS has_result, progress "
+                         "FROM sessions ORDER BY created_at DESC")
         return [_session_dict(r) for r in rows]
+
+    def progress(self, session_id: str) -> dict | None:
+        """The progress document stored when the session stopped or was re-solved, None before."""
+        rows = self._run("SELECT progress FROM sessions WHERE id = ?", (session_id,))
+        return json.loads(rows[0]["progress"]) if rows and rows[0]["progress"] else None
 
     def result(self, session_id: str) -> dict | None:
         rows = self._run("SELECT result FROM sessions WHERE id = ?", (session_id,))
@@ -172,6 +185,9 @@ def _session_dict(row: sqlite3.Row) -> dict:
     d["hierarchy"] = json.loads(d["hierarchy"]) if d["hierarchy"] else None
     d["names"] = json.loads(d["names"])
     d["has_result"] = bool(d["has_result"])
+    doc = json.loads(d.pop("progress")) if d.get("progress") else None
+    d["progress"] = doc["progress"] if doc else None
+    d["done"] = doc["done"] if doc else None
     return d
 
 

@@ -14,6 +14,7 @@ import time
 from pathlib import Path
 
 import httpx
+import numpy as np
 
 
 def free_port() -> int:
@@ -51,6 +52,37 @@ def wait_connected(url: str, timeout: float = 30.0, token: str | None = None, fr
             return st
         time.sleep(0.05)
     raise TimeoutError(f"tracker did not stream within {timeout} s: {st}")
+
+
+class GuestSource:
+    """A simulated performer as the pose source of a fake tracker, whose routine starts over at `begin()`
+    (a kiosk guest starts moving when their session starts); `begin(other, lead_s)` swaps in the next
+    guest, who must wear the same sensors. Pass it as the tracker's source: `tracker.flock.source = …`.
+
+    A new guest has another body: frames of the last one in a session would mix two skeletons. So swap
+    with a lead (`lead_s` ≈ 0.3 s: the tracker computes poses up to 0.1 s ahead, and frames in flight),
+    wait that long, then start the session; the routine's clock starts at the end of the lead.
+    """
+
+    def __init__(self, performer, clock):
+        self.names, self.n_sensors = performer.names, performer.n_sensors
+        self.full_scale_in = performer.full_scale_in
+        self.clock = clock
+        self._now = (performer, 0.0)  # swapped whole: the tracker's thread reads it
+
+    @property
+    def performer(self):
+        return self._now[0]
+
+    def begin(self, performer=None, lead_s: float = 0.0) -> None:
+        performer = self._now[0] if performer is None else performer
+        if tuple(performer.names) != tuple(self.names):
+            raise ValueError(f"the next guest wears {list(performer.names)}, not the tracker's {list(self.names)}")
+        self._now = (performer, float(self.clock()) + float(lead_s))
+
+    def poses(self, times):
+        performer, start = self._now
+        return performer.poses(np.asarray(times, dtype=float) - start)
 
 
 class ServerThread:

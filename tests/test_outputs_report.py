@@ -68,3 +68,24 @@ def test_report_renders_in_headless_chromium_with_every_image_decoded(report):
     assert bone_rows > take.n_sensors - 1  # header + at least one bone per non-root body
     assert tree_items == take.n_sensors
     assert SLIPPED in slip_text
+
+
+def test_report_shows_the_services_progress_and_draws_no_bone_to_an_undetermined_joint(tmp_path):
+    from flockcal.server.progress import progress_of
+    from flockcal.solver.accumulator import GramAccumulator
+    from flockcal.solver.calibration import calibrate
+
+    # Tried: 4 s of the kiosk routine, which moves the left leg only: most joints are not determined yet.
+    take, _ = simulate("human", "kiosk", seconds=4, rate_hz=60, seed=5, birds=16)
+    save_take(tmp_path / "take.npz", take)
+    assert main(["report", str(tmp_path / "take.npz"), "-o", str(tmp_path / "report.html")]) == 0
+    text = (tmp_path / "report.html").read_text()
+    acc = GramAccumulator(take.n_sensors)
+    acc.update(take.rotations, take.positions, take.valid)
+    doc = progress_of(calibrate(acc, names=list(take.names)).to_dict(), 0.005 / 2**0.5, 0.005)
+    assert not doc["done"] and doc["missing"]
+    assert "<h2>Calibration progress</h2>" in text
+    assert f"{doc['joints_done']} of {doc['joints_needed']} joints calibrated ({doc['percent']} %)" in text
+    assert "<b>not done</b>" in text
+    for m in doc["missing"]:
+        assert m["label"] in text and m["why"] in text.replace("&#x27;", "'")

@@ -1,13 +1,13 @@
 """The live pose message: joints placed from the root sensor down through each parent's rotation
 (paper §3.4), so bones keep their length in every frame and a browser needs no math; and the
-coaching sentences name joints the way people do.
+coaching names joints the way people do; an undetermined joint ends no bone.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from flockcal.server.coaching import hints, joint_label, progress
+from flockcal.server.coaching import joint_label, joint_name
 from flockcal.server.pose import live_pose
 from flockcal.simulator.performer import Performer
 
@@ -38,16 +38,30 @@ def test_pose_without_a_fit_shows_the_sensors_only():
     assert pose["joints"] == [] and pose["bones"] == [] and len(pose["sensors"]) == 16
 
 
-def test_coaching_names_joints_readably_and_asks_for_movement_where_coverage_is_low():
+def test_coaching_names_joints_as_people_do_whichever_body_the_tree_made_the_child():
     assert joint_label("l_forearm", "l_upper_arm") == "the left elbow"
     assert joint_label("r_shin", "r_thigh") == "the right knee"
-    fit = {"joints": [
-        {"child": "l_forearm", "parent": "l_upper_arm", "hinge": False, "coverage": [0.0, 0.0, 0.001],
-         "c_stderr_m": 0.05, "l_stderr_m": 0.05},
-        {"child": "r_shin", "parent": "r_thigh", "hinge": True, "coverage": [0.4, 0.01, 0.0],
-         "c_stderr_m": 0.001, "l_stderr_m": 0.001},
-    ]}
-    out = hints(fit)
-    assert [h["joint"] for h in out] == ["l_forearm"]  # the knee is a hinge that has moved enough
-    assert "left elbow" in out[0]["hint"] and out[0]["hint"].startswith("Move")
-    assert progress(fit) == 0.5
+    # A tree rooted at the arm names the shoulder by the chest: it is still the shoulder.
+    assert joint_name("chest", "l_upper_arm") == joint_name("l_upper_arm", "chest") == "left shoulder"
+    assert joint_name("pelvis", "abdomen") == joint_name("abdomen", "pelvis") == "lower back"
+    assert joint_name("bird2", "bird1") == "bird 1–bird 2"
+    assert joint_label("bird2", "bird1") == "the joint between the bird 1 and the bird 2"
+
+
+def test_pose_draws_no_bone_to_an_undetermined_joint():
+    performer = Performer("human", "exercise", seed=3, rate_hz=100.0, noise="tracker")
+    truth = performer.model.truth()
+    undetermined = "l_forearm"
+    fit = dict(truth, joints=[dict(j, determined=j["child"] != undetermined) for j in truth["joints"]])
+    names = list(performer.names)
+    R, t, valid = performer.poses(np.array([2.0]))
+    pose = live_pose(names, R[0], t[0], valid[0], fit)
+    heads = [j["name"] for j in pose["joints"]]
+    ends = {frozenset((heads[a], heads[b])) for a, b in pose["bones"]}
+    # Neither the upper arm's bone to the elbow nor the forearm's on to the wrist; the elbow is still placed.
+    assert frozenset(("l_upper_arm", "l_forearm")) not in ends and frozenset(("l_forearm", "l_hand")) not in ends
+    assert frozenset(("r_upper_arm", "r_forearm")) in ends
+    elbow = pose["joints"][heads.index(undetermined)]
+    assert elbow["determined"] is False and elbow["p"] is not None
+    full = live_pose(names, R[0], t[0], valid[0], truth)
+    assert len(full["bones"]) == len(pose["bones"]) + 2

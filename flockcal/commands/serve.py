@@ -42,6 +42,10 @@ def register(subparsers) -> None:
                    "a sim:// URL); the driver picks a record format the line can carry")
     p.add_argument("--fit-hz", type=float, default=30.0, help="full refits per second (default 30)")
     add_tolerance(p)
+    p.add_argument("--target-mm", type=float, metavar="MM",
+                   help="a joint counts as calibrated (progress, done, the kiosk ring) once the data pin its centre "
+                        "to within MM along every direction it needs (default: --tolerance-mm / 1.414, so bones "
+                        "between two such joints are within the tolerance)")
     p.add_argument("--fast-init", action="store_true", default=bool(os.environ.get("FLOCKCAL_FAST_INIT")),
                    help="skip the tracker's reset delays (for simulated trackers on a pty)")
     p.add_argument("--skeleton", action="append", default=[], type=Path, metavar="FILE",
@@ -72,6 +76,7 @@ def settings_from_args(args: argparse.Namespace):
         names=names,
         fit_hz=args.fit_hz,
         tolerance_m=tolerance_m(args),
+        target_m=None if args.target_mm is None else float(args.target_mm) / 1000.0,
         cors_origins=tuple(args.cors_origin),
         fast_init=args.fast_init,
         scale_inches=args.scale,

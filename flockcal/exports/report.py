@@ -1,6 +1,6 @@
-"""One self-contained HTML report of a calibration: skeleton drawing, bones, topology, per-joint residual
-plots and histograms (the paper's figures 6–8), coverage and slip events. Figures are base64 PNG data
-URIs, so the page is a single file that opens anywhere.
+"""One self-contained HTML report of a calibration: skeleton drawing, bones, topology, calibration progress
+(the service's one definition), per-joint residual plots and histograms (the paper's figures 6–8),
+coverage and slip events. Figures are base64 PNG data URIs, so the page is a single file that opens anywhere.
 """
 
 from __future__ import annotations
@@ -53,10 +53,12 @@ def _pose_frame(valid: np.ndarray) -> int:
     return int(full[np.argmin(np.abs(full - n // 2))])
 
 
-def skeleton_figure(rec, frame: int, world: np.ndarray) -> str:
+def skeleton_figure(rec, frame: int, world: np.ndarray, determined=None) -> str:
     """Three orthographic views of the reconstructed pose at `frame`: bones solid, sensor offsets dashed.
 
-    `world` turns tracker coordinates into a Y-up frame (see `bvh.bvh_world`): x, up, z.
+    `world` turns tracker coordinates into a Y-up frame (see `bvh.bvh_world`): x, up, z. `determined`
+    ((m,) bool, by body): a body whose inboard joint is not determined is joined by a thin dotted line, not
+    a bone, and its joint drawn hollow (design.md §3a); None draws every joint as determined.
     """
     import matplotlib.pyplot as plt
 
@@ -64,22 +66,27 @@ def skeleton_figure(rec, frame: int, world: np.ndarray) -> str:
     J = rec.joint_positions[frame] @ world.T
     S = rec.sensor_positions[frame] @ world.T
     views = [("front (z, up)", 2, 1), ("side (x, up)", 0, 1), ("top (x, z)", 0, 2)]
+    ok = np.ones(art.n_bodies, dtype=bool) if determined is None else np.asarray(determined, dtype=bool)
+    ok = ok | (np.arange(art.n_bodies) == art.root)
     fig, axes = plt.subplots(1, 3, figsize=(12, 4.4))
     fig.subplots_adjust(left=0.05, right=0.99, bottom=0.08, top=0.86, wspace=0.22)
     for ax, (title, a, b) in zip(axes, views):
         for j in art.order[1:]:
             p = art.parent[j]
-            ax.plot([J[p, a], J[j, a]], [J[p, b], J[j, b]], "-", color="#246", lw=2.5)
+            bone = ok[j] and ok[p]
+            ax.plot([J[p, a], J[j, a]], [J[p, b], J[j, b]], "-" if bone else ":", color="#246" if bone else "#999",
+                    lw=2.5 if bone else 1.0)
         for j in range(art.n_bodies):
             ax.plot([J[j, a], S[j, a]], [J[j, b], S[j, b]], "--", color="#c63", lw=0.8)
-        ax.plot(J[:, a], J[:, b], "o", color="#246", ms=4)
+        ax.plot(J[ok, a], J[ok, b], "o", color="#246", ms=4)
+        ax.plot(J[~ok, a], J[~ok, b], "o", mfc="none", color="#999", ms=5)
         ax.plot(S[:, a], S[:, b], "s", color="#c63", ms=3)
         for j, name in enumerate(art.names):
             ax.annotate(name, (J[j, a], J[j, b]), fontsize=7, xytext=(3, 3), textcoords="offset points")
         ax.set_title(title, fontsize=10)
         ax.set_aspect("equal", adjustable="datalim")
         ax.grid(alpha=0.3)
-    fig.suptitle(f"reconstructed pose at frame {frame} (joints ●, sensors ■)", fontsize=11)
+    fig.suptitle(f"reconstructed pose at frame {frame} (joints ●, not determined ○, sensors ■)", fontsize=11)
     return _png(fig)
 
 
@@ -137,11 +144,15 @@ def _fmt(x, scale=1.0, digits=1) -> str:
     return f"{float(x) * scale:.{digits}f}"
 
 
-def _tree_html(art: Articulation, rms_by_child: dict[str, float]) -> str:
+def _tree_html(art: Articulation, rms_by_child: dict[str, float], standing: dict[str, dict]) -> str:
     def node(i: int) -> str:
         label = html.escape(art.names[i])
         if art.parent[i] >= 0:
-            label += f" <span class=meta>(joint rms {_fmt(rms_by_child.get(art.names[i]), 1000, 2)} mm)</span>"
+            label += f" <span class=meta>(joint rms {_fmt(rms_by_child.get(art.names[i]), 1000, 2)} mm"
+            st = standing.get(art.names[i])
+            if st and not st["done"]:
+                label += f"; not calibrated: {html.escape(st['why'] or st['state'])}"
+            label += ")</span>"
         kids = "".join(node(k) for k in art.children(i))
         return f"<li>{label}{f'<ul class=tree>{kids}</ul>' if kids else ''}</li>"
 
@@ -213,15 +224,28 @@ def report_html(
     from flockcal.exports.bvh import bvh_world
     from flockcal.solver.known_skeleton import bones as bones_of
 
+<<<<<<< HEAD
     step(REPORT_STAGES[0])
+=======
+    from flockcal.server.progress import default_target, progress_of
+    from flockcal.solver.fits import TOLERANCE_M
+
+>>>>>>> h21
     d = calibration.to_dict() if hasattr(calibration, "to_dict") else dict(calibration)
     art = articulation(d).reordered(take.names).completed(take.rotations, take.positions, take.valid)
     names = art.names
+    # The service's one definition of progress, for this one fit (a given tree cannot re-link).
+    fixed = bool(getattr(calibration, "hierarchy_given", False) or d.get("known_skeleton"))
+    progress = progress_of(d, default_target(TOLERANCE_M), TOLERANCE_M, tree_fixed=fixed)
+    standing = {j["joint"]: j for j in progress["joint_progress"]}
     e = tree_residuals(take.rotations, take.positions, art, take.valid)
     sep = np.linalg.norm(e, axis=-1)
     rec = reconstruct(take.rotations, take.positions, art, take.valid)
     joints = [int(j) for j in art.order[1:]]
     by_child = {j["child"]: j for j in d.get("joints", [])}
+    # Bodies ending at a determined joint (a saved skeleton's bones are known whatever this take pinned).
+    determined = np.array([d.get("known_skeleton") or (n in by_child and by_child[n].get("determined", True))
+                           for n in names], dtype=bool)
     with np.errstate(invalid="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # a joint with no valid frame has no rms: shown as –
         rms = np.sqrt(np.nanmean(sep**2, axis=0))
@@ -241,9 +265,11 @@ def report_html(
         f"root {html.escape(names[art.root])}; {100 * float(take.valid.mean()):.1f}% of sensor-frames valid; "
         f"made {made}</p>",
         "<h2>Skeleton</h2>",
-        _img(skeleton_figure(rec, _pose_frame(take.valid), bvh_world(up)), "skeleton drawing"),
+        _img(skeleton_figure(rec, _pose_frame(take.valid), bvh_world(up), determined), "skeleton drawing"),
         "<h2>Topology</h2>",
-        _tree_html(art, {names[j]: rms[j] for j in joints}),
+        _tree_html(art, {names[j]: rms[j] for j in joints}, standing),
+        "<h2>Calibration progress</h2>",
+        _progress_html(progress),
     ]
     loops = d.get("loop_candidates") or []
     if loops:
@@ -265,10 +291,11 @@ def report_html(
         joint_rows.append([
             Text(names[j]), Text(names[art.parent[j]]), _fmt(rms[j], 1000, 2), _fmt(worst[j], 1000, 2),
             _fmt(info.get("epsilon"), 1000, 4), _fmt(float(np.linalg.norm(art.c[j])), 100, 2),
-            _fmt(info.get("c_stderr_m"), 1000, 2), Text("yes" if info.get("hinge") else "no"), _bars(info.get("coverage")),
+            _fmt(info.get("c_stderr_m"), 1000, 2), Text("yes" if info.get("hinge") else "no"),
+            Text("yes" if info.get("determined") else "no"), _bars(info.get("coverage")),
         ])  # fmt: skip
     headers = ["<joint (child)", "<parent", "rms (mm)", "max (mm)", "ε (mm)", "sensor→joint (cm)",
-               "c std err (mm)", "<hinge", "<coverage (3 axes)"]  # fmt: skip
+               "c std err (mm)", "<hinge", "<determined", "<coverage (3 axes)"]  # fmt: skip
     parts.append(_table(headers, joint_rows))
     parts.append(
         "<p class=meta>Coverage: 1 − σ of the mean relative rotation about each principal axis; an empty bar "
@@ -302,6 +329,19 @@ def report_html(
         parts.append("<p>None detected.</p>")
     parts.append("</body></html>\n")
     return "\n".join(parts)
+
+
+def _progress_html(doc: dict) -> str:
+    """The progress document as the kiosk and dashboard show it: the figure, done, and what is missing."""
+    head = (f"<p>{doc['joints_done']} of {doc['joints_needed']} joints calibrated ({doc['percent']} %), each "
+            f"determined with its centre pinned to {1000 * doc['target_m']:.1f} mm: "
+            f"<b>{'done' if doc['done'] else 'not done'}</b>.</p>")
+    if not doc["missing"]:
+        return head
+    rows = [[Text(m["label"]), Text(m["joint"]), Text(m["parent"] or "–"), Text(m["why"] or m["state"])]
+            for m in doc["missing"]]
+    return head + _table(["<joint", "<child", "<parent", "<why not yet"], rows) + \
+        "<p class=meta>Same rule as the live service's progress (README, \"Progress\").</p>"
 
 
 def write_report(path: str | os.PathLike, calibration, take, **options) -> None:

@@ -14,7 +14,7 @@ from fastapi.responses import Response
 from flockcal.server.auth import require_admin, require_read, require_session_control
 from flockcal.server.errors import BadRequest, Conflict, NotFound
 from flockcal.server.models import (
-    CalibrationResult, ErrorReply, EventList, ResidualSeries, Session, SessionCreate, SessionList,
+    CalibrationResult, ErrorReply, EventList, Progress, ResidualSeries, Session, SessionCreate, SessionList,
 )
 from flockcal.server.routes.deps import get_service, session_id
 from flockcal.server.settings import NAME_RE
@@ -100,6 +100,14 @@ def resolve_session(sid: str = Depends(session_id), service=Depends(get_service)
 def get_result(sid: str = Depends(session_id), service=Depends(get_service), _role=Depends(require_read)):
     result, _live = service.sessions.result(sid)
     return result
+
+
+@router.get("/{id}/progress", response_model=Progress, responses=ERRORS,
+            summary="calibration progress: done, what is missing and why (the kiosk ring's figure)")
+def get_progress(sid: str = Depends(session_id), service=Depends(get_service), _role=Depends(require_read)):
+    """The service's one definition of progress, for the live session as it goes and for a stopped one as
+    it ended. `done` is what an integration waits for; `missing` names every joint still to calibrate."""
+    return service.sessions.progress(sid)
 
 
 @router.get("/{id}/residuals", response_model=ResidualSeries, responses=ERRORS,

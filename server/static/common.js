@@ -76,9 +76,10 @@ export function readable(name) {
 
 // Body keyword → the joint at its inboard end, with how far out along the body it sits (a joint
 // sits at the inboard end of the more distal of its two bodies, whichever way the tree is rooted).
+// The same table as flockcal.server.coaching, so the service's labels and the page's agree.
 const BODY_JOINTS = [
   [/hand|wrist/, 'wrist', 5], [/foot|ankle/, 'ankle', 5], [/toe/, 'toes', 6], [/head/, 'neck', 5],
-  [/fore ?arm|lower ?arm/, 'elbow', 4], [/shin|calf|lower ?leg|low ?leg|tibia/, 'knee', 4],
+  [/fore ?arm|lower ?arm/, 'elbow', 4], [/shin|shank|calf|lower ?leg|low ?leg|tibia/, 'knee', 4],
   [/upper ?arm|up ?arm|humerus|\barm\b/, 'shoulder', 3], [/thigh|upper ?leg|up ?leg|femur/, 'hip', 3],
   [/neck/, 'lower neck', 3], [/clavicle|shoulder/, 'collarbone', 2],
   [/chest|thorax|upper ?back/, 'mid back', 2], [/abdomen|spine|torso|back|waist/, 'lower back', 1],
@@ -101,21 +102,6 @@ export function jointLabel(child, parent) {
   if (a && (!b || a.rank >= b.rank)) return a.label;
   if (b && parent) return b.label;
   return parent ? `${readable(parent)}–${readable(child)}` : readable(child);
-}
-
-// Coverage of the axes a joint needs (design.md §3): a hinge turns about one axis, a ball joint's
-// centre is pinned once it has turned about two (the third, twist, adds nothing to the centre).
-// Coverage arrives sorted ascending, so the second-largest value is index 1.
-export function neededCoverage(joint) {
-  const cov = (joint.coverage || [0, 0, 0]).map((x) => Number(x) || 0);
-  if (!cov.length) return 0;
-  return joint.hinge ? Math.max(...cov) : cov.slice().sort((a, b) => a - b)[Math.max(0, cov.length - 2)];
-}
-
-export function jointStderr(joint) {
-  const c = joint.c_stderr_m, l = joint.l_stderr_m;
-  const v = Math.max(Number.isFinite(c) ? c : Infinity, Number.isFinite(l) ? l : Infinity);
-  return v;
 }
 
 // The live websocket: subscribes on every (re)connection and backs off up to 4 s between tries, so

@@ -2,7 +2,7 @@
 // markers, tracker status and session controls. It only shows what the service publishes on
 // /ws/live (status, fit, residuals, events, pose) and calls the REST API for session control.
 
-import { api, ApiError, connectLive, download, jointLabel, jointStderr, readable, SkeletonView } from './common.js';
+import { api, ApiError, connectLive, download, jointLabel, readable, SkeletonView } from './common.js';
 
 const $ = (id) => document.getElementById(id);
 const view = new SkeletonView($('view'));
@@ -14,7 +14,7 @@ const state = {
   lastSessionId: null,  // newest session (live or stopped): what the download buttons fetch
   lastPerformer: '',
   fit: null,
-  hints: [],
+  progress: null,       // the service's progress of the fit shown (README "Progress"): the page computes none
   trackerConnected: null,
   rate: [],             // [wall seconds, frames] samples for the measured frame rate
 };
@@ -112,6 +112,7 @@ function setSession(session) {
 
 function resetSessionViews() {
   state.fit = null;
+  state.progress = null;
   residuals.clear();
   $('alerts').innerHTML = '<div class="muted small none">No alerts.</div>';
 }
@@ -177,29 +178,34 @@ $('dl-bvh').addEventListener('click', () => downloadFile('bvh'));
 
 // ---------------------------------------------------------------------------------- the fit
 
-// Server hints carry each unfinished joint's progress; a joint without a hint is done.
-function progressOf(child) {
-  const h = state.hints.find((x) => x.joint === child);
-  return h ? Number(h.progress) : 1;
+// The service's standing of the joint named by `child` (every sensor but the root has one).
+function standingOf(child) {
+  return ((state.progress && state.progress.joint_progress) || []).find((x) => x.joint === child) || null;
+}
+
+// Joint spheres: green when calibrated, amber while pinned but not counted yet, grey while not determined.
+function jointColour(j) {
+  if (!j) return 'none';
+  if (j.done) return 'done';
+  return ['pinning', 'confirming', 'unsettled'].includes(j.state) ? 'work' : 'none';
 }
 
 function showFit(msg) {
   const result = msg.result;
   if (!result) return;
   state.fit = result;
-  state.hints = msg.hints || [];
+  state.progress = msg;
   view.setFit(result);
   const jointState = {};
   for (const name of result.sensors || []) jointState[name] = 'none';
-  for (const j of result.joints || []) jointState[j.child] = progressOf(j.child) >= 1 ? 'done' : 'work';
+  for (const j of msg.joint_progress || []) jointState[j.joint] = jointColour(j);
   view.setJointState(jointState);
   showTopology(result);
   showBones(result);
-  showCoverage(result);
-  const joints = result.joints || [];
-  const expected = Math.max(0, (result.sensors || []).length - 1);
-  const done = joints.filter((j) => progressOf(j.child) >= 1).length;
-  $('s-joints').textContent = `${done} / ${expected}`;
+  showCoverage(msg);
+  $('s-joints').textContent = `${msg.joints_done ?? 0} / ${msg.joints_needed ?? Math.max(0, (result.sensors || []).length - 1)}`;
+  $('s-joints').dataset.done = msg.done ? 'true' : 'false';
+  $('s-joints').dataset.fitSeq = String(msg.fit_seq);
   $('s-fit').textContent = `${fmtInt(result.frames)} frames`;
 }
 
@@ -219,11 +225,16 @@ function showTopology(result) {
     label.textContent = readable(name);
     li.appendChild(label);
     const j = joint[name];
+    const st = standingOf(name);
     if (name === result.root) li.appendChild(badge('root', 'root'));
-    else if (!j) li.appendChild(badge('rigid', 'moves rigidly with its parent so far — not fitted yet'));
-    else {
+    else if (!j || (st && st.state === 'rigid')) li.appendChild(badge('rigid', 'moves rigidly with its parent so far — not fitted yet'));
+    else if (st && !st.done && (st.state === 'undetermined' || st.state === 'not_turned')) {
+      li.appendChild(badge('undetermined', `${jointLabel(name, j.parent)}: ${st.why}`));
+    } else {
       if (j.hinge) li.appendChild(badge('hinge', 'turns about one axis only'));
-      li.appendChild(badge(progressOf(name) >= 1 ? 'ok' : 'todo', jointLabel(name, j.parent)));
+      const b = badge(st && st.done ? 'ok' : 'todo', jointLabel(name, j.parent));
+      if (st && st.why) b.title = st.why;
+      li.appendChild(b);
     }
     const kids = (children[name] || []).sort();
     if (kids.length) { const ul = document.createElement('ul'); kids.forEach((k) => ul.appendChild(build(k))); li.appendChild(ul); }
@@ -241,9 +252,12 @@ function showTopology(result) {
 
 function badge(kind, text) {
   const s = document.createElement('span');
-  s.className = `badge badge-${kind}`;
-  s.textContent = kind === 'rigid' ? 'not fitted' : text;
-  if (kind === 'rigid') s.title = text;
+  // An undetermined joint looks like one not fitted: no bone is drawn for either.
+  s.className = `badge badge-${kind === 'undetermined' ? 'rigid' : kind}`;
+  s.dataset.kind = kind;
+  s.textContent = text;
+  if (kind === 'rigid') { s.textContent = 'not fitted'; s.title = text; }
+  if (kind === 'undetermined') { s.textContent = 'not determined'; s.title = text; }
   if (kind === 'hinge') { s.textContent = 'hinge'; s.title = text; }
   return s;
 }
@@ -274,54 +288,53 @@ function showBones(result) {
   if (!tbody.children.length) tbody.innerHTML = '<tr class="placeholder"><td colspan="4" class="muted">No joints fitted yet: move the performer.</td></tr>';
 }
 
-function showCoverage(result) {
+// One bar per sensor but the root, as the service counts it, furthest from calibrated first, under the
+// service's own "move next" sentences.
+function showCoverage(msg) {
   const el = $('coverage');
   el.innerHTML = '';
+  const hints = msg.hints || [];
   const hintFor = {};
-  for (const h of state.hints) hintFor[h.joint] = h.hint;
-  const joints = (result.joints || []).slice().sort((a, b) => progressOf(a.child) - progressOf(b.child));
-  const fitted = new Set(joints.map((j) => j.child));
-  const unfitted = (result.sensors || []).filter((n) => n !== result.root && !fitted.has(n));
-  // What to do next, in plain words: the three weakest joints' hints, then bodies not moving at all.
+  for (const h of hints) hintFor[h.joint] = h.hint;
+  const joints = (msg.joint_progress || []).slice().sort((a, b) => (a.done - b.done) || (a.progress - b.progress));
   const todo = document.createElement('div');
   todo.id = 'next-moves';
   todo.className = 'next-moves';
-  const lines = state.hints.slice(0, 3).map((h) => h.hint);
-  if (unfitted.length) lines.push(`Not moving yet: ${unfitted.map(readable).join(', ')} — move them so their joints can be found.`);
-  if (lines.length) {
+  if (msg.done) {
+    todo.classList.add('all-done');
+    todo.textContent = `Every joint is calibrated (pinned to ${(1000 * msg.target_m).toFixed(1)} mm).`;
+  } else if (hints.length) {
     const title = document.createElement('div');
     title.className = 'next-title';
     title.textContent = 'Move next';
     todo.appendChild(title);
-    for (const line of lines) { const d = document.createElement('div'); d.className = 'hint'; d.textContent = line; todo.appendChild(d); }
-  } else if (joints.length) {
-    todo.classList.add('all-done');
-    todo.textContent = 'Every joint is exercised and pinned down.';
+    for (const h of hints.slice(0, 3)) { const d = document.createElement('div'); d.className = 'hint'; d.textContent = h.hint; todo.appendChild(d); }
   }
   el.appendChild(todo);
   for (const j of joints) {
-    const p = Math.max(0, Math.min(1, progressOf(j.child)));
+    const p = Math.max(0, Math.min(1, Number(j.progress) || 0));
     const row = document.createElement('div');
     row.className = 'cov';
-    row.dataset.joint = j.child;
+    row.dataset.joint = j.joint;
     row.dataset.progress = p;
+    row.dataset.state = j.state;
+    row.dataset.done = j.done ? 'true' : 'false';
     const name = document.createElement('span');
     name.className = 'cov-name';
-    name.textContent = jointLabel(j.child, j.parent);
-    name.title = `${readable(j.parent)} → ${readable(j.child)}${hintFor[j.child] ? ': ' + hintFor[j.child] : ''}`;
+    name.textContent = j.label;
+    name.title = `${readable(j.parent)} → ${readable(j.joint)}${j.why ? ': ' + j.why : ''}${hintFor[j.joint] ? ' — ' + hintFor[j.joint] : ''}`;
     const bar = document.createElement('div');
-    bar.className = `bar ${p >= 1 ? 'full' : p < 0.5 ? 'low' : ''}`;
+    bar.className = `bar ${j.done ? 'full' : p < 0.5 ? 'low' : ''}`;
     const fill = document.createElement('div');
     fill.style.width = `${Math.max(2, p * 100).toFixed(0)}%`;
     bar.appendChild(fill);
-    const err = jointStderr(j);
     const value = document.createElement('span');
     value.className = 'cov-value';
-    value.textContent = p >= 1 ? '✓' : `${(p * 100).toFixed(0)}%`;
+    value.textContent = j.done ? '✓' : `${Math.floor(p * 100 + 1e-9)}%`;
     const sd = document.createElement('span');
     sd.className = 'cov-sd';
-    sd.textContent = Number.isFinite(err) ? `±${(err * 1000).toFixed(1)} mm` : '';
-    sd.title = 'standard error of the joint centre';
+    sd.textContent = Number.isFinite(j.error_m) ? `±${(j.error_m * 1000).toFixed(1)} mm` : '';
+    sd.title = 'how closely the data pin the joint centre along the worst direction it needs';
     row.append(name, bar, value, sd);
     el.appendChild(row);
   }

@@ -1,12 +1,11 @@
-// The guest-facing kiosk: an avatar that follows the guest, a progress ring fed by coverage and
-// uncertainty, what to move next, and a "done" state; one session per guest, then it resets itself.
+// The guest-facing kiosk: an avatar that follows the guest, a progress ring, what to move next, and a
+// "done" state; one session per guest, then it resets itself. The ring, the chips and "done" are the
+// service's progress as published (README "Progress"): the page computes none of it.
 // URL options: ?token=… (a kiosk token starts and stops sessions; a read-only token follows the
-// sessions a host starts), stderr_mm=5 (joint-centre uncertainty counted as calibrated),
-// coverage=0.01 (1 − σ(M) on the axes a joint needs, design.md §3), reset_s=10 (how long "done"
-// stays up), max_s=300 (a guest who walks away: start afresh), joints=N (joints expected; default
-// one per sensor but the root), mirror=0 (show the avatar as others see the guest, not as a mirror).
+// sessions a host starts), reset_s=10 (how long "done" stays up), max_s=300 (a guest who walks away:
+// start afresh), mirror=0 (show the avatar as others see the guest, not as a mirror).
 
-import { api, ApiError, connectLive, jointStderr, neededCoverage, readable, SkeletonView } from './common.js';
+import { api, ApiError, connectLive, readable, SkeletonView } from './common.js';
 
 const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.search);
@@ -14,11 +13,8 @@ const num = (key, fallback) => {
   const v = Number(params.get(key));
   return params.has(key) && Number.isFinite(v) && v > 0 ? v : fallback;
 };
-const TARGET_STDERR_M = num('stderr_mm', 5) / 1000;
-const COVERAGE_TARGET = num('coverage', 0.01);
 const RESET_S = num('reset_s', 10);
 const MAX_S = num('max_s', 300);
-const EXPECTED_JOINTS = params.has('joints') ? num('joints', null) : null;
 
 const avatar = new SkeletonView($('avatar'), { colour: 0x7ee787, follow: true, mirror: params.get('mirror') !== '0' });
 const ring = $('ring-fill');
@@ -31,7 +27,6 @@ const kiosk = {
   session: null,           // the session being shown {id, performer}
   owned: false,            // started by a kiosk, so the kiosk stops it when the guest is done
   canControl: true,        // false with a read-only token: follow the host's sessions instead
-  best: {},                // 'child|parent' → best progress this session (information only grows)
   startedAt: 0,
   timer: null,
   lastStatus: null,
@@ -49,22 +44,14 @@ function setState(s, text) {
   document.body.classList.toggle('done', s === 'done');
 }
 
-function setProgress(p) {
-  const clamped = Math.max(0, Math.min(1, p));
-  ring.style.strokeDashoffset = `${CIRC * (1 - clamped)}`;
-  // Never show 100 % before the page says done.
-  const shown = kiosk.state === 'done' ? 100 : Math.min(99, Math.floor(clamped * 100));
-  $('percent').textContent = `${shown}%`;
-  $('percent').dataset.value = clamped.toFixed(3);
-}
-
-// A joint counts once its needed axes are exercised (coverage) and its centre is pinned down
-// (standard error under the target); the ring shows how far the weaker of the two has come.
-function jointProgress(j) {
-  const c = Math.min(1, neededCoverage(j) / COVERAGE_TARGET);
-  const err = jointStderr(j);
-  const u = Number.isFinite(err) ? Math.min(1, TARGET_STDERR_M / Math.max(err, 1e-9)) : 0;
-  return Math.min(c, u);
+// The service's figure as it sends it: `percent` is its whole percent (100 only when done).
+function setProgress(progress, percent, fitSeq) {
+  const p = Math.max(0, Math.min(1, progress));
+  ring.style.strokeDashoffset = `${CIRC * (1 - p)}`;
+  const el = $('percent');
+  el.textContent = `${percent}%`;
+  el.dataset.value = String(progress);
+  el.dataset.fitSeq = fitSeq === undefined || fitSeq === null ? '' : String(fitSeq);
 }
 
 // What a guest should do to move a body's joint, in words a guest uses.
@@ -85,51 +72,55 @@ function actionFor(body) {
   return `Move your ${name}!`;
 }
 
-function showChips(rows, next) {
+// One chip per sensor but the root, ticked when the service counts its joint as calibrated.
+function showChips(joints, next) {
   const el = $('chips');
   el.innerHTML = '';
-  for (const r of rows) {
+  for (const j of joints) {
     const chip = document.createElement('span');
-    chip.className = `chip${r.p >= 1 ? ' done' : ''}${r.body === next ? ' next' : ''}`;
-    chip.dataset.body = r.body;
-    chip.textContent = `${r.p >= 1 ? '✓ ' : ''}${readable(r.body)}`;
+    chip.className = `chip${j.done ? ' done' : ''}${j.joint === next ? ' next' : ''}`;
+    chip.dataset.body = j.joint;
+    chip.dataset.state = j.state;
+    chip.textContent = `${j.done ? '✓ ' : ''}${readable(j.joint)}`;
     el.appendChild(chip);
   }
 }
 
+// The next thing to do, for the joint the service lists first; if a calibrated joint was undone
+// (a sensor slipped), say so, so the guest knows why the ring went back.
+function instructionFor(m) {
+  const act = actionFor(m.joint);
+  if (m.undone && m.undone.reason === 'slip') return `Your ${readable(m.undone.sensor)} sensor moved — once more: ${act}`;
+  if (m.undone) return `Once more: ${act}`;
+  return act;
+}
+
 function onFit(msg) {
   const result = msg.result;
+  // A host's session shown as done that a slip has undone: back to calibrating, saying why (below).
+  if (kiosk.state === 'done' && kiosk.doneSession && msg.session && msg.session.id === kiosk.doneSession && !msg.done) {
+    kiosk.doneSession = null;
+    setState('live', `calibrating ${kiosk.session.performer}`);
+  }
   if (kiosk.state !== 'live' || !result || !kiosk.session) return;
   if (msg.session && msg.session.id !== kiosk.session.id) return;
   avatar.setFit(result);
-  const byChild = {};
-  for (const j of result.joints || []) byChild[j.child] = j;
-  // Every sensor but the root should end up with a joint; one still riding rigidly on its
-  // neighbour has not moved yet, so it counts as nothing.
-  const bodies = (result.sensors || []).filter((n) => n !== result.root);
-  const rows = bodies.map((body) => {
-    const j = byChild[body];
-    if (!j) return { body, p: 0 };
-    const key = `${body}|${j.parent}`;
-    kiosk.best[key] = Math.max(kiosk.best[key] || 0, jointProgress(j));
-    return { body, p: kiosk.best[key] };
-  });
-  const expected = EXPECTED_JOINTS || rows.length;
-  const fitted = rows.filter((r) => byChild[r.body]);
-  const overall = rows.length ? rows.reduce((a, r) => a + r.p, 0) / Math.max(expected, rows.length) : 0;
-  const jointState = {};
-  for (const r of rows) jointState[r.body] = r.p >= 1 ? 'done' : (byChild[r.body] ? 'work' : 'none');
-  avatar.setJointState(jointState);
-  const weakest = rows.slice().sort((a, b) => a.p - b.p)[0];
-  showChips(rows, weakest && weakest.p < 1 ? weakest.body : null);
-  // joints=N lets a rig with sensors sharing a body finish without those; otherwise all must be fitted.
-  const allFitted = EXPECTED_JOINTS ? fitted.length >= expected : fitted.length === rows.length;
-  if (allFitted && fitted.length && fitted.every((r) => r.p >= 1)) {
+  const joints = msg.joint_progress || [];
+  avatar.setJointState(Object.fromEntries(joints.map((j) => [j.joint, jointColour(j)])));
+  const next = (msg.missing || [])[0];
+  showChips(joints, next ? next.joint : null);
+  setProgress(msg.progress, msg.percent, msg.fit_seq);
+  if (msg.done) {
     finishGuest();
     return;
   }
-  setProgress(overall);
-  if (weakest) $('instruction').textContent = actionFor(weakest.body);
+  if (next) $('instruction').textContent = instructionFor(next);
+}
+
+// Avatar joints: green when calibrated, amber while pinned but not counted yet, grey while undetermined.
+function jointColour(j) {
+  if (j.done) return 'done';
+  return ['pinning', 'confirming', 'unsettled'].includes(j.state) ? 'work' : 'none';
 }
 
 function clearTimer() { if (kiosk.timer) { clearTimeout(kiosk.timer); kiosk.timer = null; } }
@@ -137,9 +128,8 @@ function clearTimer() { if (kiosk.timer) { clearTimeout(kiosk.timer); kiosk.time
 function follow(session, owned) {
   kiosk.session = session;
   kiosk.owned = owned;
-  kiosk.best = {};
   kiosk.startedAt = performance.now();
-  setProgress(0);
+  setProgress(0, 0, null);
   $('chips').innerHTML = '';
   setState('live', owned ? 'calibrating — keep moving!' : `calibrating ${session.performer}`);
   $('instruction').textContent = 'Wave your arms and march on the spot!';
@@ -149,7 +139,7 @@ async function startGuest() {
   clearTimer();
   if (!kiosk.canControl) { waitForHost(); return; }
   setState('starting', 'getting ready…');
-  setProgress(0);
+  setProgress(0, 0, null);
   try {
     const stamp = new Date().toTimeString().slice(0, 8).replace(/:/g, '.');
     const s = await api('/api/sessions', { method: 'POST', json: { performer: `guest ${stamp}` } });
@@ -176,14 +166,13 @@ function waitForHost() {
   const live = kiosk.lastStatus && kiosk.lastStatus.session;
   if (live) { follow(live, false); return; }
   setState('waiting', 'waiting for the host to start your calibration');
-  setProgress(0);
+  setProgress(0, 0, null);
   $('instruction').textContent = 'Welcome! A host will start your calibration in a moment.';
 }
 
 async function finishGuest() {
   const session = kiosk.session;
   setState('done', 'done!');
-  setProgress(1);
   $('instruction').textContent = "You're all set — enjoy the show!";
   avatar.setJointState(Object.fromEntries(Object.keys(avatar.jointState).map((k) => [k, 'done'])));
   $('chips').querySelectorAll('.chip').forEach((c) => { c.className = 'chip done'; c.textContent = `✓ ${readable(c.dataset.body)}`; });

@@ -1,0 +1,306 @@
+"""The one definition of calibration progress: how far each sensor's joint is from calibrated, the overall
+figure, `done`, and what is missing and why. The service computes it once per fit and publishes it (REST,
+websocket); the kiosk ring, the dashboard and `flockcal report` only display it.
+
+Every sensor but the root counts. Its joint (the one named by it, design.md §5) counts 1 once it is
+*done*: determined (design.md §3a) with the centre pinned to the target along every direction it needs
+(all three for a ball, the two pinned ones for a hinge), between two bodies the tree has settled. A sensor
+still riding rigidly on its neighbour, or whose joint is not determined, counts 0. Within a session a done
+joint stays done (`ProgressTracker`) unless its sensor slips or its fit is really lost, so the standard
+error wobbling about the target moves nothing.
+"""
+
+from __future__ import annotations
+
+import math
+
+from flockcal.server.coaching import hint_sentence, joint_name, readable_body
+
+# A done joint is undone by a loss of fit, not a wobble: when it is no longer determined and the error
+# along a direction it needs exceeds this multiple of the target, or nothing turned along it any more. A
+# joint's error is an upper confidence bound that moves as batch-means blocks complete; twice the target is
+# well outside that (a 4x variance), while a sensor moved on the skin is the slip monitor's to report.
+LOSS_FACTOR = 2.0
+
+# A joint is counted once it has met the target over this much session time, fit after fit. In the first
+# second of a take the solver's batch-means errors rest on one or two 64-frame blocks and a joint can read
+# determined and lose it again a few fits later (the elbow at 0.4–0.9 s on a simulated kiosk guest). Over 20
+# simulated guests the ring went back 19 times with no hold, once with 0.5 s and never with 1 s.
+CONFIRM_S = 1.0
+
+# Below 1 until done: a ring at "100 %" must mean done, even when every joint has been done once but the
+# newest fit still waits on one of them to be pinned again.
+NOT_DONE_CAP = 0.99
+
+# A sensor's standing, furthest from calibrated first (the order `missing` lists ties in).
+STATES = ("rigid", "not_turned", "undetermined", "unsettled", "pinning", "confirming", "done")
+_STATE_ORDER = {s: k for k, s in enumerate(STATES)}
+
+
+def default_target(tolerance_m: float) -> float:
+    """The joint-centre error counted as calibrated unless one is given: the tolerance / √2. A bone spans two
+    joint centres, each pinned to the target along every direction; errors of its two ends add in quadrature,
+    so the bone is then held to the tolerance (5 mm by default: bones within 5 mm at done, the kiosk's aim).
+    On 20 simulated kiosk guests the full 5 mm left one hinge-ended bone 5.8 mm off at done, 3.5 mm none
+    over 4.3 mm, for 0.3 s more (benchmarks/bench_calibrate_time.py)."""
+    return float(tolerance_m) / math.sqrt(2.0)
+
+
+def needed_errors(joint: dict, hinge: bool | None = None) -> list[float]:
+    """The centre's error (m) along the directions the joint needs, inf where nothing turned: all three for
+    a ball joint, the two pinned ones for a hinge (`hinge` overrides the joint's own flag)."""
+    err = [math.inf if x is None else float(x) for x in (joint.get("direction_error_m") or (None,) * 3)]
+    is_hinge = joint.get("hinge") if hinge is None else hinge
+    return err[1:] if is_hinge else err
+
+
+def standing(fit: dict, target_m: float, tolerance_m: float | None = None, tree_fixed: bool = False) -> list[dict]:
+    """One entry per sensor but the root, in the fit's tree order, as this fit alone has it (no history):
+    {joint (= the sensor: a joint is named by its child), parent, label, state, progress, error_m, pinned,
+    unsettled}.
+
+    state: "done" (determined, pinned to `target_m`, its place in the tree settled); "unsettled" (pinned,
+    but its child fits another parent as well, so which two bodies it joins may change: 0); "pinning"
+    (determined to the solver's tolerance, not yet to the target: progress (target/error)², the share of the
+    frames it needs at this rate, the error falling as 1/√frames); "undetermined" (0); "not_turned" (nothing
+    turned beyond noise about a direction it needs: 0); "rigid" (no joint yet, it moves rigidly with its
+    neighbour: 0). `tree_fixed`: the tree was given (a hierarchy or a saved skeleton), so it cannot be
+    unsettled.
+    """
+    tol = target_m if tolerance_m is None else tolerance_m
+    parent = fit.get("parent") or {}
+    root = fit.get("root")
+    by_child = {j["child"]: j for j in fit.get("joints") or []}
+    group_of: dict[str, list] = {}
+    for group in fit.get("rigid_groups") or []:
+        for name in group:
+            group_of[name] = list(group)
+    ambiguous = {a["child"]: a.get("parents") or [] for a in fit.get("ambiguous") or []}
+    out = []
+    for sensor in (s for s in fit.get("sensors") or [] if s != root):
+        par = parent.get(sensor)
+        j = by_child.get(sensor)
+        item = {"joint": sensor, "parent": par, "label": joint_name(sensor, par), "error_m": None,
+                "pinned": 0, "hinge": False, "unsettled": None}
+        if j is None or (par is not None and par in group_of.get(sensor, ())):
+            item.update(state="rigid", progress=0.0, bodies=(frozenset((sensor,)), frozenset((par,))))
+            out.append(item)
+            continue
+        worst = max(needed_errors(j))
+        item["error_m"] = worst if math.isfinite(worst) else None
+        item["pinned"] = sum(e <= tol for e in needed_errors(j, hinge=False))
+        item["hinge"] = bool(j.get("hinge"))
+        if not j.get("determined"):
+            item.update(state="not_turned" if not math.isfinite(worst) else "undetermined", progress=0.0)
+        elif worst > target_m:
+            item.update(state="pinning", progress=min(1.0, (target_m / worst) ** 2))
+        else:
+            item.update(state="done", progress=1.0)
+            if not tree_fixed and len(ambiguous.get(sensor, ())) > 1:
+                names = " and the ".join(readable_body(x) for x in ambiguous[sensor])
+                item.update(state="unsettled", progress=0.0, unsettled=f"it fits the {names} equally well")
+        # The bodies each end belongs to: a joint done against one member of a rigid group is the same joint
+        # when the group comes apart and the tree re-links it to another member (ProgressTracker).
+        item["bodies"] = (frozenset(group_of.get(sensor, (sensor,))), frozenset(group_of.get(par, (par,))))
+        out.append(item)
+    return out
+
+
+def _why(item: dict, target_m: float) -> str:
+    undone = item.get("undone")
+    if undone and undone["reason"] == "slip":
+        return f"the {readable_body(undone['sensor'])} sensor slipped at {undone['time_s']:.1f} s: measured afresh since"
+    if undone and undone["reason"] == "loss":
+        return "no longer fits as it did when calibrated"
+    if undone and undone["reason"] == "tree":
+        return (f"the tree now joins it to the {readable_body(undone['parent'])} "
+                f"(it was calibrated against the {readable_body(undone['was'])})")
+    state = item["state"]
+    if state == "rigid":
+        return f"has not moved relative to the {readable_body(item['parent'] or '')} yet"
+    if state == "not_turned":
+        return "not determined: it has hardly turned yet"
+    if state == "undetermined":
+        return f"not determined: its centre is pinned along {item['pinned']} of 3 directions"
+    if state == "unsettled":
+        return f"pinned, but its place in the tree is not settled: {item['unsettled']}"
+    if state == "confirming":
+        return "pinned; counted once it holds for a moment"
+    return f"pinned to {1000 * item['error_m']:.1f} mm, target {1000 * target_m:.1f} mm"
+
+
+def summarise(items: list[dict], target_m: float, done: bool, done_at_s: float | None = None) -> dict:
+    """The published document from per-sensor items (each with state, progress, done and undone)."""
+    n = len(items)
+    mean = sum(1.0 if it["done"] else it["progress"] for it in items) / n if n else 0.0
+    value = round(1.0 if done else min(mean, NOT_DONE_CAP), 4)
+    todo = sorted((it for it in items if not it["done"]), key=lambda it: (it["progress"], _STATE_ORDER[it["state"]]))
+    for it in items:
+        it["why"] = None if it["done"] else _why(it, target_m)
+    keys = ("joint", "parent", "label", "state", "why", "undone")
+    return {
+        "state": "done" if done else "calibrating",
+        "progress": value,
+        # The ring's figure: whole percent, rounded down (so "100 %" is done and nothing else).
+        "percent": int(math.floor(value * 100 + 1e-9)),
+        "done": bool(done),
+        "done_at_s": done_at_s,
+        "target_m": target_m,
+        "joints_done": sum(1 for it in items if it["done"]),
+        "joints_needed": n,
+        "missing": [{k: it[k] for k in keys} for it in todo],
+        "joint_progress": [{**{k: it[k] for k in keys}, "progress": 1.0 if it["done"] else round(it["progress"], 4),
+                            "done": it["done"], "error_m": it["error_m"]} for it in items],
+        "hints": [{"joint": it["joint"], "label": it["label"], "progress": round(it["progress"], 3),
+                   "hint": hint_sentence(it)} for it in todo],
+    }
+
+
+def progress_of(fit: dict, target_m: float, tolerance_m: float | None = None, tree_fixed: bool = False) -> dict:
+    """Progress of one fit on its own (no session history, nothing to confirm over time): what `flockcal
+    report` and a re-solved session show. The same document as the live service publishes."""
+    items = standing(fit, target_m, tolerance_m, tree_fixed)
+    for it in items:
+        it["done"] = it["state"] == "done"
+        it["undone"] = None
+    return summarise(items, target_m, bool(items) and all(it["done"] for it in items))
+
+
+def waiting(names, target_m: float, note: str) -> dict:
+    """The document before a session has its first fit: nothing is known yet, nothing is done."""
+    return {"state": "no_fit", "progress": 0.0, "percent": 0, "done": False, "done_at_s": None,
+            "target_m": target_m, "joints_done": 0, "joints_needed": max(len(names) - 1, 0), "missing": [],
+            "joint_progress": [], "hints": [], "note": note}
+
+
+class ProgressTracker:
+    """Progress of one session, fit after fit. A joint is done once it has been "done" in the sense of
+    `standing` for CONFIRM_S; it then stays done until a slip of one of its sensors or a real loss of fit
+    (LOSS_FACTOR) undoes it, and its entry says why until it is done again. `done` (the whole session)
+    needs every joint done and one fit in which every joint meets the target at once.
+
+    Joints are keyed by their two bodies, so re-rooting the tree keeps them. `slip()` takes the service's
+    slip events; fits are stamped with the slip `epoch` their accumulator copy had, so a fit begun before
+    a slip was applied cannot mark that sensor's joints done again.
+    """
+
+    def __init__(self, target_m: float, tolerance_m: float | None = None, tree_fixed: bool = False,
+                 confirm_s: float = CONFIRM_S):
+        self.target_m = float(target_m)
+        self.tolerance_m = self.target_m if tolerance_m is None else float(tolerance_m)
+        self.tree_fixed = bool(tree_fixed)
+        self.confirm_s = float(confirm_s)
+        self.latched: dict[frozenset, dict] = {}  # pair → {hinge, time_s}: done
+        self.meeting: dict[frozenset, float] = {}  # pair → session time since which it has met the target
+        self.undone: dict[frozenset, dict] = {}  # pair → {reason, time_s, sensor}: done once, undone since
+        self.slipped: dict[str, int] = {}  # sensor → epoch of its latest slip
+        self.best: dict[frozenset, dict] = {}  # pair → {value, hinge}: the best share a pinning joint reached
+        self.pinning: dict[frozenset, float] = {}  # pair → session time since which it has been determined
+        self.done_parent: dict[str, str] = {}  # sensor → the parent it was last done against
+        self.done = False
+        self.done_at_s: float | None = None
+        self.latest: dict | None = None
+
+    def slip(self, event: dict, epoch: int) -> list[str]:
+        """Undo every done joint of the slipped sensor(s) (a swap: both); returns the joints undone."""
+        sensors = {s for s in (event.get("sensors") or [event.get("sensor")]) if s}
+        when = float(event.get("time_s") or 0.0)
+        for s in sensors:
+            self.slipped[s] = int(epoch)
+        for pair in [p for p in self.meeting if p & sensors]:
+            del self.meeting[pair]
+        for pair in [p for p in self.best if p & sensors]:
+            del self.best[pair]
+        for pair in [p for p in self.pinning if p & sensors]:
+            del self.pinning[pair]
+        hit = []
+        for pair in [p for p in self.latched if p & sensors]:
+            latch = self.latched.pop(pair)
+            self.undone[pair] = {"reason": "slip", "time_s": when, "sensor": sorted(pair & sensors)[0]}
+            hit.append(latch["joint"])
+        return sorted(hit)
+
+    def update(self, fit: dict, time_s: float, epoch: int = 0) -> dict:
+        """The session's progress after a new fit (its data up to `time_s`, session clock)."""
+        items = standing(fit, self.target_m, self.tolerance_m, self.tree_fixed)
+        by_child = {j["child"]: j for j in fit.get("joints") or []}
+        self._carry_over(items)
+        all_clear = bool(items)
+        for it in items:
+            pair = frozenset((it["joint"], it["parent"]))
+            j = by_child.get(it["joint"])
+            meets = it["state"] == "done"
+            all_clear &= meets
+            stale = max(self.slipped.get(s, -1) for s in pair) > epoch  # a fit begun before that slip
+            latch = self.latched.get(pair)
+            if latch is not None and j is not None and not meets and not j.get("determined"):
+                if max(needed_errors(j, hinge=latch["hinge"])) > LOSS_FACTOR * self.target_m:
+                    del self.latched[pair]
+                    self.undone[pair] = {"reason": "loss", "time_s": float(time_s), "sensor": it["joint"]}
+                    latch = None
+            if latch is None:
+                if meets and not stale:
+                    since = self.meeting.setdefault(pair, float(time_s))
+                    if time_s - since >= self.confirm_s - 1e-9:
+                        latch = self.latched[pair] = {"joint": it["joint"], "hinge": bool(j.get("hinge")),
+                                                      "time_s": float(time_s), "bodies": it["bodies"]}
+                        self.undone.pop(pair, None)
+                    else:
+                        it.update(state="confirming", progress=0.0)
+                else:
+                    self.meeting.pop(pair, None)
+            it["done"] = latch is not None
+            it["undone"] = None
+            if not it["done"]:
+                self._hold(it, pair, j, time_s, stale)
+            if it["done"]:
+                it["state"] = "done"  # done stays done through a wobble of the newest fit
+                self.done_parent[it["joint"]] = it["parent"]
+            elif pair in self.undone:
+                u = self.undone[pair]
+                it["undone"] = {"reason": u["reason"], "time_s": round(u["time_s"], 3), "sensor": u["sensor"]}
+            elif self.done_parent.get(it["joint"], it["parent"]) != it["parent"]:
+                it["undone"] = {"reason": "tree", "time_s": round(float(time_s), 3), "sensor": it["joint"],
+                                "parent": it["parent"], "was": self.done_parent[it["joint"]]}
+        every = bool(items) and all(it["done"] for it in items)
+        if not self.done and every and all_clear:
+            self.done, self.done_at_s = True, round(float(time_s), 3)
+        elif self.done and not every:
+            self.done, self.done_at_s = False, None
+        self.latest = summarise(items, self.target_m, self.done, self.done_at_s)
+        return self.latest
+
+    def _hold(self, it: dict, pair: frozenset, j: dict | None, time_s: float, stale: bool) -> None:
+        """A joint on its way to a stricter target than the tolerance shows the best share it has reached
+        ("pinning"), so the ring does not follow its error's wobbles back either; a real loss resets it. As
+        for done, the share counts once the joint has been determined for CONFIRM_S."""
+        if it["state"] in ("pinning", "confirming"):
+            since = self.pinning.setdefault(pair, float(time_s))
+        else:
+            since = None
+            self.pinning.pop(pair, None)
+        best = self.best.get(pair)
+        if best is not None and j is not None and not j.get("determined"):
+            if max(needed_errors(j, hinge=best["hinge"])) > LOSS_FACTOR * self.tolerance_m:
+                del self.best[pair]
+                self.undone[pair] = {"reason": "loss", "time_s": float(time_s), "sensor": it["joint"]}
+                best = None
+        held = since is not None and time_s - since >= self.confirm_s - 1e-9
+        if it["state"] == "pinning" and held and not stale and (best is None or it["progress"] > best["value"]):
+            best = self.best[pair] = {"value": it["progress"], "hinge": bool(j.get("hinge"))}
+        it["progress"] = best["value"] if best is not None else 0.0
+
+    def _carry_over(self, items: list[dict]) -> None:
+        """Re-key done joints whose rigid group came apart: a joint done between bodies A and B (each a rigid
+        group then) is the joint the tree now draws between a member of A and a member of B."""
+        current = {frozenset((it["joint"], it["parent"])): it for it in items}
+        for pair, it in current.items():
+            if pair in self.latched:
+                continue
+            x, p = it["joint"], it["parent"]
+            for old, latch in list(self.latched.items()):
+                a, b = latch["bodies"]
+                if old not in current and ((x in a and p in b) or (x in b and p in a)):
+                    del self.latched[old]
+                    self.latched[pair] = {**latch, "joint": x, "bodies": it["bodies"]}
+                    break

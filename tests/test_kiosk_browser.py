@@ -1,0 +1,244 @@
+"""The kiosk's ring is the service's progress, step by step (issue 21): a real `flockcal serve` reads a
+simulated guest on a pty whose kiosk routine starts with the kiosk's own session; headless chromium shows
+the kiosk page (and the operator dashboard beside it). At every sampled moment the ring shows the percent
+of the very fit message the page last drew (captured off the page's own websocket), which REST serves too
+for that fit; "100 %" only ever appears when every sensor's joint in that fit is determined; the ring never
+goes back on a clean take; the dashboard's "joints calibrated" and its labels say the same.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+
+import httpx
+import pytest
+
+from flockcal.server.testing import GuestSource, ServerProcess, free_port, wait_connected
+from flockcal.simulator.performer import Performer
+from flockcal.simulator.pty_tracker import PtyTracker
+
+CHROMIUM = "/usr/bin/chromium"
+CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
+                 "--disable-sync", "--no-first-run", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
+pytestmark = [
+    pytest.mark.browser,
+    pytest.mark.skipif(not os.path.exists(CHROMIUM), reason=f"needs Debian's chromium at {CHROMIUM} (apt-get install chromium)"),
+]
+
+ADMIN, KIOSK, READ = "admin-secret-21", "kiosk-secret-21", "read-secret-21"
+RATE = 144.0
+RING_CIRCUMFERENCE = 2 * math.pi * 86  # the ring's circle in kiosk.html has r = 86
+# README: simulated kiosk guests are done 18.4–20 s after their session starts (p90 target 30 s); the
+# test gives the 30 s target 15 s of margin for a loaded machine.
+DONE_WITHIN_S = 45.0
+
+
+@pytest.fixture(scope="module")
+def guest():
+    performer = Performer("human", "kiosk", seed=21, rate_hz=RATE, height=1.66)
+    tracker = PtyTracker(performer, birds=16, baud=921600, rate_hz=RATE)
+    stream = GuestSource(performer, tracker.flock.clock)
+    tracker.flock.source = stream
+    tracker.start()
+    yield performer, tracker, stream
+    tracker.stop()
+
+
+@pytest.fixture(scope="module")
+def server(guest, tmp_path_factory):
+    performer, tracker, _ = guest
+    data = tmp_path_factory.mktemp("kiosk")
+    args = ["--device", tracker.device, "--birds", "16", "--data-dir", str(data), "--fast-init",
+            "--names", ",".join(performer.names), "--scale", "72", "--baud", "921600", "--token", ADMIN,
+            "--kiosk-token", KIOSK, "--read-token", READ]
+    proc = ServerProcess(args, free_port(), log_path=data / "serve.log").start(token=ADMIN)
+    wait_connected(proc.url, token=ADMIN)
+    yield proc
+    proc.stop()
+
+
+@pytest.fixture(scope="module")
+def browser():
+    from playwright.sync_api import sync_playwright
+
+    with sync_playwright() as p:
+        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        yield b
+        b.close()
+
+
+def admin() -> dict:
+    return {"Authorization": f"Bearer {ADMIN}"}
+
+
+def open_capturing(browser, url: str, width: int, height: int):
+    """A page whose websocket `fit` messages are kept by fit_seq, as the page received them."""
+    page = browser.new_page(viewport={"width": width, "height": height})
+    page.errors, page.fits = [], {}
+
+    def on_frame(payload):
+        if isinstance(payload, str) and payload.startswith('{"type": "fit"'):
+            msg = json.loads(payload)
+            page.fits[msg["fit_seq"]] = msg
+
+    page.on("pageerror", lambda e: page.errors.append(str(e)))
+    page.on("websocket", lambda ws: ws.on("framereceived", on_frame))
+    page.goto(url)
+    return page
+
+
+RING_JS = """() => {
+    const el = document.querySelector('#percent');
+    return {text: el.textContent, seq: el.dataset.fitSeq, offset: document.querySelector('#ring-fill').style.strokeDashoffset,
+            state: document.querySelector('#kiosk-state').dataset.state,
+            chips: document.querySelectorAll('#chips .chip').length,
+            ticked: document.querySelectorAll('#chips .chip.done').length};
+}"""
+
+DASHBOARD_JS = """() => ({joints: document.querySelector('#s-joints').textContent,
+    seq: document.querySelector('#s-joints').dataset.fitSeq,
+    rows: [...document.querySelectorAll('#coverage .cov')].map(r => ({joint: r.dataset.joint, done: r.dataset.done,
+                                                                      label: r.querySelector('.cov-name').textContent}))})"""
+
+
+def rest_twin(page, rest: dict) -> dict | None:
+    """The websocket fit message of the fit a REST reply describes, if the page was sent that one."""
+    if rest.get("fit_seq") is None:
+        return None
+    for _ in range(8):
+        if rest["fit_seq"] in page.fits:
+            return page.fits[rest["fit_seq"]]
+        page.wait_for_timeout(25)
+    return None
+
+
+def message_for(page, seq: str) -> dict:
+    """The fit message the page drew last (its frame event can trail the page's drawing by a moment)."""
+    for _ in range(40):
+        if int(seq) in page.fits:
+            return page.fits[int(seq)]
+        page.wait_for_timeout(25)
+    raise AssertionError(f"the page shows fit {seq}, which never came over its websocket")
+
+
+def test_the_ring_is_the_services_progress_at_every_step_and_never_100_before_every_joint_is_determined(
+        browser, server, guest):
+    performer, tracker, stream = guest
+    kiosk = open_capturing(browser, f"{server.url}/kiosk?token={KIOSK}&reset_s=30", 1600, 900)
+    dashboard = open_capturing(browser, f"{server.url}/?token={READ}", 1440, 1000)
+    try:
+        # The guest starts the routine when the kiosk's session starts.
+        deadline = time.monotonic() + 20
+        while not (sid := httpx.get(f"{server.url}/api/sessions", headers=admin()).json()["live"]):
+            assert time.monotonic() < deadline, "the kiosk started no session"
+            time.sleep(0.02)
+        stream.begin()
+        started = time.monotonic()
+        shown, rest_matches, dash_checks, labels_checked = [], 0, 0, False
+        while True:
+            assert time.monotonic() - started < DONE_WITHIN_S, f"not done after {DONE_WITHIN_S:g} s; ring {shown[-1:]}"
+            ring = kiosk.evaluate(RING_JS)
+            rest = httpx.get(f"{server.url}/api/sessions/{sid}/progress", headers=admin()).json()
+            if ring["seq"]:
+                msg = message_for(kiosk, ring["seq"])
+                # The ring shows the service's percent of that very fit…
+                assert ring["text"] == f"{msg['percent']}%", (ring, msg["progress"])
+                assert msg["percent"] == math.floor(round(msg["progress"] * 100, 6))
+                assert float(ring["offset"]) == pytest.approx(RING_CIRCUMFERENCE * (1 - msg["progress"]), abs=0.5)
+                assert ring["ticked"] == msg["joints_done"] and ring["chips"] == msg["joints_needed"] == 15
+                # …"100 %" only when done, and done only when every sensor's joint in it is determined.
+                if ring["text"] == "100%" or msg["done"]:
+                    assert msg["done"] and ring["text"] == "100%"
+                    result = msg["result"]
+                    determined = {j["child"] for j in result["joints"] if j["determined"]}
+                    assert set(result["sensors"]) - {result["root"]} <= determined, msg["missing"]
+                else:
+                    assert msg["missing"], "not done, yet nothing is missing"
+                shown.append(msg["percent"])
+            # REST serves the same figures as the websocket for the same fit.
+            same = rest_twin(kiosk, rest)
+            if same is not None:
+                rest_matches += 1
+                assert (rest["progress"], rest["percent"], rest["done"], rest["missing"], rest["joint_progress"]) == (
+                    same["progress"], same["percent"], same["done"], same["missing"], same["joint_progress"])
+            if len(shown) % 5 == 1 and shown:
+                dash = dashboard.evaluate(DASHBOARD_JS)
+                if dash["seq"] and dash["seq"] != "undefined":
+                    dmsg = message_for(dashboard, dash["seq"])
+                    assert dash["joints"] == f"{dmsg['joints_done']} / {dmsg['joints_needed']}"
+                    assert {r["joint"] for r in dash["rows"] if r["done"] == "true"} == {
+                        j["joint"] for j in dmsg["joint_progress"] if j["done"]}
+                    dash_checks += 1
+                    if not labels_checked:
+                        # The page's own joint names (bones table, topology) are the service's labels.
+                        pairs = [[j["joint"], j["parent"]] for j in dmsg["joint_progress"]]
+                        js = dashboard.evaluate(
+                            "async (pairs) => { const m = await import('/static/common.js');"
+                            " return pairs.map(([c, p]) => m.jointLabel(c, p)); }", pairs)
+                        assert js == [j["label"] for j in dmsg["joint_progress"]]
+                        labels_checked = True
+            if ring["state"] == "done":
+                break
+            time.sleep(0.15)
+        took = time.monotonic() - started
+        kiosk.wait_for_timeout(700)  # the ring's transition, for the picture
+        kiosk.screenshot(path=str(_artifacts() / "kiosk-progress.png"))
+        assert shown[-1] == 100 and len(set(shown)) >= 5, shown  # the ring went through the figures
+        assert all(b >= a for a, b in zip(shown, shown[1:])), f"the ring went back on a clean take: {shown}"
+        assert rest_matches >= 3 and dash_checks >= 3 and labels_checked
+        # What the kiosk showed is what the service keeps: the guest's session is stored done.
+        stored = _wait_stopped(server, sid)
+        assert stored["done"] is True and stored["missing"] == [] and stored["joints_done"] == 15
+        print(f"kiosk done after {took:.1f} s of wall time; {len(shown)} ring samples, {rest_matches} REST matches")
+        assert not kiosk.errors and not dashboard.errors
+    finally:
+        kiosk.close()
+        dashboard.close()
+
+
+def _wait_stopped(server, sid: str) -> dict:
+    deadline = time.monotonic() + 15
+    while time.monotonic() < deadline:
+        doc = httpx.get(f"{server.url}/api/sessions/{sid}/progress", headers=admin()).json()
+        if not doc["live"]:
+            return doc
+        time.sleep(0.2)
+    raise AssertionError("the kiosk did not stop its guest's session after done")
+
+
+def _artifacts():
+    from pathlib import Path
+
+    path = Path(os.environ.get("FLOCKCAL_ARTIFACTS") or Path(__file__).resolve().parents[1] / "artifacts")
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+def test_a_read_only_kiosk_showing_a_hosts_session_done_goes_back_and_says_why_when_a_sensor_slips(
+        browser, server, guest):
+    performer, tracker, stream = guest
+    r = httpx.post(f"{server.url}/api/sessions", json={"performer": "Host guest"}, headers=admin())
+    assert r.status_code == 201, r.text
+    sid = r.json()["id"]
+    stream.begin()
+    kiosk = open_capturing(browser, f"{server.url}/kiosk?token={READ}", 1600, 900)
+    try:
+        kiosk.wait_for_selector("#kiosk-state[data-state=done]", timeout=DONE_WITHIN_S * 1000)
+        assert kiosk.text_content("#percent") == "100%"
+        # Tried: the forearm sensor slides 3 cm on the skin after the guest was calibrated.
+        performer.inject_slip("l_forearm", 0.03)
+        kiosk.wait_for_selector("#kiosk-state[data-state=live]", timeout=10000)
+        kiosk.wait_for_function("/sensor moved/.test(document.querySelector('#instruction').textContent)",
+                                timeout=5000)
+        assert "left forearm" in kiosk.text_content("#instruction")
+        assert kiosk.text_content("#percent") != "100%"
+        doc = httpx.get(f"{server.url}/api/sessions/{sid}/progress", headers=admin()).json()
+        assert not doc["done"] and any((m.get("undone") or {}).get("reason") == "slip" for m in doc["missing"])
+        assert not kiosk.errors
+    finally:
+        kiosk.close()
+        performer.clear_faults()
+        httpx.post(f"{server.url}/api/sessions/{sid}/stop", headers=admin(), timeout=30)
