@@ -224,20 +224,17 @@ def report_html(
     from flockcal.exports.bvh import bvh_world
     from flockcal.solver.known_skeleton import bones as bones_of
 
-<<<<<<< HEAD
-    step(REPORT_STAGES[0])
-=======
     from flockcal.server.progress import default_target, progress_of
     from flockcal.solver.fits import TOLERANCE_M
 
->>>>>>> h21
+    step(REPORT_STAGES[0])
     d = calibration.to_dict() if hasattr(calibration, "to_dict") else dict(calibration)
     art = articulation(d).reordered(take.names).completed(take.rotations, take.positions, take.valid)
     names = art.names
     # The service's one definition of progress, for this one fit (a given tree cannot re-link).
     fixed = bool(getattr(calibration, "hierarchy_given", False) or d.get("known_skeleton"))
-    progress = progress_of(d, default_target(TOLERANCE_M), TOLERANCE_M, tree_fixed=fixed)
-    standing = {j["joint"]: j for j in progress["joint_progress"]}
+    calibrated = progress_of(d, default_target(TOLERANCE_M), TOLERANCE_M, tree_fixed=fixed)
+    standing = {j["joint"]: j for j in calibrated["joint_progress"]}
     e = tree_residuals(take.rotations, take.positions, art, take.valid)
     sep = np.linalg.norm(e, axis=-1)
     rec = reconstruct(take.rotations, take.positions, art, take.valid)
@@ -269,7 +266,7 @@ def report_html(
         "<h2>Topology</h2>",
         _tree_html(art, {names[j]: rms[j] for j in joints}, standing),
         "<h2>Calibration progress</h2>",
-        _progress_html(progress),
+        _progress_html(calibrated),
     ]
     loops = d.get("loop_candidates") or []
     if loops:
