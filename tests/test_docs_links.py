@@ -1,0 +1,146 @@
+"""The documentation holds together: README.md is a landing page and docs/ a page per part (issue 15).
+
+Every relative link and image in README.md and docs/*.md points at a file of the repository, and an
+anchor at a heading of that file (named as GitHub names headings); every page is linked from somewhere;
+README.md stays at most 250 lines and carries, verbatim, the two set-up commands that
+tests/test_fresh_install.py and .ci/run rely on; no page cites a document outside the repository.
+"""
+
+from __future__ import annotations
+
+import re
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+README = ROOT / "README.md"
+PAGES = [README, *sorted((ROOT / "docs").glob("*.md"))]
+# README promise: a landing page "≤ 250 lines" (issue 15); the bound itself, no margin.
+MAX_README_LINES = 250
+# The README's first command, as tests/test_fresh_install.py's docstring states and that test runs it.
+FIRST_COMMAND = "pip install . && flockcal serve"
+# Documents that live beside the repository, not in it: a clone has none of them.
+OUTSIDE = ("../shared", "/work/", "fob-protocol.md")
+
+FENCE = re.compile(r"^(```|~~~).*?^\1[^\n]*$", re.M | re.S)
+CODE_SPAN = re.compile(r"`+[^`\n]*`+")
+LINK = re.compile(r"!?\[(?:[^\]\n]|\](?!\())*\]\(\s*<?([^)\s>]+)>?(?:\s+\"[^\"]*\")?\s*\)")
+HEADING = re.compile(r"^#{1,6}[ \t]+(.+?)[ \t#]*$", re.M)
+
+
+def prose(text: str) -> str:
+    """The text a reader sees as prose: fenced blocks and code spans removed (links there are not links)."""
+    return CODE_SPAN.sub("", FENCE.sub("", text))
+
+
+def slug(heading: str) -> str:
+    """GitHub's anchor for a heading: its text (links reduced to their words), lower case, punctuation
+    dropped (word characters, spaces and hyphens kept), spaces turned into hyphens."""
+    text = re.sub(r"\[([^\]]*)\]\([^)]*\)", r"\1", heading).strip().lower()
+    return re.sub(r"[^\w\- ]", "", text).replace(" ", "-")
+
+
+def anchors(path: Path) -> set[str]:
+    seen: dict[str, int] = {}
+    out = set()
+    for h in HEADING.findall(FENCE.sub("", path.read_text(encoding="utf-8"))):
+        s = slug(h)
+        n = seen.get(s, 0)
+        seen[s] = n + 1
+        out.add(s if n == 0 else f"{s}-{n}")
+    return out
+
+
+def broken_links(page: Path, root: Path) -> list[str]:
+    """Each relative link of `page` whose file is missing, leaves `root`, or whose anchor names no heading."""
+    problems = []
+    for target in LINK.findall(prose(page.read_text(encoding="utf-8"))):
+        if re.match(r"[a-z][a-z0-9+.-]*:", target, re.I):  # http:, https:, mailto: — not files
+            continue
+        path, _, anchor = target.partition("#")
+        dest = (page.parent / path).resolve() if path else page
+        if root.resolve() not in (dest, *dest.parents):
+            problems.append(f"{target} leaves the repository")
+        elif not dest.exists():
+            problems.append(f"{target}: no file {dest.relative_to(root.resolve())}")
+        elif anchor and dest.suffix == ".md" and anchor not in anchors(dest):
+            problems.append(f"{target}: {dest.name} has no heading with anchor #{anchor}")
+    return problems
+
+
+def linked_pages(page: Path) -> set[Path]:
+    found = set()
+    for target in LINK.findall(prose(page.read_text(encoding="utf-8"))):
+        path = target.partition("#")[0]
+        if path.endswith(".md") and not re.match(r"[a-z][a-z0-9+.-]*:", path, re.I):
+            found.add((page.parent / path).resolve())
+    return found
+
+
+def fenced_lines(text: str) -> list[str]:
+    """Every line inside a fenced code block, stripped: the commands a reader copies."""
+    return [line.strip() for m in FENCE.finditer(text) for line in m.group(0).splitlines()[1:-1]]
+
+
+def ci_command() -> str:
+    """The command .ci/run runs: its last line that is neither a comment nor shell set-up."""
+    lines = [ln.strip() for ln in (ROOT / ".ci" / "run").read_text().splitlines()]
+    commands = [ln for ln in lines if ln and not ln.startswith(("#", "set ", "cd "))]
+    assert commands, ".ci/run holds no command"
+    return commands[-1]
+
+
+def setup_section() -> str:
+    text = README.read_text(encoding="utf-8")
+    m = re.search(r"^## Set up\n(.*?)(?=^## )", text, re.M | re.S)
+    assert m, 'README.md has no "## Set up" section'
+    return m.group(1)
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_every_relative_link_resolves(page):
+    assert not broken_links(page, ROOT), broken_links(page, ROOT)
+
+
+def test_every_docs_page_is_linked_from_the_readme_or_another_page():
+    linked = set().union(*(linked_pages(p) for p in PAGES))
+    orphans = [str(p.relative_to(ROOT)) for p in PAGES[1:] if p.resolve() not in linked]
+    assert not orphans, f"pages nobody links to: {orphans}"
+
+
+def test_readme_is_a_landing_page_of_at_most_250_lines():
+    n = len(README.read_text(encoding="utf-8").splitlines())
+    assert n <= MAX_README_LINES, f"README.md has {n} lines; move detail to a page under docs/"
+
+
+def test_readme_set_up_gives_both_commands_verbatim():
+    lines = fenced_lines(setup_section())
+    assert FIRST_COMMAND in lines, f"README's Set up lacks the fresh-install command {FIRST_COMMAND!r}"
+    assert ci_command() in lines, f"README's Set up lacks .ci/run's command {ci_command()!r}"
+
+
+@pytest.mark.parametrize("page", PAGES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_no_page_cites_a_document_outside_the_repository(page):
+    text = page.read_text(encoding="utf-8")
+    cited = [(n, s) for n, line in enumerate(text.splitlines(), 1) for s in OUTSIDE if s in line]
+    assert not cited, f"{page.name} cites outside files (line, text): {cited}"
+
+
+def test_the_checker_reports_a_missing_file_a_wrong_anchor_and_a_link_out_of_the_repository(tmp_path):
+    # Tried: a page linking a missing file, a heading that is not there, and a file above the root;
+    # the good links (same-page anchor, another page's heading, a URL, a link inside code) pass.
+    (tmp_path / "docs").mkdir()
+    (tmp_path / "docs" / "other.md").write_text("# Other\n\n## Measured (bench_x.py, one core)\n")
+    page = tmp_path / "docs" / "page.md"
+    page.write_text(
+        "# Page\n\n## WebSocket `/ws/live`\n\n"
+        "[ok](other.md#measured-bench_xpy-one-core) [ok](#websocket-wslive) [url](https://example.org/x)\n"
+        "`[code](nowhere.md)`\n\n```\n[fenced](nowhere.md)\n```\n"
+        "[gone](missing.md) [bad anchor](other.md#no-such-heading) [out](../../outside.md)\n"
+    )
+    problems = broken_links(page, tmp_path)
+    assert len(problems) == 3, problems
+    assert any("missing.md" in p for p in problems)
+    assert any("#no-such-heading" in p for p in problems)
+    assert any("leaves the repository" in p for p in problems)
