@@ -137,6 +137,12 @@ def summarise(items: list[dict], target_m: float, done: bool, done_at_s: float |
     todo = sorted((it for it in items if not it["done"]), key=lambda it: (it["progress"], _STATE_ORDER[it["state"]]))
     for it in items:
         it["why"] = None if it["done"] else _why(it, target_m)
+    if not done and items and not todo:
+        # Every joint has been calibrated, but done waits for one fit that pins them all at once: the
+        # joints this fit leaves short are what is missing, so an integration always has something to show.
+        todo = [it for it in items if not it.get("meets_now", True)]
+        for it in todo:
+            it["why"] = "calibrated; waiting for a fit that pins it again together with the others"
     keys = ("joint", "parent", "label", "state", "why", "undone")
     return {
         "state": "done" if done else "calibrating",
@@ -230,6 +236,7 @@ class ProgressTracker:
             pair = frozenset((it["joint"], it["parent"]))
             j = by_child.get(it["joint"])
             meets = it["state"] == "done"
+            it["meets_now"] = meets
             all_clear &= meets
             stale = max(self.slipped.get(s, -1) for s in pair) > epoch  # a fit begun before that slip
             latch = self.latched.get(pair)

@@ -232,3 +232,16 @@ def test_a_performer_standing_still_is_never_calibrated():
     doc = progress_of(calibrate_dict(acc, perf.names), TARGET)
     # design.md §3a: standing still determines no joint, so nothing is calibrated and every joint is named.
     assert doc["progress"] == 0.0 and not doc["done"] and len(doc["missing"]) == perf.n_sensors - 1
+
+
+def test_all_calibrated_but_waiting_for_one_fit_still_names_what_is_missing():
+    # Every joint has been done once (latched), then the newest fit leaves one just short of the target:
+    # not done yet, and `missing` must say which one, or a kiosk has no instruction to show.
+    tracker = ProgressTracker(TARGET, confirm_s=0.0)
+    both = [joint("l_thigh", "pelvis"), joint("r_thigh", "pelvis")]
+    tracker.update(fit([joint("l_thigh", "pelvis"), joint("r_thigh", "pelvis", err_mm=(6.0, 1.0, 1.0))]), 1.0)
+    tracker.update(fit([joint("l_thigh", "pelvis", err_mm=(6.0, 1.0, 1.0)), both[1]]), 2.0)
+    doc = tracker.latest
+    assert doc["joints_done"] == 2 and not doc["done"] and doc["percent"] < 100
+    assert [m["joint"] for m in doc["missing"]] == ["l_thigh"] and "waiting for a fit" in doc["missing"][0]["why"]
+    assert tracker.update(fit(both), 3.0)["done"]
