@@ -27,6 +27,12 @@ BLOCK_TERMS = 16
 _JIT_LO, _JIT_HI, _JIT_BINS = -20.0, 1.0, 210
 # A white per-axis jitter s² makes the third difference's squared norm 20 s² × χ²(3); χ²(3)'s median is 2.366.
 _JIT_SCALE = 20.0 * 2.3660
+# One four-frame window for the jitter every this many frames: consecutive windows that do not overlap, so
+# their differences are independent and a short take still gives its median a few dozen samples.
+_JIT_STRIDE = 4
+# Finished score blocks wait in a list and are folded into the moments together (one product per pair for
+# many blocks instead of one per block); at most this many wait.
+_FOLD_EVERY = 128
 
 
 @lru_cache(maxsize=8)
@@ -103,9 +109,15 @@ class GramAccumulator:
         self._moments = np.zeros((p, BLOCK_TERMS, BLOCK_TERMS))
         self._moment_frames = np.zeros(p)  # frames of the finished blocks, per pair
         self._moment_blocks = np.zeros(p)  # finished blocks with at least one frame of the pair
+        self._waiting: list[np.ndarray] = []  # finished blocks' terms (k, p, 16), not yet in `_moments`
+        # All-valid finished blocks' Grams, written by dsyrk straight into rows of one buffer (made on the
+        # first such block: copies are folded first and need none); see `_whole_blocks`.
+        self._gram_buf: np.ndarray | None = None
+        self._n_buf = 0
+        self._waiting_windows: list[tuple[np.ndarray, np.ndarray]] = []  # jitter windows not yet histogrammed
         # Rotation jitter: per-sensor histogram of third differences, and the last frames to difference with.
         self._jitter = np.zeros((m, _JIT_BINS))
-        self._tail_R = np.zeros((0, m, 3, 3))
+        self._tail_R = np.zeros((0, m, 3, 3))  # the first frames of a jitter window the next block completes
         self._tail_w = np.zeros((0, m), dtype=bool)
 
     def _make_buffers(self) -> None:
@@ -177,6 +189,8 @@ class GramAccumulator:
         self._open_gram *= f
         self._open_self *= f
         self._open_pf *= f
+        self._fold()
+        self._histogram()
         self._moments = self._moments * f * f
         self._moment_frames = self._moment_frames * f
         self._jitter *= f
@@ -193,18 +207,52 @@ class GramAccumulator:
             all_valid = False
         if not all_valid:
             np.copyto(buf, 0.0, where=~w[:, None, None, :])  # copyto, not multiply: 0 × NaN is NaN
-        self._add_jitter(R, w)
+        self._add_jitter(R, w, self._frames)
         omega = self._decay(nb)
         if omega is not None:
             buf *= np.sqrt(omega)[:, None, None, None]
         # The block is summed in pieces that end on score-block boundaries, so each finished score block
         # leaves its own sums behind; their total is the block's, as one dsyrk would give it.
         a = 0
+        if self._open_n:
+            a = min(nb, SCORE_BLOCK - self._open_n)
+            self._piece(buf[:a], w[:a], all_valid, None if omega is None else omega[:a])
+        whole = (nb - a) // SCORE_BLOCK
+        if whole and all_valid and omega is None:  # a batch's usual case: whole blocks, every sensor valid
+            self._whole_blocks(buf[a:a + whole * SCORE_BLOCK], whole)
+            a += whole * SCORE_BLOCK
         while a < nb:
             b = min(nb, a + SCORE_BLOCK - self._open_n)
             self._piece(buf[a:b], w[a:b], all_valid, None if omega is None else omega[a:b])
             a = b
         self._frames += nb
+
+    def _whole_blocks(self, buf: np.ndarray, k: int) -> None:
+        """k whole score blocks with every sensor valid: each block's Gram is added to the sums and kept for
+        `_fold`, which gathers every pair's terms from many blocks at a time."""
+        m = self.n_sensors
+        n = 4 * m
+        X = buf.reshape(k, 3 * SCORE_BLOCK, n)
+        total = np.zeros((n, n))
+        for b in range(k):
+            if self._gram_buf is None:
+                self._gram_buf = np.zeros((_FOLD_EVERY, n, n))
+            # dsyrk writes column-major into the transpose of a row of the buffer: the buffer then holds
+            # each Gram as its lower triangle (row-major), and its strict upper triangle stays zero.
+            out = self._gram_buf[self._n_buf].T
+            dsyrk(1.0, X[b].T, beta=0.0, c=out, trans=0, overwrite_c=1)
+            total += out
+            self._n_buf += 1
+            if self._n_buf == _FOLD_EVERY:
+                self._fold()
+        self._gram += total
+        self._sym = None
+        diag = np.einsum("qapa->aqp", total.reshape(4, m, 4, m))
+        diag = diag + np.triu(diag, 1).transpose(0, 2, 1)
+        self._self += diag[None]
+        self._pair_frames += k * SCORE_BLOCK
+        self._moment_frames = self._moment_frames + k * SCORE_BLOCK
+        self._moment_blocks = self._moment_blocks + k
 
     def _piece(self, buf: np.ndarray, w: np.ndarray, all_valid: bool, omega) -> None:
         nb, m = buf.shape[0], self.n_sensors
@@ -238,35 +286,75 @@ class GramAccumulator:
         P = _all_pairs_of(m)
         blocks = _mirrored(self._open_gram).reshape(4, m, 4, m)
         wt = _pair_terms(blocks, self._open_self, self._open_pf, P)
-        self._moments = self._moments + wt[:, :, None] * wt[:, None, :]
+        self._waiting.append(wt[None])
         self._moment_frames = self._moment_frames + wt[:, 0]
         self._moment_blocks = self._moment_blocks + (wt[:, 0] > 0)
+        self._fold_if_many()
         self._open_gram = np.zeros_like(self._open_gram)
         self._open_self = np.zeros_like(self._open_self)
         self._open_pf = np.zeros_like(self._open_pf)
         self._open_n = 0
 
-    def _add_jitter(self, R: np.ndarray, w: np.ndarray) -> None:
-        """Histogram each sensor's third difference of the frame-to-frame rotation (design.md §3a).
+    def _fold_if_many(self) -> None:
+        if len(self._waiting) >= _FOLD_EVERY:
+            self._fold()
 
-        ω_k = vee(R_{k−1}ᵀ R_k) is the rotation between frames in the sensor's own frame; its second
-        difference cancels any smooth motion (to the motion's jerk × dt³) and keeps 20× the per-axis
-        jitter variance. Position noise does not enter: this is rotation noise alone.
-        """
-        m = self.n_sensors
-        RR = np.concatenate([self._tail_R, R]) if len(self._tail_R) else R
-        ww = np.concatenate([self._tail_w, w]) if len(self._tail_w) else w
-        keep = min(3, len(RR))
-        self._tail_R, self._tail_w = RR[len(RR) - keep:].copy(), ww[len(ww) - keep:].copy()
-        if len(RR) < 4:
+    def _fold(self) -> None:
+        """Add the waiting blocks' Σ w wᵀ into the moments (a new array: copies share the old one)."""
+        if not self._waiting and not self._n_buf:
             return
-        ok = ww & np.isfinite(RR).all(axis=(2, 3))
-        D = np.einsum("kaji,kajl->kail", RR[:-1], RR[1:])  # R_{k−1}ᵀ R_k
-        omega = 0.5 * np.stack([D[..., 2, 1] - D[..., 1, 2], D[..., 0, 2] - D[..., 2, 0], D[..., 1, 0] - D[..., 0, 1]], axis=-1)
-        d3 = omega[2:] - 2.0 * omega[1:-1] + omega[:-2]
-        valid = ok[3:] & ok[2:-1] & ok[1:-2] & ok[:-3]
-        x = np.einsum("kai,kai->ka", d3, d3)
-        sel = valid & np.isfinite(x)
+        parts = list(self._waiting)
+        if self._n_buf:
+            take, minus = _term_index(self.n_sensors)
+            flat = self._gram_buf[:self._n_buf].reshape(self._n_buf, -1)
+            wt = flat[:, take]  # (k, p, 16)
+            wt[:, :, 10:] -= flat[:, minus[:, 10:]]
+            wt[:, :, 0] = SCORE_BLOCK
+            parts.append(wt)
+        W = np.concatenate(parts).transpose(1, 0, 2)  # (p, k, 16)
+        self._moments = self._moments + W.transpose(0, 2, 1) @ W
+        self._waiting, self._n_buf = [], 0
+
+    def _add_jitter(self, R: np.ndarray, w: np.ndarray, first: int) -> None:
+        """Each sensor's third difference of its rotation over four frames, for the jitter (design.md §3a).
+
+        A third difference cancels any smooth motion (to the motion's jerk × dt³) and keeps 20× the
+        per-axis jitter variance of the angles (1 + 9 + 9 + 1). Position noise does not enter: this is
+        rotation noise alone. Windows start at every _JIT_STRIDE-th frame of the take (`first` is the
+        global index of R's first frame), so however the frames arrive they make the same windows.
+        """
+        n = len(R)
+        if len(self._tail_R):  # a window begun in the last block: complete it with this block's frames
+            more = min(4 - len(self._tail_R), n)
+            self._tail_R = np.concatenate([self._tail_R, R[:more]])
+            self._tail_w = np.concatenate([self._tail_w, w[:more]])
+            if len(self._tail_R) == 4:
+                self._waiting_windows.append(_third_difference(self._tail_R[None], self._tail_w[None]))
+                self._tail_R, self._tail_w = self._tail_R[:0], self._tail_w[:0]
+        start = (-first) % _JIT_STRIDE
+        q = max(0, (n - start) // _JIT_STRIDE)  # windows whose whole stride lies in R: a strided view
+        if q:
+            span = slice(start, start + q * _JIT_STRIDE)
+            W = R[span].reshape((q, _JIT_STRIDE) + R.shape[1:])[:, :4]
+            V = w[span].reshape((q, _JIT_STRIDE) + w.shape[1:])[:, :4]
+            self._waiting_windows.append(_third_difference(W, V))
+        last = start + q * _JIT_STRIDE
+        if last < n:  # a window starts in R's last stride: complete now, or carry its first frames over
+            if n - last >= 4:
+                self._waiting_windows.append(_third_difference(R[None, last:last + 4], w[None, last:last + 4]))
+            else:
+                self._tail_R, self._tail_w = R[last:].copy(), w[last:].copy()
+        if len(self._waiting_windows) >= 64:
+            self._histogram()
+
+    def _histogram(self) -> None:
+        """Add the waiting windows' squared third differences (each (q, m) with valid (q, m)) to the histogram."""
+        if not self._waiting_windows:
+            return
+        m = self.n_sensors
+        x = np.concatenate([a for a, _ in self._waiting_windows])
+        sel = np.concatenate([v for _, v in self._waiting_windows])
+        self._waiting_windows = []
         if not sel.any():
             return
         with np.errstate(divide="ignore"):
@@ -354,6 +442,7 @@ class GramAccumulator:
         a few frames have arrived): the median third difference of its frame-to-frame rotation, read as
         white noise. What rotation noise alone adds to a pair's μ_k is about the sum of its two sensors'."""
         self._flush()
+        self._histogram()
         h = self._jitter
         total = h.sum(axis=1)
         cum = np.cumsum(h, axis=1)
@@ -377,6 +466,7 @@ class GramAccumulator:
         i, j = P[:, 0], P[:, 1]
         lo, hi = np.minimum(i, j), np.maximum(i, j)
         row = lo * m - lo * (lo + 1) // 2 + (hi - lo - 1)
+        self._fold()
         Hm = self._moments[row]
         swap = i > j
         if swap.any():  # the terms of (j, i) are those of (i, j) with R_iᵀR_j transposed and the b halves swapped
@@ -419,7 +509,9 @@ class GramAccumulator:
         new._self = self._self.copy()
         new._pair_frames = self._pair_frames.copy()
         new._frames = self._frames
-        # The moments array is shared, not copied: it is replaced whenever a block completes, never written.
+        # The moments array is shared, not copied: it is replaced whenever blocks are folded in, never written.
+        self._fold()
+        self._histogram()
         new._moments, new._moment_frames = self._moments, self._moment_frames.copy()
         new._moment_blocks, new._jitter = self._moment_blocks.copy(), self._jitter.copy()
         new._open_gram, new._open_self = self._open_gram.copy(), self._open_self.copy()
@@ -430,6 +522,10 @@ class GramAccumulator:
     def _add_statistics(self, other: "GramAccumulator", sign: float = 1.0) -> None:
         """Add (or subtract) another accumulator's jitter and finished score blocks; open blocks stay
         apart (their frames are in the Gram, and the batch-means variance scales for them)."""
+        self._fold()
+        other._fold()
+        self._histogram()
+        other._histogram()
         self._moments = self._moments + sign * other._moments
         self._moment_frames = self._moment_frames + sign * other._moment_frames
         self._moment_blocks = self._moment_blocks + sign * other._moment_blocks
@@ -512,3 +608,42 @@ def _pair_terms(blocks: np.ndarray, self_terms: np.ndarray, pair_frames: np.ndar
 
 # Reordering of the 16 terms when a pair is read as (j, i): Σ R_jᵀR_i = (Σ R_iᵀR_j)ᵀ and the b halves swap.
 _SWAP_TERMS = np.array([0] + [1 + 3 * c + r for r in range(3) for c in range(3)] + [13, 14, 15, 10, 11, 12])
+
+
+def _third_difference(W: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(‖Δ³θ‖² (q, m), usable (q, m)) of windows W (q, 4, m, 3, 3) of four consecutive frames.
+
+    R_k = R exp([θ_k]×) under a small jitter θ_k: the third difference of the matrix is R [Δ³θ]× plus the
+    motion's jerk × dt³, and ‖[v]×‖²_F = 2‖v‖². Linear in R, so no product per frame is needed.
+    """
+    d3 = (W[:, 3] - 3.0 * W[:, 2] + 3.0 * W[:, 1] - W[:, 0]).reshape(len(W), W.shape[2], 9)
+    x = 0.5 * (d3 * d3).sum(axis=2)
+    return x, valid.all(axis=1) & np.isfinite(x)
+
+
+@lru_cache(maxsize=8)
+def _term_index(m: int) -> tuple[np.ndarray, np.ndarray]:
+    """Flat indices into a (4m × 4m) Gram held as its lower triangle, row-major (internal layout, column
+    q·m + a; see `_whole_blocks`), of every pair's 16 block terms (`_pair_terms`) for a block with every
+    sensor valid: term = G[take] − G[minus]. Element (r, c) of the symmetric Gram sits at (max, min); where
+    nothing is subtracted `minus` points at (0, 4m − 1), in the zero upper triangle. Term 0 (the frame
+    count) is set apart."""
+    n = 4 * m
+    P = _all_pairs_of(m)
+    i, j = P[:, 0], P[:, 1]
+
+    def at(r, c):
+        r, c = np.broadcast_arrays(r, c)
+        return np.maximum(r, c) * n + np.minimum(r, c)
+
+    take = np.zeros((len(P), BLOCK_TERMS), dtype=np.intp)
+    minus = np.full((len(P), BLOCK_TERMS), n - 1, dtype=np.intp)
+    q = np.arange(3)
+    take[:, 1:10] = at(q[None, :, None] * m + i[:, None, None], q[None, None, :] * m + j[:, None, None]).reshape(-1, 9)
+    take[:, 10:13] = at(q[None] * m + i[:, None], 3 * m + j[:, None])  # Σ R_iᵀ t_j
+    minus[:, 10:13] = at(q[None] * m + i[:, None], 3 * m + i[:, None])  # Σ R_iᵀ t_i
+    take[:, 13:16] = at(q[None] * m + j[:, None], 3 * m + i[:, None])  # Σ R_jᵀ t_i
+    minus[:, 13:16] = at(q[None] * m + j[:, None], 3 * m + j[:, None])  # Σ R_jᵀ t_j
+    for x in (take, minus):
+        x.setflags(write=False)
+    return take, minus
