@@ -27,9 +27,11 @@ BLOCK_TERMS = 16
 _JIT_LO, _JIT_HI, _JIT_BINS = -20.0, 1.0, 210
 # A white per-axis jitter s² makes the third difference's squared norm 20 s² × χ²(3); χ²(3)'s median is 2.366.
 _JIT_SCALE = 20.0 * 2.3660
-# One four-frame window for the jitter every this many frames: consecutive windows that do not overlap, so
-# their differences are independent and a short take still gives its median a few dozen samples.
-_JIT_STRIDE = 4
+# Four-frame windows for the jitter: back to back (every frame used, the windows independent) over the
+# take's first _JIT_DENSE frames, so a short take still gives its median enough samples; then one every
+# _JIT_STRIDE frames, which keeps a long take's median current at an eighth of the cost.
+_JIT_DENSE = 4096
+_JIT_STRIDE = 32
 # Finished score blocks wait in a list and are folded into the moments together (one product per pair for
 # many blocks instead of one per block); at most this many wait.
 _FOLD_EVERY = 128
@@ -174,6 +176,7 @@ class GramAccumulator:
                 self._decay(R.shape[0])
                 self._frames += R.shape[0]
                 return
+        self._add_jitter(R, w, self._frames)  # once for the whole batch: its cost is mostly per call
         for s in range(0, R.shape[0], BLOCK):
             self._block(R[s:s + BLOCK], t[s:s + BLOCK], w[s:s + BLOCK])
 
@@ -207,7 +210,6 @@ class GramAccumulator:
             all_valid = False
         if not all_valid:
             np.copyto(buf, 0.0, where=~w[:, None, None, :])  # copyto, not multiply: 0 × NaN is NaN
-        self._add_jitter(R, w, self._frames)
         omega = self._decay(nb)
         if omega is not None:
             buf *= np.sqrt(omega)[:, None, None, None]
@@ -233,16 +235,20 @@ class GramAccumulator:
         m = self.n_sensors
         n = 4 * m
         X = buf.reshape(k, 3 * SCORE_BLOCK, n)
+        if self._gram_buf is None:
+            self._gram_buf = np.zeros((_FOLD_EVERY, n, n))
         total = np.zeros((n, n))
-        for b in range(k):
-            if self._gram_buf is None:
-                self._gram_buf = np.zeros((_FOLD_EVERY, n, n))
-            # dsyrk writes column-major into the transpose of a row of the buffer: the buffer then holds
-            # each Gram as its lower triangle (row-major), and its strict upper triangle stays zero.
-            out = self._gram_buf[self._n_buf].T
-            dsyrk(1.0, X[b].T, beta=0.0, c=out, trans=0, overwrite_c=1)
-            total += out
-            self._n_buf += 1
+        b = 0
+        while b < k:
+            first = self._n_buf
+            last = min(_FOLD_EVERY, first + k - b)
+            for row in range(first, last):
+                # dsyrk writes column-major into the transpose of a row of the buffer: the buffer then holds
+                # each Gram as its lower triangle (row-major), and its strict upper triangle stays zero.
+                dsyrk(1.0, X[b].T, beta=0.0, c=self._gram_buf[row].T, trans=0, overwrite_c=1)
+                b += 1
+            total += self._gram_buf[first:last].sum(axis=0).T
+            self._n_buf = last
             if self._n_buf == _FOLD_EVERY:
                 self._fold()
         self._gram += total
@@ -307,8 +313,10 @@ class GramAccumulator:
         if self._n_buf:
             take, minus = _term_index(self.n_sensors)
             flat = self._gram_buf[:self._n_buf].reshape(self._n_buf, -1)
-            wt = flat[:, take]  # (k, p, 16)
-            wt[:, :, 10:] -= flat[:, minus[:, 10:]]
+            k = self._n_buf
+            # np.take along an axis gathers several times faster than fancy indexing here.
+            wt = np.take(flat, take.ravel(), axis=1).reshape(k, *take.shape)  # (k, p, 16)
+            wt[:, :, 10:] -= np.take(flat, minus[:, 10:].ravel(), axis=1).reshape(k, len(take), 6)
             wt[:, :, 0] = SCORE_BLOCK
             parts.append(wt)
         W = np.concatenate(parts).transpose(1, 0, 2)  # (p, k, 16)
@@ -320,8 +328,8 @@ class GramAccumulator:
 
         A third difference cancels any smooth motion (to the motion's jerk × dt³) and keeps 20× the
         per-axis jitter variance of the angles (1 + 9 + 9 + 1). Position noise does not enter: this is
-        rotation noise alone. Windows start at every _JIT_STRIDE-th frame of the take (`first` is the
-        global index of R's first frame), so however the frames arrive they make the same windows.
+        rotation noise alone. Windows start at fixed frames of the take (`first` is the global index of R's
+        first frame; see _JIT_DENSE), so however the frames arrive they make the same windows.
         """
         n = len(R)
         if len(self._tail_R):  # a window begun in the last block: complete it with this block's frames
@@ -331,19 +339,23 @@ class GramAccumulator:
             if len(self._tail_R) == 4:
                 self._waiting_windows.append(_third_difference(self._tail_R[None], self._tail_w[None]))
                 self._tail_R, self._tail_w = self._tail_R[:0], self._tail_w[:0]
-        start = (-first) % _JIT_STRIDE
-        q = max(0, (n - start) // _JIT_STRIDE)  # windows whose whole stride lies in R: a strided view
-        if q:
-            span = slice(start, start + q * _JIT_STRIDE)
-            W = R[span].reshape((q, _JIT_STRIDE) + R.shape[1:])[:, :4]
-            V = w[span].reshape((q, _JIT_STRIDE) + w.shape[1:])[:, :4]
+        # Window starts in [first, first + n): every 4th frame below _JIT_DENSE, every _JIT_STRIDE-th after.
+        end = first + n
+        dense = np.arange(first + (-first) % 4, min(end, _JIT_DENSE), 4)
+        lo = max(first, _JIT_DENSE)
+        sparse = np.arange(lo + (_JIT_DENSE - lo) % _JIT_STRIDE, end, _JIT_STRIDE)
+        starts = np.concatenate([dense, sparse]) - first
+        whole = starts[starts + 4 <= n]
+        if len(whole) and len(dense) == len(whole) and len(whole) * 4 == whole[-1] + 4 - whole[0]:
+            span = slice(whole[0], whole[-1] + 4)  # back-to-back windows: a reshape, no gather
+            W = R[span].reshape((len(whole), 4) + R.shape[1:])
+            V = w[span].reshape((len(whole), 4) + w.shape[1:])
             self._waiting_windows.append(_third_difference(W, V))
-        last = start + q * _JIT_STRIDE
-        if last < n:  # a window starts in R's last stride: complete now, or carry its first frames over
-            if n - last >= 4:
-                self._waiting_windows.append(_third_difference(R[None, last:last + 4], w[None, last:last + 4]))
-            else:
-                self._tail_R, self._tail_w = R[last:].copy(), w[last:].copy()
+        elif len(whole):
+            idx = whole[:, None] + np.arange(4)
+            self._waiting_windows.append(_third_difference(R[idx], w[idx]))
+        if len(starts) > len(whole):  # a window starts in R's last frames: carry them over
+            self._tail_R, self._tail_w = R[starts[-1]:].copy(), w[starts[-1]:].copy()
         if len(self._waiting_windows) >= 64:
             self._histogram()
 
@@ -616,9 +628,13 @@ def _third_difference(W: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.
     R_k = R exp([θ_k]×) under a small jitter θ_k: the third difference of the matrix is R [Δ³θ]× plus the
     motion's jerk × dt³, and ‖[v]×‖²_F = 2‖v‖². Linear in R, so no product per frame is needed.
     """
-    d3 = (W[:, 3] - 3.0 * W[:, 2] + 3.0 * W[:, 1] - W[:, 0]).reshape(len(W), W.shape[2], 9)
-    x = 0.5 * (d3 * d3).sum(axis=2)
+    q, m = len(W), W.shape[2]
+    d3 = (_THIRD_DIFFERENCE @ W.reshape(q, 4, m * 9)).reshape(q, m, 9)
+    x = 0.5 * np.einsum("qmj,qmj->qm", d3, d3)
     return x, valid.all(axis=1) & np.isfinite(x)
+
+
+_THIRD_DIFFERENCE = np.array([-1.0, 3.0, -3.0, 1.0])
 
 
 @lru_cache(maxsize=8)
