@@ -242,18 +242,15 @@ def _batch_means_variance(acc, P, u, V, n, mu) -> tuple[np.ndarray, np.ndarray]:
     A⁻¹ S A⁻¹ along v_k is v_kᵀ S v_k / (n μ_k)², scaled up for frames not yet in a finished block.
     """
     H, covered, blocks = acc.block_moments(P)
-    p = len(P)
-    c, l = u[:, :3], u[:, 3:]
-    L = np.zeros((p, 6, 16))
-    L[:, :3, 0], L[:, 3:, 0] = c, l
-    # −M_b l in the first half: row r takes −l_s from M_b[r, s]; −M_bᵀ c in the second: row s takes −c_r.
-    for r in range(3):
-        L[:, r, 1 + 3 * r:4 + 3 * r] = -l
-        L[:, 3:, 1 + 3 * r:4 + 3 * r] -= c[:, r, None, None] * np.eye(3)
-    L[:, :3, 10:13] = -np.eye(3)
-    L[:, 3:, 13:16] = -np.eye(3)
-    LV = np.einsum("pik,pia->pka", V, L)  # v_kᵀ L, (p, 6, 16)
-    s = np.einsum("pka,pab,pkb->pk", LV, H, LV)
+    c, l = u[:, None, :3], u[:, None, 3:]
+    a, b = V[:, :3, :].transpose(0, 2, 1), V[:, 3:, :].transpose(0, 2, 1)  # (p, 6, 3): v_k = (a_k, b_k)
+    # v_kᵀ L, written out: the score's n-term is c n_b on the first half and l n_b on the second; M_b[r, s]
+    # enters as −M_b l (row r, −l_s) and −M_bᵀ c (row s, −c_r); the two b halves as −I.
+    LV = np.concatenate([
+        (a * c).sum(axis=2, keepdims=True) + (b * l).sum(axis=2, keepdims=True),
+        -(a[..., :, None] * l[..., None, :] + c[..., :, None] * b[..., None, :]).reshape(len(P), 6, 9),
+        -a, -b], axis=2)  # (p, 6, 16)
+    s = ((LV @ H) * LV).sum(axis=2)
     enough = (blocks >= 2) & (covered > 0)
     scale = np.where(enough, n / np.where(covered > 0, covered, 1.0) * blocks / np.maximum(blocks - 1.0, 1.0), np.nan)
     return np.maximum(s, 0.0) * scale[:, None] / (n[:, None] * mu) ** 2, blocks
