@@ -79,7 +79,9 @@ def test_clean_motion_with_changes_of_activity_and_dropouts_raises_no_alarm():
 
 def test_refit_after_slip_converges_to_new_placement_and_other_joints_keep_all_data():
     seed, name = 5, "l_forearm"
-    perf = Performer("human", routine="walk", seed=seed, noise="tracker", rate_hz=RATE, seconds=60)
+    # The re-fit is compared with the truth's placement, which is where the sensor sits at rest: with
+    # soft tissue on, the skin carries it about that place with the pose, so this check runs without.
+    perf = Performer("human", routine="walk", seed=seed, noise="tracker", rate_hz=RATE, seconds=60, sta_mm=0)
     J = tree(perf.model)
     perf.inject_slip(name, 0.02, at_time=SLIP_AT)
     slipped = SlipReplay(J, perf.n_sensors, RATE, perf.names)
