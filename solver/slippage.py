@@ -15,8 +15,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from flockcal.errors import FlockcalError
-from flockcal.solver.slippage_attribution import Window, attribute
+from flockcal.solver.slippage_attribution import Attribution, Window, attribute
 from flockcal.solver.slippage_local import SmoothBaseline, neighbours, smooth_baseline
+from flockcal.solver.slippage_revisit import PoseHistory, came_back
 from flockcal.solver.slippage_stats import joint_geometry, local_variance, residual, window_glr
 
 
@@ -166,7 +167,7 @@ class SlipMonitor:
                  lag_s: float = 1.0, refresh_s: float = 1.0, window_s: float = 0.5, noise_s: float = 0.25,
                  threshold: float = 25.0, attribute_s: float = 0.15, confirm_s: float = 0.4,
                  step_s: float = 0.1, min_frames: int = 4, min_evidence: float = 20.0,
-                 scale_floor_m: float = 2e-4, max_rms_m: float = 0.05):
+                 scale_floor_m: float = 2e-4, max_rms_m: float = 0.05, revisit_s: float = 40.0):
         J = np.asarray(joints, dtype=int).reshape(-1, 2)
         if J.size and (J.min() < 0 or J.max() >= n_sensors or (J[:, 0] == J[:, 1]).any()):
             raise SlippageError(f"joints must be (child, parent) pairs of distinct sensor indices below {n_sensors}")
@@ -196,6 +197,9 @@ class SlipMonitor:
         self._fit_rows = 300
         cap = int(np.ceil((baseline_s + lag_s + 1.0) * rate_hz))
         self._buf = _FrameBuffer(cap, self.m, J)
+        # Poses of the last revisit_s at about 50 Hz, to see whether the residual came back with the pose.
+        self._history = PoseHistory(p, rate_hz, revisit_s, every=int(round(rate_hz / 50.0)))
+        self.came_back = 0  # suspected slips that the same pose before showed to be soft tissue
         self._chunk = max(1, int(round(step_s * rate_hz)))
         self.segment_start = np.full(p, np.nan)  # time each joint's current segment began
         self.ready = np.zeros(p, dtype=bool)
@@ -279,6 +283,8 @@ class SlipMonitor:
     def _block(self, ts, R, t, v, a: int, ends: list[int], c, l, finite) -> list:
         buf = self._buf
         g0 = buf.append(ts[a:ends[-1]], R[a:ends[-1]], t[a:ends[-1]], v[a:ends[-1]])
+        new = buf.since(g0)
+        self._history.append(g0, buf.times[new], buf.g[new], buf.Q[new], buf.pv[new])
         step_last = [g0 + e - a - 1 for e in ends]  # global index of each step's last frame
         now = float(ts[ends[0] - 1])
         if now - self._last_refresh >= self.refresh_s or self.base is None:
@@ -446,7 +452,19 @@ class SlipMonitor:
             return bool(cross < stay)
 
         win = Window(times, g, Q, use, weight, onset_row, c, l, swapped, swap_plausible)
-        return attribute(win, self.joints, self._nbrs, ready, fired, self.m, self.min_jump, self.min_evidence)
+        att = attribute(win, self.joints, self._nbrs, ready, fired, self.m, self.min_jump, self.min_evidence)
+        if att.kind == "slip":
+            J = self.joints
+            child, parent = J[:, 0] == att.sensor, J[:, 1] == att.sensor
+            # The sensor's own skin moves with the angles of its own joints: that is the pose to match.
+            pose = child | parent
+            back = came_back(self._history, float(buf.times[post.start]), self.segment_start, buf.times[post],
+                             buf.g[post], buf.Q[post], buf.pv[post], weight[onset_row:], child, parent, pose, c, l,
+                             att.step)
+            if back:  # (None: poses not seen before, no verdict; the slip stands)
+                self.came_back += 1
+                return Attribution(None, evidence=att.evidence)
+        return att
 
     def _refresh(self, now: float, c, l) -> None:
         """Recompute every joint's baseline with the current estimates from the lagged window."""

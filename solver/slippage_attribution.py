@@ -19,15 +19,11 @@ from itertools import combinations
 
 import numpy as np
 
-from flockcal.solver.slippage_local import configuration_design, prediction_rss, step_fits
+from flockcal.solver.slippage_local import configuration_design, prediction_rss, reference_poses, step_fits
 from flockcal.solver.slippage_stats import residual
 
 # Other sensors are listed as candidates down to this posterior share.
 CANDIDATE_SHARE = 0.05
-# A joint's rotation moves a residual by about a centimetre per right angle (soft tissue; a loosely
-# placed centre at first): the prior sd of the rotation regressors' coefficients, metres per unit of a
-# rotation-matrix entry. Directions a window hardly turns along then stay near zero, not fit noise.
-ROTATION_PRIOR_M = 0.01
 
 
 @dataclass
@@ -40,6 +36,7 @@ class Attribution:
     joints: list[int] = field(default_factory=list)  # joint indices the event affects
     jump_m: float = 0.0
     evidence: float = 0.0  # nats by which the best hypothesis beats "nothing"
+    step: np.ndarray | None = None  # slip: the fitted step (3,) in the sensor's own frame, metres
 
 
 @dataclass
@@ -73,7 +70,6 @@ def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarr
     joints with a baseline; suspects (P,) joints whose step test fired. Only joints sharing a sensor
     with a suspect are fitted: a sensor none of whose joints fired cannot be the one that slipped.
     """
-    none = np.zeros((len(joints), 0), dtype=np.intp)
     P = len(joints)
     after = np.arange(len(win.times)) >= win.onset_row
     sensors = np.unique(joints[suspects])
@@ -86,36 +82,16 @@ def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarr
     x = residual(win.g[:, sel], Q, c, l)
     y = (Q.swapaxes(-1, -2) @ x[..., None])[..., 0]
     w = np.where(win.use[:, sel], win.weight[:, sel], 0.0)
-    D = configuration_design(win.Q, None, win.times, win.onset_row, sel, none, full=nbrs)
-    fx, fy = step_fits(D, [x, y], w, after, prior_sd=ROTATION_PRIOR_M, prior_from=2)
-
+    refs = reference_poses(win.Q, win.use, win.onset_row)
+    D = configuration_design(win.Q, refs, win.times, win.onset_row, sel, nbrs)
     m = n_sensors
     inc_c = joints[:, 0][None, :] == np.arange(m)[:, None]  # (m, P) sensor is the joint's child
     inc_p = joints[:, 1][None, :] == np.arange(m)[:, None]
-    # "Sensor s slipped": its placement moved by one vector δ in its own frame, so each of its joints
-    # steps by that vector: by +δ in the child-frame series where s is the child (u = c + R_iᵀ(t_i − t_j)
-    # − Q l gains R_iᵀ R_i δ), by −δ in the parent-frame series where it is the parent. The joints'
-    # step terms add up into one fit of δ.
-    gx, gy, hx = np.zeros((P, 3)), np.zeros((P, 3)), np.zeros(P)
-    gx[sel], gy[sel], hx[sel] = fx.g, fy.g, fx.h
-    n_after, w_after = np.zeros(P), np.zeros(P)
-    n_after[sel], w_after[sel] = fx.after, fx.weight_after
-    ic, ip = inc_c.astype(float), inc_p.astype(float)
-    G = ic @ gx - ip @ gy  # (m, 3)
-    Hs = (ic + ip) @ hx
-    with np.errstate(invalid="ignore", divide="ignore"):
-        step = G / Hs[:, None]
-        reduction = np.nan_to_num((G * G).sum(axis=1) / Hs)
-    size = np.linalg.norm(np.nan_to_num(step), axis=1)
-    short = np.maximum(min_jump - size, 0.0)
-    slip_cost = (-0.5 * reduction + 1.5 * np.log(np.maximum((ic + ip) @ n_after, 1))
-                 + 0.5 * ((ic + ip) @ w_after) * short**2)
+    slip_cost, steps, fx = _slip_costs(D, x, y, w, after, sel, inc_c, inc_p, min_jump)
+    size = np.linalg.norm(steps, axis=1)
     # Only a sensor one of whose joints stepped can have slipped (its other joints may lag behind).
     possible = np.isin(np.arange(m), sensors) & ((inc_c | inc_p) & near[None, :]).any(axis=1)
     slip_cost = np.where(possible, slip_cost, np.inf)
-    size_c = np.zeros(P)
-    size_p = np.zeros(P)
-    size_c[sel], size_p[sel] = np.linalg.norm(fx.step, axis=1), np.linalg.norm(fy.step, axis=1)
 
     # Swaps: only among sensors of the joints that fired. Exchanging their data from the onset on must
     # bring every joint back to what the frames before the onset predict (judged by prediction: a fit
@@ -137,7 +113,7 @@ def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarr
             g_all[win.onset_row:, touched], Q_all[win.onset_row:, touched] = g2, Q2
             Qs = Q_all[:, touched]
             xs = residual(g_all[:, touched], Qs, win.c[touched], win.l[touched])
-            Ds = configuration_design(Q_all, None, win.times, win.onset_row, touched, none, full=nbrs)
+            Ds = configuration_design(Q_all, refs, win.times, win.onset_row, touched, nbrs)
             ws = np.where(win.use[:, touched], win.weight[:, touched], 0.0)
             swap_cost[k] = 0.5 * (prediction_rss(Ds, xs, ws, after) - stay[touched]).sum() + prior
 
@@ -151,7 +127,7 @@ def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarr
     if best >= m:
         a, b = swaps[best - m]
         touched = np.flatnonzero(np.isin(joints, (a, b)).any(axis=1))
-        jump = float(np.median(np.maximum(size_c, size_p)[touched]))
+        jump = float(np.median(np.linalg.norm(fx.step, axis=1)))
         return Attribution("swap", a, b, [(a, float(post[best])), (b, float(post[best]))],
                            float(post[best]), touched.tolist(), jump, evidence)
     s = best
@@ -160,4 +136,31 @@ def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarr
         return Attribution(None, evidence=evidence)
     order = np.argsort(-post[:m])
     cands = [(int(k), float(post[k])) for k in order if post[k] >= CANDIDATE_SHARE]
-    return Attribution("slip", s, -1, cands, float(post[s]), mine.tolist(), float(size[s]), evidence)
+    return Attribution("slip", s, -1, cands, float(post[s]), mine.tolist(), float(size[s]), evidence, steps[s])
+
+
+def _slip_costs(D, x, y, w, after, sel, inc_c, inc_p, min_jump):
+    """(m,) cost of "sensor s slipped" against "nothing" (negative: evidence for it), each sensor's
+    step (m, 3) in its own frame, and the child-frame fits, with regressors D for the selected joints.
+
+    Each joint of s must step in s's frame: by +δ in the child-frame series where s is the child
+    (u = c + R_iᵀ(t_i − t_j) − Q l gains R_iᵀ R_i δ), by −δ in the parent-frame series where it is the
+    parent. Each joint's step is fitted and paid for (BIC, and any shortfall below the minimum jump)
+    on its own, so that a sensor is blamed only when every one of its joints needs a step; the step
+    reported is the one vector that fits them all."""
+    fx, fy = step_fits(D, [x, y], w, after)
+    P = inc_c.shape[1]
+
+    def gain(f):
+        short = np.maximum(min_jump - np.linalg.norm(f.step, axis=1), 0.0)
+        return 0.5 * (f.rss_step - f.rss_none) + 1.5 * np.log(np.maximum(f.after, 1)) + 0.5 * f.weight_after * short**2
+
+    gc, gp = np.zeros(P), np.zeros(P)
+    gc[sel], gp[sel] = gain(fx), gain(fy)
+    ic, ip = inc_c.astype(float), inc_p.astype(float)
+    cost = ic @ gc + ip @ gp
+    gx, gy, hx = np.zeros((P, 3)), np.zeros((P, 3)), np.zeros(P)
+    gx[sel], gy[sel], hx[sel] = fx.g, fy.g, fx.h
+    with np.errstate(invalid="ignore", divide="ignore"):
+        step = np.nan_to_num((ic @ gx - ip @ gy) / ((ic + ip) @ hx)[:, None])
+    return cost, step, fx
