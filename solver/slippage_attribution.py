@@ -19,11 +19,15 @@ from itertools import combinations
 
 import numpy as np
 
-from flockcal.solver.slippage_local import configuration_design, prediction_rss, reference_poses, step_fits
+from flockcal.solver.slippage_local import configuration_design, prediction_rss, step_fits
 from flockcal.solver.slippage_stats import residual
 
 # Other sensors are listed as candidates down to this posterior share.
 CANDIDATE_SHARE = 0.05
+# A joint's rotation moves a residual by about a centimetre per right angle (soft tissue; a loosely
+# placed centre at first): the prior sd of the rotation regressors' coefficients, metres per unit of a
+# rotation-matrix entry. Directions a window hardly turns along then stay near zero, not fit noise.
+ROTATION_PRIOR_M = 0.01
 
 
 @dataclass
@@ -82,8 +86,8 @@ def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarr
     x = residual(win.g[:, sel], Q, c, l)
     y = (Q.swapaxes(-1, -2) @ x[..., None])[..., 0]
     w = np.where(win.use[:, sel], win.weight[:, sel], 0.0)
-    refs = reference_poses(win.Q, win.use, win.onset_row)
-    D = configuration_design(win.Q, refs, win.times, win.onset_row, sel, nbrs)
+    none = np.zeros((P, 0), dtype=np.intp)
+    D = configuration_design(win.Q, None, win.times, win.onset_row, sel, none, full=nbrs)
     m = n_sensors
     inc_c = joints[:, 0][None, :] == np.arange(m)[:, None]  # (m, P) sensor is the joint's child
     inc_p = joints[:, 1][None, :] == np.arange(m)[:, None]
@@ -113,7 +117,7 @@ def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarr
             g_all[win.onset_row:, touched], Q_all[win.onset_row:, touched] = g2, Q2
             Qs = Q_all[:, touched]
             xs = residual(g_all[:, touched], Qs, win.c[touched], win.l[touched])
-            Ds = configuration_design(Q_all, refs, win.times, win.onset_row, touched, nbrs)
+            Ds = configuration_design(Q_all, None, win.times, win.onset_row, touched, none, full=nbrs)
             ws = np.where(win.use[:, touched], win.weight[:, touched], 0.0)
             swap_cost[k] = 0.5 * (prediction_rss(Ds, xs, ws, after) - stay[touched]).sum() + prior
 
@@ -143,24 +147,23 @@ def _slip_costs(D, x, y, w, after, sel, inc_c, inc_p, min_jump):
     """(m,) cost of "sensor s slipped" against "nothing" (negative: evidence for it), each sensor's
     step (m, 3) in its own frame, and the child-frame fits, with regressors D for the selected joints.
 
-    Each joint of s must step in s's frame: by +δ in the child-frame series where s is the child
-    (u = c + R_iᵀ(t_i − t_j) − Q l gains R_iᵀ R_i δ), by −δ in the parent-frame series where it is the
-    parent. Each joint's step is fitted and paid for (BIC, and any shortfall below the minimum jump)
-    on its own, so that a sensor is blamed only when every one of its joints needs a step; the step
-    reported is the one vector that fits them all."""
-    fx, fy = step_fits(D, [x, y], w, after)
+    Its placement moved by one vector δ in its own frame, so each of its joints steps by that vector:
+    by +δ in the child-frame series where s is the child (u = c + R_iᵀ(t_i − t_j) − Q l gains
+    R_iᵀ R_i δ), by −δ in the parent-frame series where it is the parent. The joints' step terms add
+    up into one fit of δ."""
+    fx, fy = step_fits(D, [x, y], w, after, prior_sd=ROTATION_PRIOR_M, prior_from=2)
     P = inc_c.shape[1]
-
-    def gain(f):
-        short = np.maximum(min_jump - np.linalg.norm(f.step, axis=1), 0.0)
-        return 0.5 * (f.rss_step - f.rss_none) + 1.5 * np.log(np.maximum(f.after, 1)) + 0.5 * f.weight_after * short**2
-
-    gc, gp = np.zeros(P), np.zeros(P)
-    gc[sel], gp[sel] = gain(fx), gain(fy)
-    ic, ip = inc_c.astype(float), inc_p.astype(float)
-    cost = ic @ gc + ip @ gp
     gx, gy, hx = np.zeros((P, 3)), np.zeros((P, 3)), np.zeros(P)
     gx[sel], gy[sel], hx[sel] = fx.g, fy.g, fx.h
+    n_after, w_after = np.zeros(P), np.zeros(P)
+    n_after[sel], w_after[sel] = fx.after, fx.weight_after
+    ic, ip = inc_c.astype(float), inc_p.astype(float)
+    G = ic @ gx - ip @ gy  # (m, 3)
+    Hs = (ic + ip) @ hx
     with np.errstate(invalid="ignore", divide="ignore"):
-        step = np.nan_to_num((ic @ gx - ip @ gy) / ((ic + ip) @ hx)[:, None])
+        step = np.nan_to_num(G / Hs[:, None])
+        reduction = np.nan_to_num((G * G).sum(axis=1) / Hs)
+    short = np.maximum(min_jump - np.linalg.norm(step, axis=1), 0.0)
+    cost = (-0.5 * reduction + 1.5 * np.log(np.maximum((ic + ip) @ n_after, 1))
+            + 0.5 * ((ic + ip) @ w_after) * short**2)
     return cost, step, fx

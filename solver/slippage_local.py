@@ -207,10 +207,12 @@ class StepFits:
 
 
 def step_fits(D: np.ndarray, series: list[np.ndarray], weight: np.ndarray, after: np.ndarray,
-              ridge: float = 1e-9) -> list[StepFits]:
+              ridge: float = 1e-9, prior_sd: float = 0.0, prior_from: int = 0) -> list[StepFits]:
     """Least squares of each series (L, q, 3) in `series` on D (L, q, K), and what a step (after: (L,)
-    bool) adds, weights (L, q) = 1/σ² (0 where a frame is not used). The series share the regressors
-    and weights, so one Gram and one solve serve them all."""
+    bool) adds, weights (L, q) = 1/σ² (0 where a frame is not used). The coefficients of columns from
+    `prior_from` on have a Gaussian prior of sd `prior_sd` (metres per unit of the regressor), so that
+    a direction the window hardly moves along stays near zero instead of fitting noise (and a step).
+    The series share the regressors and weights, so one Gram and one solve serve them all."""
     H = np.broadcast_to(after[:, None, None].astype(float), weight.shape + (1,))
     Z = np.concatenate([D, H, *series], axis=-1) * np.sqrt(weight)[..., None]  # (L, q, C)
     Zt = Z.transpose(1, 2, 0)
@@ -221,6 +223,8 @@ def step_fits(D: np.ndarray, series: list[np.ndarray], weight: np.ndarray, after
     A = G[:, :K, :K]
     scale = np.maximum(A.trace(axis1=1, axis2=2) / K, 1e-300)
     A = A + (ridge * scale)[:, None, None] * np.eye(K)
+    if prior_sd > 0 and prior_from < K:
+        A = A + np.diag(np.r_[np.zeros(prior_from), np.full(K - prior_from, 1.0 / prior_sd**2)])
     rhs = G[:, :K, K:]  # the step column, then the data
     sol = np.linalg.solve(A, rhs)
     data = G[:, K + 1:, K + 1:].diagonal(axis1=1, axis2=2).reshape(q, ns, 3).sum(axis=2)
