@@ -24,10 +24,12 @@ from flockcal.solver.slippage_stats import residual
 
 # Other sensors are listed as candidates down to this posterior share.
 CANDIDATE_SHARE = 0.05
-# A joint's rotation moves a residual by about a centimetre per right angle (soft tissue; a loosely
-# placed centre at first): the prior sd of the rotation regressors' coefficients, metres per unit of a
-# rotation-matrix entry. Directions a window hardly turns along then stay near zero, not fit noise.
-ROTATION_PRIOR_M = 0.01
+# A neighbouring joint's rotation moves the skin under a sensor by about a centimetre per right angle:
+# the prior sd of those regressors' coefficients, metres per unit of a rotation-matrix entry, so that
+# directions a window hardly turns along stay near zero instead of fitting noise (and the step). The
+# joint's own rotation has none: a first swing to the end of a range must be free to follow the skin.
+NEIGHBOUR_PRIOR_M = 0.01
+OWN_COLUMNS = 11  # 1, the trend and the nine entries of the joint's own rotation
 
 
 @dataclass
@@ -151,7 +153,7 @@ def _slip_costs(D, x, y, w, after, sel, inc_c, inc_p, min_jump):
     by +δ in the child-frame series where s is the child (u = c + R_iᵀ(t_i − t_j) − Q l gains
     R_iᵀ R_i δ), by −δ in the parent-frame series where it is the parent. The joints' step terms add
     up into one fit of δ."""
-    fx, fy = step_fits(D, [x, y], w, after, prior_sd=ROTATION_PRIOR_M, prior_from=2)
+    fx, fy = step_fits(D, [x, y], w, after, prior_sd=NEIGHBOUR_PRIOR_M, prior_from=OWN_COLUMNS)
     P = inc_c.shape[1]
     gx, gy, hx = np.zeros((P, 3)), np.zeros((P, 3)), np.zeros(P)
     gx[sel], gy[sel], hx[sel] = fx.g, fy.g, fx.h
