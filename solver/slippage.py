@@ -5,7 +5,8 @@ Per joint, a window-limited GLR test for a step in the residual vector (seen fro
 joint, against that joint's own baseline, weighted by the noise the data shows) raises a suspicion;
 `slippage_attribution` then asks whether a step at that moment is needed at all once each joint's
 residual is fitted as a smooth function of the configuration (soft tissue is one, a slip is not), and
-names the sensor whose joints all stepped (or the pair that swapped) before an event is reported.
+names the sensor whose joints all stepped (or the pair that swapped); `slippage_revisit` lets the same
+pose seen before overrule it. Only then is an event reported.
 """
 
 from __future__ import annotations
@@ -155,7 +156,8 @@ class SlipMonitor:
 
     A suspicion (the step test of a joint passing `threshold`) is put to the confirming test from
     `attribute_s` after its onset, again at every step while it is younger than `confirm_s` and not
-    clearly refuted, and dropped after that. The tests are in units of each joint's own noise,
+    clearly refuted, and dropped after that; a confirmed slip is still dropped when the sensor's joints,
+    back in a pose of the last `revisit_s`, show the residual they had then (soft tissue comes back). The tests are in units of each joint's own noise,
     measured from the data: `threshold` and `min_evidence` are nats (log-likelihood ratios),
     `min_jump_m` is the smallest step worth reporting and `scale_floor_m` stops exact, noise-free data
     from dividing by zero. A pair whose residual rms exceeds `max_rms_m` is not a joint and is not
