@@ -112,6 +112,10 @@ class Motion:
 
     def at(self, times) -> tuple[np.ndarray, np.ndarray]:
         """(local_rotations (n, m, 3, 3), root_translation (n, 3)) at any times, in seconds."""
+        return self.pose(times)[:2]
+
+    def pose(self, times) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """`at(times)` and the joint coordinates q (n, m, 3) it came from (soft tissue follows them)."""
         t = np.atleast_1d(np.asarray(times, dtype=float))
         q = self.coordinates(t)
         model = self.model
@@ -125,7 +129,7 @@ class Motion:
         L[:, (types == "rigid") | (types == "root")] = np.eye(3)
         Rroot, root_t = self.root_pose(t)
         L[:, model.root] = Rroot
-        return L, root_t
+        return L, root_t, q
 
 
 def routine(

@@ -16,6 +16,7 @@ from flockcal.simulator import faults
 from flockcal.simulator.body import BodyModel, SimulatorError, bone_poses, by_name
 from flockcal.simulator.motion import Motion, routine as make_routine
 from flockcal.simulator.rotations import rot_z
+from flockcal.simulator.soft_tissue import DEFAULT_STA_MM, SoftTissue
 
 NOISE_KINDS = ("tracker", None)
 _VELOCITY_STEP_S = 1e-3
@@ -63,7 +64,9 @@ class Performer:
     routine: "exercise" | "walk" | "kiosk" | "idle"; period: the routine's loop length in seconds
     (default per routine; `seconds` is the take length the routine is planned for, which sets the
     exercise loop);
-    noise: "tracker" or None (exact). `full_scale_in` is the position scale the performer needs:
+    noise: "tracker" or None (exact). sta_mm: soft-tissue artefact, the largest slide of a skin
+    sensor as a neighbouring joint reaches the end of its range (default 12 mm for a human, 0 = off;
+    the rigs have no skin). `full_scale_in` is the position scale the performer needs:
     72 inches (the 36-inch scale clips reaching and walking); a fake tracker should report that.
     """
 
@@ -80,10 +83,19 @@ class Performer:
         period: float | None = None,
         height: float = 1.75,
         seconds: float = 60.0,
+        sta_mm: float | None = None,
     ):
         if noise not in NOISE_KINDS:
             raise SimulatorError(f"unknown noise {noise!r}; choose 'tracker' or None")
         self.model: BodyModel = by_name(model, seed=seed, birds=birds, height=height)
+        human = self.model.kind == "human"
+        if sta_mm is None:
+            sta_mm = DEFAULT_STA_MM if human else 0.0
+        if float(sta_mm) > 0 and not human:
+            raise SimulatorError(f"the {self.model.kind} has no skin: soft-tissue artefact is for the human "
+                                 "model only (leave sta_mm unset or 0)")
+        # Skin moving over bone, a smooth function of the joint angles (not noise: see soft_tissue).
+        self.sta: SoftTissue | None = SoftTissue.for_model(self.model, sta_mm, seed) if float(sta_mm) > 0 else None
         self.motion: Motion = make_routine(self.model, routine, seconds, rate_hz, seed, period=period)
         self.seed = int(seed)
         self.rate_hz = float(rate_hz)
@@ -132,8 +144,8 @@ class Performer:
             # One pass for the frames and their neighbours ±h: the dynamic error needs each sensor's
             # speed, taken by central differences of the smooth motion (slips are steps, not motion).
             h = _VELOCITY_STEP_S
-            R3, p3 = self._exact(np.concatenate([t, t - h, t + h]))
-            R, p = R3[:n], p3[:n]
+            R, p3 = self._exact(np.concatenate([t, t - h, t + h]), rotated=n)
+            p = p3[:n]
             vel = (p3[2 * n :] - p3[n : 2 * n]) * (state.unit_scale / (2 * h))
         else:
             R, p = self._exact(t)
@@ -152,10 +164,30 @@ class Performer:
             valid = faults.dropouts(valid, t, state.dropout, seed=self.seed, burst_s=state.dropout_burst_s)
         return R, p, valid
 
-    def _exact(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        L, root = self.motion.at(t)
+    @property
+    def sta_mm(self) -> float:
+        return 0.0 if self.sta is None else self.sta.size_mm
+
+    def _exact(self, t: np.ndarray, rotated: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """Exact sensor rotations of the first `rotated` frames (default all) and positions of all."""
+        k = len(t) if rotated is None else rotated
+        S0, s0 = self.model.sensor_rotation, self.model.sensor_offset
+        if self.sta is None:
+            L, root = self.motion.at(t)
+            B, b = bone_poses(self.model, L, root)
+            return B[:k] @ S0, b + np.einsum("nmij,mj->nmi", B, s0)
+        L, root, q = self.motion.pose(t)
         B, b = bone_poses(self.model, L, root)
-        return B @ self.model.sensor_rotation, b + np.einsum("nmij,mj->nmi", B, self.model.sensor_offset)
+        F = self.sta.features(q)
+        s = s0[None] + self.sta.slides(q, F)
+        return B[:k] @ (self.sta.tilts(q[:k], F[:k]) @ S0), b + np.einsum("nmij,nmj->nmi", B, s)
+
+    def soft_tissue(self, times) -> np.ndarray:
+        """How far (n, m) each sensor's placement is from its rest placement at these times, metres."""
+        t = np.atleast_1d(np.asarray(times, dtype=float))
+        if self.sta is None:
+            return np.zeros((len(t), self.n_sensors))
+        return np.linalg.norm(self.sta.slides(self.motion.coordinates(t)), axis=-1)
 
     def _slipped(self, t, R, p, slips: tuple[SlipEvent, ...]) -> tuple[np.ndarray, np.ndarray]:
         S = self.model.sensor_rotation.copy()
@@ -273,6 +305,8 @@ class Performer:
             ev["joints"] = [self.names[k] for k in own + self.model.children(i)]
             events.append(ev)
         out["slip_events"] = events
+        # Joint c, l above are the rest placements; with STA the sensors move about them with the pose.
+        out["soft_tissue"] = {"size_mm": 0.0} if self.sta is None else self.sta.describe()
         out["routine"] = self.motion.name
         out["period_s"] = self.motion.period
         out["seed"] = self.seed

@@ -18,7 +18,7 @@ from serial.serialutil import PortNotOpenError, SerialBase, SerialException, Tim
 
 from flockcal.simulator.fake_tracker import FakeFlock, LineFaults, SmoothSource, WallClock
 
-URL_HELP = ("sim://[NAME]?birds=N&motion=walk&seed=S&noise=tracker|none&model=human&rate=HZ&baud=B&ert=0|1"
+URL_HELP = ("sim://[NAME]?birds=N&motion=walk&seed=S&noise=tracker|none&model=human&sta_mm=MM&rate=HZ&baud=B&ert=0|1"
             "&scale=36|72&port=K&quaternion=fob|conjugate&rts=reset|standby|ignore")
 
 
@@ -66,14 +66,14 @@ def forget_simulation(name: str) -> None:
 
 
 def make_pose_source(*, birds: int | None, motion: str, seed: int, noise: str | None,
-                     model: str, rate_hz: float = 100.0):
+                     model: str, rate_hz: float = 100.0, sta_mm: float | None = None):
     """The simulator's Performer (a small smooth source if it cannot be imported)."""
     try:
         from flockcal.simulator.performer import Performer
     except ImportError:
         return SmoothSource(birds or 16, seed=seed)
     wanted = {"birds": birds, "routine": motion, "seed": seed, "model": model, "rate_hz": rate_hz,
-              "noise": None if noise in ("none", "exact", "0", "") else noise}
+              "noise": None if noise in ("none", "exact", "0", "") else noise, "sta_mm": sta_mm}
     accepted = inspect.signature(Performer).parameters
     kwargs = {k: v for k, v in wanted.items() if k in accepted and (v is not None or k == "noise")}
     return Performer(**kwargs)
@@ -84,7 +84,7 @@ def _parse(url: str) -> tuple[str, dict]:
     if parts.scheme.lower() != "sim":
         raise SerialException(f"expected {URL_HELP}, not {url!r}")
     q = {k: v[-1] for k, v in urllib.parse.parse_qs(parts.query, keep_blank_values=True).items()}
-    known = {"birds", "motion", "seed", "noise", "model", "rate", "baud", "ert", "scale", "port",
+    known = {"birds", "motion", "seed", "noise", "model", "sta_mm", "rate", "baud", "ert", "scale", "port",
              "quaternion", "rts", "clock"}
     unknown = set(q) - known
     if unknown:
@@ -96,6 +96,7 @@ def _parse(url: str) -> tuple[str, dict]:
             "seed": int(q.get("seed", 0)),
             "noise": q.get("noise", "tracker"),
             "model": q.get("model", "human"),
+            "sta_mm": float(q["sta_mm"]) if "sta_mm" in q else None,
             "rate": float(q.get("rate", 103.0)),
             "baud": float(q["baud"]) if "baud" in q else None,
             "ert": q.get("ert", "0") in ("1", "true", "yes", "y"),
@@ -120,7 +121,7 @@ def _attach(name: str, params: dict) -> Simulation:
         if sim is None:
             source = make_pose_source(birds=params["birds"], motion=params["motion"],
                                       seed=params["seed"], noise=params["noise"], model=params["model"],
-                                      rate_hz=params["rate"])
+                                      rate_hz=params["rate"], sta_mm=params["sta_mm"])
             birds = params["birds"] or source.n_sensors
             flock = FakeFlock(source, birds=birds, ert=params["ert"], rate_hz=params["rate"],
                               baud=params["baud"] or 115200,

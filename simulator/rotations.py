@@ -32,9 +32,20 @@ def rotvec_to_matrix(q: np.ndarray) -> np.ndarray:
     # Taylor series below 1e-4 rad keep full precision where sin(θ)/θ would cancel.
     a = np.where(small, 1.0 - theta2 / 6.0 + theta2**2 / 120.0, np.sin(safe) / safe)
     b = np.where(small, 0.5 - theta2 / 24.0 + theta2**2 / 720.0, (1.0 - np.cos(safe)) / safe**2)
-    K = hat(q)
-    eye = np.broadcast_to(np.eye(3), K.shape)
-    return eye + a[..., None, None] * K + b[..., None, None] * (K @ K)
+    # R = I + a K + b K² with K² = q qᵀ − θ² I, written out: no 3×3 products per rotation.
+    out = (b[..., None, None] * q[..., :, None]) * q[..., None, :]
+    diag = 1.0 - b * theta2
+    x, y, z = a * q[..., 0], a * q[..., 1], a * q[..., 2]
+    out[..., 0, 0] += diag
+    out[..., 1, 1] += diag
+    out[..., 2, 2] += diag
+    out[..., 0, 1] -= z
+    out[..., 1, 0] += z
+    out[..., 0, 2] += y
+    out[..., 2, 0] -= y
+    out[..., 1, 2] -= x
+    out[..., 2, 1] += x
+    return out
 
 
 def axis_angle(axis: np.ndarray, angle: np.ndarray) -> np.ndarray:

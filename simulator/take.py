@@ -24,6 +24,7 @@ def simulate(
     faults: dict | None = None,
     height: float = 1.75,
     period: float | None = None,
+    sta_mm: float | None = None,
 ) -> tuple[Take, dict]:
     """Simulate `seconds` of `motion` at `rate_hz` and return (take, truth).
 
@@ -31,7 +32,8 @@ def simulate(
     BodyModel; birds=None keeps every body. noise: "tracker" or None. faults (all optional):
     {"dropout": p, "dropout_burst_s": s, "slips": [{"sensor", "at_time", "distance_m", "direction",
     "angle_deg"}] (or one as "slip"), "unit_scale": f, "hemisphere": "forward"|…, "quantise": 36|72|144,
-    "orientation": "matrix"|"angles"|"quaternion", "noise_scale": f}.
+    "orientation": "matrix"|"angles"|"quaternion", "noise_scale": f}. sta_mm: soft-tissue artefact
+    (default 12 mm for the human, 0 turns it off; see `Performer`).
     truth: the fit-shaped ground truth at the start of the take, with `slip_events` listing each slip
     and `after_slips` the truth once every slip has happened.
     """
@@ -43,7 +45,7 @@ def simulate(
         birds = None  # the default 16 is for the human suit; the rigs have their own counts
     perf = Performer(
         model, routine=motion, seed=seed, noise=noise, rate_hz=rate_hz, birds=birds,
-        period=period, height=height, seconds=seconds,
+        period=period, height=height, seconds=seconds, sta_mm=sta_mm,
     )  # fmt: skip
     if "noise_scale" in faults:
         perf.set_noise(noise, float(faults["noise_scale"]))
@@ -74,6 +76,12 @@ def simulate(
     take = make_take(R, p, perf.names, rate_hz, valid=valid, times=times, source="simulated take")
 
     truth = perf.truth(at_time=float(times[0]))
+    if perf.sta is not None:
+        # How far the skin actually carried each sensor in this take: the figure to judge a fit by.
+        # Every 8th frame is plenty for the rms and the peak of a motion this smooth, at an eighth of the cost.
+        moved = perf.soft_tissue(times[::8])
+        truth["soft_tissue"]["rms_mm"] = {nm: round(float(x), 3) for nm, x in zip(perf.names, 1000 * np.sqrt((moved**2).mean(axis=0)))}
+        truth["soft_tissue"]["max_mm"] = {nm: round(float(x), 3) for nm, x in zip(perf.names, 1000 * moved.max(axis=0))}
     if truth["slip_events"]:
         after = perf.truth()
         truth["after_slips"] = {"joints": after["joints"], "bones": after["bones"]}
@@ -85,6 +93,7 @@ def simulate(
         "frames": n,
         "seed": int(seed),
         "noise": noise,
+        "sta_mm": perf.sta_mm,
         "faults": {k: v for k, v in faults.items() if k not in ("slip", "slips")},
     }
     return take, truth

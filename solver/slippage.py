@@ -1,10 +1,12 @@
 """Sensor slippage and swap detection (design.md §4): a live `SlipMonitor` fed the same micro-batches as
 the accumulator plus the current joint estimates, and `detect_slips` for a recorded take.
 
-Per joint, a window-limited GLR test for a step in the residual vector (seen from either sensor of
-the joint, against that joint's own robust baseline, weighted by the noise the data shows) raises a
-suspicion; `slippage_attribution` then names the sensor whose joints
-all stepped (or the pair that swapped) before an event is reported.
+Per joint, a window-limited GLR test for a step in the residual vector (seen from either sensor of the
+joint, against that joint's own baseline, weighted by the noise the data shows) raises a suspicion;
+`slippage_attribution` then asks whether a step at that moment is needed at all once each joint's
+residual is fitted as a smooth function of the configuration (soft tissue is one, a slip is not), and
+names the sensor whose joints all stepped (or the pair that swapped); `slippage_revisit` lets the same
+pose seen before overrule it. Only then is an event reported.
 """
 
 from __future__ import annotations
@@ -14,9 +16,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from flockcal.errors import FlockcalError
-from flockcal.solver.slippage_attribution import attribute
-from flockcal.solver.slippage_stats import (Baseline, affine_baseline, joint_frames, local_variance,
-                                            step_design_sums, window_glr)
+from flockcal.solver.slippage_attribution import Attribution, Window, attribute
+from flockcal.solver.slippage_local import SmoothBaseline, neighbours, smooth_baseline
+from flockcal.solver.slippage_revisit import PoseHistory, came_back
+from flockcal.solver.slippage_stats import joint_geometry, local_variance, residual, window_glr
 
 
 class SlippageError(FlockcalError, ValueError):
@@ -80,15 +83,26 @@ class SwapEvent:
 
 
 class _FrameBuffer:
-    """The most recent frames (times, rotations, positions, valid) with their global frame index."""
+    """The most recent frames (times, rotations, positions, valid) with their global frame index; each
+    joint's geometry (g, Q) and pair validity, worked out once when a frame arrives; and the step
+    test's deviations from the baseline and noise weights, kept until the baseline changes."""
 
-    def __init__(self, capacity: int, m: int):
+    def __init__(self, capacity: int, m: int, joints: np.ndarray):
         self.capacity = capacity
+        self.joints = joints
+        p = len(joints)
         size = 2 * capacity
         self.times = np.zeros(size)
         self.R = np.zeros((size, m, 3, 3))
         self.t = np.zeros((size, m, 3))
         self.valid = np.zeros((size, m), dtype=bool)
+        self.g = np.zeros((size, p, 3))
+        self.Q = np.zeros((size, p, 3, 3))
+        self.pv = np.zeros((size, p), dtype=bool)
+        self.dx = np.zeros((size, p, 3))  # deviation from the baseline, child frame
+        self.dy = np.zeros((size, p, 3))  # the same in the parent frame
+        self.w = np.zeros((size, p))  # 1/σ² from the local noise level (0: unusable)
+        self._arrays = (self.times, self.R, self.t, self.valid, self.g, self.Q, self.pv, self.dx, self.dy, self.w)
         self.lo = self.hi = 0
         self.first_index = 0  # global index of slot lo
 
@@ -98,12 +112,16 @@ class _FrameBuffer:
         if self.hi + n > len(self.times):
             keep = min(self.hi - self.lo, self.capacity - n)
             src = slice(self.hi - keep, self.hi)
-            for a in (self.times, self.R, self.t, self.valid):
+            for a in self._arrays:
                 a[:keep] = a[src]
             self.first_index += self.hi - keep - self.lo
             self.lo, self.hi = 0, keep
         sl = slice(self.hi, self.hi + n)
         self.times[sl], self.R[sl], self.t[sl], self.valid[sl] = times, R, t, valid
+        J = self.joints
+        self.g[sl], self.Q[sl] = joint_geometry(R, t, J)
+        self.pv[sl] = valid[:, J[:, 0]] & valid[:, J[:, 1]]
+        self.dx[sl], self.dy[sl], self.w[sl] = 0.0, 0.0, 0.0
         self.hi += n
         if self.hi - self.lo > self.capacity:
             drop = self.hi - self.lo - self.capacity
@@ -111,17 +129,21 @@ class _FrameBuffer:
             self.first_index += drop
         return self.first_index + (self.hi - self.lo) - n
 
+    def slot(self, index: int) -> int:
+        """Slot of global frame `index` (clipped to what is stored)."""
+        return self.lo + min(max(index - self.first_index, 0), self.hi - self.lo)
+
     def since(self, index: int) -> slice:
         """Slots holding global frames index… (clipped to what is still stored)."""
-        return slice(self.lo + max(index - self.first_index, 0), self.hi)
+        return slice(self.slot(index), self.hi)
 
     def between(self, t0: float, t1: float) -> slice:
         times = self.times[self.lo:self.hi]
         a, b = np.searchsorted(times, [t0, t1], side="left")
         return slice(self.lo + a, self.lo + b)
 
-    def global_index(self, sl: slice) -> np.ndarray:
-        return self.first_index + np.arange(sl.start - self.lo, sl.stop - self.lo)
+    def index_of(self, slot: int) -> int:
+        return self.first_index + slot - self.lo
 
 
 class SlipMonitor:
@@ -132,16 +154,22 @@ class SlipMonitor:
     the events confirmed in this batch. After an event the affected joints re-baseline from the slip
     time on (they stay quiet for `warmup_s`, at least `lag_s`); the others keep their state.
 
-    The test is in units of each joint's own noise, measured from the data: `threshold` and
-    `min_evidence` are nats (log-likelihood ratios), `min_jump_m` is the smallest step worth reporting
-    and `scale_floor_m` stops exact, noise-free data from dividing by zero.
+    A suspicion (the step test of a joint passing `threshold`) is put to the confirming test from
+    `attribute_s` after its onset, again at every step while it is younger than `confirm_s` and not
+    clearly refuted, and dropped after that; a confirmed slip is still dropped when the sensor's joints,
+    back in a pose of the last `revisit_s`, show the residual they had then (soft tissue comes back). The tests are in units of each joint's own noise,
+    measured from the data: `threshold` and `min_evidence` are nats (log-likelihood ratios),
+    `min_jump_m` is the smallest step worth reporting and `scale_floor_m` stops exact, noise-free data
+    from dividing by zero. A pair whose residual rms exceeds `max_rms_m` is not a joint and is not
+    watched. Frames are examined `step_s` at a time, whatever the batches they arrive in.
     """
 
     def __init__(self, joints, n_sensors: int, rate_hz: float, names=None, *,
                  min_jump_m: float = 0.01, warmup_s: float = 5.0, baseline_s: float = 8.0,
-                 lag_s: float = 1.0, refresh_s: float = 0.5, window_s: float = 0.5, noise_s: float = 0.25,
-                 threshold: float = 25.0, attribute_s: float = 0.15, min_frames: int = 4,
-                 min_evidence: float = 20.0, scale_floor_m: float = 2e-4):
+                 lag_s: float = 1.0, refresh_s: float = 1.0, window_s: float = 0.5, noise_s: float = 0.25,
+                 threshold: float = 25.0, attribute_s: float = 0.15, confirm_s: float = 0.4,
+                 step_s: float = 0.1, min_frames: int = 4, min_evidence: float = 20.0,
+                 scale_floor_m: float = 2e-4, max_rms_m: float = 0.05, revisit_s: float = 40.0):
         J = np.asarray(joints, dtype=int).reshape(-1, 2)
         if J.size and (J.min() < 0 or J.max() >= n_sensors or (J[:, 0] == J[:, 1]).any()):
             raise SlippageError(f"joints must be (child, parent) pairs of distinct sensor indices below {n_sensors}")
@@ -149,6 +177,8 @@ class SlipMonitor:
             raise SlippageError(f"rate_hz must be positive, got {rate_hz!r}")
         if not lag_s > window_s:
             raise SlippageError("lag_s must exceed window_s, so a step is never inside its own baseline")
+        if not confirm_s >= attribute_s:
+            raise SlippageError("confirm_s must be at least attribute_s: a suspicion is tested from attribute_s to confirm_s")
         self.joints = J
         self.m = int(n_sensors)
         self.rate_hz = float(rate_hz)
@@ -159,21 +189,33 @@ class SlipMonitor:
         self.warmup_s, self.baseline_s, self.lag_s, self.refresh_s = warmup_s, baseline_s, lag_s, refresh_s
         self.window = max(2, int(round(window_s * rate_hz)))
         self.noise_frames = max(5, int(round(noise_s * rate_hz)))
-        self.threshold, self.attribute_s, self.min_frames = threshold, attribute_s, int(min_frames)
-        self.min_evidence, self.scale_floor = min_evidence, scale_floor_m
+        self.threshold, self.attribute_s, self.confirm_s, self.step_s = threshold, attribute_s, confirm_s, step_s
+        self.min_frames = int(min_frames)
+        self.min_evidence, self.scale_floor, self.max_rms = min_evidence, scale_floor_m, max_rms_m
+        self._nbrs = neighbours(J)
         p = len(J)
+        self._baseline_frames = int(round(baseline_s * rate_hz))
+        # Frames kept by the fits, evenly spread over their window: the smooth part needs no more.
+        self._fit_rows = 300
         cap = int(np.ceil((baseline_s + lag_s + 1.0) * rate_hz))
-        self._buf = _FrameBuffer(cap, self.m)
-        self._chunk = max(1, int(round(refresh_s * rate_hz)))
+        self._buf = _FrameBuffer(cap, self.m, J)
+        # Poses of the last revisit_s at about 50 Hz, to see whether the residual came back with the pose.
+        self._history = PoseHistory(p, rate_hz, revisit_s, every=int(round(rate_hz / 50.0)))
+        self.came_back = 0  # suspected slips that the same pose before showed to be soft tissue
+        self._chunk = max(1, int(round(step_s * rate_hz)))
         self.segment_start = np.full(p, np.nan)  # time each joint's current segment began
         self.ready = np.zeros(p, dtype=bool)
-        self.base: Baseline | None = None
+        self.rms = np.full(p, np.nan)  # each joint's residual rms over its baseline window, metres
+        self.base: SmoothBaseline | None = None
         self._c_ref = np.full((p, 3), np.nan)
         self._l_ref = np.full((p, 3), np.nan)
         self._last_refresh = -np.inf
+        self._fresh: tuple[int, int] | None = None  # global frames whose buf.dx/dy/w follow the current baseline
         self._quiet = np.full(p, -1, dtype=np.int64)  # global frame index: no step may start before it
         self._pending: tuple[int, np.ndarray] | None = None  # (onset frame, joints that fired)
+        self._next_try = -np.inf
         self.score = np.zeros(p)  # latest GLR score per joint (nats), for display
+        self.confirmations = 0  # suspicions put to the confirming test (for benchmarks)
         self.events: list[SlipEvent | SwapEvent] = []
 
     # -- public -------------------------------------------------------------------------------------
@@ -201,10 +243,14 @@ class SlipMonitor:
         t = np.where(v[..., None], t, 0.0)
         if np.isnan(self.segment_start).all() and n:
             self.segment_start[:] = ts[0]
+        finite = np.isfinite(c).all(axis=1) & np.isfinite(l).all(axis=1)
+        c, l = np.where(finite[:, None], c, 0.0), np.where(finite[:, None], l, 0.0)
         out = []
-        for a in range(0, n, self._chunk):
-            b = min(n, a + self._chunk)
-            out += self._process(ts[a:b], R[a:b], t[a:b], v[a:b], c, l)
+        a = 0
+        while a < n:
+            ends = self._plan(ts, a)
+            out += self._block(ts, R, t, v, a, ends, c, l, finite)
+            a = ends[-1]
         self.events += out
         return out
 
@@ -212,80 +258,119 @@ class SlipMonitor:
         """Per joint (by child name): watching yet, latest step evidence (nats) and the current
         segment's start, plus every event so far, for a status page."""
         joints = {
-            self.names[int(c)]: {"ready": bool(r), "score": round(float(sc), 2), "segment_start_s": None if st != st else float(st)}
-            for (c, _), r, sc, st in zip(self.joints, self.ready, self.score, self.segment_start)
+            self.names[int(c)]: {"ready": bool(r), "score": round(float(sc), 2), "segment_start_s": None if st != st else float(st),
+                                 "rms_mm": None if rms != rms else round(1000.0 * float(rms), 2),
+                                 "joined": not rms > self.max_rms}
+            for (c, _), r, sc, st, rms in zip(self.joints, self.ready, self.score, self.segment_start, self.rms)
         }
         return {"joints": joints, "threshold": self.threshold, "events": [e.to_dict() for e in self.events]}
 
     # -- internals ----------------------------------------------------------------------------------
-    def _process(self, ts, R, t, v, c, l) -> list:
-        buf = self._buf
-        g0 = buf.append(ts, R, t, v)
+    def _plan(self, ts: np.ndarray, a: int) -> list[int]:
+        """Ends (exclusive) of the steps of `step_s` from frame a that can be examined together: the
+        first, and those after it that need no new baseline (the step test of all of them is then one
+        computation; a step still runs its suspicion logic on its own, in order)."""
         n = len(ts)
-        now = float(ts[-1])
-        finite = np.isfinite(c).all(axis=1) & np.isfinite(l).all(axis=1)
-        cc, ll = np.where(finite[:, None], c, 0.0), np.where(finite[:, None], l, 0.0)
+        ends = [min(n, a + self._chunk)]
+        due = ts[ends[0] - 1] - self._last_refresh >= self.refresh_s or self.base is None
+        last = ts[ends[0] - 1] if due else self._last_refresh
+        limit = a + int(round(self.refresh_s * self.rate_hz)) + self._chunk
+        while ends[-1] < min(n, limit):
+            nxt = min(n, ends[-1] + self._chunk)
+            if ts[nxt - 1] - last >= self.refresh_s:
+                break
+            ends.append(nxt)
+        return ends
+
+    def _block(self, ts, R, t, v, a: int, ends: list[int], c, l, finite) -> list:
+        buf = self._buf
+        g0 = buf.append(ts[a:ends[-1]], R[a:ends[-1]], t[a:ends[-1]], v[a:ends[-1]])
+        new = buf.since(g0)
+        self._history.append(g0, buf.times[new], buf.g[new], buf.Q[new], buf.pv[new])
+        step_last = [g0 + e - a - 1 for e in ends]  # global index of each step's last frame
+        now = float(ts[ends[0] - 1])
         if now - self._last_refresh >= self.refresh_s or self.base is None:
-            self._refresh(now, cc, ll)
+            self._refresh(now, c, l)
         else:
-            # New estimates change every residual by δc − Q δl, which the baseline's form a − Q b
-            # follows exactly: shift it instead of recomputing.
-            self.base.a = self.base.a + (cc - self._c_ref)
-            self.base.b = self.base.b + (ll - self._l_ref)
-            self._c_ref, self._l_ref = cc.copy(), ll.copy()
+            # New estimates change every residual by δc − Q δl, which the baseline's form follows
+            # exactly: shift it instead of recomputing (the deviations do not change at all).
+            self.base.shift(c - self._c_ref, l - self._l_ref)
+            self._c_ref, self._l_ref = c.copy(), l.copy()
+        # The step test's window plus the frames the local noise level needs, before the first step.
+        first = g0 - (self.window + self.noise_frames)
+        self._deviations(first, c, l)
         ready = self.ready & finite
-        if self._pending is None and not ready.any():
-            return []
-        # Residuals of the recent frames with the current estimates: the step test's window plus the
-        # frames the local noise level needs, all recomputed so that c, l moving never looks like a step.
-        sl = buf.since(g0 + n - (self.window + self.noise_frames + n))
-        gidx = buf.global_index(sl)
-        x, y, pv, weight = self._deviations(buf.R[sl], buf.t[sl], buf.valid[sl], cc, ll)
-        earliest = np.maximum(self._quiet, 0) - gidx[0]
-        xs = np.concatenate([x, y], axis=1)  # child-frame and parent-frame series side by side
-        ws = np.concatenate([weight, weight], axis=1)
-        score, start = window_glr(xs, ws, n, self.window, 0.5 * self.min_jump, self.min_frames,
-                                  np.concatenate([earliest, earliest]))
+        out: list = []
+        j = 0
+        while j < len(ends):
+            if self._pending is None and not ready.any():
+                break
+            score, start, first_row = self._scan(first, step_last[j:], ready)
+            hit = score >= self.threshold  # (steps j…, p)
+            for k in range(j, len(ends)):
+                h = hit[k - j]
+                self.score = score[k - j]
+                now = float(ts[ends[k] - 1])
+                if self._pending is None:
+                    if not h.any():
+                        continue
+                    self._pending = (int(first_row + start[k - j][h].min()), h)
+                    self._next_try = -np.inf
+                elif h.any():
+                    # The slipped sensor's other joints may cross the threshold a little later.
+                    onset, fired = self._pending
+                    self._pending = (onset, fired | h)
+                changed, ev = self._suspicion(now, step_last[k], ready, c, l)
+                out += ev
+                if changed:  # the quiet times or the joints' state moved: test the rest afresh
+                    break
+            else:
+                break
+            ready = self.ready & finite
+            j = k + 1
+        return out
+
+    def _scan(self, first: int, lasts: list[int], ready):
+        """The step test at the last frames `lasts` of some steps: scores and starts (steps, p)."""
+        buf = self._buf
+        sl = slice(buf.slot(first), buf.slot(lasts[-1]) + 1)
+        first_row = buf.index_of(sl.start)
+        earliest = np.maximum(self._quiet, 0) - first_row
+        xs = np.concatenate([buf.dx[sl], buf.dy[sl]], axis=1)  # child-frame and parent-frame series side by side
+        w = buf.w[sl]
+        ws = np.concatenate([w, w], axis=1)
+        # One end per step, its last frame: a step that stays only gains evidence with time.
+        score, start = window_glr(xs, ws, np.asarray(lasts) - first_row, self.window, 0.5 * self.min_jump,
+                                  self.min_frames, np.concatenate([earliest, earliest]))
         p = len(self.joints)
         which = score[:, p:] > score[:, :p]
         score = np.where(which, score[:, p:], score[:, :p])
         start = np.where(which, start[:, p:], start[:, :p])
-        score = np.where(ready[None, :], score, 0.0)
-        self.score = score[-1]
+        return np.where(ready[None, :], score, 0.0), start, first_row
+
+    def _suspicion(self, now: float, last: int, ready, c, l) -> tuple[bool, list]:
+        """Put a pending suspicion to the confirming test if it is due, on the frames up to global
+        index `last`. Returns (whether the quiet times or joint states changed, the events)."""
         if self._pending is None:
-            hit = score >= self.threshold
-            if not hit.any():
-                return []
-            k = int(np.flatnonzero(hit.any(axis=1))[0])
-            fired = hit[k]
-            onset = int(gidx[0] + start[k][fired].min())
-            self._pending = (onset, fired)
+            return False, []
+        buf = self._buf
         onset, fired = self._pending
-        wsl = buf.since(onset)
-        if now - float(buf.times[wsl.start]) < self.attribute_s:
-            return []  # gather a little more evidence before naming the sensor
-        self._pending = None
-        # The window since the onset, with the noise level measured on the frames before it as well;
-        # residuals with the estimates the baseline sums were made with, so the two halves agree.
-        full = buf.since(onset - self.noise_frames)
-        x2, _, _, w2 = self._deviations(buf.R[full], buf.t[full], buf.valid[full], cc, ll)
-        cut = wsl.start - full.start
-        Rw, tw, vw = buf.R[wsl], buf.t[wsl], buf.valid[wsl]
-        cp, lp = self._c_pre, self._l_pre
-        u2, Q2 = joint_frames(Rw, tw, self.joints, cp, lp)
-        pv2 = vw[:, self.joints[:, 0]] & vw[:, self.joints[:, 1]]
-
-        def swapped(perm, touched):
-            return joint_frames(Rw[:, perm], tw[:, perm], self.joints[touched], cp[touched], lp[touched])
-
-        w2 = _with_own_noise(x2[cut:], w2[cut:])
-        att = attribute(self._pre, u2, Q2, pv2, w2, self.joints, ready, fired, self.m,
-                        self.min_jump, self.min_evidence, swapped)
+        t_onset = float(buf.times[buf.slot(onset)])
+        age = now - t_onset
+        if age < self.attribute_s or now < self._next_try:
+            return False, []  # gather a little more evidence before naming the sensor
+        self.confirmations += 1
+        att = self._attribute(onset, fired, ready, c, l, last)
         if att.kind is None:
-            self._quiet[fired] = g0 + n  # look for a new step from here on, not the same evidence again
-            return []
+            if age + self.step_s <= self.confirm_s + 1e-9 and att.evidence > 0:
+                # A step is likelier than not, but not yet by the margin: look again one step later.
+                self._next_try = now + self.step_s - 0.5 / self.rate_hz
+                return False, []
+            self._pending = None
+            self._quiet[fired] = last + 1  # look for a new step from here on, not the same evidence again
+            return True, []
+        self._pending = None
         affected = np.asarray(att.joints, dtype=int)
-        t_onset = float(buf.times[wsl.start])
         names = tuple(self.names[int(self.joints[j, 0])] for j in affected)
         if att.kind == "slip":
             ev = SlipEvent(t_onset, self.names[att.sensor], tuple(self.names[k] for k, _ in att.candidates),
@@ -295,40 +380,116 @@ class SlipMonitor:
                            att.confidence, now, (att.sensor, att.other), tuple(affected.tolist()))
         self.segment_start[affected] = t_onset
         self.ready[affected] = False
-        self._quiet[fired] = g0 + n
+        self._quiet[fired] = last + 1
         self._quiet[affected] = onset
-        return [ev]
+        return True, [ev]
 
-    def _deviations(self, R, t, v, c, l):
-        """Deviation of each frame's residual from the baseline in the child and the parent frame,
-        pair validity, and the weight 1/σ² per frame from the local noise level (n, p)."""
-        u, Q = joint_frames(R, t, self.joints, c, l)
-        x, y = self.base.deviations(u, Q)
-        pv = v[:, self.joints[:, 0]] & v[:, self.joints[:, 1]]
-        var = local_variance(x, pv, self.noise_frames)
-        floor = np.maximum(0.5 * np.nan_to_num(self.base.sigma, nan=0.0), self.scale_floor) ** 2
+    def _deviations(self, first: int, c, l) -> None:
+        """Bring the buffer's deviations and noise weights up to date from global frame `first` on.
+        Only frames not yet worked out against the current baseline are (the others cannot change: the
+        baseline follows new estimates exactly), with the noise window they need behind them."""
+        buf = self._buf
+        end = buf.index_of(buf.hi)
+        if self._fresh is None or self._fresh[0] > first:
+            new_from, var_from = first, first
+        else:
+            new_from = self._fresh[1]
+            var_from = max(self._fresh[0], new_from - self.noise_frames - 1)
+        if new_from >= end:
+            return
+        sl, rows = buf.since(new_from), buf.since(var_from)
+        Q = buf.Q[sl]
+        buf.dx[sl], buf.dy[sl] = self.base.deviations(residual(buf.g[sl], Q, c, l), Q)
+        var = local_variance(buf.dx[rows], buf.pv[rows], self.noise_frames)[sl.start - rows.start:]
+        sigma2 = np.nan_to_num(self.base.sigma, nan=0.0) ** 2
+        floor = np.maximum(0.25 * sigma2, self.scale_floor**2)
         ok = np.isfinite(var)
-        weight = np.where(pv & ok, 1.0 / np.maximum(np.where(ok, var, 1.0), floor), 0.0)
-        return x, y, pv, weight
+        # Where the configuration is new the baseline extrapolates: its own uncertainty adds to the noise.
+        var = np.maximum(np.where(ok, var, 1.0), floor) + sigma2 * self.base.leverage(Q)
+        buf.w[sl] = np.where(buf.pv[sl] & ok, 1.0 / var, 0.0)
+        self._fresh = (min(first, new_from) if self._fresh is None else min(self._fresh[0], new_from), end)
+
+    def _attribute(self, onset: int, fired: np.ndarray, ready: np.ndarray, c, l, last: int):
+        """Put the suspicion to the confirming test on the window from `baseline_s` before the onset
+        to global frame `last`."""
+        buf = self._buf
+        full = slice(buf.slot(onset - self._baseline_frames), buf.slot(last) + 1)
+        onset_row = buf.slot(onset) - full.start
+        # The frames long before the onset only pin the smooth part of the fit: every stride-th of them,
+        # each standing for stride frames, does that at a fraction of the cost.
+        cut = max(onset_row - self.window, 0)
+        stride = max(1, cut // self._fit_rows)
+        rows = np.concatenate([np.arange(cut % stride, cut, stride), np.arange(cut, full.stop - full.start)]) + full.start
+        times = buf.times[rows]
+        use = buf.pv[rows] & (times[:, None] >= self.segment_start[None, :])
+        weight = np.where(use, buf.w[rows], 0.0)
+        weight[:int(np.searchsorted(rows, full.start + cut))] *= stride
+        onset_row = int(np.searchsorted(rows, full.start + onset_row))
+        post = slice(rows[onset_row], full.stop)
+        g, Q = buf.g[rows], buf.Q[rows]
+        near = np.isin(self.joints, self.joints[fired]).any(axis=1) & ready
+        u_post = residual(buf.g[post][:, near], buf.Q[post][:, near], c[near], l[near])
+        weight[onset_row:, near] = _with_own_noise(u_post, weight[onset_row:, near])
+
+        def swapped(perm, touched):
+            return joint_geometry(buf.R[post][:, perm], buf.t[post][:, perm], self.joints[touched])
+
+        k = max(2, self.noise_frames // 4)  # a few frames each side of the onset, against the noise
+        before = slice(max(full.start, post.start - k), post.start)
+        after = slice(post.start, min(post.stop, post.start + k))
+        pos = {}
+        for name, span in (("before", before), ("after", after)):
+            v = buf.valid[span]
+            pos[name] = np.einsum("lm,lma->ma", v, buf.t[span]) / np.maximum(v.sum(axis=0), 1)[:, None]
+            pos[name + "_ok"] = v.any(axis=0)
+
+        def swap_plausible(a, b):
+            # Two sensors that swapped streams jump into each other's place; a slip or soft tissue
+            # moves a sensor by centimetres along a continuous path.
+            if not (pos["before_ok"][[a, b]].all() and pos["after_ok"][[a, b]].all()):
+                return False
+            p0, p1 = pos["before"], pos["after"]
+            stay = np.linalg.norm(p1[a] - p0[a]) + np.linalg.norm(p1[b] - p0[b])
+            cross = np.linalg.norm(p1[a] - p0[b]) + np.linalg.norm(p1[b] - p0[a])
+            return bool(cross < stay)
+
+        win = Window(times, g, Q, use, weight, onset_row, c, l, swapped, swap_plausible)
+        att = attribute(win, self.joints, self._nbrs, ready, fired, self.m, self.min_jump, self.min_evidence)
+        if att.kind == "slip":
+            J = self.joints
+            child, parent = J[:, 0] == att.sensor, J[:, 1] == att.sensor
+            # The sensor's own skin moves with the angles of its own joints: that is the pose to match.
+            pose = child | parent
+            back = came_back(self._history, float(buf.times[post.start]), self.segment_start, buf.times[post],
+                             buf.g[post], buf.Q[post], buf.pv[post], weight[onset_row:], child, parent, pose, c, l,
+                             att.step)
+            if back:  # (None: poses not seen before, no verdict; the slip stands)
+                self.came_back += 1
+                return Attribution(None, evidence=att.evidence)
+        return att
 
     def _refresh(self, now: float, c, l) -> None:
         """Recompute every joint's baseline with the current estimates from the lagged window."""
         buf = self._buf
         sl = buf.between(now - self.lag_s - self.baseline_s, now - self.lag_s)
-        R, t, v = buf.R[sl], buf.t[sl], buf.valid[sl]
-        times = buf.times[sl]
-        u, Q = joint_frames(R, t, self.joints, c, l)
-        mask = v[:, self.joints[:, 0]] & v[:, self.joints[:, 1]]
-        mask &= times[:, None] >= self.segment_start[None, :]
-        self.base = affine_baseline(u, Q, mask, self.scale_floor)
-        wpre = np.where(mask, 1.0 / np.nan_to_num(self.base.sigma, nan=np.inf)[None, :] ** 2, 0.0)
-        self._pre = step_design_sums(u, Q, wpre, None)
-        self._c_pre, self._l_pre = np.array(c, dtype=float), np.array(l, dtype=float)
+        stride = max(1, (sl.stop - sl.start) // self._fit_rows)
+        Q = buf.Q[sl]
+        mask = buf.pv[sl] & (buf.times[sl][:, None] >= self.segment_start[None, :])
+        u, Qs, ms = residual(buf.g[sl][::stride], Q[::stride], c, l), Q[::stride], mask[::stride]
+        self.base = smooth_baseline(u, Qs, ms, self._nbrs, self.scale_floor)
+        self.base.frames = mask.sum(axis=0)
+        with np.errstate(invalid="ignore"):
+            self.rms = np.sqrt(np.where(ms, (u * u).sum(axis=-1), 0.0).sum(axis=0) / ms.sum(axis=0))
         enough = self.base.frames >= 0.6 * min(self.warmup_s, self.baseline_s) * self.rate_hz
         settled = now - self.segment_start >= max(self.warmup_s, self.lag_s)
-        self.ready = enough & settled & np.isfinite(self.base.sigma)
+        # A joint's residual is tracker noise and soft tissue, a couple of centimetres at most; a pair
+        # whose residual is larger than max_rms_m is two bodies that are not joined (an object in the
+        # hand, a wrong tree edge): steps in it are no slips, and it is not watched.
+        joined = self.rms <= self.max_rms
+        self.ready = enough & settled & np.isfinite(self.base.sigma) & joined
         self._c_ref, self._l_ref = np.array(c, dtype=float), np.array(l, dtype=float)
         self._last_refresh = now
+        self._fresh = None  # every deviation must be worked out again against the new baseline
 
 
 def _with_own_noise(x: np.ndarray, weight: np.ndarray) -> np.ndarray:
@@ -358,9 +519,10 @@ def attributes_slip_to(event, sensor: str, names, parent) -> bool:
     return leaf is not None and not np.any(parent == leaf)
 
 
-def detect_slips(take, calibration=None, *, joints=None, c=None, l=None, batch_s: float = 0.25,
+def detect_slips(take, calibration=None, *, joints=None, c=None, l=None, batch_s: float = 10.0,
                  **options) -> list:
-    """Slip and swap events in a recorded take, replayed through a `SlipMonitor` in live-sized batches.
+    """Slip and swap events in a recorded take, replayed through a `SlipMonitor` (which examines the
+    frames `step_s` at a time, as live, whatever the `batch_s` pieces they are handed over in).
 
     take: a `flockcal.takes.Take` (or anything with rotations, positions, rate_hz and optionally valid,
     times, names). Joint estimates come from `calibration` (a `Calibration` or its design.md §5 dict)

@@ -1,12 +1,14 @@
-"""Which sensor slipped (or which two swapped), from the frames after a suspected change.
+"""Which sensor slipped (or which two swapped), from the window around a suspected change.
 
-Every hypothesis is scored by how well it explains the residuals of all ready joints over their
-baseline window and the frames since the change, each joint re-fitted (its a, b) under the hypothesis:
-"sensor s slipped" = each joint of s stepped, by at least the minimum jump, in s's own frame, the
-other joints did not; "a and b swapped" = exchanging their data restores every joint; "nothing" =
-one re-fit explains each joint before and after. Scores are Gaussian log-likelihoods with each joint's own
-per-frame noise level (plus a BIC term per fitted step), so the posterior over hypotheses
-gives the confidence and, for a body whose joints cannot tell two sensors apart, both candidates.
+Every hypothesis is scored by how well it explains the residuals of the joints near the change over
+the window (8 s before the onset and the frames since), each joint's residual fitted as a smooth
+function of the configuration (`slippage_local`): "sensor s slipped" = its placement moved at the
+onset by one vector (of at least the minimum jump) in its own frame, which every joint of s shows and
+no other joint does; "a and b swapped" = exchanging their data from the onset on brings every joint
+back to what the frames before predict; "nothing" = the smooth fit explains every joint before and
+after (soft tissue, new motion, a fit still settling). Scores are Gaussian log-likelihoods in each
+frame's own noise (plus a BIC term per fitted step), so the posterior over hypotheses gives the
+confidence and, for a body whose joints cannot tell two sensors apart, both candidates.
 """
 
 from __future__ import annotations
@@ -17,11 +19,17 @@ from itertools import combinations
 
 import numpy as np
 
-from flockcal.solver.slippage_stats import chow_rss
-
+from flockcal.solver.slippage_local import configuration_design, prediction_rss, step_fits
+from flockcal.solver.slippage_stats import residual
 
 # Other sensors are listed as candidates down to this posterior share.
 CANDIDATE_SHARE = 0.05
+# A neighbouring joint's rotation moves the skin under a sensor by about a centimetre per right angle:
+# the prior sd of those regressors' coefficients, metres per unit of a rotation-matrix entry, so that
+# directions a window hardly turns along stay near zero instead of fitting noise (and the step). The
+# joint's own rotation has none: a first swing to the end of a range must be free to follow the skin.
+NEIGHBOUR_PRIOR_M = 0.01
+OWN_COLUMNS = 11  # 1, the trend and the nine entries of the joint's own rotation
 
 
 @dataclass
@@ -34,59 +42,86 @@ class Attribution:
     joints: list[int] = field(default_factory=list)  # joint indices the event affects
     jump_m: float = 0.0
     evidence: float = 0.0  # nats by which the best hypothesis beats "nothing"
+    step: np.ndarray | None = None  # slip: the fitted step (3,) in the sensor's own frame, metres
 
 
-def attribute(pre: np.ndarray, u: np.ndarray, Q: np.ndarray, pair_valid: np.ndarray, weight: np.ndarray,
-              joints: np.ndarray, ready: np.ndarray, suspects: np.ndarray, n_sensors: int, min_jump: float,
-              min_evidence: float, swapped: Callable[[np.ndarray, np.ndarray], tuple] | None = None) -> Attribution:
-    """Score slip and swap hypotheses on the frames since the suspected change (see module docstring).
+@dataclass
+class Window:
+    """The frames around a suspected change, as the monitor hands them over (L frames, P joints).
 
-    pre (p, 7, 7): each joint's weighted design sums over its baseline window (`step_design_sums`);
-    u (n, p, 3), Q (n, p, 3, 3): child-frame residuals and relative rotations of the frames since the
-    change, with the estimates the sums were made with; pair_valid (n, p); weight (n, p) 1/σ²;
-    joints (p, 2) (child, parent); ready (p,) joints with a baseline; suspects (p,) joints that fired;
-    swapped(perm, touched) -> (u, Q) of the joints `touched` with the sensors' data permuted.
+    g, Q: cached joint geometry (`slippage_stats.joint_geometry`); use (L, P): frames each joint may
+    use (valid, in its current segment); weight (L, P) = 1/σ²; times (L,); onset_row: first row of the
+    change; c, l (P, 3): the estimates; swapped(perm, joints) -> (g, Q) of the frames from the onset on
+    with the sensors' data permuted, for those joints; swap_plausible(a, b): whether exchanging a's and
+    b's data at the onset makes their paths more continuous, not less (else the swap is not scored).
     """
-    pair_valid = pair_valid & (weight > 0)
-    wt = np.where(pair_valid, weight, 0.0)
-    use = ready & pair_valid.any(axis=0)
-    if not (use & suspects).any():
+
+    times: np.ndarray
+    g: np.ndarray
+    Q: np.ndarray
+    use: np.ndarray
+    weight: np.ndarray
+    onset_row: int
+    c: np.ndarray
+    l: np.ndarray
+    swapped: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
+    swap_plausible: Callable[[int, int], bool] | None = None
+
+
+def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarray,
+              suspects: np.ndarray, n_sensors: int, min_jump: float, min_evidence: float) -> Attribution:
+    """Score slip and swap hypotheses around the change (see module docstring).
+
+    joints (P, 2) (child, parent); nbrs (P, width): `slippage_local.neighbours(joints)`; ready (P,)
+    joints with a baseline; suspects (P,) joints whose step test fired. Only joints sharing a sensor
+    with a suspect are fitted: a sensor none of whose joints fired cannot be the one that slipped.
+    """
+    P = len(joints)
+    after = np.arange(len(win.times)) >= win.onset_row
+    sensors = np.unique(joints[suspects])
+    near = np.isin(joints, sensors).any(axis=1) & ready & (win.use & after[:, None]).any(axis=0)
+    sel = np.flatnonzero(near)
+    if not (near & suspects).any():
         return Attribution(None)
-    nj = np.maximum(pair_valid.sum(axis=0), 1)
-    sw = wt.sum(axis=0)
-    u = np.where(pair_valid[..., None], u, 0.0)
-    rss = chow_rss(pre, u, Q, wt)
-    bic = 1.5 * np.log(nj)
-
-    def gain(role):
-        short = np.maximum(min_jump - rss[role + "_size"], 0.0)
-        g = 0.5 * (rss[role] - rss["none"]) + bic + 0.5 * sw * short**2
-        return np.where(use, g, 0.0)
-
-    gain_c, gain_p = gain("child"), gain("parent")
+    c, l = win.c[sel], win.l[sel]
+    Q = win.Q[:, sel]
+    x = residual(win.g[:, sel], Q, c, l)
+    y = (Q.swapaxes(-1, -2) @ x[..., None])[..., 0]
+    w = np.where(win.use[:, sel], win.weight[:, sel], 0.0)
+    none = np.zeros((P, 0), dtype=np.intp)
+    D = configuration_design(win.Q, None, win.times, win.onset_row, sel, none, full=nbrs)
     m = n_sensors
-    inc_c = joints[:, 0][None, :] == np.arange(m)[:, None]  # (m, p) sensor is the joint's child
+    inc_c = joints[:, 0][None, :] == np.arange(m)[:, None]  # (m, P) sensor is the joint's child
     inc_p = joints[:, 1][None, :] == np.arange(m)[:, None]
-    slip_cost = inc_c.astype(float) @ gain_c + inc_p.astype(float) @ gain_p  # (m,)
-    possible = ((inc_c | inc_p) & use[None, :]).any(axis=1)
+    slip_cost, steps, fx = _slip_costs(D, x, y, w, after, sel, inc_c, inc_p, min_jump)
+    size = np.linalg.norm(steps, axis=1)
+    # Only a sensor one of whose joints stepped can have slipped (its other joints may lag behind).
+    possible = np.isin(np.arange(m), sensors) & ((inc_c | inc_p) & near[None, :]).any(axis=1)
     slip_cost = np.where(possible, slip_cost, np.inf)
 
-    # Swaps: only among sensors of the joints that fired; exchanging their data must restore the joints.
-    involved = np.unique(joints[suspects])
-    swaps = list(combinations(involved.tolist(), 2))
+    # Swaps: only among sensors of the joints that fired. Exchanging their data from the onset on must
+    # bring every joint back to what the frames before the onset predict (judged by prediction: a fit
+    # across the onset could follow the jump that exchanging two bodies' rotations puts in its regressors).
+    swaps = [pair for pair in combinations(sensors.tolist(), 2) if win.swap_plausible is None or win.swap_plausible(*pair)]
     swap_cost = np.full(len(swaps), np.inf)
-    if swaps and swapped is not None:
+    if swaps and win.swapped is not None:
         prior = np.log(len(swaps))
+        stay = np.zeros(P)
+        stay[sel] = prediction_rss(D, x, w, after)
         for k, (a, b) in enumerate(swaps):
             perm = np.arange(m)
             perm[[a, b]] = [b, a]
-            touched = np.isin(joints, (a, b)).any(axis=1) & use
-            if not touched.any():
+            touched = sel[np.isin(joints[sel], (a, b)).any(axis=1)]
+            if not len(touched):
                 continue
-            su, sQ = swapped(perm, touched)
-            su = np.where(pair_valid[:, touched, None], su, 0.0)
-            none_s = chow_rss(pre[touched], su, sQ, wt[:, touched])["none"]
-            swap_cost[k] = 0.5 * (none_s - rss["none"][touched]).sum() + prior
+            g2, Q2 = win.swapped(perm, touched)
+            g_all, Q_all = win.g.copy(), win.Q.copy()
+            g_all[win.onset_row:, touched], Q_all[win.onset_row:, touched] = g2, Q2
+            Qs = Q_all[:, touched]
+            xs = residual(g_all[:, touched], Qs, win.c[touched], win.l[touched])
+            Ds = configuration_design(Q_all, None, win.times, win.onset_row, touched, none, full=nbrs)
+            ws = np.where(win.use[:, touched], win.weight[:, touched], 0.0)
+            swap_cost[k] = 0.5 * (prediction_rss(Ds, xs, ws, after) - stay[touched]).sum() + prior
 
     costs = np.concatenate([slip_cost, swap_cost])
     best = int(np.argmin(costs))
@@ -98,15 +133,39 @@ def attribute(pre: np.ndarray, u: np.ndarray, Q: np.ndarray, pair_valid: np.ndar
     if best >= m:
         a, b = swaps[best - m]
         touched = np.flatnonzero(np.isin(joints, (a, b)).any(axis=1))
-        jump = float(np.median(np.maximum(rss["child_size"], rss["parent_size"])[touched]))
+        jump = float(np.median(np.linalg.norm(fx.step, axis=1)))
         return Attribution("swap", a, b, [(a, float(post[best])), (b, float(post[best]))],
                            float(post[best]), touched.tolist(), jump, evidence)
     s = best
     mine = np.flatnonzero(inc_c[s] | inc_p[s])
-    ready_mine = mine[use[mine]]
-    size = np.where(inc_c[s, ready_mine], rss["child_size"][ready_mine], rss["parent_size"][ready_mine])
-    if np.median(size) < min_jump:
+    if size[s] < min_jump:
         return Attribution(None, evidence=evidence)
     order = np.argsort(-post[:m])
     cands = [(int(k), float(post[k])) for k in order if post[k] >= CANDIDATE_SHARE]
-    return Attribution("slip", s, -1, cands, float(post[s]), mine.tolist(), float(np.median(size)), evidence)
+    return Attribution("slip", s, -1, cands, float(post[s]), mine.tolist(), float(size[s]), evidence, steps[s])
+
+
+def _slip_costs(D, x, y, w, after, sel, inc_c, inc_p, min_jump):
+    """(m,) cost of "sensor s slipped" against "nothing" (negative: evidence for it), each sensor's
+    step (m, 3) in its own frame, and the child-frame fits, with regressors D for the selected joints.
+
+    Its placement moved by one vector δ in its own frame, so each of its joints steps by that vector:
+    by +δ in the child-frame series where s is the child (u = c + R_iᵀ(t_i − t_j) − Q l gains
+    R_iᵀ R_i δ), by −δ in the parent-frame series where it is the parent. The joints' step terms add
+    up into one fit of δ."""
+    fx, fy = step_fits(D, [x, y], w, after, prior_sd=NEIGHBOUR_PRIOR_M, prior_from=OWN_COLUMNS)
+    P = inc_c.shape[1]
+    gx, gy, hx = np.zeros((P, 3)), np.zeros((P, 3)), np.zeros(P)
+    gx[sel], gy[sel], hx[sel] = fx.g, fy.g, fx.h
+    n_after, w_after = np.zeros(P), np.zeros(P)
+    n_after[sel], w_after[sel] = fx.after, fx.weight_after
+    ic, ip = inc_c.astype(float), inc_p.astype(float)
+    G = ic @ gx - ip @ gy  # (m, 3)
+    Hs = (ic + ip) @ hx
+    with np.errstate(invalid="ignore", divide="ignore"):
+        step = np.nan_to_num(G / Hs[:, None])
+        reduction = np.nan_to_num((G * G).sum(axis=1) / Hs)
+    short = np.maximum(min_jump - np.linalg.norm(step, axis=1), 0.0)
+    cost = (-0.5 * reduction + 1.5 * np.log(np.maximum((ic + ip) @ n_after, 1))
+            + 0.5 * ((ic + ip) @ w_after) * short**2)
+    return cost, step, fx

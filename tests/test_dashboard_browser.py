@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from flockcal.server.testing import ServerProcess, free_port, wait_connected
+from flockcal.simulator.performer import Performer
 
 CHROMIUM = "/usr/bin/chromium"
 CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
@@ -41,6 +42,13 @@ LIMIT = {"hinge": BONE_TOLERANCE_M, "ball": BALL_BONE_TOLERANCE_M}
 # each limb once a loop.
 KIOSK_QUERY = f"token={KIOSK}&reset_s=3"
 ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def performer():
+    # As conftest's, with rigid sensors: the drawn bones are held to the simulator's true bones (1 cm
+    # between ball joints), and soft tissue, on by default, moves the fitted joint centres by about that.
+    return Performer("human", "exercise", seed=1, rate_hz=144.0, period=8.0, sta_mm=0)
 
 
 def artifacts() -> Path:

@@ -71,7 +71,9 @@ def _axis_distance_errors(fit: dict, truth: dict) -> list[float]:
 
 @pytest.fixture(scope="module")
 def exact_exercise():
-    return simulate(model="human", motion="exercise", seconds=40, rate_hz=60, seed=2, noise=None)
+    # Exact data means rigid sensors too: soft tissue (on by default) moves each sensor with the pose,
+    # and these promises are about the solver recovering fixed placements to 1e-9 m.
+    return simulate(model="human", motion="exercise", seconds=40, rate_hz=60, seed=2, noise=None, sta_mm=0)
 
 
 def test_solver_recovers_joints_and_bones_to_1e_9_m_on_exact_data(exact_exercise):
@@ -101,7 +103,10 @@ def test_linkage_bones_are_exact_to_1e_9_m():
 
 
 def test_solver_is_within_a_few_millimetres_on_exercise_with_tracker_noise():
-    take, truth = simulate(model="human", motion="exercise", seconds=45, rate_hz=100, seed=1, noise="tracker")
+    # Tracker noise alone (README: "within < 1 mm" on this take, 3 mm allowed): the truth holds each
+    # sensor's rest placement, which soft tissue would move the sensors away from.
+    take, truth = simulate(model="human", motion="exercise", seconds=45, rate_hz=100, seed=1, noise="tracker",
+                           sta_mm=0)
     fit = calibrate(_accumulate(take), root="pelvis", names=take.names).to_dict()
     assert fit["parent"] == truth["parent"]
     assert max(_joint_errors(fit, truth).values()) < 0.003

@@ -1,5 +1,6 @@
 """Slippage monitor on the simulator, through the live loop (segmented accumulator → fits → monitor):
-2 cm slips of every sensor during "walk" at tracker noise, no alarm on clean motion, re-fit after a slip.
+2 cm slips of every sensor during "walk" at tracker noise (rigid sensors and with soft tissue), no
+alarm on clean motion, re-fit after a slip.
 """
 
 from __future__ import annotations
@@ -31,18 +32,21 @@ def frames(perf: Performer, t0: float, t1: float):
     return times, R, t, v
 
 
-def warmed_up(seed: int):
-    """A performer walking and the live loop fed up to just before the slip time."""
-    perf = Performer("human", routine="walk", seed=seed, noise="tracker", rate_hz=RATE, seconds=60)
+def warmed_up(seed: int, sta_mm: float | None = None):
+    """A performer walking (soft tissue as given, the simulator's default otherwise) and the live loop
+    fed up to just before the slip time."""
+    perf = Performer("human", routine="walk", seed=seed, noise="tracker", rate_hz=RATE, seconds=60, sta_mm=sta_mm)
     replay = SlipReplay(tree(perf.model), perf.n_sensors, RATE, perf.names)
     replay.feed(*frames(perf, 0.0, SLIP_AT))
     return perf, replay
 
 
-def test_two_cm_slip_of_any_sensor_found_within_half_a_second_and_attributed():
+@pytest.mark.parametrize("sta_mm", [0.0, 12.0], ids=["rigid sensors", "12 mm soft tissue"])
+def test_two_cm_slip_of_any_sensor_found_within_half_a_second_and_attributed(sta_mm):
+    # README: ≥ 95 % found and attributed within 0.5 s, with and without soft tissue (measured 100 %).
     trials, good, delays = 0, 0, []
     for seed in SEEDS:
-        perf, base = warmed_up(seed)
+        perf, base = warmed_up(seed, sta_mm)
         assert base.events == [], f"false alarm during warm-up / clean walk (seed {seed}): {base.events}"
         for name in perf.names:
             replay = copy.deepcopy(base)
@@ -79,7 +83,9 @@ def test_clean_motion_with_changes_of_activity_and_dropouts_raises_no_alarm():
 
 def test_refit_after_slip_converges_to_new_placement_and_other_joints_keep_all_data():
     seed, name = 5, "l_forearm"
-    perf = Performer("human", routine="walk", seed=seed, noise="tracker", rate_hz=RATE, seconds=60)
+    # The re-fit is compared with the truth's placement, which is where the sensor sits at rest: with
+    # soft tissue on, the skin carries it about that place with the pose, so this check runs without.
+    perf = Performer("human", routine="walk", seed=seed, noise="tracker", rate_hz=RATE, seconds=60, sta_mm=0)
     J = tree(perf.model)
     perf.inject_slip(name, 0.02, at_time=SLIP_AT)
     slipped = SlipReplay(J, perf.n_sensors, RATE, perf.names)

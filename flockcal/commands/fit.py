@@ -88,6 +88,9 @@ def accumulate(take, progress: bool = True):
 def run(args: argparse.Namespace) -> int:
     import dataclasses
 
+    from flockcal.threads import single_threaded_blas
+
+    single_threaded_blas()  # before numpy loads
     from flockcal.solver.calibration import calibrate
     from flockcal.takes import load_take
 

@@ -32,6 +32,9 @@ def register(subparsers) -> None:
     p.add_argument("--seed", type=int, default=1, help="seed for the subject, the motion and the noise (default 1)")
     p.add_argument("--height", type=float, default=1.75, help="the human's height in metres (default 1.75)")
     p.add_argument("--noise", default="tracker", choices=["tracker", "none"], help="tracker noise or exact poses")
+    p.add_argument("--sta-mm", type=float, metavar="MM",
+                   help="soft-tissue artefact: how far a skin sensor slides as a neighbouring joint reaches the "
+                   "end of its range (human default 12, 0 = off; the linkage and pair have none)")
     p.add_argument("--dropout", type=float, default=0.0, metavar="P", help="probability a sensor-frame is lost")
     p.add_argument("--slip", action="append", default=[], metavar="SENSOR@T:MM[:DEG]",
                    help="a sensor slides MM millimetres (and turns DEG degrees) at T seconds; repeatable")  # fmt: skip
@@ -125,12 +128,15 @@ def _write_take(args: argparse.Namespace) -> int:
         take, truth = simulate(
             model=args.model, motion=args.motion, seconds=args.seconds, rate_hz=args.rate, birds=birds,
             seed=args.seed, noise=None if args.noise == "none" else "tracker", faults=faults, height=args.height,
+            sta_mm=args.sta_mm,
         )  # fmt: skip
         stages.step("writing")
         save_take(out, take)
         write_atomic(tp, json.dumps(truth, indent=1) + "\n")
-    print(f"wrote {out} ({take.n_frames} frames × {take.n_sensors} sensors, {args.motion}, {args.seconds:g} s) and {tp}",
-          file=sys.stderr)
+    sta = truth["simulation"]["sta_mm"]
+    skin = f", soft tissue {sta:g} mm" if sta else ""
+    print(f"wrote {out} ({take.n_frames} frames × {take.n_sensors} sensors, {args.motion}, {args.seconds:g} s{skin}) "
+          f"and {tp}", file=sys.stderr)
     return 0
 
 
@@ -150,7 +156,8 @@ def _serve_pty(args: argparse.Namespace) -> int:
                             "write a take with -o instead") from None  # fmt: skip
     birds = args.birds if args.birds is not None else (16 if args.model == "human" else None)
     source = Performer(args.model, routine=args.motion, seed=args.seed, rate_hz=args.rate, birds=birds,
-                       noise=None if args.noise == "none" else "tracker", height=args.height)  # fmt: skip
+                       noise=None if args.noise == "none" else "tracker", height=args.height,
+                       sta_mm=args.sta_mm)  # fmt: skip
     if args.dropout:
         source.set_dropout(args.dropout)
     if args.unit_scale != 1.0:

@@ -1,0 +1,96 @@
+"""Soft tissue comes back when the pose comes back: the slip monitor's last check of a suspected slip
+compares each joint's residual now with its residual when the body was last in the same pose.
+
+A slip leaves the residual a step away from what it was in that pose; soft tissue, however fast it
+swings, puts it back where it was. Poses the take has not been in yet give no verdict.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from flockcal.solver.slippage_stats import residual
+
+# Two poses are the same when every joint involved is within this angle of where it was (radians): soft
+# tissue moves a sensor by about a centimetre per radian, so 4° leaves well under a millimetre.
+SAME_POSE_RAD = np.radians(4.0)
+# A slip is dropped when its frames favour "back where it was" over "a step away" by this many nats
+# (20 : 1), from at least this many frames of the same pose.
+CAME_BACK_NATS = 3.0
+MIN_MATCHES = 5
+
+
+class PoseHistory:
+    """The last `seconds` of every joint's geometry (g, Q), pair validity and time, at about `rate_hz`
+    (a pose needs no more), so a pose can be looked up after the frame buffer has let it go."""
+
+    def __init__(self, p: int, rate_hz: float, seconds: float, every: int):
+        self.every = max(1, int(every))
+        cap = int(np.ceil(seconds * rate_hz / self.every)) + 1
+        self.times = np.full(cap, np.nan)
+        self.g = np.zeros((cap, p, 3))
+        self.Q = np.zeros((cap, p, 3, 3))
+        self.pv = np.zeros((cap, p), dtype=bool)
+        self.next = 0  # ring position
+        self.count = 0
+
+    def append(self, first_index: int, times, g, Q, pv) -> None:
+        """Frames of global indices first_index…; every `every`-th global frame is kept."""
+        keep = np.flatnonzero((first_index + np.arange(len(times))) % self.every == 0)
+        for k in keep:  # a handful per batch
+            i = self.next
+            self.times[i], self.g[i], self.Q[i], self.pv[i] = times[k], g[k], Q[k], pv[k]
+            self.next = (i + 1) % len(self.times)
+            self.count = min(self.count + 1, len(self.times))
+
+
+def came_back(history: PoseHistory, before: float, since: np.ndarray, times, g, Q, pv, weight,
+              child: np.ndarray, parent: np.ndarray, pose: np.ndarray, c, l, step: np.ndarray) -> bool | None:
+    """Whether the frames since a suspected slip of a sensor (the child of joints `child`, the parent
+    of joints `parent`, boolean over all joints) sit where the same joints sat in the same pose before
+    it (True), rather than a `step` (3,) away in the sensor's own frame (False); None while the
+    frames since are all in poses not seen before.
+
+    history: poses up to time `before` (the onset) are looked up, from `since` (P,) on for each joint
+    (its current segment); times, g, Q, pv, weight: the frames since the onset; pose (P,) bool: the
+    joints whose angles move the skin under the sensor's joints; c, l: the current estimates.
+    """
+    mine = child | parent
+    n = history.count
+    if not mine.any() or n == 0:
+        return None
+    h = np.arange(n)
+    need = pose | mine
+    usable = (history.times[h] < before) & history.pv[h][:, need].all(axis=1)
+    usable &= (history.times[h][:, None] >= since[None, need]).all(axis=1)
+    h = h[usable]
+    live = pv[:, need].all(axis=1)
+    if len(h) < MIN_MATCHES or live.sum() < MIN_MATCHES:
+        return None
+    # The pose distance is the worst joint's: ‖Q − Q'‖² (Frobenius) is 4 (1 − cos θ) ≈ 2 θ².
+    a = Q[live][:, need].reshape(int(live.sum()), -1, 9)
+    b = history.Q[h][:, need].reshape(len(h), -1, 9)
+    d2 = ((a[:, None] - b[None]) ** 2).sum(axis=-1).max(axis=-1)  # (post, history)
+    best = d2.argmin(axis=1)
+    matched = d2[np.arange(len(best)), best] <= 4 * (1 - np.cos(SAME_POSE_RAD))
+    if matched.sum() < MIN_MATCHES:
+        return None  # poses not seen before: no verdict yet
+    rows = np.flatnonzero(live)[matched]
+    then = h[best[matched]]
+    J = np.flatnonzero(mine)
+    now_x = residual(g[rows][:, J], Q[rows][:, J], c[J], l[J])
+    then_x = residual(history.g[then][:, J], history.Q[then][:, J], c[J], l[J])
+    # In the sensor's own frame: +u where it is the child, −Qᵀu where it is the parent.
+    sign_parent = parent[J]
+
+    def own(u, Qs):
+        return np.where(sign_parent[None, :, None], -(Qs.swapaxes(-1, -2) @ u[..., None])[..., 0], u)
+
+    diff = own(now_x, Q[rows][:, J]) - own(then_x, history.Q[then][:, J])
+    w = 0.5 * weight[rows][:, J]  # a difference of two frames has twice a frame's variance
+    info = w.sum()
+    if not info > 0:
+        return None
+    mean = (diff * w[..., None]).sum(axis=(0, 1)) / info
+    favour_back = 0.5 * info * (((mean - step) ** 2).sum() - (mean**2).sum())
+    return bool(favour_back > CAME_BACK_NATS)
