@@ -38,7 +38,9 @@ DONE_WITHIN_S = 45.0
 
 @pytest.fixture(scope="module")
 def guest():
-    performer = Performer("human", "kiosk", seed=21, rate_hz=RATE, height=1.66)
+    # Rigid sensors: the time-to-done promise (docs/service.md, "Time to calibrate") is measured on them;
+    # soft tissue slows a guest down and has its own, benchmark-only figures there.
+    performer = Performer("human", "kiosk", seed=21, rate_hz=RATE, height=1.66, sta_mm=0)
     tracker = PtyTracker(performer, birds=16, baud=921600, rate_hz=RATE)
     stream = GuestSource(performer, tracker.flock.clock)
     tracker.flock.source = stream

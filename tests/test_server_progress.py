@@ -32,7 +32,9 @@ SLIPPED = "l_forearm"
 
 @pytest.fixture(scope="module")
 def guest():
-    performer = Performer("human", "kiosk", seed=33, rate_hz=RATE, height=1.81)
+    # Rigid sensors: the time-to-done promise (docs/service.md, "Time to calibrate") is measured on them;
+    # soft tissue slows a guest down and has its own, benchmark-only figures there.
+    performer = Performer("human", "kiosk", seed=33, rate_hz=RATE, height=1.81, sta_mm=0)
     tracker = PtyTracker(performer, birds=16, baud=921600, rate_hz=RATE)
     source = GuestSource(performer, tracker.flock.clock)
     tracker.flock.source = source

@@ -75,7 +75,7 @@ def test_simulate_records_the_soft_tissue_in_the_truth_and_sta_mm_sets_it(tmp_pa
     out = tmp_path / "take.npz"
     assert main(["simulate", "--motion", "exercise", "--seconds", "4", "--birds", "6", "--sta-mm", "8",
                  "-o", str(out)]) == 0
-    assert "soft tissue 8 mm" in capsys.readouterr().out
+    assert "soft tissue 8 mm" in capsys.readouterr().err
     truth = json.loads((tmp_path / "take.truth.json").read_text())
     sta = truth["soft_tissue"]
     assert sta["size_mm"] == 8 and truth["simulation"]["sta_mm"] == 8 and sta["seed"] == 1
