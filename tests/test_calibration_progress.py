@@ -191,7 +191,9 @@ def test_a_child_that_fits_two_parents_is_not_counted_until_the_tree_settles():
 @pytest.fixture(scope="module")
 def kiosk_guest():
     """The service's per-fit steps on a simulated guest doing the kiosk routine, 30 fits a second."""
-    perf = Performer("human", "kiosk", seed=7, rate_hz=100.0, height=1.68)
+    # Rigid sensors: the guest must be done within the 28 s this fixture runs (docs/service.md measures the
+    # kiosk's timing on rigid sensors; soft tissue slows it, see "Time to calibrate").
+    perf = Performer("human", "kiosk", seed=7, rate_hz=100.0, height=1.68, sta_mm=0)
     acc = new_accumulator(perf.n_sensors, segmented=True)
     tracker = ProgressTracker(TARGET)
     out = []
