@@ -17,6 +17,7 @@ import time
 import numpy as np
 
 from flockcal.drivers import codec
+from flockcal.rotations import from_euler
 from flockcal.drivers.assembly import FrameAssembler
 from flockcal.drivers.link import FlockSetup
 from flockcal.solver.accumulator import GramAccumulator
@@ -25,7 +26,7 @@ from flockcal.solver.accumulator import GramAccumulator
 def stream_bytes(fmt: str, m: int, n: int, rate: float, group: bool) -> bytes:
     t = np.arange(n)[:, None] / rate
     ang = 0.7 * np.sin(2 * np.pi * 0.5 * t + np.arange(m))
-    R = codec.euler_to_rotation(ang, 0.5 * ang, -ang)
+    R = from_euler(ang, 0.5 * ang, -ang)
     z = np.zeros((n, m))
     p = np.stack([0.4 + 0.2 * np.sin(t + np.arange(m)), 0.2 * np.cos(t) + z, 0.1 * np.sin(2 * t) + z], -1)
     addresses = np.tile(np.arange(1, m + 1), n) if group else None

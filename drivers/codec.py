@@ -12,9 +12,8 @@ from dataclasses import dataclass
 from enum import IntEnum
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from flockcal.solver.transforms import nearest_rotation as svd_nearest_rotation
+from flockcal.rotations import as_euler, as_flock_quat, from_euler, from_flock_quat, nearest_rotation
 
 INCH = 0.0254  # metres
 PHASE_BIT = 0x80
@@ -129,97 +128,6 @@ def _angle_to_word(a: np.ndarray) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------------
-# Rotations
-
-
-def nearest_rotation(m: np.ndarray) -> np.ndarray:
-    """Polar projection of (..., 3, 3) matrices onto SO(3).
-
-    Nearly orthonormal input (a quantised rotation) takes three Björck iterations, which converge
-    quadratically; anything far from a rotation goes through the SVD.
-    """
-    m = np.asarray(m, dtype=float)
-    r = m
-    for _ in range(3):
-        r = r @ (1.5 * _I3 - 0.5 * np.swapaxes(r, -1, -2) @ r)
-    err = np.abs(np.swapaxes(r, -1, -2) @ r - _I3).max(axis=(-2, -1))
-    bad = ~(err < 1e-12) | (_det3(r) < 0)
-    if np.any(bad):
-        r[bad] = svd_nearest_rotation(m[bad])
-    return r
-
-
-_I3 = np.eye(3)
-
-
-def _det3(r: np.ndarray) -> np.ndarray:
-    """Determinants of (..., 3, 3) matrices, written out (np.linalg.det costs more than this for a few)."""
-    return (r[..., 0, 0] * (r[..., 1, 1] * r[..., 2, 2] - r[..., 1, 2] * r[..., 2, 1])
-            - r[..., 0, 1] * (r[..., 1, 0] * r[..., 2, 2] - r[..., 1, 2] * r[..., 2, 0])
-            + r[..., 0, 2] * (r[..., 1, 0] * r[..., 2, 1] - r[..., 1, 1] * r[..., 2, 0]))
-
-
-def quaternion_to_rotation(q: np.ndarray) -> np.ndarray:
-    """(..., 4) scalar-first quaternions (any norm > 0) → (..., 3, 3) rotation matrices."""
-    q = np.asarray(q, dtype=float)
-    q = q / np.linalg.norm(q, axis=-1, keepdims=True)
-    w, x, y, z = q[..., 0], q[..., 1], q[..., 2], q[..., 3]
-    out = np.empty(q.shape[:-1] + (3, 3))
-    out[..., 0, 0] = 1 - 2 * (y * y + z * z)
-    out[..., 0, 1] = 2 * (x * y - z * w)
-    out[..., 0, 2] = 2 * (x * z + y * w)
-    out[..., 1, 0] = 2 * (x * y + z * w)
-    out[..., 1, 1] = 1 - 2 * (x * x + z * z)
-    out[..., 1, 2] = 2 * (y * z - x * w)
-    out[..., 2, 0] = 2 * (x * z - y * w)
-    out[..., 2, 1] = 2 * (y * z + x * w)
-    out[..., 2, 2] = 1 - 2 * (x * x + y * y)
-    return out
-
-
-def euler_to_rotation(a, e, r) -> np.ndarray:
-    """R = Rz(A)·Ry(E)·Rx(R) (sensor → transmitter), shape (..., 3, 3)."""
-    ca, sa, ce, se, cr, sr = np.cos(a), np.sin(a), np.cos(e), np.sin(e), np.cos(r), np.sin(r)
-    out = np.empty(np.shape(a) + (3, 3))
-    out[..., 0, 0] = ca * ce
-    out[..., 0, 1] = ca * se * sr - sa * cr
-    out[..., 0, 2] = ca * se * cr + sa * sr
-    out[..., 1, 0] = sa * ce
-    out[..., 1, 1] = sa * se * sr + ca * cr
-    out[..., 1, 2] = sa * se * cr - ca * sr
-    out[..., 2, 0] = -se
-    out[..., 2, 1] = ce * sr
-    out[..., 2, 2] = ce * cr
-    return out
-
-
-def rotation_to_euler(rot: np.ndarray) -> np.ndarray:
-    """(..., 3, 3) → (..., 3) angles (A, E, R) in radians; at elevation ±90° roll is set to 0."""
-    rot = np.asarray(rot, dtype=float)
-    ce = np.hypot(rot[..., 0, 0], rot[..., 1, 0])
-    e = np.arctan2(-rot[..., 2, 0], ce)
-    a = np.arctan2(rot[..., 1, 0], rot[..., 0, 0])
-    r = np.arctan2(rot[..., 2, 1], rot[..., 2, 2])
-    # Gimbal lock: A and R are no longer separable; fold everything into A so that the
-    # composed rotation stays right (R01 = -sin A, R11 = cos A when roll = 0).
-    lock = ce < 1e-7
-    if np.any(lock):
-        a = np.where(lock, np.arctan2(-rot[..., 0, 1], rot[..., 1, 1]), a)
-        r = np.where(lock, 0.0, r)
-    return np.stack([a, e, r], axis=-1)
-
-
-def _quat_scalar_first(rot: np.ndarray) -> np.ndarray:
-    q = Rotation.from_matrix(rot.reshape(-1, 3, 3)).as_quat()  # x y z w
-    q = np.concatenate([q[:, 3:], q[:, :3]], axis=1)
-    q *= np.where(q[:, :1] < 0, -1.0, 1.0)  # q0 ≥ 0, as Shepperd's method gives
-    return q.reshape(rot.shape[:-2] + (4,))
-
-
-QUATERNION_CONVENTIONS = ("fob", "conjugate")
-
-
-# ---------------------------------------------------------------------------------------------
 # Records
 
 
@@ -247,16 +155,12 @@ def data_words(fmt: RecordFormat | str, rotations: np.ndarray, positions: np.nda
     if fmt.position:
         parts.append(_to_word(np.asarray(positions) / INCH, 32768.0 / scale_inches))
     if fmt.orientation == "angles":
-        parts.append(_angle_to_word(rotation_to_euler(rotations)))
+        parts.append(_angle_to_word(as_euler(rotations)))
     elif fmt.orientation == "matrix":
         # M = Rᵀ sent column by column is R row by row.
         parts.append(_to_word(np.asarray(rotations).reshape(n, 9), 32768.0))
     elif fmt.orientation == "quaternion":
-        q = _quat_scalar_first(np.asarray(rotations))
-        if quaternion_convention == "fob":
-            q[:, 1:] *= -1.0  # quaternion of M = Rᵀ
-        elif quaternion_convention != "conjugate":
-            raise ValueError(f"quaternion_convention must be one of {QUATERNION_CONVENTIONS}")
+        q = as_flock_quat(np.asarray(rotations), quaternion_convention)
         parts.append(_to_word(q, 32768.0))
     return np.concatenate(parts, axis=1)
 
@@ -311,7 +215,7 @@ def _poses_from_words(fmt: RecordFormat, words: np.ndarray, scale_inches: float,
     ow = words[:, k:]
     if fmt.orientation == "angles":
         a = ow * (np.pi / 32768.0)
-        rotations = euler_to_rotation(a[:, 0], a[:, 1], a[:, 2])
+        rotations = from_euler(a[:, 0], a[:, 1], a[:, 2])
     elif fmt.orientation == "matrix":
         m = ow.reshape(n, 3, 3) / 32768.0
         zero = ~np.any(ow, axis=1)
@@ -320,11 +224,7 @@ def _poses_from_words(fmt: RecordFormat, words: np.ndarray, scale_inches: float,
     elif fmt.orientation == "quaternion":
         q = ow / 32768.0
         q[~np.any(ow, axis=1)] = (1.0, 0.0, 0.0, 0.0)
-        if quaternion_convention == "fob":
-            q[:, 1:] *= -1.0
-        elif quaternion_convention != "conjugate":
-            raise ValueError(f"quaternion_convention must be one of {QUATERNION_CONVENTIONS}")
-        rotations = quaternion_to_rotation(q)
+        rotations = from_flock_quat(q, quaternion_convention)
     return rotations, positions
 
 

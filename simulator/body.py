@@ -14,7 +14,7 @@ from itertools import combinations
 import numpy as np
 
 from flockcal.errors import FlockcalError
-from flockcal.simulator.rotations import axis_angle, random_rotations, rot_z
+from flockcal.rotations import axis_angle, random_rotations, rot_z
 
 
 class SimulatorError(FlockcalError, ValueError):

@@ -15,6 +15,7 @@ from typing import Callable, Protocol
 import numpy as np
 
 from flockcal.drivers import codec
+from flockcal.rotations import from_euler
 from flockcal.drivers.codec import Command
 from flockcal.errors import FlockcalError
 
@@ -792,7 +793,7 @@ class SmoothSource:
         t = np.asarray(times, dtype=float)[:, None, None]
         pos = self._centre + self._amp * np.sin(2 * np.pi * self._freq * t + self._phase)
         ang = 3.0 * np.sin(2 * np.pi * self._wfreq * t + self._phase)  # sweeps every Euler range
-        rot = codec.euler_to_rotation(ang[..., 0], ang[..., 1] / 2.0, ang[..., 2])
+        rot = from_euler(ang[..., 0], ang[..., 1] / 2.0, ang[..., 2])
         valid = np.broadcast_to(t[:, :, 0] < self._valid_until, pos.shape[:2]).copy()
         return rot, pos, valid
 

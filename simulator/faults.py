@@ -10,14 +10,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from flockcal.rotations import as_euler, as_quat, from_euler, from_quat, from_rotvec
 from flockcal.simulator.body import SimulatorError
-from flockcal.simulator.rotations import (
-    euler_zyx_to_matrix,
-    matrix_to_euler_zyx,
-    matrix_to_quat,
-    quat_to_matrix,
-    rotvec_to_matrix,
-)
 
 INCH = 0.0254
 # Default sensor physics (order of the paper's figures and the Flock's spec sheet):
@@ -112,7 +106,7 @@ def tracker_noise(
     sigma = position_std(t, velocities, scale)
     t_noisy = t + sigma[..., None] * hash_normal(seed, keys, (m, 3), stream=1)
     ang = scale * ANGLE_STD_NEAR_RAD * noise_growth(t)
-    dR = rotvec_to_matrix(ang[..., None] * hash_normal(seed, keys, (m, 3), stream=2))
+    dR = from_rotvec(ang[..., None] * hash_normal(seed, keys, (m, 3), stream=2))
     return R @ dR, t_noisy
 
 
@@ -147,12 +141,12 @@ def quantise(
     if orientation == "matrix":
         R_q = _words(R) / 32768.0
     elif orientation == "angles":
-        A, E, Rr = matrix_to_euler_zyx(R)
-        deg = [_words(np.degrees(a) / 180.0) * 180.0 / 32768.0 for a in (A, E, Rr)]
-        R_q = euler_zyx_to_matrix(*np.radians(deg))
+        angles = np.moveaxis(as_euler(R), -1, 0)
+        deg = [_words(np.degrees(a) / 180.0) * 180.0 / 32768.0 for a in angles]
+        R_q = from_euler(*np.radians(deg))
     elif orientation == "quaternion":
-        q = _words(matrix_to_quat(R)) / 32768.0
-        R_q = quat_to_matrix(q / np.linalg.norm(q, axis=-1, keepdims=True))
+        q = _words(as_quat(R)) / 32768.0
+        R_q = from_quat(q / np.linalg.norm(q, axis=-1, keepdims=True))
     else:
         raise SimulatorError(f"unknown record orientation {orientation!r}; choose matrix, angles or quaternion")
     return R_q, t_q, in_range

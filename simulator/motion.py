@@ -13,7 +13,7 @@ from functools import cached_property
 import numpy as np
 
 from flockcal.simulator.body import BodyModel, SimulatorError, segment
-from flockcal.simulator.rotations import axis_angle, rot_z, rotvec_to_matrix
+from flockcal.rotations import axis_angle, rot_z, from_rotvec
 
 ROUTINES = ("exercise", "walk", "kiosk", "idle")
 _CHUNK = 20000  # frames evaluated at once, so a long stream never builds huge temporaries
@@ -107,7 +107,7 @@ class Motion:
             offset = offset + np.column_stack([cx + a * np.cos(phi), b * np.sin(phi), np.zeros_like(phi)])
             heading_angle = np.arctan2(b * np.cos(phi), -a * np.sin(phi))
             heading = rot_z(heading_angle)
-        Rroot = rot_z(yaw) @ heading @ rotvec_to_matrix(tilt)
+        Rroot = rot_z(yaw) @ heading @ from_rotvec(tilt)
         return Rroot, self.model.home_position + offset
 
     def at(self, times) -> tuple[np.ndarray, np.ndarray]:
@@ -123,7 +123,7 @@ class Motion:
         types = np.array(model.joint_type)
         ball, hinge = types == "ball", types == "hinge"
         if ball.any():
-            L[:, ball] = rotvec_to_matrix(q[:, ball])
+            L[:, ball] = from_rotvec(q[:, ball])
         if hinge.any():
             L[:, hinge] = axis_angle(model.hinge_axis[hinge][None], q[:, hinge, 0])
         L[:, (types == "rigid") | (types == "root")] = np.eye(3)

@@ -13,7 +13,7 @@ import numpy as np
 
 from flockcal.markers import MarkerTake, make_marker_take
 from flockcal.simulator.body import BodyModel, SimulatorError, bone_poses, by_name
-from flockcal.simulator.rotations import axis_angle, rotvec_to_matrix
+from flockcal.rotations import axis_angle, from_rotvec
 
 
 def place_markers(model: BodyModel, per_body=(2, 4), seed: int = 0, standoff=(0.03, 0.07)):
@@ -126,12 +126,12 @@ def smooth_local_rotations(model: BodyModel, seconds: float, rate_hz: float, see
         if kind == "hinge":
             L[:, i] = axis_angle(np.broadcast_to(model.hinge_axis[i], (n, 3)), coords[:, i, 0])
         elif kind == "ball":
-            L[:, i] = rotvec_to_matrix(coords[:, i])
+            L[:, i] = from_rotvec(coords[:, i])
         else:
             L[:, i] = np.eye(3)
     root = model.root
     root_rv = np.stack([0.5 * np.sin(0.31 * times + 1), 0.4 * np.sin(0.23 * times), 1.2 * np.sin(0.11 * times + 2)], 1)
-    L[:, root] = model.home_rotation @ rotvec_to_matrix(root_rv)
+    L[:, root] = model.home_rotation @ from_rotvec(root_rv)
     trans = model.home_position + 0.3 * np.stack([np.sin(0.2 * times), np.sin(0.13 * times + 1), 0.1 * np.sin(0.5 * times)], 1)
     return L, trans, times
 

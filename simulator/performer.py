@@ -15,7 +15,7 @@ import numpy as np
 from flockcal.simulator import faults
 from flockcal.simulator.body import BodyModel, SimulatorError, bone_poses, by_name
 from flockcal.simulator.motion import Motion, routine as make_routine
-from flockcal.simulator.rotations import rot_z
+from flockcal.rotations import rot_z
 from flockcal.simulator.soft_tissue import DEFAULT_STA_MM, SoftTissue
 
 NOISE_KINDS = ("tracker", None)

@@ -14,7 +14,7 @@ from itertools import product
 import numpy as np
 
 from flockcal.simulator.body import BodyModel, SimulatorError
-from flockcal.simulator.rotations import rotvec_to_matrix
+from flockcal.rotations import from_rotvec
 
 DEFAULT_STA_MM = 12.0  # the middle of the 10–15 mm real skin sensors show at the ends of a range
 # The sensor also tilts as the skin under it stretches: this many radians per metre of slide
@@ -90,7 +90,7 @@ class SoftTissue:
     def tilts(self, q: np.ndarray, F: np.ndarray | None = None) -> np.ndarray:
         """Each sensor's tilt from its rest axes (n, m, 3, 3), as a rotation in the bone frame."""
         F = self.features(q) if F is None else F
-        return rotvec_to_matrix((F @ self.tilt).reshape(len(F), -1, 3))
+        return from_rotvec((F @ self.tilt).reshape(len(F), -1, 3))
 
     def placements(self, q: np.ndarray, offsets: np.ndarray, rotations: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Every sensor's rotation (n, m, 3, 3) and offset (n, m, 3) in its bone frame at coordinates q,

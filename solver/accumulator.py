@@ -14,6 +14,7 @@ from functools import lru_cache
 import numpy as np
 from scipy.linalg.blas import dsyrk
 
+from flockcal.rotations import nearest_rotation
 from flockcal.solver.errors import SolverError
 
 # Frames per block: big enough for BLAS to run at full speed, small enough that the block stays in cache.
@@ -505,8 +506,6 @@ class GramAccumulator:
 
     def relative_rotation(self, src, dst) -> np.ndarray:
         """(k, 3, 3) mean over frames of R_dstᵀ R_src, projected to a rotation: maps src-frame vectors to dst."""
-        from flockcal.solver.transforms import nearest_rotation
-
         self._flush()
         s = np.asarray(src, dtype=np.intp).reshape(-1)
         d = np.asarray(dst, dtype=np.intp).reshape(-1)

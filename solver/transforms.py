@@ -1,7 +1,6 @@
-"""Rigid-transform helpers: nearest rotation to a tracker matrix, and hierarchical → global poses (paper eq. 4).
+"""Hierarchical ↔ global poses (paper eq. 4): each body relative to its parent, composed down the tree.
 
-Trackers report slightly non-orthonormal matrices (quantised words); the polar projection gives the closest
-rotation. Hierarchical data (each body relative to its parent) is composed down the tree into world poses.
+Rotation maths itself (projection onto SO(3), Euler angles, quaternions) lives in flockcal/rotations.py.
 """
 
 from __future__ import annotations
@@ -9,17 +8,6 @@ from __future__ import annotations
 import numpy as np
 
 from flockcal.solver.errors import SolverError
-
-
-def nearest_rotation(M) -> np.ndarray:
-    """The rotation closest (Frobenius) to each 3×3 matrix in M (…, 3, 3): U Vᵀ of its SVD, det forced to +1."""
-    M = np.asarray(M, dtype=float)
-    U, _, Vt = np.linalg.svd(M)
-    d = np.sign(np.linalg.det(U @ Vt))
-    d = np.where(d == 0, 1.0, d)
-    U = U.copy()
-    U[..., :, 2] *= d[..., None]
-    return U @ Vt
 
 
 def to_global(rotations, positions, parent) -> tuple[np.ndarray, np.ndarray]:

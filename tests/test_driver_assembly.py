@@ -7,6 +7,7 @@ import numpy as np
 import pytest
 
 from flockcal.drivers import codec
+from flockcal.rotations import from_euler
 from flockcal.drivers.assembly import FrameAssembler
 from flockcal.drivers.link import FlockSetup
 
@@ -21,7 +22,7 @@ def group_setup(m, fmt, rate=100.0, scale=36.0):
 def moving_poses(n, m, rate=100.0, reach=0.3):
     t = np.arange(n)[:, None] / rate
     ang = 0.5 * np.sin(2 * np.pi * 0.7 * t + np.arange(m))
-    R = codec.euler_to_rotation(ang, 0.5 * ang, -ang)
+    R = from_euler(ang, 0.5 * ang, -ang)
     z = np.zeros((n, m))
     p = np.stack([0.4 + reach * np.sin(t + np.arange(m)), 0.1 * np.cos(t) + z, 0.05 * np.sin(2 * t) + z], -1)
     return R, p

@@ -13,6 +13,7 @@ import pytest
 
 from flockcal.cli import main
 from flockcal.drivers import codec
+from flockcal.rotations import from_euler
 from flockcal.drivers.link import Timing, TrackerError
 from flockcal.drivers.reader import TrackerConfig, TrackerReader
 from flockcal.simulator.fake_tracker import FakeFlock, ManualClock, SmoothSource
@@ -77,7 +78,7 @@ class Reach:
         p[:, :, 0] = 0.3 + 0.1 * np.arange(4)
         p[:, :, 2] = 0.1
         p[:, 1, 0] = 0.75 + 0.35 * np.sin(2 * np.pi * 0.8 * t)
-        R = codec.euler_to_rotation(0.3 * np.sin(t)[:, None] + np.zeros((1, 4)), np.zeros((len(t), 4)),
+        R = from_euler(0.3 * np.sin(t)[:, None] + np.zeros((1, 4)), np.zeros((len(t), 4)),
                                     np.zeros((len(t), 4)))
         return R, p, np.ones((len(t), 4), bool)
 

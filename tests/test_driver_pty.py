@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from flockcal.drivers import codec
+from flockcal.rotations import from_euler
 from flockcal.drivers.link import Timing, TrackerError
 from flockcal.drivers.reader import TrackerConfig, TrackerReader
 from flockcal.drivers.recording import read_recording, replay
@@ -38,7 +39,7 @@ class OrbitSource:
         if self.cross:  # bird 0 swings through x = 0, from the forward side at t = 0
             p[:, 0, 0] = 0.35 * np.cos(2 * np.pi * 0.6 * t[:, 0, 0])
         ang = 0.8 * np.sin(2 * np.pi * self.freq * t + self.phase)  # elevation well inside ±90°
-        R = codec.euler_to_rotation(2 * ang[..., 0], ang[..., 1], 2 * ang[..., 2])
+        R = from_euler(2 * ang[..., 0], ang[..., 1], 2 * ang[..., 2])
         with self.lock:
             self.made_R.append(R)
             self.made_p.append(p)

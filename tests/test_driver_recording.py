@@ -12,6 +12,7 @@ import numpy as np
 import pytest
 
 from flockcal.drivers import codec
+from flockcal.rotations import from_euler
 from flockcal.drivers.assembly import FrameAssembler
 from flockcal.drivers.link import FlockSetup, choose_format
 from flockcal.drivers.recording import RecordingError, RecordingWriter, read_recording
@@ -83,7 +84,7 @@ def group_setup(m, fmt, rate=100.0, group=True):
 def smooth_poses(n, m, rate=100.0):
     t = np.arange(n)[:, None] / rate
     ang = 0.5 * np.sin(2 * np.pi * 0.7 * t + np.arange(m))
-    R = codec.euler_to_rotation(ang, 0.5 * ang, -ang)
+    R = from_euler(ang, 0.5 * ang, -ang)
     z = np.zeros((n, m))
     p = np.stack([0.4 + 0.1 * np.sin(t + np.arange(m)), 0.1 * np.cos(t) + z, 0.05 * np.sin(2 * t) + z], -1)
     return R, p

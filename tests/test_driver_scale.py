@@ -8,7 +8,7 @@ import time
 import numpy as np
 import pytest
 
-from flockcal.drivers import codec
+from flockcal.rotations import from_euler
 from flockcal.drivers.link import Timing, TrackerError
 from flockcal.drivers.reader import TrackerConfig, TrackerReader
 from flockcal.simulator.pty_tracker import PtyTracker
@@ -32,7 +32,7 @@ class ReachingSource:
         p[:, :, 1] = 0.05 * np.sin(2 * np.pi * 0.5 * t)[:, None]
         p[:, :, 2] = 0.1
         p[:, 1, 0] = 0.75 + 0.35 * np.sin(2 * np.pi * 0.8 * t)  # 0.4 … 1.1 m
-        R = codec.euler_to_rotation(0.3 * np.sin(t)[:, None] + np.zeros((1, 4)), np.zeros((len(t), 4)),
+        R = from_euler(0.3 * np.sin(t)[:, None] + np.zeros((1, 4)), np.zeros((len(t), 4)),
                                     np.zeros((len(t), 4)))
         return R, p, np.ones((len(t), 4), bool)
 

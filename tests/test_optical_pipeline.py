@@ -127,7 +127,7 @@ def test_markers_that_all_move_together_are_refused():
     # tried: four markers on one rigid body — no joint exists
     rng = np.random.default_rng(0)
     pts = rng.normal(size=(4, 3)) * 0.1
-    from flockcal.simulator.rotations import random_rotations
+    from flockcal.rotations import random_rotations
 
     R = random_rotations(rng, (200,))
     M = np.einsum("nij,kj->nki", R, pts) + rng.normal(size=(200, 1, 3))

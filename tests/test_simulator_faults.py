@@ -5,7 +5,7 @@ import pytest
 
 from flockcal.simulator import faults
 from flockcal.simulator.body import SimulatorError
-from flockcal.simulator.rotations import random_rotations
+from flockcal.rotations import random_rotations
 
 INCH = 0.0254
 

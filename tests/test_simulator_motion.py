@@ -5,7 +5,7 @@ import pytest
 
 from flockcal.simulator import body, motion
 from flockcal.simulator.body import SimulatorError
-from flockcal.simulator.rotations import matrix_to_rotvec
+from flockcal.rotations import as_rotvec
 
 HUMAN = body.human(seed=7)
 
@@ -24,7 +24,7 @@ def test_hinges_turn_only_about_their_axis():
     for name in ("l_forearm", "r_shin"):
         i = HUMAN.index(name)
         rel = np.swapaxes(B[:, HUMAN.parent[i]], 1, 2) @ B[:, i]
-        rv = matrix_to_rotvec(rel)
+        rv = as_rotvec(rel)
         axis = HUMAN.hinge_axis[i]
         off_axis = rv - np.outer(rv @ axis, axis)
         assert np.abs(off_axis).max() < 1e-12

@@ -9,7 +9,8 @@ from flockcal.solver.accumulator import GramAccumulator
 from flockcal.solver.calibration import calibrate, parse_hierarchy
 from flockcal.solver.errors import SolverError
 from flockcal.solver.residuals import joint_residuals
-from flockcal.solver.transforms import nearest_rotation, to_global, to_local
+from flockcal.rotations import nearest_rotation
+from flockcal.solver.transforms import to_global, to_local
 from synthetic import articulated
 
 
