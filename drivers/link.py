@@ -1,8 +1,8 @@
 """Commands and replies over the serial ports of a Flock of Birds: open, reset, examine/change, set up.
 
-`FlockLink` is one pyserial port (`serial.serial_for_url`, so a device path, a pty, socket://,
-rfc2217:// and sim:// all work); `configure_flock` runs the initialisation sequence over one port
-(group mode) or one port per bird and returns the `FlockSetup` the stream is decoded with.
+`FlockLink` is one pyserial port (`serial.serial_for_url`: a device path, a pty, socket://, rfc2217://,
+and sim:// once the program has imported flockcal.simulator); `configure_flock` runs the initialisation
+sequence over one port (group mode) or one port per bird and returns the `FlockSetup` for decoding.
 """
 
 from __future__ import annotations
@@ -68,8 +68,6 @@ class FlockLink:
 
     # -- opening and closing -------------------------------------------------------------------
     def open(self) -> "FlockLink":
-        if self.url.startswith("sim://"):
-            import flockcal.simulator  # noqa: F401  (registers the sim:// scheme with pyserial)
         try:
             port = serial.serial_for_url(
                 self.url, do_not_open=True, baudrate=self.baud, bytesize=8, parity="N", stopbits=1,

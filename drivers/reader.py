@@ -1,7 +1,7 @@
 """The tracker reader: a thread that sets up a Flock of Birds, reads it, and hands out frames in batches.
 
-It owns the serial ports (one, or one per bird), records every byte to a .fobraw file when asked,
-survives garbage, dropped bytes, stalls and unplugged cables (reconnecting with backoff and
+It owns the serial ports (one, or one per bird), records every byte to a .fobraw file when asked (for
+its whole run, or per session with start_recording/stop_recording), hands out `Frames`, survives garbage, dropped bytes, stalls and unplugged cables (reconnecting with backoff and
 re-initialising the flock), and reports each of these as a `TrackerEvent`.
 """
 
@@ -19,10 +19,11 @@ import numpy as np
 
 from flockcal import __version__
 from flockcal.drivers import codec
-from flockcal.drivers.assembly import FrameAssembler, Frames
+from flockcal.drivers.assembly import FrameAssembler
 from flockcal.drivers.link import (FlockLink, FlockSetup, LinkLost, Timing, TrackerError, check_bird_errors,
                                    configure_flock, poll, start_stream, stop_stream)
 from flockcal.drivers.recording import RecordingWriter
+from flockcal.frames import Frames
 from flockcal.threads import name_os_thread
 
 log = logging.getLogger(__name__)
@@ -126,7 +127,7 @@ class TrackerEvent:
         return f"{self.kind}: {self.message}"
 
 
-FramesCallback = Callable[[np.ndarray, np.ndarray, np.ndarray, np.ndarray], None]
+FramesCallback = Callable[[Frames], None]
 EventCallback = Callable[[TrackerEvent], None]
 
 
@@ -197,8 +198,8 @@ def rate_warning(setup: FlockSetup, measured_hz: float, bytes_per_s: float | Non
                      "record format that fits")
         capacity = link_capacity(real)
     else:
-        return text + (f"; the line carries that, so the flock itself falls behind — look for bird errors "
-                       f"(error 31: lower --rate)")
+        return text + ("; the line carries that, so the flock itself falls behind — look for bird errors "
+                       "(error 31: lower --rate)")
     budget = capacity * LINK_MARGIN
     compact = [f for f in ("position_quaternion", "position_angles")
                if per_set(f) < per_set(setup.record_format) and per_set(f) * asked <= budget]
@@ -211,11 +212,11 @@ def rate_warning(setup: FlockSetup, measured_hz: float, bytes_per_s: float | Non
 
 
 class TrackerReader:
-    """Reads the tracker on a background thread and calls `on_frames(times, rotations, positions, valid)`.
+    """Reads the tracker on a background thread and calls `on_frames(frames)` with a batch of `Frames`.
 
     Callbacks run on the reader thread at most every `batch_interval` (tens of ms), when there are frames
-    or news: they must return quickly (copy the arrays or push them to a queue), or bytes back up in the
-    serial driver.
+    or news: they must return quickly (keep the Frames or push them to a queue), or bytes back up in the
+    serial driver. The recording methods may be called from any thread.
     """
 
     def __init__(self, cfg: TrackerConfig, on_frames: FramesCallback | None = None,
@@ -232,7 +233,11 @@ class TrackerReader:
         self._connected_once = threading.Event()
         self._first_failure: TrackerError | None = None
         self._links: list[FlockLink] = []
+        # The recording in progress: swapped under _recording_lock, read once per use by the reader thread
+        # (a writer closed meanwhile ignores what it is given).
         self._recorder: RecordingWriter | None = None
+        self._recording_lock = threading.Lock()
+        self._stream_marker: dict | None = None  # the current stream's setup: every recording starts with it
         self.setup: FlockSetup | None = None
         self._status = dict(connected=False, birds=cfg.birds, rate_hz=None, frames=0, dropped_records=0,
                             resynced=0, reconnects=0, last_error=None, record_format=None, urls=list(cfg.urls),
@@ -273,8 +278,31 @@ class TrackerReader:
         self._stop.set()
         if self._thread is not None and self._thread is not threading.current_thread():
             self._thread.join(timeout)
-        if self._recorder is not None and (self._thread is None or not self._thread.is_alive()):
-            self._recorder.close()
+        if self._thread is None or not self._thread.is_alive():
+            self.stop_recording()
+
+    def start_recording(self, path, header: dict | None = None) -> None:
+        """Record every byte from now on to a new .fobraw at `path`, ending any recording in progress.
+
+        Its header holds `recording_header`, `header`, the software version and the configuration; it
+        starts with the current stream's setup (once the flock streams), so it replays on its own.
+        Raises RecordingError when the file cannot be created (nothing else changes then).
+        """
+        settings = {**self.recording_header, **(header or {}), "flockcal": __version__, "config": self.cfg.to_dict()}
+        writer = RecordingWriter(path, settings)
+        with self._recording_lock:
+            if self._stream_marker is not None:
+                writer.mark(time.monotonic(), self._stream_marker)
+            old, self._recorder = self._recorder, writer
+        if old is not None:
+            old.close()
+
+    def stop_recording(self) -> None:
+        """Close the recording in progress, if any; the reader reads on."""
+        with self._recording_lock:
+            old, self._recorder = self._recorder, None
+        if old is not None:
+            old.close()
 
     def status(self) -> dict:
         with self._lock:
@@ -294,8 +322,8 @@ class TrackerReader:
                 self._status["last_error"] = message
                 if kind == "bird_error":
                     self._status["bird_errors"] += 1
-        if self._recorder is not None:
-            self._recorder.mark(event.time, {"event": kind, "message": message, **data})
+        if (rec := self._recorder) is not None:
+            rec.mark(event.time, {"event": kind, "message": message, **data})
         if self.on_event is not None:
             try:
                 self.on_event(event)
@@ -303,8 +331,8 @@ class TrackerReader:
                 log.exception("on_event callback failed")
 
     def _record(self, kind: bytes, port: int, t: float, data: bytes) -> None:
-        if self._recorder is not None:
-            (self._recorder.read if kind == b"R" else self._recorder.wrote)(t, port, data)
+        if (rec := self._recorder) is not None:
+            (rec.read if kind == b"R" else rec.wrote)(t, port, data)
 
     def _deliver(self, asm: FrameAssembler) -> None:
         for kind, message, data in asm.take_events():
@@ -318,11 +346,11 @@ class TrackerReader:
             s["rejected_records"] = self._totals["rejected_records"] + asm.rejected_records
             s["dropped_bytes"] = self._totals["dropped_bytes"] + asm.dropped_bytes
             s["saturated_records"] = self._totals["saturated_records"] + asm.saturated_records
-        if self._recorder is not None:
-            self._recorder.flush()
+        if (rec := self._recorder) is not None:
+            rec.flush()
         if len(frames) and self.on_frames is not None:
             try:
-                self.on_frames(frames.times, frames.rotations, frames.positions, frames.valid)
+                self.on_frames(frames)
             except Exception:
                 log.exception("on_frames callback failed")
 
@@ -330,8 +358,8 @@ class TrackerReader:
         """End a session's decoding: emit what is pending, fold its counters into the totals."""
         if asm is None:
             return
-        if self._recorder is not None:
-            self._recorder.mark(time.monotonic(), {"flush": True, "reason": reason})
+        if (rec := self._recorder) is not None:
+            rec.mark(time.monotonic(), {"flush": True, "reason": reason})
         asm.flush()
         self._deliver(asm)
         with self._lock:
@@ -386,8 +414,7 @@ class TrackerReader:
             self._close_links()
             with self._lock:
                 self._status["connected"] = False
-            if self._recorder is not None:
-                self._recorder.close()
+            self.stop_recording()
             self._emit_stopped()
 
     def _emit_stopped(self) -> None:
@@ -418,9 +445,11 @@ class TrackerReader:
         self.setup = setup
         options = dict(hemisphere_tracking=cfg.hemisphere_tracking, max_speed=cfg.max_speed,
                        max_turn_rate=cfg.max_turn_rate)
-        if self._recorder is not None:
-            self._recorder.mark(time.monotonic(), {"stream": setup.to_dict(), "assembler": options})
-            self._recorder.commit()
+        with self._recording_lock:
+            self._stream_marker = {"stream": setup.to_dict(), "assembler": options}
+            if (rec := self._recorder) is not None:
+                rec.mark(time.monotonic(), self._stream_marker)
+                rec.commit()
         asm = FrameAssembler(setup, **options)
         if cfg.mode == "stream":
             start_stream(self._links, setup)

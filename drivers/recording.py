@@ -31,9 +31,10 @@ import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
 
-import numpy as np
-
+from flockcal.drivers.assembly import FrameAssembler  # the decoding path of the live reader
+from flockcal.drivers.link import FlockSetup
 from flockcal.errors import FlockcalError
+from flockcal.frames import Frames
 
 MAGIC = b"FOBRAW\x00\x01"
 SYNC = b"CK"
@@ -275,16 +276,11 @@ def read_recording(path: str | os.PathLike, salvage: bool = False) -> Recording:
     return Recording(path, settings, chunks, size, pos if problem else size, problem, markers)
 
 
-def chunk_times(recording: Recording) -> np.ndarray:
-    """Arrival times of every chunk (for pacing a real-time replay)."""
-    return np.fromiter((c.time for c in recording.chunks), dtype=float, count=len(recording.chunks))
-
-
 @dataclass
 class Replay:
     """What replaying a recording gave: the frames, the decoding settings, events and counters."""
 
-    frames: "object"  # flockcal.drivers.assembly.Frames
+    frames: Frames
     setups: list[dict]
     events: list[dict]
     sessions: int
@@ -298,13 +294,10 @@ def replay(recording: Recording, on_frames=None, realtime: bool = False, speed: 
     """Decode a recording through the same assembler as the live read (same bytes, same order, same
     arrival times), so the frames are identical to the ones the live reader delivered.
 
-    `on_frames(times, rotations, positions, valid)` is called in batches; with `realtime` the batches
+    `on_frames(frames)` is called with `Frames` in batches; with `realtime` the batches
     are paced by the recorded arrival times (divided by `speed`). `on_progress(chunks done)` is called
     every PROGRESS_CHUNKS chunks and at the end (for a progress bar).
     """
-    from flockcal.drivers.assembly import FrameAssembler, Frames  # the decoding path of the live reader
-    from flockcal.drivers.link import FlockSetup
-
     parts, setups, events = [], [], []
     asm = None
     m = 0
@@ -326,7 +319,7 @@ def replay(recording: Recording, on_frames=None, realtime: bool = False, speed: 
                     delay = (now - rec0) / speed - (time.monotonic() - wall0)
                     if delay > 0:
                         time.sleep(delay)
-                on_frames(out.times, out.rotations, out.positions, out.valid)
+                on_frames(out)
 
     def retire() -> None:
         nonlocal asm

@@ -23,24 +23,6 @@ from flockcal.server.store import Store
 log = logging.getLogger(__name__)
 
 
-class _RawLater:
-    """The source's per-session raw recorder, looked up when a session starts (it exists once the
-    reader runs); sources without one (or a reader that cannot take one) record no .fobraw."""
-
-    def __init__(self, source):
-        self.source = source
-
-    def start(self, path) -> None:
-        raw = getattr(self.source, "raw", None)
-        if raw is not None:
-            raw.start(path)
-
-    def stop(self) -> None:
-        raw = getattr(self.source, "raw", None)
-        if raw is not None:
-            raw.stop()
-
-
 def _lock_data_dir(data: Path) -> int:
     """One service per data directory: two writing the same sessions would corrupt each other's state."""
     fd = os.open(data / "service.lock", os.O_RDWR | os.O_CREAT, 0o644)
@@ -83,7 +65,7 @@ class Service:
         self.pipeline.on_publish = self.hub.publish
         self.sessions = SessionManager(self.store, self.pipeline, data / "recordings", settings.device_url,
                                        settings.rate_hz)
-        self.sessions.raw_recorder = _RawLater(self.source)
+        self.sessions.raw_recorder = self.source
         try:
             self.skeletons = SkeletonLibrary(data / "skeletons", self.pipeline.names)
             for path in settings.skeletons:

@@ -40,7 +40,7 @@ class SessionManager:
         self.recordings.mkdir(parents=True, exist_ok=True)
         self.device = device
         self.rate_hz = rate_hz
-        self.raw_recorder = raw_recorder  # object with start(path)/stop() for the tracker's .fobraw, or None
+        self.raw_recorder = raw_recorder  # the frame source (start_recording(path)/stop_recording()) for the .fobraw, or None
         self._lock = threading.Lock()  # one start/stop at a time
 
     @property
@@ -130,7 +130,7 @@ class SessionManager:
             self.store.insert_session(row)
             if self.raw_recorder is not None:
                 try:
-                    self.raw_recorder.start(self.raw_path(sid))
+                    self.raw_recorder.start_recording(self.raw_path(sid))
                 except FlockcalError as exc:
                     log.warning("raw recording unavailable: %s", exc)
             session = LiveSession(sid, performer, self.names, hierarchy, root, framelog, skeleton=skeleton)
@@ -152,7 +152,7 @@ class SessionManager:
                 raise Conflict(f"session {session_id} is not live (it is {row['state']}); nothing to stop")
             if self.raw_recorder is not None:
                 try:
-                    self.raw_recorder.stop()
+                    self.raw_recorder.stop_recording()
                 except FlockcalError as exc:
                     log.warning("raw recording did not close cleanly: %s", exc)
             live, result, error = self.pipeline.end_session()

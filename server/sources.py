@@ -1,23 +1,21 @@
 """Frame sources the pipeline can listen to: the tracker reader (any pyserial URL, sim:// included).
 
 A source calls `on_frames(times, rotations, positions, valid)` with arrays over a batch of frames and
-`on_event(dict)` for tracker news, from its own thread; `status()` reports the link. The pipeline does
-not care which source it has, so the server never needs to know hardware from simulator.
+`on_event(dict)` for tracker news, from its own thread; `status()` reports the link; `start_recording`
+/ `stop_recording` write the raw bytes of one session. The pipeline does not care which source it has;
+only a sim:// device gives a `simulator` (the performer, reached through the port the source opened).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import logging
 import urllib.parse
 from typing import Callable, Protocol
 
 from flockcal.errors import FlockcalError
-from flockcal.server.errors import ConfigError, ServerError
-from flockcal.server.rawlog import SessionRawRecorder
+from flockcal.frames import Frames
+from flockcal.server.errors import ConfigError
 from flockcal.server.settings import Settings
-
-log = logging.getLogger(__name__)
 
 OnFrames = Callable[..., None]
 OnEvent = Callable[[dict], None]
@@ -31,6 +29,10 @@ class FrameSource(Protocol):
     def stop(self) -> None: ...
 
     def status(self) -> dict: ...
+
+    def start_recording(self, path) -> None: ...
+
+    def stop_recording(self) -> None: ...
 
 
 def sensor_names(settings: Settings, simulated: tuple[str, ...] | None = None) -> tuple[str, ...]:
@@ -50,58 +52,35 @@ def named_sim_url(url: str, name: str = "flockcal") -> str:
     return url
 
 
-class SimulatorControl:
-    """The service's handle on a sim:// performer: inject a slip, change the routine."""
+def open_simulation(url: str):
+    """The simulated performer behind a sim:// URL, or None for any other device.
 
-    def __init__(self, simulation):
-        self.simulation = simulation
-
-    @property
-    def performer(self):
-        return self.simulation.source
-
-    @property
-    def names(self) -> tuple[str, ...] | None:
-        names = getattr(self.performer, "names", None)
-        return tuple(names) if names is not None else None
-
-    def inject_slip(self, sensor: str, distance_m: float) -> dict:
-        if not hasattr(self.performer, "inject_slip"):
-            raise ServerError("this simulated source cannot slip sensors", status=409)
-        return self.performer.inject_slip(sensor, distance_m)
-
-    def set_routine(self, name: str) -> None:
-        from flockcal.simulator.motion import ROUTINES, routine
-
-        p = self.performer
-        if name not in ROUTINES:
-            raise ServerError(f"unknown routine {name!r}; choose one of {', '.join(ROUTINES)}", status=400)
-        if not hasattr(p, "motion"):
-            raise ServerError("this simulated source has no routines", status=409)
-        old = p.motion
-        p.motion = routine(p.model, name, 60.0, getattr(p, "rate_hz", 100.0), getattr(p, "seed", 0))
-        log.info("simulated performer switched from %s to %s", getattr(old, "name", "?"), name)
-
-
-def open_simulation(url: str) -> SimulatorControl | None:
-    """Create the named simulation behind a sim:// URL up front (so its names are known), or None."""
+    Opening the port creates the named simulation up front (so its sensor names are known); the port
+    hands over its performer, which the named flock keeps after the port closes, for the reader's ports
+    (and their re-opens on reconnect) to stream.
+    """
     if not url.lower().startswith("sim://"):
         return None
     import serial
 
-    import flockcal.simulator  # noqa: F401  (registers sim://)
-    from flockcal.simulator.protocol_sim import get_simulation
+    import flockcal.simulator  # noqa: F401  (registers sim:// with pyserial)
 
     try:
         port = serial.serial_for_url(url)
-        port.close()
     except (serial.SerialException, ValueError) as exc:
         raise ConfigError(f"--device {url}: {exc}") from None
-    name = urllib.parse.urlsplit(url).netloc
     try:
-        return SimulatorControl(get_simulation(name))
-    except KeyError:
-        return None
+        return port.performer
+    finally:
+        port.close()
+
+
+def frames_to_pipeline(on_frames: OnFrames) -> Callable[[Frames], None]:
+    """The reader's Frames → the pipeline's current `feed(times, rotations, positions, valid)`.
+
+    The one place that unpacks Frames for the server: once `Pipeline.feed` takes a Frames, return
+    `on_frames` itself."""
+    return lambda f: on_frames(f.times, f.rotations, f.positions, f.valid)
 
 
 def event_dict(event) -> dict:
@@ -134,7 +113,6 @@ class TrackerSource:
         self.names = sensor_names(settings, self.simulator.names if self.simulator else None)
         self.reader = None
         self.recording_path = recording_path
-        self.raw: SessionRawRecorder | None = None
 
     def start(self, on_frames: OnFrames, on_event: OnEvent) -> None:
         from flockcal.drivers.link import Timing
@@ -153,19 +131,25 @@ class TrackerSource:
             recording_path=self.recording_path,
         )
         try:
-            self.reader = TrackerReader(cfg, on_frames=on_frames, on_event=lambda ev: on_event(event_dict(ev)))
+            self.reader = TrackerReader(cfg, on_frames=frames_to_pipeline(on_frames),
+                                        on_event=lambda ev: on_event(event_dict(ev)),
+                                        recording_header={"names": list(self.names)})
         except FlockcalError as exc:
             raise ConfigError(f"--device {self.url}: {exc}") from None
-        if cfg.recording_path is None and hasattr(self.reader, "_recorder"):
-            # The reader has no call to switch recordings per session; fill its recorder slot once
-            # with a forwarder that the session manager points at each session's .fobraw.
-            self.raw = SessionRawRecorder(cfg.to_dict(), names=list(self.names))
-            self.reader._recorder = self.raw
         self.reader.start()
 
     def stop(self) -> None:
         if self.reader is not None:
             self.reader.stop()
+
+    def start_recording(self, path) -> None:
+        """Write the tracker's raw bytes from now on to the session file `path` (.fobraw)."""
+        if self.reader is not None and self.recording_path is None:
+            self.reader.start_recording(path, {"session_file": True})
+
+    def stop_recording(self) -> None:
+        if self.reader is not None and self.recording_path is None:
+            self.reader.stop_recording()
 
     def status(self) -> dict:
         if self.reader is None:

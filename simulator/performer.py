@@ -12,10 +12,10 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from flockcal.rotations import rot_z
 from flockcal.simulator import faults
 from flockcal.simulator.body import BodyModel, SimulatorError, bone_poses, by_name
-from flockcal.simulator.motion import Motion, routine as make_routine
-from flockcal.rotations import rot_z
+from flockcal.simulator.motion import ROUTINES, Motion, routine as make_routine
 from flockcal.simulator.soft_tissue import DEFAULT_STA_MM, SoftTissue
 
 NOISE_KINDS = ("tracker", None)
@@ -96,6 +96,7 @@ class Performer:
                                  "model only (leave sta_mm unset or 0)")
         # Skin moving over bone, a smooth function of the joint angles (not noise: see soft_tissue).
         self.sta: SoftTissue | None = SoftTissue.for_model(self.model, sta_mm, seed) if float(sta_mm) > 0 else None
+        # Replaced only under _lock (set_routine); a batch of poses reads it once, so it follows one routine.
         self.motion: Motion = make_routine(self.model, routine, seconds, rate_hz, seed, period=period)
         self.seed = int(seed)
         self.rate_hz = float(rate_hz)
@@ -124,8 +125,8 @@ class Performer:
         """Sensor poses (rotations (n,m,3,3), positions (n,m,3)) with slips but without any tracker error."""
         t = np.atleast_1d(np.asarray(times, dtype=float))
         with self._lock:
-            state = self._faults
-        return self._slipped(t, *self._exact(t), state.slips)
+            state, motion = self._faults, self.motion
+        return self._slipped(t, *self._exact(motion, t), state.slips)
 
     def poses(self, times) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(rotations (n,m,3,3), positions (n,m,3) metres, valid (n,m)) as the tracker reports them.
@@ -136,7 +137,7 @@ class Performer:
         t = np.atleast_1d(np.asarray(times, dtype=float))
         n = len(t)
         with self._lock:
-            state = self._faults
+            state, motion = self._faults, self.motion
             if n:
                 self._last_time = max(self._last_time, float(t.max()))
         noisy = state.noise == "tracker" and state.noise_scale > 0
@@ -144,11 +145,11 @@ class Performer:
             # One pass for the frames and their neighbours ±h: the dynamic error needs each sensor's
             # speed, taken by central differences of the smooth motion (slips are steps, not motion).
             h = _VELOCITY_STEP_S
-            R, p3 = self._exact(np.concatenate([t, t - h, t + h]), rotated=n)
+            R, p3 = self._exact(motion, np.concatenate([t, t - h, t + h]), rotated=n)
             p = p3[:n]
             vel = (p3[2 * n :] - p3[n : 2 * n]) * (state.unit_scale / (2 * h))
         else:
-            R, p = self._exact(t)
+            R, p = self._exact(motion, t)
         R, p = self._slipped(t, R, p, state.slips)
         if state.unit_scale != 1.0:
             p = faults.unit_scale(p, state.unit_scale)
@@ -168,15 +169,15 @@ class Performer:
     def sta_mm(self) -> float:
         return 0.0 if self.sta is None else self.sta.size_mm
 
-    def _exact(self, t: np.ndarray, rotated: int | None = None) -> tuple[np.ndarray, np.ndarray]:
+    def _exact(self, motion: Motion, t: np.ndarray, rotated: int | None = None) -> tuple[np.ndarray, np.ndarray]:
         """Exact sensor rotations of the first `rotated` frames (default all) and positions of all."""
         k = len(t) if rotated is None else rotated
         S0, s0 = self.model.sensor_rotation, self.model.sensor_offset
         if self.sta is None:
-            L, root = self.motion.at(t)
+            L, root = motion.at(t)
             B, b = bone_poses(self.model, L, root)
             return B[:k] @ S0, b + np.einsum("nmij,mj->nmi", B, s0)
-        L, root, q = self.motion.pose(t)
+        L, root, q = motion.pose(t)
         B, b = bone_poses(self.model, L, root)
         F = self.sta.features(q)
         s = s0[None] + self.sta.slides(q, F)
@@ -187,7 +188,9 @@ class Performer:
         t = np.atleast_1d(np.asarray(times, dtype=float))
         if self.sta is None:
             return np.zeros((len(t), self.n_sensors))
-        return np.linalg.norm(self.sta.slides(self.motion.coordinates(t)), axis=-1)
+        with self._lock:
+            motion = self.motion
+        return np.linalg.norm(self.sta.slides(motion.coordinates(t)), axis=-1)
 
     def _slipped(self, t, R, p, slips: tuple[SlipEvent, ...]) -> tuple[np.ndarray, np.ndarray]:
         S = self.model.sensor_rotation.copy()
@@ -262,8 +265,15 @@ class Performer:
         self._update(quantise_in=None if full_scale_in is None else float(full_scale_in), orientation=orientation)
 
     def set_routine(self, routine: str, period: float | None = None) -> None:
-        """Switch to another routine (same body and seed); frames asked for from now on follow it."""
-        self.motion = make_routine(self.model, routine, 60.0 if period is None else period, self.rate_hz, self.seed, period=period)
+        """Switch to another routine (same body and seed); frames asked for from now on follow it.
+
+        Safe while another thread streams: the new routine replaces the old under the performer's lock."""
+        if routine not in ROUTINES:
+            raise SimulatorError(f"unknown routine {routine!r}; choose one of {', '.join(ROUTINES)}")
+        motion = make_routine(self.model, routine, 60.0 if period is None else period, self.rate_hz, self.seed,
+                              period=period)
+        with self._lock:
+            self.motion = motion
 
     def clear_faults(self) -> None:
         """Remove slips, dropouts, scale error, mirroring and quantisation (the noise setting stays)."""
@@ -307,7 +317,9 @@ class Performer:
         out["slip_events"] = events
         # Joint c, l above are the rest placements; with STA the sensors move about them with the pose.
         out["soft_tissue"] = {"size_mm": 0.0} if self.sta is None else self.sta.describe()
-        out["routine"] = self.motion.name
-        out["period_s"] = self.motion.period
+        with self._lock:
+            motion = self.motion
+        out["routine"] = motion.name
+        out["period_s"] = motion.period
         out["seed"] = self.seed
         return out

@@ -1,13 +1,13 @@
 """pyserial URL handler for `sim://`: an in-process fake Flock of Birds on the wall clock, no pty.
 
 `serial.serial_for_url("sim://NAME?birds=16&motion=walk&seed=3&rate=144&baud=115200")`; several
-ports may share one flock by NAME (`&port=k`, one line per bird). `get_simulation(NAME)` reaches the
-live FakeFlock and pose source, to inject line faults or a sensor slip while a client is connected.
+ports may share one flock by NAME (`&port=k`, one line per bird). An open port's `simulation` (and its
+`performer`) is the live FakeFlock and pose source, to inject line faults or a sensor slip while a client
+is connected; `get_simulation(NAME)` finds a named one. The package's __init__ registers the scheme.
 """
 
 from __future__ import annotations
 
-import inspect
 import itertools
 import threading
 import time
@@ -16,7 +16,8 @@ from dataclasses import dataclass, field
 
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException, Timeout, to_bytes
 
-from flockcal.simulator.fake_tracker import FakeFlock, LineFaults, SmoothSource, WallClock
+from flockcal.simulator.fake_tracker import FakeFlock, LineFaults, WallClock
+from flockcal.simulator.performer import Performer
 
 URL_HELP = ("sim://[NAME]?birds=N&motion=walk&seed=S&noise=tracker|none&model=human&sta_mm=MM&rate=HZ&baud=B&ert=0|1"
             "&scale=36|72&port=K&quaternion=fob|conjugate&rts=reset|standby|ignore")
@@ -28,7 +29,7 @@ class Simulation(LineFaults):
 
     name: str
     flock: FakeFlock
-    source: object
+    source: Performer
     params: dict
     named: bool
     open_ports: dict[int, int] = field(default_factory=dict)  # port → open handles
@@ -66,17 +67,10 @@ def forget_simulation(name: str) -> None:
 
 
 def make_pose_source(*, birds: int | None, motion: str, seed: int, noise: str | None,
-                     model: str, rate_hz: float = 100.0, sta_mm: float | None = None):
-    """The simulator's Performer (a small smooth source if it cannot be imported)."""
-    try:
-        from flockcal.simulator.performer import Performer
-    except ImportError:
-        return SmoothSource(birds or 16, seed=seed)
-    wanted = {"birds": birds, "routine": motion, "seed": seed, "model": model, "rate_hz": rate_hz,
-              "noise": None if noise in ("none", "exact", "0", "") else noise, "sta_mm": sta_mm}
-    accepted = inspect.signature(Performer).parameters
-    kwargs = {k: v for k, v in wanted.items() if k in accepted and (v is not None or k == "noise")}
-    return Performer(**kwargs)
+                     model: str, rate_hz: float = 100.0, sta_mm: float | None = None) -> Performer:
+    """The performer a sim:// URL asks for (noise none/exact/0 is an exact one)."""
+    return Performer(model, routine=motion, seed=seed, noise=None if noise in ("none", "exact", "0", "") else noise,
+                     rate_hz=rate_hz, birds=birds, sta_mm=sta_mm)
 
 
 def _parse(url: str) -> tuple[str, dict]:
@@ -197,6 +191,11 @@ class Serial(SerialBase):
     @property
     def flock(self) -> FakeFlock:
         return self.simulation.flock
+
+    @property
+    def performer(self) -> Performer:
+        """The simulated performer this port's flock streams (it stays reachable after close)."""
+        return self.simulation.source
 
     def _reconfigure_port(self, *args, **kwargs) -> None:
         if not self.is_open:

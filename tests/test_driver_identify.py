@@ -89,7 +89,7 @@ def test_without_a_scale_the_driver_keeps_the_trackers_own(power_up):
     with PtyTracker(Reach(power_up), birds=4, baud=115200) as trk:
         cfg = TrackerConfig(urls=[trk.device], birds=4, rate_hz=60, record_format="position_quaternion",
                             scale_inches=None, timing=Timing.fast())
-        reader = TrackerReader(cfg, on_frames=lambda t, R, p, v: valid.append(v.copy()), on_event=events.append)
+        reader = TrackerReader(cfg, on_frames=lambda f: valid.append(f.valid.copy()), on_event=events.append)
         reader.start(wait=15)
         time.sleep(1.5)
         reader.stop()

@@ -54,8 +54,8 @@ class Collector:
     def __init__(self):
         self.parts, self.events = [], []
 
-    def frames(self, times, R, p, valid):
-        self.parts.append((times.copy(), R.copy(), p.copy(), valid.copy()))
+    def frames(self, frames):
+        self.parts.append((frames.times.copy(), frames.rotations.copy(), frames.positions.copy(), frames.valid.copy()))
 
     def event(self, e):
         self.events.append(e)
@@ -303,3 +303,42 @@ def test_a_hemisphere_crossing_is_detected_and_corrected():
     assert (p[valid[:, 0], 0, 0] < 0).any(), "bird 0 should be seen behind the transmitter"
     _, pos_err, _ = worst_match(src, R, p, valid)
     assert pos_err <= codec.quantisation_tolerance("position_matrix")[1] + 1e-9
+
+
+def test_per_session_recordings_each_replay_alone_to_the_frames_read_meanwhile(tmp_path):
+    # What was tried: two recordings started while the reader streams (the second replacing the first),
+    # then stopped, as the service does per session; each must decode on its own (it starts with the
+    # stream's setup) to the very frames the reader handed out while it was open.
+    src = OrbitSource(3, seed=11)
+    first, second = tmp_path / "a.fobraw", tmp_path / "b.fobraw"
+    col = Collector()
+    with PtyTracker(src, birds=3, baud=115200) as trk:
+        reader = TrackerReader(fast_config([trk.device], 3, rate_hz=50), on_frames=col.frames,
+                               on_event=col.event, recording_header={"names": ["a", "b", "c"]})
+        reader.start(wait=15)
+        try:
+            time.sleep(0.3)
+            reader.start_recording(first, {"session_file": True})
+            time.sleep(0.6)
+            reader.start_recording(second)
+            time.sleep(0.6)
+            reader.stop_recording()
+            size = second.stat().st_size
+            time.sleep(0.3)
+        finally:
+            reader.stop()
+    assert second.stat().st_size == size, "a stopped recording kept growing"
+    live_t, _, live_p, _ = col.arrays()
+    for path in (first, second):
+        rec = read_recording(path)
+        assert rec.settings["names"] == ["a", "b", "c"] and rec.settings["config"]["birds"] == 3
+        out = replay(rec).frames
+        assert 0.5 * 0.6 * 50 < len(out) < 1.5 * 0.6 * 50, f"{path.name}: {len(out)} frames for 0.6 s at 50 Hz"
+        k = np.searchsorted(live_t, out.times)
+        # A recording starts and ends mid-stream: a cycle cut at its edges decodes with birds missing.
+        same = (k < len(live_t)) & (live_t[np.minimum(k, len(live_t) - 1)] == out.times) & out.valid.all(1)
+        assert same.mean() > 0.8, f"{path.name}: only {same.mean():.0%} of replayed frames were read live"
+        assert live_p[k[same]].tobytes() == out.positions[same].tobytes()
+    assert read_recording(first).settings["session_file"] is True
+    assert "session_file" not in read_recording(second).settings
+    assert replay(read_recording(first)).frames.times[-1] < replay(read_recording(second)).frames.times[0]

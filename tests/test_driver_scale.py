@@ -42,7 +42,7 @@ def read_reaching(scale: int, power_up: float, seconds: float = 1.5):
     with PtyTracker(ReachingSource(power_up), birds=4, baud=115200) as trk:
         cfg = TrackerConfig(urls=[trk.device], birds=4, rate_hz=60, record_format="position_quaternion",
                             scale_inches=scale, timing=Timing.fast())
-        reader = TrackerReader(cfg, on_frames=lambda t, R, p, v: parts.append((p.copy(), v.copy())),
+        reader = TrackerReader(cfg, on_frames=lambda f: parts.append((f.positions.copy(), f.valid.copy())),
                                on_event=events.append)
         reader.start(wait=15)
         try:

@@ -93,6 +93,7 @@ def _record(args) -> int:
 
 def _record_with(args, names: list[str] | None) -> int:
     from flockcal.drivers.reader import TrackerConfig, TrackerReader, rate_warning
+    import flockcal.simulator  # noqa: F401  (registers sim:// with pyserial: --port may be the simulator)
 
     cfg = TrackerConfig(urls=args.port, birds=args.birds, rate_hz=args.rate, record_format=args.format,
                         group=args.group, hemisphere=args.hemisphere, scale_inches=args.scale, baud=args.baud,
@@ -100,11 +101,11 @@ def _record_with(args, names: list[str] | None) -> int:
     events = []
     span = [None, None, 0]  # first and last frame time, frames
 
-    def on_frames(times, rotations, positions, valid) -> None:
+    def on_frames(frames) -> None:
         if span[0] is None:
-            span[0] = float(times[0])
-        span[1] = float(times[-1])
-        span[2] += len(times)
+            span[0] = float(frames.times[0])
+        span[1] = float(frames.times[-1])
+        span[2] += len(frames)
 
     def on_event(event) -> None:
         events.append(event)
