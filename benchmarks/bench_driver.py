@@ -16,7 +16,7 @@ import time
 
 import numpy as np
 
-from flockcal.drivers import codec
+from flockcal.drivers.records import encode_records, record_length
 from flockcal.rotations import from_euler
 from flockcal.drivers.assembly import FrameAssembler
 from flockcal.drivers.link import FlockSetup
@@ -30,7 +30,7 @@ def stream_bytes(fmt: str, m: int, n: int, rate: float, group: bool) -> bytes:
     z = np.zeros((n, m))
     p = np.stack([0.4 + 0.2 * np.sin(t + np.arange(m)), 0.2 * np.cos(t) + z, 0.1 * np.sin(2 * t) + z], -1)
     addresses = np.tile(np.arange(1, m + 1), n) if group else None
-    return codec.encode_records(fmt, R.reshape(-1, 3, 3), p.reshape(-1, 3), addresses=addresses)
+    return encode_records(fmt, R.reshape(-1, 3, 3), p.reshape(-1, 3), addresses=addresses)
 
 
 def bench(fmt: str, m: int, rate: float, seconds: float, chunk: int, take_every: int = 8) -> tuple[float, float]:
@@ -47,7 +47,7 @@ def bench_ports(fmt: str, m: int, rate: float, seconds: float, take_every: int =
     """One port per bird, one record per read (the worst case for per-read cost): 16 interleaved ports."""
     n = int(rate * seconds)
     per_bird = [stream_bytes(fmt, 1, n, rate, group=False) for _ in range(m)]
-    L = codec.record_length(fmt, group=False)
+    L = record_length(fmt, group=False)
     setup = FlockSetup(urls=[f"bench{b}" for b in range(m)], birds=m, addresses=list(range(1, m + 1)), group=False,
                        mode="stream", record_format=fmt, scale_inches=36.0, rate_hz=rate, hemisphere="forward",
                        baud=115200)

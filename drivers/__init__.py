@@ -1,4 +1,4 @@
-"""Reading a Flock of Birds over a serial line: protocol codec, link, reader thread, recordings.
+"""Reading a Flock of Birds over a serial line: the wire format, link, reader thread, recordings.
 
 Everything here turns bytes into frames (times, rotations, positions, valid) in SI units.
 """

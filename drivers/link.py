@@ -15,7 +15,15 @@ from typing import Callable
 
 import serial
 
-from flockcal.drivers import codec
+from flockcal.drivers.commands import ADDRESSING_MODES, MAX_ADDRESS, Command, fbb_prefix
+from flockcal.drivers.hemispheres import HEMISPHERES, hemisphere_bytes
+from flockcal.drivers.parameters import (
+    change_command, examine_command, examine_reply_length, measurement_rate_from_word, measurement_rate_word,
+    software_revision,
+)
+from flockcal.drivers.records import FORMATS, record_length
+from flockcal.drivers.status import ERROR_CODES, BirdStatus, decode_flock_status, decode_status_word, error_is_fatal
+from flockcal.drivers.words import pack_words, unpack_words
 from flockcal.errors import FlockcalError
 
 log = logging.getLogger(__name__)
@@ -198,19 +206,19 @@ class FlockLink:
 
     def command(self, data: bytes, address: int = 0, addressing: str = "normal") -> None:
         """Send one command (with its data bytes), routed to FBB `address` when it is not 0."""
-        self.write(codec.fbb_prefix(address, addressing) + bytes(data))
+        self.write(fbb_prefix(address, addressing) + bytes(data))
 
     def examine(self, param: int, address: int = 0, addressing: str = "normal") -> bytes:
         """EXAMINE VALUE `param`: the reply bytes; LinkTimeout if fewer than expected arrive."""
-        n = codec.examine_reply_length(param, addressing)
-        self.command(codec.examine_command(param), address, addressing)
+        n = examine_reply_length(param, addressing)
+        self.command(examine_command(param), address, addressing)
         reply = self.read_exact(n, self.timing.reply)
         if len(reply) < n:
             raise LinkTimeout(param, address, reply, n)
         return reply
 
     def change(self, param: int, data: bytes | int, address: int = 0, addressing: str = "normal") -> None:
-        self.command(codec.change_command(param, data), address, addressing)
+        self.command(change_command(param, data), address, addressing)
 
 
 class LinkLost(TrackerError):
@@ -235,7 +243,7 @@ def link_capacity(baud: int) -> float:
 
 
 def record_bytes_per_second(fmt: str, *, birds_on_port: int, rate_hz: float, group: bool) -> float:
-    return birds_on_port * rate_hz * codec.record_length(fmt, group=group)
+    return birds_on_port * rate_hz * record_length(fmt, group=group)
 
 
 def choose_format(requested: str, *, birds_on_port: int, rate_hz: float, baud: int,
@@ -257,8 +265,8 @@ def choose_format(requested: str, *, birds_on_port: int, rate_hz: float, baud: i
                 f"bird(s) at {rate_hz:g} Hz but {baud} baud carries about {cap:.0f} B/s; streaming "
                 f"position/quaternion ({need(fmt):.0f} B/s) instead")
     else:
-        if requested not in codec.FORMATS:
-            raise TrackerError(f"unknown record format {requested!r}; choose auto or one of {', '.join(codec.FORMATS)}")
+        if requested not in FORMATS:
+            raise TrackerError(f"unknown record format {requested!r}; choose auto or one of {', '.join(FORMATS)}")
         fmt = requested
     if need(fmt) > cap:
         notes.append(
@@ -346,7 +354,7 @@ def check_bird_errors(links: list[FlockLink], setup: "FlockSetup", emit: Emit,
             continue
         j = setup.addresses.index(about) if about in setup.addresses else i
         address = setup.addresses[j]
-        name = codec.ERROR_CODES.get(code, "unknown error code")
+        name = ERROR_CODES.get(code, "unknown error code")
         message = f"bird {j} (address {address}) reports error {code}: {name}{error_hint(code)}"
         found.append((j, code))
         emit("bird_error", message, bird=j, address=address, code=int(code), name=name)
@@ -371,7 +379,7 @@ def error_hint(code: int) -> str:
     }
     if code in hints:
         return hints[code]
-    if codec.error_is_fatal(code):
+    if error_is_fatal(code):
         return " — power-cycle the unit; if it persists, the unit needs service"
     return ""
 
@@ -388,7 +396,7 @@ class FlockIdentity:
     """What the master says it is, read before anything is changed (EXAMINE p15, p0, p3)."""
 
     model: str  # model ID, space padding removed: "6DFOB", "6DERC", "PCBIRD", …
-    status: codec.BirdStatus
+    status: BirdStatus
     scale_inches: float  # the position scale it is set to now, 36 or 72
 
 
@@ -399,7 +407,7 @@ FLOCK_MODELS = ("6DFOB", "6DBOF", "PCBIRD", "SPACEPAD")
 def identify(master: FlockLink) -> FlockIdentity:
     """Ask the master what it is: model ID (p15), bird status (p0) and position scaling (p3)."""
     model = _examine(master, 15).decode("ascii", "replace").strip(" \x00")
-    status = codec.decode_status_word(_examine(master, 0))
+    status = decode_status_word(_examine(master, 0))
     scale = _examine(master, 3)
     return FlockIdentity(model=model, status=status, scale_inches=72.0 if scale[0] == 1 else 36.0)
 
@@ -426,8 +434,8 @@ def configure_flock(links: list[FlockLink], *, birds: int, rate_hz: float | None
     every bird's position scale; read and name any error code. `scale_inches=None` keeps the scale the
     master is set to; `rate_hz=None` keeps its measurement rate.
     """
-    if hemisphere not in codec.HEMISPHERES:
-        raise TrackerError(f"unknown hemisphere {hemisphere!r}; choose one of {', '.join(codec.HEMISPHERES)}")
+    if hemisphere not in HEMISPHERES:
+        raise TrackerError(f"unknown hemisphere {hemisphere!r}; choose one of {', '.join(HEMISPHERES)}")
     if scale_inches is not None and scale_inches not in (36, 72):
         raise TrackerError(f"position scale must be 36 or 72 inches, got {scale_inches}")
     if not group and len(links) != birds:
@@ -438,28 +446,28 @@ def configure_flock(links: list[FlockLink], *, birds: int, rate_hz: float | None
     for link in links:
         link.reset()
     for link in links:
-        link.write(bytes([codec.Command.STREAM_STOP]))
+        link.write(bytes([Command.STREAM_STOP]))
     for link in links:
         link.drain()
 
     raw = _examine(master, 1)
-    revision = codec.software_revision(raw)
+    revision = software_revision(raw)
     if not (1 <= raw[0] <= 9 and raw[1] < 100):  # a reply at the wrong baud rate is noise
         raise _no_answer(master, raw)
     addressing = "normal"
     if revision >= 3.67:
-        addressing = codec.ADDRESSING_MODES.get(_examine(master, 19)[0], "normal")
+        addressing = ADDRESSING_MODES.get(_examine(master, 19)[0], "normal")
     ident = identify(master)
     check_identity(ident, master, birds)
     if ident.model not in FLOCK_MODELS:
         emit("tracker_model", f"the unit on {master.url} reports model {ident.model!r}, not a Flock of Birds model "
                               f"({', '.join(FLOCK_MODELS)}); reading it with the Flock's commands")
     if ident.status.sleeping:  # SLEEP keeps the transmitter off: the data would never change
-        master.write(bytes([codec.Command.RUN]))
+        master.write(bytes([Command.RUN]))
     from_tracker = scale_inches is None
     if from_tracker:
         scale_inches = ident.scale_inches
-    limit = codec.MAX_ADDRESS[addressing]
+    limit = MAX_ADDRESS[addressing]
     if birds > limit:
         raise TrackerError(f"{birds} birds need more than the {limit} addresses of {addressing} addressing — set "
                            f"the addressing-mode DIP switches (expanded: 30, super-expanded: 126)")
@@ -469,7 +477,7 @@ def configure_flock(links: list[FlockLink], *, birds: int, rate_hz: float | None
         time.sleep(timing.autoconfig)
         master.change(50, birds)
         time.sleep(timing.autoconfig)
-        status = codec.decode_flock_status(_examine(master, 36, 0, addressing))
+        status = decode_flock_status(_examine(master, 36, 0, addressing))
         for i, a in enumerate(addresses):
             if not status.accessible[a - 1]:
                 raise TrackerError(f"bird {i} (address {a}) is not accessible after auto-configuration — switch "
@@ -492,9 +500,9 @@ def configure_flock(links: list[FlockLink], *, birds: int, rate_hz: float | None
         if not 1.0 <= rate_hz <= 180.0:
             raise TrackerError(f"a Flock of Birds measures at up to about 144 Hz (180 at most); got --rate {rate_hz:g}")
         for link in (links if not setup.group else [master]):
-            link.change(7, codec.measurement_rate_word(rate_hz))
-    word = int(codec.unpack_words(_examine(master, 7), signed=False)[0])
-    setup.rate_hz = codec.measurement_rate_from_word(word) if word else (rate_hz or 103.3)
+            link.change(7, measurement_rate_word(rate_hz))
+    word = int(unpack_words(_examine(master, 7), signed=False)[0])
+    setup.rate_hz = measurement_rate_from_word(word) if word else (rate_hz or 103.3)
 
     fmt, notes = choose_format(record_format, birds_on_port=birds if setup.group else 1, rate_hz=setup.rate_hz,
                                baud=master.baud, group=setup.group)
@@ -505,12 +513,12 @@ def configure_flock(links: list[FlockLink], *, birds: int, rate_hz: float | None
         emit(kind, text)
 
     scale = 1 if scale_inches == 72 else 0
-    hemi = codec.hemisphere_bytes(hemisphere)
+    hemi = hemisphere_bytes(hemisphere)
     for i in range(birds):
         link, addr = _route(links, setup, i)
-        link.change(3, codec.pack_words([scale]), addr, addressing)
-        link.command(bytes([codec.FORMATS[fmt].command]), addr, addressing)
-        link.command(bytes([codec.Command.HEMISPHERE]) + hemi, addr, addressing)
+        link.change(3, pack_words([scale]), addr, addressing)
+        link.command(bytes([FORMATS[fmt].command]), addr, addressing)
+        link.command(bytes([Command.HEMISPHERE]) + hemi, addr, addressing)
     if birds > 1:
         master.change(35, 1 if setup.group else 0)
     for link in links:
@@ -537,13 +545,13 @@ def check_position_scale(links: list[FlockLink], setup: FlockSetup) -> None:
 def start_stream(links: list[FlockLink], setup: FlockSetup) -> None:
     """STREAM: to the master in group mode, to every port with one port per bird."""
     for link in (links[:1] if setup.group or len(links) == 1 else links):
-        link.write(bytes([codec.Command.STREAM]))
+        link.write(bytes([Command.STREAM]))
 
 
 def poll(links: list[FlockLink], setup: FlockSetup) -> None:
     """POINT: one record per bird (one group response in group mode)."""
     for link in (links[:1] if setup.group or len(links) == 1 else links):
-        link.write(bytes([codec.Command.POINT]))
+        link.write(bytes([Command.POINT]))
 
 
 def stop_stream(links: list[FlockLink]) -> None:
@@ -551,6 +559,6 @@ def stop_stream(links: list[FlockLink]) -> None:
     for link in links:
         if link.is_open:
             try:
-                link.write(bytes([codec.Command.STREAM_STOP]))
+                link.write(bytes([Command.STREAM_STOP]))
             except TrackerError:
                 pass

@@ -16,7 +16,8 @@ from dataclasses import dataclass, field
 
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException, Timeout, to_bytes
 
-from flockcal.simulator.fake_tracker import FakeFlock, LineFaults, WallClock
+from flockcal.simulator.clocks import WallClock
+from flockcal.simulator.fake_tracker import FakeFlock, LineFaults
 from flockcal.simulator.performer import Performer
 
 URL_HELP = ("sim://[NAME]?birds=N&motion=walk&seed=S&noise=tracker|none&model=human&sta_mm=MM&rate=HZ&baud=B&ert=0|1"

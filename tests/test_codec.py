@@ -1,10 +1,24 @@
-"""Promises of flockcal.drivers.codec: the FOB wire format, bytes ⇄ arrays."""
+"""Promises of the wire-format modules (words, records, stream, commands, parameters, status): bytes ⇄ arrays."""
 
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from flockcal.drivers import codec
+from flockcal.drivers.commands import fbb_prefix
+from flockcal.drivers.hemispheres import HEMISPHERE_BY_BYTES, fold_to_hemisphere, hemisphere_command
+from flockcal.drivers.parameters import (
+    change_command, change_data_length, examine_reply_length, measurement_count_from_rate,
+    measurement_rate_from_count, measurement_rate_from_word, measurement_rate_word, software_revision,
+)
+from flockcal.drivers.records import (
+    FORMATS, decode_records, encode_records, quantisation_tolerance, record_length, saturated_records,
+)
+from flockcal.drivers.status import (
+    ERROR_CODES, decode_flock_status, decode_status_word, encode_status_word, error_is_fatal, error_message,
+    flock_status_byte,
+)
+from flockcal.drivers.stream import StreamDecoder
+from flockcal.drivers.words import decode_words, encode_words, pack_words
 from flockcal.rotations import from_euler
 
 RNG = np.random.default_rng(7)
@@ -22,30 +36,30 @@ def _angle_between(a, b):
 
 
 def test_manual_word_example_encodes_and_decodes_as_printed():
-    data = codec.encode_words([0x1122, 0x3344, 0x5566])
+    data = encode_words([0x1122, 0x3344, 0x5566])
     assert bytes(data) == bytes.fromhex("C8 08 51 19 59 2A")
-    assert list(codec.decode_words(data)) == [0x1120, 0x3344, 0x5564]
+    assert list(decode_words(data)) == [0x1120, 0x3344, 0x5564]
 
 
 def test_negative_words_decode_signed():
     words = np.array([-32768, -4, 0, 4, 32764])
-    assert list(codec.decode_words(codec.encode_words(words))) == list(words)
+    assert list(decode_words(encode_words(words))) == list(words)
 
 
-@pytest.mark.parametrize("name", sorted(codec.FORMATS))
+@pytest.mark.parametrize("name", sorted(FORMATS))
 @pytest.mark.parametrize("group", [False, True])
 def test_every_format_round_trips_within_quantisation(name, group):
-    fmt = codec.FORMATS[name]
+    fmt = FORMATS[name]
     rot, pos = _poses(2000, seed=len(name))
     addresses = np.arange(2000) % 14 + 1 if group else None
-    data = codec.encode_records(fmt, rot, pos, addresses=addresses)
-    length = codec.record_length(fmt, group=group)
+    data = encode_records(fmt, rot, pos, addresses=addresses)
+    length = record_length(fmt, group=group)
     assert len(data) == 2000 * length
     records = np.frombuffer(data, np.uint8).reshape(2000, length)
     # phasing bit only on each record's first byte
     assert np.all(records[:, 0] & 0x80) and not np.any(records[:, 1:] & 0x80)
-    r, p, a = codec.decode_records(fmt, records, group=group)
-    tol_rot, tol_pos = codec.quantisation_tolerance(fmt)
+    r, p, a = decode_records(fmt, records, group=group)
+    tol_rot, tol_pos = quantisation_tolerance(fmt)
     if fmt.position:
         assert np.max(np.abs(p - pos)) <= tol_pos
     else:
@@ -64,15 +78,15 @@ def test_every_format_round_trips_within_quantisation(name, group):
 def test_72_and_144_inch_scales_round_trip():
     rot, pos = _poses(100, reach=1.8)  # inside 72 in (1.83 m)
     for scale in (72.0, 144.0):
-        data = codec.encode_records("position_matrix", rot, pos, scale_inches=scale)
-        _, p, _ = codec.decode_records("position_matrix", data, group=False, scale_inches=scale)
-        assert np.max(np.abs(p - pos)) <= codec.quantisation_tolerance("position", scale)[1]
+        data = encode_records("position_matrix", rot, pos, scale_inches=scale)
+        _, p, _ = decode_records("position_matrix", data, group=False, scale_inches=scale)
+        assert np.max(np.abs(p - pos)) <= quantisation_tolerance("position", scale)[1]
 
 
 def test_positions_beyond_full_scale_saturate():
     rot, _ = _poses(2)
     pos = np.array([[2.0, -2.0, 0.1], [0.0, 0.0, -5.0]])  # 36 in = 0.914 m full scale
-    _, p, _ = codec.decode_records("position_angles", codec.encode_records("position_angles", rot, pos),
+    _, p, _ = decode_records("position_angles", encode_records("position_angles", rot, pos),
                                    group=False)
     fs = 36 * 0.0254
     assert np.all(np.abs(p) <= fs) and np.allclose(np.abs(p[0, :2]), fs, atol=2e-4)
@@ -83,7 +97,7 @@ def test_matrix_words_are_m_column_by_column():
     # Pure azimuth A: M11 = cos A, M12 = sin A; column order puts M21 second, M12 fourth.
     a = np.deg2rad(30)
     rot = from_euler(np.array([a]), np.array([0.0]), np.array([0.0]))
-    words = codec.decode_words(np.frombuffer(codec.encode_records("matrix", rot, np.zeros((1, 3))),
+    words = decode_words(np.frombuffer(encode_records("matrix", rot, np.zeros((1, 3))),
                                              np.uint8))
     m = rot[0].T
     expect = m.T.reshape(9)  # M11 M21 M31 M12 ...
@@ -94,18 +108,18 @@ def test_matrix_words_are_m_column_by_column():
 def test_fob_quaternion_of_pure_azimuth_has_negative_z():
     a = np.deg2rad(40)
     rot = from_euler(np.array([a]), np.array([0.0]), np.array([0.0]))
-    words = codec.decode_words(np.frombuffer(codec.encode_records("quaternion", rot, np.zeros((1, 3))),
+    words = decode_words(np.frombuffer(encode_records("quaternion", rot, np.zeros((1, 3))),
                                              np.uint8)) / 32768
     assert np.allclose(words, [np.cos(a / 2), 0, 0, -np.sin(a / 2)], atol=2e-4)
-    conj = codec.decode_words(np.frombuffer(codec.encode_records(
+    conj = decode_words(np.frombuffer(encode_records(
         "quaternion", rot, np.zeros((1, 3)), quaternion_convention="conjugate"), np.uint8)) / 32768
     assert np.allclose(conj, [np.cos(a / 2), 0, 0, np.sin(a / 2)], atol=2e-4)
 
 
 def test_quaternion_convention_mismatch_gives_the_inverse_rotation():
     rot, pos = _poses(50)
-    data = codec.encode_records("quaternion", rot, pos, quaternion_convention="conjugate")
-    r, _, _ = codec.decode_records("quaternion", data, group=False)
+    data = encode_records("quaternion", rot, pos, quaternion_convention="conjugate")
+    r, _, _ = decode_records("quaternion", data, group=False)
     assert np.allclose(r, np.transpose(rot, (0, 2, 1)), atol=1e-3)
 
 
@@ -113,18 +127,18 @@ def test_angles_near_gimbal_lock_decode_to_the_right_rotation():
     n = 200
     e = np.pi / 2 * np.where(np.arange(n) % 2, 1, -1) * (1 - RNG.uniform(0, 1e-9, n))
     rot = from_euler(RNG.uniform(-np.pi, np.pi, n), e, RNG.uniform(-np.pi, np.pi, n))
-    r, _, _ = codec.decode_records("angles", codec.encode_records("angles", rot, np.zeros((n, 3))),
+    r, _, _ = decode_records("angles", encode_records("angles", rot, np.zeros((n, 3))),
                                    group=False)
-    assert np.max(_angle_between(r, rot)) <= codec.quantisation_tolerance("angles")[0]
+    assert np.max(_angle_between(r, rot)) <= quantisation_tolerance("angles")[0]
 
 
 def test_all_zero_record_is_flagged_saturated_not_garbage():
-    for name, fmt in codec.FORMATS.items():
-        rec = np.zeros((1, codec.record_length(fmt, group=True)), np.uint8)
+    for name, fmt in FORMATS.items():
+        rec = np.zeros((1, record_length(fmt, group=True)), np.uint8)
         rec[0, 0] = 0x80
         rec[0, -1] = 3
-        r, p, a = codec.decode_records(fmt, rec, group=True)
-        assert codec.saturated_records(fmt, rec)[0], name
+        r, p, a = decode_records(fmt, rec, group=True)
+        assert saturated_records(fmt, rec)[0], name
         assert np.all(np.isfinite(r)) or not fmt.orientation
         assert a[0] == 3
 
@@ -132,12 +146,12 @@ def test_all_zero_record_is_flagged_saturated_not_garbage():
 def _stream(fmt="position_quaternion", n=300, group=True, birds=4, seed=1):
     rot, pos = _poses(n, seed=seed)
     addr = np.arange(n) % birds + 1 if group else None
-    return codec.encode_records(fmt, rot, pos, addresses=addr), rot, pos, addr
+    return encode_records(fmt, rot, pos, addresses=addr), rot, pos, addr
 
 
 def test_stream_decoder_handles_arbitrary_chunking():
     data, rot, pos, addr = _stream()
-    dec = codec.StreamDecoder("position_quaternion", group=True, n_birds=4)
+    dec = StreamDecoder("position_quaternion", group=True, n_birds=4)
     cuts = np.sort(RNG.choice(len(data), 60, replace=False))
     parts = [dec.feed(c, arrival_time=i) for i, c in enumerate(np.split(np.frombuffer(data, np.uint8), cuts))]
     addresses = np.concatenate([p.addresses for p in parts])
@@ -154,7 +168,7 @@ def test_garbage_between_records_costs_no_record():
     buf = bytearray(data)
     garbage = bytes([0x11, 0x13, 0x00, 0x7F, 0x05])  # bit7 clear: cannot start a record
     buf[15 * 7:15 * 7] = garbage
-    dec = codec.StreamDecoder("position_quaternion", group=True, n_birds=4)
+    dec = StreamDecoder("position_quaternion", group=True, n_birds=4)
     out = dec.feed(bytes(buf))
     assert len(out) == 20
     assert dec.dropped_bytes == len(garbage) and dec.resyncs == 1
@@ -165,7 +179,7 @@ def test_dropped_byte_loses_only_the_broken_record():
     buf = bytearray(data)
     del buf[15 * 5 + 6]  # a byte inside record 5
     del buf[15 * 12 - 1]  # the phasing byte of record 12 (shifted by the first deletion)
-    dec = codec.StreamDecoder("position_quaternion", group=True, n_birds=4)
+    dec = StreamDecoder("position_quaternion", group=True, n_birds=4)
     out = dec.feed(bytes(buf))
     expect = [i for i in range(20) if i not in (5, 12)]
     assert np.array_equal(out.addresses, addr[expect])
@@ -177,7 +191,7 @@ def test_inserted_phasing_byte_rejects_the_record_it_lands_in():
     data, rot, pos, addr = _stream(n=10)
     buf = bytearray(data)
     buf.insert(15 * 3 + 4, 0xC5)  # a stray byte with bit7 set inside record 3
-    dec = codec.StreamDecoder("position_quaternion", group=True, n_birds=4)
+    dec = StreamDecoder("position_quaternion", group=True, n_birds=4)
     out = dec.feed(bytes(buf))
     assert np.array_equal(out.addresses, addr[[0, 1, 2, 4, 5, 6, 7, 8, 9]])
     assert dec.bad_records == 2  # the cut record and the stray start
@@ -185,7 +199,7 @@ def test_inserted_phasing_byte_rejects_the_record_it_lands_in():
 
 def test_unknown_address_byte_is_rejected_in_group_mode():
     data, rot, pos, addr = _stream(n=8, birds=4)
-    dec = codec.StreamDecoder("position_quaternion", group=True, n_birds=3)  # bird 4 not configured
+    dec = StreamDecoder("position_quaternion", group=True, n_birds=3)  # bird 4 not configured
     out = dec.feed(data)
     assert set(out.addresses) == {1, 2, 3} and len(out) == 6
 
@@ -193,9 +207,9 @@ def test_unknown_address_byte_is_rejected_in_group_mode():
 def test_per_address_formats_in_one_group_stream():
     rot, pos = _poses(6)
     fmts = {1: "position_matrix", 2: "position_quaternion", 3: "position_angles"}
-    data = b"".join(codec.encode_records(fmts[a], rot[i:i + 1], pos[i:i + 1], addresses=[a])
+    data = b"".join(encode_records(fmts[a], rot[i:i + 1], pos[i:i + 1], addresses=[a])
                     for i, a in enumerate([1, 2, 3, 1, 2, 3]))
-    dec = codec.StreamDecoder(fmts, group=True)
+    dec = StreamDecoder(fmts, group=True)
     out = dec.feed(data[:40])
     out2 = dec.feed(data[40:])
     assert dec.pending_bytes == 13  # the last record could be the start of a longer one
@@ -210,12 +224,12 @@ def test_inner_byte_equal_to_a_shorter_formats_address_does_not_split_a_record()
     # bird 2's 19-byte matrix record whose 7th byte happens to be 1, bird 1's address (7-byte records)
     rot, pos = _poses(200, seed=3)
     fmts = {1: "angles", 2: "matrix"}
-    recs = [np.frombuffer(codec.encode_records(fmts[a], rot[i:i + 1], pos[i:i + 1], addresses=[a]), np.uint8)
+    recs = [np.frombuffer(encode_records(fmts[a], rot[i:i + 1], pos[i:i + 1], addresses=[a]), np.uint8)
             for i, a in enumerate(np.arange(200) % 2 + 1)]
     recs = [r.copy() for r in recs]
     for r in recs[1::2]:
         r[6] = 1
-    dec = codec.StreamDecoder(fmts, group=True)
+    dec = StreamDecoder(fmts, group=True)
     out = dec.feed(np.concatenate(recs).tobytes())
     out3 = dec.flush()
     assert len(out) + len(out3) == 200 and dec.bad_records == 0
@@ -223,7 +237,7 @@ def test_inner_byte_equal_to_a_shorter_formats_address_does_not_split_a_record()
 
 def test_non_group_stream_uses_the_port_address():
     data, rot, pos, _ = _stream("position_angles", n=30, group=False)
-    dec = codec.StreamDecoder("position_angles", group=False, address=7)
+    dec = StreamDecoder("position_angles", group=False, address=7)
     out = dec.feed(data)
     assert len(out) == 30 and set(out.addresses) == {7}
 
@@ -231,7 +245,7 @@ def test_non_group_stream_uses_the_port_address():
 def test_vectorised_decode_of_100k_records():
     n = 100_000
     data, rot, pos, addr = _stream(n=n, birds=16)
-    dec = codec.StreamDecoder("position_quaternion", group=True, n_birds=16)
+    dec = StreamDecoder("position_quaternion", group=True, n_birds=16)
     out = dec.feed(data, arrival_time=1.5)
     assert len(out) == n and np.array_equal(out.addresses, addr)
     assert np.max(np.abs(out.positions - pos)) < 1e-4
@@ -239,66 +253,66 @@ def test_vectorised_decode_of_100k_records():
 
 
 def test_examine_reply_lengths_follow_addressing_mode():
-    assert codec.examine_reply_length(36) == 14
-    assert codec.examine_reply_length(36, "expanded") == 30
-    assert codec.examine_reply_length(36, "super_expanded") == 126
-    assert [codec.examine_reply_length(50, m) for m in ("normal", "expanded", "super_expanded")] == [5, 7, 19]
-    assert codec.examine_reply_length(15) == 10 and codec.change_data_length(50) == 1
+    assert examine_reply_length(36) == 14
+    assert examine_reply_length(36, "expanded") == 30
+    assert examine_reply_length(36, "super_expanded") == 126
+    assert [examine_reply_length(50, m) for m in ("normal", "expanded", "super_expanded")] == [5, 7, 19]
+    assert examine_reply_length(15) == 10 and change_data_length(50) == 1
 
 
 def test_change_command_bytes():
-    assert codec.change_command(50, 3) == bytes([0x50, 0x32, 0x03])
-    assert codec.change_command(7, codec.measurement_rate_word(103)) == bytes([0x50, 0x07, 0x00, 0x67])
+    assert change_command(50, 3) == bytes([0x50, 0x32, 0x03])
+    assert change_command(7, measurement_rate_word(103)) == bytes([0x50, 0x07, 0x00, 0x67])
     with pytest.raises(ValueError):  # tried: changing read-only parameter 0
-        codec.change_command(0, 1)
+        change_command(0, 1)
     with pytest.raises(ValueError):  # tried: two data bytes for one-byte group mode
-        codec.change_command(35, b"\x01\x00")
+        change_command(35, b"\x01\x00")
 
 
 def test_fbb_prefixes_per_addressing_mode():
-    assert codec.fbb_prefix(1) == b"\xf1" and codec.fbb_prefix(14) == b"\xfe"
-    assert codec.fbb_prefix(15, "expanded") == b"\xff"
-    assert codec.fbb_prefix(16, "expanded") == b"\xe0" and codec.fbb_prefix(30, "expanded") == b"\xee"
-    assert codec.fbb_prefix(100, "super_expanded") == b"\xa0\x64"
-    assert codec.fbb_prefix(0) == b""
+    assert fbb_prefix(1) == b"\xf1" and fbb_prefix(14) == b"\xfe"
+    assert fbb_prefix(15, "expanded") == b"\xff"
+    assert fbb_prefix(16, "expanded") == b"\xe0" and fbb_prefix(30, "expanded") == b"\xee"
+    assert fbb_prefix(100, "super_expanded") == b"\xa0\x64"
+    assert fbb_prefix(0) == b""
     with pytest.raises(ValueError):  # tried: address 20 in normal addressing
-        codec.fbb_prefix(20)
+        fbb_prefix(20)
 
 
 def test_error_codes_name_meaning_and_fatality():
-    assert "invalid RS232 command" in codec.ERROR_CODES[6]
-    assert codec.error_is_fatal(1) and codec.error_is_fatal(22) and not codec.error_is_fatal(6)
-    assert "fatal" in codec.error_message(16, address=3) and "bird 3" in codec.error_message(16, 3)
+    assert "invalid RS232 command" in ERROR_CODES[6]
+    assert error_is_fatal(1) and error_is_fatal(22) and not error_is_fatal(6)
+    assert "fatal" in error_message(16, address=3) and "bird 3" in error_message(16, 3)
 
 
 def test_status_word_round_trip_and_format_code():
-    w = codec.encode_status_word(master=True, initialised=True, running=True,
+    w = encode_status_word(master=True, initialised=True, running=True,
                                  format="position_quaternion", stream=True)
-    s = codec.decode_status_word(codec.pack_words([w]))
+    s = decode_status_word(pack_words([w]))
     assert s.master and s.running and s.stream and not s.sleeping
     assert s.format.name == "position_quaternion" and s.format.status_code + 0x55 == 0x5D
 
 
 def test_flock_status_byte_decoding():
-    raw = bytes([codec.flock_status_byte(ert=True, sensor=False, transmitters=1)]
-                + [codec.flock_status_byte()] * 3 + [0] * 10)
-    fs = codec.decode_flock_status(raw)
+    raw = bytes([flock_status_byte(ert=True, sensor=False, transmitters=1)]
+                + [flock_status_byte()] * 3 + [0] * 10)
+    fs = decode_flock_status(raw)
     assert fs.ert[0] and not fs.sensor[0] and list(fs.running_sensors()) == [2, 3, 4]
 
 
 def test_hemisphere_bytes_and_folding():
-    assert codec.hemisphere_command("lower", address=2) == bytes([0xF2, 0x4C, 0x0C, 0x00])
-    assert codec.HEMISPHERE_BY_BYTES[(0x06, 0x01)] == "left"
+    assert hemisphere_command("lower", address=2) == bytes([0xF2, 0x4C, 0x0C, 0x00])
+    assert HEMISPHERE_BY_BYTES[(0x06, 0x01)] == "left"
     p = np.array([[0.1, 0.2, -0.3], [0.1, 0.2, 0.3]])
-    folded = codec.fold_to_hemisphere(p, "lower")
+    folded = fold_to_hemisphere(p, "lower")
     assert np.allclose(folded, [[-0.1, -0.2, 0.3], [0.1, 0.2, 0.3]])
 
 
 def test_measurement_rate_helpers():
-    assert codec.measurement_rate_from_word(codec.measurement_rate_word(144.0)) == 144.0
-    count = codec.measurement_count_from_rate(103.0)
-    assert codec.measurement_rate_from_count(count) == pytest.approx(103.0, rel=1e-3)
-    assert codec.software_revision(bytes([3, 67])) == pytest.approx(3.67)
+    assert measurement_rate_from_word(measurement_rate_word(144.0)) == 144.0
+    count = measurement_count_from_rate(103.0)
+    assert measurement_rate_from_count(count) == pytest.approx(103.0, rel=1e-3)
+    assert software_revision(bytes([3, 67])) == pytest.approx(3.67)
 
 
 def _framing_without_fast_path(dec):
@@ -311,12 +325,12 @@ def test_whole_record_fast_path_frames_exactly_like_the_general_framing(group):
     # Clean chunks take the fast path, damaged ones the general one; both must agree record for record.
     data, rot, pos, addr = _stream("position_matrix", n=400, group=group, birds=4)
     buf = bytearray(data)
-    L = codec.record_length("position_matrix", group=group)
+    L = record_length("position_matrix", group=group)
     buf[L * 100 + 3:L * 100 + 3] = bytes([0x05, 0x91])  # garbage inside record 100
     del buf[L * 250 + 7]  # a byte lost inside record 250
     kw = dict(group=True, n_birds=4) if group else dict(group=False, address=3)
-    fast = codec.StreamDecoder("position_matrix", **kw)
-    slow = _framing_without_fast_path(codec.StreamDecoder("position_matrix", **kw))
+    fast = StreamDecoder("position_matrix", **kw)
+    slow = _framing_without_fast_path(StreamDecoder("position_matrix", **kw))
     cuts = np.sort(RNG.choice(len(buf), 80, replace=False))
     chunks = [c.tobytes() for c in np.split(np.frombuffer(bytes(buf), np.uint8), cuts)]
     # whole-record chunks too, so that the fast path runs on aligned reads
@@ -335,9 +349,9 @@ def test_framing_several_reads_at_once_gives_the_records_and_arrival_times_of_fr
     cuts = np.sort(RNG.choice(len(data), 50, replace=False))
     chunks = [c.tobytes() for c in np.split(np.frombuffer(data, np.uint8), cuts)]
     times = list(0.002 * np.arange(len(chunks)))
-    one = codec.StreamDecoder("position_angles", group=True, n_birds=4)
+    one = StreamDecoder("position_angles", group=True, n_birds=4)
     singles = [one.frame(c, t) for c, t in zip(chunks, times)]
-    many = codec.StreamDecoder("position_angles", group=True, n_birds=4)
+    many = StreamDecoder("position_angles", group=True, n_birds=4)
     batches = [many.frame_chunks(chunks[i:i + 7], times[i:i + 7]) for i in range(0, len(chunks), 7)]
     for name in ("addresses", "offsets", "times"):
         a, b = (np.concatenate([getattr(f, name) for f in fs]) for fs in (singles, batches))

@@ -6,7 +6,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from flockcal.drivers import codec
+from flockcal.drivers.hemispheres import fold_to_hemisphere
+from flockcal.drivers.records import decode_block, encode_records, quantisation_tolerance, record_length
+from flockcal.drivers.stream import StreamDecoder
 from flockcal.rotations import from_euler
 from flockcal.drivers.assembly import FrameAssembler
 from flockcal.drivers.link import FlockSetup
@@ -31,7 +33,7 @@ def moving_poses(n, m, rate=100.0, reach=0.3):
 def group_bytes(fmt, R, p, scale=36.0):
     n, m = p.shape[:2]
     addr = np.tile(np.arange(1, m + 1), n)
-    return codec.encode_records(fmt, R.reshape(-1, 3, 3), p.reshape(-1, 3), addresses=addr, scale_inches=scale)
+    return encode_records(fmt, R.reshape(-1, 3, 3), p.reshape(-1, 3), addresses=addr, scale_inches=scale)
 
 
 def feed_all(asm, data, sizes, take_every=None, bytes_per_s=16000.0):
@@ -56,8 +58,8 @@ def test_frames_do_not_depend_on_how_reads_are_batched_or_when_frames_are_taken(
     n, m = 240, 6
     R, p = moving_poses(n, m, reach=0.6)
     p[:, 2, 0] -= 0.6  # bird 2 crosses x = 0: the bird reports mirrored positions
-    data = bytearray(group_bytes(fmt, R, codec.fold_to_hemisphere(p, "forward")))
-    L = codec.record_length(fmt, group=True)
+    data = bytearray(group_bytes(fmt, R, fold_to_hemisphere(p, "forward")))
+    L = record_length(fmt, group=True)
     rng = np.random.default_rng(3)
     for r in sorted(rng.choice(np.arange(30, n * m - 30), 10, replace=False))[::-1]:
         at = r * L + int(rng.integers(1, L))
@@ -84,19 +86,19 @@ def test_a_position_word_at_full_scale_is_invalid_and_one_step_inside_is_valid()
                     [0, -fs - 0.2, 0],  # beyond: clipped to −32768
                     [0, 0, -fs + step],  # word −32764, as far from zero as +32764
                     [0.1, 0.2, 0.3]])
-    rec = np.frombuffer(codec.encode_records("position_matrix", rot, pos), np.uint8).reshape(5, -1)
-    _, decoded, valid, clipped = codec.decode_block("position_matrix", rec)
+    rec = np.frombuffer(encode_records("position_matrix", rot, pos), np.uint8).reshape(5, -1)
+    _, decoded, valid, clipped = decode_block("position_matrix", rec)
     assert list(clipped) == [False, True, True, True, False]
     assert list(valid) == [True, False, False, False, True]
-    assert np.allclose(decoded[[0, 4]], pos[[0, 4]], atol=codec.quantisation_tolerance("position")[1])
-    out = codec.StreamDecoder("position_matrix", group=False).feed(rec.tobytes())
+    assert np.allclose(decoded[[0, 4]], pos[[0, 4]], atol=quantisation_tolerance("position")[1])
+    out = StreamDecoder("position_matrix", group=False).feed(rec.tobytes())
     assert list(out.valid) == list(valid) and list(out.clipped) == list(clipped)
 
 
 def test_orientation_only_records_are_never_clipped():
     rot = np.tile(np.eye(3), (2, 1, 1))
-    rec = np.frombuffer(codec.encode_records("quaternion", rot, np.zeros((2, 3))), np.uint8).reshape(2, -1)
-    _, _, valid, clipped = codec.decode_block("quaternion", rec)
+    rec = np.frombuffer(encode_records("quaternion", rot, np.zeros((2, 3))), np.uint8).reshape(2, -1)
+    _, _, valid, clipped = decode_block("quaternion", rec)
     assert valid.all() and not clipped.any()
 
 
@@ -131,7 +133,7 @@ def test_at_the_72_inch_scale_the_same_reach_is_a_valid_pose():
     asm = FrameAssembler(group_setup(m, "position_quaternion", rate, scale=72.0))
     f = feed_all(asm, data, [512])
     assert f["valid"].all() and asm.saturated_records == 0
-    assert np.max(np.abs(f["positions"] - p)) <= codec.quantisation_tolerance("position", 72.0)[1]
+    assert np.max(np.abs(f["positions"] - p)) <= quantisation_tolerance("position", 72.0)[1]
 
 
 def test_garbage_framing_as_bird_1_after_lost_bytes_does_not_end_the_cycle():
@@ -142,7 +144,7 @@ def test_garbage_framing_as_bird_1_after_lost_bytes_does_not_end_the_cycle():
     n, m, fmt = 5, 8, "position_quaternion"
     R, p = moving_poses(n, m)
     data = group_bytes(fmt, R, p)
-    L = codec.record_length(fmt, group=True)
+    L = record_length(fmt, group=True)
     fake = bytes([0x85]) + bytes(range(20, 33)) + bytes([1])
     cut = (2 * m + 4) * L
     broken = data[:cut] + bytes([3, 4, 5]) + fake + bytes([0x9A])
@@ -155,7 +157,7 @@ def test_garbage_framing_as_bird_1_after_lost_bytes_does_not_end_the_cycle():
     expect = np.ones((n, m), bool)
     expect[2, [4, 5]] = False
     assert len(f) == n and np.array_equal(f.valid, expect)
-    assert np.max(np.abs(f.positions[f.valid] - p[f.valid])) <= codec.quantisation_tolerance(fmt)[1]
+    assert np.max(np.abs(f.positions[f.valid] - p[f.valid])) <= quantisation_tolerance(fmt)[1]
 
 
 @pytest.mark.parametrize("mode", ["stream", "point"])
@@ -165,7 +167,7 @@ def test_a_cycle_is_out_within_10_ms_of_arrival_in_stream_mode_and_at_once_in_po
     m, fmt = 4, "position_quaternion"
     R, p = moving_poses(3, m)
     data = group_bytes(fmt, R, p)
-    L = codec.record_length(fmt, group=True)
+    L = record_length(fmt, group=True)
     setup = group_setup(m, fmt)
     setup.mode = mode
     asm = FrameAssembler(setup)

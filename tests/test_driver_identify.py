@@ -12,11 +12,16 @@ import numpy as np
 import pytest
 
 from flockcal.cli import main
-from flockcal.drivers import codec
+from flockcal.drivers.commands import fbb_prefix
+from flockcal.drivers.parameters import change_command, examine_command
+from flockcal.drivers.records import FORMATS, decode_records
+from flockcal.drivers.status import decode_status_word
 from flockcal.rotations import from_euler
 from flockcal.drivers.link import Timing, TrackerError
 from flockcal.drivers.reader import TrackerConfig, TrackerReader
-from flockcal.simulator.fake_tracker import FakeFlock, ManualClock, SmoothSource
+from flockcal.simulator.clocks import ManualClock
+from flockcal.simulator.fake_tracker import FakeFlock
+from flockcal.simulator.smooth_source import SmoothSource
 from flockcal.simulator.pty_tracker import PtyTracker
 
 
@@ -30,19 +35,19 @@ def test_fake_answers_model_status_and_per_bird_scale_as_the_hardware_does():
     clock = ManualClock()
     flock = FakeFlock(SmoothSource(3), clock=clock, scale_inches=36.0)
     # Model ID (p15): 10 bytes of space-padded ASCII, as the Flock manual gives it.
-    assert _ask(flock, clock, codec.examine_command(15)) == b"6DFOB     "
+    assert _ask(flock, clock, examine_command(15)) == b"6DFOB     "
     # Status word: master bit only on address 1; the format bits follow a format command.
-    master = codec.decode_status_word(_ask(flock, clock, codec.examine_command(0)))
-    assert master.master and master.running and master.format == codec.FORMATS["position_angles"]
-    slave = codec.decode_status_word(_ask(flock, clock, codec.fbb_prefix(2, "normal") + codec.examine_command(0)))
+    master = decode_status_word(_ask(flock, clock, examine_command(0)))
+    assert master.master and master.running and master.format == FORMATS["position_angles"]
+    slave = decode_status_word(_ask(flock, clock, fbb_prefix(2, "normal") + examine_command(0)))
     assert not slave.master
-    _ask(flock, clock, codec.change_command(50, 3))
-    _ask(flock, clock, codec.fbb_prefix(2, "normal") + bytes([codec.FORMATS["position_matrix"].command]))
-    slave = codec.decode_status_word(_ask(flock, clock, codec.fbb_prefix(2, "normal") + codec.examine_command(0)))
-    assert slave.format == codec.FORMATS["position_matrix"] and slave.initialised
+    _ask(flock, clock, change_command(50, 3))
+    _ask(flock, clock, fbb_prefix(2, "normal") + bytes([FORMATS["position_matrix"].command]))
+    slave = decode_status_word(_ask(flock, clock, fbb_prefix(2, "normal") + examine_command(0)))
+    assert slave.format == FORMATS["position_matrix"] and slave.initialised
     # Position scaling is each bird's own: changing bird 2 leaves birds 1 and 3 at 36 in.
-    _ask(flock, clock, codec.fbb_prefix(2, "normal") + codec.change_command(3, bytes([1, 0])))
-    scales = [_ask(flock, clock, codec.fbb_prefix(a, "normal") + codec.examine_command(3)) for a in (1, 2, 3)]
+    _ask(flock, clock, fbb_prefix(2, "normal") + change_command(3, bytes([1, 0])))
+    scales = [_ask(flock, clock, fbb_prefix(a, "normal") + examine_command(3)) for a in (1, 2, 3)]
     assert scales == [b"\x00\x00", b"\x01\x00", b"\x00\x00"]
 
 
@@ -54,11 +59,11 @@ def test_fake_encodes_each_birds_records_at_its_own_scale():
 
     clock = ManualClock()
     flock = FakeFlock(Far(2), clock=clock, scale_inches=36.0)
-    _ask(flock, clock, codec.change_command(50, 2) + codec.change_command(35, 1))
-    _ask(flock, clock, codec.fbb_prefix(2, "normal") + codec.change_command(3, bytes([1, 0])))
+    _ask(flock, clock, change_command(50, 2) + change_command(35, 1))
+    _ask(flock, clock, fbb_prefix(2, "normal") + change_command(3, bytes([1, 0])))
     records = np.frombuffer(_ask(flock, clock, b"B"), np.uint8).reshape(2, -1)
-    _, p1, _ = codec.decode_records("position_angles", records[0].tobytes(), group=True, scale_inches=36.0)
-    _, p2, _ = codec.decode_records("position_angles", records[1].tobytes(), group=True, scale_inches=72.0)
+    _, p1, _ = decode_records("position_angles", records[0].tobytes(), group=True, scale_inches=36.0)
+    _, p2, _ = decode_records("position_angles", records[1].tobytes(), group=True, scale_inches=72.0)
     assert p1[0, 0] == pytest.approx(36 * 0.0254, abs=2e-4)  # bird 1 clips at its 36 in
     assert p2[0, 0] == pytest.approx(1.2, abs=3e-4)  # bird 2 reads it at 72 in
 

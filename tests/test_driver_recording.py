@@ -11,7 +11,7 @@ import textwrap
 import numpy as np
 import pytest
 
-from flockcal.drivers import codec
+from flockcal.drivers.records import encode_records, quantisation_tolerance, record_length
 from flockcal.rotations import from_euler
 from flockcal.drivers.assembly import FrameAssembler
 from flockcal.drivers.link import FlockSetup, choose_format
@@ -94,8 +94,8 @@ def test_garbage_inside_records_never_yields_a_corrupt_pose_and_costs_only_those
     n, m, fmt = 300, 8, "position_quaternion"
     R, p = smooth_poses(n, m)
     addr = np.tile(np.arange(1, m + 1), n)
-    data = bytearray(codec.encode_records(fmt, R.reshape(-1, 3, 3), p.reshape(-1, 3), addresses=addr))
-    L = codec.record_length(fmt, group=True)
+    data = bytearray(encode_records(fmt, R.reshape(-1, 3, 3), p.reshape(-1, 3), addresses=addr))
+    L = record_length(fmt, group=True)
     rng = np.random.default_rng(0)
     hits = sorted(rng.choice(np.arange(50, n * m - 50), 12, replace=False))
     for r in hits[::-1]:  # insert inside record r (clean bytes: they cannot start a record)
@@ -109,7 +109,7 @@ def test_garbage_inside_records_never_yields_a_corrupt_pose_and_costs_only_those
     assert len(f) == n
     lost = ~f.valid
     assert lost.sum() <= len(hits)
-    _, pos_tol = codec.quantisation_tolerance(fmt)
+    _, pos_tol = quantisation_tolerance(fmt)
     err = np.linalg.norm(f.positions - p, axis=-1)[f.valid]
     assert err.max() <= pos_tol
 
@@ -127,8 +127,8 @@ def test_one_port_per_bird_aligns_cycles_when_reads_arrive_late_and_merged():
         pos = np.zeros((n, 3))
         pos[:, 0] = 0.1 + 0.001 * np.arange(n)  # x encodes the cycle number
         pos[:, 1] = 0.01 * b
-        data = codec.encode_records(fmt, np.tile(np.eye(3), (n, 1, 1)), pos)
-        L = codec.record_length(fmt, group=False)
+        data = encode_records(fmt, np.tile(np.eye(3), (n, 1, 1)), pos)
+        L = record_length(fmt, group=False)
         read_at = np.arange(n) * P + rng.uniform(0, 1.5 * P, n)
         read_at = np.maximum.accumulate(read_at)
         # Each record becomes available at its cycle time; a read returns everything available.

@@ -6,8 +6,15 @@ import numpy as np
 import pytest
 import serial
 
-from flockcal.drivers import codec
-from flockcal.simulator.fake_tracker import FakeFlock, ManualClock, SmoothSource
+from flockcal.drivers.commands import format_command
+from flockcal.drivers.hemispheres import fold_to_hemisphere, hemisphere_command
+from flockcal.drivers.parameters import change_command, examine_command, measurement_rate_from_count, software_revision
+from flockcal.drivers.status import decode_flock_status, decode_status_word
+from flockcal.drivers.stream import StreamDecoder
+from flockcal.drivers.words import unpack_words
+from flockcal.simulator.clocks import ManualClock
+from flockcal.simulator.fake_tracker import FakeFlock
+from flockcal.simulator.smooth_source import SmoothSource
 from flockcal.simulator.pty_tracker import PtyTracker
 
 
@@ -57,37 +64,37 @@ def test_vrpn_init_sequence_gets_replies_of_the_expected_lengths(manual_pty):
     trk, port, clock, src, flock = manual_pty
     port.write(b"B")
     assert len(_read_exactly(port, 12, clock)) == 12  # POS/ANG before group mode
-    _send(port, flock, codec.change_command(50, 4))
+    _send(port, flock, change_command(50, 4))
     _pass(clock, 0.6)  # the manual's wait after AUTO-CONFIG
-    cmd = codec.change_command(35, 1)
+    cmd = change_command(35, 1)
     for a in range(1, 5):
-        cmd += codec.format_command("position_quaternion", a)
+        cmd += format_command("position_quaternion", a)
     for a in range(1, 5):
-        cmd += codec.hemisphere_command("lower", a)
+        cmd += hemisphere_command("lower", a)
     _send(port, flock, cmd)
     port.reset_input_buffer()
-    port.write(codec.examine_command(36))
-    status = codec.decode_flock_status(_read_exactly(port, 14, clock))
+    port.write(examine_command(36))
+    status = decode_flock_status(_read_exactly(port, 14, clock))
     assert np.all(status.accessible[:4] & status.running[:4])
-    port.write(codec.examine_command(2) + codec.examine_command(6))
+    port.write(examine_command(2) + examine_command(6))
     reply = _read_exactly(port, 4, clock)
-    assert reply[0] == 25 and codec.measurement_rate_from_count(
-        int(codec.unpack_words(reply[2:], signed=False)[0])) == pytest.approx(100.0, rel=2e-3)
-    port.write(codec.examine_command(0) + codec.examine_command(1))
+    assert reply[0] == 25 and measurement_rate_from_count(
+        int(unpack_words(reply[2:], signed=False)[0])) == pytest.approx(100.0, rel=2e-3)
+    port.write(examine_command(0) + examine_command(1))
     reply = _read_exactly(port, 4, clock)
-    assert codec.decode_status_word(reply[:2]).format.name == "position_quaternion"
-    assert codec.software_revision(reply[2:]) == pytest.approx(3.67)
+    assert decode_status_word(reply[:2]).format.name == "position_quaternion"
+    assert software_revision(reply[2:]) == pytest.approx(3.67)
     _pass(clock, 0.1)
     assert port.in_waiting == 0  # nothing extra: every reply had exactly its length
 
 
 def test_stream_over_the_pty_counts_rate_times_duration_and_matches_the_source(manual_pty):
     trk, port, clock, src, flock = manual_pty
-    _send(port, flock, codec.change_command(50, 4) + codec.change_command(35, 1)
-          + b"".join(codec.format_command("position_matrix", a) for a in range(1, 5)))
+    _send(port, flock, change_command(50, 4) + change_command(35, 1)
+          + b"".join(format_command("position_matrix", a) for a in range(1, 5)))
     t_stream = clock.t
     _send(port, flock, b"@")
-    dec = codec.StreamDecoder("position_matrix", group=True, n_birds=4)
+    dec = StreamDecoder("position_matrix", group=True, n_birds=4)
     parts = []
     for _ in range(40):  # 2 s of flock time
         clock.advance(0.05)
@@ -105,22 +112,22 @@ def test_stream_over_the_pty_counts_rate_times_duration_and_matches_the_source(m
     times = (first + np.arange(np.count_nonzero(sel))) / 100.0
     rot, pos, _ = src.poses(times)
     got = np.concatenate([p.positions for p in parts])[sel]
-    assert np.max(np.abs(got - codec.fold_to_hemisphere(pos[:, 2], "forward"))) <= 1e-4
+    assert np.max(np.abs(got - fold_to_hemisphere(pos[:, 2], "forward"))) <= 1e-4
 
 
 def test_data_bytes_like_xon_xoff_and_newlines_pass_the_raw_pty(manual_pty):
     trk, port, clock, src, flock = manual_pty
     # XON/XOFF, CR/LF, Ctrl-C, Ctrl-Z, Ctrl-D, DEL: a cooked tty would eat, map or signal on them
     table = bytes([0x11, 0x13, 0x0D, 0x0A, 0x03, 0x1A, 0x04, 0x7F, 0x1C, 0x00, 0x15, 0x12, 0x17, 0x16])
-    port.write(codec.change_command(5, table) + codec.examine_command(5))
+    port.write(change_command(5, table) + examine_command(5))
     assert _read_exactly(port, 14, clock) == table
 
 
 def test_garbage_injection_is_visible_on_the_wire(manual_pty):
     trk, port, clock, src, flock = manual_pty
-    _send(port, flock, codec.change_command(50, 4) + codec.change_command(35, 1) + b"@")
+    _send(port, flock, change_command(50, 4) + change_command(35, 1) + b"@")
     _pass(clock, 0.2)
-    dec = codec.StreamDecoder("position_angles", group=True, n_birds=4)
+    dec = StreamDecoder("position_angles", group=True, n_birds=4)
     dec.feed(port.read(port.in_waiting))
     trk.inject_garbage(30)
     _pass(clock, 0.2)
@@ -130,7 +137,7 @@ def test_garbage_injection_is_visible_on_the_wire(manual_pty):
 
 def test_disconnect_fails_the_client_and_reconnect_serves_the_same_path(manual_pty):
     trk, port, clock, src, flock = manual_pty
-    _send(port, flock, codec.change_command(35, 1))
+    _send(port, flock, change_command(35, 1))
     trk.disconnect()
     with pytest.raises(serial.SerialException):
         for _ in range(50):  # the hang-up shows on the next read
@@ -142,7 +149,7 @@ def test_disconnect_fails_the_client_and_reconnect_serves_the_same_path(manual_p
     trk.reconnect()
     port2 = serial.Serial(trk.device, 115200, timeout=0)
     try:
-        port2.write(codec.examine_command(35))
+        port2.write(examine_command(35))
         assert _read_exactly(port2, 1, clock) == b"\x01"  # the bird kept its state
     finally:
         port2.close()
@@ -156,11 +163,11 @@ def test_one_pty_per_bird_streams_each_bird_without_address_bytes():
         try:
             assert len(set(trk.devices)) == 3
             for k, p in enumerate(ports):
-                _send(p, flock, (codec.change_command(50, 3) if k == 0 else b"")
-                      + codec.format_command("position_quaternion") + b"@", k)
+                _send(p, flock, (change_command(50, 3) if k == 0 else b"")
+                      + format_command("position_quaternion") + b"@", k)
             _pass(clock, 1.0, steps=10)
             for k, p in enumerate(ports):
-                out = codec.StreamDecoder("position_quaternion", group=False, address=k + 1).feed(
+                out = StreamDecoder("position_quaternion", group=False, address=k + 1).feed(
                     p.read(p.in_waiting))
                 assert abs(len(out) - 144) <= 1
         finally:
@@ -178,7 +185,7 @@ def test_pty_follows_the_baud_the_client_sets_when_asked():
             while flock.lines[0].baud != 9600 and time.monotonic() < deadline:
                 time.sleep(0.005)  # the server notices the line speed on its next poll
             assert flock.lines[0].baud == 9600
-            _send(port, flock, codec.change_command(50, 4) + codec.change_command(35, 1) + b"@")
+            _send(port, flock, change_command(50, 4) + change_command(35, 1) + b"@")
             got = 0
             for _ in range(20):
                 clock.advance(0.05)

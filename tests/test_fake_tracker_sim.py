@@ -8,7 +8,9 @@ import pytest
 import serial
 
 import flockcal.simulator  # noqa: F401  (registers sim://)
-from flockcal.drivers import codec
+from flockcal.drivers.commands import format_command
+from flockcal.drivers.parameters import change_command, examine_command
+from flockcal.drivers.stream import StreamDecoder
 from flockcal.simulator import protocol_sim
 
 
@@ -60,7 +62,7 @@ def test_named_simulation_exposes_the_live_flock_and_performer(named):
         assert sim.flock.n_birds == 16 and sim.flock.rate_hz == 144.0
         assert len(sim.source.names) == 16 and hasattr(sim.source, "inject_slip")
         assert sim.flock.addressing == "expanded"  # 16 units need expanded FBB addressing
-        port.write(codec.examine_command(3))
+        port.write(examine_command(3))
         assert _read(port, 2) == bytes([1, 0])  # the performer needs the 72-inch scale
     finally:
         port.close()
@@ -88,11 +90,11 @@ def test_modem_line_setters_do_not_raise_and_rts_falling_edge_resets():
     try:
         port.dtr = True
         port.dtr = False
-        port.write(codec.change_command(35, 1) + codec.examine_command(35))
+        port.write(change_command(35, 1) + examine_command(35))
         assert port.read(1) == b"\x01"
         port.rts = True
         port.rts = False  # the hardware reset pulse
-        port.write(codec.examine_command(35))
+        port.write(examine_command(35))
         assert port.read(1) == b"\x00"  # group mode is off again after power-up
         assert port.cts and port.dsr and port.cd and not port.ri
         port.send_break(0.001)
@@ -103,9 +105,9 @@ def test_modem_line_setters_do_not_raise_and_rts_falling_edge_resets():
 def test_stream_rate_on_the_wall_clock_is_roughly_the_measurement_rate():
     port = serial.serial_for_url("sim://?birds=4&motion=idle&rate=144", baudrate=115200, timeout=0.05)
     try:
-        port.write(codec.change_command(50, 4) + codec.change_command(35, 1)
-                   + b"".join(codec.format_command("position_quaternion", a) for a in range(1, 5)))
-        dec = codec.StreamDecoder("position_quaternion", group=True, n_birds=4)
+        port.write(change_command(50, 4) + change_command(35, 1)
+                   + b"".join(format_command("position_quaternion", a) for a in range(1, 5)))
+        dec = StreamDecoder("position_quaternion", group=True, n_birds=4)
         port.write(b"@")
         t0 = time.monotonic()
         n = 0
@@ -123,7 +125,7 @@ def test_stream_rate_on_the_wall_clock_is_roughly_the_measurement_rate():
 def test_sim_port_honours_the_clients_baud_rate():
     port = serial.serial_for_url("sim://?birds=4&motion=idle&rate=144", baudrate=9600, timeout=0.05)
     try:
-        port.write(codec.change_command(50, 4) + codec.change_command(35, 1) + b"@")
+        port.write(change_command(50, 4) + change_command(35, 1) + b"@")
         t0 = time.monotonic()
         got = 0
         while time.monotonic() - t0 < 0.5:
@@ -142,7 +144,7 @@ def test_line_faults_injected_through_the_registry_reach_the_client(named):
         sim.inject_garbage(25)
         assert len(port.read(25)) == 25
         sim.set_error(31)
-        port.write(codec.examine_command(10))
+        port.write(examine_command(10))
         assert port.read(1) == bytes([31])
     finally:
         port.close()
@@ -152,7 +154,7 @@ def test_disconnect_fails_open_ports_and_reconnect_lets_the_client_reopen(named)
     name = named()
     url = f"sim://{name}?birds=2&motion=idle"
     port = serial.serial_for_url(url, timeout=0.1)
-    port.write(codec.change_command(35, 1))
+    port.write(change_command(35, 1))
     sim = protocol_sim.get_simulation(name)
     sim.disconnect()
     with pytest.raises(serial.SerialException):
@@ -163,7 +165,7 @@ def test_disconnect_fails_open_ports_and_reconnect_lets_the_client_reopen(named)
     sim.reconnect()
     port = serial.serial_for_url(url, timeout=1.0)
     try:
-        port.write(codec.examine_command(35))
+        port.write(examine_command(35))
         assert port.read(1) == b"\x01"  # same flock, state kept
     finally:
         port.close()
@@ -176,10 +178,10 @@ def test_ports_named_alike_share_one_flock_one_bird_each(named):
     try:
         sim = protocol_sim.get_simulation(name)
         assert sim.flock.n_ports == 3
-        ports[0].write(codec.change_command(50, 3))
+        ports[0].write(change_command(50, 3))
         for p in ports:
-            p.write(codec.format_command("position_matrix") + b"@")
-        decs = [codec.StreamDecoder("position_matrix", group=False, address=k + 1) for k in range(3)]
+            p.write(format_command("position_matrix") + b"@")
+        decs = [StreamDecoder("position_matrix", group=False, address=k + 1) for k in range(3)]
         counts = np.zeros(3)
         t0 = time.monotonic()
         while time.monotonic() - t0 < 0.4:

@@ -3,7 +3,6 @@ again (at real time or as fast as possible), and turn one into the .npz take int
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 
@@ -92,7 +91,8 @@ def _record(args) -> int:
 
 
 def _record_with(args, names: list[str] | None) -> int:
-    from flockcal.drivers.reader import TrackerConfig, TrackerReader, rate_warning
+    from flockcal.drivers.rate_check import rate_warning
+    from flockcal.drivers.reader import TrackerConfig, TrackerReader
     import flockcal.simulator  # noqa: F401  (registers sim:// with pyserial: --port may be the simulator)
 
     cfg = TrackerConfig(urls=args.port, birds=args.birds, rate_hz=args.rate, record_format=args.format,

@@ -72,10 +72,10 @@ PTY_BAUD = 115200  # the fake's line runs at the RS-232 top speed, as a Flock's 
 def record_command(device: str, names, rate_hz: float) -> str:
     """A `flockcal record` line for the fake: its sensor names, and the highest whole rate up to the
     fake's own that one 115200-baud line carries for the whole flock (group mode, position/quaternion)."""
-    from flockcal.drivers import codec
+    from flockcal.drivers.records import record_length
     from flockcal.drivers.link import LINK_MARGIN, link_capacity
 
-    per_set = len(names) * codec.record_length("position_quaternion", group=len(names) > 1)
+    per_set = len(names) * record_length("position_quaternion", group=len(names) > 1)
     fits = int(link_capacity(PTY_BAUD) * LINK_MARGIN // per_set)
     rate = f" --rate {fits}" if fits < rate_hz else ""
     return (f"flockcal record --port {device} --birds {len(names)}{rate} --names {','.join(names)} "
