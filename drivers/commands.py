@@ -1,4 +1,4 @@
-"""Host → bird command bytes, the data bytes each takes, and FBB addressing (protocol.md §2, §3.1).
+"""Host → bird command bytes, the data bytes each takes, and FBB addressing (protocol.md §2).
 
 A command goes to one bird of a flock behind an RS232 TO FBB prefix; `format_command` and friends
 build the bytes for a given address and addressing mode.
@@ -12,7 +12,7 @@ from flockcal.drivers.records import FORMATS, RecordFormat, as_format
 
 
 class Command(IntEnum):
-    """Command bytes host → bird (fob-protocol.md §2)."""
+    """Command bytes host → bird (protocol.md §2)."""
 
     STREAM = 0x40
     STREAM_STOP = 0x3F

@@ -41,7 +41,7 @@ class TrackerError(FlockcalError):
 
 @dataclass
 class Timing:
-    """Delays of the initialisation sequence, in seconds (defaults: the manual's, fob-protocol.md §1)."""
+    """Delays of the initialisation sequence, in seconds (defaults: the manual's, protocol.md §1)."""
 
     reset_hold: float = 1.0  # RTS high (bird held in reset)
     reset_settle: float = 2.0  # after RTS drops, before the bird listens
@@ -81,7 +81,7 @@ class FlockLink:
                 self.url, do_not_open=True, baudrate=self.baud, bytesize=8, parity="N", stopbits=1,
                 timeout=self.read_timeout, write_timeout=2.0, xonxoff=False, rtscts=False, dsrdtr=False)
             # pyserial asserts RTS on open by default, which holds a bird in standby; DTR low would
-            # silence it (fob-protocol.md §11.1).
+            # silence it (protocol.md §11.1).
             port.rts = False
             port.dtr = True
             port.open()
@@ -189,7 +189,7 @@ class FlockLink:
     def reset(self) -> bool:
         """Hardware reset by RTS when the port has modem lines; True if it could be done.
 
-        On a pty (and some USB adapters) the modem-line ioctls fail (fob-protocol.md §11.2): the reset
+        On a pty (and some USB adapters) the modem-line ioctls fail (protocol.md §11.2): the reset
         is then skipped, and the caller's STREAM STOP and drain bring the bird to a known state.
         """
         try:
@@ -427,7 +427,7 @@ def configure_flock(links: list[FlockLink], *, birds: int, rate_hz: float | None
                     emit: Emit) -> FlockSetup:
     """Reset and initialise the flock; returns how it was set up. Raises TrackerError on any problem.
 
-    Sequence (fob-protocol.md §6, with the manual's delays): RTS reset where possible, STREAM STOP and
+    Sequence (protocol.md §6, with the manual's delays): RTS reset where possible, STREAM STOP and
     drain; check the master answers (software revision) and ask what it is (model, status, position
     scale); FBB AUTO-CONFIG for N birds; check every bird is accessible and running (flock status);
     measurement rate; per bird: position scale, record format, hemisphere; group mode on/off; read back

@@ -11,8 +11,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 # How the Flock's quaternion relates to R (sensor → transmitter): "fob" is the quaternion of M = Rᵀ, the
-# matrix the bird sends (protocol.md §5); "conjugate" is R's own quaternion, as some third-party firmware
-# sends it.
+# matrix the bird sends (protocol.md §5); "conjugate" is R's own, for a bird found to send that (the
+# manual's convention is unconfirmed on hardware).
 QUATERNION_CONVENTIONS = ("fob", "conjugate")
 
 _I3 = np.eye(3)

@@ -1,4 +1,4 @@
-"""The fake flock's host-command state machine: bytes in, commands executed (protocol.md §2, §3.1).
+"""The fake flock's host-command state machine: bytes in, commands executed (protocol.md §2).
 
 `CommandSet` is one part of `FakeFlock` (it runs on whichever thread feeds the flock, under the flock's
 lock): it collects a command's bytes after any RS232 TO FBB prefix, routes it to its bird and carries

@@ -111,7 +111,7 @@ def tracker_noise(
 
 
 # ----------------------------------------------------------------------------------------------
-# Quantisation to the Flock's 14-bit words (fob-protocol.md §4)
+# Quantisation to the Flock's 14-bit words (protocol.md §4)
 
 
 def _words(x: np.ndarray) -> np.ndarray:
