@@ -12,14 +12,8 @@ from dataclasses import dataclass, field
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from flockcal.rotations import skew
 from flockcal.solver.reconstruct import Articulation, ArticulationError
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(…, 3, 3) cross-product matrices [v]×."""
-    z = np.zeros(v.shape[:-1])
-    x, y, w = v[..., 0], v[..., 1], v[..., 2]
-    return np.stack([np.stack([z, -w, y], -1), np.stack([w, z, -x], -1), np.stack([-y, x, z], -1)], -2)
 
 
 def body_points(art: Articulation) -> list[tuple[list[int], np.ndarray]]:
@@ -187,8 +181,8 @@ def fit_known_skeleton(
         c, l = placed(Q, s)
         Qc = c - s[child]
         Ql = l - s[par]
-        Jc = np.concatenate([-_skew(Qc), np.broadcast_to(np.eye(3), Qc.shape + (3,))], axis=2)  # (p, 3, 6)
-        Jl = np.concatenate([-_skew(Ql), np.broadcast_to(np.eye(3), Ql.shape + (3,))], axis=2)
+        Jc = np.concatenate([-skew(Qc), np.broadcast_to(np.eye(3), Qc.shape + (3,))], axis=2)  # (p, 3, 6)
+        Jl = np.concatenate([-skew(Ql), np.broadcast_to(np.eye(3), Ql.shape + (3,))], axis=2)
         r = np.einsum("pij,pj->pi", A, np.concatenate([c, l], axis=1)) - bvec  # ½ gradient in u
         H = np.zeros((m, m, 6, 6))
         g = np.zeros((m, 6))
