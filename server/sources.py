@@ -45,7 +45,8 @@ def sensor_names(settings: Settings, simulated: tuple[str, ...] | None = None) -
 
 
 def named_sim_url(url: str, name: str = "flockcal") -> str:
-    """sim://?… → sim://flockcal?… so the service can find its simulation again (slips, routines)."""
+    """sim://?… → sim://flockcal?…: a named flock outlives its ports, so the reader's ports (and their
+    re-opens on reconnect) stream the very performer the service holds for slips and routines."""
     parts = urllib.parse.urlsplit(url)
     if parts.scheme.lower() == "sim" and not parts.netloc:
         return urllib.parse.urlunsplit(("sim", name, parts.path, parts.query, parts.fragment))
