@@ -204,7 +204,7 @@ class SegmentView:
         out = None
         for key, rows in groups.items():
             s = keyed[key]
-            acc = self.whole if s is None else self._seg._segment_acc(s)
+            acc = self.whole if s is None else self._seg.segment_accumulator(s)
             part = getattr(acc, method)(P[rows])
             single = not isinstance(part, tuple)
             parts = (part,) if single else part

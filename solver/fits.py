@@ -89,6 +89,21 @@ class PairFits:
 _FIELDS = tuple(f.name for f in fields(PairFits))
 
 
+def unfitted(pairs) -> PairFits:
+    """PairFits for `pairs` with nothing measured: NaN numbers, no hinge, nothing determined, no frames.
+    Stands in where only the joint points are known (a fit read from a file, a saved skeleton's start)."""
+    P = np.asarray(pairs, dtype=int).reshape(-1, 2)
+    p = len(P)
+
+    def nan(*shape):
+        return np.full((p, *shape), np.nan)
+
+    no = np.zeros(p, dtype=bool)
+    zero = np.zeros(p, dtype=int)
+    return PairFits(P, nan(3), nan(3), nan(), nan(), nan(6), no, no, nan(3), nan(3), nan(3), nan(), nan(),
+                    nan(3, 3), nan(3, 3), zero, zero.copy(), nan(3), nan(), nan(), nan())
+
+
 def all_pairs(n_sensors: int) -> np.ndarray:
     """Every pair (i, j) with i < j, in row-major order: (m(m−1)/2, 2)."""
     return _all_pairs(int(n_sensors)).copy()

@@ -550,17 +550,15 @@ def detect_slips(take, calibration=None, *, joints=None, c=None, l=None, batch_s
 
 
 def joints_from_calibration(calibration, names) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(joints (p, 2), c (p, 3), l (p, 3)) from a Calibration or its design.md §5 dict."""
-    d = calibration.to_dict() if hasattr(calibration, "to_dict") else calibration
-    try:
-        entries = d["joints"]
-    except (KeyError, TypeError):
-        raise SlippageError("the calibration has no 'joints' list (expected the `flockcal fit --json` shape)") from None
+    """(joints (p, 2) as indices into `names`, c (p, 3), l (p, 3)) from a Calibration, a fit with
+    `.calibration()`, or a design.md §5 dict (read by `calibration_from_json`)."""
+    from flockcal.solver.calibration_json import as_calibration
+
+    cal = as_calibration(calibration, names=names, error=SlippageError)
     index = {n: i for i, n in enumerate(names)}
+    pairs, c, l = cal.joint_arrays()
     try:
-        J = np.array([[index[e["child"]], index[e["parent"]]] for e in entries], dtype=int).reshape(-1, 2)
+        J = np.array([[index[cal.names[a]], index[cal.names[b]]] for a, b in pairs.tolist()], dtype=int).reshape(-1, 2)
     except KeyError as exc:
         raise SlippageError(f"the calibration names sensor {exc.args[0]!r}, which this take does not have") from None
-    c = np.array([e["c"] for e in entries], dtype=float).reshape(-1, 3)
-    l = np.array([e["l"] for e in entries], dtype=float).reshape(-1, 3)
     return J, c, l
