@@ -9,7 +9,9 @@ stream, one batch and an archive split across workers all give the same sums.
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from functools import lru_cache
+from types import MappingProxyType
 
 import numpy as np
 from scipy.linalg.blas import dsyrk
@@ -375,6 +377,22 @@ class GramAccumulator:
         sensor = np.nonzero(sel)[1]
         self._jitter += np.bincount(sensor * _JIT_BINS + bins, minlength=m * _JIT_BINS).reshape(m, _JIT_BINS)
 
+    def ingest(self, times, rotations, positions, valid=None) -> "GramAccumulator":
+        """`update` in the `Accumulator` protocol's form: the frames' `times` do not matter here."""
+        return self.update(rotations, positions, valid)
+
+    # -- the Accumulator protocol: a plain accumulator is its own whole take, with no segments --------
+    @property
+    def whole_take(self) -> "GramAccumulator":
+        return self
+
+    @property
+    def segments(self) -> Mapping:
+        return _NO_SEGMENTS
+
+    def pair_view(self) -> "GramAccumulator":
+        return self
+
     # -- results -----------------------------------------------------------------------------------
     @property
     def frames(self) -> int:
@@ -587,6 +605,9 @@ class GramAccumulator:
 
     def __repr__(self) -> str:
         return f"GramAccumulator(n_sensors={self.n_sensors}, frames={self.frames}, forgetting={self.forgetting})"
+
+
+_NO_SEGMENTS: Mapping = MappingProxyType({})
 
 
 @lru_cache(maxsize=8)

@@ -45,7 +45,7 @@ class OpticalExtras:
     marker_outlier_threshold_m: float
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class Calibration:
     """The solver's one result: a whole-skeleton fit, whichever way it was made (searched or given tree,
     after slips, a saved skeleton, optical markers). Arrays inside, SI units; `to_dict()` is its §5 JSON.
@@ -73,6 +73,7 @@ class Calibration:
     known_skeleton: bool = False  # topology and bones from a saved skeleton, only placements fitted
     rms_free: np.ndarray | None = None  # (J,) m: each joint fitted freely (saved-skeleton fits)
     optical: OpticalExtras | None = None
+    state: object = None  # what the next refresh starts from (a saved-skeleton fit's KnownFit); not in the JSON
 
     # Joint arrays, named as the JSON names them.
     @property

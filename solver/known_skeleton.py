@@ -229,3 +229,38 @@ def fit_known_skeleton(
     rms_free[child] = np.asarray(free.rms, dtype=float)
     return KnownFit(fitted, int(acc.frames), rms, eps, rms_free, done, free, dict(bone_stderr or {}), (Q, s),
                     bone_keys)
+
+
+def saved_placement(skeleton, names) -> KnownFit:
+    """A stand-in previous fit that starts the Gauss–Newton at the saved placements themselves."""
+    art = skeleton.articulation.reordered(list(names))
+    m = art.n_bodies
+    nan = np.full(m, np.nan)
+    return KnownFit(art, 0, nan, nan, nan, 0, motion=(np.broadcast_to(np.eye(3), (m, 3, 3)).copy(), np.zeros((m, 3))))
+
+
+def known_fit(skeleton, acc, names, previous: KnownFit | None = None) -> KnownFit:
+    """`skeleton.fit` on a session's accumulator (a segmented one, after slips, through its `pair_view`).
+
+    A cold fit tries two starts and keeps the better: the solver's own (each body's saved points moved
+    onto the free joint fits) and the saved placements as they are. On a tie — a body whose joints have
+    not moved yet, so the data cannot place it — the saved placement wins instead of an arbitrary one:
+    early in a take the unexercised limbs stay where the performer's file put them."""
+    view = acc.pair_view()
+    names = list(names)
+    if previous is not None:
+        return skeleton.fit(view, names, previous=previous)
+    anchored = skeleton.fit(view, names, previous=saved_placement(skeleton, names))
+    free = skeleton.fit(view, names)
+    cost_anchored, cost_free = (float(np.nansum(f.rms ** 2)) for f in (anchored, free))
+    return anchored if cost_anchored <= cost_free * (1 + 1e-6) + 1e-12 else free
+
+
+def known_calibration(fit: KnownFit, acc) -> Calibration:
+    """`fit.calibration()`, its joints refitted on a segment of `acc` marked `segment_start_s` as in free fits."""
+    cal = fit.calibration()
+    if not acc.segments:
+        return cal
+    segs = acc.pair_segments(cal.joints.pairs)
+    start = np.array([np.nan if s is None else s.start_s for s in segs], dtype=float)
+    return replace(cal, segment_start_s=start)

@@ -55,6 +55,21 @@ class SegmentedAccumulator:
     def frames(self) -> int:
         return self.whole.frames
 
+    # -- the Accumulator protocol --------------------------------------------------------------------
+    def ingest(self, times, rotations, positions, valid=None) -> "SegmentedAccumulator":
+        """`update`, in the `Accumulator` protocol's name."""
+        return self.update(times, rotations, positions, valid)
+
+    @property
+    def whole_take(self) -> GramAccumulator:
+        """The whole-take sums, every frame fed (segments are read from them)."""
+        return self.whole
+
+    def pair_view(self):
+        """A GramAccumulator-like view whose pair statistics come from each pair's segment (the whole
+        take while no segment is open)."""
+        return SegmentView(self) if self.segments else self.whole
+
     def update(self, times, rotations, positions, valid=None) -> "SegmentedAccumulator":
         """Add a batch of frames; a snapshot is taken before the first frame at or after each grid time."""
         ts = np.atleast_1d(np.asarray(times, dtype=float))
@@ -230,6 +245,51 @@ def _bones_after(whole: Calibration, done: dict, seg: SegmentedAccumulator) -> B
         if len(hit):
             length[k], stderr[k], start[k] = o.length[hit[0]], o.stderr[hit[0]], s.start_s
     return replace(b, length=length, stderr=stderr, segment_start_s=start)
+
+
+class SegmentView:
+    """A SegmentedAccumulator seen as one GramAccumulator whose pair statistics come from each pair's
+    segment (after a slip: the frames since it), so a known-skeleton fit refits a slipped sensor's
+    joints on its new placement while the saved bones stay as they are."""
+
+    def __init__(self, seg):
+        self._seg = seg
+        self.whole = seg.whole
+
+    def __getattr__(self, name):
+        return getattr(self.whole, name)
+
+    def _grouped(self, pairs, method: str):
+        P = np.asarray(pairs, dtype=int).reshape(-1, 2)
+        segs = self._seg.pair_segments(P)
+        groups: dict[int, list[int]] = {}
+        keyed = {}
+        for k, s in enumerate(segs):
+            groups.setdefault(id(s), []).append(k)
+            keyed[id(s)] = s
+        out = None
+        for key, rows in groups.items():
+            s = keyed[key]
+            acc = self.whole if s is None else self._seg.segment_accumulator(s)
+            part = getattr(acc, method)(P[rows])
+            single = not isinstance(part, tuple)
+            parts = (part,) if single else part
+            if out is None:
+                out = [np.empty((len(P),) + np.shape(x)[1:], dtype=np.result_type(x)) for x in parts]
+            for o, x in zip(out, parts):
+                o[rows] = x
+        if out is None:
+            return getattr(self.whole, method)(P)
+        return out[0] if len(out) == 1 and method == "translation_power" else tuple(out)
+
+    def normal_equations(self, pairs):
+        return self._grouped(pairs, "normal_equations")
+
+    def translation_power(self, pairs):
+        return self._grouped(pairs, "translation_power")
+
+    def block_moments(self, pairs):
+        return self._grouped(pairs, "block_moments")
 
 
 def segmented_from_take(take, events) -> SegmentedAccumulator:

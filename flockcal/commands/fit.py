@@ -91,7 +91,8 @@ def run(args: argparse.Namespace) -> int:
     from flockcal.threads import single_threaded_blas
 
     single_threaded_blas()  # before numpy loads
-    from flockcal.solver.calibration import calibrate
+    from flockcal.exports.bvh import write_bvh
+    from flockcal.solver.solve import solve, solve_take
     from flockcal.takes import load_take
 
     take = load_take(args.file)
@@ -103,13 +104,12 @@ def run(args: argparse.Namespace) -> int:
     acc = accumulate(take)
     # Fitted first, so bad input (names, hierarchy) is reported as such before the take is judged.
     tol = tolerance_m(args)
-    cal = calibrate(acc, hierarchy=hierarchy, root=args.root, names=take.names, tolerance=tol)
+    cal = solve(acc, take.names, hierarchy=hierarchy, root=args.root, tolerance=tol)
     if stop_for("fit", args.file, too_short(take) or too_still(cal), args.allow_partial):
         return PARTIAL_EXIT
-    slips, result = [], cal.to_dict()
+    slips, result = [], cal
     with Stages("fit", ["searching for slips", "re-fitting after slips", "writing BVH"]) as stages:
         if not args.no_slips and len(cal.joints.pairs):
-            from flockcal.solver.segments import calibration_after_slips
             from flockcal.solver.slippage import detect_slips
 
             stages.step("searching for slips")
@@ -118,19 +118,14 @@ def run(args: argparse.Namespace) -> int:
                 # The slipped sensors' joints and bones are re-fitted on the frames since their slip
                 # (design.md §4); everything else keeps the whole take.
                 stages.step("re-fitting after slips")
-                result = calibration_after_slips(take, slips, hierarchy=result["parent"], root=result["root"],
-                                                 tolerance=tol)
+                result = solve_take(take, slips, hierarchy=cal.parent_map(), root=cal.names[cal.root], tolerance=tol)
         if args.bvh:
-            try:
-                from flockcal.exports.bvh import write_bvh
-            except ModuleNotFoundError:
-                raise UserError("BVH export is not available in this installation (flockcal.exports.bvh is missing)") from None
             stages.step("writing BVH")
             write_bvh(args.bvh, cal, take)
     if args.bvh:
         print(f"wrote {args.bvh}", file=sys.stderr)
     if args.json:
-        print(json.dumps(result, indent=2))
+        print(json.dumps(result.to_dict(), indent=2))
     else:
         print(table(cal, source=args.file))
         if slips:
@@ -138,17 +133,20 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def slip_table(slips, result: dict) -> str:
-    """Slip and swap events, and the joints re-fitted from each slip on."""
+def slip_table(slips, result) -> str:
+    """Slip and swap events, and the joints re-fitted from each slip on (`result`: the Calibration after them)."""
     out = ["", "Sensor slips (joints of a slipped sensor are re-fitted from the slip on in --json)"]
     for e in slips:
         d = e.to_dict()
         who = " or ".join(d["candidates"]) if len(d.get("candidates") or []) > 1 else d["sensor"]
         kind = "swap" if d.get("kind") == "swap" else "slip"
         out.append(f"  {d['time_s']:7.2f} s  {kind} of {who}: jump {d['jump_mm']:.0f} mm at joints {', '.join(d['joints'])}")
-    refit = [j for j in result.get("joints", []) if j.get("segment_start_s") is not None]
-    for j in refit:
-        out.append(f"    re-fitted from {j['segment_start_s']:.2f} s: {j['child']}–{j['parent']}  c {_cm(j['c'])}  l {_cm(j['l'])}")
+    import numpy as np
+
+    nm, J = result.names, result.joints
+    start = result.segment_start_s if result.segment_start_s is not None else np.full(len(J), np.nan)
+    for k in np.flatnonzero(np.isfinite(start)):
+        out.append(f"    re-fitted from {start[k]:.2f} s: {nm[J.pairs[k, 0]]}–{nm[J.pairs[k, 1]]}  c {_cm(J.c[k])}  l {_cm(J.l[k])}")
     return "\n".join(out)
 
 
