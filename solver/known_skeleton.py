@@ -239,8 +239,16 @@ def saved_placement(skeleton, names) -> KnownFit:
     return KnownFit(art, 0, nan, nan, nan, 0, motion=(np.broadcast_to(np.eye(3), (m, 3, 3)).copy(), np.zeros((m, 3))))
 
 
+def fit_saved(skeleton, acc, names, previous: KnownFit | None = None) -> KnownFit:
+    """Fit an accumulated take (sensor order `names`) with a saved `skeleton` (a `flockcal.skeleton.Skeleton`);
+    a live refresh passes the last KnownFit as `previous` to start from it."""
+    skeleton.check_names(names)
+    return fit_known_skeleton(acc, skeleton.articulation, names, bone_stderr=skeleton.bone_stderr,
+                              previous=previous, bone_keys=skeleton.bone_keys)
+
+
 def known_fit(skeleton, acc, names, previous: KnownFit | None = None) -> KnownFit:
-    """`skeleton.fit` on a session's accumulator (a segmented one, after slips, through its `pair_view`).
+    """`fit_saved` on a session's accumulator (a segmented one, after slips, through its `pair_view`).
 
     A cold fit tries two starts and keeps the better: the solver's own (each body's saved points moved
     onto the free joint fits) and the saved placements as they are. On a tie — a body whose joints have
@@ -249,9 +257,9 @@ def known_fit(skeleton, acc, names, previous: KnownFit | None = None) -> KnownFi
     view = acc.pair_view()
     names = list(names)
     if previous is not None:
-        return skeleton.fit(view, names, previous=previous)
-    anchored = skeleton.fit(view, names, previous=saved_placement(skeleton, names))
-    free = skeleton.fit(view, names)
+        return fit_saved(skeleton, view, names, previous=previous)
+    anchored = fit_saved(skeleton, view, names, previous=saved_placement(skeleton, names))
+    free = fit_saved(skeleton, view, names)
     cost_anchored, cost_free = (float(np.nansum(f.rms ** 2)) for f in (anchored, free))
     return anchored if cost_anchored <= cost_free * (1 + 1e-6) + 1e-12 else free
 

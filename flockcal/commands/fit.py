@@ -217,7 +217,7 @@ def table(cal, source: str = "") -> str:
         out += [f"  {nm[c]}: {', '.join(nm[p] for p in ps)} — {note}" for c, ps, note in cal.ambiguous]
     under = [k for k in range(len(J)) if not J.determined[k]]
     if under:
-        from flockcal.server.coaching import joint_label
+        from flockcal.names import joint_label
 
         names = ", ".join(joint_label(nm[J.pairs[k, 0]], nm[J.pairs[k, 1]]).removeprefix("the ") for k in under)
         out += ["", f"Move more: {names} — not determined yet (the data do not pin the centre to the tolerance); "

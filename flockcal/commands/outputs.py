@@ -75,8 +75,9 @@ def fit_take(take, hierarchy: str | None = None, root: str | None = None, skelet
         if hierarchy is not None or root is not None:
             raise UserError("--skeleton fixes the tree; leave out --hierarchy and --root")
         from flockcal.exports.skeleton import load_skeleton
+        from flockcal.solver.known_skeleton import fit_saved
 
-        fit = load_skeleton(skeleton).fit(acc, take.names)
+        fit = fit_saved(load_skeleton(skeleton), acc, take.names)
         return (fit, calibrate(acc, names=list(take.names))) if with_free else fit
     fit = calibrate(acc, hierarchy=_hierarchy(hierarchy), root=root, names=list(take.names))
     return (fit, fit) if with_free else fit

@@ -3,7 +3,6 @@ again (at real time or as fast as possible), and turn one into the .npz take int
 
 from __future__ import annotations
 
-import argparse
 import sys
 import time
 
