@@ -504,21 +504,6 @@ def _with_own_noise(x: np.ndarray, weight: np.ndarray) -> np.ndarray:
         return np.where(live, 1.0 / np.maximum(1.0 / np.where(live, weight, 1.0), own[None, :]), 0.0)
 
 
-def attributes_slip_to(event, sensor: str, names, parent) -> bool:
-    """True if `event` (a SlipEvent, or a SwapEvent read as one) blames `sensor`, or offers exactly `sensor`
-    and the body it hangs on or off when that body is a leaf (a leaf's single joint cannot tell the two
-    apart). `parent`: index array over `names`, −1 at the root. How tests and benchmarks score attribution."""
-    if event.sensor == sensor:
-        return True
-    pair = set(event.candidates)
-    if sensor not in pair or len(pair) != 2:
-        return False
-    names, parent = list(names), np.asarray(parent)
-    a, b = (names.index(x) for x in pair)
-    leaf = a if parent[a] == b else b if parent[b] == a else None
-    return leaf is not None and not np.any(parent == leaf)
-
-
 def detect_slips(take, calibration=None, *, joints=None, c=None, l=None, batch_s: float = 10.0,
                  **options) -> list:
     """Slip and swap events in a recorded take, replayed through a `SlipMonitor` (which examines the

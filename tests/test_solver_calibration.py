@@ -8,8 +8,9 @@ import pytest
 from flockcal.solver.accumulator import GramAccumulator
 from flockcal.solver.calibration import calibrate, parse_hierarchy
 from flockcal.solver.errors import SolverError
-from flockcal.solver.residuals import joint_residuals
-from flockcal.solver.transforms import nearest_rotation, to_global, to_local
+from residuals import joint_residuals
+from flockcal.solver.transforms import nearest_rotation
+from kinematics import to_global, to_local
 from synthetic import articulated
 
 
