@@ -10,7 +10,7 @@ import re
 from functools import lru_cache
 
 # Body keyword → the joint at its inboard end, and how far out along the body that joint sits: a joint is
-# named after the more distal of its two bodies, whichever way the tree happens to be rooted (design.md §5
+# named after the more distal of its two bodies, whichever way the tree happens to be rooted (docs/design.md §5
 # names a joint by its child, and the fitted tree's root need not be the pelvis). Same table as
 # static/common.js BODY_JOINTS.
 _BODY_JOINTS = [

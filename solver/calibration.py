@@ -19,7 +19,7 @@ from flockcal.solver.topology import _orient, _rigid_bodies, spanning_tree
 
 @dataclass(frozen=True)
 class Bones:
-    """Distances between two joint centres of one body, in that body's frame (design.md §5)."""
+    """Distances between two joint centres of one body, in that body's frame (docs/design.md §5)."""
 
     body: np.ndarray  # (B,) sensor index of the body (for a rigid group: the member holding its inboard joint)
     from_joint: np.ndarray  # (B,) child index of the inboard joint, or of the first outboard joint at the root
@@ -110,7 +110,7 @@ class Calibration:
         return self.joints.pairs, self.joints.c, self.joints.l
 
     def to_dict(self, slip_events=None) -> dict:
-        """The `flockcal fit --json` object of design.md §5 (see `calibration_json`); `slip_events`, when
+        """The `flockcal fit --json` object of docs/design.md §5 (see `calibration_json`); `slip_events`, when
         given, replaces the calibration's own."""
         from flockcal.solver.calibration_json import calibration_json
 
@@ -177,7 +177,7 @@ def calibrate(acc, hierarchy=None, root=None, names=None, tolerance: float = TOL
 
     `root` (name or index) hangs a searched tree from that sensor; with a hierarchy it must be its root.
     With a hierarchy only its m − 1 joints are solved (the paper's fast path). `tolerance` (m): how closely
-    a joint's centre must be pinned to count as determined (design.md §3a); only determined joints end bones.
+    a joint's centre must be pinned to count as determined (docs/design.md §3a); only determined joints end bones.
     """
     m = acc.n_sensors
     names = tuple(str(x) for x in (names if names is not None else range(m)))
@@ -241,7 +241,7 @@ def _placement(acc, cal: Calibration) -> np.ndarray:
 
 
 def _bones(acc, cal: Calibration) -> Bones:
-    """Inboard → each outboard joint per body, and between outboard joints at the root (design.md §5)."""
+    """Inboard → each outboard joint per body, and between outboard joints at the root (docs/design.md §5)."""
     m = cal.n_sensors
     J = cal.joints
     jc, jp = J.pairs[:, 0], J.pairs[:, 1]

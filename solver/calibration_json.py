@@ -19,9 +19,9 @@ from flockcal.solver.fits import unfitted
 
 
 def calibration_json(cal) -> dict:
-    """The design.md §5 object of `cal`, with the extensions the solver emits.
+    """The docs/design.md §5 object of `cal`, with the extensions the solver emits.
 
-    Every joint carries "determined" (design.md §3a) and "direction_error_m" (how closely the data pin
+    Every joint carries "determined" (docs/design.md §3a) and "direction_error_m" (how closely the data pin
     the centre along its three least-turned directions, ascending; null where nothing turned), except
     in an optical fit, whose joints carry "kirk_rms_m" instead; a saved-skeleton fit adds "rms_free_m"
     and "known_skeleton"; a free fit adds "rigid_groups" (sensors that never turned relative to each

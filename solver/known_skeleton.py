@@ -38,7 +38,7 @@ def body_points(art: Articulation) -> list[tuple[list[int], np.ndarray]]:
 
 def bone_arrays(art: Articulation, stderr: dict[tuple[str, str | None], float] | None = None,
                 only: frozenset | None = None) -> Bones:
-    """design.md §5 bones of `art`: per body, inboard joint to each outboard joint (root: pairs of outboard
+    """docs/design.md §5 bones of `art`: per body, inboard joint to each outboard joint (root: pairs of outboard
     joints); `only` keeps just the bones whose (from_joint, to_joint) names it holds (a file's measured bones)."""
     rows = []
     names = art.names
@@ -86,7 +86,7 @@ def rigid_fit(old: np.ndarray, new: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 @dataclass(frozen=True)
 class KnownFit:
     """A take fitted with a saved skeleton: the fit's state (what a live refresh starts from) and, through
-    `calibration()`, the solver's result; `to_dict()` is its design.md §5 JSON."""
+    `calibration()`, the solver's result; `to_dict()` is its docs/design.md §5 JSON."""
 
     articulation: Articulation  # saved bones, this take's placements
     frames: int

@@ -145,7 +145,7 @@ def tree_order(parent: np.ndarray) -> np.ndarray:
 
 
 def articulation(calibration) -> Articulation:
-    """An Articulation from a Calibration (or a fit with `.calibration()`), or from a design.md §5 dict
+    """An Articulation from a Calibration (or a fit with `.calibration()`), or from a docs/design.md §5 dict
     (fit JSON or a skeleton file, read by `calibration_from_json`: only `sensors`, `root`, `parent`,
     `joints[].child/parent/c/l` and `rigid_groups`, the stable contract)."""
     from flockcal.solver.calibration_json import as_calibration
@@ -238,7 +238,7 @@ def tree_residuals(rotations, positions, art: Articulation, valid=None) -> np.nd
 def joint_separation(rotations, positions, art: Articulation, valid=None) -> np.ndarray:
     """(n, m) world distance between the two bodies' copies of each tree joint (indexed by its child).
 
-    This is ‖e_k‖ of design.md §1 for the tree joints; NaN at the root and where either sensor is invalid.
+    This is ‖e_k‖ of docs/design.md §1 for the tree joints; NaN at the root and where either sensor is invalid.
     """
     return np.linalg.norm(tree_residuals(rotations, positions, art, valid), axis=-1)
 

@@ -210,7 +210,7 @@ class SegmentedAccumulator:
 
     def calibration_dict(self, hierarchy=None, root=None, names=None, slip_events=None,
                          tolerance: float = TOLERANCE_M) -> dict:
-        """design.md §5 JSON of `calibration` (the same arguments)."""
+        """docs/design.md §5 JSON of `calibration` (the same arguments)."""
         return self.calibration(hierarchy, root, names, slip_events, tolerance).to_dict()
 
 
@@ -325,5 +325,5 @@ def calibrated_after_slips(take, events, hierarchy=None, root=None, tolerance: f
 
 
 def calibration_after_slips(take, events, hierarchy=None, root=None, tolerance: float = TOLERANCE_M) -> dict:
-    """design.md §5 JSON of `calibrated_after_slips` (the same arguments)."""
+    """docs/design.md §5 JSON of `calibrated_after_slips` (the same arguments)."""
     return calibrated_after_slips(take, events, hierarchy, root, tolerance).to_dict()

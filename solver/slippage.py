@@ -1,4 +1,4 @@
-"""Sensor slippage and swap detection (design.md §4): a live `SlipMonitor` fed the same micro-batches as
+"""Sensor slippage and swap detection (docs/design.md §4): a live `SlipMonitor` fed the same micro-batches as
 the accumulator plus the current joint estimates, and `detect_slips` for a recorded take.
 
 Per joint, a window-limited GLR test for a step in the residual vector (seen from either sensor of the
@@ -43,7 +43,7 @@ class SlipEvent:
     kind = "slip"
 
     def to_dict(self) -> dict:
-        """The `slip_events` entry of design.md §5 (extended with kind, confidence and detected_s)."""
+        """The `slip_events` entry of docs/design.md §5 (extended with kind, confidence and detected_s)."""
         return {"kind": "slip", "time_s": round(self.time_s, 4), "sensor": self.sensor,
                 "candidates": list(self.candidates), "confidence": round(self.confidence, 4),
                 "joints": list(self.joints), "jump_mm": round(self.jump_mm, 2),
@@ -510,7 +510,7 @@ def detect_slips(take, calibration=None, *, joints=None, c=None, l=None, batch_s
     frames `step_s` at a time, as live, whatever the `batch_s` pieces they are handed over in).
 
     take: a `flockcal.takes.Take` (or anything with rotations, positions, rate_hz and optionally valid,
-    times, names). Joint estimates come from `calibration` (a `Calibration` or its design.md §5 dict)
+    times, names). Joint estimates come from `calibration` (a `Calibration` or its docs/design.md §5 dict)
     or from `joints` (p, 2) with `c`, `l` (p, 3). A whole-take fit is blended across a slip; the
     monitor's baselines are taken in both sensor frames of each joint, so the step still shows.
     """
@@ -536,7 +536,7 @@ def detect_slips(take, calibration=None, *, joints=None, c=None, l=None, batch_s
 
 def joints_from_calibration(calibration, names) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(joints (p, 2) as indices into `names`, c (p, 3), l (p, 3)) from a Calibration, a fit with
-    `.calibration()`, or a design.md §5 dict (read by `calibration_from_json`)."""
+    `.calibration()`, or a docs/design.md §5 dict (read by `calibration_from_json`)."""
     from flockcal.solver.calibration_json import as_calibration
 
     cal = as_calibration(calibration, names=names, error=SlippageError)

@@ -1,6 +1,6 @@
 """`flockcal fit FILE.npz`: calibrate a recorded take (joints, hinge axes, bones, topology) as a table or JSON.
 
-Reads the .npz interchange of design.md §5, feeds it to the Gram accumulator and prints the calibration;
+Reads the .npz interchange of docs/design.md §5, feeds it to the Gram accumulator and prints the calibration;
 --json prints exactly the §5 object. Bad files and bad hierarchies end in one line naming the problem.
 """
 
@@ -22,12 +22,12 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "fit",
         help="find joints, bones and the skeleton tree in a recorded take",
-        description="Fit joint centres, hinge axes, bone lengths and the skeleton tree to a take (.npz, design.md §5).",
+        description="Fit joint centres, hinge axes, bone lengths and the skeleton tree to a take (.npz, docs/design.md §5).",
     )
     p.add_argument("file", metavar="FILE.npz", help="recorded take")
     p.add_argument("--hierarchy", metavar="MAP.json", help='a {"child": "parent", …} map (root omitted): fit only those joints')
     p.add_argument("--root", metavar="NAME", help="hang the tree from this sensor (default: the body that splits it most evenly)")
-    p.add_argument("--json", action="store_true", help="print the JSON object of design.md §5 instead of a table")
+    p.add_argument("--json", action="store_true", help="print the JSON object of docs/design.md §5 instead of a table")
     p.add_argument("--bvh", metavar="OUT.bvh", help="also write the take as BVH through the fitted skeleton")
     p.add_argument("--scale", metavar="FACTOR", help="multiply positions by FACTOR before fitting (unit scale, paper §4): "
                    "a number or the JSON file `flockcal scale --json` wrote")
@@ -38,7 +38,7 @@ def register(subparsers) -> None:
 
 
 def add_tolerance(p) -> None:
-    """The --tolerance-mm option `fit` and `serve` share (design.md §3a)."""
+    """The --tolerance-mm option `fit` and `serve` share (docs/design.md §3a)."""
     p.add_argument("--tolerance-mm", type=float, default=5.0, metavar="MM",
                    help="a joint counts as determined when the data pin its centre to within MM along every "
                         "direction it needs (default 5)")
@@ -116,7 +116,7 @@ def run(args: argparse.Namespace) -> int:
             slips = detect_slips(take, cal)
             if slips:
                 # The slipped sensors' joints and bones are re-fitted on the frames since their slip
-                # (design.md §4); everything else keeps the whole take.
+                # (docs/design.md §4); everything else keeps the whole take.
                 stages.step("re-fitting after slips")
                 result = solve_take(take, slips, hierarchy=cal.parent_map(), root=cal.names[cal.root], tolerance=tol)
         if args.bvh:

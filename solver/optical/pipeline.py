@@ -52,7 +52,7 @@ class OpticalFit:
         return {lab: [self.marker_names[i] for i in g] for lab, g in zip(self.labels, self.groups)}
 
     def take(self):
-        """The derived poses as a flockcal Take (design.md §5), for `fit`, the exports and slippage."""
+        """The derived poses as a flockcal Take (docs/design.md §5), for `fit`, the exports and slippage."""
         from flockcal.takes import make_take
 
         return make_take(self.rotations, self.positions, self.labels, self.rate_hz, valid=self.valid, times=self.times)
@@ -62,7 +62,7 @@ class OpticalFit:
         return fit_calibration(self)
 
     def to_dict(self) -> dict:
-        """`flockcal fit --json` shape (design.md §5) plus "bodies", "markers" and "swap_events"."""
+        """`flockcal fit --json` shape (docs/design.md §5) plus "bodies", "markers" and "swap_events"."""
         return fit_json(self)
 
 
@@ -300,7 +300,7 @@ def fit_calibration(fit: OpticalFit) -> Calibration:
 
 
 def fit_json(fit: OpticalFit) -> dict:
-    """The design.md §5 JSON of `fit_calibration(fit)`."""
+    """The docs/design.md §5 JSON of `fit_calibration(fit)`."""
     return fit_calibration(fit).to_dict()
 
 
