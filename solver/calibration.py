@@ -14,7 +14,7 @@ import numpy as np
 
 from flockcal.solver.errors import SolverError
 from flockcal.solver.fits import TOLERANCE_M, PairFits, pair_fits
-from flockcal.solver.topology import _orient, _rigid_bodies, spanning_tree
+from flockcal.solver.topology import orient, rigid_bodies, spanning_tree
 
 
 @dataclass(frozen=True)
@@ -190,7 +190,7 @@ def calibrate(acc, hierarchy=None, root=None, names=None, tolerance: float = TOL
         if root_i is not None and root_i != hroot:
             raise SolverError(f"root {names[root_i]!r} disagrees with the hierarchy, whose root is {names[hroot]!r}")
         kids = np.flatnonzero(parent >= 0)
-        _, order = _orient(np.stack([kids, parent[kids]], axis=1), m, hroot)
+        _, order = orient(np.stack([kids, parent[kids]], axis=1), m, hroot)
         jc = order[1:]
         joints = pair_fits(acc, np.stack([jc, parent[jc]], axis=1), tolerance=tolerance)
         flat = joints.rank <= 3
@@ -199,7 +199,7 @@ def calibrate(acc, hierarchy=None, root=None, names=None, tolerance: float = TOL
             e = joints.pairs[flat]
             rigid = np.zeros((m, m), dtype=bool)
             rigid[e[:, 0], e[:, 1]] = True
-            n_g, lab = _rigid_bodies(rigid.tobytes(), m)  # memoised: the same joints stay rigid refit after refit
+            n_g, lab = rigid_bodies(rigid.tobytes(), m)  # memoised: the same joints stay rigid refit after refit
             groups: list[list[int]] = [[] for _ in range(n_g)]
             for i, g in enumerate(lab.tolist()):
                 groups[g].append(i)

@@ -7,9 +7,10 @@ frame, l in j's. All pairs are solved together: one batched 6×6 eigendecomposit
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
-from functools import lru_cache
 
 import numpy as np
+
+from flockcal.solver.gram_layout import all_pairs_of
 
 # Eigenvalues of A/n at or below this are zero to rounding (A/n has eigenvalues in [0, 2]; the Gram's own
 # rounding leaves ~1e-15 where the data hold nothing).
@@ -106,16 +107,9 @@ def unfitted(pairs) -> PairFits:
 
 def all_pairs(n_sensors: int) -> np.ndarray:
     """Every pair (i, j) with i < j, in row-major order: (m(m−1)/2, 2)."""
-    return _all_pairs(int(n_sensors)).copy()
+    return all_pairs_of(int(n_sensors)).copy()
 
 
-@lru_cache(maxsize=8)
-def _all_pairs(m: int) -> np.ndarray:
-    # triu_indices costs more than a whole refit step on 16 sensors; the live service asks ~30×/s.
-    i, j = np.triu_indices(m, k=1)
-    P = np.stack([i, j], axis=1)
-    P.setflags(write=False)
-    return P
 
 
 def pair_fits(acc, pairs=None, tolerance: float = TOLERANCE_M) -> PairFits:
