@@ -25,7 +25,7 @@ from synthetic import articulated  # noqa: E402
 from flockcal.solver.accumulator import GramAccumulator  # noqa: E402
 from flockcal.solver.calibration import calibrate  # noqa: E402
 from flockcal.solver.fits import all_pairs, pair_fits  # noqa: E402
-from flockcal.solver.reference import reference_pair_fit  # noqa: E402
+from reference import reference_pair_fit  # noqa: E402
 from flockcal.solver.topology import spanning_tree  # noqa: E402
 
 

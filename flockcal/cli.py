@@ -14,7 +14,7 @@ import sys
 from flockcal import __version__
 from flockcal.errors import FlockcalError
 
-# Each module registers its own sub-commands; a module that is missing (not yet built) is skipped.
+# Each module registers its own sub-commands.
 COMMAND_MODULES = [
     "flockcal.commands.fit",
     "flockcal.commands.simulate",
@@ -34,13 +34,7 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("-v", "--verbose", action="count", default=0, help="more log output")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND")
     for name in COMMAND_MODULES:
-        try:
-            module = importlib.import_module(name)
-        except ModuleNotFoundError as exc:
-            if exc.name == name:
-                continue
-            raise
-        module.register(sub)
+        importlib.import_module(name).register(sub)
     return parser
 
 

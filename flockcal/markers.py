@@ -1,4 +1,4 @@
-"""Optical marker takes: the marker .npz of design.md §5 and C3D files (through ezc3d), validated.
+"""Optical marker takes: the marker .npz of docs/design.md §5 and C3D files (through ezc3d), validated.
 
 A marker take is n frames of k labelled 3D points in metres, NaN where a marker was not seen. Every
 problem found gets a one-line `MarkerError` that names the file and the fix.
@@ -84,7 +84,7 @@ def make_marker_take(markers, marker_names, rate_hz, times=None, source: str = "
 
 
 def load_markers(path: str | os.PathLike) -> MarkerTake:
-    """Read a marker take from `.npz` (design.md §5) or `.c3d`; raises MarkerError with the fix."""
+    """Read a marker take from `.npz` (docs/design.md §5) or `.c3d`; raises MarkerError with the fix."""
     path = Path(path)
     if not path.exists():
         raise MarkerError(f"{path}: no such file")
@@ -103,7 +103,7 @@ def load_marker_npz(path: str | os.PathLike) -> MarkerTake:
         raise MarkerError(f"{path}: this is a sensor take (rotations/positions); fit it with `flockcal fit`")
     missing = [k for k in ("markers", "marker_names", "rate_hz") if k not in arrays]
     if missing:
-        raise MarkerError(f"{path}: missing array(s) {', '.join(missing)} (design.md §5 lists what a marker take holds)")
+        raise MarkerError(f"{path}: missing array(s) {', '.join(missing)} (docs/design.md §5 lists what a marker take holds)")
     return make_marker_take(arrays["markers"], arrays["marker_names"], arrays["rate_hz"], arrays.get("times"), str(path))
 
 

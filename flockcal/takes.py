@@ -1,4 +1,4 @@
-"""The .npz take interchange of design.md §5: load, validate and save recorded frames.
+"""The .npz take interchange of docs/design.md §5: load, validate and save recorded frames.
 
 A take is n frames of m sensors: rotations (n, m, 3, 3) body→world, positions (n, m, 3) metres,
 valid (n, m), times (n,) seconds, names (m,), rate_hz. Every problem found gets a one-line `TakeError`.
@@ -122,7 +122,7 @@ def load_take(path: str | os.PathLike) -> Take:
     arrays = read_npz(path, TakeError, "takes come from np.savez, flockcal simulate or flockcal convert")
     missing = [k for k in ("rotations", "positions", "names", "rate_hz") if k not in arrays]
     if missing:
-        raise TakeError(f"{path}: missing array(s) {', '.join(missing)} (design.md §5 lists what a take holds)")
+        raise TakeError(f"{path}: missing array(s) {', '.join(missing)} (docs/design.md §5 lists what a take holds)")
     known = {"rotations", "positions", "names", "rate_hz", "valid", "times"}
     return make_take(
         arrays["rotations"],

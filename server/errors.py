@@ -53,8 +53,3 @@ class NotFound(ServerError):
 class Conflict(ServerError):
     status = 409
     code = "conflict"
-
-
-class Unavailable(ServerError):
-    status = 503
-    code = "unavailable"

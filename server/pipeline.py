@@ -24,6 +24,7 @@ from flockcal.server.framelog import FrameLog
 from flockcal.server.progress import ProgressTracker, default_target, waiting
 from flockcal.server.snapshot import ResidualSample, Snapshot
 from flockcal.server.store import Store
+from flockcal.solver.solve import solve
 from flockcal.threads import name_os_thread
 
 log = logging.getLogger(__name__)
@@ -89,27 +90,16 @@ def _finite(obj):
 
 
 def calibrate_dict(acc, names, hierarchy=None, root=None, skeleton=None, tolerance: float = 0.005) -> dict:
-    """The §5 JSON of a fit of `acc` (solver's calibrate), JSON-safe; SolverError etc. propagate.
-
-    A SegmentedAccumulator fits joints of slipped sensors on the frames since their slip. With a saved
-    `skeleton` only the sensor placements are fitted (its tree and bones are kept)."""
-    from flockcal.solver.calibration import calibrate
-
-    if skeleton is not None:
-        return known_dict_of(skeleton, acc, names)[0]
-    # The solver builds these dicts JSON-safe (Calibration.to_dict: Python scalars, None for NaN; the tests
-    # hold it to that), so they are not walked again: this runs ~30×/s, and the walk cost as much as the MST.
-    if hasattr(acc, "calibration_dict"):
-        return acc.calibration_dict(hierarchy=hierarchy, root=root, names=list(names), tolerance=tolerance)
-    return calibrate(acc, hierarchy=hierarchy, root=root, names=list(names), tolerance=tolerance).to_dict()
+    """The §5 JSON of a fit of `acc` (the solver's `solve` picks how), JSON-safe; SolverError etc. propagate."""
+    return known_dict_of(skeleton, acc, names)[0] if skeleton is not None else solve(
+        acc, names, hierarchy, root, tolerance=tolerance).to_dict()
 
 
 def known_dict_of(skeleton, acc, names, previous=None) -> tuple[dict, object]:
-    """(JSON-safe §5 dict, KnownFit) of a fit with a saved skeleton; `previous` KnownFit warm-starts it."""
-    from flockcal.server.skeletons import known_dict, known_fit
-
-    fit = known_fit(skeleton, acc, names, previous)
-    return _finite(known_dict(fit, acc, list(names))), fit
+    """(JSON-safe §5 dict, Calibration) of a fit with a saved skeleton; `previous` (the Calibration this
+    returned last) warm-starts it."""
+    cal = solve(acc, names, skeleton=skeleton, previous=previous)
+    return _finite(cal.to_dict()), cal
 
 
 def new_accumulator(m: int, segmented: bool = False):
@@ -127,24 +117,7 @@ def new_accumulator(m: int, segmented: bool = False):
 
 
 def accumulate(acc, times, rotations, positions, valid) -> None:
-    if hasattr(acc, "whole"):
-        acc.update(times, rotations, positions, valid)
-    else:
-        acc.update(rotations, positions, valid)
-
-
-def fit_copy(acc):
-    """A copy that a fit on another thread can read while `acc` keeps growing (cheap: 4m×4m matrices)."""
-    if not hasattr(acc, "whole"):
-        return acc.copy()
-    # A SegmentedAccumulator: its segments' base snapshots never change, only `whole` grows.
-    clone = object.__new__(type(acc))
-    clone.__dict__.update(acc.__dict__)
-    clone.whole = acc.whole.copy()
-    clone.segments = dict(acc.segments)
-    clone.history = list(acc.history)
-    clone._snaps = type(acc._snaps)(maxlen=acc._snaps.maxlen)
-    return clone
+    acc.ingest(times, rotations, positions, valid)
 
 
 class Pipeline:
@@ -549,7 +522,7 @@ class Pipeline:
                 live.fit_frames = live.acc.frames
                 stamp = (self._session_time(live), live.slip_epoch)
                 with self._fit_cond:
-                    self._fit_job = (live.id, fit_copy(live.acc), live.hierarchy, live.root, live.skeleton, stamp)
+                    self._fit_job = (live.id, live.acc.copy(), live.hierarchy, live.root, live.skeleton, stamp)
                     self._fit_cond.notify()
         self._snapshot = self._make_snapshot()
         if self.on_publish is not None:

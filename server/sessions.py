@@ -15,7 +15,7 @@ from pathlib import Path
 from flockcal.errors import FlockcalError
 from flockcal.server.errors import BadRequest, Conflict, NotFound
 from flockcal.server.framelog import FrameLog, read_frames
-from flockcal.server.pipeline import SLIP_FIELDS, LiveSession, Pipeline, _finite, calibrate_dict, new_accumulator
+from flockcal.server.pipeline import SLIP_FIELDS, LiveSession, Pipeline, _finite
 from flockcal.server.progress import progress_of, waiting
 from flockcal.server.settings import PERFORMER_RE
 from flockcal.server.store import Store
@@ -187,23 +187,15 @@ class SessionManager:
             slips = [e for e in self.store.events(session_id) if e["type"] == "slip" and e.get("sensor") in take.names]
             try:
                 _name, skeleton = self.session_skeleton(session_id)
-                if skeleton is not None:
-                    result = self._resolve_known(take, skeleton, slips)
-                elif slips:
-                    from types import SimpleNamespace
+                from types import SimpleNamespace
 
-                    from flockcal.solver.segments import calibration_after_slips
+                from flockcal.solver.solve import solve_take
 
-                    events = [SimpleNamespace(kind="slip", time_s=float(e["time_s"]),
-                                              sensor_index=take.names.index(e["sensor"])) for e in slips]
-                    result = _finite(calibration_after_slips(take, events, row["hierarchy"], row["root"],
-                                                             tolerance=self.pipeline.tolerance))
-                    result["slip_events"] = [{k: e[k] for k in SLIP_FIELDS if k in e} for e in slips]
-                else:
-                    acc = new_accumulator(take.n_sensors)
-                    acc.update(take.rotations, take.positions, take.valid)
-                    result = calibrate_dict(acc, take.names, row["hierarchy"], row["root"],
-                                            tolerance=self.pipeline.tolerance)
+                events = [SimpleNamespace(kind="slip", time_s=float(e["time_s"]),
+                                          sensor_index=take.names.index(e["sensor"])) for e in slips]
+                result = _finite(solve_take(take, events, row["hierarchy"], row["root"], skeleton,
+                                            tolerance=self.pipeline.tolerance).to_dict())
+                result["slip_events"] = [{k: e[k] for k in SLIP_FIELDS if k in e} for e in slips]
             except FlockcalError as exc:
                 raise Conflict(f"session {session_id} could not be solved: {exc}") from None
             state = "stopped" if row["state"] == "interrupted" else row["state"]
@@ -212,22 +204,6 @@ class SessionManager:
             self.store.update_session(session_id, result=result, frames=n, state=state, progress=progress,
                                       note=f"re-solved from its recording ({n} frames)")
             return self.get(session_id)
-
-    @staticmethod
-    def _resolve_known(take, skeleton, slips) -> dict:
-        """Re-fit a recording with the session's saved skeleton; a slipped sensor's joints on the frames
-        since its slip, as live."""
-        from types import SimpleNamespace
-
-        from flockcal.server.pipeline import known_dict_of
-        from flockcal.solver.segments import segmented_from_take
-
-        events = [SimpleNamespace(kind="slip", time_s=float(e["time_s"]), sensor_index=take.names.index(e["sensor"]))
-                  for e in slips]
-        acc = segmented_from_take(take, events)
-        result, _fit = known_dict_of(skeleton, acc, take.names)
-        result["slip_events"] = [{k: e[k] for k in SLIP_FIELDS if k in e} for e in slips]
-        return result
 
     # --- reading -----------------------------------------------------------------------------------
     def _row(self, session_id: str) -> dict:

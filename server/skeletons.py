@@ -2,7 +2,7 @@
 
 A `SkeletonLibrary` holds skeleton files (flockcal.exports.skeleton) checked against the tracker's
 sensor names: uploads live in DATA_DIR/skeletons/NAME.json, `--skeleton FILE`s are read at start.
-`known_fit` fits a session's accumulator with a saved skeleton (bones fixed, placements free).
+Fitting a session with one is the solver's (flockcal.solver.solve).
 """
 
 from __future__ import annotations
@@ -15,7 +15,6 @@ import threading
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 
 from flockcal.atomic import write_atomic
 from flockcal.errors import FlockcalError
@@ -178,89 +177,3 @@ class SkeletonLibrary:
             raise Conflict(f"skeleton {name!r} comes from {entry.origin} (--skeleton); restart without it instead")
         (self.directory / f"{name}.json").unlink(missing_ok=True)
         self._entries = {k: v for k, v in self._entries.items() if k != name}
-
-
-# --- fitting a session with a saved skeleton ---------------------------------------------------------
-class SegmentView:
-    """A SegmentedAccumulator seen as one GramAccumulator whose pair statistics come from each pair's
-    segment (after a slip: the frames since it), so a known-skeleton fit refits a slipped sensor's
-    joints on its new placement while the saved bones stay as they are."""
-
-    def __init__(self, seg):
-        self._seg = seg
-        self.whole = seg.whole
-
-    def __getattr__(self, name):
-        return getattr(self.whole, name)
-
-    def _grouped(self, pairs, method: str):
-        P = np.asarray(pairs, dtype=int).reshape(-1, 2)
-        segs = self._seg.pair_segments(P)
-        groups: dict[int, list[int]] = {}
-        keyed = {}
-        for k, s in enumerate(segs):
-            groups.setdefault(id(s), []).append(k)
-            keyed[id(s)] = s
-        out = None
-        for key, rows in groups.items():
-            s = keyed[key]
-            acc = self.whole if s is None else self._seg._segment_acc(s)
-            part = getattr(acc, method)(P[rows])
-            single = not isinstance(part, tuple)
-            parts = (part,) if single else part
-            if out is None:
-                out = [np.empty((len(P),) + np.shape(x)[1:], dtype=np.result_type(x)) for x in parts]
-            for o, x in zip(out, parts):
-                o[rows] = x
-        if out is None:
-            return getattr(self.whole, method)(P)
-        return out[0] if len(out) == 1 and method == "translation_power" else tuple(out)
-
-    def normal_equations(self, pairs):
-        return self._grouped(pairs, "normal_equations")
-
-    def translation_power(self, pairs):
-        return self._grouped(pairs, "translation_power")
-
-    def block_moments(self, pairs):
-        return self._grouped(pairs, "block_moments")
-
-
-def saved_placement(skeleton, names):
-    """A stand-in previous fit that starts the Gauss–Newton at the saved placements themselves."""
-    from flockcal.solver.known_skeleton import KnownFit
-
-    art = skeleton.articulation.reordered(list(names))
-    m = art.n_bodies
-    nan = np.full(m, np.nan)
-    return KnownFit(art, 0, nan, nan, nan, 0, motion=(np.broadcast_to(np.eye(3), (m, 3, 3)).copy(), np.zeros((m, 3))))
-
-
-def known_fit(skeleton, acc, names, previous=None):
-    """`skeleton.fit` on a session's accumulator (a SegmentedAccumulator is seen through SegmentView).
-
-    A cold fit tries two starts and keeps the better: the solver's own (each body's saved points moved
-    onto the free joint fits) and the saved placements as they are. On a tie — a body whose joints have
-    not moved yet, so the data cannot place it — the saved placement wins instead of an arbitrary one:
-    early in a take the unexercised limbs stay where the performer's file put them."""
-    view = SegmentView(acc) if hasattr(acc, "whole") and getattr(acc, "segments", None) else getattr(acc, "whole", acc)
-    names = list(names)
-    if previous is not None:
-        return skeleton.fit(view, names, previous=previous)
-    anchored = skeleton.fit(view, names, previous=saved_placement(skeleton, names))
-    free = skeleton.fit(view, names)
-    cost_anchored, cost_free = (float(np.nansum(f.rms ** 2)) for f in (anchored, free))
-    return anchored if cost_anchored <= cost_free * (1 + 1e-6) + 1e-12 else free
-
-
-def known_dict(fit, acc, names) -> dict:
-    """The §5 dict of a KnownFit, joints refitted on a segment marked `segment_start_s` as in free fits."""
-    d = fit.to_dict()
-    segments = getattr(acc, "segments", None)
-    if segments:
-        index = {n: i for i, n in enumerate(names)}
-        for entry in d["joints"]:
-            seg = acc.pair_segments([(index[entry["child"]], index[entry["parent"]])])[0]
-            if seg is not None:
-                entry["segment_start_s"] = seg.start_s
-    return d

@@ -1,4 +1,4 @@
-"""The all-pairs Gram accumulator of design.md §2: one 4m×4m matrix from which every pair's normal equations are read.
+"""The all-pairs Gram accumulator of docs/design.md §2: one 4m×4m matrix from which every pair's normal equations are read.
 
 Frames are summed in blocks into G = Σ X_kᵀX_k, plus each sensor's self terms restricted to the frames where
 the other sensor of a pair is valid, and the two statistics a fit needs to judge itself from the data (§3a):
@@ -9,21 +9,31 @@ stream, one batch and an archive split across workers all give the same sums.
 
 from __future__ import annotations
 
-from functools import lru_cache
+from collections.abc import Mapping
+from types import MappingProxyType
 
 import numpy as np
 from scipy.linalg.blas import dsyrk
 
 from flockcal.rotations import nearest_rotation
 from flockcal.solver.errors import SolverError
+from flockcal.solver.gram_layout import (
+    BLOCK_TERMS,
+    SWAP_TERMS,
+    all_pairs_of,
+    as_frames,
+    below_diagonal,
+    mirrored,
+    pair_terms,
+    term_index,
+    third_difference,
+)
 
 # Frames per block: big enough for BLAS to run at full speed, small enough that the block stays in cache.
 BLOCK = 256
-# Frames per score block: the unit of the batch-means standard error (design.md §3a). About half a second of
+# Frames per score block: the unit of the batch-means standard error (docs/design.md §3a). About half a second of
 # tracker data, long enough to hold the time correlation of soft-tissue residuals; BLOCK is a multiple.
 SCORE_BLOCK = 64
-# Per-pair terms of one score block: n, Σ R_iᵀR_j (9, row-major), Σ R_iᵀ(t_j − t_i) (3), Σ R_jᵀ(t_i − t_j) (3).
-BLOCK_TERMS = 16
 # Rotation jitter histogram: log10 of the squared third difference of the frame-to-frame rotation.
 _JIT_LO, _JIT_HI, _JIT_BINS = -20.0, 1.0, 210
 # A white per-axis jitter s² makes the third difference's squared norm 20 s² × χ²(3); χ²(3)'s median is 2.366.
@@ -36,41 +46,6 @@ _JIT_STRIDE = 32
 # Finished score blocks wait in a list and are folded into the moments together (one product per pair for
 # many blocks instead of one per block); at most this many wait.
 _FOLD_EVERY = 128
-
-
-@lru_cache(maxsize=8)
-def _below_diagonal(n: int) -> np.ndarray:
-    mask = np.tri(n, n, -1, dtype=bool)
-    mask.setflags(write=False)
-    return mask
-
-
-def as_frames(rotations, positions, valid=None, n_sensors: int | None = None):
-    """(rotations (n,m,3,3), positions (n,m,3), valid (n,m) bool) from a batch or a single frame.
-
-    Sensor-frames holding NaN or inf count as invalid, so a dropout can never poison a sum.
-    """
-    R = np.asarray(rotations, dtype=float)
-    t = np.asarray(positions, dtype=float)
-    if R.ndim == 3:
-        R, t = R[None], t[None]
-        if valid is not None:
-            valid = np.asarray(valid)[None]
-    if R.ndim != 4 or R.shape[2:] != (3, 3):
-        raise SolverError(f"rotations must have shape (n, m, 3, 3) or (m, 3, 3), got {np.shape(rotations)}")
-    n, m = R.shape[:2]
-    if n_sensors is not None and m != n_sensors:
-        raise SolverError(f"frames have {m} sensors but the accumulator was made for {n_sensors}")
-    if t.shape != (n, m, 3):
-        raise SolverError(f"positions must have shape ({n}, {m}, 3) to match the rotations, got {np.shape(positions)}")
-    if valid is None:
-        w = np.ones((n, m), dtype=bool)
-    else:
-        w = np.asarray(valid)
-        if w.shape != (n, m):
-            raise SolverError(f"valid must have shape ({n}, {m}), got {w.shape}")
-        w = w.astype(bool)
-    return R, t, w
 
 
 class GramAccumulator:
@@ -290,9 +265,9 @@ class GramAccumulator:
     def _close_score_block(self) -> None:
         """Fold the finished score block's per-pair terms into the moments Σ w wᵀ and start a new block."""
         m = self.n_sensors
-        P = _all_pairs_of(m)
-        blocks = _mirrored(self._open_gram).reshape(4, m, 4, m)
-        wt = _pair_terms(blocks, self._open_self, self._open_pf, P)
+        P = all_pairs_of(m)
+        blocks = mirrored(self._open_gram).reshape(4, m, 4, m)
+        wt = pair_terms(blocks, self._open_self, self._open_pf, P)
         self._waiting.append(wt[None])
         self._moment_frames = self._moment_frames + wt[:, 0]
         self._moment_blocks = self._moment_blocks + (wt[:, 0] > 0)
@@ -312,7 +287,7 @@ class GramAccumulator:
             return
         parts = list(self._waiting)
         if self._n_buf:
-            take, minus = _term_index(self.n_sensors)
+            take, minus = term_index(self.n_sensors)
             flat = self._gram_buf[:self._n_buf].reshape(self._n_buf, -1)
             k = self._n_buf
             # np.take along an axis gathers several times faster than fancy indexing here.
@@ -325,7 +300,7 @@ class GramAccumulator:
         self._waiting, self._n_buf = [], 0
 
     def _add_jitter(self, R: np.ndarray, w: np.ndarray, first: int) -> None:
-        """Each sensor's third difference of its rotation over four frames, for the jitter (design.md §3a).
+        """Each sensor's third difference of its rotation over four frames, for the jitter (docs/design.md §3a).
 
         A third difference cancels any smooth motion (to the motion's jerk × dt³) and keeps 20× the
         per-axis jitter variance of the angles (1 + 9 + 9 + 1). Position noise does not enter: this is
@@ -338,7 +313,7 @@ class GramAccumulator:
             self._tail_R = np.concatenate([self._tail_R, R[:more]])
             self._tail_w = np.concatenate([self._tail_w, w[:more]])
             if len(self._tail_R) == 4:
-                self._waiting_windows.append(_third_difference(self._tail_R[None], self._tail_w[None]))
+                self._waiting_windows.append(third_difference(self._tail_R[None], self._tail_w[None]))
                 self._tail_R, self._tail_w = self._tail_R[:0], self._tail_w[:0]
         # Window starts in [first, first + n): every 4th frame below _JIT_DENSE, every _JIT_STRIDE-th after.
         end = first + n
@@ -351,10 +326,10 @@ class GramAccumulator:
             span = slice(whole[0], whole[-1] + 4)  # back-to-back windows: a reshape, no gather
             W = R[span].reshape((len(whole), 4) + R.shape[1:])
             V = w[span].reshape((len(whole), 4) + w.shape[1:])
-            self._waiting_windows.append(_third_difference(W, V))
+            self._waiting_windows.append(third_difference(W, V))
         elif len(whole):
             idx = whole[:, None] + np.arange(4)
-            self._waiting_windows.append(_third_difference(R[idx], w[idx]))
+            self._waiting_windows.append(third_difference(R[idx], w[idx]))
         if len(starts) > len(whole):  # a window starts in R's last frames: carry them over
             self._tail_R, self._tail_w = R[starts[-1]:].copy(), w[starts[-1]:].copy()
         if len(self._waiting_windows) >= 64:
@@ -376,6 +351,22 @@ class GramAccumulator:
         sensor = np.nonzero(sel)[1]
         self._jitter += np.bincount(sensor * _JIT_BINS + bins, minlength=m * _JIT_BINS).reshape(m, _JIT_BINS)
 
+    def ingest(self, times, rotations, positions, valid=None) -> "GramAccumulator":
+        """`update` in the `Accumulator` protocol's form: the frames' `times` do not matter here."""
+        return self.update(rotations, positions, valid)
+
+    # -- the Accumulator protocol: a plain accumulator is its own whole take, with no segments --------
+    @property
+    def whole_take(self) -> "GramAccumulator":
+        return self
+
+    @property
+    def segments(self) -> Mapping:
+        return _NO_SEGMENTS
+
+    def pair_view(self) -> "GramAccumulator":
+        return self
+
     # -- results -----------------------------------------------------------------------------------
     @property
     def frames(self) -> int:
@@ -390,7 +381,7 @@ class GramAccumulator:
 
     @property
     def gram(self) -> np.ndarray:
-        """G = Σ X_kᵀX_k (4m × 4m) in design.md's layout: rotation columns 3a..3a+2, then translation 3m+a."""
+        """G = Σ X_kᵀX_k (4m × 4m) in docs/design.md's layout: rotation columns 3a..3a+2, then translation 3m+a."""
         self._flush()
         m = self.n_sensors
         a = np.arange(m)
@@ -406,7 +397,7 @@ class GramAccumulator:
         # One refit reads the mirrored Gram several times (normal equations, placements, bones): mirror once.
         if self._sym is None:
             n = 4 * self.n_sensors
-            up = np.where(_below_diagonal(n), 0.0, self._gram)  # np.triu, with its mask built once per size
+            up = np.where(below_diagonal(n), 0.0, self._gram)  # np.triu, with its mask built once per size
             sym = up + up.T
             sym.flat[:: n + 1] = up.flat[:: n + 1]  # the diagonal once, not twice
             sym.setflags(write=False)
@@ -470,7 +461,7 @@ class GramAccumulator:
         """For pairs (p, 2) of (i, j): the moments Σ_b w_b w_bᵀ (p, 16, 16) of each finished score block's
         terms w_b = (n, Σ R_iᵀR_j, Σ R_iᵀ(t_j − t_i), Σ R_jᵀ(t_i − t_j)), the frames those blocks hold
         and how many blocks had the pair. A pair's block score A_b u − b_b is linear in w_b, so these give
-        the batch-means variance of any fit u (design.md §3a) without keeping the blocks."""
+        the batch-means variance of any fit u (docs/design.md §3a) without keeping the blocks."""
         self._flush()
         m = self.n_sensors
         P = np.asarray(pairs, dtype=np.intp).reshape(-1, 2)
@@ -483,7 +474,7 @@ class GramAccumulator:
         Hm = self._moments[row]
         swap = i > j
         if swap.any():  # the terms of (j, i) are those of (i, j) with R_iᵀR_j transposed and the b halves swapped
-            perm = _SWAP_TERMS
+            perm = SWAP_TERMS
             Hm = Hm.copy()
             Hm[swap] = Hm[swap][:, perm][:, :, perm]
         return Hm, self._moment_frames[row].copy(), self._moment_blocks[row].copy()
@@ -588,77 +579,4 @@ class GramAccumulator:
         return f"GramAccumulator(n_sensors={self.n_sensors}, frames={self.frames}, forgetting={self.forgetting})"
 
 
-@lru_cache(maxsize=8)
-def _all_pairs_of(m: int) -> np.ndarray:
-    i, j = np.triu_indices(m, k=1)
-    P = np.stack([i, j], axis=1)
-    P.setflags(write=False)
-    return P
-
-
-def _mirrored(upper: np.ndarray) -> np.ndarray:
-    n = len(upper)
-    up = np.where(_below_diagonal(n), 0.0, upper)
-    sym = up + up.T
-    sym.flat[:: n + 1] = up.flat[:: n + 1]
-    return sym
-
-
-def _pair_terms(blocks: np.ndarray, self_terms: np.ndarray, pair_frames: np.ndarray, P: np.ndarray) -> np.ndarray:
-    """(p, 16) per-pair terms w = (n, Σ R_iᵀR_j row-major, Σ R_iᵀ(t_j − t_i), Σ R_jᵀ(t_i − t_j)) from a Gram in
-    the (4, m, 4, m) layout with its self terms: the parts of A and b that vary (A's diagonal blocks are n·I)."""
-    i, j = P[:, 0], P[:, 1]
-    Bij = blocks[:, i, :, j]  # (p, 4, 4)
-    out = np.empty((len(P), BLOCK_TERMS))
-    out[:, 0] = pair_frames[i, j]
-    out[:, 1:10] = Bij[:, :3, :3].reshape(-1, 9)
-    out[:, 10:13] = Bij[:, :3, 3] - self_terms[j, i, :3, 3]
-    out[:, 13:16] = Bij[:, 3, :3] - self_terms[i, j, :3, 3]
-    return out
-
-
-# Reordering of the 16 terms when a pair is read as (j, i): Σ R_jᵀR_i = (Σ R_iᵀR_j)ᵀ and the b halves swap.
-_SWAP_TERMS = np.array([0] + [1 + 3 * c + r for r in range(3) for c in range(3)] + [13, 14, 15, 10, 11, 12])
-
-
-def _third_difference(W: np.ndarray, valid: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(‖Δ³θ‖² (q, m), usable (q, m)) of windows W (q, 4, m, 3, 3) of four consecutive frames.
-
-    R_k = R exp([θ_k]×) under a small jitter θ_k: the third difference of the matrix is R [Δ³θ]× plus the
-    motion's jerk × dt³, and ‖[v]×‖²_F = 2‖v‖². Linear in R, so no product per frame is needed.
-    """
-    q, m = len(W), W.shape[2]
-    d3 = (_THIRD_DIFFERENCE @ W.reshape(q, 4, m * 9)).reshape(q, m, 9)
-    x = 0.5 * np.einsum("qmj,qmj->qm", d3, d3)
-    return x, valid.all(axis=1) & np.isfinite(x)
-
-
-_THIRD_DIFFERENCE = np.array([-1.0, 3.0, -3.0, 1.0])
-
-
-@lru_cache(maxsize=8)
-def _term_index(m: int) -> tuple[np.ndarray, np.ndarray]:
-    """Flat indices into a (4m × 4m) Gram held as its lower triangle, row-major (internal layout, column
-    q·m + a; see `_whole_blocks`), of every pair's 16 block terms (`_pair_terms`) for a block with every
-    sensor valid: term = G[take] − G[minus]. Element (r, c) of the symmetric Gram sits at (max, min); where
-    nothing is subtracted `minus` points at (0, 4m − 1), in the zero upper triangle. Term 0 (the frame
-    count) is set apart."""
-    n = 4 * m
-    P = _all_pairs_of(m)
-    i, j = P[:, 0], P[:, 1]
-
-    def at(r, c):
-        r, c = np.broadcast_arrays(r, c)
-        return np.maximum(r, c) * n + np.minimum(r, c)
-
-    take = np.zeros((len(P), BLOCK_TERMS), dtype=np.intp)
-    minus = np.full((len(P), BLOCK_TERMS), n - 1, dtype=np.intp)
-    q = np.arange(3)
-    take[:, 1:10] = at(q[None, :, None] * m + i[:, None, None], q[None, None, :] * m + j[:, None, None]).reshape(-1, 9)
-    take[:, 10:13] = at(q[None] * m + i[:, None], 3 * m + j[:, None])  # Σ R_iᵀ t_j
-    minus[:, 10:13] = at(q[None] * m + i[:, None], 3 * m + i[:, None])  # Σ R_iᵀ t_i
-    take[:, 13:16] = at(q[None] * m + j[:, None], 3 * m + i[:, None])  # Σ R_jᵀ t_i
-    minus[:, 13:16] = at(q[None] * m + j[:, None], 3 * m + j[:, None])  # Σ R_jᵀ t_j
-    for x in (take, minus):
-        x.setflags(write=False)
-    return take, minus
+_NO_SEGMENTS: Mapping = MappingProxyType({})

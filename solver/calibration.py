@@ -1,24 +1,25 @@
 """A whole-skeleton calibration from one accumulator: topology (searched or given), tree joints, bones, placement.
 
 `calibrate` is what `flockcal fit` and the live server call (≥30×/s): all-pair fits, MST and the tree's
-joints are array operations; `Calibration.to_dict()` is exactly the JSON of design.md §5.
+joints are array operations; `Calibration` is the solver's one result type, whose `to_dict()` is the
+JSON of docs/design.md §5 (built in solver/calibration_json.py).
 """
 
 from __future__ import annotations
 
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from flockcal.solver.errors import SolverError
 from flockcal.solver.fits import TOLERANCE_M, PairFits, pair_fits
-from flockcal.solver.topology import _orient, _rigid_bodies, spanning_tree
+from flockcal.solver.topology import orient, rigid_bodies, spanning_tree
 
 
 @dataclass(frozen=True)
 class Bones:
-    """Distances between two joint centres of one body, in that body's frame (design.md §5)."""
+    """Distances between two joint centres of one body, in that body's frame (docs/design.md §5)."""
 
     body: np.ndarray  # (B,) sensor index of the body (for a rigid group: the member holding its inboard joint)
     from_joint: np.ndarray  # (B,) child index of the inboard joint, or of the first outboard joint at the root
@@ -26,13 +27,34 @@ class Bones:
     length: np.ndarray  # (B,) m
     stderr: np.ndarray  # (B,) m
     at_root: np.ndarray  # (B,) bool: between two outboard joints of the root body (no inboard joint)
+    segment_start_s: np.ndarray | None = None  # (B,) s: refitted on the frames since a slip; NaN: whole take
 
     def __len__(self) -> int:
         return len(self.body)
 
 
-@dataclass
+@dataclass(frozen=True)
+class OpticalExtras:
+    """What an optical-marker fit adds to the calibration (its §5 JSON's extra keys)."""
+
+    kirk_rms: np.ndarray  # (J,) m, per joint: the Kirk fit's rms on the marker data
+    bodies: Mapping  # {body label: [marker names]}
+    markers: Mapping  # {marker: {"body": label, "offset": [x, y, z] or None}}
+    unused_markers: tuple
+    swap_events: tuple  # ({"time_s", "stop_s", "markers", "bodies"}, …)
+    marker_outlier_threshold_m: float
+
+
+@dataclass(frozen=True, eq=False)
 class Calibration:
+    """The solver's one result: a whole-skeleton fit, whichever way it was made (searched or given tree,
+    after slips, a saved skeleton, optical markers). Arrays inside, SI units; `to_dict()` is its §5 JSON.
+
+    Joint arrays are in tree order (`order[1:]`); `segment_start_s` marks joints refitted after a slip,
+    `rms_free` the free fit of each joint under a saved skeleton (`known_skeleton`), `optical` what a
+    marker fit adds. Build variants with `dataclasses.replace`; nothing here is changed in place.
+    """
+
     names: tuple
     root: int
     parent: np.ndarray  # (m,) int, −1 at the root
@@ -46,6 +68,12 @@ class Calibration:
     ambiguous: list = field(default_factory=list)  # [(child, [parents], note)]
     fits: PairFits | None = None  # all pairs, when the topology was searched
     hierarchy_given: bool = False
+    slip_events: tuple = ()  # SlipEvent/SwapEvent (or their JSON objects) the fit was segmented at
+    segment_start_s: np.ndarray | None = None  # (J,) s: joint refitted on the frames since a slip; NaN: whole take
+    known_skeleton: bool = False  # topology and bones from a saved skeleton, only placements fitted
+    rms_free: np.ndarray | None = None  # (J,) m: each joint fitted freely (saved-skeleton fits)
+    optical: OpticalExtras | None = None
+    state: object = None  # what the next refresh starts from (a saved-skeleton fit's KnownFit); not in the JSON
 
     # Joint arrays, named as the JSON names them.
     @property
@@ -77,72 +105,17 @@ class Calibration:
         """{child name: parent name} for every sensor but the root."""
         return {self.names[i]: self.names[p] for i, p in enumerate(self.parent) if p >= 0}
 
+    def joint_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(child→parent index pairs (J, 2), c (J, 3), l (J, 3)): what pose and slip code read."""
+        return self.joints.pairs, self.joints.c, self.joints.l
+
     def to_dict(self, slip_events=None) -> dict:
-        """The `flockcal fit --json` object of design.md §5; `slip_events` is filled by the slippage detector.
+        """The `flockcal fit --json` object of docs/design.md §5 (see `calibration_json`); `slip_events`, when
+        given, replaces the calibration's own."""
+        from flockcal.solver.calibration_json import calibration_json
 
-        Extends the contract with "rigid_groups" (names of sensors that never turned relative to each other)
-        and "ambiguous" (children with more than one equally good parent), and each joint with "determined"
-        (design.md §3a) and "direction_error_m" (how closely the data pin the centre along its three
-        least-turned directions, ascending; null where nothing turned). NaN becomes null, and every
-        number is a Python int or float: the dict is valid JSON as it stands (slip_events are as given).
-        """
-        nm = self.names
-        j = self.joints
-        # Fields are converted together for all joints (the live server calls this ~30×/s), to Python
-        # floats with None for NaN: the dict is JSON-safe as it stands, with no second pass over it.
-        vec = _json(np.stack([j.c, j.l, j.axis_i, j.axis_j, j.coverage, j.direction_error]))
-        num = _json(np.stack([j.rms, j.epsilon, j.c_stderr, j.l_stderr]))
-        sv = _json(j.singular_values)
-        det = j.determined.tolist()
-        joints = [{
-            "child": nm[child],
-            "parent": nm[parent],
-            "c": vec[0][k],
-            "l": vec[1][k],
-            "rms_m": num[0][k],
-            "epsilon": num[1][k],
-            "singular_values": sv[k],
-            "hinge": hinge,
-            "axis_child": vec[2][k] if hinge else None,
-            "axis_parent": vec[3][k] if hinge else None,
-            "coverage": vec[4][k],
-            "c_stderr_m": num[2][k],
-            "l_stderr_m": num[3][k],
-            "determined": det[k],
-            "direction_error_m": vec[5][k],
-        } for k, ((child, parent), hinge) in enumerate(zip(j.pairs.tolist(), j.hinge.tolist()))]
-        b = self.bones
-        length, stderr = _json(np.stack([b.length, b.stderr]))
-        bones = [{
-            "body": nm[body],
-            "from_joint": nm[frm] if frm >= 0 else None,
-            "to_joint": nm[to],
-            "length_m": length[k],
-            "stderr_m": stderr[k],
-        } for k, (body, frm, to) in enumerate(zip(b.body.tolist(), b.from_joint.tolist(), b.to_joint.tolist()))]
-        return {
-            "sensors": list(nm),
-            "root": nm[self.root],
-            "parent": self.parent_map(),
-            "frames": int(self.frames),
-            "joints": joints,
-            "bones": bones,
-            "loop_candidates": [{"a": nm[a], "b": nm[bb], "rms_m": _num(r)} for a, bb, r in self.loop_candidates],
-            "slip_events": list(slip_events or []),
-            "rigid_groups": [[nm[i] for i in g] for g in self.rigid_groups],
-            "ambiguous": [{"child": nm[c], "parents": [nm[p] for p in ps], "note": note} for c, ps, note in self.ambiguous],
-        }
-
-
-def _num(x) -> float | None:
-    x = float(x)
-    return x if np.isfinite(x) else None
-
-
-def _json(a) -> list:
-    """An array as (nested) lists of Python floats, None where not finite: JSON has no NaN or infinity."""
-    a = np.asarray(a, dtype=float)
-    return np.where(np.isfinite(a), a, None).tolist()
+        cal = self if slip_events is None else replace(self, slip_events=tuple(slip_events))
+        return calibration_json(cal)
 
 
 def _index(name, names: Sequence[str], what: str) -> int:
@@ -204,7 +177,7 @@ def calibrate(acc, hierarchy=None, root=None, names=None, tolerance: float = TOL
 
     `root` (name or index) hangs a searched tree from that sensor; with a hierarchy it must be its root.
     With a hierarchy only its m − 1 joints are solved (the paper's fast path). `tolerance` (m): how closely
-    a joint's centre must be pinned to count as determined (design.md §3a); only determined joints end bones.
+    a joint's centre must be pinned to count as determined (docs/design.md §3a); only determined joints end bones.
     """
     m = acc.n_sensors
     names = tuple(str(x) for x in (names if names is not None else range(m)))
@@ -217,7 +190,7 @@ def calibrate(acc, hierarchy=None, root=None, names=None, tolerance: float = TOL
         if root_i is not None and root_i != hroot:
             raise SolverError(f"root {names[root_i]!r} disagrees with the hierarchy, whose root is {names[hroot]!r}")
         kids = np.flatnonzero(parent >= 0)
-        _, order = _orient(np.stack([kids, parent[kids]], axis=1), m, hroot)
+        _, order = orient(np.stack([kids, parent[kids]], axis=1), m, hroot)
         jc = order[1:]
         joints = pair_fits(acc, np.stack([jc, parent[jc]], axis=1), tolerance=tolerance)
         flat = joints.rank <= 3
@@ -226,7 +199,7 @@ def calibrate(acc, hierarchy=None, root=None, names=None, tolerance: float = TOL
             e = joints.pairs[flat]
             rigid = np.zeros((m, m), dtype=bool)
             rigid[e[:, 0], e[:, 1]] = True
-            n_g, lab = _rigid_bodies(rigid.tobytes(), m)  # memoised: the same joints stay rigid refit after refit
+            n_g, lab = rigid_bodies(rigid.tobytes(), m)  # memoised: the same joints stay rigid refit after refit
             groups: list[list[int]] = [[] for _ in range(n_g)]
             for i, g in enumerate(lab.tolist()):
                 groups[g].append(i)
@@ -242,10 +215,10 @@ def calibrate(acc, hierarchy=None, root=None, names=None, tolerance: float = TOL
         row = lo * m - lo * (lo + 1) // 2 + (hi - lo - 1)  # index of (lo, hi) in all_pairs order
         joints = fits.take(row, swap=jc > pj)
         cal = Calibration(names, topo.root, topo.parent, topo.order, acc.frames, joints, _no_bones(),
-                          np.full((m, 3), np.nan), topo.loop_candidates, topo.rigid_groups, topo.ambiguous, fits)
-    cal.placement = _placement(acc, cal)
-    cal.bones = _bones(acc, cal)
-    return cal
+                          np.full((m, 3), np.nan), topo.loop_candidates, topo.rigid_groups, topo.ambiguous,
+                          fits)
+    cal = replace(cal, placement=_placement(acc, cal))
+    return replace(cal, bones=_bones(acc, cal))
 
 
 def _no_bones() -> Bones:
@@ -268,7 +241,7 @@ def _placement(acc, cal: Calibration) -> np.ndarray:
 
 
 def _bones(acc, cal: Calibration) -> Bones:
-    """Inboard → each outboard joint per body, and between outboard joints at the root (design.md §5)."""
+    """Inboard → each outboard joint per body, and between outboard joints at the root (docs/design.md §5)."""
     m = cal.n_sensors
     J = cal.joints
     jc, jp = J.pairs[:, 0], J.pairs[:, 1]

@@ -1,4 +1,4 @@
-"""Joint fits for many sensor pairs at once, read from one Gram accumulator (design.md §2–§3).
+"""Joint fits for many sensor pairs at once, read from one Gram accumulator (docs/design.md §2–§3).
 
 Each pair (i, j) is the paper's least-squares problem (eq. 15) for the point fixed in both frames: c in i's
 frame, l in j's. All pairs are solved together: one batched 6×6 eigendecomposition, no loop over pairs.
@@ -7,15 +7,16 @@ frame, l in j's. All pairs are solved together: one batched 6×6 eigendecomposit
 from __future__ import annotations
 
 from dataclasses import dataclass, fields
-from functools import lru_cache
 
 import numpy as np
+
+from flockcal.solver.gram_layout import all_pairs_of
 
 # Eigenvalues of A/n at or below this are zero to rounding (A/n has eigenvalues in [0, 2]; the Gram's own
 # rounding leaves ~1e-15 where the data hold nothing).
 NUMERIC_FLOOR = 1e-10
 
-# How closely the data must pin the joint centre along a direction for it to count (design.md §3a): the
+# How closely the data must pin the joint centre along a direction for it to count (docs/design.md §3a): the
 # standard error there, with the bias rotation noise leaves in least squares, at most this. Option of
 # `flockcal fit` and `serve` (`--tolerance-mm`).
 TOLERANCE_M = 0.005
@@ -46,7 +47,7 @@ class PairFits:
     epsilon: np.ndarray  # (p,) m, the paper's ε = sqrt(Σ‖e_k‖²)/n (eq. 19)
     singular_values: np.ndarray  # (p, 6) of the stacked 3n×6 system, ÷√n, descending
     hinge: np.ndarray  # (p,) bool: a determined hinge — exactly one free direction, its axis pinned
-    determined: np.ndarray  # (p,) bool: a ball with every direction pinned, or a hinge (design.md §3a)
+    determined: np.ndarray  # (p,) bool: a ball with every direction pinned, or a hinge (docs/design.md §3a)
     axis_i: np.ndarray  # (p, 3) hinge axis in i's frame (NaN when not a hinge)
     axis_j: np.ndarray  # (p, 3) the same axis in j's frame
     coverage: np.ndarray  # (p, 3) 1 − σ_k(M), ascending: coverage[:, 0] is the least exercised axis
@@ -89,27 +90,35 @@ class PairFits:
 _FIELDS = tuple(f.name for f in fields(PairFits))
 
 
+def unfitted(pairs) -> PairFits:
+    """PairFits for `pairs` with nothing measured: NaN numbers, no hinge, nothing determined, no frames.
+    Stands in where only the joint points are known (a fit read from a file, a saved skeleton's start)."""
+    P = np.asarray(pairs, dtype=int).reshape(-1, 2)
+    p = len(P)
+
+    def nan(*shape):
+        return np.full((p, *shape), np.nan)
+
+    no = np.zeros(p, dtype=bool)
+    zero = np.zeros(p, dtype=int)
+    return PairFits(P, nan(3), nan(3), nan(), nan(), nan(6), no, no, nan(3), nan(3), nan(3), nan(), nan(),
+                    nan(3, 3), nan(3, 3), zero, zero.copy(), nan(3), nan(), nan(), nan())
+
+
 def all_pairs(n_sensors: int) -> np.ndarray:
     """Every pair (i, j) with i < j, in row-major order: (m(m−1)/2, 2)."""
-    return _all_pairs(int(n_sensors)).copy()
+    return all_pairs_of(int(n_sensors)).copy()
 
 
-@lru_cache(maxsize=8)
-def _all_pairs(m: int) -> np.ndarray:
-    # triu_indices costs more than a whole refit step on 16 sensors; the live service asks ~30×/s.
-    i, j = np.triu_indices(m, k=1)
-    P = np.stack([i, j], axis=1)
-    P.setflags(write=False)
-    return P
 
 
 def pair_fits(acc, pairs=None, tolerance: float = TOLERANCE_M) -> PairFits:
     """Fit the joint of every pair in `pairs` ((p, 2) indices; default all pairs) from accumulator `acc`,
-    and decide from the data's own noise whether each joint is determined (design.md §3a).
+    and decide from the data's own noise whether each joint is determined (docs/design.md §3a).
 
     Solve. A/n = V diag(μ) Vᵀ (μ ascending); u = Σ_kept v_k (v_kᵀ b/n) / μ_k — the pseudo-inverse over the
     kept directions, i.e. the minimum-norm solution, the paper's point "closest to the sensor origins".
-    Only the three smallest, μ_k = 1 − σ_k(M), can be missing (design.md §3). A direction is kept when μ_k is
+    Only the three smallest, μ_k = 1 − σ_k(M), can be missing (docs/design.md §3). A direction is kept when μ_k is
     above rounding and at least ROTATION_MARGIN × the rotation noise μ₀ = s_i² + s_j², measured per sensor
     from the take (`acc.rotation_noise()`), apart from position noise. Kept directions are plain least squares.
 

@@ -7,12 +7,15 @@ tree joints (read from the Gram normal equations), so bones stay the saved ones 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from flockcal.rotations import skew
+from flockcal.solver.calibration import Bones, Calibration
+from flockcal.solver.calibration_json import bones_json
+from flockcal.solver.fits import PairFits, unfitted
 from flockcal.solver.reconstruct import Articulation, ArticulationError
 
 
@@ -27,17 +30,18 @@ def body_points(art: Articulation) -> list[tuple[list[int], np.ndarray]]:
     return out
 
 
-def bones(art: Articulation, stderr: dict[tuple[str, str | None], float] | None = None,
-          only: frozenset | None = None) -> list[dict]:
-    """design.md §5 `bones`: per body, inboard joint to each outboard joint (root: pairs of outboard joints);
-    `only` keeps just the bones whose (from_joint, to_joint) it holds (a file's measured bones)."""
-    out = []
+def bone_arrays(art: Articulation, stderr: dict[tuple[str, str | None], float] | None = None,
+                only: frozenset | None = None) -> Bones:
+    """docs/design.md §5 bones of `art`: per body, inboard joint to each outboard joint (root: pairs of outboard
+    joints); `only` keeps just the bones whose (from_joint, to_joint) names it holds (a file's measured bones)."""
+    rows = []
     names = art.names
     rigid = art.rigid if art.rigid is not None else np.zeros(art.n_bodies, dtype=bool)
     for b in art.order:
         b = int(b)
         kids = art.children(b)
-        if art.parent[b] >= 0:
+        at_root = art.parent[b] < 0
+        if not at_root:
             spans = [(b, art.c[b], k, art.l[k]) for k in kids]
         else:
             spans = [(k1, art.l[k1], k2, art.l[k2]) for n1, k1 in enumerate(kids) for k2 in kids[n1 + 1 :]]
@@ -47,16 +51,19 @@ def bones(art: Articulation, stderr: dict[tuple[str, str | None], float] | None 
             key = (names[a], names[k])
             if only is not None and key not in only:
                 continue
-            out.append(
-                {
-                    "body": names[b],
-                    "from_joint": names[a],
-                    "to_joint": names[k],
-                    "length_m": float(np.linalg.norm(pk - pa)),
-                    "stderr_m": float((stderr or {}).get(key, float("nan"))),
-                }
-            )
-    return out
+            rows.append((b, a, k, float(np.linalg.norm(pk - pa)), float((stderr or {}).get(key, float("nan"))), at_root))
+    if not rows:
+        z = np.zeros(0)
+        return Bones(z.astype(int), z.astype(int), z.astype(int), z, z, z.astype(bool))
+    body, frm, to, length, err, root = (np.array(x) for x in zip(*rows))
+    return Bones(body.astype(int), frm.astype(int), to.astype(int), length.astype(float), err.astype(float),
+                 root.astype(bool))
+
+
+def bones(art: Articulation, stderr: dict[tuple[str, str | None], float] | None = None,
+          only: frozenset | None = None) -> list[dict]:
+    """`bone_arrays` as the §5 JSON `bones` list."""
+    return bones_json(bone_arrays(art, stderr, only), art.names)
 
 
 def rigid_fit(old: np.ndarray, new: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -72,7 +79,8 @@ def rigid_fit(old: np.ndarray, new: np.ndarray) -> tuple[np.ndarray, np.ndarray]
 
 @dataclass(frozen=True)
 class KnownFit:
-    """A take fitted with a saved skeleton; `to_dict()` is the design.md §5 fit JSON."""
+    """A take fitted with a saved skeleton: the fit's state (what a live refresh starts from) and, through
+    `calibration()`, the solver's result; `to_dict()` is its docs/design.md §5 JSON."""
 
     articulation: Articulation  # saved bones, this take's placements
     frames: int
@@ -80,39 +88,28 @@ class KnownFit:
     epsilon: np.ndarray  # (m,)
     rms_free: np.ndarray  # (m,) the same joint fitted freely: a much smaller value says the skeleton no longer fits
     iterations: int
-    joint_info: dict = field(default_factory=dict)  # child name -> extra §5 joint fields (coverage, hinge, …)
+    free: PairFits | None = None  # the tree joints fitted freely, in `articulation.order[1:]`
     bone_stderr: dict = field(default_factory=dict)
     motion: tuple | None = None  # (Q (m,3,3), s (m,3)): saved body points → this take's sensor frames
     bone_keys: frozenset | None = None  # the bones the saved file measured: (from_joint, to_joint); None: all
 
-    def to_dict(self) -> dict:
+    def calibration(self, segment_start_s: np.ndarray | None = None) -> Calibration:
+        """The fit as the solver's `Calibration`: saved topology and bones, this take's c, l and residuals;
+        every other joint field (singular values, hinge, coverage, …) from the free fit of the same joint.
+        `segment_start_s` (per joint, NaN: whole take) marks joints refitted after a slip."""
         art = self.articulation
-        names = art.names
-        joints = []
-        for j in art.order[1:]:
-            j = int(j)
-            entry = {
-                "child": names[j],
-                "parent": names[art.parent[j]],
-                "c": art.c[j].tolist(),
-                "l": art.l[j].tolist(),
-                "rms_m": float(self.rms[j]),
-                "epsilon": float(self.epsilon[j]),
-                "rms_free_m": float(self.rms_free[j]),
-            }
-            entry.update(self.joint_info.get(names[j], {}))
-            joints.append(entry)
-        return {
-            "sensors": list(names),
-            "root": names[art.root],
-            "parent": {names[j]: names[art.parent[j]] for j in art.order[1:]},
-            "frames": int(self.frames),
-            "joints": joints,
-            "bones": bones(art, self.bone_stderr, self.bone_keys),
-            "loop_candidates": [],
-            "slip_events": [],
-            "known_skeleton": True,
-        }
+        child = np.array([int(j) for j in art.order[1:]], dtype=int)
+        free = self.free if self.free is not None else unfitted(np.stack([child, art.parent[child]], axis=1))
+        joints = replace(free, c=art.c[child], l=art.l[child], rms=self.rms[child], epsilon=self.epsilon[child])
+        placement = np.full((art.n_bodies, 3), np.nan)
+        placement[child] = art.c[child]
+        return Calibration(tuple(art.names), int(art.root), np.asarray(art.parent), np.asarray(art.order),
+                           int(self.frames), joints, bone_arrays(art, self.bone_stderr, self.bone_keys), placement,
+                           hierarchy_given=True, known_skeleton=True, rms_free=self.rms_free[child],
+                           segment_start_s=segment_start_s)
+
+    def to_dict(self) -> dict:
+        return self.calibration().to_dict()
 
 
 def _joint_sse(A, b, dd, u):
@@ -134,7 +131,7 @@ def fit_known_skeleton(
     a handful of 6m×6m solves whatever the take's length. A live refresh passes the `previous` result
     (same skeleton, same names) to start from it: usually one or two Gauss–Newton steps then.
     """
-    from flockcal.solver.fits import pair_fits  # the solver core; imported here to keep this module light
+    from flockcal.solver.fits import pair_fits
 
     art = saved.reordered(names)
     m = art.n_bodies
@@ -224,30 +221,48 @@ def fit_known_skeleton(
     rms[child] = np.sqrt(sse / nfr)
     eps[child] = np.sqrt(sse) / nfr
     rms_free[child] = np.asarray(free.rms, dtype=float)
-    info = {}
-    for r_, j in enumerate(child):
-        extra = {}
-        for key, attr in (
-            ("singular_values", "singular_values"),
-            ("hinge", "hinge"),
-            ("axis_child", "axis_i"),
-            ("axis_parent", "axis_j"),
-            ("coverage", "coverage"),
-            ("c_stderr_m", "c_stderr"),
-            ("l_stderr_m", "l_stderr"),
-            ("determined", "determined"),
-            ("direction_error_m", "direction_error"),
-        ):
-            value = getattr(free, attr, None)
-            if value is None:
-                continue
-            v = np.asarray(value)[r_]
-            if key.startswith("axis") and not np.all(np.isfinite(v)):
-                extra[key] = None
-            elif key == "direction_error_m":
-                extra[key] = [float(x) if np.isfinite(x) else None for x in v]
-            else:
-                extra[key] = v.tolist() if np.ndim(v) else (bool(v) if v.dtype == bool else float(v) if np.isfinite(v) else None)
-        info[art.names[j]] = extra
-    return KnownFit(fitted, int(acc.frames), rms, eps, rms_free, done, info, dict(bone_stderr or {}), (Q, s),
+    return KnownFit(fitted, int(acc.frames), rms, eps, rms_free, done, free, dict(bone_stderr or {}), (Q, s),
                     bone_keys)
+
+
+def saved_placement(skeleton, names) -> KnownFit:
+    """A stand-in previous fit that starts the Gauss–Newton at the saved placements themselves."""
+    art = skeleton.articulation.reordered(list(names))
+    m = art.n_bodies
+    nan = np.full(m, np.nan)
+    return KnownFit(art, 0, nan, nan, nan, 0, motion=(np.broadcast_to(np.eye(3), (m, 3, 3)).copy(), np.zeros((m, 3))))
+
+
+def fit_saved(skeleton, acc, names, previous: KnownFit | None = None) -> KnownFit:
+    """Fit an accumulated take (sensor order `names`) with a saved `skeleton` (a `flockcal.skeleton.Skeleton`);
+    a live refresh passes the last KnownFit as `previous` to start from it."""
+    skeleton.check_names(names)
+    return fit_known_skeleton(acc, skeleton.articulation, names, bone_stderr=skeleton.bone_stderr,
+                              previous=previous, bone_keys=skeleton.bone_keys)
+
+
+def known_fit(skeleton, acc, names, previous: KnownFit | None = None) -> KnownFit:
+    """`fit_saved` on a session's accumulator (a segmented one, after slips, through its `pair_view`).
+
+    A cold fit tries two starts and keeps the better: the solver's own (each body's saved points moved
+    onto the free joint fits) and the saved placements as they are. On a tie — a body whose joints have
+    not moved yet, so the data cannot place it — the saved placement wins instead of an arbitrary one:
+    early in a take the unexercised limbs stay where the performer's file put them."""
+    view = acc.pair_view()
+    names = list(names)
+    if previous is not None:
+        return fit_saved(skeleton, view, names, previous=previous)
+    anchored = fit_saved(skeleton, view, names, previous=saved_placement(skeleton, names))
+    free = fit_saved(skeleton, view, names)
+    cost_anchored, cost_free = (float(np.nansum(f.rms ** 2)) for f in (anchored, free))
+    return anchored if cost_anchored <= cost_free * (1 + 1e-6) + 1e-12 else free
+
+
+def known_calibration(fit: KnownFit, acc) -> Calibration:
+    """`fit.calibration()`, its joints refitted on a segment of `acc` marked `segment_start_s` as in free fits."""
+    cal = fit.calibration()
+    if not acc.segments:
+        return cal
+    segs = acc.pair_segments(cal.joints.pairs)
+    start = np.array([np.nan if s is None else s.start_s for s in segs], dtype=float)
+    return replace(cal, segment_start_s=start)

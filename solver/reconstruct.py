@@ -6,7 +6,7 @@ the raw data's joint separations (the residuals) are what this removes. Pure num
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -145,50 +145,30 @@ def tree_order(parent: np.ndarray) -> np.ndarray:
 
 
 def articulation(calibration) -> Articulation:
-    """An Articulation from a Calibration, or from its design.md §5 dict (fit JSON or a skeleton file).
+    """An Articulation from a Calibration (or a fit with `.calibration()`), or from a docs/design.md §5 dict
+    (fit JSON or a skeleton file, read by `calibration_from_json`: only `sensors`, `root`, `parent`,
+    `joints[].child/parent/c/l` and `rigid_groups`, the stable contract)."""
+    from flockcal.solver.calibration_json import as_calibration
 
-    Reads only `sensors`, `root`, `parent` and `joints[].child/parent/c/l`, which are the stable contract.
-    """
-    d = calibration.to_dict() if hasattr(calibration, "to_dict") else calibration
-    if not isinstance(d, Mapping):
-        raise ArticulationError(f"expected a Calibration or its dict, got {type(calibration).__name__}")
-    try:
-        names = tuple(str(x) for x in d["sensors"])
-        parent_map = {str(k): str(v) for k, v in dict(d["parent"]).items()}
-        joints = list(d["joints"])
-    except (KeyError, TypeError) as exc:
-        raise ArticulationError(f"calibration lacks {exc} (design.md §5 lists the fields)") from None
-    index = {x: i for i, x in enumerate(names)}
-    unknown = sorted({x for kv in parent_map.items() for x in kv} - set(index))
-    if unknown:
-        raise ArticulationError(f"the parent map names unknown sensor(s) {', '.join(unknown)}")
+    cal = as_calibration(calibration, error=ArticulationError)
+    names = tuple(cal.names)
     m = len(names)
-    parent = np.full(m, -1, dtype=int)
-    for child, par in parent_map.items():
-        parent[index[child]] = index[par]
-    root = d.get("root")
-    if root is not None and str(root) in index and parent[index[str(root)]] != -1:
-        raise ArticulationError(f"root {root!r} has a parent in the parent map")
+    parent = np.asarray(cal.parent, dtype=int)
     order = tree_order(parent)
+    pairs, jc, jl = cal.joint_arrays()
+    tree = parent[pairs[:, 0]] == pairs[:, 1]  # a non-tree joint (loop candidate) takes no part
     c = np.zeros((m, 3))
     l = np.zeros((m, 3))
     have = np.zeros(m, dtype=bool)
-    for joint in joints:
-        child = str(joint["child"])
-        if child not in index:
-            raise ArticulationError(f"joint of unknown sensor {child!r}")
-        i = index[child]
-        if parent[i] < 0 or names[parent[i]] != str(joint["parent"]):
-            continue  # a non-tree joint (loop candidate) takes no part in driving the tree
-        c[i] = np.asarray(joint["c"], dtype=float)
-        l[i] = np.asarray(joint["l"], dtype=float)
-        have[i] = True
+    c[pairs[tree, 0]] = jc[tree]
+    l[pairs[tree, 0]] = jl[tree]
+    have[pairs[tree, 0]] = True
     # A sensor that never turned against its parent has no joint (its centre is undetermined): it rides
     # rigidly on the parent, completed later from the frames (`Articulation.completed`).
     group = {}
-    for g, members in enumerate(d.get("rigid_groups") or []):
+    for g, members in enumerate(cal.rigid_groups or []):
         for x in members:
-            group[str(x)] = g
+            group[names[x]] = g
     rigid = np.zeros(m, dtype=bool)
     lacking = []
     for i in range(m):
@@ -258,7 +238,7 @@ def tree_residuals(rotations, positions, art: Articulation, valid=None) -> np.nd
 def joint_separation(rotations, positions, art: Articulation, valid=None) -> np.ndarray:
     """(n, m) world distance between the two bodies' copies of each tree joint (indexed by its child).
 
-    This is ‖e_k‖ of design.md §1 for the tree joints; NaN at the root and where either sensor is invalid.
+    This is ‖e_k‖ of docs/design.md §1 for the tree joints; NaN at the root and where either sensor is invalid.
     """
     return np.linalg.norm(tree_residuals(rotations, positions, art, valid), axis=-1)
 

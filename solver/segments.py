@@ -8,12 +8,12 @@ before it). Pairs touching a slipped sensor are fitted on its segment, every oth
 from __future__ import annotations
 
 from collections import deque
-from collections.abc import Mapping
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 
 from flockcal.solver.accumulator import GramAccumulator
+from flockcal.solver.calibration import Bones, Calibration, calibrate
 from flockcal.solver.errors import SolverError
 from flockcal.solver.fits import TOLERANCE_M, PairFits, pair_fits
 
@@ -54,6 +54,21 @@ class SegmentedAccumulator:
     @property
     def frames(self) -> int:
         return self.whole.frames
+
+    # -- the Accumulator protocol --------------------------------------------------------------------
+    def ingest(self, times, rotations, positions, valid=None) -> "SegmentedAccumulator":
+        """`update`, in the `Accumulator` protocol's name."""
+        return self.update(times, rotations, positions, valid)
+
+    @property
+    def whole_take(self) -> GramAccumulator:
+        """The whole-take sums, every frame fed (segments are read from them)."""
+        return self.whole
+
+    def pair_view(self):
+        """A GramAccumulator-like view whose pair statistics come from each pair's segment (the whole
+        take while no segment is open)."""
+        return SegmentView(self) if self.segments else self.whole
 
     def update(self, times, rotations, positions, valid=None) -> "SegmentedAccumulator":
         """Add a batch of frames; a snapshot is taken before the first frame at or after each grid time."""
@@ -120,9 +135,10 @@ class SegmentedAccumulator:
     def since(self, sensor: int) -> GramAccumulator:
         """The frames of `sensor`'s current segment (the whole take when it has none)."""
         seg = self.segments.get(int(sensor))
-        return self.whole.copy() if seg is None else self._segment_acc(seg)
+        return self.whole.copy() if seg is None else self.segment_accumulator(seg)
 
-    def _segment_acc(self, seg: Segment) -> GramAccumulator:
+    def segment_accumulator(self, seg: Segment) -> GramAccumulator:
+        """The frames that belong to `seg` (after a swap: the frames before it)."""
         if seg.kind == "swap":
             # After a swap the sensors' data belongs to each other's bodies: keep what came before.
             return seg.before.copy() if seg.before is not None else GramAccumulator(self.n_sensors, origin=self.whole.origin)
@@ -140,7 +156,7 @@ class SegmentedAccumulator:
 
     def accumulator_for(self, pair) -> GramAccumulator:
         seg = self.pair_segments([pair])[0]
-        return self.whole if seg is None else self._segment_acc(seg)
+        return self.whole if seg is None else self.segment_accumulator(seg)
 
     def pair_fits(self, pairs, **options) -> PairFits:
         """`fits.pair_fits` per pair on its segment (see class docstring), in the order of `pairs`."""
@@ -153,78 +169,127 @@ class SegmentedAccumulator:
             keyed[id(s)] = s
         if len(groups) == 1:
             s = segs[0] if len(segs) else None
-            return pair_fits(self.whole if s is None else self._segment_acc(s), P, **options)
+            return pair_fits(self.whole if s is None else self.segment_accumulator(s), P, **options)
         parts, order = [], []
         for key, rows in groups.items():
             s = keyed[key]
-            acc = self.whole if s is None else self._segment_acc(s)
+            acc = self.whole if s is None else self.segment_accumulator(s)
             parts.append(pair_fits(acc, P[rows], **options))
             order += rows
         inv = np.argsort(np.asarray(order))
         return PairFits(**{f.name: np.concatenate([getattr(p, f.name) for p in parts])[inv] for f in fields(PairFits)})
 
-    def calibration_dict(self, hierarchy=None, root=None, names=None, slip_events=None,
-                         tolerance: float = TOLERANCE_M) -> dict:
-        """design.md §5 JSON: the whole-take calibration, with every joint and bone that involves a
-        segmented sensor taken from a calibration of that segment (same tree)."""
-        from flockcal.solver.calibration import calibrate
-
+    def calibration(self, hierarchy=None, root=None, names=None, slip_events=None,
+                    tolerance: float = TOLERANCE_M) -> Calibration:
+        """The whole-take calibration, with every joint and bone that involves a segmented sensor taken
+        from a calibration of that segment (same tree), marked with the segment's start."""
         whole = calibrate(self.whole, hierarchy=hierarchy, root=root, names=names, tolerance=tolerance)
-        d = _to_dict(whole, slip_events)
+        whole = replace(whole, slip_events=tuple(slip_events or ()))
         if not self.segments:
-            return d
-        tree = dict(d["parent"])
-        index = {n: i for i, n in enumerate(d["sensors"])}
-        done: dict[int, dict] = {}
-        for entry in d["joints"]:
-            seg = self._pair_segment(index[entry["child"]], index[entry["parent"]])
+            return whole
+        tree = whole.parent_map()
+        jc, jp = whole.joint_child, whole.joint_parent
+        segs = self.pair_segments(np.stack([jc, jp], axis=1))
+        start = np.full(len(jc), np.nan)
+        joints, placement = whole.joints, whole.placement.copy()
+        done: dict[int, Calibration] = {}
+        for k, seg in enumerate(segs):
             if seg is None:
                 continue
             if id(seg) not in done:
-                done[id(seg)] = _to_dict(calibrate(self._segment_acc(seg), hierarchy=tree, root=d["root"],
-                                                   names=names, tolerance=tolerance), None)
-            seg_joints = {e["child"]: e for e in done[id(seg)]["joints"]}
-            entry.update(seg_joints[entry["child"]])
-            entry["segment_start_s"] = seg.start_s
-        _replace_bones(d, done, self, index)
-        return d
+                done[id(seg)] = calibrate(self.segment_accumulator(seg), hierarchy=tree, root=whole.names[whole.root],
+                                          names=names, tolerance=tolerance)
+            start[k] = seg.start_s
+        for key, part in done.items():
+            mine = [k for k, s in enumerate(segs) if s is not None and id(s) == key]
+            theirs = [int(np.flatnonzero(part.joint_child == jc[k])[0]) for k in mine]
+            joints = _rows_from(joints, mine, part.joints, theirs)
+            placement[jc[mine]] = part.joints.c[theirs]
+        bones = _bones_after(whole, done, self)
+        return replace(whole, joints=joints, placement=placement, segment_start_s=start, bones=bones)
+
+    def calibration_dict(self, hierarchy=None, root=None, names=None, slip_events=None,
+                         tolerance: float = TOLERANCE_M) -> dict:
+        """docs/design.md §5 JSON of `calibration` (the same arguments)."""
+        return self.calibration(hierarchy, root, names, slip_events, tolerance).to_dict()
 
 
-def _to_dict(cal, slip_events) -> dict:
-    events = None if slip_events is None else [_event_dict(e) for e in slip_events]
-    try:
-        d = cal.to_dict(slip_events=events)
-    except TypeError:
-        d = cal.to_dict()
-        d["slip_events"] = events or []
-    return d
+def _rows_from(fits: PairFits, rows, other: PairFits, other_rows) -> PairFits:
+    """`fits` with its `rows` replaced by `other`'s `other_rows` (same pairs, another segment's data)."""
+    out = {}
+    for f in fields(PairFits):
+        a = getattr(fits, f.name).copy()
+        a[rows] = getattr(other, f.name)[other_rows]
+        out[f.name] = a
+    return PairFits(**out)
 
 
-def _event_dict(ev) -> dict:
-    """An event as its §5 JSON entry: a SlipEvent/SwapEvent, a dict, or any object with attributes."""
-    if hasattr(ev, "to_dict"):
-        return ev.to_dict()
-    return dict(ev) if isinstance(ev, Mapping) else dict(vars(ev))
-
-
-def _replace_bones(d: dict, seg_dicts: dict, seg: SegmentedAccumulator, index: dict) -> None:
-    """Bones that use a joint refitted on a segment come from that segment's calibration."""
-    joints = {e["child"]: e for e in d["joints"]}
-    for bone in d.get("bones", []):
-        used = [bone.get("from_joint"), bone.get("to_joint")]
-        pairs = [(index[joints[j]["child"]], index[joints[j]["parent"]]) for j in used if j in joints]
-        found = [s for s in seg.pair_segments(pairs) if s is not None]
+def _bones_after(whole: Calibration, done: dict, seg: SegmentedAccumulator) -> Bones:
+    """Bones that use a joint refitted on a segment come from that segment's calibration (the latest
+    segment among the bone's two joints), matched by (body, from joint, to joint)."""
+    b = whole.bones
+    length, stderr, start = b.length.copy(), b.stderr.copy(), np.full(len(b), np.nan)
+    row_of = {int(c): k for k, c in enumerate(whole.joint_child)}
+    pairs = whole.joints.pairs
+    for k in range(len(b)):
+        used = [int(x) for x in (b.from_joint[k], b.to_joint[k]) if int(x) in row_of]
+        found = [s for s in seg.pair_segments(pairs[[row_of[x] for x in used]]) if s is not None]
         if not found:
             continue
         s = max(found, key=lambda x: x.start_s)
-        src = seg_dicts.get(id(s))
+        src = done.get(id(s))
         if src is None:
             continue
-        key = (bone["body"], bone.get("from_joint"), bone.get("to_joint"))
-        for other in src.get("bones", []):
-            if (other["body"], other.get("from_joint"), other.get("to_joint")) == key:
-                bone.update(other)
-                bone["segment_start_s"] = s.start_s
+        o = src.bones
+        hit = np.flatnonzero((o.body == b.body[k]) & (o.from_joint == b.from_joint[k]) & (o.to_joint == b.to_joint[k]))
+        if len(hit):
+            length[k], stderr[k], start[k] = o.length[hit[0]], o.stderr[hit[0]], s.start_s
+    return replace(b, length=length, stderr=stderr, segment_start_s=start)
+
+
+class SegmentView:
+    """A SegmentedAccumulator seen as one GramAccumulator whose pair statistics come from each pair's
+    segment (after a slip: the frames since it), so a known-skeleton fit refits a slipped sensor's
+    joints on its new placement while the saved bones stay as they are."""
+
+    def __init__(self, seg):
+        self._seg = seg
+        self.whole = seg.whole
+
+    def __getattr__(self, name):
+        return getattr(self.whole, name)
+
+    def _grouped(self, pairs, method: str):
+        P = np.asarray(pairs, dtype=int).reshape(-1, 2)
+        segs = self._seg.pair_segments(P)
+        groups: dict[int, list[int]] = {}
+        keyed = {}
+        for k, s in enumerate(segs):
+            groups.setdefault(id(s), []).append(k)
+            keyed[id(s)] = s
+        out = None
+        for key, rows in groups.items():
+            s = keyed[key]
+            acc = self.whole if s is None else self._seg.segment_accumulator(s)
+            part = getattr(acc, method)(P[rows])
+            single = not isinstance(part, tuple)
+            parts = (part,) if single else part
+            if out is None:
+                out = [np.empty((len(P),) + np.shape(x)[1:], dtype=np.result_type(x)) for x in parts]
+            for o, x in zip(out, parts):
+                o[rows] = x
+        if out is None:
+            return getattr(self.whole, method)(P)
+        return out[0] if len(out) == 1 and method == "translation_power" else tuple(out)
+
+    def normal_equations(self, pairs):
+        return self._grouped(pairs, "normal_equations")
+
+    def translation_power(self, pairs):
+        return self._grouped(pairs, "translation_power")
+
+    def block_moments(self, pairs):
+        return self._grouped(pairs, "block_moments")
 
 
 def segmented_from_take(take, events) -> SegmentedAccumulator:
@@ -250,10 +315,15 @@ def segmented_from_take(take, events) -> SegmentedAccumulator:
     return seg
 
 
-def calibration_after_slips(take, events, hierarchy=None, root=None, tolerance: float = TOLERANCE_M) -> dict:
-    """design.md §5 JSON for a recorded take with slips: the whole-take calibration, except that every
-    joint and bone involving a slipped sensor is fitted on the frames since its (latest) slip, and
-    `slip_events` lists the events. `take` as for `detect_slips`; `events` from it."""
+def calibrated_after_slips(take, events, hierarchy=None, root=None, tolerance: float = TOLERANCE_M) -> Calibration:
+    """A recorded take with slips calibrated: the whole-take calibration, except that every joint and
+    bone involving a slipped sensor is fitted on the frames since its (latest) slip, and `slip_events`
+    holds the events. `take` as for `detect_slips`; `events` from it."""
     seg = segmented_from_take(take, events)
     names = getattr(take, "names", None)
-    return seg.calibration_dict(hierarchy=hierarchy, root=root, names=names, slip_events=events, tolerance=tolerance)
+    return seg.calibration(hierarchy=hierarchy, root=root, names=names, slip_events=events, tolerance=tolerance)
+
+
+def calibration_after_slips(take, events, hierarchy=None, root=None, tolerance: float = TOLERANCE_M) -> dict:
+    """docs/design.md §5 JSON of `calibrated_after_slips` (the same arguments)."""
+    return calibrated_after_slips(take, events, hierarchy, root, tolerance).to_dict()

@@ -1,4 +1,4 @@
-"""Sensor slippage and swap detection (design.md §4): a live `SlipMonitor` fed the same micro-batches as
+"""Sensor slippage and swap detection (docs/design.md §4): a live `SlipMonitor` fed the same micro-batches as
 the accumulator plus the current joint estimates, and `detect_slips` for a recorded take.
 
 Per joint, a window-limited GLR test for a step in the residual vector (seen from either sensor of the
@@ -43,7 +43,7 @@ class SlipEvent:
     kind = "slip"
 
     def to_dict(self) -> dict:
-        """The `slip_events` entry of design.md §5 (extended with kind, confidence and detected_s)."""
+        """The `slip_events` entry of docs/design.md §5 (extended with kind, confidence and detected_s)."""
         return {"kind": "slip", "time_s": round(self.time_s, 4), "sensor": self.sensor,
                 "candidates": list(self.candidates), "confidence": round(self.confidence, 4),
                 "joints": list(self.joints), "jump_mm": round(self.jump_mm, 2),
@@ -504,28 +504,13 @@ def _with_own_noise(x: np.ndarray, weight: np.ndarray) -> np.ndarray:
         return np.where(live, 1.0 / np.maximum(1.0 / np.where(live, weight, 1.0), own[None, :]), 0.0)
 
 
-def attributes_slip_to(event, sensor: str, names, parent) -> bool:
-    """True if `event` (a SlipEvent, or a SwapEvent read as one) blames `sensor`, or offers exactly `sensor`
-    and the body it hangs on or off when that body is a leaf (a leaf's single joint cannot tell the two
-    apart). `parent`: index array over `names`, −1 at the root. How tests and benchmarks score attribution."""
-    if event.sensor == sensor:
-        return True
-    pair = set(event.candidates)
-    if sensor not in pair or len(pair) != 2:
-        return False
-    names, parent = list(names), np.asarray(parent)
-    a, b = (names.index(x) for x in pair)
-    leaf = a if parent[a] == b else b if parent[b] == a else None
-    return leaf is not None and not np.any(parent == leaf)
-
-
 def detect_slips(take, calibration=None, *, joints=None, c=None, l=None, batch_s: float = 10.0,
                  **options) -> list:
     """Slip and swap events in a recorded take, replayed through a `SlipMonitor` (which examines the
     frames `step_s` at a time, as live, whatever the `batch_s` pieces they are handed over in).
 
     take: a `flockcal.takes.Take` (or anything with rotations, positions, rate_hz and optionally valid,
-    times, names). Joint estimates come from `calibration` (a `Calibration` or its design.md §5 dict)
+    times, names). Joint estimates come from `calibration` (a `Calibration` or its docs/design.md §5 dict)
     or from `joints` (p, 2) with `c`, `l` (p, 3). A whole-take fit is blended across a slip; the
     monitor's baselines are taken in both sensor frames of each joint, so the step still shows.
     """
@@ -550,17 +535,15 @@ def detect_slips(take, calibration=None, *, joints=None, c=None, l=None, batch_s
 
 
 def joints_from_calibration(calibration, names) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(joints (p, 2), c (p, 3), l (p, 3)) from a Calibration or its design.md §5 dict."""
-    d = calibration.to_dict() if hasattr(calibration, "to_dict") else calibration
-    try:
-        entries = d["joints"]
-    except (KeyError, TypeError):
-        raise SlippageError("the calibration has no 'joints' list (expected the `flockcal fit --json` shape)") from None
+    """(joints (p, 2) as indices into `names`, c (p, 3), l (p, 3)) from a Calibration, a fit with
+    `.calibration()`, or a docs/design.md §5 dict (read by `calibration_from_json`)."""
+    from flockcal.solver.calibration_json import as_calibration
+
+    cal = as_calibration(calibration, names=names, error=SlippageError)
     index = {n: i for i, n in enumerate(names)}
+    pairs, c, l = cal.joint_arrays()
     try:
-        J = np.array([[index[e["child"]], index[e["parent"]]] for e in entries], dtype=int).reshape(-1, 2)
+        J = np.array([[index[cal.names[a]], index[cal.names[b]]] for a, b in pairs.tolist()], dtype=int).reshape(-1, 2)
     except KeyError as exc:
         raise SlippageError(f"the calibration names sensor {exc.args[0]!r}, which this take does not have") from None
-    c = np.array([e["c"] for e in entries], dtype=float).reshape(-1, 3)
-    l = np.array([e["l"] for e in entries], dtype=float).reshape(-1, 3)
     return J, c, l

@@ -15,7 +15,8 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 
 from flockcal.solver.errors import SolverError
-from flockcal.solver.fits import PairFits, _all_pairs
+from flockcal.solver.fits import PairFits
+from flockcal.solver.gram_layout import all_pairs_of
 
 # A pair "fits as well as" another when its rms is within this fraction (plus rounding) of the other's.
 TIE_FRACTION = 0.05
@@ -46,7 +47,7 @@ def tree_centre(parent_edges: np.ndarray, n_nodes: int, weight=None) -> int:
     if n_nodes == 1:
         return 0
     e = np.asarray(parent_edges, dtype=np.intp).reshape(-1, 2)
-    pred, order = _orient(e, n_nodes, 0)
+    pred, order = orient(e, n_nodes, 0)
     sub = w.copy()
     for v in order[::-1][:-1]:  # children before parents; at most one pass over the bodies
         sub[pred[v]] += sub[v]
@@ -58,7 +59,7 @@ def tree_centre(parent_edges: np.ndarray, n_nodes: int, weight=None) -> int:
     return int(np.lexsort((np.arange(n_nodes), -degree, score))[0])
 
 
-def _orient(edges: np.ndarray, n: int, root: int) -> tuple[np.ndarray, np.ndarray]:
+def orient(edges: np.ndarray, n: int, root: int) -> tuple[np.ndarray, np.ndarray]:
     """Parent array and BFS order of the tree `edges` (k, 2) hung from `root`.
 
     A plain breadth-first walk: for trees of tens of bodies it is cheaper than building a sparse graph.
@@ -98,7 +99,9 @@ def ancestors(parent: np.ndarray, order: np.ndarray) -> np.ndarray:
 # exact inputs (the rigid mask; the links with their rank-order weights), so a result is only reused
 # for an identical graph.
 @lru_cache(maxsize=16)
-def _rigid_bodies(rigid: bytes, m: int) -> tuple[int, np.ndarray]:
+def rigid_bodies(rigid: bytes, m: int) -> tuple[int, np.ndarray]:
+    """(number of rigid bodies, body label per sensor) of an (m, m) bool "never turned" matrix given as
+    bytes, so refits that find the same rigid pairs hit the cache."""
     n_groups, label = connected_components(csr_matrix(np.frombuffer(rigid, dtype=bool).reshape(m, m)), directed=False)
     label.setflags(write=False)
     return int(n_groups), label
@@ -143,7 +146,7 @@ def _hang(m: int, n_groups: int, label_b: bytes, edges_b: bytes, root: int) -> _
         root = int(np.flatnonzero(label == rg)[0])
 
     # Within a rigid body every member hangs from the member where the body's inboard joint attaches.
-    gparent, _ = _orient(gedges, n_groups, label[root])
+    gparent, _ = orient(gedges, n_groups, label[root])
     entry = np.full(n_groups, -1)
     entry[label[root]] = root
     jparent = np.full(m, -1)
@@ -159,7 +162,7 @@ def _hang(m: int, n_groups: int, label_b: bytes, edges_b: bytes, root: int) -> _
     parent[members] = entry[label[members]]
     parent[root] = -1
     edges = np.stack([np.flatnonzero(parent >= 0), parent[parent >= 0]], axis=1)
-    _, order = _orient(edges, m, root)
+    _, order = orient(edges, m, root)
 
     groups: list[list[int]] = [[] for _ in range(n_groups)]
     for i, g in enumerate(label.tolist()):
@@ -169,7 +172,7 @@ def _hang(m: int, n_groups: int, label_b: bytes, edges_b: bytes, root: int) -> _
     jc = np.flatnonzero(is_joint)
     linked = np.zeros((n_groups, n_groups), dtype=bool)
     linked[label[jc], label[parent[jc]]] = linked[label[parent[jc]], label[jc]] = True
-    iu, ju = _all_pairs(m).T
+    iu, ju = all_pairs_of(m).T
     unlinked = (label[iu] != label[ju]) & ~linked[label[iu], label[ju]]
 
     # Another parent of a joint child: a sensor not below the child, in neither the child's nor its parent's body.
@@ -217,10 +220,10 @@ def spanning_tree(fits: PairFits, n_sensors: int, root: int | None = None) -> To
 
     # Rigid bodies: pairs that never turned relative to each other beyond noise, yet fit like a joint would.
     rigid = measured & (rank <= 3) & (rms <= RIGID_FACTOR * scale + tol)
-    n_groups, label = _rigid_bodies(rigid.tobytes(), m)
+    n_groups, label = rigid_bodies(rigid.tobytes(), m)
 
     # Contracted graph: each pair of bodies is linked by its best-fitting sensor pair.
-    upper = _all_pairs(m)
+    upper = all_pairs_of(m)
     iu, ju = upper.T
     rms_u = rms[iu, ju]
     cross = label[iu] != label[ju]

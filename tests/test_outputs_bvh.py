@@ -190,7 +190,7 @@ def fitted_human():
 
 
 def test_fitted_take_bvh_matches_reconstruction_and_raw_separation_is_the_solvers_residual(fitted_human, tmp_path):
-    from flockcal.solver.residuals import joint_residuals
+    from residuals import joint_residuals
 
     take, cal = fitted_human
     d = cal.to_dict()

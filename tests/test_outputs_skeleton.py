@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 
 from flockcal.cli import main
 from flockcal.exports.skeleton import FORMAT, VERSION, SkeletonError, load_skeleton, parse_skeleton, write_skeleton
+from flockcal.solver.known_skeleton import fit_saved
 from flockcal.simulator.body import human
 from flockcal.simulator.take import simulate
 from flockcal.solver.accumulator import GramAccumulator
@@ -54,7 +55,7 @@ def performer(tmp_path_factory):
 def test_saved_skeleton_fixes_topology_and_gives_first_takes_bones_on_second_take(performer):
     skeleton = load_skeleton(performer["path"])
     take2 = performer["take2"]
-    fit = skeleton.fit(accumulate(take2), take2.names).to_dict()
+    fit = fit_saved(skeleton, accumulate(take2), take2.names).to_dict()
     first = performer["cal1"]
     assert fit["parent"] == first["parent"] and fit["root"] == first["root"]
     saved, now = bone_map(first), bone_map(fit)
@@ -85,8 +86,8 @@ def test_saved_skeleton_fits_a_take_whose_sensors_come_in_another_order(performe
         valid=take2.valid[:, order],
     )  # fmt: skip
     skeleton = load_skeleton(performer["path"])
-    a = skeleton.fit(accumulate(take2), take2.names).to_dict()
-    b = skeleton.fit(accumulate(shuffled), shuffled.names).to_dict()
+    a = fit_saved(skeleton, accumulate(take2), take2.names).to_dict()
+    b = fit_saved(skeleton, accumulate(shuffled), shuffled.names).to_dict()
     assert a["parent"] == b["parent"]
     ca = {j["child"]: j["c"] for j in a["joints"]}
     for j in b["joints"]:
@@ -188,7 +189,7 @@ def test_rigidly_attached_sensor_is_saved_at_its_sensor_and_refits():
     assert joint["rigid"] and joint["c"] == [0.0, 0.0, 0.0]
     # l is sensor_b's origin in sensor_a's frame: its length is the pair's distance (0.565 m).
     assert np.linalg.norm(joint["l"]) == pytest.approx(0.565, abs=0.01)
-    refit = skeleton.fit(acc, take.names).to_dict()
+    refit = fit_saved(skeleton, acc, take.names).to_dict()
     assert refit["parent"] == {"sensor_b": "sensor_a"}
 
 
@@ -198,10 +199,10 @@ def test_live_refresh_from_the_previous_fit_lands_on_the_same_placements(perform
     half = take2.n_frames // 2
     acc = GramAccumulator(take2.n_sensors)
     acc.update(take2.rotations[:half], take2.positions[:half], take2.valid[:half])
-    earlier = skeleton.fit(acc, take2.names)
+    earlier = fit_saved(skeleton, acc, take2.names)
     acc.update(take2.rotations[half:], take2.positions[half:], take2.valid[half:])
-    cold = skeleton.fit(acc, take2.names)
-    warm = skeleton.fit(acc, take2.names, previous=earlier)
+    cold = fit_saved(skeleton, acc, take2.names)
+    warm = fit_saved(skeleton, acc, take2.names, previous=earlier)
     # Same least-squares optimum; placements agree to well under a millimetre (a hinge joint's position
     # along its axis is free, so the two starts need not agree there exactly).
     assert np.nansum(warm.rms) == pytest.approx(np.nansum(cold.rms), rel=1e-6)

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from flockcal.server.pipeline import _finite, accumulate, calibrate_dict, fit_copy, new_accumulator
+from flockcal.server.pipeline import _finite, accumulate, calibrate_dict, new_accumulator
 from flockcal.solver.calibration import calibrate
 from synthetic import articulated
 
@@ -49,7 +49,7 @@ def test_calibrate_dict_is_json_safe_as_built_with_no_data_pairs(take, segmented
     acc, times = _fed(take, segmented)
     if segmented:
         acc.start_segment(2, times[len(times) // 2])  # a slip: sensor 2's joints refit on the frames since
-    fit = calibrate_dict(fit_copy(acc), take.names, hierarchy=take.parent if given else None)
+    fit = calibrate_dict(acc.copy(), take.names, hierarchy=take.parent if given else None)
     json.dumps(fit, allow_nan=False)
     _assert_plain(fit)
     assert _finite(fit) == fit  # the walk the live path no longer makes would change nothing

@@ -197,7 +197,7 @@ def test_after_a_slip_the_known_fit_places_the_slipped_sensor_from_the_frames_si
     from types import SimpleNamespace
 
     from flockcal.exports.skeleton import parse_skeleton, skeleton_dict
-    from flockcal.server.skeletons import known_dict, known_fit
+    from flockcal.solver.known_skeleton import known_calibration, known_fit
     from flockcal.solver.segments import segmented_from_take
     from flockcal.simulator.faults import slip
     from flockcal.simulator.take import simulate
@@ -214,7 +214,7 @@ def test_after_a_slip_the_known_fit_places_the_slipped_sensor_from_the_frames_si
     R, t = slip(take.rotations, take.positions, take.times, k, 8.0, d)
     slipped = take.__class__(**{**take.__dict__, "rotations": R, "positions": t})
     seg = segmented_from_take(slipped, [SimpleNamespace(kind="slip", time_s=8.0, sensor_index=k)])
-    fit = known_dict(known_fit(skeleton, seg, names), seg, names)
+    fit = known_calibration(known_fit(skeleton, seg, names), seg).to_dict()
     assert bone_lengths(fit) == pytest.approx(bone_lengths(skeleton.data), abs=1e-9)
     joint = {j["child"]: j for j in fit["joints"]}["l_forearm"]
     saved = {j["child"]: j for j in skeleton.data["joints"]}["l_forearm"]

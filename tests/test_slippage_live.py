@@ -14,7 +14,7 @@ import pytest
 from flockcal.simulator.performer import Performer
 from flockcal.solver.accumulator import GramAccumulator
 from flockcal.solver.fits import pair_fits
-from flockcal.solver.slippage import attributes_slip_to
+from slip_scoring import attributes_slip_to
 from flockcal.solver.slippage_replay import SlipReplay
 
 RATE = 100.0

@@ -8,9 +8,9 @@ import pytest
 from flockcal.solver.accumulator import GramAccumulator
 from flockcal.solver.calibration import calibrate, parse_hierarchy
 from flockcal.solver.errors import SolverError
-from flockcal.solver.residuals import joint_residuals
+from residuals import joint_residuals
 from flockcal.rotations import nearest_rotation
-from flockcal.solver.transforms import to_global, to_local
+from kinematics import to_global, to_local
 from synthetic import articulated
 
 

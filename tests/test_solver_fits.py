@@ -1,13 +1,12 @@
 """Promises of the pair fits: exact on exact data, equal to the paper's SVD solve, noise-aware hinges, stderrs."""
 
 import numpy as np
-import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from flockcal.solver.accumulator import GramAccumulator
 from flockcal.solver.fits import all_pairs, pair_fits
-from flockcal.solver.reference import reference_pair_fit
+from reference import reference_pair_fit
 from synthetic import articulated
 
 MIXED = ["root", "ball", "hinge", "rigid", "ball", "hinge", "lowrange"]

@@ -1,6 +1,6 @@
 """`flockcal fit FILE.npz`: calibrate a recorded take (joints, hinge axes, bones, topology) as a table or JSON.
 
-Reads the .npz interchange of design.md §5, feeds it to the Gram accumulator and prints the calibration;
+Reads the .npz interchange of docs/design.md §5, feeds it to the Gram accumulator and prints the calibration;
 --json prints exactly the §5 object. Bad files and bad hierarchies end in one line naming the problem.
 """
 
@@ -22,12 +22,12 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "fit",
         help="find joints, bones and the skeleton tree in a recorded take",
-        description="Fit joint centres, hinge axes, bone lengths and the skeleton tree to a take (.npz, design.md §5).",
+        description="Fit joint centres, hinge axes, bone lengths and the skeleton tree to a take (.npz, docs/design.md §5).",
     )
     p.add_argument("file", metavar="FILE.npz", help="recorded take")
     p.add_argument("--hierarchy", metavar="MAP.json", help='a {"child": "parent", …} map (root omitted): fit only those joints')
     p.add_argument("--root", metavar="NAME", help="hang the tree from this sensor (default: the body that splits it most evenly)")
-    p.add_argument("--json", action="store_true", help="print the JSON object of design.md §5 instead of a table")
+    p.add_argument("--json", action="store_true", help="print the JSON object of docs/design.md §5 instead of a table")
     p.add_argument("--bvh", metavar="OUT.bvh", help="also write the take as BVH through the fitted skeleton")
     p.add_argument("--scale", metavar="FACTOR", help="multiply positions by FACTOR before fitting (unit scale, paper §4): "
                    "a number or the JSON file `flockcal scale --json` wrote")
@@ -38,7 +38,7 @@ def register(subparsers) -> None:
 
 
 def add_tolerance(p) -> None:
-    """The --tolerance-mm option `fit` and `serve` share (design.md §3a)."""
+    """The --tolerance-mm option `fit` and `serve` share (docs/design.md §3a)."""
     p.add_argument("--tolerance-mm", type=float, default=5.0, metavar="MM",
                    help="a joint counts as determined when the data pin its centre to within MM along every "
                         "direction it needs (default 5)")
@@ -91,7 +91,8 @@ def run(args: argparse.Namespace) -> int:
     from flockcal.threads import single_threaded_blas
 
     single_threaded_blas()  # before numpy loads
-    from flockcal.solver.calibration import calibrate
+    from flockcal.exports.bvh import write_bvh
+    from flockcal.solver.solve import solve, solve_take
     from flockcal.takes import load_take
 
     take = load_take(args.file)
@@ -103,34 +104,28 @@ def run(args: argparse.Namespace) -> int:
     acc = accumulate(take)
     # Fitted first, so bad input (names, hierarchy) is reported as such before the take is judged.
     tol = tolerance_m(args)
-    cal = calibrate(acc, hierarchy=hierarchy, root=args.root, names=take.names, tolerance=tol)
+    cal = solve(acc, take.names, hierarchy=hierarchy, root=args.root, tolerance=tol)
     if stop_for("fit", args.file, too_short(take) or too_still(cal), args.allow_partial):
         return PARTIAL_EXIT
-    slips, result = [], cal.to_dict()
+    slips, result = [], cal
     with Stages("fit", ["searching for slips", "re-fitting after slips", "writing BVH"]) as stages:
         if not args.no_slips and len(cal.joints.pairs):
-            from flockcal.solver.segments import calibration_after_slips
             from flockcal.solver.slippage import detect_slips
 
             stages.step("searching for slips")
             slips = detect_slips(take, cal)
             if slips:
                 # The slipped sensors' joints and bones are re-fitted on the frames since their slip
-                # (design.md §4); everything else keeps the whole take.
+                # (docs/design.md §4); everything else keeps the whole take.
                 stages.step("re-fitting after slips")
-                result = calibration_after_slips(take, slips, hierarchy=result["parent"], root=result["root"],
-                                                 tolerance=tol)
+                result = solve_take(take, slips, hierarchy=cal.parent_map(), root=cal.names[cal.root], tolerance=tol)
         if args.bvh:
-            try:
-                from flockcal.exports.bvh import write_bvh
-            except ModuleNotFoundError:
-                raise UserError("BVH export is not available in this installation (flockcal.exports.bvh is missing)") from None
             stages.step("writing BVH")
             write_bvh(args.bvh, cal, take)
     if args.bvh:
         print(f"wrote {args.bvh}", file=sys.stderr)
     if args.json:
-        print(json.dumps(result, indent=2))
+        print(json.dumps(result.to_dict(), indent=2))
     else:
         print(table(cal, source=args.file))
         if slips:
@@ -138,17 +133,20 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def slip_table(slips, result: dict) -> str:
-    """Slip and swap events, and the joints re-fitted from each slip on."""
+def slip_table(slips, result) -> str:
+    """Slip and swap events, and the joints re-fitted from each slip on (`result`: the Calibration after them)."""
     out = ["", "Sensor slips (joints of a slipped sensor are re-fitted from the slip on in --json)"]
     for e in slips:
         d = e.to_dict()
         who = " or ".join(d["candidates"]) if len(d.get("candidates") or []) > 1 else d["sensor"]
         kind = "swap" if d.get("kind") == "swap" else "slip"
         out.append(f"  {d['time_s']:7.2f} s  {kind} of {who}: jump {d['jump_mm']:.0f} mm at joints {', '.join(d['joints'])}")
-    refit = [j for j in result.get("joints", []) if j.get("segment_start_s") is not None]
-    for j in refit:
-        out.append(f"    re-fitted from {j['segment_start_s']:.2f} s: {j['child']}–{j['parent']}  c {_cm(j['c'])}  l {_cm(j['l'])}")
+    import numpy as np
+
+    nm, J = result.names, result.joints
+    start = result.segment_start_s if result.segment_start_s is not None else np.full(len(J), np.nan)
+    for k in np.flatnonzero(np.isfinite(start)):
+        out.append(f"    re-fitted from {start[k]:.2f} s: {nm[J.pairs[k, 0]]}–{nm[J.pairs[k, 1]]}  c {_cm(J.c[k])}  l {_cm(J.l[k])}")
     return "\n".join(out)
 
 
@@ -219,7 +217,7 @@ def table(cal, source: str = "") -> str:
         out += [f"  {nm[c]}: {', '.join(nm[p] for p in ps)} — {note}" for c, ps, note in cal.ambiguous]
     under = [k for k in range(len(J)) if not J.determined[k]]
     if under:
-        from flockcal.server.coaching import joint_label
+        from flockcal.names import joint_label
 
         names = ", ".join(joint_label(nm[J.pairs[k, 0]], nm[J.pairs[k, 1]]).removeprefix("the ") for k in under)
         out += ["", f"Move more: {names} — not determined yet (the data do not pin the centre to the tolerance); "

@@ -1,6 +1,6 @@
 """`flockcal fit-markers take.c3d|take.npz`: a skeleton from optical markers alone (Kirk et al. 2005).
 
-Prints a table, or with --json the object of `flockcal fit --json` (design.md §5) plus "bodies"
+Prints a table, or with --json the object of `flockcal fit --json` (docs/design.md §5) plus "bodies"
 {label: [marker names]}; --take writes the derived per-body poses as a take .npz for `flockcal fit`.
 """
 
@@ -17,7 +17,7 @@ def register(subparsers) -> None:
     p = subparsers.add_parser(
         "fit-markers",
         help="find rigid bodies, joints, bones and the tree from optical marker positions",
-        description="Fit a skeleton to optical marker trajectories (.c3d or the marker .npz of design.md §5).",
+        description="Fit a skeleton to optical marker trajectories (.c3d or the marker .npz of docs/design.md §5).",
     )
     p.add_argument("file", metavar="TAKE", help="marker take: .c3d or .npz (markers, marker_names, rate_hz)")
     p.add_argument("--json", action="store_true", help="print the JSON object (fit --json shape plus 'bodies')")

@@ -62,7 +62,7 @@ def fit_take(take, hierarchy: str | None = None, root: str | None = None, skelet
              with_free: bool = False):
     """Fit `take` for an output: with a saved skeleton file, a `{child: parent}` file, or a full search.
 
-    Returns a Calibration or a KnownFit; both give the design.md §5 dict through `.to_dict()`. With
+    Returns a Calibration or a KnownFit; both give the docs/design.md §5 dict through `.to_dict()`. With
     `with_free`, returns (fit, free calibration of the same take), the free one judging whether the
     take moved enough (it is the fit itself unless a skeleton file was given).
     """
@@ -75,8 +75,9 @@ def fit_take(take, hierarchy: str | None = None, root: str | None = None, skelet
         if hierarchy is not None or root is not None:
             raise UserError("--skeleton fixes the tree; leave out --hierarchy and --root")
         from flockcal.exports.skeleton import load_skeleton
+        from flockcal.solver.known_skeleton import fit_saved
 
-        fit = load_skeleton(skeleton).fit(acc, take.names)
+        fit = fit_saved(load_skeleton(skeleton), acc, take.names)
         return (fit, calibrate(acc, names=list(take.names))) if with_free else fit
     fit = calibrate(acc, hierarchy=_hierarchy(hierarchy), root=root, names=list(take.names))
     return (fit, fit) if with_free else fit
@@ -98,7 +99,7 @@ def fitted_take(args, command: str):
 def _add_fit_options(p: argparse.ArgumentParser) -> None:
     from flockcal.commands.takecheck import add_option
 
-    p.add_argument("take", help="take file (.npz, design.md §5)")
+    p.add_argument("take", help="take file (.npz, docs/design.md §5)")
     add_option(p)
     p.add_argument("--hierarchy", metavar="FILE.json", help="{child: parent} map: skip the topology search")
     p.add_argument("--root", metavar="NAME", help="root body of the tree")

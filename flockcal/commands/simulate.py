@@ -146,14 +146,7 @@ def _serve_pty(args: argparse.Namespace) -> int:
 
     from flockcal.simulator.performer import Performer
 
-    try:
-        from flockcal.simulator.pty_tracker import PtyTracker
-    except ImportError:
-        try:
-            from flockcal.simulator.fake_tracker import PtyTracker  # where the interface notes first put it
-        except ImportError:
-            raise UserError("the fake tracker (flockcal.simulator.pty_tracker) is not installed in this build; "
-                            "write a take with -o instead") from None  # fmt: skip
+    from flockcal.simulator.pty_tracker import PtyTracker
     birds = args.birds if args.birds is not None else (16 if args.model == "human" else None)
     source = Performer(args.model, routine=args.motion, seed=args.seed, rate_hz=args.rate, birds=birds,
                        noise=None if args.noise == "none" else "tracker", height=args.height,

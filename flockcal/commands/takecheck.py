@@ -23,7 +23,7 @@ def add_option(parser) -> None:
 
 
 def determined_joints(cal) -> np.ndarray:
-    """Which joints of the fitted tree are determined (design.md §3a), one bool per `cal.joints` entry:
+    """Which joints of the fitted tree are determined (docs/design.md §3a), one bool per `cal.joints` entry:
     the solver's own decision, so the warning, the table and the JSON never disagree."""
     return np.asarray(cal.joints.determined, dtype=bool)
 

@@ -58,7 +58,7 @@ def skeleton_figure(rec, frame: int, world: np.ndarray, determined=None) -> str:
 
     `world` turns tracker coordinates into a Y-up frame (see `bvh.bvh_world`): x, up, z. `determined`
     ((m,) bool, by body): a body whose inboard joint is not determined is joined by a thin dotted line, not
-    a bone, and its joint drawn hollow (design.md §3a); None draws every joint as determined.
+    a bone, and its joint drawn hollow (docs/design.md §3a); None draws every joint as determined.
     """
     import matplotlib.pyplot as plt
 
@@ -191,10 +191,8 @@ def _find_slips(take, d: dict) -> list[dict]:
     """Slip events: the calibration's own, else the slippage detector's over the take."""
     if d.get("slip_events"):
         return list(d["slip_events"])
-    try:
-        from flockcal.solver.slippage import detect_slips
-    except ImportError:
-        return []
+    from flockcal.solver.slippage import detect_slips
+
     return [e.to_dict() if hasattr(e, "to_dict") else dict(e) for e in detect_slips(take, d)]
 
 

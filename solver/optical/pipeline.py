@@ -14,6 +14,7 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from flockcal.errors import FlockcalError
+from flockcal.solver.calibration import Calibration
 from flockcal.solver.optical.clustering import Clustering, cluster_markers
 from flockcal.solver.optical.joints import Tree, joint_point, pair_costs, spanning_tree
 from flockcal.solver.optical.projection import BodyShape, bone_lengths, skeleton_shapes
@@ -51,13 +52,17 @@ class OpticalFit:
         return {lab: [self.marker_names[i] for i in g] for lab, g in zip(self.labels, self.groups)}
 
     def take(self):
-        """The derived poses as a flockcal Take (design.md §5), for `fit`, the exports and slippage."""
+        """The derived poses as a flockcal Take (docs/design.md §5), for `fit`, the exports and slippage."""
         from flockcal.takes import make_take
 
         return make_take(self.rotations, self.positions, self.labels, self.rate_hz, valid=self.valid, times=self.times)
 
+    def calibration(self):
+        """The fit as the solver's `Calibration` (see `fit_calibration`)."""
+        return fit_calibration(self)
+
     def to_dict(self) -> dict:
-        """`flockcal fit --json` shape (design.md §5) plus "bodies", "markers" and "swap_events"."""
+        """`flockcal fit --json` shape (docs/design.md §5) plus "bodies", "markers" and "swap_events"."""
         return fit_json(self)
 
 
@@ -225,10 +230,12 @@ def _vec(x) -> list[float] | None:
     return None if not np.isfinite(x).all() else [float(v) for v in x]
 
 
-def fit_json(fit: OpticalFit) -> dict:
-    """Build the design.md §5 JSON: c, l and bones from the Kirk skeleton; singular values, hinge,
-    coverage and standard errors from the magnetic pair fit on the derived poses."""
+def fit_calibration(fit: OpticalFit) -> Calibration:
+    """The fit as the solver's `Calibration`: c, l and bones from the Kirk skeleton; singular values, hinge,
+    coverage and standard errors from the magnetic pair fit on the derived poses; the marker bodies,
+    offsets and swaps as its `optical` extras."""
     from flockcal.solver.accumulator import GramAccumulator
+    from flockcal.solver.calibration import Bones, OpticalExtras
     from flockcal.solver.fits import pair_fits
 
     labels = fit.labels
@@ -241,9 +248,9 @@ def fit_json(fit: OpticalFit) -> dict:
     acc.update(fit.rotations, fit.positions, fit.valid)
     kids = [int(c) for c in fit.tree.order if parent[c] >= 0]
     pairs = np.array([[c, parent[c]] for c in kids], dtype=int).reshape(-1, 2)
-    pf = pair_fits(acc, pairs) if len(pairs) else None
-    joints = []
-    for idx, c in enumerate(kids):
+    pf = pair_fits(acc, pairs)
+    cs, ls, rms, eps = [], [], [], []
+    for c in kids:
         p = int(parent[c])
         sc, sp_ = fit.shapes[c], fit.shapes[p]
         cc = sc.joint_offsets[sc.joints.index(c)]
@@ -255,35 +262,17 @@ def fit_json(fit: OpticalFit) -> dict:
         )  # fmt: skip
         sse = float((e**2).sum())
         nb = max(int(both.sum()), 1)
-        joints.append(
-            {
-                "child": labels[c],
-                "parent": labels[p],
-                "c": _vec(cc),
-                "l": _vec(ll),
-                "rms_m": float(np.sqrt(sse / nb)),
-                "epsilon": float(np.sqrt(sse) / nb),
-                "singular_values": [float(v) for v in pf.singular_values[idx]],
-                "hinge": bool(pf.hinge[idx]),
-                "axis_child": _vec(pf.axis_i[idx]) if pf.hinge[idx] else None,
-                "axis_parent": _vec(pf.axis_j[idx]) if pf.hinge[idx] else None,
-                "coverage": [float(v) for v in pf.coverage[idx]],
-                "c_stderr_m": float(pf.c_stderr[idx]),
-                "l_stderr_m": float(pf.l_stderr[idx]),
-                "kirk_rms_m": float(fit.joint_rms[c]),
-            }
-        )
-    bones = [
-        {
-            "body": labels[b],
-            "from_joint": None if f is None else labels[f],
-            "to_joint": labels[t],
-            "length_m": float(length),
-            "stderr_m": bone_stderr(fit, b, f, t),
-        }
-        for b, f, t, length in fit.bones
-    ]
-    events = [
+        cs.append(cc)
+        ls.append(ll)
+        rms.append(float(np.sqrt(sse / nb)))
+        eps.append(float(np.sqrt(sse) / nb))
+    joints = replace(pf, c=np.array(cs, dtype=float).reshape(-1, 3), l=np.array(ls, dtype=float).reshape(-1, 3),
+                     rms=np.array(rms, dtype=float), epsilon=np.array(eps, dtype=float))
+    rows = [(b, -1 if f is None else f, t, float(length), bone_stderr(fit, b, f, t)) for b, f, t, length in fit.bones]
+    body, frm, to, length, err = (np.array(x).reshape(-1) for x in (zip(*rows) if rows else [()] * 5))
+    bones = Bones(body.astype(int), frm.astype(int), to.astype(int), length.astype(float), err.astype(float),
+                  body.astype(int) == int(fit.tree.root))
+    events = tuple(
         {
             "time_s": float(fit.times[s]),
             "stop_s": float(fit.times[min(e, len(fit.times) - 1)]),
@@ -291,26 +280,28 @@ def fit_json(fit: OpticalFit) -> dict:
             "bodies": [labels[body_of[a]], labels[body_of[b]]],
         }
         for s, e, a, b in swap_events(fit)
-    ]
-    return {
-        "sensors": list(labels),
-        "root": labels[fit.tree.root],
-        "parent": {labels[c]: labels[parent[c]] for c in kids},
-        "frames": int(len(fit.times)),
-        "joints": joints,
-        "bones": bones,
-        "loop_candidates": [],
-        "slip_events": [],
-        "bodies": fit.bodies(),
-        "markers": {
+    )
+    extras = OpticalExtras(
+        kirk_rms=np.array([float(fit.joint_rms[c]) for c in kids], dtype=float),
+        bodies=fit.bodies(),
+        markers={
             fit.marker_names[i]: {"body": labels[g], "offset": _vec(fit.shapes[g].marker_offsets[j])}
             for g, grp in enumerate(fit.groups)
             for j, i in enumerate(grp)
         },
-        "unused_markers": list(fit.unused_markers),
-        "swap_events": events,
-        "marker_outlier_threshold_m": fit.outliers.threshold_m,
-    }
+        unused_markers=tuple(fit.unused_markers),
+        swap_events=events,
+        marker_outlier_threshold_m=fit.outliers.threshold_m,
+    )
+    placement = np.full((m, 3), np.nan)
+    placement[kids] = joints.c
+    return Calibration(tuple(labels), int(fit.tree.root), np.asarray(parent), np.asarray(fit.tree.order), int(len(fit.times)),
+                       joints, bones, placement, optical=extras)
+
+
+def fit_json(fit: OpticalFit) -> dict:
+    """The docs/design.md §5 JSON of `fit_calibration(fit)`."""
+    return fit_calibration(fit).to_dict()
 
 
 def swap_events(fit: OpticalFit) -> list[tuple[int, int, int, int]]:

@@ -57,7 +57,7 @@ def skeleton_shapes(markers, groups, parent, joint_points, skip=()) -> list[Body
 
 
 def bone_lengths(shapes: list[BodyShape], parent: np.ndarray) -> list[tuple[int, int | None, int, float]]:
-    """(body, from_joint | None, to_joint, length) in design.md §5's sense: inboard → each outboard
+    """(body, from_joint | None, to_joint, length) in docs/design.md §5's sense: inboard → each outboard
     joint; for the root, between each pair of its outboard joints (from_joint the first)."""
     out = []
     for g, s in enumerate(shapes):

@@ -1,4 +1,4 @@
-"""Per-frame joint residuals e_k = R_i c + t_i − R_j l − t_j, for plots and for slippage detection."""
+"""Test helper: per-frame joint residuals e_k = R_i c + t_i − R_j l − t_j, computed directly from the poses."""
 
 from __future__ import annotations
 

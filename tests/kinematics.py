@@ -1,7 +1,5 @@
-"""Hierarchical ↔ global poses (paper eq. 4): each body relative to its parent, composed down the tree.
-
-Rotation maths itself (projection onto SO(3), Euler angles, quaternions) lives in flockcal/rotations.py.
-"""
+"""Test helper: hierarchical poses (each body relative to its parent) composed into world poses and back
+(paper eq. 4), to build and check takes from a tree's local motion."""
 
 from __future__ import annotations
 

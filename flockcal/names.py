@@ -1,0 +1,78 @@
+"""Readable names for sensors and joints: 'l_forearm' → 'left forearm', the joint it ends → 'left elbow'.
+
+Base layer: the CLI tables, the report and the server's coaching all name things the same way; the
+dashboard's pages (server/static/common.js) mirror the table here.
+"""
+
+from __future__ import annotations
+
+import re
+from functools import lru_cache
+
+# Body keyword → the joint at its inboard end, and how far out along the body that joint sits: a joint is
+# named after the more distal of its two bodies, whichever way the tree happens to be rooted (docs/design.md §5
+# names a joint by its child, and the fitted tree's root need not be the pelvis). Same table as
+# static/common.js BODY_JOINTS.
+_BODY_JOINTS = [
+    (r"hand|wrist", "wrist", 5), (r"foot|ankle", "ankle", 5), (r"toe", "toes", 6), (r"head", "neck", 5),
+    (r"fore ?arm|lower ?arm", "elbow", 4), (r"shin|shank|calf|lower ?leg|low ?leg|tibia", "knee", 4),
+    (r"upper ?arm|up ?arm|humerus|\barm\b", "shoulder", 3), (r"thigh|upper ?leg|up ?leg|femur", "hip", 3),
+    (r"neck", "lower neck", 3), (r"clavicle|shoulder", "collarbone", 2),
+    (r"chest|thorax|upper ?back", "mid back", 2), (r"abdomen|spine|torso|back|waist", "lower back", 1),
+    (r"pelvis|hips?\b", "lower back", 0),
+]
+
+
+# Names are a session's few sensors, asked about on every fit (~30/s): worked out once each.
+@lru_cache(maxsize=1024)
+def readable_body(name: str) -> str:
+    """'l_forearm' → 'left forearm', 'RightUpLeg' → 'right up leg', 'bird3' → 'bird 3'."""
+    s = re.sub(r"([a-z])([A-Z])", r"\1 \2", str(name))
+    s = re.sub(r"([A-Za-z])(\d)", r"\1 \2", s)
+    words = [w for w in re.split(r"[\s_.\-]+", s) if w]
+    out = []
+    for k, w in enumerate(words):
+        lw = w.lower()
+        if lw in ("l", "lt") and (k == 0 or k == len(words) - 1):
+            out.append("left")
+        elif lw in ("r", "rt") and (k == 0 or k == len(words) - 1):
+            out.append("right")
+        else:
+            out.append(lw)
+    if out and out[-1] in ("left", "right") and len(out) > 1:
+        out = [out[-1]] + out[:-1]
+    return " ".join(out)
+
+
+@lru_cache(maxsize=1024)
+def _body_joint(name: str) -> tuple[str, int] | None:
+    body = readable_body(name)
+    side = ""
+    for s in ("left ", "right "):
+        if body.startswith(s):
+            side, body = s, body[len(s):]
+    for pattern, joint, rank in _BODY_JOINTS:
+        if re.search(pattern, body):
+            return f"{side}{joint}", rank
+    return None
+
+
+def joint_name(child: str, parent: str | None) -> str:
+    """The joint between `parent` and `child` as people name it ('left elbow'), the same whichever of the
+    two bodies the fit made the child; bodies with no known name give 'parent–child' ('bird 1–bird 2')."""
+    a = _body_joint(child)
+    b = _body_joint(parent) if parent else None
+    if a and (not b or a[1] >= b[1]):
+        return a[0]
+    if b:
+        return b[0]
+    return f"{readable_body(parent)}–{readable_body(child)}" if parent else readable_body(child)
+
+
+def joint_label(child: str, parent: str | None) -> str:
+    """The joint's name for a sentence: 'the left elbow', 'the joint between the bird 1 and the bird 2'."""
+    if _body_joint(child) or (parent and _body_joint(parent)):
+        return f"the {joint_name(child, parent)}"
+    if not parent:
+        return f"the {readable_body(child)}"
+    return f"the joint between the {readable_body(parent)} and the {readable_body(child)}"

@@ -1,0 +1,131 @@
+"""The saved-skeleton file's model: its format and version, its structural checks, and `Skeleton`.
+
+Base layer: the server's skeleton library, the solver's saved-skeleton fit and the exports share it.
+Checks that need the solver (one tree, bones that agree with the joint centres) are the exports'
+`parse_skeleton`, which builds the `Skeleton`; fitting a take with one is the solver's `known_fit`.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from dataclasses import dataclass
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from flockcal.errors import FlockcalError
+
+if TYPE_CHECKING:
+    from flockcal.solver.reconstruct import Articulation
+
+FORMAT = "flockcal-skeleton"
+VERSION = 1
+
+
+class SkeletonError(FlockcalError, ValueError):
+    """A skeleton file that is unreadable, malformed, or made for other sensors."""
+
+
+@dataclass(frozen=True)
+class Skeleton:
+    """A validated skeleton file: the saved tree, ready to fit a new take of the same performer."""
+
+    data: dict
+    articulation: "Articulation"  # the solver's tree with joint centres (flockcal.solver.reconstruct), built on parsing
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return self.articulation.names
+
+    @property
+    def root(self) -> str:
+        return self.articulation.names[self.articulation.root]
+
+    @property
+    def hierarchy(self) -> dict[str, str]:
+        """{child: parent}, root omitted: what `calibrate(..., hierarchy=)` and `--hierarchy` take."""
+        return dict(self.data["parent"])
+
+    @property
+    def bone_stderr(self) -> dict[tuple[str, str], float]:
+        out = {}
+        for b in self.data["bones"]:
+            if isinstance(b.get("stderr_m"), (int, float)):
+                out[(b["from_joint"], b["to_joint"])] = out[(b["to_joint"], b["from_joint"])] = float(b["stderr_m"])
+        return out
+
+    @property
+    def bone_keys(self) -> frozenset:
+        """(from_joint, to_joint) of every bone the file holds: the ones its take measured."""
+        return frozenset((b["from_joint"], b["to_joint"]) for b in self.data["bones"])
+
+    def check_names(self, names) -> None:
+        """SkeletonError unless the take's sensors are exactly the skeleton's (any order)."""
+        try:
+            self.articulation.reordered(names)
+        except ValueError as exc:  # the solver's ArticulationError, a ValueError: names that do not match
+            raise SkeletonError(f"skeleton does not match the take: {exc}") from None
+
+
+def _vec3(value, where: str) -> list[float]:
+    if not isinstance(value, (list, tuple)) or len(value) != 3:
+        raise SkeletonError(f"{where} must be a list of 3 numbers")
+    try:
+        out = [float(x) for x in value]
+    except (TypeError, ValueError):
+        raise SkeletonError(f"{where} must be a list of 3 numbers") from None
+    if not all(math.isfinite(x) for x in out):
+        raise SkeletonError(f"{where} holds a non-finite number")
+    return out
+
+
+def check_skeleton_data(data, origin: str = "skeleton") -> dict:
+    """The skeleton content (JSON text, bytes or a dict) as a dict whose format, version, names and joint
+    vectors are sound (joint c and l made lists of floats); SkeletonError names the first problem."""
+    if isinstance(data, (bytes, str)):
+        try:
+            data = json.loads(data)
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise SkeletonError(f"{origin}: not valid JSON ({exc})") from None
+    if not isinstance(data, dict):
+        raise SkeletonError(f"{origin}: a skeleton file holds one JSON object")
+    if data.get("format") != FORMAT:
+        raise SkeletonError(
+            f"{origin}: not a flockcal skeleton file (format is {data.get('format')!r}, expected {FORMAT!r}); "
+            "write one with `flockcal skeleton TAKE -o FILE`"
+        )
+    version = data.get("version")
+    if not isinstance(version, int) or version < 1:
+        raise SkeletonError(f"{origin}: 'version' must be a positive integer, got {version!r}")
+    if version > VERSION:
+        raise SkeletonError(
+            f"{origin}: skeleton format version {version} is newer than this flockcal reads ({VERSION}); upgrade flockcal"
+        )
+    for key, kind in (("sensors", list), ("parent", dict), ("joints", list), ("bones", list)):
+        if not isinstance(data.get(key), kind):
+            raise SkeletonError(f"{origin}: missing or malformed {key!r} ({kind.__name__} expected)")
+    names = data["sensors"]
+    if not names or not all(isinstance(x, str) and x.strip() for x in names):
+        raise SkeletonError(f"{origin}: 'sensors' must be a non-empty list of names")
+    if len(set(names)) != len(names):
+        raise SkeletonError(f"{origin}: sensor names repeat")
+    for k, joint in enumerate(data["joints"]):
+        if not isinstance(joint, dict) or "child" not in joint or "parent" not in joint:
+            raise SkeletonError(f"{origin}: joints[{k}] needs 'child' and 'parent'")
+        joint["c"] = _vec3(joint.get("c"), f"{origin}: joints[{k}].c")
+        joint["l"] = _vec3(joint.get("l"), f"{origin}: joints[{k}].l")
+    return data
+
+
+def json_safe(obj):
+    """NaN/inf become null: JSON has no NaN, and a reader in another language must not choke on it."""
+    if isinstance(obj, float) and not math.isfinite(obj):
+        return None
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, np.generic):
+        return json_safe(obj.item())
+    return obj

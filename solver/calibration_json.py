@@ -1,0 +1,211 @@
+"""The §5 JSON of a `Calibration` (docs/design.md §5), built here and only here, and read back from files.
+
+`calibration_json` is what `flockcal fit --json`, `fit-markers --json`, the REST API and the exports
+print; `calibration_from_json` is the one parser for a §5 object read from a file or a store, and
+`as_calibration` what solver functions call on whatever calibration they are handed.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import replace
+
+import numpy as np
+
+from flockcal.solver.calibration import Bones, Calibration
+from flockcal.solver.errors import SolverError
+from flockcal.solver.fits import unfitted
+
+
+
+def calibration_json(cal) -> dict:
+    """The docs/design.md §5 object of `cal`, with the extensions the solver emits.
+
+    Every joint carries "determined" (docs/design.md §3a) and "direction_error_m" (how closely the data pin
+    the centre along its three least-turned directions, ascending; null where nothing turned), except
+    in an optical fit, whose joints carry "kirk_rms_m" instead; a saved-skeleton fit adds "rms_free_m"
+    and "known_skeleton"; a free fit adds "rigid_groups" (sensors that never turned relative to each
+    other) and "ambiguous" (children with more than one equally good parent). Joints and bones refitted
+    after a slip carry "segment_start_s". NaN becomes null and every number is a Python int or float:
+    the dict is valid JSON as it stands.
+    """
+    nm = cal.names
+    j = cal.joints
+    optical = cal.optical
+    # Fields are converted together for all joints (the live server calls this ~30×/s), to Python
+    # floats with None for NaN: the dict is JSON-safe as it stands, with no second pass over it.
+    vec = _json(np.stack([j.c, j.l, j.axis_i, j.axis_j, j.coverage, j.direction_error]))
+    num = _json(np.stack([j.rms, j.epsilon, j.c_stderr, j.l_stderr]))
+    sv = _json(j.singular_values)
+    det = j.determined.tolist()
+    free = None if cal.rms_free is None else _json(cal.rms_free)
+    kirk = None if optical is None else _json(optical.kirk_rms)
+    seg = None if cal.segment_start_s is None else _json(cal.segment_start_s)
+    joints = []
+    for k, ((child, parent), hinge) in enumerate(zip(j.pairs.tolist(), j.hinge.tolist())):
+        e = {"child": nm[child], "parent": nm[parent], "c": vec[0][k], "l": vec[1][k], "rms_m": num[0][k],
+             "epsilon": num[1][k]}
+        if free is not None:
+            e["rms_free_m"] = free[k]
+        e.update({
+            "singular_values": sv[k],
+            "hinge": hinge,
+            "axis_child": vec[2][k] if hinge else None,
+            "axis_parent": vec[3][k] if hinge else None,
+            "coverage": vec[4][k],
+            "c_stderr_m": num[2][k],
+            "l_stderr_m": num[3][k],
+        })
+        if kirk is not None:
+            e["kirk_rms_m"] = kirk[k]
+        else:
+            e["determined"] = det[k]
+            e["direction_error_m"] = vec[5][k]
+        if seg is not None and seg[k] is not None:
+            e["segment_start_s"] = seg[k]
+        joints.append(e)
+    bones = bones_json(cal.bones, nm)
+    out = {
+        "sensors": list(nm),
+        "root": nm[cal.root],
+        "parent": cal.parent_map(),
+        "frames": int(cal.frames),
+        "joints": joints,
+        "bones": bones,
+        "loop_candidates": [{"a": nm[a], "b": nm[bb], "rms_m": _num(r)} for a, bb, r in cal.loop_candidates],
+        "slip_events": [event_json(e) for e in cal.slip_events],
+    }
+    if optical is not None:
+        out.update(bodies=dict(optical.bodies), markers=_clean(dict(optical.markers)),
+                   unused_markers=list(optical.unused_markers), swap_events=[dict(e) for e in optical.swap_events],
+                   marker_outlier_threshold_m=_clean(optical.marker_outlier_threshold_m))
+    elif cal.known_skeleton:
+        out["known_skeleton"] = True
+    else:
+        out["rigid_groups"] = [[nm[i] for i in g] for g in cal.rigid_groups]
+        out["ambiguous"] = [{"child": nm[c], "parents": [nm[p] for p in ps], "note": note}
+                            for c, ps, note in cal.ambiguous]
+    return out
+
+
+def bones_json(b, names) -> list[dict]:
+    """§5 `bones` entries of a `Bones` (sensor indices into `names`)."""
+    length, stderr = _json(np.stack([b.length, b.stderr])) if len(b) else ([], [])
+    seg = None if b.segment_start_s is None else _json(b.segment_start_s)
+    out = []
+    for k, (body, frm, to) in enumerate(zip(b.body.tolist(), b.from_joint.tolist(), b.to_joint.tolist())):
+        e = {"body": names[body], "from_joint": names[frm] if frm >= 0 else None, "to_joint": names[to],
+             "length_m": length[k], "stderr_m": stderr[k]}
+        if seg is not None and seg[k] is not None:
+            e["segment_start_s"] = seg[k]
+        out.append(e)
+    return out
+
+
+def event_json(ev) -> dict:
+    """A slip event as its §5 JSON entry: a SlipEvent/SwapEvent, a dict read from a file or store, or any
+    object with the entry's fields as attributes (a stored event)."""
+    if hasattr(ev, "to_dict"):
+        return ev.to_dict()
+    return dict(ev) if isinstance(ev, Mapping) else dict(vars(ev))
+
+
+def _num(x) -> float | None:
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+def _json(a) -> list:
+    """An array as (nested) lists of Python floats, None where not finite: JSON has no NaN or infinity."""
+    a = np.asarray(a, dtype=float)
+    return np.where(np.isfinite(a), a, None).tolist()
+
+
+def _clean(x):
+    """Non-finite floats in nested lists and dicts as None."""
+    if isinstance(x, float):
+        return x if np.isfinite(x) else None
+    if isinstance(x, dict):
+        return {k: _clean(v) for k, v in x.items()}
+    if isinstance(x, list):
+        return [_clean(v) for v in x]
+    return x
+
+
+def as_calibration(obj, names=None, error: type[Exception] = SolverError) -> Calibration:
+    """`obj` as a Calibration: itself, a fit's `.calibration()` (saved-skeleton, optical), or a §5 dict
+    parsed by `calibration_from_json` (`names`, `error` as there)."""
+    if isinstance(obj, Calibration):
+        return obj
+    if callable(getattr(obj, "calibration", None)):
+        return obj.calibration()
+    return calibration_from_json(obj, names=names, error=error)
+
+
+def calibration_from_json(d, names=None, error: type[Exception] = SolverError) -> Calibration:
+    """A Calibration from a §5 object (`flockcal fit --json`, a skeleton file, a stored fit).
+
+    Reads only the stable contract: `sensors` (or the take's `names` when absent), `root`, `parent`
+    (when absent: the joints' own child → parent), `joints[].child/parent/c/l` and `rigid_groups`;
+    every other joint statistic is NaN. Joints off the tree (loop candidates) are dropped; a null
+    centre becomes NaN. `error` is the exception the caller's users know; its message names the problem.
+    """
+    if not isinstance(d, Mapping):
+        raise error(f"expected a Calibration or its §5 dict, got {type(d).__name__}")
+    try:
+        entries = list(d["joints"])
+    except (KeyError, TypeError):
+        raise error("the calibration has no 'joints' list (expected the `flockcal fit --json` shape)") from None
+    try:
+        if "sensors" in d:
+            names = tuple(str(x) for x in d["sensors"])
+        elif names is None:
+            raise KeyError("'sensors'")
+        else:
+            names = tuple(str(x) for x in names)
+        given = d.get("parent")
+        parent_map = ({str(e["child"]): str(e["parent"]) for e in entries} if given is None
+                      else {str(k): str(v) for k, v in dict(given).items()})
+    except (KeyError, TypeError) as exc:
+        raise error(f"calibration lacks {exc} (docs/design.md §5 lists the fields)") from None
+    index = {x: i for i, x in enumerate(names)}
+    unknown = sorted({x for kv in parent_map.items() for x in kv} - set(index))
+    if unknown:
+        raise error(f"the calibration names sensor(s) {', '.join(map(repr, unknown))}, which the take does not have")
+    m = len(names)
+    parent = np.full(m, -1, dtype=int)
+    for child, par in parent_map.items():
+        parent[index[child]] = index[par]
+    roots = np.flatnonzero(parent < 0)
+    root = d.get("root")
+    if root is not None and str(root) in index and parent[index[str(root)]] != -1:
+        raise error(f"root {root!r} has a parent in the parent map")
+    root_i = index[str(root)] if root is not None and str(root) in index else int(roots[0]) if len(roots) else 0
+    rows, c, l = [], [], []
+    for e in entries:
+        child = str(e["child"])
+        if child not in index:
+            raise error(f"joint of unknown sensor {child!r}")
+        i = index[child]
+        if parent[i] < 0 or names[parent[i]] != str(e["parent"]):
+            continue  # a non-tree joint (loop candidate) takes no part in driving the tree
+        rows.append((i, int(parent[i])))
+        c.append(_point(e.get("c")))
+        l.append(_point(e.get("l")))
+    joints = unfitted(rows)
+    joints = replace(joints, c=np.array(c, dtype=float).reshape(-1, 3), l=np.array(l, dtype=float).reshape(-1, 3))
+    groups = [[index[str(x)] for x in g if str(x) in index] for g in (d.get("rigid_groups") or [])]
+    placement = np.full((m, 3), np.nan)
+    placement[joints.pairs[:, 0]] = joints.c
+    z = np.zeros(0)
+    bones = Bones(z.astype(int), z.astype(int), z.astype(int), z, z, z.astype(bool))
+    order, k = [root_i], 0
+    while k < len(order):  # root first, parents before children (a cycle stays out: callers check the tree)
+        order += np.flatnonzero(parent == order[k]).tolist()
+        k += 1
+    return Calibration(names, root_i, parent, np.asarray(order), int(d.get("frames") or 0), joints, bones, placement,
+                       rigid_groups=groups, hierarchy_given=True, known_skeleton=bool(d.get("known_skeleton")))
+
+
+def _point(x) -> np.ndarray:
+    return np.broadcast_to(np.asarray(np.nan if x is None else x, dtype=float), 3).astype(float)
