@@ -24,6 +24,7 @@ from flockcal.server.framelog import FrameLog
 from flockcal.server.progress import ProgressTracker, default_target, waiting
 from flockcal.server.snapshot import ResidualSample, Snapshot
 from flockcal.server.store import Store
+from flockcal.solver.slip_watch import SlipWatch
 from flockcal.threads import name_os_thread
 
 log = logging.getLogger(__name__)
@@ -51,7 +52,7 @@ class LiveSession:
     fit: dict | None = None
     fit_error: str | None = None
     fit_frames: int = 0  # accumulator frames the newest fit used
-    slip_monitor: object = None
+    watch: SlipWatch | None = None  # the slip loop; it feeds `acc` (a SegmentedAccumulator) when present
     residual_rows: list = field(default_factory=list)  # (time_s, {joint: mm}) not yet in the store
     tracker: ProgressTracker | None = None  # the session's progress, made on install
     progress: dict | None = None  # its newest document (server/progress.py); None before the first fit
@@ -204,8 +205,6 @@ class Pipeline:
         self._last_fit_time = 0.0
         self._fit_cond = threading.Condition()
         self._joint_cache = None
-        self._slip_batch: list = []
-        self.slip_batch_s = 0.1
         self._fit_job = None
         self._fit_done = None
         self._fit_busy = False
@@ -271,6 +270,9 @@ class Pipeline:
             if self.live is not None:
                 raise FlockcalError(f"session {self.live.id} is still live")
             live.acc = new_accumulator(self.m, segmented=self.detect_slips)
+            if self.detect_slips:
+                # The slip loop feeds the accumulator in its micro-batches (it refits between them).
+                live.watch = SlipWatch(None, self.m, self.rate_hz(), self.names, segments=live.acc, strict=False)
             # A given tree (hierarchy or saved skeleton) cannot re-link, so its joints need not wait for it to settle.
             live.tracker = ProgressTracker(self.target, self.tolerance,
                                            tree_fixed=live.hierarchy is not None or live.skeleton is not None)
@@ -288,6 +290,8 @@ class Pipeline:
             live = self.live
             if live is None:
                 raise FlockcalError("no session is live")
+            if live.watch is not None:
+                self._slip_events(live, live.watch.flush())
             self._drain_residuals()
             self._flush_residual_sample(force=True)
             self._flush_db()
@@ -388,7 +392,10 @@ class Pipeline:
         live.frames += n
         Rz = np.where(valid[..., None, None], R, 0.0)
         tz = np.where(valid[..., None], t, 0.0)
-        accumulate(live.acc, times - live.t0, Rz, tz, valid)
+        if live.watch is None:
+            accumulate(live.acc, times - live.t0, Rz, tz, valid)
+        else:
+            self._watch_step(live, times - live.t0, Rz, tz, valid)
         # Residual samples come out residual_hz times a second, so work them out once per sample rather
         # than once per reader hand-over (~100/s): the cost of these small array steps is per call.
         self._res_pending.append((times - live.t0, Rz, tz, valid))
@@ -424,8 +431,6 @@ class Pipeline:
             self._res_joints = joints
             self._res_sumsq = np.zeros(len(joints))
             self._res_count = np.zeros(len(joints))
-            live.slip_monitor = self._new_slip_monitor(pairs)
-            self._slip_batch = []
         ci, pj = pairs[:, 0], pairs[:, 1]
         e = (np.einsum("npab,pb->npa", R[:, ci], c) + t[:, ci]
              - np.einsum("npab,pb->npa", R[:, pj], l) - t[:, pj])
@@ -439,43 +444,27 @@ class Pipeline:
             self._res_last_emit = float(ts[0])
         if self._res_time - self._res_last_emit >= self.residual_period:
             self._flush_residual_sample()
-        if live.slip_monitor is not None and np.isfinite(c).all() and np.isfinite(l).all():
-            # The monitor's cost is mostly per call: feed it every slip_batch_s, not every micro-batch.
-            self._slip_batch.append((ts, R, t, valid))
-            if ts[-1] - self._slip_batch[0][0][0] >= self.slip_batch_s:
-                batch, self._slip_batch = self._slip_batch, []
-                self._slip_step(*(np.concatenate([b[k] for b in batch]) for k in range(4)), c, l)
 
-    def _new_slip_monitor(self, pairs):
-        if not self.detect_slips:
-            return None
-        try:
-            from flockcal.solver.slippage import SlipMonitor
-        except ImportError:
-            return None
-        rate = self.rate_hz()
-        try:
-            return SlipMonitor(pairs, self.m, rate, self.names)
-        except FlockcalError as exc:
-            log.warning("slip monitor unavailable: %s", exc)
-            return None
+    def _watch_step(self, live: LiveSession, ts, R, t, valid) -> None:
+        """Frames through the session's slip loop; a loop that fails stops watching, once, and says so."""
+        watch = live.watch
+        had_failed = watch.failure is not None
+        found = watch.feed(ts, R, t, valid)
+        if watch.failure is not None and not had_failed:
+            exc = watch.failure
+            log.error("slip monitor failed; slips are no longer watched in session %s", live.id,
+                      exc_info=(type(exc), exc, exc.__traceback__))
+            self._process_events([{
+                "type": "tracker", "kind": "slip_watch_failed",
+                "message": f"slip detection stopped for this session ({type(exc).__name__}: {exc}); "
+                           f"recording and fitting go on; restart the session to watch for slips again"}])
+        self._slip_events(live, found)
 
-    def _slip_step(self, ts, R, t, valid, c, l) -> None:
-        live = self.live
-        try:
-            found = live.slip_monitor.update(ts, R, t, valid, c, l)
-        except Exception as exc:  # detection is advisory: a failure must not stop the session
-            log.warning("slip monitor failed, disabling it for this session: %s", exc)
-            live.slip_monitor = None
-            return
-        if found and hasattr(live.acc, "apply"):
-            try:
-                live.acc.apply(found)  # the slipped sensor's joints refit on frames since the slip
-            except Exception as exc:
-                log.warning("could not open a segment after the slip: %s", exc)
+    def _slip_events(self, live: LiveSession, found: list) -> None:
+        """Slips the loop confirmed (it has already opened their segments): events, progress, epoch."""
         events = []
-        for ev in found or []:
-            d = ev.to_dict() if hasattr(ev, "to_dict") else dict(ev)
+        for ev in found:
+            d = ev.to_dict()
             d["type"] = d.pop("kind", "slip")
             events.append(_finite(d))
         if events:
@@ -570,6 +559,8 @@ class Pipeline:
             live.fit_error = None
             self.pose_fit = fit
             self._fit_seq += 1
+            if live.watch is not None and fit.get("joints"):
+                live.watch.watch(self._joint_arrays(fit)[1])  # the tree the slip loop watches
             self._progress_step(live, fit, time_s, epoch)
         else:
             live.fit_error = error
