@@ -121,7 +121,7 @@ def bone_errors(fit: dict, truth: dict) -> dict:
 # ------------------------------------------------------------------------------------------ guests
 
 def run_pipeline(perf: Performer, max_s: float, tolerance_m: float, target_m: float, fit_hz: float = 30.0) -> dict:
-    from flockcal.server.pipeline import accumulate, calibrate_dict, new_accumulator
+    from flockcal.server.fitting import accumulate, calibrate_dict, new_accumulator
     from flockcal.server.progress import ProgressTracker
 
     acc = new_accumulator(perf.n_sensors, segmented=True)

@@ -15,7 +15,9 @@ from pathlib import Path
 from flockcal.errors import FlockcalError
 from flockcal.server.errors import BadRequest, Conflict, NotFound
 from flockcal.server.framelog import FrameLog, read_frames
-from flockcal.server.pipeline import SLIP_FIELDS, LiveSession, Pipeline, _finite, calibrate_dict, new_accumulator
+from flockcal.server.fitting import SLIP_FIELDS, calibrate_dict, json_safe, known_dict_of, new_accumulator
+from flockcal.server.live_session import LiveSession
+from flockcal.server.pipeline import Pipeline
 from flockcal.server.progress import progress_of, waiting
 from flockcal.server.settings import PERFORMER_RE
 from flockcal.server.store import Store
@@ -196,7 +198,7 @@ class SessionManager:
 
                     events = [SimpleNamespace(kind="slip", time_s=float(e["time_s"]),
                                               sensor_index=take.names.index(e["sensor"])) for e in slips]
-                    result = _finite(calibration_after_slips(take, events, row["hierarchy"], row["root"],
+                    result = json_safe(calibration_after_slips(take, events, row["hierarchy"], row["root"],
                                                              tolerance=self.pipeline.tolerance))
                     result["slip_events"] = [{k: e[k] for k in SLIP_FIELDS if k in e} for e in slips]
                 else:
@@ -219,7 +221,6 @@ class SessionManager:
         since its slip, as live."""
         from types import SimpleNamespace
 
-        from flockcal.server.pipeline import known_dict_of
         from flockcal.solver.segments import segmented_from_take
 
         events = [SimpleNamespace(kind="slip", time_s=float(e["time_s"]), sensor_index=take.names.index(e["sensor"]))

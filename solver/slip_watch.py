@@ -50,11 +50,11 @@ class SlipWatch:
     def watch(self, joints) -> bool:
         """Watch these (p, 2) (child, parent) joints from now on; True if the monitor was (re)started.
 
-        `SlipMonitor` keeps its baselines per joint list and has no way to take joints in or out, so a
-        changed tree starts a new monitor (its joints warm up again); the accumulator and its segments
-        stay as they are."""
+        The same joints in another order change nothing (the loop refits them itself). `SlipMonitor`
+        keeps its baselines per joint list and has no way to take joints in or out, so a changed tree
+        starts a new monitor (its joints warm up again); the accumulator and its segments stay."""
         J = np.asarray(joints, dtype=int).reshape(-1, 2)
-        if self.joints is not None and np.array_equal(J, self.joints):
+        if self.joints is not None and _same_joints(J, self.joints):
             return False
         if self.failure is not None:
             return False
@@ -119,3 +119,8 @@ class SlipWatch:
             out += found
         self.events += out
         return out
+
+
+def _same_joints(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two (p, 2) joint lists hold the same (child, parent) rows, in any order."""
+    return a.shape == b.shape and np.array_equal(np.unique(a, axis=0), np.unique(b, axis=0))
