@@ -28,6 +28,7 @@ import json
 import sys
 import tempfile
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -36,7 +37,7 @@ from flockcal.simulator.performer import Performer
 
 RATE = 144.0
 TARGET_MEDIAN_S, TARGET_P90_S, TARGET_BONE_M = 20.0, 30.0, 0.005
-GUEST_LEAD_S = 0.3  # see server.testing.GuestSource
+GUEST_LEAD_S = 0.3  # see tests/server_helpers.py GuestSource
 
 
 def performer_options(pairs: list[str]) -> dict:
@@ -120,7 +121,7 @@ def bone_errors(fit: dict, truth: dict) -> dict:
 # ------------------------------------------------------------------------------------------ guests
 
 def run_pipeline(perf: Performer, max_s: float, tolerance_m: float, target_m: float, fit_hz: float = 30.0) -> dict:
-    from flockcal.server.pipeline import accumulate, calibrate_dict, new_accumulator
+    from flockcal.server.fitting import accumulate, calibrate_dict, new_accumulator
     from flockcal.server.progress import ProgressTracker
 
     acc = new_accumulator(perf.n_sensors, segmented=True)
@@ -142,7 +143,9 @@ def run_pipeline(perf: Performer, max_s: float, tolerance_m: float, target_m: fl
 def run_service(guest_list, options, max_s: float, tolerance_m: float, target_m: float) -> list[dict]:
     import httpx
 
-    from flockcal.server.testing import GuestSource, ServerProcess, free_port, wait_connected
+    # The service runner is a test helper (it needs httpx, a test-only extra): it lives in tests/.
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+    from server_helpers import GuestSource, ServerProcess, free_port, wait_connected
     from flockcal.simulator.pty_tracker import PtyTracker
 
     first = Performer("human", "kiosk", seed=guest_list[0][0], rate_hz=RATE, height=guest_list[0][1], **options)

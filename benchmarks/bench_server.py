@@ -21,14 +21,18 @@ import sys
 import tempfile
 import time
 from concurrent.futures import ProcessPoolExecutor
+from pathlib import Path
 
 import httpx
 import numpy as np
 import websockets
 
-from flockcal.server.testing import ServerProcess, free_port, wait_connected
 from flockcal.simulator.performer import Performer
 from flockcal.simulator.pty_tracker import PtyTracker
+
+# The service runner is a test helper (it needs httpx, a test-only extra): it lives in tests/.
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
+from server_helpers import ServerProcess, free_port, wait_connected  # noqa: E402
 
 RATE = 144.0
 SAW_S, SLOPE, X0 = 6.0, 0.1, 0.2  # sensor 0 x = X0 + SLOPE * (t mod SAW_S)

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from flockcal.simulator.performer import Performer
-from flockcal.solver.slippage_replay import SlipReplay
+from flockcal.solver.slip_watch import SlipWatch
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the scoring rule is the tests'
 from slip_scoring import attributes_slip_to  # noqa: E402
@@ -49,7 +49,7 @@ def detection(seeds: int, rate: float, distance: float, follow_s: float, routine
         slip_at = float(np.round(rng.uniform(8.0, 20.0), 2))
         perf = Performer("human", routine=routine, seed=100 + seed, noise="tracker", rate_hz=rate, seconds=60,
                          sta_mm=sta_mm)
-        base = SlipReplay(tree(perf.model), perf.n_sensors, rate, perf.names)
+        base = SlipWatch(tree(perf.model), perf.n_sensors, rate, perf.names)
         base.feed(*frames(perf, rate, 0.0, slip_at))
         early += len(base.events)
         for name in perf.names:
@@ -94,7 +94,7 @@ def soak(hours: float, rate: float, routine: str = "walk", seed: int = 11, chunk
     period = None if routine == "kiosk" else max(seconds, 60.0)
     perf = Performer("human", routine=routine, seed=seed, noise="tracker", rate_hz=rate, seconds=seconds,
                      period=period, sta_mm=sta_mm)
-    replay = SlipReplay(tree(perf.model), perf.n_sensors, rate, perf.names)
+    replay = SlipWatch(tree(perf.model), perf.n_sensors, rate, perf.names)
     start = time.perf_counter()
     t0 = 0.0
     while t0 < seconds:
@@ -124,7 +124,7 @@ def fresh_takes(count: int, seconds: float, rate: float, routine: str, sta_mm: f
     for k in range(count):
         perf = Performer("human", routine=routine, seed=first_seed + k, noise="tracker", rate_hz=rate,
                          seconds=seconds, sta_mm=sta_mm)
-        replay = SlipReplay(tree(perf.model), perf.n_sensors, rate, perf.names)
+        replay = SlipWatch(tree(perf.model), perf.n_sensors, rate, perf.names)
         replay.feed(*frames(perf, rate, 0.0, seconds))
         alarms += [(first_seed + k, e.sensor, round(e.time_s, 2), round(e.jump_mm, 1)) for e in replay.events]
         confirmations += replay.monitor.confirmations

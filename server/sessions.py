@@ -15,7 +15,9 @@ from pathlib import Path
 from flockcal.errors import FlockcalError
 from flockcal.server.errors import BadRequest, Conflict, NotFound
 from flockcal.server.framelog import FrameLog, read_frames
-from flockcal.server.pipeline import SLIP_FIELDS, LiveSession, Pipeline, _finite
+from flockcal.server.fitting import SLIP_FIELDS, json_safe
+from flockcal.server.live_session import LiveSession
+from flockcal.server.pipeline import Pipeline
 from flockcal.server.progress import progress_of, waiting
 from flockcal.server.settings import PERFORMER_RE
 from flockcal.server.store import Store
@@ -193,7 +195,7 @@ class SessionManager:
 
                 events = [SimpleNamespace(kind="slip", time_s=float(e["time_s"]),
                                           sensor_index=take.names.index(e["sensor"])) for e in slips]
-                result = _finite(solve_take(take, events, row["hierarchy"], row["root"], skeleton,
+                result = json_safe(solve_take(take, events, row["hierarchy"], row["root"], skeleton,
                                             tolerance=self.pipeline.tolerance).to_dict())
                 result["slip_events"] = [{k: e[k] for k in SLIP_FIELDS if k in e} for e in slips]
             except FlockcalError as exc:

@@ -1,4 +1,5 @@
-"""The immutable snapshot the pipeline publishes: everything a client may read about the live state.
+"""The immutable snapshot the pipeline publishes: everything a client may read about the live state,
+and `SnapshotMaker`, the pipeline's part that builds them.
 
 API handlers and websocket senders only ever read the newest Snapshot; derived views (the pose, the
 JSON bodies) are computed on first use and cached on the snapshot, so 50 clients cost one encoding.
@@ -7,12 +8,15 @@ JSON bodies) are computed on first use and cached on the snapshot, so 50 clients
 from __future__ import annotations
 
 import json
+import time
 from dataclasses import dataclass
 from functools import cached_property
+from typing import Callable
 
 import numpy as np
 
 from flockcal.server.pose import live_pose
+from flockcal.server.progress import waiting
 
 
 @dataclass(frozen=True, eq=False)
@@ -79,3 +83,59 @@ def residual_message(samples: list[ResidualSample]) -> dict:
         "joints": {k: [s.rms_mm.get(k) for s in samples] for k in names},
         "last": samples[-1].seq if samples else None,
     }
+
+
+class SnapshotMaker:
+    """Builds each Snapshot from the pipeline's parts and swaps it in with one reference assignment.
+
+    `make` runs on the pipeline thread (which owns `seq`); any thread reads `current`, which is only ever
+    replaced, never changed: the event loop never waits for the pipeline."""
+
+    def __init__(self, names, source_status: Callable[[], dict], target: float):
+        self.names = tuple(names)
+        self.source_status = source_status
+        self.target = target
+        self.seq = 0
+        self.current: Snapshot | None = None
+
+    def make(self, *, live, session_time: float, ingest, sampler, persistence, fit_seq: int,
+             fits_done: int, fit_seconds: float, pose_fit) -> Snapshot:
+        self.seq += 1
+        try:
+            tracker = dict(self.source_status())
+        except Exception as exc:  # the status of a source that failed is itself news
+            tracker = {"connected": False, "last_error": f"status unavailable: {exc}"}
+        session = None
+        progress = None
+        if live is not None:
+            session = live.summary()
+            session["time_s"] = session_time
+            session["fit_error"] = live.fit_error
+            progress = live.progress or waiting(self.names, self.target, live.fit_error or "no fit yet: keep moving")
+        status = dict(tracker)
+        status.update(
+            frames=ingest.frames,
+            session=session,
+            sensors=list(self.names),
+            fits=fits_done,
+            fit_ms=round(1000 * fit_seconds / fits_done, 3) if fits_done else None,
+        )
+        self.current = Snapshot(
+            seq=self.seq,
+            wall_time=time.time(),
+            frames=ingest.frames,
+            last_frame_time=ingest.last_frame_time,
+            status=status,
+            session=session,
+            names=self.names,
+            fit=live.fit if live is not None else None,
+            fit_seq=fit_seq,
+            residuals=tuple(sampler.recent),
+            events=tuple(persistence.recent),
+            rotations=ingest.rotations.copy() if ingest.have_pose else None,
+            positions=ingest.positions.copy() if ingest.have_pose else None,
+            valid=ingest.valid.copy(),
+            pose_fit=pose_fit,
+            progress=progress,
+        )
+        return self.current

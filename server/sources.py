@@ -1,7 +1,6 @@
 """Frame sources the pipeline can listen to: the tracker reader (any pyserial URL, sim:// included).
 
-A source calls `on_frames(times, rotations, positions, valid)` with arrays over a batch of frames and
-`on_event(dict)` for tracker news, from its own thread; `status()` reports the link; `start_recording`
+A source calls `on_frames(frames)` with a `Frames` batch and `on_event(dict)` for tracker news, from its own thread; `status()` reports the link; `start_recording`
 / `stop_recording` write the raw bytes of one session. The pipeline does not care which source it has;
 only a sim:// device gives a `simulator` (the performer, reached through the port the source opened).
 """
@@ -17,7 +16,7 @@ from flockcal.frames import Frames
 from flockcal.server.errors import ConfigError
 from flockcal.server.settings import Settings
 
-OnFrames = Callable[..., None]
+OnFrames = Callable[[Frames], None]
 OnEvent = Callable[[dict], None]
 
 
@@ -76,14 +75,6 @@ def open_simulation(url: str):
         port.close()
 
 
-def frames_to_pipeline(on_frames: OnFrames) -> Callable[[Frames], None]:
-    """The reader's Frames → the pipeline's current `feed(times, rotations, positions, valid)`.
-
-    The one place that unpacks Frames for the server: once `Pipeline.feed` takes a Frames, return
-    `on_frames` itself."""
-    return lambda f: on_frames(f.times, f.rotations, f.positions, f.valid)
-
-
 def event_dict(event) -> dict:
     """A TrackerEvent (dataclass or object) as a JSON-able dict with type 'tracker'."""
     if isinstance(event, dict):
@@ -132,7 +123,7 @@ class TrackerSource:
             recording_path=self.recording_path,
         )
         try:
-            self.reader = TrackerReader(cfg, on_frames=frames_to_pipeline(on_frames),
+            self.reader = TrackerReader(cfg, on_frames=on_frames,
                                         on_event=lambda ev: on_event(event_dict(ev)),
                                         recording_header={"names": list(self.names)})
         except FlockcalError as exc:

@@ -12,7 +12,7 @@ import math
 import numpy as np
 import pytest
 
-from flockcal.server.pipeline import accumulate, calibrate_dict, new_accumulator
+from flockcal.server.fitting import accumulate, calibrate_dict, new_accumulator
 from flockcal.server.progress import ProgressTracker, default_target, progress_of
 from flockcal.server.settings import Settings
 from flockcal.simulator.performer import Performer

@@ -19,7 +19,7 @@ import httpx
 import numpy as np
 import pytest
 
-from flockcal.server.testing import ServerProcess, free_port, wait_connected
+from server_helpers import ServerProcess, free_port, wait_connected
 from flockcal.simulator.performer import Performer
 
 CHROMIUM = "/usr/bin/chromium"

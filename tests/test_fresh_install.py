@@ -27,7 +27,7 @@ import httpx
 import pytest
 import websockets
 
-from flockcal.server.testing import free_port, wait_connected, wait_ready
+from server_helpers import free_port, wait_connected, wait_ready
 
 ROOT = Path(__file__).resolve().parents[1]
 CHROMIUM = "/usr/bin/chromium"

@@ -16,7 +16,7 @@ import time
 import httpx
 import pytest
 
-from flockcal.server.testing import GuestSource, ServerProcess, free_port, wait_connected
+from server_helpers import GuestSource, ServerProcess, free_port, wait_connected
 from flockcal.simulator.performer import Performer
 from flockcal.simulator.pty_tracker import PtyTracker
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from flockcal.server.pipeline import _finite, accumulate, calibrate_dict, new_accumulator
+from flockcal.server.fitting import accumulate, calibrate_dict, json_safe, new_accumulator
 from flockcal.solver.calibration import calibrate
 from synthetic import articulated
 
@@ -52,7 +52,7 @@ def test_calibrate_dict_is_json_safe_as_built_with_no_data_pairs(take, segmented
     fit = calibrate_dict(acc.copy(), take.names, hierarchy=take.parent if given else None)
     json.dumps(fit, allow_nan=False)
     _assert_plain(fit)
-    assert _finite(fit) == fit  # the walk the live path no longer makes would change nothing
+    assert json_safe(fit) == fit  # the walk the live path no longer makes would change nothing
     dead = [j for j in fit["joints"] if take.names[DEAD] in (j["child"], j["parent"])]
     assert dead and all(j["c"] == [None] * 3 and j["rms_m"] is None for j in dead)
     if segmented:

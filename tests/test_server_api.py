@@ -13,7 +13,7 @@ import pytest
 
 from flockcal.server.errors import ConfigError
 from flockcal.server.settings import Settings
-from flockcal.server.testing import ServerThread, free_port, wait_connected
+from server_helpers import ServerThread, free_port, wait_connected
 
 ADMIN, READ, KIOSK = "admin-token-123", "read-token-456", "kiosk-token-789"
 

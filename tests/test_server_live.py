@@ -15,7 +15,7 @@ import pytest
 import websockets
 
 from flockcal.server.settings import Settings
-from flockcal.server.testing import ServerThread, free_port, wait_connected
+from server_helpers import ServerThread, free_port, wait_connected
 
 CLIENTS = 50
 RATE = 5.0

@@ -19,7 +19,7 @@ import websockets
 from flockcal.server.errors import ConfigError
 from flockcal.server.settings import Settings
 from flockcal.server.store import Store
-from flockcal.server.testing import GuestSource, ServerThread, free_port, wait_connected
+from server_helpers import GuestSource, ServerThread, free_port, wait_connected
 from flockcal.simulator.performer import Performer
 from flockcal.simulator.pty_tracker import PtyTracker
 

@@ -19,7 +19,7 @@ import pytest
 from flockcal.drivers.recording import read_recording, replay
 from flockcal.server.framelog import read_frames
 from flockcal.server.settings import Settings
-from flockcal.server.testing import ServerProcess, ServerThread, free_port, wait_connected
+from server_helpers import ServerProcess, ServerThread, free_port, wait_connected
 
 RATE = 144.0
 MOVE_S = 7.0  # the exercise routine compressed to an 8 s loop pins down all 15 joints in about 6 s

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from flockcal.server.settings import Settings
-from flockcal.server.testing import ServerThread, free_port, wait_connected
+from server_helpers import ServerThread, free_port, wait_connected
 from flockcal.simulator.performer import Performer
 
 FIRST_S = 7.0  # the exercise routine compressed to an 8 s loop: the free fit finds the right tree by ~6 s

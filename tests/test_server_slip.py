@@ -12,7 +12,7 @@ import httpx
 import websockets
 
 from flockcal.server.settings import Settings
-from flockcal.server.testing import ServerThread, free_port, wait_connected
+from server_helpers import ServerThread, free_port, wait_connected
 
 SENSOR = "l_forearm"
 

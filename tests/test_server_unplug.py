@@ -10,7 +10,7 @@ import httpx
 
 from flockcal.server.framelog import read_frames
 from flockcal.server.settings import Settings
-from flockcal.server.testing import ServerThread, free_port, wait_connected
+from server_helpers import ServerThread, free_port, wait_connected
 from flockcal.simulator.performer import Performer
 from flockcal.simulator.pty_tracker import PtyTracker
 

@@ -15,7 +15,7 @@ from flockcal.simulator.performer import Performer
 from flockcal.solver.accumulator import GramAccumulator
 from flockcal.solver.fits import pair_fits
 from slip_scoring import attributes_slip_to
-from flockcal.solver.slippage_replay import SlipReplay
+from flockcal.solver.slip_watch import SlipWatch
 
 RATE = 100.0
 SLIP_AT = 10.0
@@ -36,7 +36,7 @@ def warmed_up(seed: int, sta_mm: float | None = None):
     """A performer walking (soft tissue as given, the simulator's default otherwise) and the live loop
     fed up to just before the slip time."""
     perf = Performer("human", routine="walk", seed=seed, noise="tracker", rate_hz=RATE, seconds=60, sta_mm=sta_mm)
-    replay = SlipReplay(tree(perf.model), perf.n_sensors, RATE, perf.names)
+    replay = SlipWatch(tree(perf.model), perf.n_sensors, RATE, perf.names)
     replay.feed(*frames(perf, 0.0, SLIP_AT))
     return perf, replay
 
@@ -73,7 +73,7 @@ def test_clean_motion_with_changes_of_activity_and_dropouts_raises_no_alarm():
         perf = Performer("human", routine=routine, seed=4, noise="tracker", rate_hz=RATE, seconds=60)
         perf.set_dropout(0.02)
         if replay is None:
-            replay = SlipReplay(tree(perf.model), perf.n_sensors, RATE, perf.names)
+            replay = SlipWatch(tree(perf.model), perf.n_sensors, RATE, perf.names)
         times, R, t, v = frames(perf, 0.0, 15.0)
         replay.feed(times + t0, R, t, v)
         t0 += 15.0
@@ -88,7 +88,7 @@ def test_refit_after_slip_converges_to_new_placement_and_other_joints_keep_all_d
     perf = Performer("human", routine="walk", seed=seed, noise="tracker", rate_hz=RATE, seconds=60, sta_mm=0)
     J = tree(perf.model)
     perf.inject_slip(name, 0.02, at_time=SLIP_AT)
-    slipped = SlipReplay(J, perf.n_sensors, RATE, perf.names)
+    slipped = SlipWatch(J, perf.n_sensors, RATE, perf.names)
     slipped.feed(*frames(perf, 0.0, 30.0))
     assert [e.sensor for e in slipped.events] == [name]
 

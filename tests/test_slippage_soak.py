@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from flockcal.simulator.performer import Performer
-from flockcal.solver.slippage_replay import SlipReplay
+from flockcal.solver.slip_watch import SlipWatch
 
 RATE = 100.0
 
@@ -18,7 +18,7 @@ def test_one_hour_of_clean_walk_raises_no_false_alarm():
     seconds = 3600.0
     perf = Performer("human", routine="walk", seed=12, noise="tracker", rate_hz=RATE, seconds=seconds, period=seconds)
     joints = np.array([[i, int(p)] for i, p in enumerate(perf.model.parent) if p >= 0])
-    replay = SlipReplay(joints, perf.n_sensors, RATE, perf.names)
+    replay = SlipWatch(joints, perf.n_sensors, RATE, perf.names)
     for t0 in np.arange(0.0, seconds, 60.0):
         times = np.arange(int(round(t0 * RATE)), int(round((t0 + 60.0) * RATE))) / RATE
         replay.feed(times, *perf.poses(times))

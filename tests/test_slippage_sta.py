@@ -11,7 +11,7 @@ from flockcal.solver.accumulator import GramAccumulator
 from flockcal.solver.calibration import calibrate
 from flockcal.solver.fits import pair_fits
 from flockcal.solver.slippage import SlipMonitor, detect_slips
-from flockcal.solver.slippage_replay import SlipReplay
+from flockcal.solver.slip_watch import SlipWatch
 from real_captures import KNEE, UPPER_LIMB, cluster_take, segment_map
 
 RATE = 100.0
@@ -29,7 +29,7 @@ def test_soft_tissue_at_the_ends_of_every_range_raises_no_alarm(routine, seconds
     # revisits every pose of its first.
     perf = Performer("human", routine=routine, seed=8, noise="tracker", rate_hz=RATE, seconds=seconds,
                      period=seconds if routine == "exercise" else None, sta_mm=12.0)
-    replay = SlipReplay(tree(perf.model), perf.n_sensors, RATE, perf.names)
+    replay = SlipWatch(tree(perf.model), perf.n_sensors, RATE, perf.names)
     times = np.arange(int(seconds * RATE)) / RATE
     R, t, v = perf.poses(times)
     replay.feed(times, R, t, v)

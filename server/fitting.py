@@ -1,0 +1,204 @@
+"""Fits for the live service: the fit worker thread, the session's accumulator, and the one place the
+service reads joints out of a fit result (today the §5 dict; when the solver returns a typed
+`Calibration`, `fit_joints` and `calibrate_dict` are where the service switches to it).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+from flockcal.errors import FlockcalError
+from flockcal.solver.accumulator import GramAccumulator
+from flockcal.solver.segments import SegmentedAccumulator
+from flockcal.solver.solve import solve
+from flockcal.threads import name_os_thread
+
+log = logging.getLogger(__name__)
+
+SLIP_FIELDS = ("time_s", "sensor", "candidates", "joints", "jump_mm", "confidence", "detected_s")
+
+
+def json_safe(obj):
+    """JSON-safe copy: NaN and ±inf become None (browsers cannot parse them), numpy scalars become floats."""
+    kind = type(obj)
+    if kind is float:  # the common leaves first, by exact type: most of the cost is the walk itself
+        return obj if math.isfinite(obj) else None
+    if kind is str or kind is int or kind is bool or obj is None:
+        return obj
+    if isinstance(obj, dict):
+        return {k: json_safe(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [json_safe(v) for v in obj]
+    if isinstance(obj, (float, np.floating)):
+        return float(obj) if math.isfinite(obj) else None
+    if isinstance(obj, np.integer):
+        return int(obj)
+    if isinstance(obj, np.bool_):
+        return bool(obj)
+    return obj
+
+
+def calibrate_dict(acc, names, hierarchy=None, root=None, skeleton=None, tolerance: float = 0.005) -> dict:
+    """The §5 JSON of a fit of `acc` — the solver's `solve` picks plain, slip-segmented or saved-skeleton
+    fitting — JSON-safe; SolverError etc. propagate."""
+    if skeleton is not None:
+        return known_dict_of(skeleton, acc, names)[0]
+    # The solver builds these dicts JSON-safe (Python scalars, None for NaN; the tests hold it to that), so
+    # they are not walked again: this runs ~30×/s, and the walk cost as much as the MST.
+    return solve(acc, names, hierarchy, root, tolerance=tolerance).to_dict()
+
+
+def known_dict_of(skeleton, acc, names, previous=None) -> tuple[dict, object]:
+    """(JSON-safe §5 dict, Calibration) of a fit with a saved skeleton; `previous` (the Calibration this
+    returned last) warm-starts it."""
+    cal = solve(acc, names, skeleton=skeleton, previous=previous)
+    return json_safe(cal.to_dict()), cal
+
+
+def new_accumulator(m: int, segmented: bool = False) -> GramAccumulator | SegmentedAccumulator:
+    """The session's accumulator; segmented ones can restart a slipped sensor's joints (docs/slippage.md)."""
+    return SegmentedAccumulator(m) if segmented else GramAccumulator(m)
+
+
+def accumulate(acc, times, rotations, positions, valid) -> None:
+    """Frames into the session's accumulator, whichever kind (the accumulator protocol's `ingest`)."""
+    acc.ingest(times, rotations, positions, valid)
+
+
+@dataclass(frozen=True)
+class FitJoints:
+    """The joints of one fit as arrays over its p joints, in the fit's order."""
+
+    joints: tuple[tuple[str, str], ...]  # (child, parent) names
+    pairs: np.ndarray  # (p, 2) sensor indices
+    c: np.ndarray  # (p, 3) joint centre in the child's frame, metres
+    l: np.ndarray  # (p, 3) in the parent's frame
+
+
+def fit_joints(fit: dict, names) -> FitJoints:
+    """The joints of a fit result (§5 dict) as arrays; sensors by index into `names`."""
+    index = {n: i for i, n in enumerate(names)}
+    entries = fit["joints"]
+    return FitJoints(
+        joints=tuple((j["child"], j["parent"]) for j in entries),
+        pairs=np.array([[index[j["child"]], index[j["parent"]]] for j in entries], dtype=int).reshape(-1, 2),
+        c=np.array([j["c"] for j in entries], dtype=float).reshape(-1, 3),
+        l=np.array([j["l"] for j in entries], dtype=float).reshape(-1, 3),
+    )
+
+
+@dataclass(frozen=True)
+class FitJob:
+    session_id: str
+    acc: object  # a copy the fit thread owns; the live accumulator keeps growing
+    hierarchy: object
+    root: str | None
+    skeleton: object
+    stamp: tuple[float, int]  # (session time, slip epoch) the fit was begun at
+
+
+@dataclass(frozen=True)
+class FitDone:
+    session_id: str
+    fit: dict | None
+    error: str | None
+    seconds: float
+    stamp: tuple[float, int]
+
+
+class FitWorker:
+    """Refits on its own thread ("fc-fit"), so a slow fit never delays frames or snapshots.
+
+    Threads: `submit`, `take`, `start` and `stop` are called by the pipeline thread; `_run` is the fit
+    thread. The one condition variable `_cond` guards every field the two threads share (`_job`, `_done`,
+    `_busy`, `_stop`): nothing reads or writes them without it. The warm start of saved-skeleton fits
+    (`_known_prev`) belongs to the fit thread alone. `on_done` runs on the fit thread after the lock is
+    released (so it may take the pipeline's lock: the order is always pipeline lock → this one, never back).
+    """
+
+    def __init__(self, names, tolerance: float, on_done: Callable[[], None] = lambda: None):
+        self.names = tuple(names)
+        self.tolerance = float(tolerance)
+        self.on_done = on_done
+        self._cond = threading.Condition()
+        self._job: FitJob | None = None
+        self._done: FitDone | None = None
+        self._busy = False  # a job is queued or being fitted
+        self._stop = False
+        self._thread: threading.Thread | None = None
+        self._known_prev = None  # (session id, KnownFit)
+
+    def start(self) -> None:
+        self._thread = threading.Thread(target=self._run, name="flockcal-fit", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        with self._cond:
+            self._stop = True
+            self._cond.notify()
+        if self._thread:
+            self._thread.join(10)
+
+    def submit(self, job: FitJob) -> bool:
+        """Queue a fit unless one is queued or running; False if busy (the caller tries again later)."""
+        with self._cond:
+            if self._busy:
+                return False
+            self._busy = True
+            self._job = job
+            self._cond.notify()
+            return True
+
+    @property
+    def busy(self) -> bool:
+        with self._cond:
+            return self._busy
+
+    def has_result(self) -> bool:
+        with self._cond:
+            return self._done is not None
+
+    def take(self) -> FitDone | None:
+        """The newest finished fit, once."""
+        with self._cond:
+            done, self._done = self._done, None
+            return done
+
+    def _run(self) -> None:
+        name_os_thread("fc-fit")
+        while True:
+            with self._cond:
+                while self._job is None and not self._stop:
+                    self._cond.wait()
+                if self._stop:
+                    return
+                job, self._job = self._job, None
+            start = time.perf_counter()
+            fit, error = None, None
+            try:
+                fit = self._fit(job)
+            except FlockcalError as exc:
+                error = str(exc)
+            except Exception as exc:  # a numerical failure must not stop the service
+                log.exception("fit failed")
+                error = f"fit failed: {exc}"
+            with self._cond:
+                self._done = FitDone(job.session_id, fit, error, time.perf_counter() - start, job.stamp)
+                self._busy = False
+            self.on_done()
+
+    def _fit(self, job: FitJob) -> dict:
+        if job.skeleton is None:
+            return calibrate_dict(job.acc, self.names, job.hierarchy, job.root, tolerance=self.tolerance)
+        # Start from this session's last known-skeleton fit: one or two Gauss–Newton steps.
+        prev = self._known_prev[1] if self._known_prev and self._known_prev[0] == job.session_id else None
+        fit, known = known_dict_of(job.skeleton, job.acc, self.names, prev)
+        self._known_prev = (job.session_id, known)
+        return fit

@@ -1,0 +1,126 @@
+"""The one slip loop, live and replayed: frames → segmented accumulator → tree-joint refits on their
+segments → `SlipMonitor` → new segments. The server's live pipeline and every replay of a take (tests,
+benchmarks) run this object, at the cadence the slip figures of docs/slippage.md were measured at.
+"""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+
+from flockcal.solver.fits import PairFits
+from flockcal.solver.segments import SegmentedAccumulator
+from flockcal.solver.slippage import SlipMonitor
+
+log = logging.getLogger(__name__)
+
+
+class SlipWatch:
+    """Watch the joints of a tree for slips and swaps while feeding the session's segmented accumulator.
+
+    Frames go in `batch_s` micro-batches (whole ones: a shorter remainder waits for the next `feed`, or
+    `flush`); after each, the watched joints are re-fitted on their post-slip segment where a slip was
+    found, and the monitor sees those estimates. With no joints yet (`joints=None`, e.g. before the first
+    live fit) frames only go into the accumulator. `watch(joints)` changes the tree.
+
+    A monitor that raises is dropped for good (`failure` holds the exception) and the frames still reach
+    the accumulator; `strict` re-raises it then (replays, where a failure is a bug), otherwise the caller
+    reads `failure` (the live service, which must keep recording).
+    """
+
+    def __init__(self, joints, n_sensors: int, rate_hz: float, names=None, batch_s: float = 1 / 30,
+                 segments: SegmentedAccumulator | None = None, strict: bool = True, **monitor_options):
+        self.n_sensors = int(n_sensors)
+        self.rate_hz = float(rate_hz)
+        self.names = None if names is None else tuple(names)
+        self.monitor_options = monitor_options
+        self.segments = SegmentedAccumulator(n_sensors) if segments is None else segments
+        self.step = max(1, int(round(batch_s * rate_hz)))
+        self.strict = bool(strict)
+        self.joints: np.ndarray | None = None
+        self.monitor: SlipMonitor | None = None
+        self.fits: PairFits | None = None
+        self.events: list = []  # every event found, across tree changes
+        self.failure: BaseException | None = None
+        self._held: tuple | None = None  # frames of an unfinished micro-batch (times, R, t, valid)
+        if joints is not None:
+            self.watch(joints)
+
+    def watch(self, joints) -> bool:
+        """Watch these (p, 2) (child, parent) joints from now on; True if the monitor was (re)started.
+
+        The same joints in another order change nothing (the loop refits them itself). `SlipMonitor`
+        keeps its baselines per joint list and has no way to take joints in or out, so a changed tree
+        starts a new monitor (its joints warm up again); the accumulator and its segments stay."""
+        J = np.asarray(joints, dtype=int).reshape(-1, 2)
+        if self.joints is not None and _same_joints(J, self.joints):
+            return False
+        if self.failure is not None:
+            return False
+        had = self.joints
+        self.joints = J
+        self.fits = None
+        self.monitor = SlipMonitor(J, self.n_sensors, self.rate_hz, self.names, **self.monitor_options) if len(J) else None
+        if had is not None:
+            log.info("slip watch restarted on a new tree (%d joints, was %d): SlipMonitor cannot carry its "
+                     "baselines over to another joint list, so every joint warms up again", len(J), len(had))
+        return True
+
+    def feed(self, times, rotations, positions, valid=None) -> list:
+        """Add frames; returns the events confirmed in the micro-batches completed by them."""
+        ts = np.atleast_1d(np.asarray(times, dtype=float))
+        R = np.asarray(rotations, dtype=float)
+        t = np.asarray(positions, dtype=float)
+        v = np.ones(R.shape[:2], dtype=bool) if valid is None else np.asarray(valid, dtype=bool)
+        if self._held is not None:
+            ts, R, t, v = (np.concatenate([h, x]) for h, x in zip(self._held, (ts, R, t, v)))
+            self._held = None
+        if self.monitor is None:  # nothing to refit between batches: the accumulator takes them at once
+            if len(ts):
+                self.segments.update(ts, R, t, v)
+            return []
+        whole = len(ts) - len(ts) % self.step
+        if whole < len(ts):
+            self._held = (ts[whole:], R[whole:], t[whole:], v[whole:])
+        return self._batches(ts[:whole], R[:whole], t[:whole], v[:whole])
+
+    def flush(self) -> list:
+        """Run the held remainder as a short micro-batch (at the end of a take or session)."""
+        if self._held is None:
+            return []
+        held, self._held = self._held, None
+        if self.monitor is None:
+            self.segments.update(*held)
+            return []
+        return self._batches(*held, last=len(held[0]))
+
+    def _batches(self, ts, R, t, v, last: int | None = None) -> list:
+        step = self.step if last is None else last
+        out = []
+        for a in range(0, len(ts), step):
+            sl = slice(a, a + step)
+            self.segments.update(ts[sl], R[sl], t[sl], v[sl])
+            if self.monitor is None:
+                continue
+            try:
+                self.fits = self.segments.pair_fits(self.joints)
+                found = self.monitor.update(ts[sl], R[sl], t[sl], v[sl], self.fits.c, self.fits.l)
+                if found:
+                    self.segments.apply(found)
+            except Exception as exc:
+                self.failure, self.monitor = exc, None
+                if a + step < len(ts):
+                    self.segments.update(ts[a + step:], R[a + step:], t[a + step:], v[a + step:])
+                self.events += out
+                if self.strict:
+                    raise
+                return out
+            out += found
+        self.events += out
+        return out
+
+
+def _same_joints(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether two (p, 2) joint lists hold the same (child, parent) rows, in any order."""
+    return a.shape == b.shape and np.array_equal(np.unique(a, axis=0), np.unique(b, axis=0))

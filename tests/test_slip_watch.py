@@ -1,0 +1,142 @@
+"""The one slip loop (solver/slip_watch.py): the live service hands frames over in whatever pieces the
+reader delivers and still runs the micro-batches the slip figures were measured on; a changed tree
+restarts the monitor; a failing monitor stops watching but loses no frame, and the live service says so.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import httpx
+import numpy as np
+import pytest
+
+from flockcal.server.settings import Settings
+from flockcal.simulator.performer import Performer
+from flockcal.solver.accumulator import GramAccumulator
+from flockcal.solver.slip_watch import SlipWatch
+from flockcal.solver.slippage import SlipMonitor
+from server_helpers import ServerThread, free_port, wait_connected
+
+RATE = 100.0
+
+
+def tree(model) -> np.ndarray:
+    return np.array([[i, int(p)] for i, p in enumerate(model.parent) if p >= 0])
+
+
+def walk(seconds: float, slip: str | None = None, at: float = 9.0):
+    perf = Performer("human", routine="walk", seed=3, noise="tracker", rate_hz=RATE, seconds=60)
+    if slip:
+        perf.inject_slip(slip, 0.02, at_time=at)
+    times = np.arange(int(round(seconds * RATE))) / RATE
+    return perf, (times, *perf.poses(times))
+
+
+def pieces(frames, sizes):
+    """The frames cut into consecutive pieces of the given sizes (cycled), as a reader hands them over."""
+    n = len(frames[0])
+    a, k = 0, 0
+    while a < n:
+        b = min(n, a + int(sizes[k % len(sizes)]))
+        yield tuple(x[a:b] for x in frames)
+        a, k = b, k + 1
+
+
+def test_frames_handed_over_in_any_pieces_give_the_events_and_fits_of_one_replay():
+    # The live service must do what docs/slippage.md measured: the same micro-batches, so the same
+    # events at the same times and the same refits, whether a take is replayed at once or arrives live.
+    perf, frames = walk(14.0, slip="r_shin")
+    whole = SlipWatch(tree(perf.model), perf.n_sensors, RATE, perf.names)
+    whole.feed(*frames)
+    assert [e.sensor for e in whole.events] == ["r_shin"], whole.events  # the case is not empty
+    live = SlipWatch(tree(perf.model), perf.n_sensors, RATE, perf.names)
+    rng = np.random.default_rng(0)
+    for piece in pieces(frames, rng.integers(1, 9, size=97)):
+        live.feed(*piece)
+    assert [(e.sensor, e.time_s, e.detected_s) for e in live.events] == \
+        [(e.sensor, e.time_s, e.detected_s) for e in whole.events]
+    np.testing.assert_array_equal(live.fits.c, whole.fits.c)
+    assert live.segments.frames == whole.segments.frames
+
+
+def test_a_new_tree_restarts_the_monitor_and_keeps_the_accumulator():
+    perf, frames = walk(6.0)
+    J = tree(perf.model)
+    watch = SlipWatch(None, perf.n_sensors, RATE, perf.names)
+    watch.feed(*(x[:200] for x in frames))  # no tree yet: the frames only go into the accumulator
+    assert watch.monitor is None and watch.segments.frames == 200
+    assert watch.watch(J) and not watch.watch(J[::-1].copy())  # the same tree, in any order, changes nothing
+    first = watch.monitor
+    watch.feed(*(x[200:] for x in frames))
+    watch.flush()
+    assert watch.watch(J[:-1])  # one joint fewer: a new monitor on the new joint list
+    assert watch.monitor is not first and len(watch.monitor.joints) == len(J) - 1
+    assert watch.segments.frames == len(frames[0])
+
+
+class Failing(SlipMonitor):
+    """A monitor that breaks after a while, as a bug in it would."""
+
+    calls = 0
+
+    def update(self, *args, **kwargs):
+        Failing.calls += 1
+        if Failing.calls > 40:
+            raise RuntimeError("monitor broke")
+        return super().update(*args, **kwargs)
+
+
+def test_a_failing_monitor_stops_watching_but_every_frame_reaches_the_accumulator(monkeypatch):
+    monkeypatch.setattr("flockcal.solver.slip_watch.SlipMonitor", Failing)
+    perf, frames = walk(4.0)
+    Failing.calls = 0
+    strict = SlipWatch(tree(perf.model), perf.n_sensors, RATE, perf.names)
+    with pytest.raises(RuntimeError, match="monitor broke"):  # a replay: the failure is a bug, raised
+        strict.feed(*frames)
+    strict.flush()  # the remainder of an unfinished micro-batch
+    Failing.calls = 0
+    watch = SlipWatch(tree(perf.model), perf.n_sensors, RATE, perf.names, strict=False)
+    for piece in pieces(frames, [7]):
+        watch.feed(*piece)
+    watch.flush()
+    assert isinstance(watch.failure, RuntimeError) and watch.monitor is None
+    assert not watch.watch(tree(perf.model)[:-1])  # it stays stopped for the session
+    reference = GramAccumulator(perf.n_sensors)
+    reference.update(frames[1], frames[2], frames[3])
+    assert watch.segments.frames == strict.segments.frames == reference.frames == len(frames[0])
+
+
+def test_live_service_reports_a_failing_slip_monitor_once_as_a_tracker_event(tmp_path, monkeypatch, caplog):
+    # Tried: a slip monitor that raises on every update during a live session.
+    class Broken(SlipMonitor):
+        def update(self, *args, **kwargs):
+            raise RuntimeError("monitor broke")
+
+    monkeypatch.setattr("flockcal.solver.slip_watch.SlipMonitor", Broken)
+    settings = Settings(device="sim://walk?birds=16&motion=walk&rate=100&baud=921600&seed=2", birds=16,
+                        http_port=free_port(), data_dir=tmp_path)
+    with caplog.at_level(logging.ERROR, logger="flockcal.server"), ServerThread(settings) as srv:
+        wait_connected(srv.url)
+        r = httpx.post(srv.url + "/api/sessions", json={"performer": "Eve", "skeleton": "human"})
+        assert r.status_code == 201, r.text
+        sid = r.json()["id"]
+        deadline = time.monotonic() + 30
+        failed = []
+        while time.monotonic() < deadline and not failed:
+            time.sleep(0.5)
+            events = httpx.get(srv.url + f"/api/sessions/{sid}/events").json()["events"]
+            failed = [e for e in events if e["type"] == "tracker" and e.get("kind") == "slip_watch_failed"]
+        time.sleep(1.0)  # more frames: the failure must not be reported again
+        events = httpx.get(srv.url + f"/api/sessions/{sid}/events").json()["events"]
+        frames_before = httpx.get(srv.url + "/api/status").json()["session"]["frames"]
+        r = httpx.post(srv.url + f"/api/sessions/{sid}/stop", timeout=30)
+        assert r.status_code == 200, r.text
+        result = httpx.get(srv.url + f"/api/sessions/{sid}/result")
+    failed = [e for e in events if e["type"] == "tracker" and e.get("kind") == "slip_watch_failed"]
+    assert len(failed) == 1, events
+    assert "monitor broke" in failed[0]["message"] and "restart the session" in failed[0]["message"]
+    logged = [r for r in caplog.records if "slip monitor failed" in r.getMessage()]
+    assert len(logged) == 1 and logged[0].exc_info is not None  # with its traceback
+    assert frames_before > 0 and result.status_code == 200  # recording and fitting went on
