@@ -4,12 +4,25 @@ Module-scoped, so each test module gets its own performer and tracker; a module 
 routine or rate defines its own `performer`/`tracker` fixtures, which take precedence.
 """
 
+import os
+
 import pytest
+from hypothesis import HealthCheck, settings
 
 from flockcal.simulator.performer import Performer
 from flockcal.simulator.pty_tracker import PtyTracker
 
 RATE_HZ = 144.0
+
+# Property tests: CI runs the same fixed examples every time (derandomized, nothing written to a
+# .hypothesis database), so a red run is reproducible and a green one is not luck. Exploration with many
+# fresh examples is `python benchmarks/hypothesis_explore.py` (the "explore" profile), never in CI.
+_SLOW = [HealthCheck.too_slow, HealthCheck.data_too_large]
+settings.register_profile("ci", max_examples=15, derandomize=True, database=None, deadline=None,
+                          suppress_health_check=_SLOW, print_blob=True)  # fmt: skip
+settings.register_profile("explore", max_examples=int(os.environ.get("FLOCKCAL_EXAMPLES", "400")),
+                          deadline=None, suppress_health_check=_SLOW, print_blob=True)  # fmt: skip
+settings.load_profile(os.environ.get("FLOCKCAL_HYPOTHESIS_PROFILE", "ci"))
 
 
 @pytest.fixture(scope="module")

@@ -33,10 +33,12 @@ pytestmark = [
 ADMIN, KIOSK, READ = "admin-secret-1", "kiosk-secret-1", "read-secret-1"
 SLIP_SENSOR = "l_forearm"
 SLIP_AFTER_S = 14.0
-# A bone ending at a hinge (elbow, knee) is only known up to where along the hinge axis its centre
-# is put (the min-norm point, not the anatomical one): "a few cm". Bones between ball joints: 1 cm.
-BONE_TOLERANCE_M = 0.05
-BALL_BONE_TOLERANCE_M = 0.01
+# docs/dashboard.md "Measured": bones end within 0.9–3.1 mm of the simulator's between ball joints and
+# 10–23 mm where a bone ends at a hinge (the fit's centre there is the min-norm point along the hinge
+# axis, not the anatomical one). Margins for a loaded 2-core machine, where the page may show a fit a
+# few hundred frames older than the newest: 1.4 mm and 7 mm.
+BONE_TOLERANCE_M = 0.023 + 0.007
+BALL_BONE_TOLERANCE_M = 0.0031 + 0.0014
 LIMIT = {"hinge": BONE_TOLERANCE_M, "ball": BALL_BONE_TOLERANCE_M}
 # The kiosk shows the service's progress (its target: serve's default 5 mm); the kiosk routine exercises
 # each limb once a loop.
@@ -184,7 +186,6 @@ def test_dashboard_draws_the_skeleton_and_bones_match_the_simulator(dashboard, p
     points = true_joint_points(truth)
     hinges = {frozenset((n, truth["parent"][n])) for n, t in zip(performer.model.names, performer.model.joint_type)
               if t == "hinge"}
-    n_bodies = len(performer.names)
 
     def shown_bones():
         sid = httpx.get(f"{server.url}/api/status", headers=admin()).json()["session"]["id"]
@@ -193,7 +194,8 @@ def test_dashboard_draws_the_skeleton_and_bones_match_the_simulator(dashboard, p
         # The fit may root the tree elsewhere than the simulator: name each joint by its two bodies.
         for r in rows:
             r["joints"] = [frozenset((c, parent[c])) for c in (r["from"], r["to"]) if c]
-        return rows if len(rows) >= n_bodies - 2 and all(len(r["joints"]) == 2 for r in rows) else None
+        # Every bone the simulated body has is shown (rigid sensors: every joint gets determined).
+        return rows if len(rows) >= len(truth["bones"]) and all(len(r["joints"]) == 2 for r in rows) else None
 
     def errors():
         rows = shown_bones()
@@ -223,6 +225,7 @@ def test_dashboard_draws_the_skeleton_and_bones_match_the_simulator(dashboard, p
         raise AssertionError(f"bones still off after 30 s: {bad}") from None
     worst = {k: max([e for kk, _, e in errs if kk == k], default=0.0) for k in ("ball", "hinge")}
     record("bones_worst_error_m", worst)
+    record("bones_shown", {"rows": len(errs), "truth": len(truth["bones"])})
     page.screenshot(path=str(artifacts() / "dashboard-bones.png"), full_page=True)
     assert not page.errors
 

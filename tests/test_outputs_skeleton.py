@@ -208,3 +208,29 @@ def test_live_refresh_from_the_previous_fit_lands_on_the_same_placements(perform
     assert np.nansum(warm.rms) == pytest.approx(np.nansum(cold.rms), rel=1e-6)
     np.testing.assert_allclose(warm.articulation.c, cold.articulation.c, atol=1e-3)
     np.testing.assert_allclose(warm.articulation.l, cold.articulation.l, atol=1e-3)
+
+
+def test_rms_free_says_whether_the_saved_skeleton_still_fits(performer):
+    # docs/outputs.md: compare each joint's rms_m with rms_free_m (the same joint fitted freely); a much
+    # larger constrained rms says the skeleton no longer fits. Tried: the saved performer's second take
+    # (sensors re-placed, same bones) and a take of another, shorter performer fitted with the same file.
+    from plain_lsq import plain_take_fit
+
+    skeleton = load_skeleton(performer["path"])
+    same = performer["take2"]
+    other, _ = simulate(human(height=1.55, seed=7), "walk", seconds=20, seed=2, birds=None, sta_mm=0)
+    ratios = {}
+    for name, take in (("same", same), ("other", other)):
+        fit = fit_saved(skeleton, accumulate(take), take.names).to_dict()
+        assert fit["known_skeleton"] is True
+        for j in fit["joints"]:
+            # rms_free_m is the free fit of that joint: textbook least squares on the take's frames agrees.
+            assert j["rms_free_m"] == pytest.approx(plain_take_fit(take, j["child"], j["parent"]).rms, rel=0.02)
+            # A constrained fit cannot fit better than free, except by the little the free fit gives up
+            # where it leaves an unexercised direction out (measured: 1e-4 of the rms).
+            assert j["rms_m"] >= j["rms_free_m"] * (1 - 1e-3)
+        ratios[name] = np.array([j["rms_m"] / j["rms_free_m"] for j in fit["joints"]])
+    # The same performer: the skeleton fits as well as a free fit (measured: every ratio 1.00).
+    assert ratios["same"].max() < 1.05
+    # 20 cm shorter: several joints fit clearly worse than free (measured: up to 2.2×, four above 1.4×).
+    assert ratios["other"].max() > 1.8 and (ratios["other"] > 1.3).sum() >= 3

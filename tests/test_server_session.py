@@ -82,7 +82,15 @@ def test_full_session_matches_fit_and_survives_restart(tracker, performer, tmp_p
     replayed = replay(recording).frames
     assert abs(len(replayed) - stopped["frames"]) <= 0.2 * RATE
     assert recording.settings["names"] == list(performer.names)  # so `flockcal convert` names the sensors
-    assert skeleton.status_code == 200 and skeleton.json()
+    # The skeleton file describes this session's calibration: its tree, its joints, its measured bones.
+    assert skeleton.status_code == 200
+    sk = skeleton.json()
+    assert sk["sensors"] == result["sensors"] and sk["root"] == result["root"] and sk["parent"] == result["parent"]
+    got = {j["child"]: j for j in sk["joints"]}
+    for j in result["joints"]:
+        np.testing.assert_allclose(got[j["child"]]["c"], j["c"], atol=1e-12)
+    assert sorted(b["length_m"] for b in sk["bones"]) == pytest.approx(sorted(b["length_m"] for b in result["bones"]), abs=1e-12)
+    assert len(sk["placements"]) == len(result["sensors"])
 
     # The topology is the performer's body.
     assert undirected(result["parent"]) == undirected(performer.model.truth()["parent"])
@@ -111,7 +119,7 @@ def test_full_session_matches_fit_and_survives_restart(tracker, performer, tmp_p
         assert httpx.get(srv.url + "/api/sessions").json()["live"] is None
 
 
-def test_kill9_mid_session_loses_under_a_second_and_can_be_resolved(tracker, tmp_path):
+def test_kill9_mid_session_loses_at_most_a_quarter_second_and_can_be_resolved(tracker, tmp_path):
     data = tmp_path / "data"
     port = free_port()
     args = ["--device", tracker.device, "--birds", "16", "--data-dir", str(data), "--fast-init", "--scale", "72", "--baud", "921600",
@@ -130,7 +138,10 @@ def test_kill9_mid_session_loses_under_a_second_and_can_be_resolved(tracker, tmp
         assert db.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
         assert db.execute("SELECT state FROM sessions WHERE id = ?", (sid,)).fetchone()[0] == "live"
     logged = len(read_frames(data / "recordings" / f"{sid}.frames")["times"])
-    assert logged >= received - RATE, (logged, received)
+    # docs/service.md: after a kill -9 at most the last 0.25 s of frames is lost. `received` was read a
+    # moment before the kill (so the true loss can only be smaller than this bound says); margin 0.15 s
+    # for a flush that runs late on a loaded 2-core machine.
+    assert logged >= received - (0.25 + 0.15) * RATE, (logged, received)
 
     proc = ServerProcess(args, port, log_path=tmp_path / "serve.log").start()
     try:

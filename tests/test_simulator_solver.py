@@ -102,16 +102,21 @@ def test_linkage_bones_are_exact_to_1e_9_m():
     assert len(bones) == 4 and max(bones.values()) < 1e-9
 
 
-def test_solver_is_within_a_few_millimetres_on_exercise_with_tracker_noise():
-    # Tracker noise alone (README: "within < 1 mm" on this take, 3 mm allowed): the truth holds each
-    # sensor's rest placement, which soft tissue would move the sensors away from.
+def test_solver_is_within_a_millimetre_on_exercise_with_tracker_noise():
+    # docs/simulator.md: on this take (rigid sensors, tracker noise, seed 1) every joint centre within 1 mm
+    # (median 0.25 mm), bones between ball joints within 1 mm, a hinge-ended bone's axis distance within
+    # 0.5 mm. The fit is deterministic for a seed: the margin (0.2 mm, 0.1 mm for the median) covers
+    # floating-point differences between BLAS builds, not machine load. The truth holds each sensor's rest
+    # placement, which soft tissue would move the sensors away from, hence sta_mm=0.
     take, truth = simulate(model="human", motion="exercise", seconds=45, rate_hz=100, seed=1, noise="tracker",
                            sta_mm=0)
     fit = calibrate(_accumulate(take), root="pelvis", names=take.names).to_dict()
     assert fit["parent"] == truth["parent"]
-    assert max(_joint_errors(fit, truth).values()) < 0.003
-    assert max(_bone_errors(fit, truth).values()) < 0.003
-    assert max(_axis_distance_errors(fit, truth)) < 0.003
+    joints = np.array(list(_joint_errors(fit, truth).values()))
+    assert joints.max() < 0.001 + 0.0002 and np.median(joints) < 0.00025 + 0.0001
+    assert max(_bone_errors(fit, truth).values()) < 0.001 + 0.0002
+    assert max(_axis_distance_errors(fit, truth)) < 0.0005 + 0.0002
+    assert all(j["determined"] for j in fit["joints"])
 
 
 def _coverage(motion):
@@ -133,7 +138,9 @@ def test_idle_gives_low_coverage_on_every_joint_and_exercise_high():
     assert exercise[hinge, 0].max() < 1e-3
 
 
-def test_rigid_pair_measures_the_trackers_unit_scale():
+def test_the_simulated_unit_scale_fault_lengthens_every_range_3_percent():
+    # A simulator test (the solver's scale estimate is held in test_outputs_scale.py): the fault the scale
+    # tests rely on really stretches the measured distance by the factor asked for.
     take, truth = simulate(model="pair", motion="walk", seconds=20, rate_hz=50, seed=5, faults={"unit_scale": 1.03})
     measured = np.linalg.norm(take.positions[:, 1] - take.positions[:, 0], axis=1).mean()
     assert measured / truth["sensor_distance_m"] == pytest.approx(1.03, abs=0.002)

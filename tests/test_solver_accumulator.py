@@ -119,11 +119,10 @@ def test_wrong_shapes_are_refused_with_a_solver_error(shapes):
         acc.update(np.zeros(shapes[0]), np.zeros(shapes[1]))
 
 
-from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import given  # noqa: E402
 from hypothesis import strategies as st  # noqa: E402
 
 
-@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     seed=st.integers(0, 10_000),
     m=st.integers(2, 6),

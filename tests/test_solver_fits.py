@@ -1,7 +1,7 @@
 """Promises of the pair fits: exact on exact data, equal to the paper's SVD solve, noise-aware hinges, stderrs."""
 
 import numpy as np
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from flockcal.solver.accumulator import GramAccumulator
@@ -150,7 +150,6 @@ def test_fits_for_a_subset_of_pairs_equal_the_same_rows_of_all_pairs():
     assert np.array_equal(all_pairs(5), whole.pairs)
 
 
-@settings(max_examples=15, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(
     seed=st.integers(0, 10_000),
     m=st.integers(2, 6),

@@ -1,7 +1,7 @@
 """Promises of the topology search: the right tree, root choice, rigid groups, loop candidates and ties."""
 
 import numpy as np
-from hypothesis import HealthCheck, given, settings
+from hypothesis import given
 from hypothesis import strategies as st
 
 from flockcal.solver.accumulator import GramAccumulator
@@ -69,7 +69,6 @@ def test_noisy_data_still_gives_the_true_tree():
     assert not topo.ambiguous
 
 
-@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
 @given(seed=st.integers(0, 10_000), m=st.integers(2, 9), dropout=st.sampled_from([0.0, 0.1]))
 def test_property_random_skeletons_in_random_motion_give_their_own_tree(seed, m, dropout):
     d = articulated(m=m, n=200, seed=seed, dropout=dropout)
