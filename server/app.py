@@ -22,6 +22,9 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from flockcal import __version__
 from flockcal.server.errors import ServerError
+from flockcal.server.backoff import TokenBackoff
+from flockcal.server.hosts import HostCheck, HostPolicy
+from flockcal.server.wsgate import ClientSlots, TransportHandle
 from flockcal.server.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -164,10 +167,14 @@ def create_app(settings: Settings, service=None) -> FastAPI:
         swagger_ui_parameters={"validatorUrl": None},
     )
     app.state.settings = settings
+    app.state.token_backoff = TokenBackoff()
+    app.state.ws_slots = ClientSlots(settings.ws_max_clients)
 
     @app.exception_handler(ServerError)
     async def _server_error(request: Request, exc: ServerError):
         headers = {"WWW-Authenticate": "Bearer"} if exc.status == 401 else None
+        if getattr(exc, "retry_after", None) is not None:
+            headers = {"Retry-After": str(exc.retry_after)}
         return _error(exc.status, str(exc), exc.code, headers)
 
     @app.exception_handler(RequestValidationError)
@@ -211,4 +218,7 @@ def create_app(settings: Settings, service=None) -> FastAPI:
         )
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
     app.add_middleware(DocsPolicy, paths=("/docs", "/redoc"))
+    # Outermost: a request under a name the service does not answer to reaches nothing else.
+    app.add_middleware(HostCheck, policy=HostPolicy(settings.host, settings.allow_hosts))
+    app.add_middleware(TransportHandle)  # before any middleware wraps a websocket's send
     return app

@@ -67,6 +67,7 @@ class Settings:
     residual_window_s: float = 120.0  # live residual history kept in memory
     max_body_bytes: int = 64 * 1024
     cors_origins: tuple[str, ...] = ()  # CORS closed unless origins are listed
+    allow_hosts: tuple[str, ...] = ()  # Host names answered besides loopback's (server/hosts.py)
     baud: int | None = None  # line speed; None: a URL's own baud= (the simulator's emulated line), else 115200
     hemisphere: str = "forward"
     ws_max_clients: int = 200

@@ -26,6 +26,7 @@ log = logging.getLogger(__name__)
 
 # Preset names the service gives meaning to itself; a saved skeleton cannot take them.
 RESERVED = ("auto", "human")
+MAX_DEPTH = 8  # a skeleton file nests 4 deep (joints → joint → c → number); deeper is not one
 
 
 @dataclass(frozen=True)
@@ -137,8 +138,14 @@ class SkeletonLibrary:
         BadRequest for a malformed or mismatched file, Conflict for a taken name; nothing is written then."""
         from flockcal.exports.skeleton import SkeletonError, parse_skeleton
 
+        from flockcal.server.jsonbounds import loads_bounded
+
         try:
-            skel = parse_skeleton(body, origin="uploaded skeleton")
+            data = loads_bounded(body, MAX_DEPTH, "the uploaded skeleton")
+        except ValueError as exc:
+            raise BadRequest(str(exc)) from None
+        try:
+            skel = parse_skeleton(data, origin="uploaded skeleton")
             self._check(skel, "uploaded skeleton")
         except SkeletonError as exc:
             raise BadRequest(str(exc)) from None

@@ -54,6 +54,9 @@ def register(subparsers) -> None:
                         "(repeatable)")
     p.add_argument("--cors-origin", action="append", default=[], metavar="ORIGIN",
                    help="allow browser pages from this origin (repeatable; CORS is closed by default)")
+    p.add_argument("--allow-host", action="append", default=[], metavar="NAME",
+                   help="a host name (or address) the service is reached by, besides loopback's and --host's; "
+                        "requests naming any other Host are refused (DNS rebinding; repeatable)")
     p.set_defaults(func=run)
 
 
@@ -78,6 +81,7 @@ def settings_from_args(args: argparse.Namespace):
         tolerance_m=tolerance_m(args),
         target_m=None if args.target_mm is None else float(args.target_mm) / 1000.0,
         cors_origins=tuple(args.cors_origin),
+        allow_hosts=tuple(args.allow_host),
         fast_init=args.fast_init,
         scale_inches=args.scale,
         baud=args.baud,

@@ -16,12 +16,14 @@ from flockcal.server.errors import BadRequest, Conflict, NotFound
 from flockcal.server.models import (
     CalibrationResult, ErrorReply, EventList, Progress, ResidualSeries, Session, SessionCreate, SessionList,
 )
-from flockcal.server.routes.deps import get_service, session_id
+from flockcal.server.routes.deps import MAX_ID, get_service, session_id
 from flockcal.server.settings import NAME_RE
 
 router = APIRouter(prefix="/api/sessions", tags=["sessions"])
 
 ERRORS = {code: {"model": ErrorReply} for code in (400, 401, 403, 404, 409, 413, 422)}
+MAX_RESIDUALS = 100_000  # samples per page: 83 minutes at 20 a second
+MAX_EVENTS = 5000
 
 
 def presets(service) -> dict[str, dict | None]:
@@ -111,21 +113,34 @@ def get_progress(sid: str = Depends(session_id), service=Depends(get_service), _
 
 
 @router.get("/{id}/residuals", response_model=ResidualSeries, responses=ERRORS,
-            summary="per-joint residual rms (mm) over time")
+            summary="per-joint residual rms (mm) over time, oldest first, a page at a time")
 def get_residuals(sid: str = Depends(session_id),
                   joint: str | None = Query(None, max_length=64, description="a joint, named by its child body"),
-                  since: float | None = Query(None, description="session clock, seconds: only later samples"),
+                  since: float | None = Query(None, allow_inf_nan=False,
+                                              description="session clock, seconds: only later samples"),
+                  limit: int = Query(MAX_RESIDUALS, ge=1, le=MAX_RESIDUALS, description="samples per page"),
                   service=Depends(get_service), _role=Depends(require_read)):
-    rows = service.sessions.residuals(sid, joint, since)
+    """A session longer than one page (`limit` samples, 20 a second) answers `more: true`; the rest
+    follows with `since=next_since`, so the newest samples are never dropped unseen."""
+    rows, more = service.sessions.residuals(sid, joint, since, limit)
     names = sorted({k for _, v in rows for k in v})
     return {"session_id": sid, "joint": joint, "times": [t for t, _ in rows],
-            "joints": {k: [v.get(k) for _, v in rows] for k in names}}
+            "joints": {k: [v.get(k) for _, v in rows] for k in names},
+            "more": more, "next_since": rows[-1][0] if rows else since}
 
 
-@router.get("/{id}/events", response_model=EventList, responses=ERRORS, summary="slippage, tracker and session events")
-def get_events(sid: str = Depends(session_id), since: int = Query(0, ge=0, description="only events with a larger id"),
+@router.get("/{id}/events", response_model=EventList, responses=ERRORS,
+            summary="slippage, tracker and session events, oldest first, a page at a time")
+def get_events(sid: str = Depends(session_id),
+               since: int = Query(0, ge=0, le=MAX_ID, description="only events with a larger id"),
+               limit: int = Query(1000, ge=1, le=MAX_EVENTS, description="events per page"),
                service=Depends(get_service), _role=Depends(require_read)):
-    return {"session_id": sid, "events": service.sessions.events(sid, since)}
+    """`more: true` when later events exist; ask again with `since=next_since` for them."""
+    events = service.sessions.events(sid, since, limit + 1)
+    more = len(events) > limit
+    events = events[:limit]
+    return {"session_id": sid, "events": events, "more": more,
+            "next_since": events[-1]["id"] if events else since}
 
 
 @router.get("/{id}/take", responses={200: {"content": {"application/octet-stream": {}}}, **ERRORS},
