@@ -5,11 +5,8 @@ Handlers only validate and read: fits come from the pipeline's snapshots or the 
 
 from __future__ import annotations
 
-import io
-
-import numpy as np
 from fastapi import APIRouter, Depends, Query
-from fastapi.responses import Response
+from fastapi.responses import Response, StreamingResponse
 
 from flockcal.server.auth import require_admin, require_read, require_session_control
 from flockcal.server.errors import BadRequest, Conflict, NotFound
@@ -146,29 +143,34 @@ def get_events(sid: str = Depends(session_id),
 @router.get("/{id}/take", responses={200: {"content": {"application/octet-stream": {}}}, **ERRORS},
             summary="the session's frames as a design.md §5 .npz take (what `flockcal fit` reads)")
 def get_take(sid: str = Depends(session_id), service=Depends(get_service), _role=Depends(require_read)):
-    take = service.sessions.take(sid)
-    buf = io.BytesIO()
-    np.savez_compressed(buf, rotations=take.rotations, positions=take.positions,
-                        names=np.asarray(take.names, dtype=str), rate_hz=np.float64(take.rate_hz),
-                        valid=take.valid, times=take.times)
-    return Response(buf.getvalue(), media_type="application/octet-stream",
-                    headers={"Content-Disposition": f'attachment; filename="{sid}.npz"'})
+    from flockcal.server.downloads import npz_stream
+
+    # Streamed from the frame log a chunk at a time (server/downloads.py): memory stays bounded for a
+    # session of any length. A live session's take holds the frames recorded when the download began.
+    frames = _frames(service, sid)
+    return StreamingResponse(npz_stream(frames), media_type="application/octet-stream",
+                             headers={"Content-Disposition": f'attachment; filename="{sid}.npz"'})
 
 
 @router.get("/{id}/skeleton", responses={200: {"content": {"application/json": {}}}, **ERRORS},
             summary="the calibrated skeleton file (flockcal.exports.skeleton) of the session")
 def get_skeleton(sid: str = Depends(session_id), service=Depends(get_service), _role=Depends(require_read)):
     from flockcal.exports.skeleton import skeleton_bytes
+    from flockcal.server.downloads import RigidPoints, rigid_means
+    from flockcal.solver.reconstruct import articulation
 
     result, _live = service.sessions.result(sid)
     row = service.sessions.get(sid)
 
     def make():
-        take = service.sessions.take(sid)
+        frames = _frames(service, sid)
         # The performer names the file's preset when it is loaded back (`--skeleton`, POST /api/skeletons).
         source = {"session": sid, "performer": row["performer"], "take": f"{sid}.npz",
-                  "frames": int(take.n_frames), "rate_hz": float(take.rate_hz)}
-        return skeleton_bytes(result, source=source, take=take)
+                  "frames": int(frames.n), "rate_hz": float(frames.rate_hz)}
+        # Sensors riding rigidly on their parent are placed from the recording, read a chunk at a time.
+        art = articulation(result)
+        rigid = RigidPoints(art, rigid_means(frames, art)) if art.incomplete.any() else None
+        return skeleton_bytes(result, source=source, acc=rigid)
 
     data = _export(make)
     return Response(data, media_type="application/json",
@@ -178,15 +180,33 @@ def get_skeleton(sid: str = Depends(session_id), service=Depends(get_service), _
 @router.get("/{id}/bvh", responses={200: {"content": {"text/plain": {}}}, **ERRORS},
             summary="the session's motion played through its calibration, as BVH")
 def get_bvh(sid: str = Depends(session_id),
-            units: str = Query("cm", pattern="^(m|cm|mm|in)$"),
-            up: str = Query("-z", pattern="^[+-]?[xyz]$", description="the tracker world's up axis"),
+            units: str = Query("cm", pattern="^(m|cm|mm|in)$", description="m, cm, mm or in"),
+            up: str = Query("-z", pattern="^[+-]?[xyz]$", description="the tracker world's up axis: +y, +z or -z"),
             service=Depends(get_service), _role=Depends(require_read)):
-    from flockcal.exports.bvh import bvh_bytes
+    from flockcal.server.downloads import bvh_stream, primed
 
     result, _live = service.sessions.result(sid)
-    data = _export(lambda: bvh_bytes(result, service.sessions.take(sid), units=units, up=up))
-    return Response(data, media_type="text/plain",
-                    headers={"Content-Disposition": f'attachment; filename="{sid}.bvh"'})
+    frames = _frames(service, sid)
+    body = _export(lambda: primed(bvh_stream(result, frames, units=units, up=up)))
+    return StreamingResponse(body, media_type="text/plain",
+                             headers={"Content-Disposition": f'attachment; filename="{sid}.bvh"'})
+
+
+def _frames(service, sid: str):
+    """The session's frame log opened for a chunked read; 404 without one, 409 while it is empty."""
+    from flockcal.server.downloads import FrameFile
+
+    service.sessions.get(sid)
+    path = service.sessions.frames_path(sid)
+    if not path.exists():
+        raise NotFound(f"session {sid} has no recording on disk")
+    try:
+        frames = FrameFile(path)
+    except ValueError as exc:
+        raise Conflict(f"session {sid}'s recording cannot be read: {exc}") from None
+    if frames.n == 0:
+        raise Conflict(f"session {sid}'s recording holds no frames yet")
+    return frames
 
 
 def _export(make):
