@@ -386,6 +386,9 @@ class Pipeline:
             live.t0 = float(times[0])
         live.framelog.write(times, R, t, valid)
         live.frames += n
+        limits = getattr(self, "limits", None)  # issue #16: session length, free disk (server/limits.py)
+        if limits is not None:
+            limits.check(live.id, float(times[-1]) - live.t0)
         Rz = np.where(valid[..., None, None], R, 0.0)
         tz = np.where(valid[..., None], t, 0.0)
         accumulate(live.acc, times - live.t0, Rz, tz, valid)

@@ -77,6 +77,8 @@ class Settings:
     scale_inches: int | None = None  # position full scale; None: 72 for the simulator (it reaches further), else the tracker's own
     fast_init: bool = False  # skip the manual's reset delays (simulators and fake trackers on a pty)
     skeletons: tuple[Path, ...] = ()  # --skeleton files: saved performers offered as session presets
+    max_session_s: float | None = 7200.0  # a live session is stopped at this length (server/limits.py); None: never
+    min_free_bytes: int = 500 * 2**20  # recording stops before the recordings' disk has less than this free
 
     @property
     def progress_target_m(self) -> float:
@@ -135,6 +137,10 @@ class Settings:
                 f"--host {self.host} is reachable from other machines; give --token SECRET "
                 "(and --read-token for dashboards) so only you can change sessions"
             )
+        if self.max_session_s is not None and not self.max_session_s > 0:
+            raise ConfigError(f"--max-session-min must be above 0 (0 turns the limit off), got {self.max_session_s / 60:g}")
+        if self.min_free_bytes < 0:
+            raise ConfigError("--min-free-mb must be 0 or more")
         tokens = [t for t in (self.token, self.read_token, self.kiosk_token) if t]
         if len(set(tokens)) != len(tokens):
             raise ConfigError("--token, --read-token and --kiosk-token must all differ")

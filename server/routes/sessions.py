@@ -18,7 +18,7 @@ from flockcal.server.settings import NAME_RE
 
 router = APIRouter(prefix="/api/sessions", tags=["sessions"])
 
-ERRORS = {code: {"model": ErrorReply} for code in (400, 401, 403, 404, 409, 413, 422)}
+ERRORS = {code: {"model": ErrorReply} for code in (400, 401, 403, 404, 409, 413, 422, 507)}
 MAX_RESIDUALS = 100_000  # samples per page: 83 minutes at 20 a second
 MAX_EVENTS = 5000
 
@@ -47,6 +47,7 @@ def list_sessions(service=Depends(get_service), _role=Depends(require_read)):
 @router.post("", response_model=Session, status_code=201, summary="start a session", responses=ERRORS)
 def start_session(body: SessionCreate, service=Depends(get_service), _role=Depends(require_session_control)):
     """Start recording a performer: automatic topology, or a known `hierarchy` ({child: parent}) / `skeleton` preset."""
+    service.limits.check_start()  # 507 when the disk is already at the service's reserve
     hierarchy = body.hierarchy
     saved = service.skeletons.get(body.skeleton) if body.skeleton is not None else None
     if saved is not None:
