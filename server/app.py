@@ -54,11 +54,23 @@ def _validation_message(exc: RequestValidationError) -> tuple[int, str]:
         if e.get("type") == "extra_forbidden":
             msg = "unknown field; remove it (see /docs for the fields this request takes)"
         elif e.get("type") == "string_pattern_mismatch":
-            msg = ("has characters that are not allowed (sensor names: 1–64 letters, digits, space _ . -; "
-                   "performer: no slashes, quotes or < >)")
+            msg = _pattern_message(loc, e)
         parts.append(f"{loc}: {msg}")
     more = f" (and {len(errors) - 5} more)" if len(errors) > 5 else ""
     return 422, "invalid request — " + "; ".join(parts) + more
+
+
+def _pattern_message(loc: str, error: dict) -> str:
+    """What a field that failed its pattern must look like: its own rule, not every field's."""
+    from flockcal.server.settings import NAME_RULE, PERFORMER_RULE
+
+    field = loc.rsplit(".", 1)[-1]
+    if field == "performer":
+        return f"is not allowed: a performer name is {PERFORMER_RULE}"
+    if field in ("root", "skeleton", "sensor", "name"):
+        return f"is not allowed: a {field} name is {NAME_RULE}"
+    shown = repr(error.get("input"))[:40]
+    return f"{shown} is not allowed; it must match {(error.get('ctx') or {}).get('pattern', 'its pattern')} (see /docs)"
 
 
 class BodyLimit:

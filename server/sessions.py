@@ -17,7 +17,7 @@ from flockcal.server.errors import BadRequest, Conflict, NotFound
 from flockcal.server.framelog import FrameLog, read_frames
 from flockcal.server.pipeline import SLIP_FIELDS, LiveSession, Pipeline, _finite, calibrate_dict, new_accumulator
 from flockcal.server.progress import progress_of, waiting
-from flockcal.server.settings import PERFORMER_RE
+from flockcal.server.settings import PERFORMER_RE, PERFORMER_RULE
 from flockcal.server.store import Store
 
 log = logging.getLogger(__name__)
@@ -105,8 +105,8 @@ class SessionManager:
               skeleton=None, skeleton_name: str | None = None) -> dict:
         """Start a session; with a saved `skeleton` (flockcal.exports.skeleton.Skeleton) its tree and
         bones are kept and only the sensor placements are fitted."""
-        if not PERFORMER_RE.match(performer) or not performer.strip():
-            raise BadRequest("performer name must be 1–64 characters without slashes, quotes or < >")
+        if not PERFORMER_RE.fullmatch(performer) or not performer.strip():
+            raise BadRequest(f"performer name must be {PERFORMER_RULE}")
         if skeleton is not None:
             if root is not None and root != skeleton.root:
                 raise BadRequest(f"skeleton {skeleton_name!r} is rooted at {skeleton.root!r}; leave 'root' out")

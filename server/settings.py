@@ -19,9 +19,15 @@ DEFAULT_BIRDS = 16
 DEFAULT_RATE_HZ = 144.0
 
 # Names of sensors, performers and joints travel into file names and SQL; keep them to a safe alphabet.
+# Always .fullmatch: with .match the final $ lets a trailing newline through ("a\n").
 NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9 _.\-]{0,63}$")
-# Performer names are only ever data (never a file name): any printable text but markup and slashes.
-PERFORMER_PATTERN = r"^[^\x00-\x1f\x7f/\\<>\"]{1,64}$"
+NAME_RULE = "1–64 letters, digits, space, _ . - (starting with a letter or digit)"
+# Performer names are only ever data (never a file name): any printable text but markup and slashes,
+# and none of the invisible characters that reorder or break the text around them where it is shown
+# (C0/C1 controls such as U+0085, bidi overrides and isolates such as U+202E, U+2028/9, BOM, zero widths).
+PERFORMER_PATTERN = (r"^[^\x00-\x1f\x7f-\x9f/\\<>\"\u00ad\u061c\u180e\u200b\u200e\u200f\u2028-\u202e"
+                     r"\u2060-\u206f\ufeff\ufff9-\ufffb]{1,64}$")
+PERFORMER_RULE = "1–64 characters without slashes, quotes, < >, control or invisible formatting characters"
 PERFORMER_RE = re.compile(PERFORMER_PATTERN)
 
 
@@ -151,7 +157,7 @@ class Settings:
         if self.names is not None:
             if len(self.names) != self.birds:
                 raise ConfigError(f"--names lists {len(self.names)} names for {self.birds} birds")
-            bad = [n for n in self.names if not NAME_RE.match(n)]
+            bad = [n for n in self.names if not NAME_RE.fullmatch(n)]
             if bad:
                 raise ConfigError(f"sensor name {bad[0]!r} is not allowed: use letters, digits, space, _ . -")
             if len(set(self.names)) != len(self.names):

@@ -268,3 +268,77 @@ def test_repeated_wrong_tokens_make_the_address_wait(tmp_path):
         assert "wait" in asyncio.run(socket_attempt())["message"]
         time.sleep(int(r.headers["retry-after"]) + 0.2)
         assert httpx.get(url, headers={"Authorization": f"Bearer {ADMIN}"}).status_code == 200
+
+
+# --- 9. names, messages, documented figures ---------------------------------------------------------------
+def test_names_are_matched_whole_and_invisible_characters_are_refused(open_server):
+    srv = open_server
+    before = sessions(srv)
+    # A trailing newline used to pass the id and name checks ($ matches before a final newline).
+    r = httpx.get(srv.url + "/api/sessions/20200101-000000-abcdef%0A")
+    assert r.status_code == 400 and "not a session id" in r.json()["detail"], r.text
+    assert httpx.get(srv.url + "/api/skeletons/Ann%0A").status_code == 400
+    # Performer names that would reorder or break the text where they are shown.
+    # (Inside the name: leading and trailing whitespace, U+2028 and U+0085 among it, is stripped.)
+    for name in ("Ann\u202eevil", "An\u2028n", "An\u0085n", "\ufeffAnn", "Ann\u2066x"):
+        r = httpx.post(srv.url + "/api/sessions", json={"performer": name})
+        assert r.status_code == 422 and "performer name is" in r.json()["detail"], (name, r.text)
+    assert sessions(srv) == before
+    # A bad query value is told its own rule, not the sensor and performer rules.
+    r = httpx.get(srv.url + "/api/sessions/20200101-000000-abcdef/bvh?units=xx")
+    detail = r.json()["detail"]
+    assert r.status_code == 422 and "units" in detail and "'xx'" in detail and "performer" not in detail, detail
+
+
+def test_a_skeleton_file_naming_a_bad_performer_is_refused(open_server):
+    srv = open_server
+    sid = httpx.post(srv.url + "/api/sessions", json={"performer": "Sam"}).json()["id"]
+    time.sleep(3.0)
+    httpx.post(srv.url + f"/api/sessions/{sid}/stop", timeout=30)
+    skeleton = httpx.get(srv.url + f"/api/sessions/{sid}/skeleton", timeout=30).json()
+    listed = httpx.get(srv.url + "/api/skeletons").json()
+    for where in ("source", "top"):
+        bad = json.loads(json.dumps(skeleton))
+        if where == "source":
+            bad["source"]["performer"] = "<img src=x onerror=alert(1)>"
+        else:
+            bad["performer"] = "Sam\u202e"
+        r = httpx.post(srv.url + "/api/skeletons?name=Sam", content=json.dumps(bad).encode())
+        assert r.status_code == 400 and "performer" in r.json()["detail"], r.text
+    assert httpx.get(srv.url + "/api/skeletons").json() == listed
+    # The file as downloaded is fine.
+    assert httpx.post(srv.url + "/api/skeletons?name=Sam", content=json.dumps(skeleton).encode()).status_code == 201
+
+
+def test_the_documented_send_buffer_is_what_the_kernel_gives(open_server):
+    import re
+    from pathlib import Path
+
+    from flockcal.server.listen import listen_socket
+
+    text = (Path(__file__).parents[1] / "docs" / "service.md").read_text()
+    asked, given = (int(x) * 1024 for x in re.search(r"send buffer is set to (\d+) kB, which Linux doubles to (\d+) kB",
+                                                        text).groups())
+    assert asked == Settings().send_buffer_bytes
+    listener = listen_socket("127.0.0.1", 0, Settings().send_buffer_bytes)
+    client = socket.create_connection(listener.getsockname())
+    conn, _ = listener.accept()
+    try:
+        assert conn.getsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF) == given
+    finally:
+        for s in (conn, client, listener):
+            s.close()
+
+
+def test_the_documented_token_examples_are_accepted():
+    import re
+    import shlex
+    from pathlib import Path
+
+    from flockcal.cli import build_parser
+    from flockcal.commands.serve import settings_from_args
+
+    text = (Path(__file__).parents[1] / "docs" / "service.md").read_text()
+    line = re.search(r"^flockcal serve --host 0\.0\.0\.0 --token .*$", text, re.M).group(0)
+    settings = settings_from_args(build_parser().parse_args(shlex.split(line)[1:])).check()
+    assert settings.token and settings.read_token and settings.kiosk_token

@@ -62,7 +62,7 @@ def start_session(body: SessionCreate, service=Depends(get_service), _role=Depen
             raise BadRequest(f"unknown skeleton {body.skeleton!r}; choose one of: {', '.join(known)}")
         hierarchy = known[body.skeleton]
     if hierarchy is not None:
-        bad = [x for kv in hierarchy.items() for x in kv if not NAME_RE.match(x)]
+        bad = [x for kv in hierarchy.items() for x in kv if not NAME_RE.fullmatch(x)]
         if bad:
             raise BadRequest(f"hierarchy name {bad[0][:80]!r} is not a valid sensor name")
     return service.sessions.start(body.performer, hierarchy, body.root)
