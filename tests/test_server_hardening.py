@@ -342,3 +342,36 @@ def test_the_documented_token_examples_are_accepted():
     line = re.search(r"^flockcal serve --host 0\.0\.0\.0 --token .*$", text, re.M).group(0)
     settings = settings_from_args(build_parser().parse_args(shlex.split(line)[1:])).check()
     assert settings.token and settings.read_token and settings.kiosk_token
+
+
+# --- 8. pages that say there is more ------------------------------------------------------------------
+def test_residuals_and_events_come_in_pages_that_say_there_is_more(open_server):
+    srv = open_server
+    sid = httpx.post(srv.url + "/api/sessions", json={"performer": "Pages"}).json()["id"]
+    time.sleep(2.5)
+    httpx.post(srv.url + f"/api/sessions/{sid}/stop", timeout=30)
+    base = srv.url + f"/api/sessions/{sid}"
+    whole = httpx.get(base + "/residuals").json()
+    assert not whole["more"] and len(whole["times"]) >= 20  # 20 samples a second
+    # Pages of 7, followed by next_since, give every sample exactly once, the newest included.
+    times, since = [], None
+    while True:
+        page = httpx.get(base + "/residuals", params={"limit": 7, **({"since": since} if since is not None else {})}).json()
+        times += page["times"]
+        if not page["more"]:
+            break
+        assert len(page["times"]) == 7
+        since = page["next_since"]
+    assert times == whole["times"]
+    # Events the same way (a session has at least its started and stopped events).
+    events = httpx.get(base + "/events").json()
+    assert not events["more"] and len(events["events"]) >= 2
+    first = httpx.get(base + "/events", params={"limit": 1}).json()
+    assert first["more"] and first["events"] == events["events"][:1]
+    rest = httpx.get(base + "/events", params={"since": first["next_since"], "limit": 5000}).json()
+    assert first["events"] + rest["events"] == events["events"] and not rest["more"]
+    # The service-wide list says where the next page is in a Link header.
+    r = httpx.get(srv.url + "/api/events", params={"limit": 1})
+    assert r.headers["link"].startswith(f'</api/events?since={r.json()[0]["id"]}&limit=1>')
+    last = httpx.get(srv.url + "/api/events", params={"limit": 5000})
+    assert "link" not in last.headers
