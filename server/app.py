@@ -23,6 +23,7 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 from flockcal import __version__
 from flockcal.server.errors import ServerError
 from flockcal.server.backoff import TokenBackoff
+from flockcal.server.downloads import DownloadSlots
 from flockcal.server.hosts import HostCheck, HostPolicy
 from flockcal.server.wsgate import ClientSlots, TransportHandle
 from flockcal.server.settings import Settings
@@ -181,6 +182,7 @@ def create_app(settings: Settings, service=None) -> FastAPI:
     app.state.settings = settings
     app.state.token_backoff = TokenBackoff()
     app.state.ws_slots = ClientSlots(settings.ws_max_clients)
+    app.state.download_slots = DownloadSlots(settings.max_downloads)
 
     @app.exception_handler(ServerError)
     async def _server_error(request: Request, exc: ServerError):

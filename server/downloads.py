@@ -10,12 +10,14 @@ from __future__ import annotations
 import io
 import json
 import os
+import threading
 import zipfile
 from pathlib import Path
 from typing import Iterator
 
 import numpy as np
 
+from flockcal.server.errors import Unavailable
 from flockcal.server.framelog import MAGIC, record_dtype
 
 CHUNK_BYTES = 1024 * 1024  # frames read per step; per download the service holds a few of these
@@ -71,6 +73,61 @@ class FrameFile:
                     R = np.where(valid[..., None, None], R, 0.0)
                     t = np.where(valid[..., None], t, 0.0)
                 yield rec["time"] - self.t0, R, t, valid
+
+
+class DownloadSlots:
+    """At most `limit` downloads built at once (each holds a few chunks and a thread while it runs):
+    one more gets 503 with the number running, instead of memory and CPU growing with the clients."""
+
+    def __init__(self, limit: int = 8):
+        self.limit = limit
+        self.running = 0
+        self._lock = threading.Lock()
+
+    def acquire(self) -> None:
+        with self._lock:
+            if self.running >= self.limit:
+                raise Unavailable(f"{self.running} downloads are being built already (the service builds at most "
+                                  f"{self.limit} at once); try again when one has finished")
+            self.running += 1
+
+    def release(self) -> None:
+        with self._lock:
+            self.running -= 1
+
+    def guard(self, stream: Iterator[bytes]) -> "Slotted":
+        return Slotted(stream, self.release)
+
+
+class Slotted:
+    """An iterator over `stream` that calls `release` once: at its end, on an error, or when it is
+    dropped unfinished (a client gone before or during the response). A generator would not: one
+    never started runs no `finally`."""
+
+    def __init__(self, stream: Iterator[bytes], release):
+        self._stream = stream
+        self._release = release
+
+    def __iter__(self):
+        return self
+
+    def __next__(self) -> bytes:
+        try:
+            return next(self._stream)
+        except BaseException:
+            self.close()
+            raise
+
+    def close(self) -> None:
+        release, self._release = self._release, None
+        if release is not None:
+            release()
+            close = getattr(self._stream, "close", None)
+            if close is not None:
+                close()
+
+    def __del__(self):
+        self.close()
 
 
 # --- .npz take ------------------------------------------------------------------------------------------

@@ -85,6 +85,7 @@ class Settings:
     skeletons: tuple[Path, ...] = ()  # --skeleton files: saved performers offered as session presets
     max_session_s: float | None = 7200.0  # a live session is stopped at this length (server/limits.py); None: never
     min_free_bytes: int = 500 * 2**20  # recording stops before the recordings' disk has less than this free
+    max_downloads: int = 8  # take/bvh downloads built at once (server/downloads.py); one more gets 503
 
     @property
     def progress_target_m(self) -> float:

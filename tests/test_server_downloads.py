@@ -114,3 +114,40 @@ def test_chunked_exports_hold_dropouts_and_rigid_sensors_like_the_whole_take(ses
         assert got.splitlines()[:head] == want.splitlines()[:head]
         np.testing.assert_allclose(np.loadtxt(got.splitlines()[head:]), np.loadtxt(want.splitlines()[head:]),
                                    atol=2e-6)
+
+
+def test_downloads_beyond_the_limit_get_503_until_one_ends(tmp_path):
+    """Two downloads held open by clients that read nothing more (a 40 MB take stays in flight), a
+    third refused with 503; once a client goes away its slot is free again."""
+    settings = Settings(device="sim://dlslots?birds=4&model=linkage&motion=exercise&rate=60", birds=4,
+                        http_port=free_port(), data_dir=tmp_path, max_downloads=2)
+    with ServerThread(settings) as srv:
+        wait_connected(srv.url)
+        sid = "20200101-000000-aaaaaa"
+        names = list(srv.service.pipeline.names)
+        n, m = 100_000, len(names)  # 100,000 frames of 4 sensors: 40 MB of log
+        log = FrameLog(srv.service.sessions.frames_path(sid), names, 60.0)
+        rot = np.broadcast_to(np.eye(3), (n, m, 3, 3))
+        log.write(np.arange(n) / 60.0, rot, np.zeros((n, m, 3)), np.ones((n, m), bool))
+        log.close()
+        srv.service.store.insert_session({"id": sid, "performer": "Big", "state": "stopped", "names": names,
+                                          "device": "test", "created_at": time.time(), "frames": n})
+        url = f"/api/sessions/{sid}/take"
+        with httpx.Client(base_url=srv.url, timeout=30) as a, httpx.Client(base_url=srv.url, timeout=30) as b:
+            held = []
+            for client in (a, b):
+                cm = client.stream("GET", url)
+                r = cm.__enter__()
+                assert r.status_code == 200
+                next(r.iter_raw(65536))  # the download has begun; the rest waits in flight
+                held.append((cm, r))
+            r = httpx.get(srv.url + url)
+            assert r.status_code == 503 and "at most 2" in r.json()["detail"], r.text
+            cm, _r = held.pop()
+            cm.__exit__(None, None, None)
+            b.close()
+            deadline = time.monotonic() + 10
+            while (r := httpx.get(srv.url + url, timeout=60)).status_code == 503 and time.monotonic() < deadline:
+                time.sleep(0.1)
+            assert r.status_code == 200 and len(r.content) > n * m * 97  # the whole take
+            held[0][0].__exit__(None, None, None)

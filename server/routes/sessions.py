@@ -5,7 +5,7 @@ Handlers only validate and read: fits come from the pipeline's snapshots or the 
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends, Query
+from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import Response, StreamingResponse
 
 from flockcal.server.auth import require_admin, require_read, require_session_control
@@ -18,7 +18,7 @@ from flockcal.server.settings import NAME_RE
 
 router = APIRouter(prefix="/api/sessions", tags=["sessions"])
 
-ERRORS = {code: {"model": ErrorReply} for code in (400, 401, 403, 404, 409, 413, 422, 507)}
+ERRORS = {code: {"model": ErrorReply} for code in (400, 401, 403, 404, 409, 413, 422, 503, 507)}
 MAX_RESIDUALS = 100_000  # samples per page: 83 minutes at 20 a second
 MAX_EVENTS = 5000
 
@@ -143,13 +143,15 @@ def get_events(sid: str = Depends(session_id),
 
 @router.get("/{id}/take", responses={200: {"content": {"application/octet-stream": {}}}, **ERRORS},
             summary="the session's frames as a design.md §5 .npz take (what `flockcal fit` reads)")
-def get_take(sid: str = Depends(session_id), service=Depends(get_service), _role=Depends(require_read)):
+def get_take(request: Request, sid: str = Depends(session_id), service=Depends(get_service),
+             _role=Depends(require_read)):
     from flockcal.server.downloads import npz_stream
 
     # Streamed from the frame log a chunk at a time (server/downloads.py): memory stays bounded for a
     # session of any length. A live session's take holds the frames recorded when the download began.
     frames = _frames(service, sid)
-    return StreamingResponse(npz_stream(frames), media_type="application/octet-stream",
+    body = _slotted(request, lambda: npz_stream(frames))
+    return StreamingResponse(body, media_type="application/octet-stream",
                              headers={"Content-Disposition": f'attachment; filename="{sid}.npz"'})
 
 
@@ -180,7 +182,7 @@ def get_skeleton(sid: str = Depends(session_id), service=Depends(get_service), _
 
 @router.get("/{id}/bvh", responses={200: {"content": {"text/plain": {}}}, **ERRORS},
             summary="the session's motion played through its calibration, as BVH")
-def get_bvh(sid: str = Depends(session_id),
+def get_bvh(request: Request, sid: str = Depends(session_id),
             units: str = Query("cm", pattern="^(m|cm|mm|in)$", description="m, cm, mm or in"),
             up: str = Query("-z", pattern="^[+-]?[xyz]$", description="the tracker world's up axis: +y, +z or -z"),
             service=Depends(get_service), _role=Depends(require_read)):
@@ -188,9 +190,21 @@ def get_bvh(sid: str = Depends(session_id),
 
     result, _live = service.sessions.result(sid)
     frames = _frames(service, sid)
-    body = _export(lambda: primed(bvh_stream(result, frames, units=units, up=up)))
+    body = _slotted(request, lambda: _export(lambda: primed(bvh_stream(result, frames, units=units, up=up))))
     return StreamingResponse(body, media_type="text/plain",
                              headers={"Content-Disposition": f'attachment; filename="{sid}.bvh"'})
+
+
+def _slotted(request: Request, make):
+    """make() → a stream, built and run within one of the app's download slots (503 when all are taken)."""
+    slots = request.app.state.download_slots
+    slots.acquire()
+    try:
+        stream = make()
+    except BaseException:
+        slots.release()
+        raise
+    return slots.guard(stream)
 
 
 def _frames(service, sid: str):
