@@ -48,8 +48,9 @@ def test_a_session_stops_at_the_maximum_length_with_its_result(tmp_path):
     assert row["state"] == "stopped" and row["has_result"], row
     assert "maximum length" in row["note"], row
     assert [e["reason"] for e in events] == ["max_length"] and "--max-session-min" in events[0]["message"]
-    # Stopped at the limit: 2 s of frames at 60 Hz, give or take the half second a stop takes.
-    assert 2.0 * 60 <= row["frames"] <= 2.5 * 60, row["frames"]
+    # Stopped at the limit: 2 s of frames at 60 Hz, plus what arrives while the stop runs (a final fit;
+    # ~0.2 s here, up to 2 s allowed for a loaded 2-core CI machine).
+    assert 2.0 * 60 <= row["frames"] <= (2.0 + 2.0) * 60, row["frames"]
 
 
 def test_recording_stops_cleanly_before_the_disk_reserve_is_reached(tmp_path):
