@@ -21,6 +21,10 @@ from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from flockcal import __version__
 from flockcal.server.errors import ServerError
+from flockcal.server.backoff import TokenBackoff
+from flockcal.server.downloads import DownloadSlots
+from flockcal.server.hosts import HostCheck, HostPolicy
+from flockcal.server.wsgate import ClientSlots, TransportHandle
 from flockcal.server.settings import Settings
 
 log = logging.getLogger(__name__)
@@ -50,11 +54,23 @@ def _validation_message(exc: RequestValidationError) -> tuple[int, str]:
         if e.get("type") == "extra_forbidden":
             msg = "unknown field; remove it (see /docs for the fields this request takes)"
         elif e.get("type") == "string_pattern_mismatch":
-            msg = ("has characters that are not allowed (sensor names: 1–64 letters, digits, space _ . -; "
-                   "performer: no slashes, quotes or < >)")
+            msg = _pattern_message(loc, e)
         parts.append(f"{loc}: {msg}")
     more = f" (and {len(errors) - 5} more)" if len(errors) > 5 else ""
     return 422, "invalid request — " + "; ".join(parts) + more
+
+
+def _pattern_message(loc: str, error: dict) -> str:
+    """What a field that failed its pattern must look like: its own rule, not every field's."""
+    from flockcal.server.settings import NAME_RULE, PERFORMER_RULE
+
+    field = loc.rsplit(".", 1)[-1]
+    if field == "performer":
+        return f"is not allowed: a performer name is {PERFORMER_RULE}"
+    if field in ("root", "skeleton", "sensor", "name"):
+        return f"is not allowed: a {field} name is {NAME_RULE}"
+    shown = repr(error.get("input"))[:40]
+    return f"{shown} is not allowed; it must match {(error.get('ctx') or {}).get('pattern', 'its pattern')} (see /docs)"
 
 
 class BodyLimit:
@@ -163,10 +179,15 @@ def create_app(settings: Settings, service=None) -> FastAPI:
         swagger_ui_parameters={"validatorUrl": None},
     )
     app.state.settings = settings
+    app.state.token_backoff = TokenBackoff()
+    app.state.ws_slots = ClientSlots(settings.ws_max_clients)
+    app.state.download_slots = DownloadSlots(settings.max_downloads)
 
     @app.exception_handler(ServerError)
     async def _server_error(request: Request, exc: ServerError):
         headers = {"WWW-Authenticate": "Bearer"} if exc.status == 401 else None
+        if getattr(exc, "retry_after", None) is not None:
+            headers = {"Retry-After": str(exc.retry_after)}
         return _error(exc.status, str(exc), exc.code, headers)
 
     @app.exception_handler(RequestValidationError)
@@ -210,4 +231,7 @@ def create_app(settings: Settings, service=None) -> FastAPI:
         )
     app.add_middleware(BodyLimit, limit=settings.max_body_bytes)
     app.add_middleware(DocsPolicy, paths=("/docs", "/redoc"))
+    # Outermost: a request under a name the service does not answer to reaches nothing else.
+    app.add_middleware(HostCheck, policy=HostPolicy(settings.host, settings.allow_hosts))
+    app.add_middleware(TransportHandle)  # before any middleware wraps a websocket's send
     return app

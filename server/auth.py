@@ -7,13 +7,14 @@ open, which `Settings.check` only allows on a loopback address.
 
 from __future__ import annotations
 
+import math
 import secrets
 import urllib.parse
 from typing import Literal
 
 from fastapi import Request
 
-from flockcal.server.errors import Forbidden, Unauthorized
+from flockcal.server.errors import Forbidden, TooManyAttempts, Unauthorized
 from flockcal.server.settings import Settings
 
 Role = Literal["admin", "kiosk", "read"]
@@ -30,6 +31,22 @@ def token_role(settings: Settings, token: str | None) -> Role | None:
         if expected and secrets.compare_digest(token.encode(), expected.encode()):
             found = role
     return found
+
+
+def presented_role(settings: Settings, backoff, token: str, peer: str | None) -> Role:
+    """The role a presented token grants, through the failed-token back-off (server/backoff.py):
+    TooManyAttempts while `peer` must wait, Unauthorized (counted as a failure) for an unknown token."""
+    wait = backoff.wait_s(peer) if backoff is not None else 0.0
+    if wait > 0:
+        seconds = math.ceil(wait)
+        raise TooManyAttempts(f"too many unrecognised tokens from {peer}; wait {seconds} s before trying again",
+                              retry_after=seconds)
+    role = token_role(settings, token)
+    if role is None:
+        if backoff is not None:
+            backoff.failed(peer)
+        raise Unauthorized("the token was not recognised; check the --token/--read-token/--kiosk-token the service started with")
+    return role
 
 
 def bearer(request: Request) -> str | None:
@@ -64,10 +81,8 @@ def _role(request: Request) -> Role:
     token = bearer(request)
     if token is None:
         raise Unauthorized("this service needs a token: send the header 'Authorization: Bearer <token>'")
-    role = token_role(settings, token)
-    if role is None:
-        raise Unauthorized("the token was not recognised; check the --token/--read-token/--kiosk-token the service started with")
-    return role
+    peer = request.client.host if request.client else None
+    return presented_role(settings, getattr(request.app.state, "token_backoff", None), token, peer)
 
 
 def require_read(request: Request) -> Role:

@@ -53,3 +53,19 @@ class NotFound(ServerError):
 class Conflict(ServerError):
     status = 409
     code = "conflict"
+
+
+class Unavailable(ServerError):
+    status = 503
+    code = "unavailable"
+
+
+class TooManyAttempts(ServerError):
+    """Too many unrecognised tokens from one address (server/backoff.py); `retry_after` in seconds."""
+
+    status = 429
+    code = "too_many_attempts"
+
+    def __init__(self, message: str, retry_after: int):
+        super().__init__(message)
+        self.retry_after = retry_after

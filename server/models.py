@@ -194,6 +194,8 @@ class ResidualSeries(BaseModel):
     joint: str | None = None
     times: list[float] = Field(description="session clock, seconds")
     joints: dict[str, list[float | None]] = Field(description="{joint child name: rms in mm per time}")
+    more: bool = Field(False, description="later samples exist: ask again with since=next_since")
+    next_since: float | None = Field(None, description="the `since` of the next page (the last time here)")
 
 
 class Event(Open):
@@ -207,6 +209,8 @@ class Event(Open):
 class EventList(BaseModel):
     session_id: str
     events: list[Event]
+    more: bool = Field(False, description="later events exist: ask again with since=next_since")
+    next_since: int | None = Field(None, description="the `since` of the next page (the last id here)")
 
 
 class SlipRequest(Strict):

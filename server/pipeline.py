@@ -63,6 +63,7 @@ class Pipeline:
         self.min_publish_s = 1.0 / publish_hz
         self.min_fit_s = 1.0 / fit_hz
         self.on_publish = on_publish
+        self.limits = None  # SessionLimits (server/limits.py), set by the service: session length, free disk
         self.detect_slips = detect_slips
         self.rate_hz = rate_hz or (lambda: 144.0)
         self._cond = threading.Condition()
@@ -231,6 +232,8 @@ class Pipeline:
         frames = self.ingest.take(batches, live)
         if frames is None:
             return
+        if self.limits is not None:  # session length, free disk (server/limits.py)
+            self.limits.check(live.id, float(frames[0][-1]))
         if live.watch is not None:
             self._slips(live, watch_step(live, *frames))
         self.sampler.add(live, *frames)

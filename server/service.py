@@ -13,6 +13,7 @@ from pathlib import Path
 
 from flockcal.server.errors import ConfigError
 from flockcal.server.hub import SnapshotHub
+from flockcal.server.limits import SessionLimits
 from flockcal.server.pipeline import Pipeline
 from flockcal.server.sessions import SessionManager
 from flockcal.server.settings import Settings
@@ -66,6 +67,11 @@ class Service:
         self.sessions = SessionManager(self.store, self.pipeline, data / "recordings", settings.device_url,
                                        settings.rate_hz)
         self.sessions.raw_recorder = self.source
+        # The session length and free-disk limits the pipeline checks while recording.
+        self.limits = SessionLimits(data / "recordings", settings.max_session_s, settings.min_free_bytes,
+                                    stop=self.sessions.stop, add_event=self.pipeline.add_event,
+                                    set_note=lambda sid, note: self.store.update_session(sid, note=note))
+        self.pipeline.limits = self.limits
         try:
             self.skeletons = SkeletonLibrary(data / "skeletons", self.pipeline.names)
             for path in settings.skeletons:

@@ -19,7 +19,7 @@ from flockcal.server.fitting import SLIP_FIELDS, json_safe
 from flockcal.server.live_session import LiveSession
 from flockcal.server.pipeline import Pipeline
 from flockcal.server.progress import progress_of, waiting
-from flockcal.server.settings import PERFORMER_RE
+from flockcal.server.settings import PERFORMER_RE, PERFORMER_RULE
 from flockcal.server.store import Store
 
 log = logging.getLogger(__name__)
@@ -107,8 +107,8 @@ class SessionManager:
               skeleton=None, skeleton_name: str | None = None) -> dict:
         """Start a session; with a saved `skeleton` (flockcal.exports.skeleton.Skeleton) its tree and
         bones are kept and only the sensor placements are fitted."""
-        if not PERFORMER_RE.match(performer) or not performer.strip():
-            raise BadRequest("performer name must be 1–64 characters without slashes, quotes or < >")
+        if not PERFORMER_RE.fullmatch(performer) or not performer.strip():
+            raise BadRequest(f"performer name must be {PERFORMER_RULE}")
         if skeleton is not None:
             if root is not None and root != skeleton.root:
                 raise BadRequest(f"skeleton {skeleton_name!r} is rooted at {skeleton.root!r}; leave 'root' out")
@@ -186,7 +186,7 @@ class SessionManager:
                 raise NotFound(f"session {session_id} has no recording on disk ({path.name}); it cannot be re-solved")
             take = self.take(session_id)
             n = take.n_frames
-            slips = [e for e in self.store.events(session_id) if e["type"] == "slip" and e.get("sensor") in take.names]
+            slips = [e for e in self.store.events(session_id, limit=None) if e["type"] == "slip" and e.get("sensor") in take.names]
             try:
                 _name, skeleton = self.session_skeleton(session_id)
                 from types import SimpleNamespace
@@ -285,20 +285,26 @@ class SessionManager:
             doc = progress_of(result, self.pipeline.target, self.pipeline.tolerance)
         return {**head, **doc}
 
-    def residuals(self, session_id: str, joint: str | None, since: float | None) -> list[tuple[float, dict]]:
+    def residuals(self, session_id: str, joint: str | None, since: float | None,
+                  limit: int = 100_000) -> tuple[list[tuple[float, dict]], bool]:
+        """(up to `limit` samples after `since`, oldest first; whether later ones exist)."""
         self._row(session_id)
         if joint is not None and joint not in self.names:
             raise BadRequest(f"joint {joint!r} is not a sensor name (a joint is named by its child body); the sensors are: {', '.join(self.names)}")
         since = float("-inf") if since is None else since
-        rows = self.store.residuals(session_id, since)
+        rows = self.store.residuals(session_id, since, limit + 1)
+        more = len(rows) > limit
+        rows = rows[:limit]
         snap = self.pipeline.snapshot
-        if snap.session and snap.session["id"] == session_id:
+        if snap.session and snap.session["id"] == session_id and not more:
             # Samples not yet flushed to the store (at most a second's worth) come from the snapshot.
             last = rows[-1][0] if rows else since
-            rows += [(s.time_s, s.rms_mm) for s in snap.residuals if s.time_s > last]
+            fresh = [(s.time_s, s.rms_mm) for s in snap.residuals if s.time_s > last]
+            more = len(rows) + len(fresh) > limit
+            rows += fresh[:limit - len(rows)]
         if joint is not None:
             rows = [(t, {joint: v[joint]}) for t, v in rows if joint in v]
-        return rows
+        return rows, more
 
     def take(self, session_id: str):
         """The session's recorded frames as a flockcal.takes.Take (times from the session start)."""
@@ -318,6 +324,6 @@ class SessionManager:
         return make_take(data["rotations"], data["positions"], data["names"], rate, valid=data["valid"],
                          times=times, source=f"session {session_id}")
 
-    def events(self, session_id: str, since_id: int = 0) -> list[dict]:
+    def events(self, session_id: str, since_id: int = 0, limit: int = 1000) -> list[dict]:
         self._row(session_id)
-        return self.store.events(session_id, since_id)
+        return self.store.events(session_id, since_id, limit)

@@ -19,9 +19,15 @@ DEFAULT_BIRDS = 16
 DEFAULT_RATE_HZ = 144.0
 
 # Names of sensors, performers and joints travel into file names and SQL; keep them to a safe alphabet.
+# Always .fullmatch: with .match the final $ lets a trailing newline through ("a\n").
 NAME_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9 _.\-]{0,63}$")
-# Performer names are only ever data (never a file name): any printable text but markup and slashes.
-PERFORMER_PATTERN = r"^[^\x00-\x1f\x7f/\\<>\"]{1,64}$"
+NAME_RULE = "1–64 letters, digits, space, _ . - (starting with a letter or digit)"
+# Performer names are only ever data (never a file name): any printable text but markup and slashes,
+# and none of the invisible characters that reorder or break the text around them where it is shown
+# (C0/C1 controls such as U+0085, bidi overrides and isolates such as U+202E, U+2028/9, BOM, zero widths).
+PERFORMER_PATTERN = (r"^[^\x00-\x1f\x7f-\x9f/\\<>\"\u00ad\u061c\u180e\u200b\u200e\u200f\u2028-\u202e"
+                     r"\u2060-\u206f\ufeff\ufff9-\ufffb]{1,64}$")
+PERFORMER_RULE = "1–64 characters without slashes, quotes, < >, control or invisible formatting characters"
 PERFORMER_RE = re.compile(PERFORMER_PATTERN)
 
 
@@ -67,6 +73,7 @@ class Settings:
     residual_window_s: float = 120.0  # live residual history kept in memory
     max_body_bytes: int = 64 * 1024
     cors_origins: tuple[str, ...] = ()  # CORS closed unless origins are listed
+    allow_hosts: tuple[str, ...] = ()  # Host names answered besides loopback's (server/hosts.py)
     baud: int | None = None  # line speed; None: a URL's own baud= (the simulator's emulated line), else 115200
     hemisphere: str = "forward"
     ws_max_clients: int = 200
@@ -76,6 +83,9 @@ class Settings:
     scale_inches: int | None = None  # position full scale; None: 72 for the simulator (it reaches further), else the tracker's own
     fast_init: bool = False  # skip the manual's reset delays (simulators and fake trackers on a pty)
     skeletons: tuple[Path, ...] = ()  # --skeleton files: saved performers offered as session presets
+    max_session_s: float | None = 7200.0  # a live session is stopped at this length (server/limits.py); None: never
+    min_free_bytes: int = 500 * 2**20  # recording stops before the recordings' disk has less than this free
+    max_downloads: int = 8  # take/bvh downloads built at once (server/downloads.py); one more gets 503
 
     @property
     def progress_target_m(self) -> float:
@@ -134,6 +144,10 @@ class Settings:
                 f"--host {self.host} is reachable from other machines; give --token SECRET "
                 "(and --read-token for dashboards) so only you can change sessions"
             )
+        if self.max_session_s is not None and not self.max_session_s > 0:
+            raise ConfigError(f"--max-session-min must be above 0 (0 turns the limit off), got {self.max_session_s / 60:g}")
+        if self.min_free_bytes < 0:
+            raise ConfigError("--min-free-mb must be 0 or more")
         tokens = [t for t in (self.token, self.read_token, self.kiosk_token) if t]
         if len(set(tokens)) != len(tokens):
             raise ConfigError("--token, --read-token and --kiosk-token must all differ")
@@ -144,7 +158,7 @@ class Settings:
         if self.names is not None:
             if len(self.names) != self.birds:
                 raise ConfigError(f"--names lists {len(self.names)} names for {self.birds} birds")
-            bad = [n for n in self.names if not NAME_RE.match(n)]
+            bad = [n for n in self.names if not NAME_RE.fullmatch(n)]
             if bad:
                 raise ConfigError(f"sensor name {bad[0]!r} is not allowed: use letters, digits, space, _ . -")
             if len(set(self.names)) != len(self.names):

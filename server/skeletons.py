@@ -25,6 +25,7 @@ log = logging.getLogger(__name__)
 
 # Preset names the service gives meaning to itself; a saved skeleton cannot take them.
 RESERVED = ("auto", "human")
+MAX_DEPTH = 8  # a skeleton file nests 4 deep (joints → joint → c → number); deeper is not one
 
 
 @dataclass(frozen=True)
@@ -53,7 +54,21 @@ def safe_name(text: str) -> str | None:
     """`text` made a preset name (letters, digits, space _ . -, 1–64, starting alphanumeric), or None."""
     name = re.sub(r"[^A-Za-z0-9 _.\-]", "_", text.strip())[:64].strip()
     name = name.lstrip(" _.-")
-    return name if name and NAME_RE.match(name) else None
+    return name if name and NAME_RE.fullmatch(name) else None
+
+
+def check_performers(data: dict) -> None:
+    """BadRequest unless every performer the file names (top level, `source`) is a valid performer name:
+    it is shown in the preset list and may become a session's performer."""
+    from flockcal.server.settings import PERFORMER_RE, PERFORMER_RULE
+
+    source = data.get("source") if isinstance(data.get("source"), dict) else {}
+    for where, value in (("performer", data.get("performer")), ("source.performer", source.get("performer"))):
+        if value is None:
+            continue
+        if not isinstance(value, str) or not PERFORMER_RE.fullmatch(value) or not value.strip():
+            raise BadRequest(f"the skeleton's {where} {str(value)[:80]!r} is not allowed: a performer name is "
+                             f"{PERFORMER_RULE}; fix it in the file")
 
 
 class SkeletonLibrary:
@@ -81,7 +96,7 @@ class SkeletonLibrary:
                 # A stored file for another sensor set (the tracker changed) stays on disk, unused.
                 log.warning("stored skeleton %s not loaded: %s", path.name, exc)
                 continue
-            if NAME_RE.match(name) and name not in RESERVED:
+            if NAME_RE.fullmatch(name) and name not in RESERVED:
                 self._entries = {**self._entries, name: Entry(name, skel, "upload")}
 
     # --- reading -------------------------------------------------------------------------------------
@@ -136,16 +151,23 @@ class SkeletonLibrary:
         BadRequest for a malformed or mismatched file, Conflict for a taken name; nothing is written then."""
         from flockcal.exports.skeleton import SkeletonError, parse_skeleton
 
+        from flockcal.server.jsonbounds import loads_bounded
+
         try:
-            skel = parse_skeleton(body, origin="uploaded skeleton")
+            data = loads_bounded(body, MAX_DEPTH, "the uploaded skeleton")
+        except ValueError as exc:
+            raise BadRequest(str(exc)) from None
+        try:
+            skel = parse_skeleton(data, origin="uploaded skeleton")
             self._check(skel, "uploaded skeleton")
         except SkeletonError as exc:
             raise BadRequest(str(exc)) from None
+        check_performers(skel.data)
         if name is None:
             name = safe_name(performer_of(skel.data) or "")
             if name is None:
                 raise BadRequest("the skeleton names no performer; give one as ?name=")
-        elif not NAME_RE.match(name):
+        elif not NAME_RE.fullmatch(name):
             raise BadRequest("skeleton name must be 1–64 of letters, digits, space, _ . - (starting with a letter or digit)")
         if name in RESERVED:
             raise BadRequest(f"the name {name!r} is reserved; choose another with ?name=")

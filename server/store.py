@@ -152,7 +152,9 @@ class Store:
                 raise
         return ids
 
-    def events(self, session_id: str | None, since_id: int = 0, limit: int = 1000) -> list[dict]:
+    def events(self, session_id: str | None, since_id: int = 0, limit: int | None = 1000) -> list[dict]:
+        """Events after `since_id`, oldest first, at most `limit` (None: all of them)."""
+        limit = -1 if limit is None else limit  # SQLite: a negative LIMIT is none
         if session_id is None:
             rows = self._run("SELECT * FROM events WHERE id > ? ORDER BY id LIMIT ?", (since_id, limit))
         else:

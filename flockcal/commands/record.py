@@ -60,7 +60,7 @@ def parse_names(text: str | None, birds: int, option: str = "--names") -> list[s
     names = [x.strip() for x in text.split(",")]
     if len(names) != birds:
         raise UserError(f"{option} gives {len(names)} names but there are {birds} birds; give one name per bird")
-    bad = [x for x in names if not NAME_RE.match(x)]
+    bad = [x for x in names if not NAME_RE.fullmatch(x)]
     if bad:
         raise UserError(f"{option}: sensor name {bad[0]!r} is not allowed; use 1–64 letters, digits, space _ . -")
     if len(set(names)) != len(names):

@@ -54,6 +54,15 @@ def register(subparsers) -> None:
                         "(repeatable)")
     p.add_argument("--cors-origin", action="append", default=[], metavar="ORIGIN",
                    help="allow browser pages from this origin (repeatable; CORS is closed by default)")
+    p.add_argument("--allow-host", action="append", default=[], metavar="NAME",
+                   help="a host name (or address) the service is reached by, besides loopback's and --host's; "
+                        "requests naming any other Host are refused (DNS rebinding; repeatable)")
+    p.add_argument("--max-session-min", type=float, default=120.0, metavar="MIN",
+                   help="stop a live session (result stored, an event saying why) once it has recorded this long "
+                        "(default 120; 0: no maximum)")
+    p.add_argument("--min-free-mb", type=float, default=500.0, metavar="MB",
+                   help="stop recording cleanly before the data directory's disk has less than MB free, and "
+                        "refuse new sessions below it (default 500)")
     p.set_defaults(func=run)
 
 
@@ -78,6 +87,9 @@ def settings_from_args(args: argparse.Namespace):
         tolerance_m=tolerance_m(args),
         target_m=None if args.target_mm is None else float(args.target_mm) / 1000.0,
         cors_origins=tuple(args.cors_origin),
+        allow_hosts=tuple(args.allow_host),
+        max_session_s=args.max_session_min * 60.0 if args.max_session_min else None,
+        min_free_bytes=int(args.min_free_mb * 2**20),
         fast_init=args.fast_init,
         scale_inches=args.scale,
         baud=args.baud,

@@ -8,7 +8,8 @@ from fastapi import Path, Request
 
 from flockcal.server.errors import BadRequest
 
-SESSION_ID_RE = re.compile(r"^[A-Za-z0-9][A-Za-z0-9\-]{0,63}$")
+SESSION_ID_RE = re.compile(r"[A-Za-z0-9][A-Za-z0-9\-]{0,63}")  # whole id: fullmatch ($ lets "a\n" in)
+MAX_ID = 2**63 - 1  # SQLite's integers are 64-bit: a larger id is no id (and overflowed into a 500)
 
 
 def get_service(request: Request):
@@ -17,6 +18,6 @@ def get_service(request: Request):
 
 def session_id(id: str = Path(description="session id, as returned by POST /api/sessions")) -> str:
     # Ids become file names; refuse anything that could walk out of the recordings directory.
-    if not SESSION_ID_RE.match(id):
+    if not SESSION_ID_RE.fullmatch(id):
         raise BadRequest(f"{id[:80]!r} is not a session id (letters, digits and '-' only); GET /api/sessions lists them")
     return id

@@ -14,8 +14,11 @@ import time
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
-from flockcal.server.auth import origin_allowed, token_role
+from flockcal.server.auth import origin_allowed, presented_role
+from flockcal.server.errors import ServerError
+from flockcal.server.jsonbounds import loads_bounded
 from flockcal.server.snapshot import Snapshot, residual_message
+from flockcal.server.wsgate import PENDING_KEY, abort
 
 router = APIRouter()
 log = logging.getLogger(__name__)
@@ -24,6 +27,8 @@ CONTENT = ("status", "fit", "residuals", "events", "pose")
 STATUS_PERIOD_S = 0.5  # status goes out at most twice a second (and at once when it changes)
 AUTH_TIMEOUT_S = 10.0
 REPLAY_EVENTS = 20  # recent events of the live session sent on subscribe
+MAX_DEPTH = 4  # a subscribe message is one object holding a list
+CLOSE_TIMEOUT_S = 1.0  # a client that does not take our close frame this fast is cut off
 
 
 class Subscription:
@@ -32,13 +37,25 @@ class Subscription:
         self.content = content
 
 
+def parse_message(text: str) -> dict:
+    """A client's text frame as a dict; ValueError with a readable reason otherwise."""
+    msg = loads_bounded(text, MAX_DEPTH, "the message")
+    if not isinstance(msg, dict):
+        raise ValueError(f"the message must be a JSON object, got a {type(msg).__name__}")
+    return msg
+
+
 def parse_subscribe(msg: dict, max_rate: float) -> Subscription:
     """Validate a subscribe message; ValueError with a readable reason otherwise."""
     rate = msg.get("rate_hz", 10)
     if rate is None:
         rate = max_rate
-    if isinstance(rate, bool) or not isinstance(rate, (int, float)) or not math.isfinite(rate) or rate <= 0:
-        raise ValueError(f"rate_hz must be a positive number (at most {max_rate:g}), got {rate!r}")
+    try:  # an integer past float's range (1 and 400 zeros) cannot be a rate either
+        finite = not isinstance(rate, bool) and isinstance(rate, (int, float)) and math.isfinite(float(rate))
+    except OverflowError:
+        finite = False
+    if not finite or rate <= 0:
+        raise ValueError(f"rate_hz must be a positive number (at most {max_rate:g}), got {str(rate)[:40]}")
     content = msg.get("content", ["status"])
     if isinstance(content, str):
         content = [content]
@@ -58,6 +75,52 @@ class Connection:
         self.sub: Subscription | None = None
         self.changed = asyncio.Event()
         self.authorised = not service.settings.token
+        self.slots = ws.app.state.ws_slots
+        self.slot: str | None = None  # the role (or PENDING_KEY) whose slot this connection holds
+        self.peer = ws.client.host if ws.client else None
+        self.evicted = False
+
+    def check_token(self, token: str | None):
+        """(role, None) for a token the service knows, else (None, why)."""
+        if not isinstance(token, str) or not token:
+            return None, ("token missing or not recognised: give ?token=… in the URL or \"token\" in the "
+                          "subscribe message")
+        try:
+            return presented_role(self.service.settings, getattr(self.ws.app.state, "token_backoff", None),
+                                  token, self.peer), None
+        except ServerError as exc:
+            return None, str(exc)
+
+    def admit(self, kind: str) -> bool:
+        """Move this connection into a slot of `kind`; False (and no slot) when they are all taken."""
+        taken, evicted = self.slots.take(kind, self)
+        if not taken:
+            return False
+        self.slots.give_back(self.slot, self)
+        self.slot = kind
+        if evicted is not None:
+            evicted.evict()
+        return True
+
+    def evict(self) -> None:
+        """Give up this socket's place in the pool of sockets waiting for a token (send_loop closes it)."""
+        self.evicted = True
+        self.slot = None
+        self.changed.set()
+
+    async def refuse(self, message: str, code: int) -> None:
+        await self.ws.send_text(self.envelope("error", message=message))
+        await self.ws.close(code=code)
+
+    async def close(self) -> None:
+        """Close with a handshake when the client takes it, else abort the transport."""
+        try:
+            async with asyncio.timeout(CLOSE_TIMEOUT_S):
+                await self.ws.close()
+        except TimeoutError:
+            abort(self.ws.scope)
+        except Exception:  # already closed by the client or the transport
+            pass
 
     def envelope(self, type_: str, body_json: str | None = None, **fields) -> str:
         self.seq += 1
@@ -72,45 +135,60 @@ class Connection:
             async with asyncio.timeout(self.service.settings.ws_send_timeout_s):
                 await self.ws.send_text(text)
         except TimeoutError:
-            # The client stopped reading: drop it rather than hold its backlog.
+            # The client stopped reading: drop it rather than hold its backlog. A close frame would
+            # queue behind that backlog for ever, so the transport goes now, queued bytes and all.
             self.service.hub.dropped_slow += 1
             log.info("dropping a websocket client that took no data for %.0f s", self.service.settings.ws_send_timeout_s)
+            abort(self.ws.scope)
             raise
 
     async def receive_loop(self) -> None:
-        settings = self.service.settings
         while True:
-            raw = await self.ws.receive_text()
+            message = await self.ws.receive()
+            if message["type"] == "websocket.disconnect":
+                raise WebSocketDisconnect(message.get("code", 1000))
+            text = message.get("text")
+            if text is None:
+                await self.send(self.envelope("error", message="binary frames are not understood; send each message "
+                                              "as a JSON text frame"))
+                continue
             try:
-                msg = json.loads(raw)
-                if not isinstance(msg, dict):
-                    raise ValueError("a message must be a JSON object")
-            except ValueError as exc:
-                await self.send(self.envelope("error", message=f"not a JSON object: {exc}"))
-                continue
-            kind = msg.get("type")
-            if kind == "ping":
-                await self.send(self.envelope("pong"))
-                continue
-            if kind != "subscribe":
-                await self.send(self.envelope("error", message=f"unknown message type {kind!r}; send "
-                                              '{"type": "subscribe", "rate_hz": 10, "content": ["status", "fit"]}'))
-                continue
-            if not self.authorised:
-                token = msg.get("token")
-                if not isinstance(token, str) or token_role(settings, token) is None:
-                    await self.send(self.envelope("error", message="token missing or not recognised: give ?token=… "
-                                                  "in the URL or \"token\" in the subscribe message"))
-                    await self.ws.close(code=1008)
-                    return
-                self.authorised = True
-            try:
-                self.sub = parse_subscribe(msg, settings.publish_hz)
+                msg = parse_message(text)
             except ValueError as exc:
                 await self.send(self.envelope("error", message=str(exc)))
                 continue
-            await self.send(self.envelope("subscribed", rate_hz=self.sub.rate_hz, content=list(self.sub.content)))
-            self.changed.set()
+            if not await self.handle(msg):
+                return
+
+    async def handle(self, msg: dict) -> bool:
+        """Act on one client message; False when the connection is to close."""
+        settings = self.service.settings
+        kind = msg.get("type")
+        if kind == "ping":
+            await self.send(self.envelope("pong"))
+            return True
+        if kind != "subscribe":
+            shown = repr(kind)[:40] if isinstance(kind, str) else type(kind).__name__
+            await self.send(self.envelope("error", message=f"unknown message type {shown}; send "
+                                          '{"type": "subscribe", "rate_hz": 10, "content": ["status", "fit"]}'))
+            return True
+        if not self.authorised:
+            role, why = self.check_token(msg.get("token"))
+            if role is None:
+                await self.refuse(why, 1008)
+                return False
+            if not self.admit(role):
+                await self.refuse(self.slots.full_message(role), 1013)
+                return False
+            self.authorised = True
+        try:
+            self.sub = parse_subscribe(msg, settings.publish_hz)
+        except (ValueError, TypeError) as exc:
+            await self.send(self.envelope("error", message=str(exc)))
+            return True
+        await self.send(self.envelope("subscribed", rate_hz=self.sub.rate_hz, content=list(self.sub.content)))
+        self.changed.set()
+        return True
 
     async def send_loop(self) -> None:
         hub = self.service.hub
@@ -121,6 +199,9 @@ class Connection:
             except asyncio.TimeoutError:
                 await self.send(self.envelope("error", message="no subscribe message with a token arrived; closing"))
                 await self.ws.close(code=1008)
+                return
+            if self.evicted and not self.authorised:
+                await self.refuse(self.slots.full_message(PENDING_KEY), 1013)
                 return
         sent_seq = 0
         fit_seq = -1
@@ -197,27 +278,31 @@ def _residual_start(snap: Snapshot) -> int:
 async def live(ws: WebSocket):
     service = ws.app.state.service
     settings = service.settings
-    if service.hub.clients >= settings.ws_max_clients:
-        await ws.close(code=1013)
-        return
     if not origin_allowed(settings, ws.headers):
         await ws.close(code=1008)  # another site's page trying to read the live data
         return
     await ws.accept()
     conn = Connection(ws, service)
+    # Slots are counted after authentication, per role: sockets without a token wait in a pool of
+    # their own, so they cannot crowd out a client that has one.
+    role, why = ("admin", None) if not settings.token else (None, None)
     token = ws.query_params.get("token")
     if settings.token and token is not None:
-        if token_role(settings, token) is None:
-            await ws.send_text(conn.envelope("error", message="token not recognised"))
-            await ws.close(code=1008)
+        role, why = conn.check_token(token)
+        if role is None:
+            await conn.refuse(why, 1008)
             return
-        conn.authorised = True
-    await ws.send_text(conn.envelope("hello", protocol=1, content=list(CONTENT), max_rate_hz=settings.publish_hz,
-                                     auth_required=not conn.authorised))
+    kind = role or PENDING_KEY
+    if not conn.admit(kind):
+        await conn.refuse(conn.slots.full_message(kind), 1013)
+        return
+    conn.authorised = role is not None
     service.hub.clients += 1
-    receiver = asyncio.create_task(conn.receive_loop())
-    sender = asyncio.create_task(conn.send_loop())
     try:
+        await ws.send_text(conn.envelope("hello", protocol=1, content=list(CONTENT), max_rate_hz=settings.publish_hz,
+                                         auth_required=not conn.authorised))
+        receiver = asyncio.create_task(conn.receive_loop())
+        sender = asyncio.create_task(conn.send_loop())
         done, pending = await asyncio.wait({receiver, sender}, return_when=asyncio.FIRST_COMPLETED)
         for task in pending:
             task.cancel()
@@ -226,9 +311,10 @@ async def live(ws: WebSocket):
             exc = task.exception()
             if exc is not None and not isinstance(exc, (WebSocketDisconnect, asyncio.TimeoutError, RuntimeError)):
                 log.warning("websocket client failed: %r", exc)
+    except (WebSocketDisconnect, RuntimeError, OSError):
+        pass
     finally:
+        # The slot is given back only once the socket is gone: a client still holding one counts.
+        await conn.close()
         service.hub.clients -= 1
-        try:
-            await ws.close()
-        except Exception:  # already closed by the client or the transport
-            pass
+        conn.slots.give_back(conn.slot, conn)

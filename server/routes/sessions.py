@@ -5,23 +5,22 @@ Handlers only validate and read: fits come from the pipeline's snapshots or the 
 
 from __future__ import annotations
 
-import io
-
-import numpy as np
-from fastapi import APIRouter, Depends, Query
-from fastapi.responses import Response
+from fastapi import APIRouter, Depends, Query, Request
+from fastapi.responses import Response, StreamingResponse
 
 from flockcal.server.auth import require_admin, require_read, require_session_control
 from flockcal.server.errors import BadRequest, Conflict, NotFound
 from flockcal.server.models import (
     CalibrationResult, ErrorReply, EventList, Progress, ResidualSeries, Session, SessionCreate, SessionList,
 )
-from flockcal.server.routes.deps import get_service, session_id
+from flockcal.server.routes.deps import MAX_ID, get_service, session_id
 from flockcal.server.settings import NAME_RE
 
 router = APIRouter(prefix="/api/sessions", tags=["sessions"])
 
-ERRORS = {code: {"model": ErrorReply} for code in (400, 401, 403, 404, 409, 413, 422)}
+ERRORS = {code: {"model": ErrorReply} for code in (400, 401, 403, 404, 409, 413, 422, 503, 507)}
+MAX_RESIDUALS = 100_000  # samples per page: 83 minutes at 20 a second
+MAX_EVENTS = 5000
 
 
 def presets(service) -> dict[str, dict | None]:
@@ -48,6 +47,7 @@ def list_sessions(service=Depends(get_service), _role=Depends(require_read)):
 @router.post("", response_model=Session, status_code=201, summary="start a session", responses=ERRORS)
 def start_session(body: SessionCreate, service=Depends(get_service), _role=Depends(require_session_control)):
     """Start recording a performer: automatic topology, or a known `hierarchy` ({child: parent}) / `skeleton` preset."""
+    service.limits.check_start()  # 507 when the disk is already at the service's reserve
     hierarchy = body.hierarchy
     saved = service.skeletons.get(body.skeleton) if body.skeleton is not None else None
     if saved is not None:
@@ -62,7 +62,7 @@ def start_session(body: SessionCreate, service=Depends(get_service), _role=Depen
             raise BadRequest(f"unknown skeleton {body.skeleton!r}; choose one of: {', '.join(known)}")
         hierarchy = known[body.skeleton]
     if hierarchy is not None:
-        bad = [x for kv in hierarchy.items() for x in kv if not NAME_RE.match(x)]
+        bad = [x for kv in hierarchy.items() for x in kv if not NAME_RE.fullmatch(x)]
         if bad:
             raise BadRequest(f"hierarchy name {bad[0][:80]!r} is not a valid sensor name")
     return service.sessions.start(body.performer, hierarchy, body.root)
@@ -111,49 +111,69 @@ def get_progress(sid: str = Depends(session_id), service=Depends(get_service), _
 
 
 @router.get("/{id}/residuals", response_model=ResidualSeries, responses=ERRORS,
-            summary="per-joint residual rms (mm) over time")
+            summary="per-joint residual rms (mm) over time, oldest first, a page at a time")
 def get_residuals(sid: str = Depends(session_id),
                   joint: str | None = Query(None, max_length=64, description="a joint, named by its child body"),
-                  since: float | None = Query(None, description="session clock, seconds: only later samples"),
+                  since: float | None = Query(None, allow_inf_nan=False,
+                                              description="session clock, seconds: only later samples"),
+                  limit: int = Query(MAX_RESIDUALS, ge=1, le=MAX_RESIDUALS, description="samples per page"),
                   service=Depends(get_service), _role=Depends(require_read)):
-    rows = service.sessions.residuals(sid, joint, since)
+    """A session longer than one page (`limit` samples, 20 a second) answers `more: true`; the rest
+    follows with `since=next_since`, so the newest samples are never dropped unseen."""
+    rows, more = service.sessions.residuals(sid, joint, since, limit)
     names = sorted({k for _, v in rows for k in v})
     return {"session_id": sid, "joint": joint, "times": [t for t, _ in rows],
-            "joints": {k: [v.get(k) for _, v in rows] for k in names}}
+            "joints": {k: [v.get(k) for _, v in rows] for k in names},
+            "more": more, "next_since": rows[-1][0] if rows else since}
 
 
-@router.get("/{id}/events", response_model=EventList, responses=ERRORS, summary="slippage, tracker and session events")
-def get_events(sid: str = Depends(session_id), since: int = Query(0, ge=0, description="only events with a larger id"),
+@router.get("/{id}/events", response_model=EventList, responses=ERRORS,
+            summary="slippage, tracker and session events, oldest first, a page at a time")
+def get_events(sid: str = Depends(session_id),
+               since: int = Query(0, ge=0, le=MAX_ID, description="only events with a larger id"),
+               limit: int = Query(1000, ge=1, le=MAX_EVENTS, description="events per page"),
                service=Depends(get_service), _role=Depends(require_read)):
-    return {"session_id": sid, "events": service.sessions.events(sid, since)}
+    """`more: true` when later events exist; ask again with `since=next_since` for them."""
+    events = service.sessions.events(sid, since, limit + 1)
+    more = len(events) > limit
+    events = events[:limit]
+    return {"session_id": sid, "events": events, "more": more,
+            "next_since": events[-1]["id"] if events else since}
 
 
 @router.get("/{id}/take", responses={200: {"content": {"application/octet-stream": {}}}, **ERRORS},
             summary="the session's frames as a design.md §5 .npz take (what `flockcal fit` reads)")
-def get_take(sid: str = Depends(session_id), service=Depends(get_service), _role=Depends(require_read)):
-    take = service.sessions.take(sid)
-    buf = io.BytesIO()
-    np.savez_compressed(buf, rotations=take.rotations, positions=take.positions,
-                        names=np.asarray(take.names, dtype=str), rate_hz=np.float64(take.rate_hz),
-                        valid=take.valid, times=take.times)
-    return Response(buf.getvalue(), media_type="application/octet-stream",
-                    headers={"Content-Disposition": f'attachment; filename="{sid}.npz"'})
+def get_take(request: Request, sid: str = Depends(session_id), service=Depends(get_service),
+             _role=Depends(require_read)):
+    from flockcal.server.downloads import npz_stream
+
+    # Streamed from the frame log a chunk at a time (server/downloads.py): memory stays bounded for a
+    # session of any length. A live session's take holds the frames recorded when the download began.
+    frames = _frames(service, sid)
+    body = _slotted(request, lambda: npz_stream(frames))
+    return StreamingResponse(body, media_type="application/octet-stream",
+                             headers={"Content-Disposition": f'attachment; filename="{sid}.npz"'})
 
 
 @router.get("/{id}/skeleton", responses={200: {"content": {"application/json": {}}}, **ERRORS},
             summary="the calibrated skeleton file (flockcal.exports.skeleton) of the session")
 def get_skeleton(sid: str = Depends(session_id), service=Depends(get_service), _role=Depends(require_read)):
     from flockcal.exports.skeleton import skeleton_bytes
+    from flockcal.server.downloads import RigidPoints, rigid_means
+    from flockcal.solver.reconstruct import articulation
 
     result, _live = service.sessions.result(sid)
     row = service.sessions.get(sid)
 
     def make():
-        take = service.sessions.take(sid)
+        frames = _frames(service, sid)
         # The performer names the file's preset when it is loaded back (`--skeleton`, POST /api/skeletons).
         source = {"session": sid, "performer": row["performer"], "take": f"{sid}.npz",
-                  "frames": int(take.n_frames), "rate_hz": float(take.rate_hz)}
-        return skeleton_bytes(result, source=source, take=take)
+                  "frames": int(frames.n), "rate_hz": float(frames.rate_hz)}
+        # Sensors riding rigidly on their parent are placed from the recording, read a chunk at a time.
+        art = articulation(result)
+        rigid = RigidPoints(art, rigid_means(frames, art)) if art.incomplete.any() else None
+        return skeleton_bytes(result, source=source, acc=rigid)
 
     data = _export(make)
     return Response(data, media_type="application/json",
@@ -162,16 +182,46 @@ def get_skeleton(sid: str = Depends(session_id), service=Depends(get_service), _
 
 @router.get("/{id}/bvh", responses={200: {"content": {"text/plain": {}}}, **ERRORS},
             summary="the session's motion played through its calibration, as BVH")
-def get_bvh(sid: str = Depends(session_id),
-            units: str = Query("cm", pattern="^(m|cm|mm|in)$"),
-            up: str = Query("-z", pattern="^[+-]?[xyz]$", description="the tracker world's up axis"),
+def get_bvh(request: Request, sid: str = Depends(session_id),
+            units: str = Query("cm", pattern="^(m|cm|mm|in)$", description="m, cm, mm or in"),
+            up: str = Query("-z", pattern="^[+-]?[xyz]$", description="the tracker world's up axis: +y, +z or -z"),
             service=Depends(get_service), _role=Depends(require_read)):
-    from flockcal.exports.bvh import bvh_bytes
+    from flockcal.server.downloads import bvh_stream, primed
 
     result, _live = service.sessions.result(sid)
-    data = _export(lambda: bvh_bytes(result, service.sessions.take(sid), units=units, up=up))
-    return Response(data, media_type="text/plain",
-                    headers={"Content-Disposition": f'attachment; filename="{sid}.bvh"'})
+    frames = _frames(service, sid)
+    body = _slotted(request, lambda: _export(lambda: primed(bvh_stream(result, frames, units=units, up=up))))
+    return StreamingResponse(body, media_type="text/plain",
+                             headers={"Content-Disposition": f'attachment; filename="{sid}.bvh"'})
+
+
+def _slotted(request: Request, make):
+    """make() → a stream, built and run within one of the app's download slots (503 when all are taken)."""
+    slots = request.app.state.download_slots
+    slots.acquire()
+    try:
+        stream = make()
+    except BaseException:
+        slots.release()
+        raise
+    return slots.guard(stream)
+
+
+def _frames(service, sid: str):
+    """The session's frame log opened for a chunked read; 404 without one, 409 while it is empty."""
+    from flockcal.server.downloads import FrameFile
+
+    service.sessions.get(sid)
+    path = service.sessions.frames_path(sid)
+    if not path.exists():
+        raise NotFound(f"session {sid} has no recording on disk")
+    try:
+        frames = FrameFile(path)
+    except ValueError as exc:
+        raise Conflict(f"session {sid}'s recording cannot be read: {exc}") from None
+    if frames.n == 0:
+        raise Conflict(f"session {sid}'s recording holds no frames yet")
+    return frames
 
 
 def _export(make):

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends, Query
+from fastapi import APIRouter, Depends, Query, Response
 
 from flockcal.server.auth import require_read
 from flockcal.server.models import Event, Status
-from flockcal.server.routes.deps import get_service
+from flockcal.server.routes.deps import MAX_ID, get_service
 
 router = APIRouter(prefix="/api", tags=["status"])
 
@@ -18,7 +18,14 @@ def get_status(service=Depends(get_service), _role=Depends(require_read)):
 
 
 @router.get("/events", response_model=list[Event], summary="events of the whole service (tracker, sessions, slips)")
-def get_events(since: int = Query(0, ge=0, description="only events with a larger id"),
+def get_events(response: Response,
+               since: int = Query(0, ge=0, le=MAX_ID, description="only events with a larger id"),
                limit: int = Query(500, ge=1, le=5000),
                service=Depends(get_service), _role=Depends(require_read)):
-    return service.store.events(None, since, limit)
+    """Oldest first. When later events exist, a `Link: <…?since=N&limit=L>; rel="next"` header says
+    where they are (a full page alone does not tell)."""
+    events = service.store.events(None, since, limit + 1)
+    if len(events) > limit:
+        events = events[:limit]
+        response.headers["Link"] = f'</api/events?since={events[-1]["id"]}&limit={limit}>; rel="next"'
+    return events

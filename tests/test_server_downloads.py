@@ -1,0 +1,153 @@
+"""Session downloads stream from the frame log a chunk at a time (server/downloads.py) and hold what
+loading the whole take at once gives: the .npz take, the BVH and the skeleton file.
+
+A real uvicorn on loopback records a short session from the built-in simulator; the references are
+built the way the service built them before it streamed (read_frames → make_take → exports). The
+memory bound itself is measured by benchmarks/bench_downloads.py (RSS is no unit-test figure).
+"""
+
+from __future__ import annotations
+
+import io
+import json
+import time
+
+import httpx
+import numpy as np
+import pytest
+
+from flockcal.exports.bvh import bvh_text
+from flockcal.exports.skeleton import skeleton_dict
+from flockcal.server.framelog import FrameLog, read_frames
+from flockcal.server.settings import Settings
+from server_helpers import ServerThread, free_port, wait_connected
+from flockcal.takes import make_take
+
+
+def take_of(path) -> object:
+    """The reference: the whole log in memory, as SessionManager.take made it."""
+    data = read_frames(path)
+    times = data["times"] - data["times"][0]
+    n = len(times)
+    rate = data["rate_hz"] or (n - 1) / times[-1]  # a log without a rate: its arrivals' mean rate
+    return make_take(data["rotations"], data["positions"], data["names"], rate, valid=data["valid"], times=times)
+
+
+@pytest.fixture(scope="module")
+def session(tmp_path_factory):
+    settings = Settings(device="sim://downloads?birds=4&model=linkage&motion=exercise&rate=60", birds=4,
+                        http_port=free_port(), data_dir=tmp_path_factory.mktemp("dl"))
+    with ServerThread(settings) as srv:
+        wait_connected(srv.url)
+        sid = httpx.post(srv.url + "/api/sessions", json={"performer": "Dee"}).json()["id"]
+        time.sleep(4.0)
+        assert httpx.post(srv.url + f"/api/sessions/{sid}/stop", timeout=30).status_code == 200
+        yield srv, sid
+
+
+def test_streamed_take_equals_the_whole_take(session):
+    srv, sid = session
+    r = httpx.get(srv.url + f"/api/sessions/{sid}/take", timeout=30)
+    assert r.status_code == 200 and "content-length" not in r.headers  # streamed, not built in memory
+    got = np.load(io.BytesIO(r.content))
+    want = take_of(srv.service.sessions.frames_path(sid))
+    assert got["rotations"].shape[0] > 100
+    np.testing.assert_array_equal(got["rotations"], want.rotations)
+    np.testing.assert_array_equal(got["positions"], want.positions)
+    np.testing.assert_array_equal(got["valid"], want.valid)
+    np.testing.assert_array_equal(got["times"], want.times)
+    assert list(got["names"]) == list(want.names) and float(got["rate_hz"]) == want.rate_hz
+
+
+def test_streamed_bvh_and_skeleton_equal_the_exports_of_the_whole_take(session):
+    srv, sid = session
+    result = httpx.get(srv.url + f"/api/sessions/{sid}/result").json()
+    take = take_of(srv.service.sessions.frames_path(sid))
+    r = httpx.get(srv.url + f"/api/sessions/{sid}/bvh?units=mm&up=%2Bz", timeout=60)
+    assert r.status_code == 200
+    want = bvh_text(result, take, units="mm", up="+z")
+    got_lines, want_lines = r.text.splitlines(), want.splitlines()
+    head = want_lines.index("MOTION") + 3
+    assert got_lines[:head] == want_lines[:head]
+    # Rows from chunked reconstruction: the same numbers to the file's 6 decimals (± one last digit).
+    np.testing.assert_allclose(np.loadtxt(got_lines[head:]), np.loadtxt(want_lines[head:]), atol=2e-6)
+    r = httpx.get(srv.url + f"/api/sessions/{sid}/skeleton")
+    assert r.status_code == 200
+    got = json.loads(r.content)
+    want = json.loads(json.dumps(skeleton_dict(result, source=got["source"], take=take)))
+    for key in ("sensors", "root", "parent", "bones", "placements", "bodies"):
+        assert got[key] == want[key], key
+    assert got["source"]["frames"] == len(take.times)
+
+
+def test_chunked_exports_hold_dropouts_and_rigid_sensors_like_the_whole_take(session, tmp_path, monkeypatch):
+    """Chunks of 7 frames, sensors dropping out across chunk edges (one invalid for its first 20
+    frames), and a sensor declared rigid on its parent: what a whole-take export does with each."""
+    from flockcal.server import downloads
+
+    srv, sid = session
+    data = read_frames(srv.service.sessions.frames_path(sid))
+    rng = np.random.default_rng(3)
+    valid = data["valid"] & (rng.random(data["valid"].shape) > 0.1)
+    valid[:20, 1] = False
+    path = tmp_path / "gappy.frames"
+    log = FrameLog(path, data["names"], data["rate_hz"])
+    log.write(data["times"], data["rotations"], data["positions"], valid)
+    log.close()
+    monkeypatch.setattr(downloads, "CHUNK_BYTES", 7 * downloads.record_dtype(len(data["names"])).itemsize)
+    frames = downloads.FrameFile(path)
+    take = take_of(path)
+
+    got = np.load(io.BytesIO(b"".join(downloads.npz_stream(frames))))
+    np.testing.assert_array_equal(got["rotations"], take.rotations)
+    np.testing.assert_array_equal(got["valid"], take.valid)
+
+    result = httpx.get(srv.url + f"/api/sessions/{sid}/result").json()
+    # The last sensor as if it rode rigidly on its parent: its joint comes from the frames.
+    leaf = result["sensors"][-1] if result["sensors"][-1] in result["parent"] else result["sensors"][0]
+    rigid = dict(result, joints=[j for j in result["joints"] if j["child"] != leaf],
+                 rigid_groups=[[leaf, result["parent"][leaf]]])
+    for calibration in (result, rigid):
+        want = bvh_text(calibration, take)
+        got = b"".join(downloads.bvh_stream(calibration, frames)).decode()
+        head = want.splitlines().index("MOTION") + 3
+        assert got.splitlines()[:head] == want.splitlines()[:head]
+        np.testing.assert_allclose(np.loadtxt(got.splitlines()[head:]), np.loadtxt(want.splitlines()[head:]),
+                                   atol=2e-6)
+
+
+def test_downloads_beyond_the_limit_get_503_until_one_ends(tmp_path):
+    """Two downloads held open by clients that read nothing more (a 40 MB take stays in flight), a
+    third refused with 503; once a client goes away its slot is free again."""
+    settings = Settings(device="sim://dlslots?birds=4&model=linkage&motion=exercise&rate=60", birds=4,
+                        http_port=free_port(), data_dir=tmp_path, max_downloads=2)
+    with ServerThread(settings) as srv:
+        wait_connected(srv.url)
+        sid = "20200101-000000-aaaaaa"
+        names = list(srv.service.pipeline.names)
+        n, m = 100_000, len(names)  # 100,000 frames of 4 sensors: 40 MB of log
+        log = FrameLog(srv.service.sessions.frames_path(sid), names, 60.0)
+        rot = np.broadcast_to(np.eye(3), (n, m, 3, 3))
+        log.write(np.arange(n) / 60.0, rot, np.zeros((n, m, 3)), np.ones((n, m), bool))
+        log.close()
+        srv.service.store.insert_session({"id": sid, "performer": "Big", "state": "stopped", "names": names,
+                                          "device": "test", "created_at": time.time(), "frames": n})
+        url = f"/api/sessions/{sid}/take"
+        with httpx.Client(base_url=srv.url, timeout=30) as a, httpx.Client(base_url=srv.url, timeout=30) as b:
+            held = []
+            for client in (a, b):
+                cm = client.stream("GET", url)
+                r = cm.__enter__()
+                assert r.status_code == 200
+                next(r.iter_raw(65536))  # the download has begun; the rest waits in flight
+                held.append((cm, r))
+            r = httpx.get(srv.url + url)
+            assert r.status_code == 503 and "at most 2" in r.json()["detail"], r.text
+            cm, _r = held.pop()
+            cm.__exit__(None, None, None)
+            b.close()
+            deadline = time.monotonic() + 10
+            while (r := httpx.get(srv.url + url, timeout=60)).status_code == 503 and time.monotonic() < deadline:
+                time.sleep(0.1)
+            assert r.status_code == 200 and len(r.content) > n * m * 97  # the whole take
+            held[0][0].__exit__(None, None, None)
