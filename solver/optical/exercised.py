@@ -1,0 +1,161 @@
+"""Which joints an optical take exercised, decided as the sensor path decides (design.md §3a), and the
+skeleton forest over those joints only: a body no exercised joint reaches hangs from nothing.
+
+Bodies with a frame of their own (three or more markers) get their poses from their markers alone; the
+pair fits over those poses (`flockcal.solver.fits.pair_fits`: batch-means standard errors, so soft tissue
+correlated in time does not pass for precision) say whether each pair's joint centre is pinned.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
+
+from flockcal.solver.optical.joints import Tree, central_root, joint_point
+from flockcal.solver.optical.rigid import apply, procrustes_mean, rigid_fit
+from flockcal.solver.optical.segmentation import RIGID_TOLERANCE_M
+
+FRAMED = 3  # markers a body needs for a pose of its own
+
+# The sensor path's rule with the sensor path's tolerance scaled to skin markers: a marker cluster's pose
+# carries the soft tissue's 5–15 mm, so a centre pinned within 10 mm along every direction (or a hinge whose
+# axis moves it at most that) counts as exercised. Real trials sit on either side of it by a margin: the
+# joints a trial moved come out at ≤ 9 mm, the ones it did not at ≥ 15 mm (docs/optical.md).
+TOLERANCE_M = 0.010
+
+# A marker this many times its body's median fit residual off the body's shape (and beyond the rigid
+# tolerance) is a label swap or glitch in that frame, not soft tissue.
+OUTLIER_FACTOR = 5.0
+
+
+@dataclass(frozen=True)
+class Exercised:
+    """Pair decisions over the bodies: arrays (G, G), symmetric."""
+
+    framed: np.ndarray  # (G,) bool: the body has a pose from its markers alone
+    determined: np.ndarray  # (G, G) bool: the pair fit pins the joint centre (ball or hinge)
+    judged: np.ndarray  # (G, G) bool: both bodies framed, so the pair fit decided
+    rms: np.ndarray  # (G, G) m: the pair fit's residual (NaN where not judged)
+    direction_error: np.ndarray  # (G, G, 3) m: the centre's error along the three least-turned directions
+    rotations: np.ndarray  # (n, G, 3, 3) marker-only poses (identity where not valid)
+    positions: np.ndarray  # (n, G, 3)
+    valid: np.ndarray  # (n, G)
+
+    def candidate(self) -> np.ndarray:
+        """(G, G) pairs that may be a tree edge: determined, or not judgeable from poses (a body without a
+        frame of its own is left to the Kirk fit)."""
+        c = self.determined | ~self.judged
+        np.fill_diagonal(c, False)
+        return c
+
+
+def marker_poses(markers: np.ndarray, groups: list[np.ndarray]):
+    """Per-body rotations (n, G, 3, 3), positions (n, G, 3), valid (n, G) from each framed body's own
+    markers (generalised Procrustes shape, weighted Kabsch per frame)."""
+    n = markers.shape[0]
+    G = len(groups)
+    R = np.tile(np.eye(3), (n, G, 1, 1))
+    t = np.zeros((n, G, 3))
+    valid = np.zeros((n, G), dtype=bool)
+    for g, idx in enumerate(groups):
+        if len(idx) < FRAMED:
+            continue
+        pts = markers[:, idx]
+        shape, Rg, tg, ok = procrustes_mean(pts)
+        # A swapped or glitching label sits centimetres off the shape; soft tissue stays within the
+        # segmentation's tolerance. Such marker-frames are dropped and the frame refitted once.
+        res = np.linalg.norm(apply(Rg, tg, shape) - pts, axis=-1)
+        fin = res[ok & np.isfinite(res).all(1)] if ok.any() else res[:0]
+        limit = max(OUTLIER_FACTOR * float(np.median(fin)) if fin.size else 0.0, RIGID_TOLERANCE_M)
+        bad = ~(res <= limit) & np.isfinite(res)
+        if bad.any():
+            Rg, tg, ok = rigid_fit(shape, np.where(bad[..., None], np.nan, pts))
+        R[ok, g], t[ok, g], valid[:, g] = Rg[ok], tg[ok], ok
+    return R, t, valid
+
+
+def judge_pairs(markers: np.ndarray, groups: list[np.ndarray], tolerance_m: float | None = None) -> Exercised:
+    """Pair fits over the bodies' marker-only poses, and which joints they determine (design.md §3a)."""
+    from flockcal.solver.accumulator import GramAccumulator
+    from flockcal.solver.fits import all_pairs, pair_fits
+
+    G = len(groups)
+    R, t, valid = marker_poses(markers, groups)
+    framed = valid.sum(0) >= 10
+    determined = np.zeros((G, G), dtype=bool)
+    judged = framed[:, None] & framed[None, :]
+    np.fill_diagonal(judged, False)
+    rms = np.full((G, G), np.nan)
+    derr = np.full((G, G, 3), np.inf)
+    if G >= 2 and judged.any():
+        acc = GramAccumulator(G)
+        acc.update(R, t, valid)
+        P = all_pairs(G)
+        P = P[judged[P[:, 0], P[:, 1]]]
+        pf = pair_fits(acc, P, tolerance=TOLERANCE_M if tolerance_m is None else tolerance_m)
+        a, b = P[:, 0], P[:, 1]
+        determined[a, b] = determined[b, a] = pf.determined
+        rms[a, b] = rms[b, a] = pf.rms
+        derr[a, b] = derr[b, a] = pf.direction_error
+    return Exercised(framed, determined, judged, rms, derr, R, t, valid)
+
+
+def candidate_costs(markers: np.ndarray, groups: list[np.ndarray], frames: np.ndarray, candidate: np.ndarray, penalty: float = 1e-5) -> np.ndarray:
+    """(G, G) Kirk joint-point residual rms of the candidate pairs on `frames`; inf elsewhere (no edge)."""
+    G = len(groups)
+    cost = np.full((G, G), np.inf)
+    for a, b in zip(*np.nonzero(np.triu(candidate, 1))):
+        fit = joint_point(markers[:, groups[a]], markers[:, groups[b]], penalty=penalty, frames=frames, max_iter=15)
+        cost[a, b] = cost[b, a] = fit.rms
+    return cost
+
+
+def spanning_forest(cost: np.ndarray, sizes: np.ndarray, root: int | None = None) -> Tree:
+    """Minimum spanning forest over the finite pair costs. Each part hangs from its body with the most
+    markers (the trunk, in a person; ties go to the most central body), or from `root` in its part; the
+    part holding `root` (else the largest part) comes first and its root is `Tree.root`.
+
+    Weights are residual ranks + 1 so an exact fit (residual 0) is still an edge to csgraph."""
+    G = len(cost)
+    iu = np.triu_indices(G, 1)
+    vals = cost[iu]
+    finite = np.isfinite(vals)
+    ranks = np.empty(len(vals))
+    ranks[np.argsort(np.where(finite, vals, np.inf), kind="stable")] = np.arange(1, len(vals) + 1)
+    W = np.zeros((G, G))
+    W[iu] = np.where(finite, ranks, 0.0)
+    mst = minimum_spanning_tree(sp.csr_matrix(W)).toarray()
+    adj = (mst + mst.T) > 0
+    n_parts, part = connected_components(sp.csr_matrix(adj), directed=False)
+    counts = np.bincount(part, weights=sizes, minlength=n_parts)
+    first = part[root] if root is not None else int(np.argmax(counts))
+    parent = np.full(G, -1)
+    order: list[int] = []
+    main_root = None
+    for c in [first] + [c for c in np.argsort(-counts, kind="stable") if c != first]:
+        members = np.flatnonzero(part == c)
+        if root is not None and c == part[root]:
+            r = int(root)
+        else:
+            sub = adj[np.ix_(members, members)]
+            centre = central_root(sub) if len(members) > 1 else 0
+            biggest = members[sizes[members] == sizes[members].max()]
+            r = int(members[centre]) if members[centre] in biggest else int(biggest[0])
+        main_root = r if main_root is None else main_root
+        order.append(r)
+        frontier = [r]
+        seen = {r}
+        while frontier:
+            nxt = []
+            for g in frontier:
+                for h in np.flatnonzero(adj[g]):
+                    if int(h) not in seen:
+                        parent[h] = g
+                        seen.add(int(h))
+                        order.append(int(h))
+                        nxt.append(int(h))
+            frontier = nxt
+    return Tree(parent, int(main_root), cost, order)
