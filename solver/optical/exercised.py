@@ -38,6 +38,7 @@ class Exercised:
     framed: np.ndarray  # (G,) bool: the body has a pose from its markers alone
     determined: np.ndarray  # (G, G) bool: the pair fit pins the joint centre (ball or hinge)
     judged: np.ndarray  # (G, G) bool: both bodies framed, so the pair fit decided
+    hinge: np.ndarray  # (G, G) bool: determined as a hinge (one free direction, its axis pinned)
     rms: np.ndarray  # (G, G) m: the pair fit's residual (NaN where not judged)
     direction_error: np.ndarray  # (G, G, 3) m: the centre's error along the three least-turned directions
     rotations: np.ndarray  # (n, G, 3, 3) marker-only poses (identity where not valid)
@@ -54,7 +55,7 @@ class Exercised:
 
 def marker_poses(markers: np.ndarray, groups: list[np.ndarray]):
     """Per-body rotations (n, G, 3, 3), positions (n, G, 3), valid (n, G) from each framed body's own
-    markers (generalised Procrustes shape, weighted Kabsch per frame)."""
+    markers (generalised Procrustes shape, Kabsch per frame), label swaps and glitches left out."""
     n = markers.shape[0]
     G = len(groups)
     R = np.tile(np.eye(3), (n, G, 1, 1))
@@ -70,7 +71,7 @@ def marker_poses(markers: np.ndarray, groups: list[np.ndarray]):
         res = np.linalg.norm(apply(Rg, tg, shape) - pts, axis=-1)
         fin = res[ok & np.isfinite(res).all(1)] if ok.any() else res[:0]
         limit = max(OUTLIER_FACTOR * float(np.median(fin)) if fin.size else 0.0, RIGID_TOLERANCE_M)
-        bad = ~(res <= limit) & np.isfinite(res)
+        bad = (res > limit) & np.isfinite(res)
         if bad.any():
             Rg, tg, ok = rigid_fit(shape, np.where(bad[..., None], np.nan, pts))
         R[ok, g], t[ok, g], valid[:, g] = Rg[ok], tg[ok], ok
@@ -88,6 +89,7 @@ def judge_pairs(markers: np.ndarray, groups: list[np.ndarray], tolerance_m: floa
     determined = np.zeros((G, G), dtype=bool)
     judged = framed[:, None] & framed[None, :]
     np.fill_diagonal(judged, False)
+    hinge = np.zeros((G, G), dtype=bool)
     rms = np.full((G, G), np.nan)
     derr = np.full((G, G, 3), np.inf)
     if G >= 2 and judged.any():
@@ -98,9 +100,10 @@ def judge_pairs(markers: np.ndarray, groups: list[np.ndarray], tolerance_m: floa
         pf = pair_fits(acc, P, tolerance=TOLERANCE_M if tolerance_m is None else tolerance_m)
         a, b = P[:, 0], P[:, 1]
         determined[a, b] = determined[b, a] = pf.determined
+        hinge[a, b] = hinge[b, a] = pf.hinge
         rms[a, b] = rms[b, a] = pf.rms
         derr[a, b] = derr[b, a] = pf.direction_error
-    return Exercised(framed, determined, judged, rms, derr, R, t, valid)
+    return Exercised(framed, determined, judged, hinge, rms, derr, R, t, valid)
 
 
 def candidate_costs(markers: np.ndarray, groups: list[np.ndarray], frames: np.ndarray, candidate: np.ndarray, penalty: float = 1e-5) -> np.ndarray:
@@ -159,3 +162,34 @@ def spanning_forest(cost: np.ndarray, sizes: np.ndarray, root: int | None = None
                         nxt.append(int(h))
             frontier = nxt
     return Tree(parent, int(main_root), cost, order)
+
+
+def exercise_report(labels, parent: np.ndarray, exercised: Exercised | None, segmentation=None) -> dict:
+    """The JSON keys that say what the take exercised: `exercised_joints` (tree joints [child, parent]
+    the pair fits determined), `kirk_only_joints` (tree joints to a body without a frame of its own,
+    which the pair fits cannot judge), `unjoined` (bodies no exercised joint reaches), the tolerances
+    used, and each body's internal relative motion (m)."""
+    kids = [int(c) for c in np.flatnonzero(parent >= 0)]
+    judged = (lambda c: bool(exercised.judged[c, parent[c]])) if exercised is not None else (lambda c: False)
+    touched = set(kids) | {int(parent[c]) for c in kids}
+    out = {
+        "exercised_joints": [[labels[c], labels[parent[c]]] for c in kids if judged(c)],
+        "kirk_only_joints": [[labels[c], labels[parent[c]]] for c in kids if not judged(c)],
+        "unjoined": [labels[g] for g in range(len(labels)) if g not in touched],
+        "joint_tolerance_m": TOLERANCE_M,
+    }
+    if segmentation is not None:
+        out["rigid_tolerance_m"] = float(segmentation.tolerance_m)
+        out["body_motion_m"] = {labels[g]: float(v) for g, v in enumerate(segmentation.internal_motion)}
+    return out
+
+
+def joint_decision(exercised: Exercised | None, child: int, parent: int) -> dict:
+    """`determined` (None: not judgeable from poses) and `direction_error_m` for one tree joint's JSON."""
+    if exercised is None or not exercised.judged[child, parent]:
+        return {"determined": None, "direction_error_m": None}
+    err = exercised.direction_error[child, parent]
+    return {
+        "determined": bool(exercised.determined[child, parent]),
+        "direction_error_m": [float(e) if np.isfinite(e) else None for e in err],
+    }

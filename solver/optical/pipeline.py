@@ -14,7 +14,9 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from flockcal.errors import FlockcalError
-from flockcal.solver.optical.exercised import Exercised, candidate_costs, judge_pairs, spanning_forest
+from flockcal.solver.optical.exercised import (
+    Exercised, candidate_costs, exercise_report, joint_decision, judge_pairs, spanning_forest,
+)  # fmt: skip
 from flockcal.solver.optical.joints import Tree, joint_point
 from flockcal.solver.optical.projection import BodyShape, bone_lengths, skeleton_shapes
 from flockcal.solver.optical.rotations import Outliers, body_poses, find_outliers, rigid_route_joint, robust_marker_residuals
@@ -182,7 +184,7 @@ def fit_markers(
     fit_frames = None if max_frames is None or n <= max_frames else np.linspace(0, n - 1, max_frames).astype(int)
     step(STAGES[1])
     topo = topology_frames(np.isfinite(M).all(-1), topology_frame_count)
-    exercised = judge_pairs(M if fit_frames is None else M[fit_frames], groups)
+    exercised = judge_pairs(M, groups)
     sizes = np.array([len(g) for g in groups])
     tree = spanning_forest(candidate_costs(M, groups, topo, exercised.candidate()), sizes, root=root)
 
@@ -276,6 +278,7 @@ def fit_json(fit: OpticalFit) -> dict:
                 "c_stderr_m": float(pf.c_stderr[idx]),
                 "l_stderr_m": float(pf.l_stderr[idx]),
                 "kirk_rms_m": float(fit.joint_rms[c]),
+                **joint_decision(fit.exercised, c, p),
             }
         )
     bones = [
@@ -315,6 +318,7 @@ def fit_json(fit: OpticalFit) -> dict:
         "unused_markers": list(fit.unused_markers),
         "swap_events": events,
         "marker_outlier_threshold_m": fit.outliers.threshold_m,
+        **exercise_report(labels, parent, fit.exercised, fit.clustering),
     }
 
 
