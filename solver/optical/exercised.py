@@ -11,10 +11,8 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 
-from flockcal.solver.optical.joints import Tree, central_root, joint_point
+from flockcal.solver.optical.joints import Tree, joint_point
 from flockcal.solver.optical.rigid import apply, procrustes_mean, rigid_fit
 from flockcal.solver.optical.segmentation import RIGID_TOLERANCE_M
 
@@ -117,22 +115,30 @@ def candidate_costs(markers: np.ndarray, groups: list[np.ndarray], frames: np.nd
 
 
 def spanning_forest(cost: np.ndarray, sizes: np.ndarray, root: int | None = None) -> Tree:
-    """Minimum spanning forest over the finite pair costs. Each part hangs from its body with the most
-    markers (the trunk, in a person; ties go to the most central body), or from `root` in its part; the
-    part holding `root` (else the largest part) comes first and its root is `Tree.root`.
-
-    Weights are residual ranks + 1 so an exact fit (residual 0) is still an edge to csgraph."""
+    """Minimum spanning forest over the finite pair costs (inf: no edge). Each part hangs from its body
+    with the most markers (the trunk, in a person; ties go to the most central body), or from `root` in
+    its part; the part holding `root` (else the one with most markers) comes first, and its root is
+    `Tree.root`. Prim's algorithm on the dense matrix: bodies are tens, and scipy's csgraph import alone
+    would cost more than the whole tree."""
     G = len(cost)
-    iu = np.triu_indices(G, 1)
-    vals = cost[iu]
-    finite = np.isfinite(vals)
-    ranks = np.empty(len(vals))
-    ranks[np.argsort(np.where(finite, vals, np.inf), kind="stable")] = np.arange(1, len(vals) + 1)
-    W = np.zeros((G, G))
-    W[iu] = np.where(finite, ranks, 0.0)
-    mst = minimum_spanning_tree(sp.csr_matrix(W)).toarray()
-    adj = (mst + mst.T) > 0
-    n_parts, part = connected_components(sp.csr_matrix(adj), directed=False)
+    adj = np.zeros((G, G), dtype=bool)
+    part = np.full(G, -1)
+    for start in range(G):
+        if part[start] >= 0:
+            continue
+        label = int(part.max()) + 1
+        part[start] = label
+        best = np.where(part < 0, cost[start], np.inf)
+        via = np.full(G, start)
+        while np.isfinite(best).any():
+            h = int(np.argmin(best))
+            adj[h, via[h]] = adj[via[h], h] = True
+            part[h] = label
+            closer = (cost[h] < best) & (part < 0)
+            best = np.where(closer, cost[h], best)
+            via = np.where(closer, h, via)
+            best[part >= 0] = np.inf
+    n_parts = int(part.max()) + 1
     counts = np.bincount(part, weights=sizes, minlength=n_parts)
     first = part[root] if root is not None else int(np.argmax(counts))
     parent = np.full(G, -1)
@@ -143,14 +149,11 @@ def spanning_forest(cost: np.ndarray, sizes: np.ndarray, root: int | None = None
         if root is not None and c == part[root]:
             r = int(root)
         else:
-            sub = adj[np.ix_(members, members)]
-            centre = central_root(sub) if len(members) > 1 else 0
             biggest = members[sizes[members] == sizes[members].max()]
-            r = int(members[centre]) if members[centre] in biggest else int(biggest[0])
-        main_root = r if main_root is None else main_root
-        order.append(r)
-        frontier = [r]
-        seen = {r}
+            r = min(biggest, key=lambda g: (largest_branch(adj, members, g), g))
+        main_root = int(r) if main_root is None else main_root
+        order.append(int(r))
+        frontier, seen = [int(r)], {int(r)}
         while frontier:
             nxt = []
             for g in frontier:
@@ -162,6 +165,24 @@ def spanning_forest(cost: np.ndarray, sizes: np.ndarray, root: int | None = None
                         nxt.append(int(h))
             frontier = nxt
     return Tree(parent, int(main_root), cost, order)
+
+
+def largest_branch(adj: np.ndarray, members: np.ndarray, g: int) -> int:
+    """Bodies in the largest piece of `members`' tree left when body `g` is taken out (smaller: more central)."""
+    left = set(int(x) for x in members) - {int(g)}
+    largest = 0
+    while left:
+        stack = [left.pop()]
+        size = 1
+        while stack:
+            x = stack.pop()
+            for y in np.flatnonzero(adj[x]):
+                if int(y) in left:
+                    left.discard(int(y))
+                    stack.append(int(y))
+                    size += 1
+        largest = max(largest, size)
+    return largest
 
 
 def exercise_report(labels, parent: np.ndarray, exercised: Exercised | None, segmentation=None) -> dict:
