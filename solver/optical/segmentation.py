@@ -17,16 +17,19 @@ from flockcal.solver.optical.rigid import procrustes_mean, rigid_fit, to_body
 
 # Skin markers slide over the bone by 5–15 mm at the ends of a joint's range (soft-tissue artefact), so two
 # markers of one segment can change their distance by up to about this much; relative motion within it is
-# read as "did not move relative to each other". A range is the 5th–95th percentile spread over the take.
+# read as "did not move relative to each other". A range is the 10th–90th percentile spread over the take
+# (a label swap or glitch in under a tenth of the frames does not widen it).
 RIGID_TOLERANCE_M = 0.015
 LOW_Q, HIGH_Q = 0.10, 0.90
 
 # Frames used for the ranges: relative motion is slow next to 100 Hz, and more frames change a range by
 # well under a millimetre while the cost grows with frames × markers².
-SEGMENT_FRAMES = 400
+SEGMENT_FRAMES = 250
 
 # A body needs this many markers to have a frame of its own (three non-collinear points).
 FRAMED = 3
+LEAVE_OUT_BELOW = 8  # bodies this small judge their own markers with each left out of the fit
+
 
 # Stands in for "no frame to see it from" inside sums (any real motion is far below a kilometre).
 UNSEEN_M = 1e3
@@ -41,7 +44,7 @@ class Segmentation:
     labels: np.ndarray  # (k,) body index of every marker, bodies numbered by their first marker
     n_groups: int
     tolerance_m: float  # the relative motion read as "rigid"
-    distance_range: np.ndarray  # (k, k) 5–95 % range of every inter-marker distance (m); inf: never seen together
+    distance_range: np.ndarray  # (k, k) 10–90 % range of every inter-marker distance (m); inf: never seen together
     internal_motion: np.ndarray  # (G,) mean distance range inside each body (m); 0 for a single marker
     frames: np.ndarray  # frames the ranges were read on
 
@@ -63,7 +66,7 @@ def quantile_range(x: np.ndarray, axis: int = 0, low: float = LOW_Q, high: float
 
 
 def distance_ranges(markers: np.ndarray) -> np.ndarray:
-    """(k, k) 5–95 % range of every inter-marker distance over the frames given; inf where two markers
+    """(k, k) 10–90 % range of every inter-marker distance over the frames given; inf where two markers
     were seen together in too few frames to say; 0 on the diagonal."""
     d = np.linalg.norm(markers[:, :, None, :] - markers[:, None, :, :], axis=-1)
     out = quantile_range(d)
@@ -109,34 +112,47 @@ def canonical(labels: np.ndarray) -> np.ndarray:
     return rank[inverse.reshape(-1)]
 
 
-def motion_in_frames(markers: np.ndarray, labels: np.ndarray) -> np.ndarray:
-    """(k, G) how far each marker moves in each body's own frame (2 × the 95 % quantile of its distance
+def motion_in_frames(markers: np.ndarray, labels: np.ndarray, cache: dict | None = None) -> np.ndarray:
+    """(k, G) how far each marker moves in each body's own frame (2 × the 90 % quantile of its distance
     from its median position there: comparable to a distance range); inf for bodies without a frame.
-
-    A marker is left out of its own body's fit when the body keeps three markers without it, so a
-    marker does not hold itself still."""
+    `cache` keeps each body's column by its members, so a merge recomputes only the merged body."""
     k = markers.shape[1]
     G = int(labels.max()) + 1
     out = np.full((k, G), np.inf)
+    cache = {} if cache is None else cache
     for g in range(G):
         members = np.flatnonzero(labels == g)
-        if len(members) < FRAMED:
-            continue
-        shape, R, t, ok = procrustes_mean(markers[:, members])
-        if ok.sum() < 10:
-            continue
-        out[:, g] = spread_in_frame(markers[ok], R[ok], t[ok])
-        if len(members) > FRAMED:
-            for pos, i in enumerate(members):  # leave-one-out: a body's own markers
-                rest = np.delete(np.arange(len(members)), pos)
-                Ri, ti, oki = rigid_fit(shape[rest], markers[:, members[rest]])
-                if oki.sum() >= 10:
-                    out[i, g] = spread_in_frame(markers[oki][:, [i]], Ri[oki], ti[oki])[0]
+        key = tuple(members.tolist())
+        if key not in cache:
+            cache[key] = body_motion(markers, members)
+        out[:, g] = cache[key]
+    return out
+
+
+def body_motion(markers: np.ndarray, members: np.ndarray) -> np.ndarray:
+    """(k,) every marker's motion in the frame of the body made of `members` (inf: no frame).
+
+    A member is left out of the fit that judges it while the body keeps three markers and is small
+    enough for one marker to hold it still (a marker pulls a fit of q markers by about 1/q of its motion;
+    at LEAVE_OUT_BELOW markers and more that is within the tolerance's rounding and not worth a refit)."""
+    out = np.full(markers.shape[1], np.inf)
+    if len(members) < FRAMED:
+        return out
+    shape, R, t, ok = procrustes_mean(markers[:, members])
+    if ok.sum() < 10:
+        return out
+    out[:] = spread_in_frame(markers[ok], R[ok], t[ok])
+    if FRAMED < len(members) < LEAVE_OUT_BELOW:
+        for pos, i in enumerate(members):
+            rest = np.delete(np.arange(len(members)), pos)
+            Ri, ti, oki = rigid_fit(shape[rest], markers[:, members[rest]])
+            if oki.sum() >= 10:
+                out[i] = spread_in_frame(markers[oki][:, [i]], Ri[oki], ti[oki])[0]
     return out
 
 
 def spread_in_frame(markers: np.ndarray, R: np.ndarray, t: np.ndarray) -> np.ndarray:
-    """(q,) 2 × 95 % quantile of each marker's distance from its median position in the frame (R, t)."""
+    """(q,) 2 × 90 % quantile of each marker's distance from its median position in the frame (R, t)."""
     y = to_body(R, t, markers)  # (f, q, 3)
     med = np.nanmedian(y, axis=0)
     dev = np.linalg.norm(y - med[None], axis=-1)
@@ -151,11 +167,12 @@ def merge_still_bodies(markers: np.ndarray, labels: np.ndarray, tolerance: float
     in, judged in the bodies' own frames (a rotation of a few degrees moves a marker a long way from the
     joint while hardly changing distances to markers near it)."""
     labels = canonical(labels)
+    cache: dict = {}
     for _ in range(len(labels)):
         G = int(labels.max()) + 1
         if G == 1 or (n_groups is not None and G <= n_groups):
             break
-        motion = motion_in_frames(markers, labels)
+        motion = motion_in_frames(markers, labels, cache)
         # Body B as seen from A: mean motion of B's markers in A's frame; the better-framed view decides.
         member = np.eye(G, dtype=bool)[labels]  # (k, G)
         capped = np.minimum(motion, UNSEEN_M)  # inf · 0 would be NaN in the product
@@ -197,7 +214,7 @@ def segment_markers(
     max_frames: int = SEGMENT_FRAMES,
 ) -> Segmentation:
     """Group the k markers of a take (n, k, 3, NaN gaps) into rigid bodies that moved relative to each
-    other by more than `tolerance` (metres of 5–95 % relative motion); `n_groups` forces the count."""
+    other by more than `tolerance` (metres of 10–90 % relative motion); `n_groups` forces the count."""
     markers = np.asarray(markers, dtype=float)
     if markers.ndim != 3 or markers.shape[2] != 3:
         raise SegmentationError(f"markers must have shape (frames, markers, 3), got {markers.shape}")
