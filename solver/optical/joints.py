@@ -182,13 +182,20 @@ def spanning_tree(cost: np.ndarray, root: int | None = None) -> Tree:
 
 
 def inv3(A: np.ndarray) -> np.ndarray:
-    """Inverses of (F, 3, 3) matrices by the adjugate: the batched LAPACK inverse costs more in
-    per-matrix overhead than the arithmetic here (the LM step inverts every frame's block each try)."""
-    c0 = np.cross(A[:, 1], A[:, 2])
-    c1 = np.cross(A[:, 2], A[:, 0])
-    c2 = np.cross(A[:, 0], A[:, 1])
-    det = np.einsum("fi,fi->f", A[:, 0], c0)
-    return np.stack([c0, c1, c2], axis=2) / det[:, None, None]
+    """Inverses of symmetric (F, 3, 3) matrices by the adjugate, written out: the batched LAPACK inverse
+    (and np.cross) cost more in per-call overhead than the arithmetic (the LM step inverts every frame's
+    block at each try)."""
+    a, b, c = A[:, 0, 0], A[:, 0, 1], A[:, 0, 2]
+    d, e, f = A[:, 1, 1], A[:, 1, 2], A[:, 2, 2]
+    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
+    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * c00 + b * c01 + c * c02
+    out = np.empty_like(A)
+    out[:, 0, 0], out[:, 1, 1], out[:, 2, 2] = c00, c11, c22
+    out[:, 0, 1] = out[:, 1, 0] = c01
+    out[:, 0, 2] = out[:, 2, 0] = c02
+    out[:, 1, 2] = out[:, 2, 1] = c12
+    return out / det[:, None, None]
 
 
 def solve_joint_point(M: np.ndarray, seen: np.ndarray, p0: np.ndarray, r0: np.ndarray, lam: float, max_iter: int = 60, tol: float = 1e-9):
@@ -200,7 +207,7 @@ def solve_joint_point(M: np.ndarray, seen: np.ndarray, p0: np.ndarray, r0: np.nd
 
     def residual(p, r):
         diff = M - p[:, None]
-        d = np.linalg.norm(diff, axis=-1)
+        d = np.sqrt(np.einsum("fqi,fqi->fq", diff, diff))
         e = w * (d - r[None])
         return e, diff, np.maximum(d, 1e-12)
 

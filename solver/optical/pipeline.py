@@ -135,6 +135,26 @@ def fit_joints(markers, groups, parent, frames=None, penalty: float = 1e-5):
     return joint_points, joint_rms, suspects
 
 
+# A refit without a few glitching marker-frames is skipped when it could move no body's fit by more than
+# this: the glitches' summed residual over the body's seen marker-frames bounds the shift of its mean.
+REFIT_SHIFT_M = 1e-4
+
+
+def glitch_shift(residuals: np.ndarray, mask: np.ndarray, groups) -> float:
+    """Largest, over bodies, of Σ masked marker-frames' residual / the body's seen marker-frames (m): how
+    far leaving them out could move a whole-take mean of that body (inf when a residual is unknown)."""
+    worst = 0.0
+    for g in groups:
+        bad = mask[:, g]
+        if not bad.any():
+            continue
+        r = residuals[:, g][bad]
+        if not np.isfinite(r).all():
+            return float("inf")
+        worst = max(worst, float(r.sum()) / max(int(np.isfinite(residuals[:, g]).sum()), 1))
+    return worst
+
+
 STAGES = ("segmentation", "exercised joints and tree", "joints and poses", "second pass without swaps")
 
 
@@ -216,7 +236,7 @@ def fit_markers(
             found.mask[start:stop, [a, b]] = True
         if outliers is None:
             outliers = found
-        if not found.mask.any():
+        if not found.mask.any() or (not found.swaps and glitch_shift(res, found.mask, groups) < REFIT_SHIFT_M):
             break
         work = np.where(found.mask[..., None], np.nan, work)
     # Poses for every frame, also those thinned out of the joint fits: markers alone, plus joints where fitted.
