@@ -72,7 +72,7 @@ def knee_clusters():
 
 
 def test_knee_trial_thigh_and_shank_clusters_each_in_one_body_with_no_moving_segment_mixed_in(knee, knee_clusters):
-    mt, fit, out = knee
+    mt, fit, _ = knee
     info = segment_map(KNEE)
     for seg in ("r_thigh", "r_shank"):
         bodies = {body_of(fit, mt, x) for x in info["technical_clusters"][seg]}
@@ -85,7 +85,7 @@ def test_knee_trial_thigh_and_shank_clusters_each_in_one_body_with_no_moving_seg
 
 
 def test_knee_trial_segments_that_stayed_still_are_one_body_not_split(knee, knee_clusters):
-    mt, fit, out = knee
+    mt, fit, _ = knee
     info = segment_map(KNEE)
     still = [s for s in info["technical_clusters"] if s == "pelvis" or relative_turn_deg(knee_clusters, "pelvis", s) < STILL_DEG]
     assert len(still) >= 10  # the trial moves the right leg; trunk, head, arms and left leg hardly move
@@ -140,12 +140,12 @@ def test_knee_centre_near_plain_least_squares_on_the_technical_clusters(knee, kn
     # knee differs by about a centimetre (measured 10.5 mm): soft tissue moves the clusters' own markers by
     # up to 12 mm against each other, so two marker sets on one thigh put the knee 1 cm apart. Tolerance:
     # the 15 mm the segmentation allows soft tissue (docs/optical.md), no margin.
-    mt, fit, out = knee
+    _, fit, out = knee
     assert knee_offset(fit, out, knee_clusters, "r_thigh", "r_shank") < 0.015
 
 
 def test_upper_limb_box_pelvis_humerus_and_hand_each_one_body_of_their_own(upper_limb):
-    mt, fit, out = upper_limb
+    mt, fit, _ = upper_limb
     info = segment_map(UPPER_LIMB)
     for seg in ("box", "pelvis", "humerus", "hand"):
         bodies = {body_of(fit, mt, x) for x in info["segments"][seg]}

@@ -99,7 +99,7 @@ def test_cli_refuses_a_negative_rigid_tolerance_in_one_line(tmp_path):
     save_markers(tmp_path / "m.npz", make_marker_take(M, [f"m{i}" for i in range(M.shape[1])], 100.0))
     # tried: --rigid-mm -3
     proc = subprocess.run([sys.executable, "-m", "flockcal", "fit-markers", str(tmp_path / "m.npz"), "--rigid-mm", "-3"],
-                          capture_output=True, text=True, timeout=120)  # fmt: skip
+                          check=False, capture_output=True, text=True, timeout=120)  # fmt: skip
     assert proc.returncode == 2
     lines = proc.stderr.strip().splitlines()
     assert len(lines) == 1 and "--rigid-mm" in lines[0]
