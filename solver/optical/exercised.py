@@ -34,6 +34,7 @@ class Exercised:
     """Pair decisions over the bodies: arrays (G, G), symmetric."""
 
     framed: np.ndarray  # (G,) bool: the body has a pose from its markers alone
+    sizes: np.ndarray  # (G,) markers per body
     determined: np.ndarray  # (G, G) bool: the pair fit pins the joint centre (ball or hinge)
     judged: np.ndarray  # (G, G) bool: both bodies framed, so the pair fit decided
     hinge: np.ndarray  # (G, G) bool: determined as a hinge (one free direction, its axis pinned)
@@ -44,9 +45,11 @@ class Exercised:
     valid: np.ndarray  # (n, G)
 
     def candidate(self) -> np.ndarray:
-        """(G, G) pairs that may be a tree edge: determined, or not judgeable from poses (a body without a
-        frame of its own is left to the Kirk fit)."""
-        c = self.determined | ~self.judged
+        """(G, G) pairs that may be a tree edge: determined, or not judgeable from poses (a body of two
+        markers is left to the Kirk fit). A lone marker is no candidate: it has no orientation, so neither
+        the pair fits nor the Kirk fit (whose point can sit on the marker itself) can judge a joint to it."""
+        two = self.sizes >= 2
+        c = (self.determined | ~self.judged) & two[:, None] & two[None, :]
         np.fill_diagonal(c, False)
         return c
 
@@ -101,10 +104,13 @@ def judge_pairs(markers: np.ndarray, groups: list[np.ndarray], tolerance_m: floa
         hinge[a, b] = hinge[b, a] = pf.hinge
         rms[a, b] = rms[b, a] = pf.rms
         derr[a, b] = derr[b, a] = pf.direction_error
-    return Exercised(framed, determined, judged, hinge, rms, derr, R, t, valid)
+    sizes = np.array([len(g) for g in groups])
+    return Exercised(framed, sizes, determined, judged, hinge, rms, derr, R, t, valid)
 
 
-def candidate_costs(markers: np.ndarray, groups: list[np.ndarray], frames: np.ndarray, candidate: np.ndarray, penalty: float = 1e-5) -> np.ndarray:
+def candidate_costs(
+    markers: np.ndarray, groups: list[np.ndarray], frames: np.ndarray, candidate: np.ndarray, penalty: float = 1e-5
+) -> np.ndarray:
     """(G, G) Kirk joint-point residual rms of the candidate pairs on `frames`; inf elsewhere (no edge)."""
     G = len(groups)
     cost = np.full((G, G), np.inf)
