@@ -43,6 +43,8 @@ class OpticalExtras:
     unused_markers: tuple
     swap_events: tuple  # ({"time_s", "stop_s", "markers", "bodies"}, …)
     marker_outlier_threshold_m: float
+    joint_decisions: tuple = ()  # per joint: {"determined", "direction_error_m"} judged from the bodies' poses
+    exercise: Mapping = field(default_factory=dict)  # what the take exercised: exercised_joints, unjoined, …
 
 
 @dataclass(frozen=True, eq=False)

@@ -58,6 +58,8 @@ def calibration_json(cal) -> dict:
         })
         if kirk is not None:
             e["kirk_rms_m"] = kirk[k]
+            if optical.joint_decisions:
+                e.update(optical.joint_decisions[k])
         else:
             e["determined"] = det[k]
             e["direction_error_m"] = vec[5][k]
@@ -78,7 +80,7 @@ def calibration_json(cal) -> dict:
     if optical is not None:
         out.update(bodies=dict(optical.bodies), markers=_clean(dict(optical.markers)),
                    unused_markers=list(optical.unused_markers), swap_events=[dict(e) for e in optical.swap_events],
-                   marker_outlier_threshold_m=_clean(optical.marker_outlier_threshold_m))
+                   marker_outlier_threshold_m=_clean(optical.marker_outlier_threshold_m), **_clean(dict(optical.exercise)))
     elif cal.known_skeleton:
         out["known_skeleton"] = True
     else:

@@ -18,14 +18,17 @@ import sys
 
 import pytest
 
-# sha256 of the exact stdout (or file) bytes, recorded from main at bbfbb3c.
+# sha256 of the exact stdout (or file) bytes, recorded from main at bbfbb3c. "markers" was re-recorded
+# after issue #17 changed the optical fit on purpose (segmentation by relative motion, exercised joints,
+# new keys), once the typed builder's output was checked byte for byte against #17's own dict builder
+# on this take and on both real captures.
 EXPECTED = {
     "free": "d92cb0addfe17f5255ef19ebe676fc0f5e2416f171b6d7774ad26b5fb3ae1983",
     "hierarchy": "cd351f928653ad54a5eca2c2c7fb8a6ad2544e34c2b4fe4ee6e09444d641f224",
     "slip": "a170906756e2d7e10a528d10f6a718d63c4d13aad7d4d374ab250b4b6a7a2824",
     "skeleton_file": "84ee73e1c62958d6d058de3ca82269b90cef03140aaf70aa5988fecc71c37df9",
     "saved_skeleton": "3cab2f0e1a9e5889f6fd892ee2f1c09f93e92a30385468fd221c93588e490d45",
-    "markers": "51995a850650d1682f14f0292c7126a1a057ae206bfc992730ae5cca047a123b",
+    "markers": "4ed19e86fc07b36a166a9af3fbe7a9a55b2bda9e031e40ef62c05cf1e425faf0",
 }
 
 _ENV = {**os.environ, "OMP_NUM_THREADS": "1", "OPENBLAS_NUM_THREADS": "1", "MKL_NUM_THREADS": "1"}

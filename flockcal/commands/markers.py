@@ -23,6 +23,8 @@ def register(subparsers) -> None:
     p.add_argument("--json", action="store_true", help="print the JSON object (fit --json shape plus 'bodies')")
     p.add_argument("--bodies", type=int, metavar="N", help="number of rigid bodies (default: chosen from the data)")
     p.add_argument("--root", metavar="LABEL", help="hang the tree from this body label")
+    p.add_argument("--rigid-mm", type=float, default=None, metavar="MM",
+                   help="relative motion (10-90 %% range) still read as one rigid body; default 15 (soft tissue)")
     p.add_argument("--take", metavar="OUT.npz", help="also write the per-body poses as a take .npz (for fit, exports)")
     p.set_defaults(func=run)
 
@@ -45,11 +47,14 @@ def run(args) -> int:
 
     if args.bodies is not None and args.bodies < 2:
         raise UserError(f"--bodies must be 2 or more, got {args.bodies}")
+    if args.rigid_mm is not None and not (args.rigid_mm > 0 and math.isfinite(args.rigid_mm)):
+        raise UserError(f"--rigid-mm must be a positive number of millimetres, got {args.rigid_mm}")
+    extra = {} if args.rigid_mm is None else {"rigid_tolerance": args.rigid_mm / 1000.0}
     with Stages("fit-markers", ["reading", *STAGES, "poses and JSON"]) as stages:
         stages.step("reading")
         take = load_markers(args.file)
         fit = fit_markers(take.markers, take.marker_names, take.rate_hz, take.times, n_groups=args.bodies,
-                          root=args.root, progress=stages.step)
+                          root=args.root, progress=stages.step, **extra)
         stages.step("poses and JSON")
         out = _clean(fit.to_dict())
         if args.take:
@@ -67,7 +72,15 @@ def run(args) -> int:
     w(f"bodies ({len(out['bodies'])}), root {out['root']}:\n")
     for label, names in out["bodies"].items():
         parent = out["parent"].get(label, "-")
-        w(f"  {label:<16} parent {parent:<16} markers {', '.join(names)}\n")
+        motion = out["body_motion_m"].get(label) or 0.0
+        w(f"  {label:<16} parent {parent:<16} {motion * 1000:5.1f} mm  markers {', '.join(names)}\n")
+    w(f"  (mm: mean relative motion inside the body; under {out['rigid_tolerance_m'] * 1000:g} mm reads as one rigid body)\n")
+    joints = ", ".join(f"{c}–{p}" for c, p in out["exercised_joints"]) or "none"
+    w(f"joints the take exercised (centre pinned within {out['joint_tolerance_m'] * 1000:g} mm): {joints}\n")
+    if out["kirk_only_joints"]:
+        w(f"joints to bodies under three markers (Kirk fit only): {', '.join(f'{c}–{p}' for c, p in out['kirk_only_joints'])}\n")
+    if out["unjoined"]:
+        w(f"no exercised joint reaches: {', '.join(out['unjoined'])}\n")
     w("bones:\n")
     for b in out["bones"]:
         w(f"  {b['body']:<16} {str(b['from_joint']):>16} → {b['to_joint']:<16} {b['length_m'] * 1000:8.1f} mm\n")

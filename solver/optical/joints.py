@@ -16,8 +16,6 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 
 from flockcal.solver.optical.rigid import nanmean, procrustes_mean, to_body
 
@@ -128,6 +126,9 @@ def pair_costs(markers: np.ndarray, groups: list[np.ndarray], frames: np.ndarray
 
 def central_root(adjacency: np.ndarray) -> int:
     """The group whose removal splits the tree most evenly (smallest largest remaining part)."""
+    import scipy.sparse as sp  # here, not at the top: csgraph's import costs ~0.3 s of a small take
+    from scipy.sparse.csgraph import connected_components
+
     G = len(adjacency)
     best, best_size = 0, G + 1
     for g in range(G):
@@ -146,6 +147,9 @@ def spanning_tree(cost: np.ndarray, root: int | None = None) -> Tree:
 
     Weights are residual ranks + 1 so that an exact fit (residual 0) is still an edge to csgraph.
     """
+    import scipy.sparse as sp
+    from scipy.sparse.csgraph import minimum_spanning_tree
+
     G = len(cost)
     if G == 1:
         return Tree(np.array([-1]), 0, cost, [0])
@@ -177,6 +181,23 @@ def spanning_tree(cost: np.ndarray, root: int | None = None) -> Tree:
     return Tree(parent, int(root), cost, order)
 
 
+def inv3(A: np.ndarray) -> np.ndarray:
+    """Inverses of symmetric (F, 3, 3) matrices by the adjugate, written out: the batched LAPACK inverse
+    (and np.cross) cost more in per-call overhead than the arithmetic (the LM step inverts every frame's
+    block at each try)."""
+    a, b, c = A[:, 0, 0], A[:, 0, 1], A[:, 0, 2]
+    d, e, f = A[:, 1, 1], A[:, 1, 2], A[:, 2, 2]
+    c00, c01, c02 = d * f - e * e, c * e - b * f, b * e - c * d
+    c11, c12, c22 = a * f - c * c, b * c - a * e, a * d - b * b
+    det = a * c00 + b * c01 + c * c02
+    out = np.empty_like(A)
+    out[:, 0, 0], out[:, 1, 1], out[:, 2, 2] = c00, c11, c22
+    out[:, 0, 1] = out[:, 1, 0] = c01
+    out[:, 0, 2] = out[:, 2, 0] = c02
+    out[:, 1, 2] = out[:, 2, 1] = c12
+    return out / det[:, None, None]
+
+
 def solve_joint_point(M: np.ndarray, seen: np.ndarray, p0: np.ndarray, r0: np.ndarray, lam: float, max_iter: int = 60, tol: float = 1e-9):
     """Levenberg–Marquardt on Σ_(f,a seen) (‖M_fa − p_f‖ − r_a)² + lam Σ_a r_a², frames eliminated by a
     Schur complement. M (F,q,3) with unseen entries zeroed, seen (F,q); returns (p (F,3), r (q,))."""
@@ -186,7 +207,7 @@ def solve_joint_point(M: np.ndarray, seen: np.ndarray, p0: np.ndarray, r0: np.nd
 
     def residual(p, r):
         diff = M - p[:, None]
-        d = np.linalg.norm(diff, axis=-1)
+        d = np.sqrt(np.einsum("fqi,fqi->fq", diff, diff))
         e = w * (d - r[None])
         return e, diff, np.maximum(d, 1e-12)
 
@@ -205,11 +226,12 @@ def solve_joint_point(M: np.ndarray, seen: np.ndarray, p0: np.ndarray, r0: np.nd
         gp = -(ut @ e[..., None])[..., 0]
         gr = -(e.sum(0)) + lam * r
         diagU = np.trace(U, axis1=1, axis2=2) / 3
+        u_rows = u.transpose(1, 0, 2).reshape(q, 3 * F)  # Σ_f over (F,q,3)·(F,3,q) as one BLAS product
         while True:
-            Ui = np.linalg.inv(U + (mu * np.maximum(diagU, 1e-12) + 1e-15)[:, None, None] * eye3)
+            Ui = inv3(U + (mu * np.maximum(diagU, 1e-12) + 1e-15)[:, None, None] * eye3)
             UiW = Ui @ ut  # (F,3,q)
-            S = np.diag(V * (1 + mu)) - np.tensordot(u, UiW, axes=([0, 2], [0, 1]))
-            rhs = -gr + np.tensordot(UiW, gp, axes=([0, 1], [0, 1]))
+            S = np.diag(V * (1 + mu)) - u_rows @ UiW.reshape(3 * F, q)
+            rhs = -gr + UiW.reshape(3 * F, q).T @ gp.reshape(3 * F)
             try:
                 dr = np.linalg.solve(S, rhs)
             except np.linalg.LinAlgError:

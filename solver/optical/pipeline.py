@@ -15,10 +15,13 @@ import numpy as np
 
 from flockcal.errors import FlockcalError
 from flockcal.solver.calibration import Calibration
-from flockcal.solver.optical.clustering import Clustering, cluster_markers
-from flockcal.solver.optical.joints import Tree, joint_point, pair_costs, spanning_tree
+from flockcal.solver.optical.exercised import (
+    Exercised, candidate_costs, exercise_report, joint_decision, judge_pairs, spanning_forest,
+)  # fmt: skip
+from flockcal.solver.optical.joints import Tree, joint_point
 from flockcal.solver.optical.projection import BodyShape, bone_lengths, skeleton_shapes
 from flockcal.solver.optical.rotations import Outliers, body_poses, find_outliers, rigid_route_joint, robust_marker_residuals
+from flockcal.solver.optical.segmentation import RIGID_TOLERANCE_M, Segmentation, segment_markers
 
 
 class OpticalError(FlockcalError):
@@ -30,7 +33,7 @@ class OpticalFit:
     marker_names: tuple[str, ...]
     labels: tuple[str, ...]  # body labels
     groups: list[np.ndarray]  # marker indices per body
-    clustering: Clustering
+    clustering: Segmentation
     tree: Tree
     shapes: list[BodyShape]
     bones: list[tuple[int, int | None, int, float]]
@@ -43,6 +46,7 @@ class OpticalFit:
     rate_hz: float
     times: np.ndarray
     unused_markers: list[str] = field(default_factory=list)
+    exercised: Exercised | None = None  # pair decisions over the bodies' marker-only poses
 
     @property
     def parent(self) -> np.ndarray:
@@ -136,7 +140,27 @@ def fit_joints(markers, groups, parent, frames=None, penalty: float = 1e-5):
     return joint_points, joint_rms, suspects
 
 
-STAGES = ("clustering", "topology", "joints and poses", "second pass without swaps")
+# A refit without a few glitching marker-frames is skipped when it could move no body's fit by more than
+# this: the glitches' summed residual over the body's seen marker-frames bounds the shift of its mean.
+REFIT_SHIFT_M = 1e-4
+
+
+def glitch_shift(residuals: np.ndarray, mask: np.ndarray, groups) -> float:
+    """Largest, over bodies, of Σ masked marker-frames' residual / the body's seen marker-frames (m): how
+    far leaving them out could move a whole-take mean of that body (inf when a residual is unknown)."""
+    worst = 0.0
+    for g in groups:
+        bad = mask[:, g]
+        if not bad.any():
+            continue
+        r = residuals[:, g][bad]
+        if not np.isfinite(r).all():
+            return float("inf")
+        worst = max(worst, float(r.sum()) / max(int(np.isfinite(residuals[:, g]).sum()), 1))
+    return worst
+
+
+STAGES = ("segmentation", "exercised joints and tree", "joints and poses", "second pass without swaps")
 
 
 def fit_markers(
@@ -149,12 +173,14 @@ def fit_markers(
     topology_frame_count: int = 120,
     max_frames: int | None = 6000,
     min_seen: float = 0.2,
-    seed: int = 0,
+    rigid_tolerance: float = RIGID_TOLERANCE_M,
     progress: Callable[[str], None] | None = None,
 ) -> OpticalFit:
     """Skeleton from an (n, k, 3) marker take. Markers seen in under `min_seen` of the frames are left
     out (listed in `unused_markers`); takes longer than `max_frames` are thinned evenly for the joint
-    fits (the poses are still produced for every frame). `progress(stage)` is told each of STAGES as
+    fits (the poses are still produced for every frame). Markers whose relative motion stays within
+    `rigid_tolerance` (m, 10–90 % range) are one body; only joints the take determines are tree edges
+    (design.md §3a), so bodies no exercised joint reaches hang from nothing. `progress(stage)` is told each of STAGES as
     it begins (for a progress bar)."""
     step = progress or (lambda stage: None)
     markers = np.asarray(markers, dtype=float)
@@ -170,7 +196,7 @@ def fit_markers(
     kept_names = tuple(names[i] for i in keep)
 
     step(STAGES[0])
-    clus = cluster_markers(M, n_groups=n_groups, seed=seed)
+    clus = segment_markers(M, tolerance=rigid_tolerance, n_groups=n_groups)
     groups = clus.groups
     if len(groups) < 2:
         raise OpticalError("all markers move as one rigid body: there is no joint to find (move the limbs)")
@@ -183,11 +209,12 @@ def fit_markers(
     fit_frames = None if max_frames is None or n <= max_frames else np.linspace(0, n - 1, max_frames).astype(int)
     step(STAGES[1])
     topo = topology_frames(np.isfinite(M).all(-1), topology_frame_count)
-    tree = spanning_tree(pair_costs(M, groups, topo), root=root)
+    exercised = judge_pairs(M, groups)
+    sizes = np.array([len(g) for g in groups])
+    tree = spanning_forest(candidate_costs(M, groups, topo, exercised.candidate()), sizes, root=root)
 
     work = M.copy()
     outliers = None
-    sizes = np.array([len(g) for g in groups])
     par = tree.parent
     # A joint between two bodies of one or two markers each is poorly pinned by the Kirk fit (four
     # distances for three unknowns a frame); such "weak" joints do not steer the poses and are solved
@@ -214,14 +241,14 @@ def fit_markers(
             found.mask[start:stop, [a, b]] = True
         if outliers is None:
             outliers = found
-        if not found.mask.any():
+        if not found.mask.any() or (not found.swaps and glitch_shift(res, found.mask, groups) < REFIT_SHIFT_M):
             break
         work = np.where(found.mask[..., None], np.nan, work)
     # Poses for every frame, also those thinned out of the joint fits: markers alone, plus joints where fitted.
     bones = bone_lengths(shapes, tree.parent)
     return OpticalFit(
         kept_names, labels, groups, clus, tree, shapes, bones, jp, jrms, R, t, valid, outliers,
-        float(rate_hz), times, unused,
+        float(rate_hz), times, unused, exercised,
     )  # fmt: skip
 
 
@@ -292,6 +319,8 @@ def fit_calibration(fit: OpticalFit) -> Calibration:
         unused_markers=tuple(fit.unused_markers),
         swap_events=events,
         marker_outlier_threshold_m=fit.outliers.threshold_m,
+        joint_decisions=tuple(joint_decision(fit.exercised, c, int(parent[c])) for c in kids),
+        exercise=exercise_report(labels, parent, fit.exercised, fit.clustering),
     )
     placement = np.full((m, 3), np.nan)
     placement[kids] = joints.c
