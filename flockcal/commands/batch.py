@@ -46,6 +46,8 @@ def register(subparsers) -> None:
                        help="worker processes of the local Dask cluster (default: one per core)")
     where.add_argument("--scheduler", metavar="ADDRESS",
                        help="run on an existing dask.distributed cluster, e.g. tcp://10.0.0.5:8786")
+    p.add_argument("--timeout", type=float, default=CONNECT_TIMEOUT_S, metavar="S",
+                   help=f"with --scheduler: seconds to wait for it and for a worker (default {CONNECT_TIMEOUT_S:g})")
     p.add_argument("--combine", action="store_true",
                    help="also fit one calibration from all takes (their sums added; same sensors): DIR/combined.json")
     p.add_argument("--hierarchy", metavar="MAP.json", help="as for `flockcal fit` (sensor takes)")
@@ -146,12 +148,12 @@ def start_client(args: argparse.Namespace, n_takes: int):
         logging.getLogger("distributed").setLevel(logging.ERROR)
     if args.scheduler:
         try:
-            client = Client(args.scheduler, timeout=CONNECT_TIMEOUT_S)
+            client = Client(args.scheduler, timeout=args.timeout)
         except (OSError, TimeoutError, ValueError) as exc:
             raise UserError(f"cannot reach the Dask scheduler at {args.scheduler} ({' '.join(str(exc).split())}); "
                             "start one with `dask scheduler` and give its tcp://host:port") from None
         try:
-            check_workers(client, args.scheduler)
+            check_workers(client, args.scheduler, args.timeout)
         except BaseException:
             client.close()
             raise
@@ -172,12 +174,12 @@ def start_client(args: argparse.Namespace, n_takes: int):
     return client, cluster, f"a local cluster of {n} worker process{'es' if n > 1 else ''}"
 
 
-def check_workers(client, address: str) -> None:
+def check_workers(client, address: str, timeout: float) -> None:
     """The cluster has workers, and each runs this flockcal (they import its code to fit the takes)."""
     import importlib.metadata
 
     try:
-        client.wait_for_workers(1, timeout=CONNECT_TIMEOUT_S)
+        client.wait_for_workers(1, timeout=timeout)
     except (TimeoutError, OSError):
         raise UserError(f"the Dask scheduler at {address} has no workers; start some with "
                         f"`dask worker {address}` on machines with {INSTALL_HINT}") from None
@@ -207,6 +209,8 @@ def dashboard(client) -> str | None:
 
 def run(args: argparse.Namespace) -> int:
     import_dask()  # before anything else: without Dask the command says what to install
+    if not args.timeout > 0:
+        raise UserError(f"--timeout must be a positive number of seconds, got {args.timeout}")
     options = FitOptions(
         hierarchy=load_hierarchy(args.hierarchy) if args.hierarchy else None,
         root=args.root,
@@ -271,7 +275,7 @@ def fit_all(client, todo: list[tuple[str, str]], options: FitOptions, out_dir: P
         fits[name] = f
     groups: dict[tuple, list] = {}  # names → [folded sum futures]; counts → takes in each
     counts: dict[tuple, list[str]] = {}
-    left_out: list[dict] = []
+    left_out = [{"take": name, "reason": f"it failed: {o.error}"} for name, o in outcomes.items()]
     with bar(len(rows), "fitting", unit="take") as shown:
         for fut in as_completed(list(rows)):
             name = rows[fut]
