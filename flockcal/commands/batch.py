@@ -14,6 +14,7 @@ import io
 import logging
 import os
 import sys
+import time
 import uuid
 from operator import itemgetter
 from pathlib import Path
@@ -231,15 +232,19 @@ def run(args: argparse.Namespace) -> int:
                                         for name, path in takes if path is None}
     combined_ok = True
     if todo:
+        started = time.perf_counter()
         client, cluster, where = start_client(args, len(todo))
         try:
-            print(f"flockcal batch: {len(todo)} take{'s' if len(todo) != 1 else ''} on {where}", file=sys.stderr)
             # Imported on every worker before the first take, so a take's seconds are its fit, not start-up.
             client.run(warm_up)
+            up = time.perf_counter() - started
+            print(f"flockcal batch: {len(todo)} take{'s' if len(todo) != 1 else ''} on {where} (ready in {up:.1f} s)",
+                  file=sys.stderr)
             link = dashboard(client)
             if link:
                 print(f"flockcal batch: Dask dashboard at {link}", file=sys.stderr)
             combined_ok = fit_all(client, todo, options, out_dir, outcomes)
+            print(f"flockcal batch: fitted in {time.perf_counter() - started - up:.1f} s", file=sys.stderr)
         finally:
             client.close()
             if cluster is not None:
