@@ -111,6 +111,9 @@ def bone_errors(fit: dict, truth: dict, keys=None) -> dict:
     out = {}
     for key in (fb if keys is None else keys):
         body, (a, b) = key[0], sorted(key[1])
-        true = float(np.linalg.norm(points[body][a] - points[body][b]))
-        out[key] = abs(fb[key] - true) if key in fb else np.inf
+        known = points.get(body, {})
+        if key not in fb or a not in known or b not in known:  # not drawn, or between joints the body lacks
+            out[key] = np.inf
+            continue
+        out[key] = abs(fb[key] - float(np.linalg.norm(known[a] - known[b])))
     return out
