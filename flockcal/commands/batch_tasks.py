@@ -110,11 +110,10 @@ def load_sensor_take(path: str):
     return load_take(path)
 
 
-def shared_origin(paths: list[str]) -> np.ndarray:
+def shared_origin(paths: list[str]) -> np.ndarray | None:
     """The origin every take's accumulator uses for --combine: the first valid frame's sensor centroid of
-    the first sensor take that loads (only a common origin lets accumulators be summed)."""
-    from flockcal.errors import UserError
-
+    the first sensor take that loads (only a common origin lets accumulators be summed); None when no
+    take is one (there is nothing to combine, and the takes are still fitted)."""
     for path in paths:
         try:
             if take_kind(path) != "sensors":
@@ -126,7 +125,7 @@ def shared_origin(paths: list[str]) -> np.ndarray:
         if rows.size:
             k = rows[0]
             return take.positions[k][take.valid[k]].mean(axis=0)
-    raise UserError("--combine: none of the takes is a readable sensor take with a valid frame")
+    return None
 
 
 def fit_one(path: str, options: FitOptions, origin=None):
