@@ -66,37 +66,47 @@ def cluster(tmp_path_factory):
         log.close()
 
 
+PARTS = 9  # one more than the client folds at once, so the sums are folded in two rounds
+
+
 @pytest.fixture(scope="module")
 def takes(tmp_path_factory):
     src = tmp_path_factory.mktemp("takes")
-    for seed in (1, 2):
-        perf = Performer("human", "exercise", seed=seed, birds=6, rate_hz=100.0, period=8.0)
-        R, t, v = perf.poses(np.arange(800) / 100.0)
-        save_take(src / f"six{seed}.npz", make_take(R, t, perf.names, 100.0, valid=v))
+    # Nine 6 s takes of one performer's 24 s routine, small enough that many of them cost little.
+    perf = Performer("human", "exercise", seed=1, birds=6, rate_hz=100.0, period=24.0, sta_mm=0)
+    for k in range(PARTS):
+        times = np.arange(600) / 100.0 + 6.0 * k
+        R, t, v = perf.poses(times)
+        save_take(src / f"six{k}.npz", make_take(R, t, perf.names, 100.0, valid=v, times=times - times[0]))
     url = "sim://batch-scheduler?birds=4&rate=50&motion=walk"
     flockcal("record", "--port", url, "--birds", "4", "--rate", "50", "-o", src / "live.fobraw", "--seconds", "3")
     return src
 
 
-def test_batch_on_a_running_cluster_gives_what_fit_prints(cluster, takes, tmp_path):
-    out_dir = tmp_path / "results"
+@pytest.fixture(scope="module")
+def batch(cluster, takes, tmp_path_factory):
+    out_dir = tmp_path_factory.mktemp("results")
     # Relative names, from the takes' folder: the workers run elsewhere and must get absolute paths.
     # Three seconds of a 4-bird walk may pin no joint: --allow-partial fits it anyway, as it does for `fit`.
-    run = flockcal("batch", "six1.npz", "six2.npz", "live.fobraw", "-o", out_dir, "--scheduler", cluster,
-                   "--allow-partial", cwd=takes)
-    err = run.stderr.decode()
-    assert f"3 takes on the cluster at {cluster}" in err and "Dask dashboard at http://127.0.0.1:" in err
+    names = [f"six{k}.npz" for k in range(PARTS)] + ["live.fobraw"]
+    run = flockcal("batch", *names, "-o", out_dir, "--scheduler", cluster, "--allow-partial", "--combine", cwd=takes)
+    return out_dir, names, run.stderr.decode()
+
+
+def test_batch_on_a_running_cluster_gives_what_fit_prints(cluster, takes, batch, tmp_path):
+    out_dir, names, err = batch
+    assert f"{PARTS + 1} takes on the cluster at {cluster}" in err and "Dask dashboard at http://127.0.0.1:" in err
     rows = list(csv.DictReader((out_dir / "summary.csv").open()))
-    assert [r["take"] for r in rows] == ["six1.npz", "six2.npz", "live.fobraw"]
+    assert [r["take"] for r in rows] == names
     assert all(r["error"] == "" for r in rows), rows
-    for name in ("six1", "six2"):
+    for name in ("six0", "six5"):
         assert (out_dir / f"{name}.json").read_bytes() == flockcal("fit", takes / f"{name}.npz", "--json").stdout
     flockcal("convert", takes / "live.fobraw", "-o", tmp_path / "live.npz")
     fitted = flockcal("fit", tmp_path / "live.npz", "--json", "--allow-partial")
     assert (out_dir / "live.json").read_bytes() == fitted.stdout
     # The same warning when fit gives one (a live recording moves as the clock fell; it may or may not).
     assert ("is too still to fit" in fitted.stderr.decode()) == ("warning: live.fobraw is too still to fit" in err)
-    assert rows[2]["sensors"] == "4" and int(rows[2]["frames"]) > 100
+    assert rows[-1]["sensors"] == "4" and int(rows[-1]["frames"]) > 100
 
 
 def test_a_scheduler_that_does_not_answer_is_one_line_and_exit_2(tmp_path):
@@ -111,3 +121,27 @@ def test_a_scheduler_that_does_not_answer_is_one_line_and_exit_2(tmp_path):
     err = run.stderr.decode()
     assert run.returncode == 2 and err.count("\n") == 1, err
     assert f"cannot reach the Dask scheduler at tcp://127.0.0.1:{port}" in err and "dask scheduler" in err
+
+
+def test_combine_folds_many_takes_into_plain_least_squares_on_all_their_frames(takes, batch):
+    from flockcal.takes import load_take
+    from plain_lsq import plain_fit
+
+    out_dir, names, err = batch
+    names = names[:-1]  # the six-sensor takes
+    combined = json.loads((out_dir / "combined.json").read_text())
+    assert combined["takes"] == names and combined["frames"] == 600 * PARTS, err
+    assert [e["take"] for e in combined["left_out"]] == ["live.fobraw"]  # four birds, not the six
+    parts = [load_take(takes / n) for n in names]
+    checked = 0
+    for j in combined["joints"]:
+        if not j["determined"] or j["hinge"]:
+            continue
+        i, p = parts[0].names.index(j["child"]), parts[0].names.index(j["parent"])
+        cat = [np.concatenate([getattr(tk, a)[:, x] for tk in parts]) for x, a in
+               ((i, "rotations"), (i, "positions"), (p, "rotations"), (p, "positions"))]
+        plain = plain_fit(*cat, np.concatenate([tk.valid[:, i] & tk.valid[:, p] for tk in parts]))
+        # design.md §3a: a determined ball joint equals plain least squares within 1 mm.
+        assert np.linalg.norm(np.subtract(j["c"], plain.c)) <= 1e-3, j["child"]
+        checked += 1
+    assert checked >= 2

@@ -271,6 +271,8 @@ def fit_all(client, todo: list[tuple[str, str]], options: FitOptions, out_dir: P
     origin = None
     if options.combine:
         origin = client.submit(tasks.shared_origin, [p for _, p in todo], key=f"flockcal-origin-{run_id}")
+    # `fits` holds each fit's future until its row is read: the row and the sum are picked from it on the
+    # worker that holds it, so only the row (and the JSON text) travels to this process.
     fits, rows, sums = {}, {}, {}
     for k, (name, path) in enumerate(todo):
         f = client.submit(tasks.fit_one, path, options, origin, key=f"flockcal-fit-{run_id}-{k}")
@@ -307,7 +309,8 @@ def fit_all(client, todo: list[tuple[str, str]], options: FitOptions, out_dir: P
                     counts.setdefault(res.names, []).append(name)
                     g.append(s)
                     if len(g) >= FOLD:
-                        groups[res.names] = [client.submit(tasks.merged, *g, key=f"flockcal-fold-{run_id}-{uuid.uuid4().hex[:8]}")]
+                        key = f"flockcal-fold-{run_id}-{uuid.uuid4().hex[:8]}"
+                        groups[res.names] = [client.submit(tasks.merged, *g, key=key)]
             shown.update(1)
     if not options.combine:
         return True
