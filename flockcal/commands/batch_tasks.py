@@ -164,17 +164,17 @@ def fit_one(path: str, options: FitOptions, origin=None):
     roomy_malloc()  # also on workers that joined the cluster after warm_up ran
     start = time.perf_counter()
     out = TakeOutcome(path)
-    contribution = None
+    acc = None
     try:
         out.kind = take_kind(path)
         if out.kind == "markers":
             _fit_markers(path, options, out)
         else:
-            contribution = _fit_sensors(path, options, origin, out)
+            acc = _fit_sensors(path, options, origin, out)
     except Exception as exc:  # noqa: BLE001 — every failure becomes the take's row; the others go on
-        out.error, out.text, contribution = one_line(exc), None, None
+        out.error, out.text, acc = one_line(exc), None, None
     out.seconds = time.perf_counter() - start
-    return out, contribution
+    return out, acc
 
 
 def _fit_sensors(path: str, options: FitOptions, origin, out: TakeOutcome):
