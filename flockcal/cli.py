@@ -22,6 +22,7 @@ COMMAND_MODULES = [
     "flockcal.commands.serve",
     "flockcal.commands.outputs",
     "flockcal.commands.markers",
+    "flockcal.commands.batch",
 ]
 
 

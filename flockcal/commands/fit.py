@@ -92,7 +92,6 @@ def run(args: argparse.Namespace) -> int:
 
     single_threaded_blas()  # before numpy loads
     from flockcal.exports.bvh import write_bvh
-    from flockcal.solver.solve import solve, solve_take
     from flockcal.takes import load_take
 
     take = load_take(args.file)
@@ -101,36 +100,62 @@ def run(args: argparse.Namespace) -> int:
 
         take = dataclasses.replace(take, positions=take.positions * scale_factor(args.scale))
     hierarchy = load_hierarchy(args.hierarchy) if args.hierarchy else None
-    acc = accumulate(take)
     # Fitted first, so bad input (names, hierarchy) is reported as such before the take is judged.
     tol = tolerance_m(args)
-    cal = solve(acc, take.names, hierarchy=hierarchy, root=args.root, tolerance=tol)
+    cal = calibrate_take(take, hierarchy=hierarchy, root=args.root, tolerance=tol)
     if stop_for("fit", args.file, too_short(take) or too_still(cal), args.allow_partial):
         return PARTIAL_EXIT
-    slips, result = [], cal
     with Stages("fit", ["searching for slips", "re-fitting after slips", "writing BVH"]) as stages:
-        if not args.no_slips and len(cal.joints.pairs):
-            from flockcal.solver.slippage import detect_slips
-
-            stages.step("searching for slips")
-            slips = detect_slips(take, cal)
-            if slips:
-                # The slipped sensors' joints and bones are re-fitted on the frames since their slip
-                # (docs/design.md §4); everything else keeps the whole take.
-                stages.step("re-fitting after slips")
-                result = solve_take(take, slips, hierarchy=cal.parent_map(), root=cal.names[cal.root], tolerance=tol)
+        slips, result = fit_result(take, cal, tolerance=tol, find_slips=not args.no_slips, step=stages.step)
         if args.bvh:
             stages.step("writing BVH")
             write_bvh(args.bvh, cal, take)
     if args.bvh:
         print(f"wrote {args.bvh}", file=sys.stderr)
     if args.json:
-        print(json.dumps(result.to_dict(), indent=2))
+        sys.stdout.write(json_text(result))
     else:
         print(table(cal, source=args.file))
         if slips:
             print(slip_table(slips, result))
     return 0
+
+
+# The fit path in parts, shared with `flockcal batch` (flockcal/commands/batch_tasks.py) so that a take's
+# batch result is byte for byte what `fit --json` prints.
+def calibrate_take(take, hierarchy: dict | None = None, root: str | None = None, tolerance: float = 0.005,
+                   progress: bool = True):
+    """The whole-take `Calibration` of `take` (accumulated in chunks, bar on a terminal), by `solve`."""
+    from flockcal.solver.solve import solve
+
+    acc = accumulate(take, progress)
+    return solve(acc, take.names, hierarchy=hierarchy, root=root, tolerance=tolerance)
+
+
+def fit_result(take, cal, tolerance: float = 0.005, find_slips: bool = True, step=None) -> tuple[list, object]:
+    """(slip events, the `Calibration` whose §5 JSON `fit --json` prints) for a take and its whole-take
+    calibration.
+
+    The slipped sensors' joints and bones are re-fitted on the frames since their slip (docs/design.md
+    §4); everything else keeps the whole take. `step(name)` reports the stages ("searching for slips", …).
+    """
+    step = step or (lambda name: None)
+    slips, result = [], cal
+    if find_slips and len(cal.joints.pairs):
+        from flockcal.solver.slippage import detect_slips
+        from flockcal.solver.solve import solve_take
+
+        step("searching for slips")
+        slips = detect_slips(take, cal)
+        if slips:
+            step("re-fitting after slips")
+            result = solve_take(take, slips, hierarchy=cal.parent_map(), root=cal.names[cal.root], tolerance=tolerance)
+    return slips, result
+
+
+def json_text(result) -> str:
+    """The exact text `fit --json` prints for a `Calibration` (or a §5 dict built from one)."""
+    return json.dumps(result if isinstance(result, dict) else result.to_dict(), indent=2) + "\n"
 
 
 def slip_table(slips, result) -> str:

@@ -40,10 +40,30 @@ def _clean(x):
     return x
 
 
-def run(args) -> int:
+def fit_marker_file(path, bodies: int | None = None, root: str | None = None, step=None, **options):
+    """(marker take, MarkerFit, the JSON dict `fit-markers --json` prints) for a .c3d or marker .npz;
+    shared with `flockcal batch` so both print the same bytes. `options` go to `fit_markers`
+    (`rigid_tolerance`)."""
     from flockcal.markers import load_markers
+    from flockcal.solver.optical.pipeline import fit_markers
+
+    step = step or (lambda name: None)
+    step("reading")
+    take = load_markers(path)
+    fit = fit_markers(take.markers, take.marker_names, take.rate_hz, take.times, n_groups=bodies,
+                      root=root, progress=step, **options)
+    step("poses and JSON")
+    return take, fit, _clean(fit.to_dict())
+
+
+def json_text(out: dict) -> str:
+    """The exact text `fit-markers --json` prints."""
+    return json.dumps(out) + "\n"
+
+
+def run(args) -> int:
     from flockcal.progress import Stages
-    from flockcal.solver.optical.pipeline import STAGES, fit_markers
+    from flockcal.solver.optical.pipeline import STAGES
 
     if args.bodies is not None and args.bodies < 2:
         raise UserError(f"--bodies must be 2 or more, got {args.bodies}")
@@ -51,12 +71,7 @@ def run(args) -> int:
         raise UserError(f"--rigid-mm must be a positive number of millimetres, got {args.rigid_mm}")
     extra = {} if args.rigid_mm is None else {"rigid_tolerance": args.rigid_mm / 1000.0}
     with Stages("fit-markers", ["reading", *STAGES, "poses and JSON"]) as stages:
-        stages.step("reading")
-        take = load_markers(args.file)
-        fit = fit_markers(take.markers, take.marker_names, take.rate_hz, take.times, n_groups=args.bodies,
-                          root=args.root, progress=stages.step, **extra)
-        stages.step("poses and JSON")
-        out = _clean(fit.to_dict())
+        take, fit, out = fit_marker_file(args.file, bodies=args.bodies, root=args.root, step=stages.step, **extra)
         if args.take:
             from flockcal.takes import save_take
 
@@ -64,8 +79,7 @@ def run(args) -> int:
     if args.take:
         print(f"wrote {args.take}", file=sys.stderr)
     if args.json:
-        json.dump(out, sys.stdout)
-        sys.stdout.write("\n")
+        sys.stdout.write(json_text(out))
         return 0
     w = sys.stdout.write
     w(f"{take.source}: {take.n_markers} markers, {take.n_frames} frames at {take.rate_hz:g} Hz\n")

@@ -194,29 +194,36 @@ def _replay(args) -> int:
 
 
 def _convert(args) -> int:
-    import numpy as np
+    from flockcal.takes import save_take
 
-    from flockcal.drivers.recording import RecordingError
-    from flockcal.takes import make_take, save_take
-
-    rec, replay = _load(args.recording, args.salvage)
-    out = _decode(rec, replay)
-    f = out.frames
-    if len(f) == 0:
-        raise RecordingError(f"{args.recording}: no complete frame could be decoded")
-    setup = out.setups[-1]
-    m = f.valid.shape[1]
-    names = parse_names(args.names, m) or rec.settings.get("names") or default_names(m)
-    if len(names) != m:
-        raise RecordingError(f"{args.recording}: its header names {len(names)} sensors but it holds {m} birds; "
-                             f"name them with --names")
-    carried = np.isfinite(f.positions).all(axis=2) & np.isfinite(f.rotations).all(axis=(2, 3))
-    if (f.valid & ~carried).any():
-        raise RecordingError(f"{args.recording}: its record format {setup['record_format']} lacks position or "
-                             f"orientation; a take needs both (record with position_matrix or position_quaternion)")
-    take = make_take(f.rotations, f.positions, names, setup["rate_hz"], valid=f.valid, times=f.times - f.times[0],
-                     source=args.recording)
+    take = recording_take(args.recording, names=args.names, salvage=args.salvage)
     save_take(args.output, take)
     print(f"wrote {args.output}: {take.n_frames} frames of {take.n_sensors} sensors ({', '.join(take.names)}), "
           f"{take.valid.mean():.1%} valid", file=sys.stderr)
     return 0
+
+
+def recording_take(path: str, names: str | None = None, salvage: bool = False):
+    """The `Take` `flockcal convert` writes for a .fobraw recording (`flockcal batch` fits it the same way)."""
+    import numpy as np
+
+    from flockcal.drivers.recording import RecordingError
+    from flockcal.takes import make_take
+
+    rec, replay = _load(path, salvage)
+    out = _decode(rec, replay)
+    f = out.frames
+    if len(f) == 0:
+        raise RecordingError(f"{path}: no complete frame could be decoded")
+    setup = out.setups[-1]
+    m = f.valid.shape[1]
+    names = parse_names(names, m) or rec.settings.get("names") or default_names(m)
+    if len(names) != m:
+        raise RecordingError(f"{path}: its header names {len(names)} sensors but it holds {m} birds; "
+                             f"name them with --names")
+    carried = np.isfinite(f.positions).all(axis=2) & np.isfinite(f.rotations).all(axis=(2, 3))
+    if (f.valid & ~carried).any():
+        raise RecordingError(f"{path}: its record format {setup['record_format']} lacks position or "
+                             f"orientation; a take needs both (record with position_matrix or position_quaternion)")
+    return make_take(f.rotations, f.positions, names, setup["rate_hz"], valid=f.valid, times=f.times - f.times[0],
+                     source=path)
