@@ -14,6 +14,7 @@ from pathlib import Path
 from flockcal.server.errors import ConfigError
 from flockcal.server.hub import SnapshotHub
 from flockcal.server.pipeline import Pipeline
+from flockcal.server.retention import Retention, policy_from
 from flockcal.server.sessions import SessionManager
 from flockcal.server.settings import Settings
 from flockcal.server.skeletons import SkeletonLibrary
@@ -84,6 +85,11 @@ class Service:
         self.sessions = SessionManager(self.store, self.pipeline, data / "recordings", settings.device_url,
                                        settings.rate_hz)
         self.sessions.raw_recorder = _RawLater(self.source)
+        # Retention (#19): prunes old sessions' frames and raw recordings between sessions.
+        self.retention = Retention(self.store, self.sessions, data,
+                                   policy_from(settings.keep_days, settings.keep_disk_gb),
+                                   self.pipeline.add_event, interval_s=settings.retention_interval_s)
+        self.sessions.retention = self.retention
         try:
             self.skeletons = SkeletonLibrary(data / "skeletons", self.pipeline.names)
             for path in settings.skeletons:
@@ -115,6 +121,7 @@ class Service:
     def start(self) -> None:
         self.pipeline.start()
         self.source.start(self.pipeline.feed, self.pipeline.tracker_event)
+        self.retention.start()
         self.started = True
 
     def stop(self) -> None:
@@ -124,6 +131,7 @@ class Service:
                 self.stopped_session = self.sessions.stop(live)
             except Exception:
                 log.exception("could not stop session %s cleanly", live)
+        self.retention.stop()
         try:
             self.source.stop()
         finally:

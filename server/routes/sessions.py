@@ -21,7 +21,7 @@ from flockcal.server.settings import NAME_RE
 
 router = APIRouter(prefix="/api/sessions", tags=["sessions"])
 
-ERRORS = {code: {"model": ErrorReply} for code in (400, 401, 403, 404, 409, 413, 422)}
+ERRORS = {code: {"model": ErrorReply} for code in (400, 401, 403, 404, 409, 410, 413, 422)}
 
 
 def presets(service) -> dict[str, dict | None]:
@@ -147,6 +147,11 @@ def get_skeleton(sid: str = Depends(session_id), service=Depends(get_service), _
 
     result, _live = service.sessions.result(sid)
     row = service.sessions.get(sid)
+    kept = service.retention.kept_skeleton_path(sid)
+    if not service.sessions.frames_path(sid).exists() and kept.exists():
+        # Pruned (server/retention.py): the file was written from the frames before they went.
+        return Response(kept.read_bytes(), media_type="application/json",
+                        headers={"Content-Disposition": f'attachment; filename="{sid}-skeleton.json"'})
 
     def make():
         take = service.sessions.take(sid)
@@ -194,5 +199,6 @@ def get_raw(sid: str = Depends(session_id), service=Depends(get_service), _role=
     service.sessions.get(sid)
     path = service.sessions.raw_path(sid)
     if not path.exists():
+        service.retention.check_files(sid, "raw recording")
         raise NotFound(f"session {sid} has no raw recording")
     return FileResponse(path, media_type="application/octet-stream", filename=f"{sid}.fobraw")
