@@ -102,6 +102,7 @@ class Retention:
         self.last_run_at: float | None = None
         self.last_error: str | None = None
         self.over_budget = False  # live, pinned and kept files alone exceed the budget
+        self._usage: tuple[float, int] | None = None  # (monotonic time, bytes) of the last data-directory walk
 
     # --- the background thread ----------------------------------------------------------------
     def start(self) -> None:
@@ -151,7 +152,7 @@ class Retention:
                 return []
             pruned = []
             cutoff = None if self.policy.keep_days is None else now - self.policy.keep_days * DAY_S
-            used = tree_bytes(self.data_dir) if self.policy.keep_bytes is not None else 0
+            used = self.data_bytes(max_age_s=0.0) if self.policy.keep_bytes is not None else 0
             for row in self.candidates():
                 if cutoff is not None and row["created_at"] < cutoff:
                     reason = f"older than {self.policy.keep_days:g} days"
@@ -166,6 +167,8 @@ class Retention:
                 used -= done["freed_bytes"]
                 pruned.append(done)
             self.over_budget = self.policy.keep_bytes is not None and used > self.policy.keep_bytes
+            if pruned:
+                self._usage = None
             return pruned
 
     def _prune(self, sid: str, reason: str) -> dict | None:
@@ -261,11 +264,19 @@ class Retention:
             raise Gone(f"session {sid}'s {what} was pruned on {when} ({st['pruned_reason']}); its result, "
                        f"skeleton and events are kept. Pin sessions you need whole (POST /api/sessions/{{id}}/pin)")
 
+    def data_bytes(self, max_age_s: float = 5.0) -> int:
+        """The data directory's size, walked at most every `max_age_s` (a season leaves tens of thousands of
+        small files, and /api/status is polled)."""
+        now = time.monotonic()
+        if self._usage is None or now - self._usage[0] > max_age_s:
+            self._usage = (now, tree_bytes(self.data_dir))
+        return self._usage[1]
+
     def status(self) -> dict:
         """For /api/status: the policy, the disk it governs, what was pruned and pinned."""
         counts = self.store.query("SELECT COALESCE(SUM(pinned), 0) AS pinned, COUNT(pruned_at) AS pruned, "
                                   "COALESCE(SUM(freed_bytes), 0) AS freed FROM retention")[0]
-        used = tree_bytes(self.data_dir)
+        used = self.data_bytes()
         return {
             "enabled": self.policy.active,
             "policy": self.policy.describe(),
