@@ -319,7 +319,8 @@ class ProgressTracker:
             value = 1.0 if it["done"] else it["progress"]
             held = self.floor.get(child)
             if held is not None and value < held and not it["done"]:
-                it["progress"] = min(held, NOT_DONE_CAP)
+                # A share below 1 is held as it was; a joint done once shows just under 1 (it is not done).
+                it["progress"] = held if held < 1.0 else NOT_DONE_CAP
                 it["held"] = True
                 value = it["progress"]
             if held is None or value > held:

@@ -39,8 +39,9 @@ def published(seed: int, height: float, seconds: float) -> list[tuple[float, dic
 
 # Guests of benchmarks/bench_calibrate_time.py (seeds 100–107 with --performer-option sta_mm=12) whose ring
 # went back with no reason before #19: seed 107 five times in its first 13 s (a thigh re-linked between
-# pelvis and abdomen, back and forth), seed 103 twice by 11 s.
-@pytest.mark.parametrize("seed, height, seconds", [(107, 1.9097, 14.0), (103, 1.5193, 11.5)])
+# pelvis and abdomen, back and forth), seed 103 twice by 11 s; seed 100 at 12.5 s (a share just under 1
+# held through a re-link was shown capped at 0.99).
+@pytest.mark.parametrize("seed, height, seconds", [(107, 1.9097, 14.0), (103, 1.5193, 11.5), (100, 1.8757, 12.6)])
 def test_progress_of_a_soft_tissue_guest_falls_only_for_a_stated_reason(seed, height, seconds):
     docs = published(seed, height, seconds)
     prev_total, prev_joints = 0.0, {}
