@@ -112,6 +112,10 @@ def test_the_dashboards_season_panel_shows_the_services_stats(browser, server):
     sid = httpx.post(f"{server.url}/api/sessions", headers=admin(), json={"performer": "guest one"}).json()["id"]
     time.sleep(1.0)
     httpx.post(f"{server.url}/api/sessions/{sid}/stop", headers=admin(), timeout=30)
+    # What was tried: the kiosk's token pinning a session (admin only), the stats with no token at all.
+    r = httpx.post(f"{server.url}/api/sessions/{sid}/pin", headers={"Authorization": f"Bearer {KIOSK}"})
+    assert r.status_code == 403 and not httpx.get(f"{server.url}/api/sessions/{sid}", headers=admin()).json()["pinned"]
+    assert httpx.get(f"{server.url}/api/stats").status_code == 401
     page = new_page(browser, f"{server.url}/?token={ADMIN}")
     try:
         page.wait_for_selector("#season-panel[data-loaded]", timeout=15000)
