@@ -232,6 +232,10 @@ def main() -> None:
           f"warm-up {warmup_s / 60:.1f} min, {len(samples)} samples every {args.sample_s:g} s")
     print(f"RSS {samples[0]['rss_mb']:.1f} → {samples[-1]['rss_mb']:.1f} MB, growth after warm-up {rss_growth:+.1f} MB "
           f"({rss_growth / TARGET_RSS_GROWTH_MB:.2f}× the {TARGET_RSS_GROWTH_MB:g} MB limit)")
+    half = [s for s in samples if s["t_min"] >= samples[-1]["t_min"] / 2] or samples
+    print(f"RSS over the second half of the run {half[0]['rss_mb']:.1f} → {half[-1]['rss_mb']:.1f} MB "
+          f"({half[-1]['rss_mb'] - half[0]['rss_mb']:+.1f} MB over {half[-1]['sessions'] - half[0]['sessions']} sessions): "
+          f"a leak grows on, a high-water mark levels off")
     print(f"open files after warm-up {min(s['fds'] for s in after)}–{max(s['fds'] for s in after)}, growth {fd_growth:+d} "
           f"(target 0); threads {min(s['threads'] for s in after)}–{max(s['threads'] for s in after)}, growth {thread_growth:+d}")
     print(f"data directory at most {disk_max:.1f} MB ({disk_max / budget_mb:.2f}× the {budget_mb:g} MB budget; the "
