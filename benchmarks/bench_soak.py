@@ -8,8 +8,8 @@ Prints sessions per hour, failed requests, the growth of RSS and fds after warm-
 budget as ratios to the targets (issue #19: RSS growth < 10 MB, 0 fds, disk within the budget, 0 failed
 requests, every session's result stored), and writes `soak.csv` and `soak.png` (the plot) to --out.
 
-    python benchmarks/bench_soak.py                     # one hour, budget 0.15 GB
-    python benchmarks/bench_soak.py --minutes 5 --out /tmp/soak
+    python benchmarks/bench_soak.py                     # one hour, budget 0.15 GB, two malloc arenas
+    python benchmarks/bench_soak.py --minutes 20 --keep-disk 0.05 --no-browser --arena-max 0   # glibc's arenas
 """
 
 from __future__ import annotations
@@ -132,6 +132,8 @@ def main() -> None:
     ap.add_argument("--warmup-min", type=float, default=None, help="default: a tenth of the run, at least 2 min")
     ap.add_argument("--out", type=Path, default=Path("soak-out"))
     ap.add_argument("--no-browser", action="store_true", help="skip the kiosk page")
+    ap.add_argument("--arena-max", type=int, default=2, metavar="N",
+                    help="MALLOC_ARENA_MAX for the service, as the kiosk's systemd unit sets it (default 2; 0: glibc's own)")
     args = ap.parse_args()
     lo, hi = (float(x) for x in args.session_s.split(":"))
     warmup_s = 60.0 * (args.warmup_min if args.warmup_min is not None else max(2.0, args.minutes / 10.0))
@@ -142,6 +144,10 @@ def main() -> None:
     samples: list[dict] = []
     sessions: list[dict] = []
 
+    if args.arena_max > 0:
+        os.environ["MALLOC_ARENA_MAX"] = str(args.arena_max)  # the service inherits it (glibc reads it at start)
+    else:
+        os.environ.pop("MALLOC_ARENA_MAX", None)
     with tempfile.TemporaryDirectory() as tmp:
         data = Path(tmp) / "data"
         port = free_port()
@@ -229,7 +235,8 @@ def main() -> None:
     stored = sum(1 for s in sessions if s["has_result"] and s["result"] and s["skeleton"])
     retention = (status.json().get("retention") if status is not None else None) or {}
     print(f"soak: {elapsed_h * 60:.1f} min, {len(sessions)} sessions ({len(sessions) / elapsed_h:.0f} per hour), "
-          f"warm-up {warmup_s / 60:.1f} min, {len(samples)} samples every {args.sample_s:g} s")
+          f"warm-up {warmup_s / 60:.1f} min, {len(samples)} samples every {args.sample_s:g} s, "
+          f"MALLOC_ARENA_MAX={args.arena_max or 'glibc default'}")
     print(f"RSS {samples[0]['rss_mb']:.1f} → {samples[-1]['rss_mb']:.1f} MB, growth after warm-up {rss_growth:+.1f} MB "
           f"({rss_growth / TARGET_RSS_GROWTH_MB:.2f}× the {TARGET_RSS_GROWTH_MB:g} MB limit)")
     half = [s for s in samples if s["t_min"] >= samples[-1]["t_min"] / 2] or samples

@@ -39,6 +39,8 @@ def test_unit_restarts_on_failure_forever_and_its_command_line_is_one_serve_acce
     assert 0 < float(service["RestartSec"]) <= 30
     assert unit["Unit"]["StartLimitIntervalSec"] == "0"  # a burst of crashes must not stop the restarts
     assert service["KillSignal"] == "SIGTERM"
+    # kiosk.md, "Measured": RSS flat after warm-up only with two malloc arenas.
+    assert "MALLOC_ARENA_MAX=2" in shlex.split(service["Environment"])
     argv = shlex.split(service["ExecStart"])
     assert Path(argv[0]).name == "flockcal" and argv[1] == "serve"
     # The options are the ones this version's `serve` takes (the real parser and checks).
