@@ -198,12 +198,16 @@ async def _follow(url: str, sid: str, max_s: float) -> list:
 # ------------------------------------------------------------------------------------------ report
 
 def _drops(docs) -> list:
-    """Moments the published progress went down, with the reasons the document gave."""
-    out, prev = [], 0.0
+    """Moments the published progress went down: the joints whose share fell, each with the reason its
+    entry states (slip, loss, tree; None: no reason given)."""
+    out, prev, before = [], 0.0, {}
     for t, d in docs:
+        now = {j["joint"]: j for j in d.get("joint_progress") or []}
         if d["progress"] < prev - 1e-9:
-            out.append((round(t, 2), [(m["joint"], (m.get("undone") or {}).get("reason")) for m in d["missing"]]))
-        prev = d["progress"]
+            fell = [(k, (j.get("undone") or {}).get("reason")) for k, j in now.items()
+                    if k in before and j["progress"] < before[k]["progress"] - 1e-9]
+            out.append((round(t, 2), fell))
+        prev, before = d["progress"], now
     return out
 
 
@@ -271,7 +275,8 @@ def main() -> None:
     print(f"bones at done: ball-ended worst {1000 * ball.max():.1f} mm (median guest {1000 * np.median(ball):.1f} mm), "
           f"hinge-ended (to the axis) worst {1000 * hinge.max():.1f} mm (median {1000 * np.median(hinge):.1f} mm); "
           f"within {TARGET_BONE_M * 1000:g} mm: {int(((ball <= TARGET_BONE_M) & (hinge <= TARGET_BONE_M)).sum())}/{len(results)} guests")
-    print(f"progress went down {drops} times in all ({took:.0f} s of wall time)")
+    unstated = sum(1 for g in results for _t, fell in g["drops"] if not fell or any(r is None for _j, r in fell))
+    print(f"progress went down {drops} times in all, {unstated} of them with no stated reason ({took:.0f} s of wall time)")
 
 
 if __name__ == "__main__":

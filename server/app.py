@@ -149,7 +149,7 @@ class DocsPolicy:
 
 def create_app(settings: Settings, service=None) -> FastAPI:
     """The app; `service` may be given (tests), else one is built from `settings` at startup."""
-    from flockcal.server.routes import live, sessions, simulator, skeletons, status
+    from flockcal.server.routes import live, retention, sessions, simulator, skeletons, stats, status
     from flockcal.server.service import Service
 
     settings = settings.check()
@@ -205,6 +205,8 @@ def create_app(settings: Settings, service=None) -> FastAPI:
 
     app.include_router(status.router)
     app.include_router(sessions.router)
+    app.include_router(retention.router)
+    app.include_router(stats.router)
     app.include_router(skeletons.router)
     app.include_router(simulator.router)
     app.include_router(live.router)

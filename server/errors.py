@@ -55,6 +55,13 @@ class Conflict(ServerError):
     code = "conflict"
 
 
+class Gone(ServerError):
+    """The thing existed but was removed on purpose (a pruned session's frames): 410."""
+
+    status = 410
+    code = "gone"
+
+
 class Unavailable(ServerError):
     status = 503
     code = "unavailable"

@@ -122,6 +122,10 @@ class Session(Open):
     skeleton: str | None = Field(None, description="the saved skeleton the session was started with, if any")
     progress: float | None = Field(None, description="calibration progress 0..1 (GET /api/sessions/{id}/progress)")
     done: bool | None = Field(None, description="every joint calibrated (null: not known for this session)")
+    pinned: bool = Field(False, description="kept whole by retention (POST /api/sessions/{id}/pin)")
+    pruned_at: float | None = Field(None, description="when retention removed its frames and raw recording "
+                                                      "(unix s; /take and /raw then answer 410)")
+    pruned_reason: str | None = None
 
 
 class SessionList(BaseModel):
@@ -187,6 +191,8 @@ class Status(Open):
     sensors: list[str] = []
     session: SessionSummary | None = None
     simulator: bool = False
+    retention: dict | None = Field(None, description="serve --keep-days/--keep-disk, the data directory's size, "
+                                                     "sessions pruned and pinned (server/retention.py)")
 
 
 class ResidualSeries(BaseModel):

@@ -203,6 +203,9 @@ class ProgressTracker:
         self.best: dict[frozenset, dict] = {}  # pair → {value, hinge}: the best share a pinning joint reached
         self.pinning: dict[frozenset, float] = {}  # pair → session time since which it has been determined
         self.done_parent: dict[str, str] = {}  # sensor → the parent it was last done against
+        # sensor → the share its joint last showed: the ring holds it through tree re-links (#19)
+        self.floor: dict[str, float] = {}
+        self._credited: dict[str, frozenset] = {}  # sensor → the pair its floor was reached with
         self.done = False
         self.done_at_s: float | None = None
         self.latest: dict | None = None
@@ -219,6 +222,9 @@ class ProgressTracker:
             del self.best[pair]
         for pair in [p for p in self.pinning if p & sensors]:
             del self.pinning[pair]
+        for child in [c for c in self.floor if c in sensors or self.done_parent.get(c) in sensors
+                      or self._credited.get(c, frozenset()) & sensors]:
+            del self.floor[child]
         hit = []
         for pair in [p for p in self.latched if p & sensors]:
             latch = self.latched.pop(pair)
@@ -244,6 +250,7 @@ class ProgressTracker:
                 if max(needed_errors(j, hinge=latch["hinge"])) > LOSS_FACTOR * self.target_m:
                     del self.latched[pair]
                     self.undone[pair] = {"reason": "loss", "time_s": float(time_s), "sensor": it["joint"]}
+                    self.floor.pop(it["joint"], None)
                     latch = None
             if latch is None:
                 if meets and not stale:
@@ -269,6 +276,7 @@ class ProgressTracker:
             elif self.done_parent.get(it["joint"], it["parent"]) != it["parent"]:
                 it["undone"] = {"reason": "tree", "time_s": round(float(time_s), 3), "sensor": it["joint"],
                                 "parent": it["parent"], "was": self.done_parent[it["joint"]]}
+        self._hold_floor(items)
         every = bool(items) and all(it["done"] for it in items)
         if not self.done and every and all_clear:
             self.done, self.done_at_s = True, round(float(time_s), 3)
@@ -291,11 +299,33 @@ class ProgressTracker:
             if max(needed_errors(j, hinge=best["hinge"])) > LOSS_FACTOR * self.tolerance_m:
                 del self.best[pair]
                 self.undone[pair] = {"reason": "loss", "time_s": float(time_s), "sensor": it["joint"]}
+                self.floor.pop(it["joint"], None)
                 best = None
         held = since is not None and time_s - since >= self.confirm_s - 1e-9
         if it["state"] == "pinning" and held and not stale and (best is None or it["progress"] > best["value"]):
             best = self.best[pair] = {"value": it["progress"], "hinge": bool(j.get("hinge"))}
         it["progress"] = best["value"] if best is not None else 0.0
+
+    def _hold_floor(self, items: list[dict]) -> None:
+        """A sensor's share never falls but for a stated reason. Under soft tissue the tree re-links a
+        joint between two neighbours that move almost as one (a thigh between pelvis and abdomen, back and
+        forth): its best share is kept per pair, so each re-link showed the other pair's share and the ring
+        went back (20 times in 8 guests) with no reason given. The share is held per sensor instead, and
+        dropped only by a slip or a loss of fit (`slip`, LOSS_FACTOR), which the entry's `undone` names.
+        A done joint the tree moves elsewhere is no longer done (its `undone` says "tree"): it shows just
+        under 1 until it is done again."""
+        for it in items:
+            child = it["joint"]
+            value = 1.0 if it["done"] else it["progress"]
+            held = self.floor.get(child)
+            if held is not None and value < held and not it["done"]:
+                # A share below 1 is held as it was; a joint done once shows just under 1 (it is not done).
+                it["progress"] = held if held < 1.0 else NOT_DONE_CAP
+                it["held"] = True
+                value = it["progress"]
+            if held is None or value > held:
+                self.floor[child] = value
+                self._credited[child] = frozenset((child, it["parent"]))
 
     def _carry_over(self, items: list[dict]) -> None:
         """Re-key done joints whose rigid group came apart: a joint done between bodies A and B (each a rigid

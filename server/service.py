@@ -15,6 +15,7 @@ from flockcal.server.errors import ConfigError
 from flockcal.server.hub import SnapshotHub
 from flockcal.server.limits import SessionLimits
 from flockcal.server.pipeline import Pipeline
+from flockcal.server.retention import Retention, policy_from
 from flockcal.server.sessions import SessionManager
 from flockcal.server.settings import Settings
 from flockcal.server.skeletons import SkeletonLibrary
@@ -72,6 +73,11 @@ class Service:
                                     stop=self.sessions.stop, add_event=self.pipeline.add_event,
                                     set_note=lambda sid, note: self.store.update_session(sid, note=note))
         self.pipeline.limits = self.limits
+        # Retention: prunes old sessions' frames and raw recordings between sessions.
+        self.retention = Retention(self.store, self.sessions, data,
+                                   policy_from(settings.keep_days, settings.keep_disk_gb),
+                                   self.pipeline.add_event, interval_s=settings.retention_interval_s)
+        self.sessions.retention = self.retention
         try:
             self.skeletons = SkeletonLibrary(data / "skeletons", self.pipeline.names)
             for path in settings.skeletons:
@@ -103,6 +109,7 @@ class Service:
     def start(self) -> None:
         self.pipeline.start()
         self.source.start(self.pipeline.feed, self.pipeline.tracker_event)
+        self.retention.start()
         self.started = True
 
     def stop(self) -> None:
@@ -112,6 +119,7 @@ class Service:
                 self.stopped_session = self.sessions.stop(live)
             except Exception:
                 log.exception("could not stop session %s cleanly", live)
+        self.retention.stop()
         try:
             self.source.stop()
         finally:

@@ -43,6 +43,7 @@ class SessionManager:
         self.device = device
         self.rate_hz = rate_hz
         self.raw_recorder = raw_recorder  # the frame source (start_recording(path)/stop_recording()) for the .fobraw, or None
+        self.retention = None  # server.retention.Retention: pins, pruned files (410) and the wake after a stop
         self._lock = threading.Lock()  # one start/stop at a time
 
     @property
@@ -164,6 +165,8 @@ class SessionManager:
             )
             self.pipeline.add_event({"type": "session", "session_id": session_id, "action": "stopped",
                                      "time_s": None, "message": f"session {session_id} stopped after {live.frames} frames"})
+            if self.retention is not None:
+                self.retention.wake()
             return self.get(session_id)
 
     def delete(self, session_id: str) -> None:
@@ -174,6 +177,8 @@ class SessionManager:
             self.store.delete_session(session_id)
             for p in (self.frames_path(session_id), self.raw_path(session_id), self.skeleton_path(session_id)):
                 p.unlink(missing_ok=True)
+            if self.retention is not None:
+                self.retention.forget(session_id)
 
     def resolve(self, session_id: str) -> dict:
         """Re-fit a stopped or interrupted session from its frame log (same hierarchy and root)."""
@@ -183,6 +188,7 @@ class SessionManager:
                 raise Conflict(f"session {session_id} is live; stop it first")
             path = self.frames_path(session_id)
             if not path.exists():
+                self._check_pruned(session_id, "recording (frames), which a re-solve needs,")
                 raise NotFound(f"session {session_id} has no recording on disk ({path.name}); it cannot be re-solved")
             take = self.take(session_id)
             n = take.n_frames
@@ -224,7 +230,13 @@ class SessionManager:
         row["has_recording"] = self.frames_path(session_id).exists()
         row["has_raw_recording"] = self.raw_path(session_id).exists()
         row["skeleton"] = self._skeleton_name(session_id)
+        if self.retention is not None:
+            self.retention.annotate([row])
         return row
+
+    def _check_pruned(self, session_id: str, what: str) -> None:
+        if self.retention is not None:
+            self.retention.check_files(session_id, what)
 
     def _skeleton_name(self, session_id: str) -> str | None:
         if not self.skeleton_path(session_id).exists():
@@ -247,6 +259,8 @@ class SessionManager:
                 row["frames"] = snap.session["frames"]
                 row["has_result"] = snap.fit is not None
                 row["progress"], row["done"] = snap.session["progress"], snap.session["done"]
+        if self.retention is not None:
+            self.retention.annotate(rows)
         return rows
 
     def result(self, session_id: str) -> tuple[dict, bool]:
@@ -313,6 +327,7 @@ class SessionManager:
         self._row(session_id)
         path = self.frames_path(session_id)
         if not path.exists():
+            self._check_pruned(session_id, "recording (frames)")
             raise NotFound(f"session {session_id} has no recording on disk")
         data = read_frames(path)
         n = len(data["times"])

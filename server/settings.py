@@ -86,6 +86,9 @@ class Settings:
     max_session_s: float | None = 7200.0  # a live session is stopped at this length (server/limits.py); None: never
     min_free_bytes: int = 500 * 2**20  # recording stops before the recordings' disk has less than this free
     max_downloads: int = 8  # take/bvh downloads built at once (server/downloads.py); one more gets 503
+    keep_days: float | None = None  # retention (server/retention.py): recordings of the last N days; None: all
+    keep_disk_gb: float | None = None  # ...and/or a data directory under this many GB; None: no budget
+    retention_interval_s: float = 60.0  # how often the pruner looks when no session stops meanwhile
 
     @property
     def progress_target_m(self) -> float:
@@ -163,4 +166,8 @@ class Settings:
                 raise ConfigError(f"sensor name {bad[0]!r} is not allowed: use letters, digits, space, _ . -")
             if len(set(self.names)) != len(self.names):
                 raise ConfigError("sensor names must be unique")
+        if self.keep_days is not None and not 0 < self.keep_days <= 36500:
+            raise ConfigError(f"--keep-days must be more than 0 (and at most 36500), got {self.keep_days:g}")
+        if self.keep_disk_gb is not None and not 0 < self.keep_disk_gb <= 1e6:
+            raise ConfigError(f"--keep-disk must be a size in GB above 0, got {self.keep_disk_gb:g}")
         return self

@@ -76,6 +76,10 @@ class Store:
         with self._lock:
             self._db.close()
 
+    def query(self, sql: str, args=()) -> list[sqlite3.Row]:
+        """One statement under the store's lock, for modules keeping tables of their own (server/retention.py)."""
+        return self._run(sql, args)
+
     def _run(self, sql: str, args=()) -> list[sqlite3.Row]:
         with self._lock:
             return self._db.execute(sql, args).fetchall()

@@ -52,6 +52,12 @@ def register(subparsers) -> None:
                    help="a performer's skeleton file (from `flockcal skeleton` or a session's download), "
                         "offered as a session preset: topology and bones kept, only sensor placements fitted "
                         "(repeatable)")
+    p.add_argument("--keep-days", type=float, metavar="DAYS",
+                   help="retention: keep the frames and raw recordings of the last DAYS days; older sessions keep "
+                        "their result, skeleton file and events (default: keep everything; docs/kiosk.md)")
+    p.add_argument("--keep-disk", type=float, metavar="GB",
+                   help="retention: prune the oldest sessions' frames and raw recordings while the data directory "
+                        "is over GB gigabytes (pinned sessions are never pruned)")
     p.add_argument("--cors-origin", action="append", default=[], metavar="ORIGIN",
                    help="allow browser pages from this origin (repeatable; CORS is closed by default)")
     p.add_argument("--allow-host", action="append", default=[], metavar="NAME",
@@ -94,6 +100,8 @@ def settings_from_args(args: argparse.Namespace):
         scale_inches=args.scale,
         baud=args.baud,
         skeletons=tuple(args.skeleton),
+        keep_days=args.keep_days,
+        keep_disk_gb=args.keep_disk,
     )
 
 
@@ -168,6 +176,7 @@ def run(args: argparse.Namespace) -> int:
     print(f"flockcal serve: tracker {settings.device_url}", flush=True)
     print(f"flockcal serve: dashboard {base}/   kiosk {base}/kiosk   API docs {base}/docs", flush=True)
     print(f"flockcal serve: data in {settings.data_dir}", flush=True)
+    print(f"flockcal serve: retention: {service.retention.policy.describe()}", flush=True)
     for entry in service.skeletons.list():
         print(f"flockcal serve: skeleton preset {entry['name']!r} ({entry['origin']})", flush=True)
     log.info("listening on %s", base)

@@ -18,7 +18,7 @@ from flockcal.server.settings import NAME_RE
 
 router = APIRouter(prefix="/api/sessions", tags=["sessions"])
 
-ERRORS = {code: {"model": ErrorReply} for code in (400, 401, 403, 404, 409, 413, 422, 503, 507)}
+ERRORS = {code: {"model": ErrorReply} for code in (400, 401, 403, 404, 409, 410, 413, 422, 503, 507)}
 MAX_RESIDUALS = 100_000  # samples per page: 83 minutes at 20 a second
 MAX_EVENTS = 5000
 
@@ -164,6 +164,11 @@ def get_skeleton(sid: str = Depends(session_id), service=Depends(get_service), _
 
     result, _live = service.sessions.result(sid)
     row = service.sessions.get(sid)
+    kept = service.retention.kept_skeleton_path(sid)
+    if not service.sessions.frames_path(sid).exists() and kept.exists():
+        # Pruned (server/retention.py): the file was written from the frames before they went.
+        return Response(kept.read_bytes(), media_type="application/json",
+                        headers={"Content-Disposition": f'attachment; filename="{sid}-skeleton.json"'})
 
     def make():
         frames = _frames(service, sid)
@@ -214,6 +219,7 @@ def _frames(service, sid: str):
     service.sessions.get(sid)
     path = service.sessions.frames_path(sid)
     if not path.exists():
+        service.retention.check_files(sid, "recording")  # 410 when retention pruned it
         raise NotFound(f"session {sid} has no recording on disk")
     try:
         frames = FrameFile(path)
@@ -244,5 +250,6 @@ def get_raw(sid: str = Depends(session_id), service=Depends(get_service), _role=
     service.sessions.get(sid)
     path = service.sessions.raw_path(sid)
     if not path.exists():
+        service.retention.check_files(sid, "raw recording")
         raise NotFound(f"session {sid} has no raw recording")
     return FileResponse(path, media_type="application/octet-stream", filename=f"{sid}.fobraw")

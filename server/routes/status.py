@@ -14,7 +14,7 @@ router = APIRouter(prefix="/api", tags=["status"])
 @router.get("/status", response_model=Status, summary="tracker and pipeline status")
 def get_status(service=Depends(get_service), _role=Depends(require_read)):
     """Connected, birds, rate, frames, dropped/resynced records, reconnects, last error, live session."""
-    return service.pipeline.snapshot.status
+    return {**service.pipeline.snapshot.status, "retention": service.retention.status()}
 
 
 @router.get("/events", response_model=list[Event], summary="events of the whole service (tracker, sessions, slips)")

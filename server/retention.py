@@ -1,0 +1,297 @@
+"""Retention: how long sessions keep their bulky files (frames, raw tracker bytes) and the background
+pruner that enforces `serve --keep-days` / `--keep-disk`. Results, events, residuals and the session's
+skeleton file stay; a pinned session is never pruned; nothing is pruned while a session is live.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+from flockcal.server.errors import Conflict, Gone
+
+log = logging.getLogger(__name__)
+
+# Its own table, so the sessions table (and everyone's queries of it) is untouched: a session with no
+# row here is neither pinned nor pruned.
+SCHEMA = """CREATE TABLE IF NOT EXISTS retention (
+    session_id TEXT PRIMARY KEY,
+    pinned INTEGER NOT NULL DEFAULT 0,
+    pruned_at REAL,                 -- unix seconds; NULL while the frames and raw recording are on disk
+    freed_bytes INTEGER,
+    reason TEXT                     -- why it was pruned (age or budget), in words
+)"""
+
+# The calibrated skeleton is written next to the recordings before the frames go, so /skeleton still
+# answers after pruning (it is built from the result and the take's frame count and rate).
+KEPT_SKELETON_SUFFIX = ".result-skeleton.json"
+
+GB = 1e9  # --keep-disk is in decimal gigabytes, as disks are sold and `df -H` shows them
+DAY_S = 86400.0
+
+
+@dataclass(frozen=True)
+class Policy:
+    """What to keep: the last `keep_days` days of recordings and/or a data directory under `keep_bytes`.
+    Neither set: keep everything (the disk fills in the end)."""
+
+    keep_days: float | None = None
+    keep_bytes: int | None = None
+
+    @property
+    def active(self) -> bool:
+        return self.keep_days is not None or self.keep_bytes is not None
+
+    def describe(self) -> str:
+        if not self.active:
+            return "keep every recording (no --keep-days or --keep-disk)"
+        parts = []
+        if self.keep_days is not None:
+            parts.append(f"the last {self.keep_days:g} days")
+        if self.keep_bytes is not None:
+            parts.append(f"under {self.keep_bytes / GB:g} GB")
+        return "keep recordings of " + " and ".join(parts) + "; results, skeletons and events kept for good"
+
+
+def tree_bytes(path: Path) -> int:
+    """Bytes of every file under `path` (what the data directory takes on disk, give or take blocks)."""
+    total = 0
+    stack = [Path(path)]
+    while stack:
+        try:
+            with os.scandir(stack.pop()) as it:
+                for entry in it:
+                    try:
+                        if entry.is_dir(follow_symlinks=False):
+                            stack.append(Path(entry.path))
+                        elif entry.is_file(follow_symlinks=False):
+                            total += entry.stat(follow_symlinks=False).st_size
+                    except FileNotFoundError:  # removed while we looked
+                        pass
+        except FileNotFoundError:
+            pass
+    return total
+
+
+class Retention:
+    """The pruner of one service. `wake()` after a session stops; it also looks every `interval_s`.
+
+    A session is pruned whole (its .frames and .fobraw both go), oldest first: those older than
+    keep_days, then more until the data directory is under the budget. Each prune is an event.
+    """
+
+    def __init__(self, store, sessions, data_dir: Path, policy: Policy, add_event, interval_s: float = 60.0,
+                 clock=time.time):
+        self.store = store
+        self.sessions = sessions
+        self.data_dir = Path(data_dir)
+        self.policy = policy
+        self.add_event = add_event
+        self.interval_s = float(interval_s)
+        self.clock = clock
+        self.store.query(SCHEMA)
+        self._wake = threading.Event()
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+        self._run_lock = threading.Lock()  # one pass at a time (the thread, or a test calling prune_once)
+        self.last_run_at: float | None = None
+        self.last_error: str | None = None
+        self.over_budget = False  # live, pinned and kept files alone exceed the budget
+        self._usage: tuple[float, int] | None = None  # (monotonic time, bytes) of the last data-directory walk
+
+    # --- the background thread ----------------------------------------------------------------
+    def start(self) -> None:
+        if not self.policy.active or self._thread is not None:
+            return
+        self._thread = threading.Thread(target=self._loop, name="fc-retention", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._wake.set()
+        if self._thread is not None:
+            self._thread.join(10)
+
+    def wake(self) -> None:
+        """A session just stopped: the gap before the next one is the moment to prune."""
+        self._wake.set()
+
+    def _loop(self) -> None:
+        while not self._stop.is_set():
+            try:
+                self.prune_once()
+                self.last_error = None
+            except Exception as exc:  # a failing pass must not end the service; the next one retries
+                self.last_error = f"{type(exc).__name__}: {exc}"
+                log.exception("retention pass failed")
+            self._wake.wait(self.interval_s)
+            self._wake.clear()
+
+    # --- pruning ----------------------------------------------------------------------------------
+    def candidates(self) -> list[dict]:
+        """Sessions whose files may go, oldest first: not live, not pinned, not pruned yet."""
+        rows = self.store.query(
+            "SELECT s.id, s.created_at, s.state FROM sessions s LEFT JOIN retention r ON r.session_id = s.id "
+            "WHERE s.state != 'live' AND COALESCE(r.pinned, 0) = 0 AND r.pruned_at IS NULL "
+            "ORDER BY s.created_at")
+        return [dict(r) for r in rows]
+
+    def prune_once(self) -> list[dict]:
+        """One pass; returns what it pruned ({id, freed_bytes, reason}). Nothing while a session is live."""
+        if not self.policy.active:
+            return []
+        with self._run_lock:
+            now = self.clock()
+            self.last_run_at = now
+            if self.sessions.live_id() is not None:
+                return []
+            pruned = []
+            cutoff = None if self.policy.keep_days is None else now - self.policy.keep_days * DAY_S
+            used = self.data_bytes(max_age_s=0.0) if self.policy.keep_bytes is not None else 0
+            for row in self.candidates():
+                if cutoff is not None and row["created_at"] < cutoff:
+                    reason = f"older than {self.policy.keep_days:g} days"
+                elif self.policy.keep_bytes is not None and used > self.policy.keep_bytes:
+                    reason = f"data directory over the {self.policy.keep_bytes / GB:g} GB budget"
+                else:
+                    # Oldest first: every later session is younger, and the budget is met.
+                    break
+                done = self._prune(row["id"], reason)
+                if done is None:  # a session went live meanwhile: stop, the next gap resumes
+                    break
+                used -= done["freed_bytes"]
+                pruned.append(done)
+            self.over_budget = self.policy.keep_bytes is not None and used > self.policy.keep_bytes
+            if pruned:
+                self._usage = None
+            return pruned
+
+    def _prune(self, sid: str, reason: str) -> dict | None:
+        mgr = self.sessions
+        with mgr._lock:  # no session starts while its predecessor's files go
+            if mgr.live_id() is not None:
+                return None
+            self._keep_skeleton(sid)
+            freed = 0
+            for path in (mgr.frames_path(sid), mgr.raw_path(sid)):
+                try:
+                    size = path.stat().st_size
+                    path.unlink()
+                    freed += size
+                except FileNotFoundError:
+                    pass
+            now = self.clock()
+            self.store.query(
+                "INSERT INTO retention (session_id, pruned_at, freed_bytes, reason) VALUES (?, ?, ?, ?) "
+                "ON CONFLICT(session_id) DO UPDATE SET pruned_at = excluded.pruned_at, "
+                "freed_bytes = excluded.freed_bytes, reason = excluded.reason", (sid, now, freed, reason))
+        self.add_event({"type": "session", "session_id": sid, "time_s": None, "action": "pruned",
+                        "freed_bytes": freed, "reason": reason,
+                        "message": f"session {sid}'s frames and raw recording were pruned ({freed / 1e6:.1f} MB, "
+                                   f"{reason}); its result, skeleton and events are kept"})
+        log.info("pruned session %s (%.1f MB, %s)", sid, freed / 1e6, reason)
+        return {"id": sid, "freed_bytes": freed, "reason": reason}
+
+    def _keep_skeleton(self, sid: str) -> None:
+        """Write the session's calibrated skeleton file while its frames are still there."""
+        from flockcal.exports.skeleton import skeleton_bytes
+        from flockcal.atomic import write_atomic
+
+        path = self.kept_skeleton_path(sid)
+        result = self.store.result(sid)
+        if result is None or path.exists() or not self.sessions.frames_path(sid).exists():
+            return
+        try:
+            take = self.sessions.take(sid)
+            row = self.store.session(sid)
+            source = {"session": sid, "performer": row["performer"], "take": f"{sid}.npz",
+                      "frames": int(take.n_frames), "rate_hz": float(take.rate_hz)}
+            write_atomic(path, skeleton_bytes(result, source=source, take=take))
+        except Exception as exc:  # a result the exporter cannot draw: /skeleton said so before as well
+            log.warning("no skeleton file kept for session %s: %s", sid, exc)
+
+    # --- pins and state ------------------------------------------------------------------------
+    def kept_skeleton_path(self, sid: str) -> Path:
+        return self.sessions.recordings / f"{sid}{KEPT_SKELETON_SUFFIX}"
+
+    def state(self, sid: str) -> dict:
+        rows = self.store.query("SELECT pinned, pruned_at, reason FROM retention WHERE session_id = ?", (sid,))
+        if not rows:
+            return {"pinned": False, "pruned_at": None, "pruned_reason": None}
+        return {"pinned": bool(rows[0]["pinned"]), "pruned_at": rows[0]["pruned_at"], "pruned_reason": rows[0]["reason"]}
+
+    def annotate(self, rows: list[dict]) -> list[dict]:
+        """Add pinned / pruned_at to session rows (GET /api/sessions and /api/sessions/{id})."""
+        states = {r["session_id"]: r for r in self.store.query("SELECT session_id, pinned, pruned_at, reason FROM retention")} \
+            if len(rows) > 1 else {}
+        for row in rows:
+            if len(rows) > 1:
+                r = states.get(row["id"])
+                st = {"pinned": bool(r["pinned"]), "pruned_at": r["pruned_at"], "pruned_reason": r["reason"]} if r \
+                    else {"pinned": False, "pruned_at": None, "pruned_reason": None}
+            else:
+                st = self.state(row["id"])
+            row.update(st)
+        return rows
+
+    def pin(self, sid: str, pinned: bool = True) -> None:
+        """Pin (never prune) or unpin a session; a pruned session cannot be pinned back to its frames."""
+        st = self.state(sid)
+        if pinned and st["pruned_at"] is not None:
+            raise Conflict(f"session {sid} was already pruned ({st['pruned_reason']}); its frames are gone, "
+                           "so pinning cannot keep them")
+        self.store.query(
+            "INSERT INTO retention (session_id, pinned) VALUES (?, ?) "
+            "ON CONFLICT(session_id) DO UPDATE SET pinned = excluded.pinned", (sid, int(pinned)))
+        if not pinned:
+            self.wake()
+
+    def forget(self, sid: str) -> None:
+        """The session was deleted: its pin and prune record (and kept skeleton) go with it."""
+        self.store.query("DELETE FROM retention WHERE session_id = ?", (sid,))
+        self.kept_skeleton_path(sid).unlink(missing_ok=True)
+
+    def check_files(self, sid: str, what: str) -> None:
+        """Raise 410 Gone when the session's `what` (frames, raw recording) was pruned."""
+        st = self.state(sid)
+        if st["pruned_at"] is not None:
+            when = time.strftime("%Y-%m-%d %H:%M", time.localtime(st["pruned_at"]))
+            raise Gone(f"session {sid}'s {what} was pruned on {when} ({st['pruned_reason']}); its result, "
+                       f"skeleton and events are kept. Pin sessions you need whole (POST /api/sessions/{{id}}/pin)")
+
+    def data_bytes(self, max_age_s: float = 5.0) -> int:
+        """The data directory's size, walked at most every `max_age_s` (a season leaves tens of thousands of
+        small files, and /api/status is polled)."""
+        now = time.monotonic()
+        if self._usage is None or now - self._usage[0] > max_age_s:
+            self._usage = (now, tree_bytes(self.data_dir))
+        return self._usage[1]
+
+    def status(self) -> dict:
+        """For /api/status: the policy, the disk it governs, what was pruned and pinned."""
+        counts = self.store.query("SELECT COALESCE(SUM(pinned), 0) AS pinned, COUNT(pruned_at) AS pruned, "
+                                  "COALESCE(SUM(freed_bytes), 0) AS freed FROM retention")[0]
+        used = self.data_bytes()
+        return {
+            "enabled": self.policy.active,
+            "policy": self.policy.describe(),
+            "keep_days": self.policy.keep_days,
+            "keep_disk_gb": None if self.policy.keep_bytes is None else self.policy.keep_bytes / GB,
+            "data_dir_bytes": used,
+            "over_budget": bool(self.over_budget),
+            "pinned_sessions": int(counts["pinned"]),
+            "pruned_sessions": int(counts["pruned"]),
+            "freed_bytes": int(counts["freed"]),
+            "last_run_at": self.last_run_at,
+            "last_error": self.last_error,
+        }
+
+
+def policy_from(keep_days: float | None, keep_disk_gb: float | None) -> Policy:
+    """The policy of `serve --keep-days/--keep-disk` (checked in Settings.check)."""
+    return Policy(keep_days=keep_days, keep_bytes=None if keep_disk_gb is None else int(math.floor(keep_disk_gb * GB)))
