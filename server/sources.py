@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import time
 import urllib.parse
 from typing import Callable, Protocol
 
@@ -66,9 +67,23 @@ class SimulatorControl:
         return tuple(names) if names is not None else None
 
     def inject_slip(self, sensor: str, distance_m: float) -> dict:
+        """The performer's slip event; its `reader_time` is when it takes effect on the reader's clock."""
         if not hasattr(self.performer, "inject_slip"):
             raise ServerError("this simulated source cannot slip sensors", status=409)
-        return self.performer.inject_slip(sensor, distance_m)
+        ev = self.performer.inject_slip(sensor, distance_m)
+        ev["reader_time"] = self.reader_time(ev["time_s"])
+        return ev
+
+    def reader_time(self, sim_time: float) -> float | None:
+        """A simulated time on the reader's clock (time.monotonic), or None if the simulation's clock is
+        not the wall clock. The reader dates each record on arrival, back-dated by the line's period, so
+        the two agree to within a record's transfer time (a few ms at the simulator's baud rates)."""
+        from flockcal.simulator.fake_tracker import WallClock
+
+        clock = self.simulation.flock.clock
+        if not isinstance(clock, WallClock):
+            return None
+        return float(sim_time) + (time.monotonic() - clock())
 
     def set_routine(self, name: str) -> None:
         from flockcal.simulator.motion import ROUTINES, routine
