@@ -31,6 +31,12 @@ __all__ = ["SLIP_FIELDS", "LiveSession", "Pipeline"]
 
 log = logging.getLogger(__name__)
 
+# Behind the tracker by more than this, with more frames waiting, the pipeline catches up before it
+# hands out a refit: the slip loop's events wait for the catch-up, a refit (progress, the tree) can
+# wait for the next one, and the fit thread would take CPU and the GIL from it on a starved machine.
+BEHIND_S = 0.3
+CATCH_UP = 3
+
 
 class Pipeline:
     """Owns the live state; `feed`, `tracker_event`, `add_event` and `call` may be called from any thread.
@@ -234,7 +240,10 @@ class Pipeline:
         if frames is None:
             return
         if live.watch is not None:
-            self._slips(live, watch_step(live, *frames))
+            # Behind the tracker, the slip loop refits 3× less often (0.1 s micro-batches: the monitor's
+            # own step) until it has caught up; keeping up, it runs at the measured 1/30 s cadence.
+            catch_up = CATCH_UP if time.monotonic() - self.ingest.last_frame_time > BEHIND_S else 1
+            self._slips(live, watch_step(live, *frames, catch_up))
         self.sampler.add(live, *frames)
 
     def _slips(self, live: LiveSession, events: list[dict]) -> None:
@@ -264,7 +273,8 @@ class Pipeline:
             self.persistence.tick(live, now)
             self._take_fit(live)
             if (live.acc.frames > live.fit_frames and now - self._last_fit_time >= self.min_fit_s
-                    and not self.fitter.busy):  # only this thread submits, so it stays free until then
+                    and not self.fitter.busy  # only this thread submits, so it stays free until then
+                    and not self._behind(now)):
                 # Hand a copy of the Gram matrix to the fit thread; frames keep flowing meanwhile.
                 self.fitter.submit(FitJob(live.id, live.acc.copy(), live.hierarchy, live.root, live.skeleton,
                                           (self.ingest.session_time(live), live.slip_epoch)))
@@ -274,6 +284,14 @@ class Pipeline:
         snap = self._make_snapshot()
         if self.on_publish is not None:
             self.on_publish(snap)
+
+    def _behind(self, now: float) -> bool:
+        """Frames wait while those just processed are over BEHIND_S old (reader times are monotonic)."""
+        last = self.ingest.last_frame_time
+        if last is None or now - last <= BEHIND_S:
+            return False
+        with self._cond:
+            return bool(self._pending)
 
     def _take_fit(self, live: LiveSession) -> None:
         done = self.fitter.take()
