@@ -46,6 +46,7 @@ def main() -> None:
     ap.add_argument("--warmup", type=float, default=20.0, help="session time before the first slip, s")
     ap.add_argument("--spacing", type=float, default=10.0, help="wall time between slips, s")
     ap.add_argument("--distance", type=float, default=0.02, help="slip distance, m")
+    ap.add_argument("--logs", type=Path, help="keep each service's log here (tree changes, slip watch restarts)")
     args = ap.parse_args()
     names, parent = human_tree()
     sensors = args.sensors or spread_order(names, parent)
@@ -67,6 +68,9 @@ def main() -> None:
                                       distance_m=args.distance)
                 finally:
                     srv.stop()
+                    if args.logs:
+                        args.logs.mkdir(parents=True, exist_ok=True)
+                        (args.logs / f"serve-sta{sta:g}-seed{seed}.log").write_bytes((Path(tmp) / "serve.log").read_bytes())
             for s in slips:
                 wrong += [(seed, s.sensor, e.get("sensor"), e.get("candidates")) for e in s.others]
                 if s.event is None:
@@ -76,8 +80,9 @@ def main() -> None:
                 arrival.append(s.arrival_s)
                 detected.append(s.detected_s)
                 onset.append(s.onset_error_s)
-            line = ", ".join(f"{s.sensor} {s.arrival_s:.2f}" if s.event else f"{s.sensor} missed" for s in slips)
-            print(f"  STA {sta:g} mm, seed {seed} ({time.monotonic() - t0:.0f} s): {line}", flush=True)
+            line = ", ".join(f"{s.sensor} {s.detected_s:.2f}/{s.arrival_s:.2f}" if s.event else f"{s.sensor} missed"
+                             for s in slips)
+            print(f"  STA {sta:g} mm, seed {seed} ({time.monotonic() - t0:.0f} s; detected/arrival s): {line}", flush=True)
         n = args.trials * len(sensors)
         print(f"STA {sta:g} mm: found and attributed {found} / {n}; missed {missed or 'none'}")
         print(f"  sample time → arrival at the client: {figures(arrival)}")
