@@ -35,7 +35,9 @@ log = logging.getLogger(__name__)
 # hands out a refit: the slip loop's events wait for the catch-up, a refit (progress, the tree) can
 # wait for the next one, and the fit thread would take CPU and the GIL from it on a starved machine.
 BEHIND_S = 0.3
-CATCH_UP = 3
+# How much longer the slip loop's micro-batches get while catching up: 0.1 s (the monitor's own step)
+# when behind, 1/3 s when over FAR_BEHIND_S behind (then c, l are at most 1/3 s stale; they move slowly).
+CATCH_UP, FAR_BEHIND_S, FAR_CATCH_UP = 3, 1.0, 10
 
 
 class Pipeline:
@@ -240,9 +242,10 @@ class Pipeline:
         if frames is None:
             return
         if live.watch is not None:
-            # Behind the tracker, the slip loop refits 3× less often (0.1 s micro-batches: the monitor's
-            # own step) until it has caught up; keeping up, it runs at the measured 1/30 s cadence.
-            catch_up = CATCH_UP if time.monotonic() - self.ingest.last_frame_time > BEHIND_S else 1
+            # Behind the tracker, the slip loop refits less often until it has caught up; keeping up,
+            # it runs at the measured 1/30 s cadence.
+            lag = time.monotonic() - self.ingest.last_frame_time
+            catch_up = FAR_CATCH_UP if lag > FAR_BEHIND_S else CATCH_UP if lag > BEHIND_S else 1
             self._slips(live, watch_step(live, *frames, catch_up))
         self.sampler.add(live, *frames)
 
