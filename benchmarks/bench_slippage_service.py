@@ -7,6 +7,7 @@ the attributions.
 
     python benchmarks/bench_slippage_service.py                    # 3 trials × 16 sensors, 12 mm STA and rigid
     python benchmarks/bench_slippage_service.py --trials 1 --sta-mm 12 --sensors head r_shin
+    python benchmarks/bench_slippage_service.py --trials 1 --first-seed 2 --routine walk --logs /tmp/logs
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ def figures(values) -> str:
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--trials", type=int, default=3, help="fresh services (simulator seeds) per STA setting")
+    ap.add_argument("--first-seed", type=int, default=1, help="simulator seed of the first trial (then +1 each)")
     ap.add_argument("--sta-mm", type=float, nargs="+", default=[12.0, 0.0], help="soft-tissue settings to run")
     ap.add_argument("--routine", default="exercise", help="the simulated performer's routine (the service's default: exercise)")
     ap.add_argument("--rate", type=float, default=144.0, help="measurement rate, Hz (the service's default: 144)")
@@ -55,7 +57,7 @@ def main() -> None:
     for sta in args.sta_mm:
         arrival, detected, onset, wrong, missed, found = [], [], [], [], [], 0
         for trial in range(args.trials):
-            seed = 1 + trial
+            seed = args.first_seed + trial
             with tempfile.TemporaryDirectory() as tmp:
                 port = free_port()
                 srv = ServerProcess(["--device", device(seed, sta, args.routine, args.rate), "--data-dir", tmp,

@@ -79,7 +79,8 @@ def run(url: str, sensors: list[str], *, warmup_s: float = 20.0, spacing_s: floa
         distance_m: float = 0.02, follow_s: float = 3.0, performer: str = "slip bench",
         log=None) -> tuple[str, list[Slip], list[dict]]:
     """Start a session (automatic topology), wait until `warmup_s` of session time, slip each of
-    `sensors` in turn `spacing_s` apart, and listen `follow_s` after the last. Returns (session id,
+    `sensors` in turn `spacing_s` apart, and listen until the service has processed `follow_s` of
+    frames past the last one's spacing (at most a minute). Returns (session id,
     the slips with their events, every slip/swap event received).
 
     A slip's sample time on this clock is taken as (request sent) + the reply's `in_s` (seconds from
@@ -126,12 +127,17 @@ def run(url: str, sensors: list[str], *, warmup_s: float = 20.0, spacing_s: floa
                     if log:
                         log(f"  slipped {name} at {body['at_s']:.2f} s")
                     await listen(ws, sent + spacing_s)
-            await listen(ws, time.monotonic() + follow_s)
+            # A pipeline running behind publishes late: listen until it has processed follow_s past the
+            # last slip's spacing (a minute at most), so a late event counts as late, not as missed.
+            until = slips[-1].at_s + spacing_s + follow_s if slips else 0.0
+            deadline = time.monotonic() + 60.0
+            while time.monotonic() < deadline and await session_time(ws) < until:
+                pass
 
     asyncio.run(main())
     events = [(t, e) for t, e in received if e.get("type") in ("slip", "swap") and e.get("session_id") == sid]
     for k, s in enumerate(slips):
-        end = slips[k + 1].at_s if k + 1 < len(slips) else float("inf")
+        end = slips[k + 1].at_s - 0.5 if k + 1 < len(slips) else float("inf")
         for t, e in events:
             if not s.at_s - 0.5 <= e["time_s"] < end:
                 continue
