@@ -42,10 +42,6 @@ CATCH_UP, FAR_BEHIND_S, FAR_CATCH_UP = 3, 1.0, 10
 # loop watches it: a new joint list restarts the monitor, blind for 5 s, and fitted trees flickered
 # between two versions for tens of seconds after 20 s, each flip hiding the slips that came next.
 TREE_SETTLE_S = 3.0
-# After a slip the slipped sensor's joints have only their new segment's frames, and the fitted tree
-# re-links around them for a while (measured: a change 5–8 s after each slip); the loop keeps its tree
-# this long after the latest slip.
-SLIP_HOLD_S = 15.0
 
 
 class Pipeline:
@@ -100,7 +96,6 @@ class Pipeline:
         self._fit_seq = 0
         self._last_fit_time = 0.0
         self._tree_candidate: tuple[frozenset, float] | None = None  # a fitted tree waiting to settle
-        self._last_slip_s = float("-inf")  # session time of the live session's latest slip
         self._make_snapshot()
 
     # --- called from other threads -----------------------------------------------------------------
@@ -167,7 +162,7 @@ class Pipeline:
             live.tracker = ProgressTracker(self.target, self.tolerance,
                                            tree_fixed=live.hierarchy is not None or live.skeleton is not None)
             self.live = live
-            self._tree_candidate, self._last_slip_s = None, float("-inf")
+            self._tree_candidate = None
             self.sampler.reset()
             self.sampler.recent.clear()
             self._publish()
@@ -268,7 +263,6 @@ class Pipeline:
         slips = [d for d in events if d["type"] != "tracker"]
         if slips:
             live.slip_epoch += 1  # fits begun from here on see the new segments
-            self._last_slip_s = self.ingest.session_time(live)
             was_done = bool(live.progress and live.progress["done"])
             for d in slips:
                 live.tracker.slip(d, live.slip_epoch)
@@ -330,8 +324,7 @@ class Pipeline:
 
     def _watch_tree(self, live: LiveSession, pairs, time_s: float) -> None:
         """Hand the fit's tree to the slip loop: at once for a given tree or the first one, else once it
-        has stayed the fits' tree for TREE_SETTLE_S (a tree that flickers back is never restarted on)
-        and the latest slip is SLIP_HOLD_S old."""
+        has stayed the fits' tree for TREE_SETTLE_S (a tree that flickers back is never restarted on)."""
         key = frozenset(map(tuple, pairs.tolist()))
         settle = live.hierarchy is None and live.skeleton is None and live.watch.joints is not None
         if not settle or key == frozenset(map(tuple, live.watch.joints.tolist())):
@@ -340,7 +333,7 @@ class Pipeline:
             return
         if self._tree_candidate is None or self._tree_candidate[0] != key:
             self._tree_candidate = (key, time_s)
-        elif time_s - self._tree_candidate[1] >= TREE_SETTLE_S and time_s - self._last_slip_s >= SLIP_HOLD_S:
+        elif time_s - self._tree_candidate[1] >= TREE_SETTLE_S:
             self._tree_candidate = None
             live.watch.watch(pairs)
 
