@@ -40,6 +40,12 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
+    # Before the command modules load numpy (some import it at the top): OpenBLAS reads its thread count
+    # once, at load. A second BLAS thread spin-waits on a loaded machine: it doubled the service's slip
+    # loop CPU time and let `flockcal serve` fall seconds behind the tracker (docs/slippage.md).
+    from flockcal.threads import single_threaded_blas
+
+    single_threaded_blas()
     parser = build_parser()
     args = parser.parse_args(argv)
     logging.basicConfig(

@@ -233,6 +233,17 @@ class SimulatorReply(Open):
     message: str
 
 
+class SlipReply(SimulatorReply):
+    sensor: str
+    distance_m: float
+    session_id: str | None = Field(None, description="the live session the slip happens in, if any")
+    at_s: float | None = Field(None, description="the slip's sample time: the session time (s) of the first frame "
+                                                 "in which the sensor sits at its new place; null without a live "
+                                                 "session that has frames")
+    in_s: float | None = Field(None, description="seconds from the reply until that sample is measured (the simulator "
+                                                 "computes poses up to 0.1 s ahead; negative if already measured)")
+
+
 class ErrorReply(BaseModel):
     detail: str = Field(description="what went wrong and what to do about it")
     error: str = Field(description="machine-readable code")

@@ -31,6 +31,18 @@ __all__ = ["SLIP_FIELDS", "LiveSession", "Pipeline"]
 
 log = logging.getLogger(__name__)
 
+# Behind the tracker by more than this, with more frames waiting, the pipeline catches up before it
+# hands out a refit: the slip loop's events wait for the catch-up, a refit (progress, the tree) can
+# wait for the next one, and the fit thread would take CPU and the GIL from it on a starved machine.
+BEHIND_S = 0.3
+# How much longer the slip loop's micro-batches get while catching up: 0.1 s (the monitor's own step)
+# when behind, 1/3 s when over FAR_BEHIND_S behind (then c, l are at most 1/3 s stale; they move slowly).
+CATCH_UP, FAR_BEHIND_S, FAR_CATCH_UP = 3, 1.0, 10
+# A fitted tree (automatic topology) must stay the fits' tree this long, in session time, before the slip
+# loop watches it: a new joint list restarts the monitor, blind for 5 s, and fitted trees flickered
+# between two versions for tens of seconds after 20 s, each flip hiding the slips that came next.
+TREE_SETTLE_S = 3.0
+
 
 class Pipeline:
     """Owns the live state; `feed`, `tracker_event`, `add_event` and `call` may be called from any thread.
@@ -84,6 +96,7 @@ class Pipeline:
         self.fit_seconds = 0.0
         self._fit_seq = 0
         self._last_fit_time = 0.0
+        self._tree_candidate: tuple[frozenset, float] | None = None  # a fitted tree waiting to settle
         self._make_snapshot()
 
     # --- called from other threads -----------------------------------------------------------------
@@ -148,6 +161,7 @@ class Pipeline:
             live.tracker = ProgressTracker(self.target, self.tolerance,
                                            tree_fixed=live.hierarchy is not None or live.skeleton is not None)
             self.live = live
+            self._tree_candidate = None
             self.sampler.reset()
             self.sampler.recent.clear()
             self._publish()
@@ -235,7 +249,11 @@ class Pipeline:
         if self.limits is not None:  # session length, free disk (server/limits.py)
             self.limits.check(live.id, float(frames[0][-1]))
         if live.watch is not None:
-            self._slips(live, watch_step(live, *frames))
+            # Behind the tracker, the slip loop refits less often until it has caught up; keeping up,
+            # it runs at the measured 1/30 s cadence.
+            lag = time.monotonic() - self.ingest.last_frame_time
+            catch_up = FAR_CATCH_UP if lag > FAR_BEHIND_S else CATCH_UP if lag > BEHIND_S else 1
+            self._slips(live, watch_step(live, *frames, catch_up))
         self.sampler.add(live, *frames)
 
     def _slips(self, live: LiveSession, events: list[dict]) -> None:
@@ -265,7 +283,8 @@ class Pipeline:
             self.persistence.tick(live, now)
             self._take_fit(live)
             if (live.acc.frames > live.fit_frames and now - self._last_fit_time >= self.min_fit_s
-                    and not self.fitter.busy):  # only this thread submits, so it stays free until then
+                    and not self.fitter.busy  # only this thread submits, so it stays free until then
+                    and not self._behind(now)):
                 # Hand a copy of the Gram matrix to the fit thread; frames keep flowing meanwhile.
                 self.fitter.submit(FitJob(live.id, live.acc.copy(), live.hierarchy, live.root, live.skeleton,
                                           (self.ingest.session_time(live), live.slip_epoch)))
@@ -275,6 +294,14 @@ class Pipeline:
         snap = self._make_snapshot()
         if self.on_publish is not None:
             self.on_publish(snap)
+
+    def _behind(self, now: float) -> bool:
+        """Frames wait while those just processed are over BEHIND_S old (reader times are monotonic)."""
+        last = self.ingest.last_frame_time
+        if last is None or now - last <= BEHIND_S:
+            return False
+        with self._cond:
+            return bool(self._pending)
 
     def _take_fit(self, live: LiveSession) -> None:
         done = self.fitter.take()
@@ -291,10 +318,25 @@ class Pipeline:
         live.fit_error = None
         self.pose_fit = done.fit
         self._fit_seq += 1
-        if live.watch is not None and done.fit.get("joints"):
-            live.watch.watch(self.sampler.joints(done.fit).pairs)  # the tree the slip loop watches
         time_s, epoch = done.stamp
+        if live.watch is not None and done.fit.get("joints"):
+            self._watch_tree(live, self.sampler.joints(done.fit).pairs, time_s)
         self._progress_step(live, done.fit, time_s, epoch)
+
+    def _watch_tree(self, live: LiveSession, pairs, time_s: float) -> None:
+        """Hand the fit's tree to the slip loop: at once for a given tree or the first one, else once it
+        has stayed the fits' tree for TREE_SETTLE_S (a tree that flickers back is never restarted on)."""
+        key = frozenset(map(tuple, pairs.tolist()))
+        settle = live.hierarchy is None and live.skeleton is None and live.watch.joints is not None
+        if not settle or key == frozenset(map(tuple, live.watch.joints.tolist())):
+            self._tree_candidate = None
+            live.watch.watch(pairs)
+            return
+        if self._tree_candidate is None or self._tree_candidate[0] != key:
+            self._tree_candidate = (key, time_s)
+        elif time_s - self._tree_candidate[1] >= TREE_SETTLE_S:
+            self._tree_candidate = None
+            live.watch.watch(pairs)
 
     def _progress_step(self, live: LiveSession, fit: dict, time_s: float, epoch: int,
                        was_done: bool | None = None) -> None:

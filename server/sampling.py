@@ -95,7 +95,7 @@ class ResidualSampler:
         self._last_emit = self._time
 
 
-def watch_step(live: LiveSession, ts, R, t, valid) -> list[dict]:
+def watch_step(live: LiveSession, ts, R, t, valid, catch_up: int = 1) -> list[dict]:
     """Frames through the session's slip loop; the events it gives, as dicts for the store.
 
     Pipeline thread only. The loop refits the watched joints between its micro-batches and opens the
@@ -103,7 +103,7 @@ def watch_step(live: LiveSession, ts, R, t, valid) -> list[dict]:
     its traceback and becomes a tracker event; recording and fitting go on."""
     watch = live.watch
     had_failed = watch.failure is not None
-    found = watch.feed(ts, R, t, valid)
+    found = watch.feed(ts, R, t, valid, catch_up)
     return _events(live, found, had_failed)
 
 

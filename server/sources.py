@@ -8,6 +8,7 @@ only a sim:// device gives a `simulator` (the performer, reached through the por
 from __future__ import annotations
 
 import dataclasses
+import time
 import urllib.parse
 from typing import Callable, Protocol
 
@@ -53,7 +54,7 @@ def named_sim_url(url: str, name: str = "flockcal") -> str:
 
 
 def open_simulation(url: str):
-    """The simulated performer behind a sim:// URL, or None for any other device.
+    """(the simulated performer, its flock's clock) behind a sim:// URL, or None for any other device.
 
     Opening the port creates the named simulation up front (so its sensor names are known); the port
     hands over its performer, which the named flock keeps after the port closes, for the reader's ports
@@ -70,7 +71,7 @@ def open_simulation(url: str):
     except (serial.SerialException, ValueError) as exc:
         raise ConfigError(f"--device {url}: {exc}") from None
     try:
-        return port.performer
+        return port.performer, port.flock.clock
     finally:
         port.close()
 
@@ -101,10 +102,21 @@ class TrackerSource:
         self.settings = settings
         self.urls = [named_sim_url(u) for u in settings.device_urls]
         self.url = ",".join(self.urls)
-        self.simulator = open_simulation(self.urls[0])
+        sim = open_simulation(self.urls[0])
+        self.simulator, self._sim_clock = sim if sim is not None else (None, None)
         self.names = sensor_names(settings, self.simulator.names if self.simulator else None)
         self.reader = None
         self.recording_path = recording_path
+
+    def reader_time(self, sim_time: float) -> float | None:
+        """A simulated time on the reader's clock (time.monotonic), or None when the simulation does not run
+        on the wall clock. The reader dates each record on arrival, back-dated by the line's period, so the
+        two agree to within a record's transfer time (a few ms at the simulator's baud rates)."""
+        from flockcal.simulator.clocks import WallClock
+
+        if not isinstance(self._sim_clock, WallClock):
+            return None
+        return float(sim_time) + (time.monotonic() - self._sim_clock())
 
     def start(self, on_frames: OnFrames, on_event: OnEvent) -> None:
         from flockcal.drivers.link import Timing

@@ -67,8 +67,12 @@ class SlipWatch:
                      "baselines over to another joint list, so every joint warms up again", len(J), len(had))
         return True
 
-    def feed(self, times, rotations, positions, valid=None) -> list:
-        """Add frames; returns the events confirmed in the micro-batches completed by them."""
+    def feed(self, times, rotations, positions, valid=None, catch_up: int = 1) -> list:
+        """Add frames; returns the events confirmed in the micro-batches completed by them.
+
+        `catch_up` > 1 makes the micro-batches that many times longer (and the refits between them that
+        many times fewer), for a live caller that has fallen behind its frames: the monitor still
+        examines them `step_s` at a time. Replays and a live caller keeping up use 1, the measured cadence."""
         ts = np.atleast_1d(np.asarray(times, dtype=float))
         R = np.asarray(rotations, dtype=float)
         t = np.asarray(positions, dtype=float)
@@ -80,10 +84,11 @@ class SlipWatch:
             if len(ts):
                 self.segments.update(ts, R, t, v)
             return []
-        whole = len(ts) - len(ts) % self.step
+        step = self.step * max(1, int(catch_up))
+        whole = len(ts) - len(ts) % step
         if whole < len(ts):
             self._held = (ts[whole:], R[whole:], t[whole:], v[whole:])
-        return self._batches(ts[:whole], R[:whole], t[:whole], v[:whole])
+        return self._batches(ts[:whole], R[:whole], t[:whole], v[:whole], step)
 
     def flush(self) -> list:
         """Run the held remainder as a short micro-batch (at the end of a take or session)."""
@@ -93,10 +98,9 @@ class SlipWatch:
         if self.monitor is None:
             self.segments.update(*held)
             return []
-        return self._batches(*held, last=len(held[0]))
+        return self._batches(*held, len(held[0]))
 
-    def _batches(self, ts, R, t, v, last: int | None = None) -> list:
-        step = self.step if last is None else last
+    def _batches(self, ts, R, t, v, step: int) -> list:
         out = []
         for a in range(0, len(ts), step):
             sl = slice(a, a + step)

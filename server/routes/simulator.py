@@ -5,12 +5,14 @@ The dashboard's tests and demos use these to make something happen on purpose.
 
 from __future__ import annotations
 
+import time
+
 from fastapi import APIRouter, Depends
 
 from flockcal.errors import FlockcalError
 from flockcal.server.auth import require_admin
 from flockcal.server.errors import BadRequest, Conflict
-from flockcal.server.models import ErrorReply, MotionRequest, SimulatorReply, SlipRequest
+from flockcal.server.models import ErrorReply, MotionRequest, SimulatorReply, SlipReply, SlipRequest
 from flockcal.server.routes.deps import get_service
 
 router = APIRouter(prefix="/api/simulator", tags=["simulator"])
@@ -24,16 +26,37 @@ def _simulator(service):
     return sim
 
 
-@router.post("/slip", response_model=SimulatorReply, responses=ERRORS, summary="make a sensor slide on the skin")
+@router.post("/slip", response_model=SlipReply, responses=ERRORS, summary="make a sensor slide on the skin")
 def slip(body: SlipRequest, service=Depends(get_service), _role=Depends(require_admin)):
     sim = _simulator(service)
     if body.sensor not in service.pipeline.names:
         raise BadRequest(f"no sensor {body.sensor!r}; the sensors are: {', '.join(service.pipeline.names)}")
     try:
-        sim.inject_slip(body.sensor, body.distance_m)
+        ev = sim.inject_slip(body.sensor, body.distance_m)
     except FlockcalError as exc:
         raise BadRequest(str(exc)) from None
-    return {"message": f"sensor {body.sensor} slipped by {body.distance_m * 1000:.0f} mm"}
+    clock = getattr(service.source, "reader_time", None)
+    ev["reader_time"] = clock(ev["time_s"]) if clock is not None else None
+    # Seconds from now to the slip's sample: the simulator computes poses up to 0.1 s ahead.
+    in_s = None if ev["reader_time"] is None else round(ev["reader_time"] - time.monotonic(), 4)
+    session_id, at_s = _session_time(service.pipeline.live, ev["reader_time"])
+    when = f" at {at_s:.3f} s into session {session_id}" if at_s is not None else ""
+    return {"message": f"sensor {body.sensor} slipped by {body.distance_m * 1000:.0f} mm{when}",
+            "sensor": body.sensor, "distance_m": body.distance_m, "session_id": session_id, "at_s": at_s,
+            "in_s": in_s}
+
+
+def _session_time(live, reader_time: float | None) -> tuple[str | None, float | None]:
+    """(live session id, the slip's sample time in its session time); Nones where there is none.
+
+    Read off the pipeline thread without waiting for it (a loaded pipeline must not delay the slip's
+    reply): a session's id and t0 (the reader time of its first frame) are each written once, before
+    and on its first frame, and never change."""
+    if live is None:
+        return None, None
+    if live.t0 is None or reader_time is None:
+        return live.id, None
+    return live.id, round(reader_time - live.t0, 4)
 
 
 @router.post("/motion", response_model=SimulatorReply, responses=ERRORS, summary="change the performer's routine")
