@@ -37,3 +37,16 @@ def tracker(performer):
     pty = PtyTracker(performer, birds=16, baud=921600, rate_hz=RATE_HZ).start()
     yield pty
     pty.stop()
+
+
+@pytest.fixture(scope="module")
+def browser():
+    """One headless chromium per module (tests/browser_helpers.py), for the page tests."""
+    from playwright.sync_api import sync_playwright
+
+    from browser_helpers import launch
+
+    with sync_playwright() as p:
+        b = launch(p)
+        yield b
+        b.close()

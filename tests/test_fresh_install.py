@@ -28,11 +28,9 @@ import pytest
 import websockets
 
 from server_helpers import free_port, wait_connected, wait_ready
+from browser_helpers import CHROMIUM, launch
 
 ROOT = Path(__file__).resolve().parents[1]
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-                 "--disable-sync", "--no-first-run", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
 LOOPBACK = ("127.0.0.1", "localhost")
 # pip resolves and installs numpy, scipy, matplotlib, fastapi, … : about 20 s from a warm cache on the
 # 2-core build machine, minutes on a first download.
@@ -158,7 +156,7 @@ def browser():
     from playwright.sync_api import sync_playwright
 
     with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
+        b = launch(p)
         yield b
         b.close()
 

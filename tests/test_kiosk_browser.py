@@ -19,13 +19,11 @@ import pytest
 from server_helpers import GuestSource, ServerProcess, free_port, wait_connected
 from flockcal.simulator.performer import Performer
 from flockcal.simulator.pty_tracker import PtyTracker
+from browser_helpers import NEEDS_CHROMIUM
 
-CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-                 "--disable-sync", "--no-first-run", "--use-angle=swiftshader", "--enable-unsafe-swiftshader"]
 pytestmark = [
     pytest.mark.browser,
-    pytest.mark.skipif(not os.path.exists(CHROMIUM), reason=f"needs Debian's chromium at {CHROMIUM} (apt-get install chromium)"),
+    NEEDS_CHROMIUM,
 ]
 
 ADMIN, KIOSK, READ = "admin-secret-21", "kiosk-secret-21", "read-secret-21"
@@ -60,16 +58,6 @@ def server(guest, tmp_path_factory):
     wait_connected(proc.url, token=ADMIN)
     yield proc
     proc.stop()
-
-
-@pytest.fixture(scope="module")
-def browser():
-    from playwright.sync_api import sync_playwright
-
-    with sync_playwright() as p:
-        b = p.chromium.launch(executable_path=CHROMIUM, args=CHROMIUM_ARGS)
-        yield b
-        b.close()
 
 
 def admin() -> dict:
