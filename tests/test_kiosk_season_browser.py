@@ -11,7 +11,6 @@ hour-long soak (benchmarks/bench_soak.py) runs the rest in real time.
 
 from __future__ import annotations
 
-import os
 import time
 
 import httpx
