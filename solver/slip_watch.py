@@ -15,6 +15,9 @@ from flockcal.solver.slippage import SlipMonitor
 
 log = logging.getLogger(__name__)
 
+# Frames kept from before the first tree, to prime its monitor with (more than a baseline window needs).
+PRIME_S = 12.0
+
 
 class SlipWatch:
     """Watch the joints of a tree for slips and swaps while feeding the session's segmented accumulator.
@@ -22,7 +25,10 @@ class SlipWatch:
     Frames go in `batch_s` micro-batches (whole ones: a shorter remainder waits for the next `feed`, or
     `flush`); after each, the watched joints are re-fitted on their post-slip segment where a slip was
     found, and the monitor sees those estimates. With no joints yet (`joints=None`, e.g. before the first
-    live fit) frames only go into the accumulator. `watch(joints)` changes the tree.
+    live fit) frames go into the accumulator, and the last `PRIME_S` of them prime the first monitor (its
+    baselines need not wait for frames after the tree). `watch(joints)` changes the tree; the monitor
+    carries over what it knows of the joints the trees share, and works the new ones out from the frames
+    it keeps.
 
     A monitor that raises is dropped for good (`failure` holds the exception) and the frames still reach
     the accumulator; `strict` re-raises it then (replays, where a failure is a bug), otherwise the caller
@@ -44,27 +50,33 @@ class SlipWatch:
         self.events: list = []  # every event found, across tree changes
         self.failure: BaseException | None = None
         self._held: tuple | None = None  # frames of an unfinished micro-batch (times, R, t, valid)
+        self._before: list[tuple] = []  # frames from before the first tree (times, R, t, valid), PRIME_S of them
         if joints is not None:
             self.watch(joints)
 
     def watch(self, joints) -> bool:
-        """Watch these (p, 2) (child, parent) joints from now on; True if the monitor was (re)started.
+        """Watch these (p, 2) (child, parent) joints from now on; True if the tree changed.
 
-        The same joints in another order change nothing (the loop refits them itself). `SlipMonitor`
-        keeps its baselines per joint list and has no way to take joints in or out, so a changed tree
-        starts a new monitor (its joints warm up again); the accumulator and its segments stay."""
+        The same joints in another order change nothing (the loop refits them itself). A changed tree
+        goes to the monitor (`SlipMonitor.rejoint`): joints in both trees keep their baselines, segments
+        and pending suspicions; new ones are worked out from the frames it keeps. The accumulator and
+        its segments stay."""
         J = np.asarray(joints, dtype=int).reshape(-1, 2)
         if self.joints is not None and _same_joints(J, self.joints):
             return False
         if self.failure is not None:
             return False
-        had = self.joints
         self.joints = J
         self.fits = None
-        self.monitor = SlipMonitor(J, self.n_sensors, self.rate_hz, self.names, **self.monitor_options) if len(J) else None
-        if had is not None:
-            log.info("slip watch restarted on a new tree (%d joints, was %d): SlipMonitor cannot carry its "
-                     "baselines over to another joint list, so every joint warms up again", len(J), len(had))
+        if not len(J):
+            self.monitor = None
+        elif self.monitor is not None:
+            self.monitor.rejoint(J)
+        else:
+            self.monitor = SlipMonitor(J, self.n_sensors, self.rate_hz, self.names, **self.monitor_options)
+            if self._before:
+                self.monitor.prime(*(np.concatenate(x) for x in zip(*self._before)))
+        self._before = []
         return True
 
     def feed(self, times, rotations, positions, valid=None, catch_up: int = 1) -> list:
@@ -83,6 +95,7 @@ class SlipWatch:
         if self.monitor is None:  # nothing to refit between batches: the accumulator takes them at once
             if len(ts):
                 self.segments.update(ts, R, t, v)
+                self._keep_before(ts, R, t, v)
             return []
         step = self.step * max(1, int(catch_up))
         whole = len(ts) - len(ts) % step
@@ -97,8 +110,16 @@ class SlipWatch:
         held, self._held = self._held, None
         if self.monitor is None:
             self.segments.update(*held)
+            self._keep_before(*held)
             return []
         return self._batches(*held, len(held[0]))
+
+    def _keep_before(self, ts, R, t, v) -> None:
+        if self.failure is not None or self.joints is not None:
+            return  # a failed monitor is not restarted; an empty tree has none to prime
+        self._before.append((ts.copy(), R.copy(), t.copy(), v.copy()))
+        while len(self._before) > 1 and ts[-1] - self._before[0][0][-1] > PRIME_S:
+            self._before.pop(0)
 
     def _batches(self, ts, R, t, v, step: int) -> list:
         out = []

@@ -17,6 +17,7 @@ import numpy as np
 
 from flockcal.errors import FlockcalError
 from flockcal.solver.slippage_attribution import Attribution, Window, attribute
+from flockcal.solver.slippage_buffer import FrameBuffer
 from flockcal.solver.slippage_local import SmoothBaseline, neighbours, smooth_baseline
 from flockcal.solver.slippage_revisit import PoseHistory, came_back
 from flockcal.solver.slippage_stats import joint_geometry, local_variance, residual, window_glr
@@ -82,70 +83,6 @@ class SwapEvent:
                 "jump_mm": round(self.jump_mm, 2), "detected_s": round(self.detected_s, 4)}
 
 
-class _FrameBuffer:
-    """The most recent frames (times, rotations, positions, valid) with their global frame index; each
-    joint's geometry (g, Q) and pair validity, worked out once when a frame arrives; and the step
-    test's deviations from the baseline and noise weights, kept until the baseline changes."""
-
-    def __init__(self, capacity: int, m: int, joints: np.ndarray):
-        self.capacity = capacity
-        self.joints = joints
-        p = len(joints)
-        size = 2 * capacity
-        self.times = np.zeros(size)
-        self.R = np.zeros((size, m, 3, 3))
-        self.t = np.zeros((size, m, 3))
-        self.valid = np.zeros((size, m), dtype=bool)
-        self.g = np.zeros((size, p, 3))
-        self.Q = np.zeros((size, p, 3, 3))
-        self.pv = np.zeros((size, p), dtype=bool)
-        self.dx = np.zeros((size, p, 3))  # deviation from the baseline, child frame
-        self.dy = np.zeros((size, p, 3))  # the same in the parent frame
-        self.w = np.zeros((size, p))  # 1/σ² from the local noise level (0: unusable)
-        self._arrays = (self.times, self.R, self.t, self.valid, self.g, self.Q, self.pv, self.dx, self.dy, self.w)
-        self.lo = self.hi = 0
-        self.first_index = 0  # global index of slot lo
-
-    def append(self, times, R, t, valid) -> int:
-        """Store a batch (at most `capacity` frames); returns the global index of its first frame."""
-        n = len(times)
-        if self.hi + n > len(self.times):
-            keep = min(self.hi - self.lo, self.capacity - n)
-            src = slice(self.hi - keep, self.hi)
-            for a in self._arrays:
-                a[:keep] = a[src]
-            self.first_index += self.hi - keep - self.lo
-            self.lo, self.hi = 0, keep
-        sl = slice(self.hi, self.hi + n)
-        self.times[sl], self.R[sl], self.t[sl], self.valid[sl] = times, R, t, valid
-        J = self.joints
-        self.g[sl], self.Q[sl] = joint_geometry(R, t, J)
-        self.pv[sl] = valid[:, J[:, 0]] & valid[:, J[:, 1]]
-        self.dx[sl], self.dy[sl], self.w[sl] = 0.0, 0.0, 0.0
-        self.hi += n
-        if self.hi - self.lo > self.capacity:
-            drop = self.hi - self.lo - self.capacity
-            self.lo += drop
-            self.first_index += drop
-        return self.first_index + (self.hi - self.lo) - n
-
-    def slot(self, index: int) -> int:
-        """Slot of global frame `index` (clipped to what is stored)."""
-        return self.lo + min(max(index - self.first_index, 0), self.hi - self.lo)
-
-    def since(self, index: int) -> slice:
-        """Slots holding global frames index… (clipped to what is still stored)."""
-        return slice(self.slot(index), self.hi)
-
-    def between(self, t0: float, t1: float) -> slice:
-        times = self.times[self.lo:self.hi]
-        a, b = np.searchsorted(times, [t0, t1], side="left")
-        return slice(self.lo + a, self.lo + b)
-
-    def index_of(self, slot: int) -> int:
-        return self.first_index + slot - self.lo
-
-
 class SlipMonitor:
     """Live slippage detector over the p joints of a tree (or any joint list).
 
@@ -170,9 +107,7 @@ class SlipMonitor:
                  threshold: float = 25.0, attribute_s: float = 0.15, confirm_s: float = 0.4,
                  step_s: float = 0.1, min_frames: int = 4, min_evidence: float = 20.0,
                  scale_floor_m: float = 2e-4, max_rms_m: float = 0.05, revisit_s: float = 40.0):
-        J = np.asarray(joints, dtype=int).reshape(-1, 2)
-        if J.size and (J.min() < 0 or J.max() >= n_sensors or (J[:, 0] == J[:, 1]).any()):
-            raise SlippageError(f"joints must be (child, parent) pairs of distinct sensor indices below {n_sensors}")
+        J = _checked_joints(joints, n_sensors)
         if not rate_hz > 0:
             raise SlippageError(f"rate_hz must be positive, got {rate_hz!r}")
         if not lag_s > window_s:
@@ -198,12 +133,14 @@ class SlipMonitor:
         # Frames kept by the fits, evenly spread over their window: the smooth part needs no more.
         self._fit_rows = 300
         cap = int(np.ceil((baseline_s + lag_s + 1.0) * rate_hz))
-        self._buf = _FrameBuffer(cap, self.m, J)
+        self._buf = FrameBuffer(cap, self.m, J)
         # Poses of the last revisit_s at about 50 Hz, to see whether the residual came back with the pose.
-        self._history = PoseHistory(p, rate_hz, revisit_s, every=int(round(rate_hz / 50.0)))
+        self._history = PoseHistory(J, self.m, rate_hz, revisit_s, every=int(round(rate_hz / 50.0)))
         self.came_back = 0  # suspected slips that the same pose before showed to be soft tissue
         self._chunk = max(1, int(round(step_s * rate_hz)))
         self.segment_start = np.full(p, np.nan)  # time each joint's current segment began
+        self._t0 = np.nan  # time of the first frame seen
+        self._updated = False
         self.ready = np.zeros(p, dtype=bool)
         self.rms = np.full(p, np.nan)  # each joint's residual rms over its baseline window, metres
         self.base: SmoothBaseline | None = None
@@ -221,28 +158,15 @@ class SlipMonitor:
     # -- public -------------------------------------------------------------------------------------
     def update(self, times, rotations, positions, valid=None, c=None, l=None) -> list:
         """Take a batch of frames and the current joint estimates; return the events confirmed now."""
-        R = np.asarray(rotations, dtype=float)
-        t = np.asarray(positions, dtype=float)
-        if R.ndim == 3:
-            R, t = R[None], t[None]
-        n = R.shape[0]
-        if R.shape != (n, self.m, 3, 3) or t.shape != (n, self.m, 3):
-            raise SlippageError(f"frames must be rotations (n, {self.m}, 3, 3) and positions (n, {self.m}, 3); "
-                                f"got {R.shape} and {t.shape}")
-        ts = np.atleast_1d(np.asarray(times, dtype=float))
-        if ts.shape != (n,):
-            raise SlippageError(f"times must have shape ({n},), got {ts.shape}")
-        v = np.ones((n, self.m), dtype=bool) if valid is None else np.asarray(valid, dtype=bool).reshape(n, self.m)
+        ts, R, t, v = self._frames(times, rotations, positions, valid)
+        n = len(ts)
         p = len(self.joints)
         if c is None or l is None:
             raise SlippageError("update needs the current joint estimates c and l, each (p, 3)")
         c = np.asarray(c, dtype=float).reshape(p, 3)
         l = np.asarray(l, dtype=float).reshape(p, 3)
-        v = v & np.isfinite(R).all(axis=(2, 3)) & np.isfinite(t).all(axis=2)
-        R = np.where(v[..., None, None], R, 0.0)
-        t = np.where(v[..., None], t, 0.0)
-        if np.isnan(self.segment_start).all() and n:
-            self.segment_start[:] = ts[0]
+        self._begin(ts)
+        self._updated = True
         finite = np.isfinite(c).all(axis=1) & np.isfinite(l).all(axis=1)
         c, l = np.where(finite[:, None], c, 0.0), np.where(finite[:, None], l, 0.0)
         out = []
@@ -253,6 +177,59 @@ class SlipMonitor:
             a = ends[-1]
         self.events += out
         return out
+
+    def prime(self, times, rotations, positions, valid=None) -> None:
+        """Take frames that came before the watch began (the session's first seconds, before there was a
+        tree): they fill the baselines' window and the pose history, and are not tested for steps. The
+        next `update` continues from them. Nothing to do once `update` has run."""
+        if self._updated:
+            raise SlippageError("prime takes the frames before the first update, not after it")
+        ts, R, t, v = self._frames(times, rotations, positions, valid)
+        for a in range(0, len(ts), self._buf.capacity):
+            sl = slice(a, a + self._buf.capacity)
+            self._begin(ts[sl])
+            g0 = self._buf.append(ts[sl], R[sl], t[sl], v[sl])
+            new = self._buf.since(g0)
+            buf = self._buf
+            self._history.append(g0, buf.times[new], buf.R[new], buf.t[new], buf.valid[new], buf.g[new],
+                                 buf.Q[new], buf.pv[new])
+
+    def rejoint(self, joints) -> None:
+        """Watch another joint list (a changed tree) from now on, without warming up again.
+
+        The frames and poses seen stay, and each joint in both lists (the same child and parent) keeps
+        its state: its segment, what its step test has already looked at, a suspicion pending on it, its
+        events. A joint new to the list is worked out from the frames kept: its segment began at the
+        latest event of either of its sensors (or the first frame), so it is watched as soon as the
+        baseline window holds enough of it, at the next baseline refresh."""
+        J = _checked_joints(joints, self.m)
+        index = {tuple(r): k for k, r in enumerate(self.joints.tolist())}
+        keep = np.array([index.get(tuple(r), -1) for r in J.tolist()], dtype=int)
+        kept = keep >= 0
+        k = np.maximum(keep, 0)
+        p = len(J)
+        start = np.full(p, self._t0)
+        for ev in self.events:
+            touched = np.isin(J, [ev.sensor_index] if ev.kind == "slip" else list(ev.sensor_indices)).any(axis=1)
+            start = np.where(touched, np.fmax(start, ev.time_s), start)
+        self.segment_start = np.where(kept, self.segment_start[k], start)
+        self._quiet = np.where(kept, self._quiet[k], -1)
+        self.score = np.where(kept, self.score[k], 0.0)
+        self.rms = np.where(kept, self.rms[k], np.nan)
+        self.ready = np.zeros(p, dtype=bool)  # the next block refreshes every baseline on the new list
+        if self._pending is not None:
+            onset, fired = self._pending
+            fired = kept & fired[k]
+            self._pending = (onset, fired) if fired.any() else None
+        self.joints = J
+        self._nbrs = neighbours(J)
+        self._buf = self._buf.rejoint(J)
+        self._history.rejoint(J)
+        self.base = None
+        self._c_ref = np.full((p, 3), np.nan)
+        self._l_ref = np.full((p, 3), np.nan)
+        self._last_refresh = -np.inf
+        self._fresh = None
 
     def status(self) -> dict:
         """Per joint (by child name): watching yet, latest step evidence (nats) and the current
@@ -266,6 +243,29 @@ class SlipMonitor:
         return {"joints": joints, "threshold": self.threshold, "events": [e.to_dict() for e in self.events]}
 
     # -- internals ----------------------------------------------------------------------------------
+    def _frames(self, times, rotations, positions, valid):
+        """Frames as (times (n,), R (n, m, 3, 3), t (n, m, 3), valid (n, m)); non-finite poses invalid and zeroed."""
+        R = np.asarray(rotations, dtype=float)
+        t = np.asarray(positions, dtype=float)
+        if R.ndim == 3:
+            R, t = R[None], t[None]
+        n = R.shape[0]
+        if R.shape != (n, self.m, 3, 3) or t.shape != (n, self.m, 3):
+            raise SlippageError(f"frames must be rotations (n, {self.m}, 3, 3) and positions (n, {self.m}, 3); "
+                                f"got {R.shape} and {t.shape}")
+        ts = np.atleast_1d(np.asarray(times, dtype=float))
+        if ts.shape != (n,):
+            raise SlippageError(f"times must have shape ({n},), got {ts.shape}")
+        v = np.ones((n, self.m), dtype=bool) if valid is None else np.asarray(valid, dtype=bool).reshape(n, self.m)
+        v = v & np.isfinite(R).all(axis=(2, 3)) & np.isfinite(t).all(axis=2)
+        return ts, np.where(v[..., None, None], R, 0.0), np.where(v[..., None], t, 0.0), v
+
+    def _begin(self, ts: np.ndarray) -> None:
+        """The first frames ever seen start every joint's first segment."""
+        if len(ts) and not np.isfinite(self._t0):
+            self._t0 = float(ts[0])
+            self.segment_start[np.isnan(self.segment_start)] = ts[0]
+
     def _plan(self, ts: np.ndarray, a: int) -> list[int]:
         """Ends (exclusive) of the steps of `step_s` from frame a that can be examined together: the
         first, and those after it that need no new baseline (the step test of all of them is then one
@@ -286,7 +286,8 @@ class SlipMonitor:
         buf = self._buf
         g0 = buf.append(ts[a:ends[-1]], R[a:ends[-1]], t[a:ends[-1]], v[a:ends[-1]])
         new = buf.since(g0)
-        self._history.append(g0, buf.times[new], buf.g[new], buf.Q[new], buf.pv[new])
+        self._history.append(g0, buf.times[new], buf.R[new], buf.t[new], buf.valid[new], buf.g[new], buf.Q[new],
+                             buf.pv[new])
         step_last = [g0 + e - a - 1 for e in ends]  # global index of each step's last frame
         now = float(ts[ends[0] - 1])
         if now - self._last_refresh >= self.refresh_s or self.base is None:
@@ -490,6 +491,13 @@ class SlipMonitor:
         self._c_ref, self._l_ref = np.array(c, dtype=float), np.array(l, dtype=float)
         self._last_refresh = now
         self._fresh = None  # every deviation must be worked out again against the new baseline
+
+
+def _checked_joints(joints, m: int) -> np.ndarray:
+    J = np.asarray(joints, dtype=int).reshape(-1, 2)
+    if J.size and (J.min() < 0 or J.max() >= m or (J[:, 0] == J[:, 1]).any()):
+        raise SlippageError(f"joints must be (child, parent) pairs of distinct sensor indices below {m}")
+    return J
 
 
 def _with_own_noise(x: np.ndarray, weight: np.ndarray) -> np.ndarray:

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from flockcal.solver.slippage_stats import residual
+from flockcal.solver.slippage_stats import joint_geometry, residual
 
 # Two poses are the same when every joint involved is within this angle of where it was (radians): soft
 # tissue moves a sensor by about a centimetre per radian, so 4° leaves well under a millimetre.
@@ -21,27 +21,44 @@ MIN_MATCHES = 5
 
 
 class PoseHistory:
-    """The last `seconds` of every joint's geometry (g, Q), pair validity and time, at about `rate_hz`
-    (a pose needs no more), so a pose can be looked up after the frame buffer has let it go."""
+    """The last `seconds` of every sensor's pose and validity, and every watched joint's geometry (g, Q)
+    and pair validity, at about `rate_hz` / `every` (a pose needs no more), so a pose can be looked up
+    after the frame buffer has let it go. The sensors' poses let another joint list take the history
+    over (`rejoint`): a joint new to the tree has its past poses at once."""
 
-    def __init__(self, p: int, rate_hz: float, seconds: float, every: int):
+    def __init__(self, joints: np.ndarray, m: int, rate_hz: float, seconds: float, every: int):
         self.every = max(1, int(every))
         cap = int(np.ceil(seconds * rate_hz / self.every)) + 1
         self.times = np.full(cap, np.nan)
-        self.g = np.zeros((cap, p, 3))
-        self.Q = np.zeros((cap, p, 3, 3))
-        self.pv = np.zeros((cap, p), dtype=bool)
+        self.R = np.zeros((cap, m, 3, 3))
+        self.t = np.zeros((cap, m, 3))
+        self.valid = np.zeros((cap, m), dtype=bool)
         self.next = 0  # ring position
         self.count = 0
+        self._geometry(joints)
 
-    def append(self, first_index: int, times, g, Q, pv) -> None:
-        """Frames of global indices first_index…; every `every`-th global frame is kept."""
+    def _geometry(self, joints: np.ndarray) -> None:
+        J = np.asarray(joints, dtype=int).reshape(-1, 2)
+        self.joints = J
+        self.g, self.Q = joint_geometry(self.R, self.t, J)
+        self.pv = self.valid[:, J[:, 0]] & self.valid[:, J[:, 1]]
+
+    def rejoint(self, joints: np.ndarray) -> None:
+        """The joints' geometry for another joint list, from the poses kept."""
+        self._geometry(joints)
+
+    def append(self, first_index: int, times, R, t, valid, g, Q, pv) -> None:
+        """Frames of global indices first_index… (poses R, t, valid and the joints' g, Q, pv worked out
+        already); every `every`-th global frame is kept."""
         keep = np.flatnonzero((first_index + np.arange(len(times))) % self.every == 0)
-        for k in keep:  # a handful per batch
-            i = self.next
-            self.times[i], self.g[i], self.Q[i], self.pv[i] = times[k], g[k], Q[k], pv[k]
-            self.next = (i + 1) % len(self.times)
-            self.count = min(self.count + 1, len(self.times))
+        if not len(keep):
+            return
+        cap = len(self.times)
+        at = (self.next + np.arange(len(keep))) % cap
+        self.times[at], self.R[at], self.t[at], self.valid[at] = times[keep], R[keep], t[keep], valid[keep]
+        self.g[at], self.Q[at], self.pv[at] = g[keep], Q[keep], pv[keep]
+        self.next = int((self.next + len(keep)) % cap)
+        self.count = min(self.count + len(keep), cap)
 
 
 def came_back(history: PoseHistory, before: float, since: np.ndarray, times, g, Q, pv, weight,

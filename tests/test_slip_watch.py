@@ -1,6 +1,6 @@
 """The one slip loop (solver/slip_watch.py): the live service hands frames over in whatever pieces the
 reader delivers and still runs the micro-batches the slip figures were measured on; a changed tree
-restarts the monitor; a failing monitor stops watching but loses no frame, and the live service says so.
+keeps watching (a slip just after it is found); a failing monitor stops watching but loses no frame, and the live service says so.
 """
 
 from __future__ import annotations
@@ -76,19 +76,53 @@ def test_frames_handed_over_in_any_pieces_give_the_events_and_fits_of_one_replay
     assert live.segments.frames == whole.segments.frames
 
 
-def test_a_new_tree_restarts_the_monitor_and_keeps_the_accumulator():
+def test_the_same_tree_in_another_order_changes_nothing_and_a_new_one_keeps_the_accumulator():
     perf, frames = walk(6.0)
     J = tree(perf.model)
     watch = SlipWatch(None, perf.n_sensors, RATE, perf.names)
     watch.feed(*(x[:200] for x in frames))  # no tree yet: the frames only go into the accumulator
     assert watch.monitor is None and watch.segments.frames == 200
     assert watch.watch(J) and not watch.watch(J[::-1].copy())  # the same tree, in any order, changes nothing
-    first = watch.monitor
     watch.feed(*(x[200:] for x in frames))
     watch.flush()
-    assert watch.watch(J[:-1])  # one joint fewer: a new monitor on the new joint list
-    assert watch.monitor is not first and len(watch.monitor.joints) == len(J) - 1
+    assert watch.watch(J[:-1])  # one joint fewer: the monitor watches the new list
+    assert len(watch.monitor.joints) == len(J) - 1
     assert watch.segments.frames == len(frames[0])
+
+
+def _index(perf, child: str) -> int:
+    return list(perf.names).index(child)
+
+
+@pytest.mark.parametrize("case", ["shared joints", "a joint new to the tree", "the first tree"])
+def test_a_slip_just_after_the_tree_changed_is_found_in_time(case):
+    # The live service's fitted tree changes now and then (server/pipeline.py hands a changed tree on once
+    # it has held for 3 s). A slip 1 s after such a change must still be found within docs/slippage.md's
+    # 0.5 s, naming the sensor: a monitor that started afresh on every change was blind for its 5 s
+    # warm-up, and slips after a change were missed through the service (issue #20).
+    slip_at, change_at = 9.0, 8.0
+    perf, frames = walk(11.0, slip="r_shin", at=slip_at)
+    J = tree(perf.model)
+    if case == "shared joints":  # a joint far from the slip comes and goes
+        before = J[J[:, 0] != _index(perf, "l_hand")]
+    elif case == "a joint new to the tree":  # the slipped sensor's own joint to its parent was missing
+        before = J[J[:, 0] != _index(perf, "r_shin")]
+    else:  # no tree at all until the first fit
+        before = None
+    watch = SlipWatch(before, perf.n_sensors, RATE, perf.names)
+    cut = int(round(change_at * RATE))
+    watch.feed(*(x[:cut] for x in frames))
+    kept = None if before is None else dict(zip(map(tuple, before.tolist()), watch.monitor.segment_start))
+    assert watch.watch(J)
+    if kept is not None:  # the joints both trees share kept their segments (nothing had slipped)
+        assert all(kept.get(row, start) == start for row, start in
+                   zip(map(tuple, J.tolist()), watch.monitor.segment_start))
+    watch.feed(*(x[cut:] for x in frames))
+    assert [e.sensor for e in watch.events] == ["r_shin"], watch.events
+    assert 0 < watch.events[0].detected_s - slip_at <= 0.5, watch.events
+    assert abs(watch.events[0].time_s - slip_at) <= 0.1, watch.events
+    assert set(watch.events[0].joints) == {"r_shin", "r_foot"}  # both its joints stepped, the new one too
+    assert watch.segments.frames == len(frames[0]) - len(watch._held[0] if watch._held else ())
 
 
 class Failing(SlipMonitor):
