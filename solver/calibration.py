@@ -174,10 +174,13 @@ def parse_hierarchy(hierarchy, names: Sequence[str]) -> np.ndarray:
     return parent
 
 
-def calibrate(acc, hierarchy=None, root=None, names=None, tolerance: float = TOLERANCE_M) -> Calibration:
+def calibrate(acc, hierarchy=None, root=None, names=None, tolerance: float = TOLERANCE_M,
+              fits: PairFits | None = None) -> Calibration:
     """Fit the skeleton from accumulator `acc`: the given `hierarchy` ({child: parent}) or a searched tree.
 
     `root` (name or index) hangs a searched tree from that sensor; with a hierarchy it must be its root.
+    `fits`: the fits of all pairs to search the tree on, if not `pair_fits(acc)` (a segmented take's, whose
+    slipped pairs are judged on each placement's own fit: solver/segments.py).
     With a hierarchy only its m − 1 joints are solved (the paper's fast path). `tolerance` (m): how closely
     a joint's centre must be pinned to count as determined (docs/design.md §3a); only determined joints end bones.
     """
@@ -209,7 +212,8 @@ def calibrate(acc, hierarchy=None, root=None, names=None, tolerance: float = TOL
         cal = Calibration(names, hroot, parent, order, acc.frames, joints, _no_bones(), np.full((m, 3), np.nan),
                           rigid_groups=rigid_groups, hierarchy_given=True)
     else:
-        fits = pair_fits(acc, tolerance=tolerance)
+        if fits is None:
+            fits = pair_fits(acc, tolerance=tolerance)
         topo = spanning_tree(fits, m, root_i)
         jc = topo.order[topo.joint[topo.order]]
         pj = topo.parent[jc]

@@ -183,7 +183,8 @@ class SegmentedAccumulator:
                     tolerance: float = TOLERANCE_M) -> Calibration:
         """The whole-take calibration, with every joint and bone that involves a segmented sensor taken
         from a calibration of that segment (same tree), marked with the segment's start."""
-        whole = calibrate(self.whole, hierarchy=hierarchy, root=root, names=names, tolerance=tolerance)
+        fits = self.tree_fits(tolerance) if hierarchy is None and self.segments else None
+        whole = calibrate(self.whole, hierarchy=hierarchy, root=root, names=names, tolerance=tolerance, fits=fits)
         whole = replace(whole, slip_events=tuple(slip_events or ()))
         if not self.segments:
             return whole
@@ -207,6 +208,26 @@ class SegmentedAccumulator:
             placement[jc[mine]] = part.joints.c[theirs]
         bones = _bones_after(whole, done, self)
         return replace(whole, joints=joints, placement=placement, segment_start_s=start, bones=bones)
+
+    def tree_fits(self, tolerance: float = TOLERANCE_M) -> PairFits:
+        """All pairs fitted on the whole take, for the tree search, with each pair that touches a slipped
+        sensor judged by its residual rms pooled over the placement before the slip and the one after,
+        each fitted on its own frames. A slip moves a sensor on its body, not to another body: a
+        whole-take fit blends the two placements, its residual grows with the step, and the tree would
+        re-link the slipped sensor's neighbours elsewhere until the new segment outweighs the old."""
+        fits = pair_fits(self.whole, tolerance=tolerance)
+        segs = self.pair_segments(fits.pairs)
+        rms = fits.rms.copy()
+        for seg in {id(s): s for s in segs if s is not None and s.kind == "slip"}.values():
+            rows = np.flatnonzero([s is seg for s in segs])
+            after = pair_fits(self.segment_accumulator(seg), fits.pairs[rows], tolerance=tolerance)
+            n, sq = after.n.astype(float), after.n * np.nan_to_num(after.rms, posinf=0.0) ** 2
+            if seg.before is not None:
+                before = pair_fits(seg.before, fits.pairs[rows], tolerance=tolerance)
+                n, sq = n + before.n, sq + before.n * np.nan_to_num(before.rms, posinf=0.0) ** 2
+            with np.errstate(invalid="ignore", divide="ignore"):
+                rms[rows] = np.where(n > 0, np.sqrt(sq / n), fits.rms[rows])
+        return replace(fits, rms=rms)
 
     def calibration_dict(self, hierarchy=None, root=None, names=None, slip_events=None,
                          tolerance: float = TOLERANCE_M) -> dict:
