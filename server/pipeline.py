@@ -39,8 +39,9 @@ BEHIND_S = 0.3
 # when behind, 1/3 s when over FAR_BEHIND_S behind (then c, l are at most 1/3 s stale; they move slowly).
 CATCH_UP, FAR_BEHIND_S, FAR_CATCH_UP = 3, 1.0, 10
 # A fitted tree (automatic topology) must stay the fits' tree this long, in session time, before the slip
-# loop watches it: a new joint list restarts the monitor, blind for 5 s, and fitted trees flickered
-# between two versions for tens of seconds after 20 s, each flip hiding the slips that came next.
+# loop watches it, the first one too: early fitted trees flicker, and a step on a wrong edge is no slip
+# (early trees raised false events in the first seconds). Nothing is lost by waiting: the monitor keeps
+# the joints both trees share and works new ones out from the frames it keeps (solver/slip_watch.py).
 TREE_SETTLE_S = 3.0
 
 
@@ -324,11 +325,12 @@ class Pipeline:
         self._progress_step(live, done.fit, time_s, epoch)
 
     def _watch_tree(self, live: LiveSession, pairs, time_s: float) -> None:
-        """Hand the fit's tree to the slip loop: at once for a given tree or the first one, else once it
-        has stayed the fits' tree for TREE_SETTLE_S (a tree that flickers back is never restarted on)."""
+        """Hand the fit's tree to the slip loop: at once for a given tree, else once it has stayed the
+        fits' tree for TREE_SETTLE_S (a tree that flickers back is never handed on)."""
         key = frozenset(map(tuple, pairs.tolist()))
-        settle = live.hierarchy is None and live.skeleton is None and live.watch.joints is not None
-        if not settle or key == frozenset(map(tuple, live.watch.joints.tolist())):
+        watched = live.watch.joints
+        if live.hierarchy is not None or live.skeleton is not None or (
+                watched is not None and key == frozenset(map(tuple, watched.tolist()))):
             self._tree_candidate = None
             live.watch.watch(pairs)
             return

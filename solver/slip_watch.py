@@ -71,7 +71,12 @@ class SlipWatch:
         if not len(J):
             self.monitor = None
         elif self.monitor is not None:
+            old = set(map(tuple, self.monitor.joints.tolist()))
+            new = [tuple(r) for r in J.tolist() if tuple(r) not in old]
             self.monitor.rejoint(J)
+            if self.names is not None:
+                log.info("slip watch on a changed tree: %d joints kept, new %s", len(J) - len(new),
+                         ", ".join(f"{self.names[a]}-{self.names[b]}" for a, b in new) or "none")
         else:
             self.monitor = SlipMonitor(J, self.n_sensors, self.rate_hz, self.names, **self.monitor_options)
             if self._before:
