@@ -1,6 +1,6 @@
-"""Fits for the live service: the fit worker thread, the session's accumulator, and the one place the
-service reads joints out of a fit result (today the §5 dict; when the solver returns a typed
-`Calibration`, `fit_joints` and `calibrate_dict` are where the service switches to it).
+"""Fits for the live service: the fit worker thread, the session's accumulator, and the one place a fit
+is made. Each fit travels as its typed `Calibration` (what the service computes with: `fit_joints`)
+and its §5 dict (what clients and the store get).
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ import numpy as np
 
 from flockcal.errors import FlockcalError
 from flockcal.solver.accumulator import GramAccumulator
+from flockcal.solver.calibration import Calibration
 from flockcal.solver.segments import SegmentedAccumulator
 from flockcal.solver.solve import solve
 from flockcal.threads import name_os_thread
@@ -45,21 +46,23 @@ def json_safe(obj):
     return obj
 
 
-def calibrate_dict(acc, names, hierarchy=None, root=None, skeleton=None, tolerance: float = 0.005) -> dict:
-    """The §5 JSON of a fit of `acc` — the solver's `solve` picks plain, slip-segmented or saved-skeleton
-    fitting — JSON-safe; SolverError etc. propagate."""
+def fit_calibration(acc, names, hierarchy=None, root=None, skeleton=None, tolerance: float = 0.005,
+                    previous: Calibration | None = None) -> tuple[dict, Calibration]:
+    """(JSON-safe §5 dict, Calibration) of a fit of `acc` — the solver's `solve` picks plain, slip-segmented
+    or saved-skeleton fitting; `previous` (the last Calibration of a saved-skeleton fit) warm-starts one.
+    SolverError etc. propagate."""
     if skeleton is not None:
-        return known_dict_of(skeleton, acc, names)[0]
+        cal = solve(acc, names, skeleton=skeleton, previous=previous)
+        return json_safe(cal.to_dict()), cal
+    cal = solve(acc, names, hierarchy, root, tolerance=tolerance)
     # The solver builds these dicts JSON-safe (Python scalars, None for NaN; the tests hold it to that), so
     # they are not walked again: this runs ~30×/s, and the walk cost as much as the MST.
-    return solve(acc, names, hierarchy, root, tolerance=tolerance).to_dict()
+    return cal.to_dict(), cal
 
 
-def known_dict_of(skeleton, acc, names, previous=None) -> tuple[dict, object]:
-    """(JSON-safe §5 dict, Calibration) of a fit with a saved skeleton; `previous` (the Calibration this
-    returned last) warm-starts it."""
-    cal = solve(acc, names, skeleton=skeleton, previous=previous)
-    return json_safe(cal.to_dict()), cal
+def calibrate_dict(acc, names, hierarchy=None, root=None, skeleton=None, tolerance: float = 0.005) -> dict:
+    """The §5 dict of `fit_calibration`."""
+    return fit_calibration(acc, names, hierarchy, root, skeleton, tolerance)[0]
 
 
 def new_accumulator(m: int, segmented: bool = False) -> GramAccumulator | SegmentedAccumulator:
@@ -82,15 +85,19 @@ class FitJoints:
     l: np.ndarray  # (p, 3) in the parent's frame
 
 
-def fit_joints(fit: dict, names) -> FitJoints:
-    """The joints of a fit result (§5 dict) as arrays; sensors by index into `names`."""
-    index = {n: i for i, n in enumerate(names)}
-    entries = fit["joints"]
+def fit_joints(calibration: Calibration, names) -> FitJoints:
+    """The joints of a fit as arrays, in its order (the order of its §5 dict's joints); sensors by index
+    into `names` (the service's, which the fit was made with)."""
+    pairs, c, l = calibration.joint_arrays()
+    if tuple(calibration.names) != tuple(names):
+        index = {n: i for i, n in enumerate(names)}
+        pairs = np.array([[index[calibration.names[a]], index[calibration.names[b]]] for a, b in pairs.tolist()],
+                         dtype=int).reshape(-1, 2)
     return FitJoints(
-        joints=tuple((j["child"], j["parent"]) for j in entries),
-        pairs=np.array([[index[j["child"]], index[j["parent"]]] for j in entries], dtype=int).reshape(-1, 2),
-        c=np.array([j["c"] for j in entries], dtype=float).reshape(-1, 3),
-        l=np.array([j["l"] for j in entries], dtype=float).reshape(-1, 3),
+        joints=tuple((names[a], names[b]) for a, b in pairs.tolist()),
+        pairs=np.asarray(pairs, dtype=int).reshape(-1, 2),
+        c=np.asarray(c, dtype=float).reshape(-1, 3),
+        l=np.asarray(l, dtype=float).reshape(-1, 3),
     )
 
 
@@ -108,6 +115,7 @@ class FitJob:
 class FitDone:
     session_id: str
     fit: dict | None
+    calibration: Calibration | None  # the same fit, typed
     error: str | None
     seconds: float
     stamp: tuple[float, int]
@@ -181,24 +189,24 @@ class FitWorker:
                     return
                 job, self._job = self._job, None
             start = time.perf_counter()
-            fit, error = None, None
+            fit, cal, error = None, None, None
             try:
-                fit = self._fit(job)
+                fit, cal = self._fit(job)
             except FlockcalError as exc:
                 error = str(exc)
             except Exception as exc:  # a numerical failure must not stop the service
                 log.exception("fit failed")
                 error = f"fit failed: {exc}"
             with self._cond:
-                self._done = FitDone(job.session_id, fit, error, time.perf_counter() - start, job.stamp)
+                self._done = FitDone(job.session_id, fit, cal, error, time.perf_counter() - start, job.stamp)
                 self._busy = False
             self.on_done()
 
-    def _fit(self, job: FitJob) -> dict:
+    def _fit(self, job: FitJob) -> tuple[dict, Calibration]:
         if job.skeleton is None:
-            return calibrate_dict(job.acc, self.names, job.hierarchy, job.root, tolerance=self.tolerance)
+            return fit_calibration(job.acc, self.names, job.hierarchy, job.root, tolerance=self.tolerance)
         # Start from this session's last known-skeleton fit: one or two Gauss–Newton steps.
         prev = self._known_prev[1] if self._known_prev and self._known_prev[0] == job.session_id else None
-        fit, known = known_dict_of(job.skeleton, job.acc, self.names, prev)
+        fit, known = fit_calibration(job.acc, self.names, skeleton=job.skeleton, previous=prev)
         self._known_prev = (job.session_id, known)
-        return fit
+        return fit, known

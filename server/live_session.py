@@ -9,6 +9,7 @@ from dataclasses import dataclass, field
 
 from flockcal.server.framelog import FrameLog
 from flockcal.server.progress import ProgressTracker
+from flockcal.solver.calibration import Calibration
 from flockcal.solver.slip_watch import SlipWatch
 
 
@@ -28,7 +29,8 @@ class LiveSession:
     t0: float | None = None  # reader time of the session's first frame
     frames: int = 0
     started_wall: float = field(default_factory=time.time)
-    fit: dict | None = None
+    fit: dict | None = None  # the newest fit's §5 dict (clients, the store)
+    calibration: Calibration | None = None  # the same fit, typed (what the service computes with)
     fit_error: str | None = None
     fit_frames: int = 0  # accumulator frames the newest fit used
     residual_rows: list = field(default_factory=list)  # (time_s, {joint: mm}) not yet in the store

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from flockcal.solver.calibration import Calibration
 from flockcal.solver.reconstruct import ArticulationError, articulation, reconstruct
 
 
@@ -54,23 +55,33 @@ class _Layout:
 _cache: list = [None, None, None]  # (fit, names, layout): a fit changes ~30 times/s, poses more often
 
 
-def _layout(fit: dict, names: tuple[str, ...]) -> _Layout | None:
+def _determined(fit: Calibration | dict) -> set[str] | None:
+    """The children of the fit's determined joints; None for a saved skeleton, whose bones are known
+    whatever this take has pinned yet."""
+    if isinstance(fit, Calibration):
+        if fit.known_skeleton:
+            return None
+        return {fit.names[int(c)] for c, d in zip(fit.joint_child, fit.joints.determined) if d}
+    if fit.get("known_skeleton"):
+        return None
+    # Joints of stored fits made before "determined" existed count as determined.
+    return {j["child"] for j in fit.get("joints") or [] if j.get("determined", True)}
+
+
+def _layout(fit: Calibration | dict, names: tuple[str, ...]) -> _Layout | None:
     if _cache[0] is fit and _cache[1] == names:
         return _cache[2]
     try:
-        # A saved skeleton's bones are known whatever this take has pinned yet; joints of fits made before
-        # "determined" existed count as determined.
-        determined = None if fit.get("known_skeleton") else {
-            j["child"] for j in fit.get("joints") or [] if j.get("determined", True)}
-        layout = _Layout(articulation(fit).reordered(names), names, determined)
+        layout = _Layout(articulation(fit).reordered(names), names, _determined(fit))
     except (ArticulationError, KeyError, ValueError, TypeError):
         layout = None
     _cache[:] = [fit, names, layout]
     return layout
 
 
-def live_pose(names, rotations, positions, valid, fit: dict | None) -> dict:
-    """Pose message body for one frame: (m,3,3) rotations, (m,3) positions, (m,) valid; fit = §5 dict.
+def live_pose(names, rotations, positions, valid, fit: Calibration | dict | None) -> dict:
+    """Pose message body for one frame: (m,3,3) rotations, (m,3) positions, (m,) valid; fit = the live
+    service's Calibration, or a §5 dict (a stored result, a truth file).
 
     joints: one point per tree joint (named by its child body; `determined` false for one the data do not
     pin yet), one for the root sensor and one for each leaf's sensor (so end bones have a far end); bones:
@@ -78,7 +89,7 @@ def live_pose(names, rotations, positions, valid, fit: dict | None) -> dict:
     rotation (body → world) of each sensor.
     """
     base = sensors_only(names, rotations, positions, valid)
-    if not fit or not fit.get("parent"):
+    if fit is None or (isinstance(fit, dict) and not fit.get("parent")):
         return base
     layout = _layout(fit, tuple(names))
     if layout is None:

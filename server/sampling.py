@@ -13,6 +13,7 @@ import numpy as np
 from flockcal.server.fitting import FitJoints, fit_joints, json_safe
 from flockcal.server.live_session import LiveSession
 from flockcal.server.snapshot import ResidualSample
+from flockcal.solver.calibration import Calibration
 
 log = logging.getLogger(__name__)
 
@@ -30,7 +31,7 @@ class ResidualSampler:
         self.period = float(period)
         self.recent: deque[ResidualSample] = deque(maxlen=RECENT_RESIDUALS)
         self._seq = 0
-        self._joint_cache: tuple[dict, FitJoints] | None = None
+        self._joint_cache: tuple[Calibration, FitJoints] | None = None
         self.reset()
 
     def reset(self) -> None:
@@ -40,10 +41,10 @@ class ResidualSampler:
         self._last_emit: float | None = None
         self._time = 0.0
 
-    def joints(self, fit: dict) -> FitJoints:
+    def joints(self, calibration: Calibration) -> FitJoints:
         """The fit's joints as arrays, worked out once per fit."""
-        if self._joint_cache is None or self._joint_cache[0] is not fit:
-            self._joint_cache = (fit, fit_joints(fit, self.names))
+        if self._joint_cache is None or self._joint_cache[0] is not calibration:
+            self._joint_cache = (calibration, fit_joints(calibration, self.names))
         return self._joint_cache[1]
 
     def add(self, live: LiveSession, ts, R, t, valid) -> None:
@@ -57,10 +58,10 @@ class ResidualSampler:
             self._step(live, *(np.concatenate([p[k] for p in pending]) for k in range(4)))
 
     def _step(self, live: LiveSession, ts, R, t, valid) -> None:
-        fit = live.fit
-        if not fit or not fit.get("joints"):
+        cal = live.calibration
+        if cal is None or not len(cal.joints):
             return
-        fj = self.joints(fit)
+        fj = self.joints(cal)
         if fj.joints != self._joints:
             self.flush(live)
             self._joints = fj.joints

@@ -17,6 +17,7 @@ import numpy as np
 
 from flockcal.server.pose import live_pose
 from flockcal.server.progress import waiting
+from flockcal.solver.calibration import Calibration
 
 
 @dataclass(frozen=True, eq=False)
@@ -42,7 +43,7 @@ class Snapshot:
     rotations: np.ndarray | None  # newest pose of each sensor (m,3,3) (held where invalid)
     positions: np.ndarray | None  # (m,3)
     valid: np.ndarray | None  # (m,) whether the newest frame held a valid record for each sensor
-    pose_fit: dict | None = None  # fit used to draw the skeleton (live or the last stopped session's)
+    pose_fit: Calibration | None = None  # fit used to draw the skeleton (live or the last stopped session's)
     progress: dict | None = None  # the live session's progress document (server/progress.py), None without one
 
     @property

@@ -65,3 +65,20 @@ def test_pose_draws_no_bone_to_an_undetermined_joint():
     assert elbow["determined"] is False and elbow["p"] is not None
     full = live_pose(names, R[0], t[0], valid[0], truth)
     assert len(full["bones"]) == len(pose["bones"]) + 2
+
+
+def test_the_live_calibration_draws_what_its_dict_draws():
+    # The service draws the skeleton from the fit's typed Calibration; a stored result is a §5 dict. Both
+    # must give the same message, undetermined joints included (a short take leaves some).
+    from flockcal.solver.accumulator import GramAccumulator
+    from flockcal.solver.solve import solve
+
+    performer = Performer("human", "exercise", seed=3, rate_hz=100.0, noise="tracker")
+    times = np.arange(600) / 100.0
+    R, t, valid = performer.poses(times)
+    acc = GramAccumulator(performer.n_sensors)
+    acc.update(R, t, valid)
+    cal = solve(acc, list(performer.names))
+    assert not all(cal.joints.determined) and any(cal.joints.determined)  # both kinds are drawn
+    names = list(performer.names)
+    assert live_pose(names, R[-1], t[-1], valid[-1], cal) == live_pose(names, R[-1], t[-1], valid[-1], cal.to_dict())
