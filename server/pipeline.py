@@ -16,7 +16,7 @@ from typing import Callable
 
 from flockcal.errors import FlockcalError
 from flockcal.frames import Frames
-from flockcal.server.fitting import SLIP_FIELDS, FitJob, FitWorker, calibrate_dict, new_accumulator
+from flockcal.server.fitting import SLIP_FIELDS, FitJob, FitWorker, fit_calibration, new_accumulator
 from flockcal.server.ingest import Ingest
 from flockcal.server.live_session import LiveSession
 from flockcal.server.persistence import Persistence
@@ -24,6 +24,7 @@ from flockcal.server.progress import ProgressTracker, default_target
 from flockcal.server.sampling import ResidualSampler, watch_flush, watch_step
 from flockcal.server.snapshot import Snapshot, SnapshotMaker
 from flockcal.server.store import Store
+from flockcal.solver.calibration import Calibration
 from flockcal.solver.slip_watch import SlipWatch
 from flockcal.threads import name_os_thread
 
@@ -38,11 +39,24 @@ BEHIND_S = 0.3
 # How much longer the slip loop's micro-batches get while catching up: 0.1 s (the monitor's own step)
 # when behind, 1/3 s when over FAR_BEHIND_S behind (then c, l are at most 1/3 s stale; they move slowly).
 CATCH_UP, FAR_BEHIND_S, FAR_CATCH_UP = 3, 1.0, 10
+# At most this many seconds of a backlog of frames per step, then a snapshot: on a starved machine a
+# whole backlog in one step left every client without a message for 30 s (a benchmark's websocket timed
+# out at load 11 on 2 cores); the snapshots then show the lag instead of going silent.
+MAX_STEP_S = 1.0
 # A fitted tree (automatic topology) must stay the fits' tree this long, in session time, before the slip
 # loop watches it, the first one too: early fitted trees flicker, and a step on a wrong edge is no slip
 # (early trees raised false events in the first seconds). Nothing is lost by waiting: the monitor keeps
 # the joints both trees share and works new ones out from the frames it keeps (solver/slip_watch.py).
 TREE_SETTLE_S = 3.0
+
+
+def _step_of(pending: list[Frames], frames: float) -> tuple[list[Frames], list[Frames]]:
+    """(the first batches, at least one, holding at most `frames` frames; the rest)."""
+    total, k = 0, 0
+    while k < len(pending) and (k == 0 or total + len(pending[k]) <= frames):
+        total += len(pending[k])
+        k += 1
+    return pending[:k], pending[k:]
 
 
 class Pipeline:
@@ -92,7 +106,7 @@ class Pipeline:
         self.fitter = FitWorker(self.names, self.tolerance, on_done=self._wake)
         self.snapshots = SnapshotMaker(self.names, source_status, self.target)
         self.live: LiveSession | None = None
-        self.pose_fit: dict | None = None
+        self.pose_fit: Calibration | None = None  # the fit the live skeleton is drawn with
         self.fits_done = 0
         self.fit_seconds = 0.0
         self._fit_seq = 0
@@ -184,8 +198,8 @@ class Pipeline:
             result, error = None, None
             if live.acc.frames > 0:
                 try:
-                    result = calibrate_dict(live.acc, self.names, live.hierarchy, live.root, live.skeleton,
-                                            self.tolerance)
+                    result, live.calibration = fit_calibration(live.acc, self.names, live.hierarchy, live.root,
+                                                               live.skeleton, self.tolerance)
                     slips = self.persistence.slip_events(live, SLIP_FIELDS)
                     if slips:
                         result["slip_events"] = slips
@@ -198,7 +212,7 @@ class Pipeline:
             live.framelog.close()
             self.live = None
             if result:
-                self.pose_fit = result
+                self.pose_fit = live.calibration
             self._publish()
             return live, result, error
 
@@ -208,9 +222,10 @@ class Pipeline:
     def _run(self) -> None:
         name_os_thread("fc-pipeline")
         last_publish = 0.0
+        backlog = False
         while True:
             with self._cond:
-                while not self._stop and not self._commands:
+                while not self._stop and not self._commands and not backlog:
                     has_work = bool(self._pending or self._pending_events or self.fitter.has_result())
                     # Publish as soon as frames arrive, but no more than publish_hz; status twice a second.
                     due = last_publish + (self.min_publish_s if has_work else 0.5)
@@ -219,7 +234,11 @@ class Pipeline:
                         break
                     self._cond.wait(due - now)
                 stopping = self._stop
-                batches, self._pending = self._pending, []
+                if stopping or self._commands:  # a session starts and stops after every frame received
+                    batches, self._pending = self._pending, []
+                else:
+                    batches, self._pending = _step_of(self._pending, MAX_STEP_S * self.rate_hz())
+                backlog = bool(self._pending)
                 events, self._pending_events = self._pending_events, []
                 commands, self._commands = self._commands, []
             try:
@@ -315,13 +334,13 @@ class Pipeline:
         if done.fit is None:
             live.fit_error = done.error
             return
-        live.fit = done.fit
+        live.fit, live.calibration = done.fit, done.calibration
         live.fit_error = None
-        self.pose_fit = done.fit
+        self.pose_fit = done.calibration
         self._fit_seq += 1
         time_s, epoch = done.stamp
-        if live.watch is not None and done.fit.get("joints"):
-            self._watch_tree(live, self.sampler.joints(done.fit).pairs, time_s)
+        if live.watch is not None and len(done.calibration.joints):
+            self._watch_tree(live, self.sampler.joints(done.calibration).pairs, time_s)
         self._progress_step(live, done.fit, time_s, epoch)
 
     def _watch_tree(self, live: LiveSession, pairs, time_s: float) -> None:
