@@ -12,16 +12,14 @@ import numpy as np
 from server_helpers import ServerProcess, free_port, wait_connected
 from slip_service import run
 
-# Two sensors the service finds reliably today (docs/slippage.md, "Measured through the service": hub and
-# leaf sensors — chest, abdomen, head, hands — are still missed or misnamed at times, so issue #20's "any
-# sensor" is not met and the full figure is benchmark only). No shared joint, so 10 s apart each is
-# watched again (5 s of a new segment) before the next.
-SENSORS = ["r_shin", "r_upper_arm"]
+# Four sensors of different kinds (a leg, the trunk's root, an upper and a lower arm), no two in a row
+# sharing a joint, slipped 10 s apart from 20 s in: issue #20's "from 20 s on". Each was found and named
+# in every run of benchmarks/bench_slippage_service.py since the monitor keeps watching across tree
+# changes (docs/slippage.md); that benchmark slips all 16, and a hub (chest) or leaf (head) was still
+# missed or late once in two rigid runs, so "any sensor" is the benchmark's figure, not held here.
+SENSORS = ["r_shin", "l_upper_arm", "pelvis", "l_forearm"]
 SPACING_S = 10.0
-# The first slip 30 s in: at 20 s the automatically fitted tree can still be changing, and each change
-# leaves the monitor blind for 5 s (both slips at 20 s and 30 s were missed in a run) — the "from 20 s
-# on" of issue #20 is not met; docs/slippage.md says so.
-WARMUP_S = 30.0
+WARMUP_S = 20.0
 
 # Issue #20's promise for 2 cm slips 20 s or more into a session: found, the right sensor named, median
 # delay ≤ 0.5 s, worst ≤ 1.0 s. Held here for these two sensors on the event's own detected_s (session
