@@ -36,6 +36,10 @@ log = logging.getLogger(__name__)
 # hands out a refit: the slip loop's events wait for the catch-up, a refit (progress, the tree) can
 # wait for the next one, and the fit thread would take CPU and the GIL from it on a starved machine.
 BEHIND_S = 0.3
+# ... but no longer than this between refits: on a machine starved for good the pipeline never caught up,
+# and no fit was handed out for minutes (a profile at load 10 found the fit thread idle; progress and the
+# dashboard's fit stood still, and a test reading fit messages timed out).
+BEHIND_FIT_S = 0.5
 # How much longer the slip loop's micro-batches get while catching up: 0.1 s (the monitor's own step)
 # when behind, 1/3 s when over FAR_BEHIND_S behind (then c, l are at most 1/3 s stale; they move slowly).
 CATCH_UP, FAR_BEHIND_S, FAR_CATCH_UP = 3, 1.0, 10
@@ -302,9 +306,10 @@ class Pipeline:
         if live is not None:
             self.persistence.tick(live, now)
             self._take_fit(live)
-            if (live.acc.frames > live.fit_frames and now - self._last_fit_time >= self.min_fit_s
+            since = now - self._last_fit_time
+            if (live.acc.frames > live.fit_frames and since >= self.min_fit_s
                     and not self.fitter.busy  # only this thread submits, so it stays free until then
-                    and not self._behind(now)):
+                    and (since >= BEHIND_FIT_S or not self._behind(now))):
                 # Hand a copy of the Gram matrix to the fit thread; frames keep flowing meanwhile.
                 self.fitter.submit(FitJob(live.id, live.acc.copy(), live.hierarchy, live.root, live.skeleton,
                                           (self.ingest.session_time(live), live.slip_epoch)))
