@@ -11,8 +11,6 @@ from dataclasses import dataclass, field
 from functools import lru_cache
 
 import numpy as np
-from scipy.sparse import csr_matrix
-from scipy.sparse.csgraph import connected_components, minimum_spanning_tree
 
 from flockcal.solver.errors import SolverError
 from flockcal.solver.fits import PairFits
@@ -102,6 +100,9 @@ def ancestors(parent: np.ndarray, order: np.ndarray) -> np.ndarray:
 def rigid_bodies(rigid: bytes, m: int) -> tuple[int, np.ndarray]:
     """(number of rigid bodies, body label per sensor) of an (m, m) bool "never turned" matrix given as
     bytes, so refits that find the same rigid pairs hit the cache."""
+    from scipy.sparse import csr_matrix  # here, not at the top: scipy.sparse costs ~0.1 s to import, and
+    from scipy.sparse.csgraph import connected_components  # `fit-markers` and the CLI's start need no tree
+
     n_groups, label = connected_components(csr_matrix(np.frombuffer(rigid, dtype=bool).reshape(m, m)), directed=False)
     label.setflags(write=False)
     return int(n_groups), label
@@ -111,6 +112,9 @@ def rigid_bodies(rigid: bytes, m: int) -> tuple[int, np.ndarray]:
 def _tree_links(n_groups: int, gi: bytes, gj: bytes, weights: bytes) -> np.ndarray:
     """Which links (gi, gj) the minimum spanning tree over these weights uses."""
     a, b, w = np.frombuffer(gi, dtype=np.intp), np.frombuffer(gj, dtype=np.intp), np.frombuffer(weights)
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import minimum_spanning_tree
+
     mst = minimum_spanning_tree(csr_matrix((w, (a, b)), shape=(n_groups, n_groups))).toarray()
     used = (mst[a, b] > 0) | (mst[b, a] > 0)
     used.setflags(write=False)
