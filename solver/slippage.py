@@ -19,6 +19,7 @@ from flockcal.errors import FlockcalError
 from flockcal.solver.slippage_attribution import Attribution, Window, attribute
 from flockcal.solver.slippage_buffer import FrameBuffer
 from flockcal.solver.slippage_local import SmoothBaseline, neighbours, smooth_baseline
+from flockcal.solver.slippage_pending import PendingSuspicions, Suspicion
 from flockcal.solver.slippage_revisit import PoseHistory, came_back
 from flockcal.solver.slippage_stats import joint_geometry, local_variance, residual, window_glr
 
@@ -98,7 +99,8 @@ class SlipMonitor:
     measured from the data: `threshold` and `min_evidence` are nats (log-likelihood ratios),
     `min_jump_m` is the smallest step worth reporting and `scale_floor_m` stops exact, noise-free data
     from dividing by zero. A pair whose residual rms exceeds `max_rms_m` is not a joint and is not
-    watched. Frames are examined `step_s` at a time, whatever the batches they arrive in.
+    watched. Frames are examined `step_s` at a time, whatever the batches they arrive in. Suspicions
+    whose onsets are more than `merge_s` apart are kept and tested apart (`slippage_pending`).
     """
 
     def __init__(self, joints, n_sensors: int, rate_hz: float, names=None, *,
@@ -106,7 +108,8 @@ class SlipMonitor:
                  lag_s: float = 1.0, refresh_s: float = 1.0, window_s: float = 0.5, noise_s: float = 0.25,
                  threshold: float = 25.0, attribute_s: float = 0.15, confirm_s: float = 0.4,
                  step_s: float = 0.1, min_frames: int = 4, min_evidence: float = 20.0,
-                 scale_floor_m: float = 2e-4, max_rms_m: float = 0.05, revisit_s: float = 40.0):
+                 scale_floor_m: float = 2e-4, max_rms_m: float = 0.05, revisit_s: float = 40.0,
+                 merge_s: float = 0.05):
         J = _checked_joints(joints, n_sensors)
         if not rate_hz > 0:
             raise SlippageError(f"rate_hz must be positive, got {rate_hz!r}")
@@ -149,8 +152,7 @@ class SlipMonitor:
         self._last_refresh = -np.inf
         self._fresh: tuple[int, int] | None = None  # global frames whose buf.dx/dy/w follow the current baseline
         self._quiet = np.full(p, -1, dtype=np.int64)  # global frame index: no step may start before it
-        self._pending: tuple[int, np.ndarray] | None = None  # (onset frame, joints that fired)
-        self._next_try = -np.inf
+        self._pending = PendingSuspicions(p, int(round(merge_s * rate_hz)))
         self.score = np.zeros(p)  # latest GLR score per joint (nats), for display
         self.confirmations = 0  # suspicions put to the confirming test (for benchmarks)
         self.events: list[SlipEvent | SwapEvent] = []
@@ -217,10 +219,7 @@ class SlipMonitor:
         self.score = np.where(kept, self.score[k], 0.0)
         self.rms = np.where(kept, self.rms[k], np.nan)
         self.ready = np.zeros(p, dtype=bool)  # the next block refreshes every baseline on the new list
-        if self._pending is not None:
-            onset, fired = self._pending
-            fired = kept & fired[k]
-            self._pending = (onset, fired) if fired.any() else None
+        self._pending.rejoint(keep, kept)
         self.joints = J
         self._nbrs = neighbours(J)
         self._buf = self._buf.rejoint(J)
@@ -304,24 +303,16 @@ class SlipMonitor:
         out: list = []
         j = 0
         while j < len(ends):
-            if self._pending is None and not ready.any():
+            if not self._pending and not ready.any():
                 break
             score, start, first_row = self._scan(first, step_last[j:], ready)
             hit = score >= self.threshold  # (steps j…, p)
             for k in range(j, len(ends)):
-                h = hit[k - j]
                 self.score = score[k - j]
-                now = float(ts[ends[k] - 1])
-                if self._pending is None:
-                    if not h.any():
-                        continue
-                    self._pending = (int(first_row + start[k - j][h].min()), h)
-                    self._next_try = -np.inf
-                elif h.any():
-                    # The slipped sensor's other joints may cross the threshold a little later.
-                    onset, fired = self._pending
-                    self._pending = (onset, fired | h)
-                changed, ev = self._suspicion(now, step_last[k], ready, c, l)
+                self._pending.add(hit[k - j], first_row + start[k - j])
+                if not self._pending:
+                    continue
+                changed, ev = self._suspicions(float(ts[ends[k] - 1]), step_last[k], ready, c, l)
                 out += ev
                 if changed:  # the quiet times or the joints' state moved: test the rest afresh
                     break
@@ -349,28 +340,32 @@ class SlipMonitor:
         start = np.where(which, start[:, p:], start[:, :p])
         return np.where(ready[None, :], score, 0.0), start, first_row
 
-    def _suspicion(self, now: float, last: int, ready, c, l) -> tuple[bool, list]:
-        """Put a pending suspicion to the confirming test if it is due, on the frames up to global
-        index `last`. Returns (whether the quiet times or joint states changed, the events)."""
-        if self._pending is None:
-            return False, []
+    def _suspicions(self, now: float, last: int, ready, c, l) -> tuple[bool, list]:
+        """Put every pending suspicion that is due to the confirming test, oldest onset first, on the
+        frames up to global index `last`. Returns (whether the quiet times or joint states changed, the events)."""
+        changed, out = False, []
+        for item in list(self._pending.items):
+            if item in self._pending.items:  # (an event before it may have taken all its joints)
+                moved, ev = self._suspicion(item, now, last, ready & self.ready, c, l)
+                changed, out = changed or moved, out + ev
+        return changed, out
+
+    def _suspicion(self, item: Suspicion, now: float, last: int, ready, c, l) -> tuple[bool, list]:
         buf = self._buf
-        onset, fired = self._pending
+        onset, fired = item.onset, item.fired
         t_onset = float(buf.times[buf.slot(onset)])
         age = now - t_onset
-        if age < self.attribute_s or now < self._next_try:
+        if age < self.attribute_s or now < item.next_try:
             return False, []  # gather a little more evidence before naming the sensor
         self.confirmations += 1
         att = self._attribute(onset, fired, ready, c, l, last)
         if att.kind is None:
             if age + self.step_s <= self.confirm_s + 1e-9 and att.evidence > 0:
                 # A step is likelier than not, but not yet by the margin: look again one step later.
-                self._next_try = now + self.step_s - 0.5 / self.rate_hz
+                item.next_try = now + self.step_s - 0.5 / self.rate_hz
                 return False, []
-            self._pending = None
-            self._quiet[fired] = last + 1  # look for a new step from here on, not the same evidence again
+            self._pending.judged(item, last, self._quiet)
             return True, []
-        self._pending = None
         affected = np.asarray(att.joints, dtype=int)
         names = tuple(self.names[int(self.joints[j, 0])] for j in affected)
         if att.kind == "slip":
@@ -381,8 +376,13 @@ class SlipMonitor:
                            att.confidence, now, (att.sensor, att.other), tuple(affected.tolist()))
         self.segment_start[affected] = t_onset
         self.ready[affected] = False
-        self._quiet[fired] = last + 1
+        # Its joints the event does not re-baseline (soft tissue that fired with it) are quieted as a
+        # refutation's are; other suspicions on the re-baselined joints are void: their baseline is gone.
+        self._pending.judged(item, last, self._quiet)
         self._quiet[affected] = onset
+        gone = np.zeros(len(self.joints), dtype=bool)
+        gone[affected] = True
+        self._pending.forget(gone)
         return True, [ev]
 
     def _deviations(self, first: int, c, l) -> None:
