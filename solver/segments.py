@@ -50,6 +50,9 @@ class SegmentedAccumulator:
         self.last_time = float("nan")
         self.segments: dict[int, Segment] = {}
         self.history: list[Segment] = []  # every segment ever opened, oldest first
+        # Fits of a segment's pairs on the frames before it: those frames never change, and the live
+        # service searches the tree 30 times a second (shared by copies: entries are never changed).
+        self._before_fits: dict[tuple, PairFits] = {}
 
     @property
     def frames(self) -> int:
@@ -223,7 +226,10 @@ class SegmentedAccumulator:
             after = pair_fits(self.segment_accumulator(seg), fits.pairs[rows], tolerance=tolerance)
             n, sq = after.n.astype(float), after.n * np.nan_to_num(after.rms, posinf=0.0) ** 2
             if seg.before is not None:
-                before = pair_fits(seg.before, fits.pairs[rows], tolerance=tolerance)
+                key = (id(seg), rows.tobytes(), float(tolerance))
+                before = self._before_fits.get(key)
+                if before is None:
+                    before = self._before_fits[key] = pair_fits(seg.before, fits.pairs[rows], tolerance=tolerance)
                 n, sq = n + before.n, sq + before.n * np.nan_to_num(before.rms, posinf=0.0) ** 2
             with np.errstate(invalid="ignore", divide="ignore"):
                 rms[rows] = np.where(n > 0, np.sqrt(sq / n), fits.rms[rows])
