@@ -144,7 +144,9 @@ def test_fits_for_a_subset_of_pairs_equal_the_same_rows_of_all_pairs():
     some = pair_fits(acc, d.joints)  # (child, parent): the reverse of all_pairs' (low, high) order
     rows = [int(np.flatnonzero((whole.pairs == sorted(p)).all(axis=1))[0]) for p in d.joints]
     assert np.allclose(some.c, whole.l[rows]) and np.allclose(some.l, whole.c[rows])
-    assert np.allclose(some.rms, whole.rms[rows], atol=1e-8)
+    # Noise-free: both rms are zero to within the rounding level each fit states (~3e-7 m here), not
+    # bitwise: a subset's Gram reduction may take another BLAS path.
+    assert (np.abs(some.rms - whole.rms[rows]) <= some.rms_floor + whole.rms_floor[rows]).all()
     flipped = whole.take(rows, swap=np.ones(len(rows), bool))
     assert np.array_equal(flipped.pairs, d.joints) and np.allclose(flipped.c, some.c) and np.allclose(flipped.c_cov, some.c_cov)
     assert np.array_equal(all_pairs(5), whole.pairs)
