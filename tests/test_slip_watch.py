@@ -76,6 +76,23 @@ def test_frames_handed_over_in_any_pieces_give_the_events_and_fits_of_one_replay
     assert live.segments.frames == whole.segments.frames
 
 
+@pytest.mark.parametrize("rate_hz", [100.0, 120.0, 130.0, 144.0])
+def test_the_accumulator_moves_on_at_least_30_times_a_second_at_any_tracker_rate(rate_hz):
+    # The service refits 30 times a second (docs/service.md) on what the slip loop has put into the
+    # accumulator; micro-batches longer than 1/30 s (5 frames at 144 Hz) left it 28.8 updates a second.
+    perf = Performer("human", routine="walk", seed=3, noise="tracker", rate_hz=rate_hz, seconds=4)
+    times = np.arange(int(2 * rate_hz)) / rate_hz
+    frames = (times, *perf.poses(times))
+    watch = SlipWatch(tree(perf.model), perf.n_sensors, rate_hz, perf.names)
+    counts = []
+    for piece in pieces(frames, [1]):  # frame by frame, as a fast reader hands them over
+        watch.feed(*piece)
+        counts.append(watch.segments.frames)
+    updates = np.count_nonzero(np.diff(counts))
+    assert watch.monitor is not None  # the micro-batch path, not the no-tree shortcut
+    assert updates / (times[-1] - times[0]) >= 30, (updates, rate_hz)
+
+
 def test_the_same_tree_in_another_order_changes_nothing_and_a_new_one_keeps_the_accumulator():
     perf, frames = walk(6.0)
     J = tree(perf.model)
