@@ -8,7 +8,7 @@ before it). Pairs touching a slipped sensor are fitted on its segment, every oth
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
@@ -28,6 +28,17 @@ class Segment:
     base: GramAccumulator  # the whole take up to the first snapshot at or after start_s
     before: GramAccumulator | None  # the whole take up to the last snapshot at or before start_s
     base_s: float  # time of `base` (frames from here on are in the segment)
+    # Fits on `before`, by pairs and tolerance: those frames never change, and the live service
+    # searches the tree 30 times a second.
+    _before_fits: dict = field(default_factory=dict, init=False, repr=False, compare=False)
+
+    def before_fits(self, pairs: np.ndarray, tolerance: float) -> PairFits:
+        """`pair_fits` of `pairs` on the frames before the segment (requires `before`), fitted once."""
+        key = (np.ascontiguousarray(pairs).tobytes(), float(tolerance))
+        fits = self._before_fits.get(key)
+        if fits is None:
+            fits = self._before_fits[key] = pair_fits(self.before, pairs, tolerance=tolerance)
+        return fits
 
 
 class SegmentedAccumulator:
@@ -50,9 +61,6 @@ class SegmentedAccumulator:
         self.last_time = float("nan")
         self.segments: dict[int, Segment] = {}
         self.history: list[Segment] = []  # every segment ever opened, oldest first
-        # Fits of a segment's pairs on the frames before it: those frames never change, and the live
-        # service searches the tree 30 times a second (shared by copies: entries are never changed).
-        self._before_fits: dict[tuple, PairFits] = {}
 
     @property
     def frames(self) -> int:
@@ -226,10 +234,7 @@ class SegmentedAccumulator:
             after = pair_fits(self.segment_accumulator(seg), fits.pairs[rows], tolerance=tolerance)
             n, sq = after.n.astype(float), after.n * np.nan_to_num(after.rms, posinf=0.0) ** 2
             if seg.before is not None:
-                key = (id(seg), rows.tobytes(), float(tolerance))
-                before = self._before_fits.get(key)
-                if before is None:
-                    before = self._before_fits[key] = pair_fits(seg.before, fits.pairs[rows], tolerance=tolerance)
+                before = seg.before_fits(fits.pairs[rows], tolerance)
                 n, sq = n + before.n, sq + before.n * np.nan_to_num(before.rms, posinf=0.0) ** 2
             with np.errstate(invalid="ignore", divide="ignore"):
                 rms[rows] = np.where(n > 0, np.sqrt(sq / n), fits.rms[rows])
