@@ -79,6 +79,12 @@ def cluster_shape(points: np.ndarray) -> np.ndarray:
     return shape
 
 
+def cluster_poses(mt, markers) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per-frame rigid poses (R, t, valid) of the named markers of a loaded capture, as one cluster."""
+    pts = mt.markers[:, [marker_index(mt.marker_names, x) for x in markers]]
+    return kabsch(pts, cluster_shape(pts))
+
+
 def cluster_take(name: str, clusters: dict | None = None) -> Take:
     """A 6-DOF take of the capture `name`: one sensor per technical cluster (default: the segment map's
     `technical_clusters`, else its segments), frames where a cluster has < 3 markers invalid."""
@@ -89,8 +95,7 @@ def cluster_take(name: str, clusters: dict | None = None) -> Take:
     clusters = clusters or info.get("technical_clusters") or info["segments"]
     Rs, ts, vs = [], [], []
     for markers in clusters.values():
-        pts = mt.markers[:, [marker_index(mt.marker_names, x) for x in markers]]
-        R, t, ok = kabsch(pts, cluster_shape(pts))
+        R, t, ok = cluster_poses(mt, markers)
         Rs.append(R), ts.append(t), vs.append(ok)
     R, t, v = np.stack(Rs, axis=1), np.stack(ts, axis=1), np.stack(vs, axis=1)
     R = np.where(v[..., None, None], R, np.eye(3))

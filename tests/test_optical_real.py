@@ -5,11 +5,13 @@ parent) and from how far the technical clusters turned relative to each other (a
 capture, made here with the tests' own Kabsch, not by the code under test).
 """
 
+from itertools import combinations
+
 import numpy as np
 import pytest
 
 from plain_lsq import plain_fit
-from real_captures import KNEE, UPPER_LIMB, capture_path, cluster_take, marker_index, segment_map
+from real_captures import KNEE, UPPER_LIMB, capture_path, cluster_poses, cluster_take, marker_index, segment_map
 
 # Segments whose technical clusters turned more than this relative to each other (90th percentile of the
 # relative rotation's angle from its median) moved: soft tissue alone cannot turn a cluster by 30°.
@@ -105,29 +107,46 @@ def test_knee_trial_tree_has_the_knee_and_no_unexercised_joint(knee, knee_cluste
     assert joint["determined"] is True
 
 
-def knee_offset(fit, out, take, thigh: str, shank: str) -> float:
-    """Median distance, across the hinge axis, between the knee `fit-markers` reports and plain least
-    squares on the take's two sensors `thigh` and `shank` (the tests' own Kabsch poses). A hinge leaves the
-    point on its axis to a rule (each method its own), so only the distance across the axis counts."""
-    i, j = take.names.index(thigh), take.names.index(shank)
-    v = take.valid[:, i] & take.valid[:, j]
-    ref = plain_fit(take.rotations[:, i], take.positions[:, i], take.rotations[:, j], take.positions[:, j], v)
-    world_ref = np.einsum("nij,j->ni", take.rotations[:, i], ref.c) + take.positions[:, i]
+def reported_knee(fit, out) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The knee `fit-markers` reports, per frame in the world, its hinge axis there, and where both are known."""
     (joint,) = out["joints"]
+    assert joint["hinge"]  # the knee trial swings the shank about one axis
     c = fit.labels.index(joint["child"])
     world = np.einsum("nij,j->ni", fit.rotations[:, c], np.array(joint["c"])) + fit.positions[:, c]
-    d = world - world_ref
-    assert joint["hinge"]  # the knee trial swings the shank about one axis
     axis = np.einsum("nij,j->ni", fit.rotations[:, c], np.array(joint["axis_child"]))
+    return world, axis, fit.valid[:, c]
+
+
+def lsq_knee(poses_i, poses_j) -> np.ndarray:
+    """Plain least squares' joint of two (R, t, valid) pose series, per frame in the world (NaN where unseen)."""
+    (Ri, ti, vi), (Rj, tj, vj) = poses_i, poses_j
+    ref = plain_fit(Ri, ti, Rj, tj, vi & vj)
+    world = np.einsum("nij,j->ni", Ri, ref.c) + ti
+    world[~(vi & vj)] = np.nan
+    return world
+
+
+def across_axis(a: np.ndarray, b: np.ndarray, axis: np.ndarray) -> float:
+    """Median over frames of |a − b| across the hinge axis: a hinge leaves the point along its axis to a rule
+    (each method its own), so only the distance across it counts."""
+    d = a - b
     d = d - np.einsum("ni,ni->n", d, axis)[:, None] * axis
-    ok = v & fit.valid[:, c]
-    return float(np.median(np.linalg.norm(d[ok], axis=1)))
+    return float(np.nanmedian(np.linalg.norm(d, axis=1)))
+
+
+def knee_offset(fit, out, take, thigh: str, shank: str) -> float:
+    """Across the hinge axis, the knee `fit-markers` reports against plain least squares on the take's two
+    sensors `thigh` and `shank` (the tests' own Kabsch poses)."""
+    world, axis, seen = reported_knee(fit, out)
+    i, j = take.names.index(thigh), take.names.index(shank)
+    ref = lsq_knee(*((take.rotations[:, k], take.positions[:, k], take.valid[:, k] & seen) for k in (i, j)))
+    return across_axis(world, ref, axis)
 
 
 def test_knee_centre_near_plain_least_squares_on_the_same_markers(knee):
     # Claim (docs/optical.md, "Real captures"): the Kirk knee within 7 mm (measured 6.2 mm) of plain least
-    # squares on the poses of the same two bodies' markers; margin 2 mm. Not the issue's 3 mm: under soft
-    # tissue the constant-distance point and the constant-offset point of two poses differ by millimetres.
+    # squares on the poses of the same two bodies' markers; margin 2 mm. Under soft tissue the
+    # constant-distance point and the constant-offset point of two poses differ by millimetres.
     mt, fit, out = knee
     thigh, shank = body_of(fit, mt, "RTHI1"), body_of(fit, mt, "RLEG1")
     bodies = {b: [fit.marker_names[i] for i in fit.groups[fit.labels.index(b)]] for b in (thigh, shank)}
@@ -135,13 +154,40 @@ def test_knee_centre_near_plain_least_squares_on_the_same_markers(knee):
     assert knee_offset(fit, out, take, thigh, shank) < 0.009
 
 
+def test_knee_centre_near_plain_least_squares_on_the_whole_thigh_and_shank(knee):
+    # Claim (docs/optical.md, "Real captures"): 4.8 mm from plain least squares on all six markers the
+    # segment map puts on the thigh and all six on the shank; margin 1.2 mm.
+    mt, fit, out = knee
+    info = segment_map(KNEE)
+    world, axis, seen = reported_knee(fit, out)
+    ref = lsq_knee(cluster_poses(mt, info["segments"]["r_thigh"]), cluster_poses(mt, info["segments"]["r_shank"]))
+    assert across_axis(world, ref, axis) < 0.006
+
+
 def test_knee_centre_near_plain_least_squares_on_the_technical_clusters(knee, knee_clusters):
     # Claim (docs/optical.md, "Real captures"): against the technical clusters alone (RTHI1-3, RLEG1-3) the
-    # knee differs by about a centimetre (measured 10.5 mm): soft tissue moves the clusters' own markers by
-    # up to 12 mm against each other, so two marker sets on one thigh put the knee 1 cm apart. Tolerance:
-    # the 15 mm the segmentation allows soft tissue (docs/optical.md), no margin.
+    # knee is 10.5 mm off; margin 1.5 mm. Why not the issue's 3 mm: the next test.
     _, fit, out = knee
-    assert knee_offset(fit, out, knee_clusters, "r_thigh", "r_shank") < 0.015
+    assert knee_offset(fit, out, knee_clusters, "r_thigh", "r_shank") < 0.012
+
+
+def test_the_technical_clusters_put_the_knee_apart_from_where_the_legs_markers_put_it(knee):
+    # Claim (docs/optical.md, "Real captures"): plain least squares on every choice of three thigh and three
+    # shank markers (20 × 20) puts the knee, at their median, 11.0 mm from where the technical clusters alone
+    # put it, and 4.9 mm from the reported knee: the 3 mm the issue asks for is below what the capture's own
+    # markers agree on. Margins: the clusters' knee at least 3 mm off (the target itself), the reported one
+    # within 6 mm and nearer than the clusters'.
+    mt, fit, out = knee
+    info = segment_map(KNEE)
+    world, axis, seen = reported_knee(fit, out)
+    thighs = {tri: cluster_poses(mt, tri) for tri in combinations(info["segments"]["r_thigh"], 3)}
+    shanks = {tri: cluster_poses(mt, tri) for tri in combinations(info["segments"]["r_shank"], 3)}
+    knees = {(a, b): lsq_knee(pa, pb) for a, pa in thighs.items() for b, pb in shanks.items()}
+    consensus = np.nanmedian(np.stack(list(knees.values())), axis=0)
+    technical = knees[tuple(info["technical_clusters"]["r_thigh"]), tuple(info["technical_clusters"]["r_shank"])]
+    clusters_off, reported_off = across_axis(technical, consensus, axis), across_axis(world, consensus, axis)
+    assert clusters_off > 0.003
+    assert reported_off < min(0.006, clusters_off)
 
 
 def test_upper_limb_box_pelvis_humerus_and_hand_each_one_body_of_their_own(upper_limb):
