@@ -1,8 +1,8 @@
 """A day at the kiosk in an hour: a real `flockcal serve` (built-in simulator doing the kiosk routine,
 tokens, a retention budget small enough to prune during the run) takes guest after guest — start, 20–30 s
 of routine, stop, fetch result and skeleton — while a websocket dashboard client and the kiosk page (headless
-chromium, read-only token) stay open. Every `--sample-s` it records the service's RSS, open files and
-threads and the database and data-directory sizes.
+chromium, read-only token) stay open. Every `--sample-s` it records the service's RSS, Python's live blocks (from
+/api/status), open files and threads and the database and data-directory sizes.
 
 Prints sessions per hour, failed requests, the growth of RSS and fds after warm-up and the disk against the
 budget as ratios to the targets (issue #19: RSS growth < 10 MB, 0 fds, disk within the budget, 0 failed
@@ -185,6 +185,8 @@ def main() -> None:
         def sample() -> None:
             fig = proc_figures(pid)
             db = sum(p.stat().st_size for p in data.glob("flockcal.sqlite3*") if p.is_file())
+            st = request("GET", "/api/status")  # the service's own view: Python's live blocks beside RSS
+            fig["python_kblocks"] = ((st.json().get("process") or {}).get("python_blocks", 0) / 1e3) if st is not None else None
             samples.append({"t_min": round((time.monotonic() - t0) / 60.0, 3), **fig,
                             "db_mb": db / 1e6, "data_mb": tree_bytes(data) / 1e6, "sessions": len(sessions)})
 
@@ -230,6 +232,7 @@ def main() -> None:
     after = [s for s in samples if s["t_min"] * 60.0 >= warmup_s] or samples
     first, last = after[: max(1, len(after) // 10)], after[-max(1, len(after) // 10):]
     rss_growth = statistics.median(s["rss_mb"] for s in last) - statistics.median(s["rss_mb"] for s in first)
+    blocks = [s["python_kblocks"] for s in after if s["python_kblocks"] is not None]
     fd_growth = max(s["fds"] for s in last) - max(s["fds"] for s in first)
     thread_growth = max(s["threads"] for s in last) - max(s["threads"] for s in first)
     disk_max = max(s["data_mb"] for s in samples)
@@ -241,6 +244,10 @@ def main() -> None:
           f"MALLOC_ARENA_MAX={args.arena_max or 'glibc default'}")
     print(f"RSS {samples[0]['rss_mb']:.1f} → {samples[-1]['rss_mb']:.1f} MB, growth after warm-up {rss_growth:+.1f} MB "
           f"({rss_growth / TARGET_RSS_GROWTH_MB:.2f}× the {TARGET_RSS_GROWTH_MB:g} MB limit)")
+    if blocks:
+        k = max(1, len(blocks) // 10)
+        print(f"Python's live blocks after warm-up {statistics.median(blocks[:k]):.0f}k → {statistics.median(blocks[-k:]):.0f}k "
+              f"(objects kept grow these; RSS that rises while they stay flat is the allocator)")
     half = [s for s in samples if s["t_min"] >= samples[-1]["t_min"] / 2] or samples
     print(f"RSS over the second half of the run {half[0]['rss_mb']:.1f} → {half[-1]['rss_mb']:.1f} MB "
           f"({half[-1]['rss_mb'] - half[0]['rss_mb']:+.1f} MB over {half[-1]['sessions'] - half[0]['sessions']} sessions): "
@@ -273,17 +280,17 @@ def plot(samples: list[dict], path: Path, budget_mb: float, warmup_min: float) -
     import matplotlib.pyplot as plt
 
     t = [s["t_min"] for s in samples]
-    fig, axes = plt.subplots(4, 1, figsize=(9, 10), sharex=True)
-    panels = [("rss_mb", "RSS (MB)"), ("fds", "open files"), ("threads", "threads")]
+    fig, axes = plt.subplots(5, 1, figsize=(9, 12), sharex=True)
+    panels = [("rss_mb", "RSS (MB)"), ("python_kblocks", "Python blocks (k)"), ("fds", "open files"), ("threads", "threads")]
     for ax, (key, label) in zip(axes, panels):
-        ax.plot(t, [s[key] for s in samples], lw=1.2)
+        ax.plot(t, [s[key] if s[key] is not None else float("nan") for s in samples], lw=1.2)
         ax.set_ylabel(label)
-    axes[3].plot(t, [s["data_mb"] for s in samples], lw=1.2, label="data directory")
-    axes[3].plot(t, [s["db_mb"] for s in samples], lw=1.2, label="database")
-    axes[3].axhline(budget_mb, color="r", ls="--", lw=1, label="--keep-disk budget")
-    axes[3].set_ylabel("MB")
-    axes[3].legend(loc="upper left")
-    axes[3].set_xlabel("minutes")
+    axes[4].plot(t, [s["data_mb"] for s in samples], lw=1.2, label="data directory")
+    axes[4].plot(t, [s["db_mb"] for s in samples], lw=1.2, label="database")
+    axes[4].axhline(budget_mb, color="r", ls="--", lw=1, label="--keep-disk budget")
+    axes[4].set_ylabel("MB")
+    axes[4].legend(loc="upper left")
+    axes[4].set_xlabel("minutes")
     for ax in axes:
         ax.axvline(warmup_min, color="grey", ls=":", lw=1)
         ax.grid(alpha=0.3)

@@ -193,6 +193,8 @@ class Status(Open):
     simulator: bool = False
     retention: dict | None = Field(None, description="serve --keep-days/--keep-disk, the data directory's size, "
                                                      "sessions pruned and pinned (server/retention.py)")
+    process: dict | None = Field(None, description="the service's memory: rss_mb, python_blocks (Python's live "
+                                                   "allocations), threads (server/memory.py)")
 
 
 class ResidualSeries(BaseModel):

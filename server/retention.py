@@ -14,6 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from flockcal.server.errors import Conflict, Gone
+from flockcal.server.memory import release_free_heap
 
 log = logging.getLogger(__name__)
 
@@ -106,9 +107,10 @@ class Retention:
 
     # --- the background thread ----------------------------------------------------------------
     def start(self) -> None:
-        if not self.policy.active or self._thread is not None:
+        # Runs with no policy too: the same gap between guests hands freed heap back (server/memory.py).
+        if self._thread is not None:
             return
-        self._thread = threading.Thread(target=self._loop, name="fc-retention", daemon=True)
+        self._thread = threading.Thread(target=self._loop, name="fc-housekeeping", daemon=True)
         self._thread.start()
 
     def stop(self) -> None:
@@ -126,6 +128,8 @@ class Retention:
             try:
                 self.prune_once()
                 self.last_error = None
+                if self.sessions.live_id() is None:  # the gap between guests: no session's I/O to delay
+                    release_free_heap()
             except Exception as exc:  # a failing pass must not end the service; the next one retries
                 self.last_error = f"{type(exc).__name__}: {exc}"
                 log.exception("retention pass failed")

@@ -5,6 +5,7 @@ from __future__ import annotations
 from fastapi import APIRouter, Depends, Query, Response
 
 from flockcal.server.auth import require_read
+from flockcal.server.memory import process_memory
 from flockcal.server.models import Event, Status
 from flockcal.server.routes.deps import MAX_ID, get_service
 
@@ -13,8 +14,9 @@ router = APIRouter(prefix="/api", tags=["status"])
 
 @router.get("/status", response_model=Status, summary="tracker and pipeline status")
 def get_status(service=Depends(get_service), _role=Depends(require_read)):
-    """Connected, birds, rate, frames, dropped/resynced records, reconnects, last error, live session."""
-    return {**service.pipeline.snapshot.status, "retention": service.retention.status()}
+    """Connected, birds, rate, frames, dropped/resynced records, reconnects, last error, live session,
+    retention, and the process's memory."""
+    return {**service.pipeline.snapshot.status, "retention": service.retention.status(), "process": process_memory()}
 
 
 @router.get("/events", response_model=list[Event], summary="events of the whole service (tracker, sessions, slips)")
