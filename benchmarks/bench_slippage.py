@@ -7,6 +7,7 @@ without soft-tissue artefact (STA: the simulator's skin moving with the joint an
     python benchmarks/bench_slippage.py --sta-mm 12 --seeds 10 --hours 1 --routine exercise
     python benchmarks/bench_slippage.py --sta-suite              # the STA runs: detection, soaks, 120 kiosk guests
     python benchmarks/bench_slippage.py --fresh 120 --routine kiosk --sta-mm 12   # 120 guests x 30 s
+    python benchmarks/bench_slippage.py --phases head --routine exercise --rate 144 --seed 2   # one sensor, 40 moments
 
 Everything runs through the live loop (segmented accumulator → joint fits → SlipMonitor) in 1/30 s
 micro-batches, as the server feeds it. `--sta-mm 0` (the default outside the suite) is the plain simulator.
@@ -87,6 +88,32 @@ def detection(seeds: int, rate: float, distance: float, follow_s: float, routine
     print(f"  ({took:.1f} s)", flush=True)
 
 
+def phases(sensor: str, seed: int, rate: float, routine: str, sta_mm: float, start_s: float, stop_s: float,
+           count: int, distance: float, follow_s: float = 1.0) -> None:
+    """One sensor slipped at `count` moments from start_s to stop_s of one performance (the service's
+    exercise routine by default): which moments of the routine the monitor finds it late or not at all."""
+    perf = Performer("human", routine=routine, seed=seed, noise="tracker", rate_hz=rate, sta_mm=sta_mm)
+    base = SlipWatch(tree(perf.model), perf.n_sensors, rate, perf.names)
+    fed, late, delays = 0.0, [], []
+    for at in np.round(np.linspace(start_s, stop_s, count), 3):
+        perf.clear_faults()
+        base.feed(*frames(perf, rate, fed, at))
+        fed = at
+        replay = copy.deepcopy(base)
+        perf.inject_slip(sensor, distance, at_time=float(at))
+        found = [e for e in replay.feed(*frames(perf, rate, at, at + follow_s))
+                 if attributes_slip_to(e, sensor, perf.model.names, perf.model.parent)]
+        delay = found[0].detected_s - at if found else float("inf")
+        delays.append(delay)
+        if delay > 0.5:
+            late.append((float(at), round(float(delay), 2) if found else "missed"))
+    d = np.array(delays)
+    print(f"phases: {sensor} slipped {distance * 100:.0f} cm at {count} moments of {start_s:g}-{stop_s:g} s, {routine}, "
+          f"seed {seed}, STA {sta_mm:g} mm, {rate:.0f} Hz; watched {follow_s:g} s after each")
+    print(f"  found within {follow_s:g} s: {int(np.isfinite(d).sum())}/{count}; median delay "
+          f"{np.median(d[np.isfinite(d)]) if np.isfinite(d).any() else float('nan'):.2f} s; late (> 0.5 s) or missed: {late}")
+
+
 def soak(hours: float, rate: float, routine: str = "walk", seed: int = 11, chunk_s: float = 60.0,
          sta_mm: float = 0.0) -> None:
     seconds = hours * 3600.0
@@ -142,6 +169,9 @@ def fresh_takes(count: int, seconds: float, rate: float, routine: str, sta_mm: f
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=20)
+    ap.add_argument("--phases", metavar="SENSOR", help="slip only SENSOR, at many moments of one performance (--seed)")
+    ap.add_argument("--between", default="20:60", metavar="START:STOP", help="--phases: the span of moments, s")
+    ap.add_argument("--moments", type=int, default=40, help="--phases: how many")
     ap.add_argument("--hours", type=float, default=1.0)
     ap.add_argument("--rate", type=float, default=100.0)
     ap.add_argument("--distance", type=float, default=0.02)
@@ -156,6 +186,11 @@ def main() -> None:
                     help="the STA runs: detection during walk and exercise with 12 mm STA, an --hours soak of "
                     "each of exercise, walk and kiosk with it, and --hours x 120 kiosk guests of 30 s")
     args = ap.parse_args()
+    if args.phases:
+        lo, hi = (float(x) for x in args.between.split(":"))
+        phases(args.phases, args.seed, args.rate, args.routine, args.sta_mm, lo, hi, args.moments, args.distance,
+               args.follow)
+        return
     if args.fresh:
         fresh_takes(args.fresh, args.take_s, args.rate, args.routine, args.sta_mm)
         return

@@ -81,6 +81,8 @@ class SlipWatch:
                          ", ".join(f"{self.names[a]}-{self.names[b]}" for a, b in new) or "none")
         else:
             self.monitor = SlipMonitor(J, self.n_sensors, self.rate_hz, self.names, **self.monitor_options)
+            if self.names is not None:
+                log.info("slip watch on %d joints: %s", len(J), ", ".join(f"{self.names[a]}-{self.names[b]}" for a, b in J))
             if self._before:
                 self.monitor.prime(*(np.concatenate(x) for x in zip(*self._before)))
         self._before = []
