@@ -1,6 +1,6 @@
 """Retention: how long sessions keep their bulky files (frames, raw tracker bytes) and the background
-pruner that enforces `serve --keep-days` / `--keep-disk`. Results, events, residuals and the session's
-skeleton file stay; a pinned session is never pruned; nothing is pruned while a session is live.
+pruner that enforces `serve --keep-days` / `--keep-disk`. Results, events, the session's skeleton file and
+its residual series (thinned to 1 Hz) stay; a pinned session is never pruned, nor any while one is live.
 """
 
 from __future__ import annotations
@@ -31,6 +31,11 @@ SCHEMA = """CREATE TABLE IF NOT EXISTS retention (
 # The calibrated skeleton is written next to the recordings before the frames go, so /skeleton still
 # answers after pruning (it is built from the result and the take's frame count and rate).
 KEPT_SKELETON_SUFFIX = ".result-skeleton.json"
+
+# Room kept under --keep-disk for the session that records next (see Retention.next_session_bytes).
+ROOM_SESSIONS = 5
+PRUNED_RESIDUAL_S = 1.0  # a pruned session keeps one residual sample per second
+ROOM_SHARE = 0.25
 
 GB = 1e9  # --keep-disk is in decimal gigabytes, as disks are sold and `df -H` shows them
 DAY_S = 86400.0
@@ -157,11 +162,16 @@ class Retention:
             pruned = []
             cutoff = None if self.policy.keep_days is None else now - self.policy.keep_days * DAY_S
             used = self.data_bytes(max_age_s=0.0) if self.policy.keep_bytes is not None else 0
-            for row in self.candidates():
+            rows = self.candidates()
+            # Pruned between sessions, the directory must also hold the next guest's files while they
+            # record: keep room for one session as large as the largest of the last few.
+            room = self.next_session_bytes(rows) if self.policy.keep_bytes is not None else 0
+            for row in rows:
                 if cutoff is not None and row["created_at"] < cutoff:
                     reason = f"older than {self.policy.keep_days:g} days"
-                elif self.policy.keep_bytes is not None and used > self.policy.keep_bytes:
-                    reason = f"data directory over the {self.policy.keep_bytes / GB:g} GB budget"
+                elif self.policy.keep_bytes is not None and used + room > self.policy.keep_bytes:
+                    reason = (f"data directory over the {self.policy.keep_bytes / GB:g} GB budget with room "
+                              f"for the next session ({room / 1e6:.1f} MB)")
                 else:
                     # Oldest first: every later session is younger, and the budget is met.
                     break
@@ -174,6 +184,15 @@ class Retention:
             if pruned:
                 self._usage = None
             return pruned
+
+    def next_session_bytes(self, rows: list[dict]) -> int:
+        """Room to keep for the next session's frames and raw bytes: the largest recording among the
+        last ROOM_SESSIONS sessions still on disk, at most ROOM_SHARE of the budget (one long session
+        must not clear the whole directory)."""
+        mgr = self.sessions
+        sizes = [sum(p.stat().st_size for p in (mgr.frames_path(r["id"]), mgr.raw_path(r["id"])) if p.exists())
+                 for r in rows[-ROOM_SESSIONS:]]
+        return min(max(sizes, default=0), int(ROOM_SHARE * (self.policy.keep_bytes or 0)))
 
     def _prune(self, sid: str, reason: str) -> dict | None:
         mgr = self.sessions
@@ -189,6 +208,9 @@ class Retention:
                     freed += size
                 except FileNotFoundError:
                     pass
+            # The 20 Hz residual series is the one bulky row set a pruned session keeps: thinned to 1 Hz
+            # (a season of guests would otherwise grow the database by ~0.2 MB each, for good).
+            self.store.thin_residuals(sid, PRUNED_RESIDUAL_S)
             now = self.clock()
             self.store.query(
                 "INSERT INTO retention (session_id, pruned_at, freed_bytes, reason) VALUES (?, ?, ?, ?) "

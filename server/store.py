@@ -181,6 +181,16 @@ class Store:
         )
         return [(r["time_s"], json.loads(r["rms_mm"])) for r in rows]
 
+    def thin_residuals(self, session_id: str, every_s: float = 1.0) -> int:
+        """Keep one residual sample per `every_s` of a session's time (the first of each), for a session
+        whose recordings are pruned: the series still shows how each joint fitted, at a twentieth of the
+        rows. Returns the rows removed."""
+        with self._lock:
+            cur = self._db.execute(
+                "DELETE FROM residuals WHERE session_id = ? AND rowid NOT IN (SELECT MIN(rowid) FROM residuals "
+                "WHERE session_id = ? GROUP BY CAST(time_s / ? AS INTEGER))", (session_id, session_id, float(every_s)))
+            return cur.rowcount
+
     def counts(self) -> dict:
         """Row counts per table (tests use this to see that a bad request changed nothing)."""
         return {t: self._run(f"SELECT COUNT(*) AS n FROM {t}")[0]["n"] for t in ("sessions", "events", "residuals")}

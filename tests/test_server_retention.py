@@ -86,7 +86,12 @@ def test_budget_prunes_between_sessions_keeps_results_and_pins_and_answers_410(t
             assert "pruned" in r.json()["detail"] and r.json()["error"] == "gone"
         r = httpx.post(url + f"/api/sessions/{pruned}/resolve")
         assert r.status_code == 410 and "pruned" in r.json()["detail"]
-        # Result, skeleton and events stay.
+        # Result, skeleton and events stay, and the residual series thinned to one sample a second
+        # (docs/kiosk.md: a season's database must not grow by the 20 Hz series of every guest).
+        times = httpx.get(url + f"/api/sessions/{pruned}/residuals").json()["times"]
+        assert 1 <= len(times) <= 3 and len({int(t) for t in times}) == len(times), times
+        kept = httpx.get(url + f"/api/sessions/{pinned}/residuals").json()["times"]
+        assert len(kept) > 10 * (kept[-1] - kept[0]), "the pinned session keeps its whole series"
         result = httpx.get(url + f"/api/sessions/{pruned}/result")
         assert result.status_code == 200
         skel = httpx.get(url + f"/api/sessions/{pruned}/skeleton")
@@ -157,6 +162,28 @@ def test_keep_days_prunes_only_sessions_older_than_the_window(tracker, tmp_path)
         assert httpx.delete(url + f"/api/sessions/{old}").status_code == 204
         assert not srv.service.retention.kept_skeleton_path(old).exists()
         assert srv.service.store.query("SELECT COUNT(*) AS n FROM retention WHERE session_id = ?", (old,))[0]["n"] == 0
+
+
+def test_budget_keeps_room_for_the_next_session_to_record(tracker, tmp_path):
+    # docs/kiosk.md, "Budget": the directory stays under --keep-disk while the next guest records too, so
+    # between sessions it keeps room for one session as large as the last few. Tried: three equal sessions,
+    # then a budget the directory meets now but not with one more such session on top.
+    from flockcal.server.retention import GB, Policy
+
+    with ServerThread(settings_for(tracker, tmp_path / "data", keep_disk_gb=1000.0)) as srv:
+        url = srv.url
+        wait_connected(url)
+        sids = [session(url, 1.5) for _ in range(3)]
+        ret, mgr = srv.service.retention, srv.service.sessions
+        assert ret.prune_once() == []  # 1000 GB: nothing to do
+        sizes = [mgr.frames_path(s).stat().st_size + mgr.raw_path(s).stat().st_size for s in sids]
+        used = ret.data_bytes(max_age_s=0.0)
+        ret.policy = Policy(keep_bytes=used + min(sizes) // 2)
+        assert ret.policy.keep_bytes / GB < 1  # (a budget in bytes, as --keep-disk gives it)
+        pruned = ret.prune_once()
+        assert [p["id"] for p in pruned] == [sids[0]], pruned  # the oldest, and only it
+        assert "room for the next session" in pruned[0]["reason"]
+        assert ret.data_bytes(max_age_s=0.0) + max(sizes[1:]) <= ret.policy.keep_bytes + 0.01 * used
 
 
 @pytest.mark.parametrize("option, value, words", [("--keep-days", "0", "--keep-days must be more than 0"),
