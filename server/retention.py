@@ -34,8 +34,9 @@ KEPT_SKELETON_SUFFIX = ".result-skeleton.json"
 
 # Room kept under --keep-disk for the session that records next (see Retention.next_session_bytes).
 ROOM_SESSIONS = 5
-PRUNED_RESIDUAL_S = 1.0  # a pruned session keeps one residual sample per second
 ROOM_SHARE = 0.25
+# A pruned session keeps one residual sample per this many seconds of its time.
+PRUNED_RESIDUAL_S = 1.0
 
 GB = 1e9  # --keep-disk is in decimal gigabytes, as disks are sold and `df -H` shows them
 DAY_S = 86400.0
