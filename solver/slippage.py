@@ -106,7 +106,7 @@ class SlipMonitor:
     def __init__(self, joints, n_sensors: int, rate_hz: float, names=None, *,
                  min_jump_m: float = 0.01, warmup_s: float = 5.0, baseline_s: float = 8.0,
                  lag_s: float = 1.0, refresh_s: float = 1.0, window_s: float = 0.5, noise_s: float = 0.25,
-                 threshold: float = 25.0, attribute_s: float = 0.15, confirm_s: float = 0.4,
+                 threshold: float = 25.0, attribute_s: float = 0.15, confirm_s: float = 0.8,
                  step_s: float = 0.1, min_frames: int = 4, min_evidence: float = 20.0,
                  scale_floor_m: float = 2e-4, max_rms_m: float = 0.05, revisit_s: float = 40.0,
                  merge_s: float = 0.05):
