@@ -12,17 +12,17 @@ import numpy as np
 from server_helpers import ServerProcess, free_port, wait_connected
 from slip_service import run
 
-# Four sensors of different kinds (a leg, the trunk's root, an upper and a lower arm), no two in a row
-# sharing a joint, slipped 10 s apart from 20 s in: issue #20's "from 20 s on". Each was found and named
-# in every run of benchmarks/bench_slippage_service.py since the monitor keeps watching across tree
-# changes (docs/slippage.md); that benchmark slips all 16, and a hub (chest) or leaf (head) was still
-# missed or late once in two rigid runs, so "any sensor" is the benchmark's figure, not held here.
-SENSORS = ["r_shin", "l_upper_arm", "pelvis", "l_forearm"]
+# Five sensors of different kinds (a leg, the trunk's root, an upper and a lower arm, the chest: the hub of
+# four joints), no two in a row sharing a joint, slipped 10 s apart from 20 s in: issue #20's "from 20 s
+# on". Each was found and named in every run of benchmarks/bench_slippage_service.py on 2026-12-02 (7
+# services), and the chest at all 25 moments of 20-70 s of this seed's routine (bench_slippage.py
+# --phases). The head is not held here: it is still missed at one moment of the routine (docs/slippage.md).
+SENSORS = ["r_shin", "l_upper_arm", "pelvis", "l_forearm", "chest"]
 SPACING_S = 10.0
 WARMUP_S = 20.0
 
 # Issue #20's promise for 2 cm slips 20 s or more into a session: found, the right sensor named, median
-# delay ≤ 0.5 s, worst ≤ 1.0 s. Held here for these two sensors on the event's own detected_s (session
+# delay ≤ 0.5 s, worst ≤ 1.0 s. Held here for these sensors on the event's own detected_s (session
 # time, so machine load does not enter), with a margin of 0.05 s: the sample time is known to a record's
 # transfer time and the detector steps in 0.1 s.
 PROMISE_MEDIAN_S, PROMISE_WORST_S, DETECTED_MARGIN_S = 0.5, 1.0, 0.05
