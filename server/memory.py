@@ -1,41 +1,12 @@
-"""The service process's memory: the figures /api/status reports (RSS, Python's live blocks, threads),
-and handing the heap freed by a finished guest back to the system between guests.
+"""The service process's memory as /api/status reports it: RSS, Python's live blocks and threads (the
+hand-back of freed heap between guests is flockcal/malloc.py's `release_free_heap`).
 """
 
 from __future__ import annotations
 
-import ctypes
 import os
 import sys
 import threading
-
-_libc = None
-
-
-def _glibc():
-    global _libc
-    if _libc is None:
-        _libc = False
-        if sys.platform.startswith("linux"):
-            try:
-                libc = ctypes.CDLL("libc.so.6")
-                _libc = libc if hasattr(libc, "malloc_trim") else False  # musl and others have none
-            except OSError:
-                pass
-    return _libc
-
-
-def release_free_heap() -> bool:
-    """Return free heap pages to the system (glibc's `malloc_trim(0)`); False where there is no such call.
-
-    glibc keeps every arena's high-water mark: a take read for a download, a prune or a re-solve leaves
-    pages that are free but still resident, and over a season they add up in steps. Called in the gap
-    between guests (a few milliseconds), never while a session records."""
-    libc = _glibc()
-    if not libc:
-        return False
-    libc.malloc_trim(0)
-    return True
 
 
 def process_memory() -> dict:

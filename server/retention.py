@@ -14,7 +14,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from flockcal.server.errors import Conflict, Gone
-from flockcal.server.memory import release_free_heap
+from flockcal.malloc import release_free_heap
 
 log = logging.getLogger(__name__)
 
@@ -113,7 +113,7 @@ class Retention:
 
     # --- the background thread ----------------------------------------------------------------
     def start(self) -> None:
-        # Runs with no policy too: the same gap between guests hands freed heap back (server/memory.py).
+        # Runs with no policy too: the same gap between guests hands freed heap back (flockcal/malloc.py).
         if self._thread is not None:
             return
         self._thread = threading.Thread(target=self._loop, name="fc-housekeeping", daemon=True)

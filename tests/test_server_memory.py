@@ -1,4 +1,4 @@
-"""The service's memory figures and its hand-back of freed heap between guests (server/memory.py), tried
+"""The service's memory figures (server/memory.py) and its hand-back of freed heap between guests (flockcal/malloc.py), tried
 in a fresh Python process so nothing else this suite allocated is in the way; and /api/status reporting
 them from a real service.
 """
@@ -16,7 +16,8 @@ from server_helpers import ServerProcess, free_port, wait_connected
 
 FRAGMENT = r"""
 import json
-from flockcal.server.memory import process_memory, release_free_heap
+from flockcal.malloc import release_free_heap
+from flockcal.server.memory import process_memory
 blobs = [bytes(2000) for _ in range(40000)]  # ~80 MB through malloc itself (over pymalloc's 512 bytes)
 keep = bytes(2000)  # allocated after them: the heap's top stays in use, so free() cannot shrink it alone
 full = process_memory()["rss_mb"]

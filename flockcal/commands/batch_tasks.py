@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 
 from flockcal.errors import FlockcalError
+from flockcal.malloc import roomy_malloc
 
 SUFFIXES = (".npz", ".fobraw", ".c3d")
 # A slip's onset is an estimate (design.md §4): the combined sums drop the slipped sensor's frames from this
@@ -53,32 +54,6 @@ class TakeOutcome:
     error: str = ""
     warning: str = ""  # a take fitted with --allow-partial although too short or too still
     extra: dict = field(default_factory=dict)
-
-
-# glibc mallopt parameters (malloc.h).
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
-_MMAP_THRESHOLD = 32 << 20  # glibc's largest dynamic threshold on 64-bit
-_TRIM_THRESHOLD = 64 << 20
-
-
-def roomy_malloc() -> None:
-    """Let numpy's temporaries reuse the heap again in a Dask worker.
-
-    Dask's nanny starts workers with MALLOC_TRIM_THRESHOLD_ set (to hand memory back to the OS), and any
-    such variable turns off glibc's sliding mmap threshold: every array over 128 KB is then mmapped and
-    unmapped, and a fit spends as long in page faults as in arithmetic (measured: 0.5 s of system time and
-    290,000 faults per 30 s take, against 0.04 s and 6,000 in one process). Idempotent; glibc only."""
-    import ctypes
-    import sys
-
-    if not sys.platform.startswith("linux"):
-        return
-    try:
-        libc = ctypes.CDLL("libc.so.6")
-        libc.mallopt(_M_MMAP_THRESHOLD, _MMAP_THRESHOLD)
-        libc.mallopt(_M_TRIM_THRESHOLD, _TRIM_THRESHOLD)
-    except (OSError, AttributeError):  # another C library: nothing to tune
-        pass
 
 
 def warm_up() -> None:
