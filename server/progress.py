@@ -230,6 +230,11 @@ class ProgressTracker:
             latch = self.latched.pop(pair)
             self.undone[pair] = {"reason": "slip", "time_s": when, "sensor": sorted(pair & sensors)[0]}
             hit.append(latch["joint"])
+        # The monitor confirms a slip some 0.2-1 s after its onset; a joint of that sensor whose fit was
+        # lost in between lost it to the slip, and its entry should say so rather than "loss".
+        for pair, u in self.undone.items():
+            if pair & sensors and u["reason"] == "loss" and u["time_s"] >= when:
+                self.undone[pair] = {"reason": "slip", "time_s": when, "sensor": sorted(pair & sensors)[0]}
         return sorted(hit)
 
     def update(self, fit: dict, time_s: float, epoch: int = 0) -> dict:

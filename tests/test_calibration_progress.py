@@ -146,6 +146,26 @@ def test_a_slip_undoes_its_sensors_joints_and_a_fit_begun_before_it_cannot_redo_
     assert doc["done"] and doc["missing"] == []
 
 
+def test_a_fit_lost_to_a_slip_before_the_monitor_confirmed_it_gives_the_slip_as_its_reason():
+    # Seen in CI: the wrist's fit was lost 0.2 s after a forearm slip, the monitor confirmed the slip 0.3 s
+    # later, and the wrist's entry went on saying "no longer fits" while the elbow's named the slip.
+    tr = ProgressTracker(TARGET)
+    arm = fit([joint("l_upper_arm", "pelvis"), joint("l_forearm", "l_upper_arm"), joint("l_hand", "l_forearm")])
+    track(tr, [arm] * 12)
+    lost = fit([joint("l_upper_arm", "pelvis"), joint("l_forearm", "l_upper_arm"),
+                joint("l_hand", "l_forearm", err_mm=(14.0, 2.0, 1.0), determined=False)])
+    doc = tr.update(lost, 2.0)
+    assert doc["missing"][0]["undone"]["reason"] == "loss"
+    # An earlier loss (before the slip's onset) is not the slip's: an unrelated shoulder lost at 1.5 s.
+    tr.undone[frozenset(("l_upper_arm", "pelvis"))] = {"reason": "loss", "time_s": 1.5, "sensor": "l_upper_arm"}
+    assert tr.slip({"type": "slip", "sensor": "l_forearm", "time_s": 1.8}, 1) == ["l_forearm"]
+    doc = tr.update(lost, 2.1, epoch=0)
+    missing = {m["joint"]: m["undone"] for m in doc["missing"]}
+    assert missing["l_hand"] == {"reason": "slip", "time_s": 1.8, "sensor": "l_forearm"}
+    assert missing["l_forearm"]["reason"] == "slip"
+    assert tr.undone[frozenset(("l_upper_arm", "pelvis"))]["reason"] == "loss"
+
+
 def test_a_joint_pinning_towards_a_stricter_target_never_shows_less_than_it_reached():
     tr = ProgressTracker(2 * MM, tolerance_m=TARGET)
 

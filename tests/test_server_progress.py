@@ -112,8 +112,11 @@ def check_session(server, performer, sid: str) -> None:
         assert m["joints_needed"] == 15 and m["joints_done"] == 15 - len(set(missing) - short)
         assert not short or (m["joints_done"] == 15 and all("waiting" in missing[s]["why"] for s in short))
         assert {h["joint"] for h in m["hints"]} == set(missing) and all(h["hint"].endswith(".") for h in m["hints"])
-    # The issue's first second: most of the body has not moved, so progress is nowhere near 1.
-    assert msgs[0]["progress"] <= 0.2 and sum(x["state"] == "rigid" for x in msgs[0]["missing"]) >= 5
+    # The issue's first second: most of the body has not moved, so progress is nowhere near 1. Which of
+    # them still ride on a neighbour and which have moved but not turned depends on the frame the first fit
+    # ends on (at 1.1 s 6 rigid and 6 not turned, at 1.4 s 2 and 10), so the two are counted together.
+    unmoved = sum(x["state"] in ("rigid", "not_turned") for x in msgs[0]["missing"])
+    assert msgs[0]["progress"] <= 0.2 and unmoved >= 8, msgs[0]["missing"]
     values = [m["progress"] for m in msgs]
     assert values == sorted(values), values  # a clean take: it only goes up
 
@@ -127,16 +130,27 @@ def check_session(server, performer, sid: str) -> None:
     assert [e for e in events if e.get("action") == "calibrated"]
 
     # A 3 cm slip of the forearm sensor: its joints (elbow, wrist) are undone and everyone is told why.
+    # The wrist's fit may be lost (reason "loss") a few tenths before the monitor confirms the slip; once it
+    # has, the slip is the reason every entry of that sensor gives, the loss included.
     performer.inject_slip(SLIPPED, 0.03)
-    after = asyncio.run(read_fits(server.url, sid, lambda m: not m["done"], rate_hz=30, timeout=10))[-1]
-    undone = {x["joint"]: x for x in after["missing"] if (x.get("undone") or {}).get("reason") == "slip"}
-    assert SLIPPED in undone and "slipped" in undone[SLIPPED]["why"] and after["percent"] < 100
+    msgs = asyncio.run(read_fits(server.url, sid, lambda m: not m["done"] and slip_undone(m), rate_hz=30,
+                                 timeout=10))
+    assert not any(m["done"] for m in msgs[msgs.index(next(m for m in msgs if not m["done"])):])
+    after = msgs[-1]
+    undone = slip_undone(after)
+    assert set(undone) == {SLIPPED, "l_hand"} and "slipped" in undone[SLIPPED]["why"] and after["percent"] < 100
     assert all(x["undone"]["sensor"] == SLIPPED for x in undone.values())
     hint = next(h["hint"] for h in after["hints"] if h["joint"] == SLIPPED)
     assert "left forearm sensor slipped" in hint
     events = httpx.get(f"{server.url}/api/sessions/{sid}/events").json()["events"]
     lost = [e for e in events if e.get("action") == "calibration_undone"]
-    assert lost and "slipped" in lost[-1]["message"]
+    slips = [e for e in events if e.get("type") == "slip" and e.get("sensor") == SLIPPED]
+    assert lost and slips and ("slipped" in lost[-1]["message"] or "no longer fits" in lost[-1]["message"])
+
+
+def slip_undone(m: dict) -> dict:
+    """The entries a message says a slip undid, by joint."""
+    return {x["joint"]: x for x in m["missing"] if (x.get("undone") or {}).get("reason") == "slip"}
 
 
 
