@@ -225,16 +225,15 @@ class ProgressTracker:
         for child in [c for c in self.floor if c in sensors or self.done_parent.get(c) in sensors
                       or self._credited.get(c, frozenset()) & sensors]:
             del self.floor[child]
-        hit = []
-        for pair in [p for p in self.latched if p & sensors]:
-            latch = self.latched.pop(pair)
-            self.undone[pair] = {"reason": "slip", "time_s": when, "sensor": sorted(pair & sensors)[0]}
-            hit.append(latch["joint"])
         # The monitor confirms a slip some 0.2-1 s after its onset; a joint of that sensor whose fit was
         # lost in between lost it to the slip, and its entry should say so rather than "loss".
-        for pair, u in self.undone.items():
-            if pair & sensors and u["reason"] == "loss" and u["time_s"] >= when:
-                self.undone[pair] = {"reason": "slip", "time_s": when, "sensor": sorted(pair & sensors)[0]}
+        lost = [p for p, u in self.undone.items() if p & sensors and u["reason"] == "loss" and u["time_s"] >= when]
+        hit = []
+        for pair in [p for p in self.latched if p & sensors]:
+            hit.append(self.latched.pop(pair)["joint"])
+            lost.append(pair)
+        for pair in lost:
+            self.undone[pair] = {"reason": "slip", "time_s": when, "sensor": sorted(pair & sensors)[0]}
         return sorted(hit)
 
     def update(self, fit: dict, time_s: float, epoch: int = 0) -> dict:

@@ -135,7 +135,8 @@ def check_session(server, performer, sid: str) -> None:
     performer.inject_slip(SLIPPED, 0.03)
     msgs = asyncio.run(read_fits(server.url, sid, lambda m: not m["done"] and slip_undone(m), rate_hz=30,
                                  timeout=10))
-    assert not any(m["done"] for m in msgs[msgs.index(next(m for m in msgs if not m["done"])):])
+    undone_at = next(k for k, m in enumerate(msgs) if not m["done"])
+    assert not any(m["done"] for m in msgs[undone_at:])  # undone, done does not come back before the reason
     after = msgs[-1]
     undone = slip_undone(after)
     assert set(undone) == {SLIPPED, "l_hand"} and "slipped" in undone[SLIPPED]["why"] and after["percent"] < 100
