@@ -157,11 +157,15 @@ def _serve_pty(args: argparse.Namespace) -> int:
         source.set_unit_scale(args.unit_scale)
     for s in _slips(args.slip):
         source.inject_slip(s["sensor"], s["distance_m"], at_time=s["at_time"], angle_deg=s["angle_deg"])
+    # Ctrl-C and SIGTERM only set an event the main loop waits on: a KeyboardInterrupt raised wherever the
+    # main thread happens to be (under load, in a print or in interpreter shutdown) left the process dying
+    # of SIGINT, or hanging, instead of stopping the tracker and exiting 0 (tests/test_simulator_cli.py).
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
     tracker = PtyTracker(source, birds=source.n_sensors, rate_hz=args.rate, scale_inches=source.full_scale_in,
                          baud=PTY_BAUD)
     tracker.start()
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
     try:
         print(tracker.device, flush=True)
         print(
@@ -173,8 +177,6 @@ def _serve_pty(args: argparse.Namespace) -> int:
         print(f"record it with: {record_command(tracker.device, source.names, args.rate)}", file=sys.stderr, flush=True)
         while not stop.wait(0.5):
             pass
-    except KeyboardInterrupt:
-        pass
     finally:
         tracker.stop()
     return 0
