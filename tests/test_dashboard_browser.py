@@ -32,8 +32,8 @@ ADMIN, KIOSK, READ = "admin-secret-1", "kiosk-secret-1", "read-secret-1"
 SLIP_SENSOR = "l_forearm"
 SLIP_AFTER_S = 14.0
 # docs/dashboard.md "Measured": bones end within 0.9–3.1 mm of the simulator's between ball joints and
-# 10–23 mm where a bone ends at a hinge (the fit's centre there is the min-norm point along the hinge
-# axis, not the anatomical one). Margins for a loaded 2-core machine, where the page may show a fit a
+# 10–23 mm where a bone ends at a hinge (measured while the fit's centre there was the min-norm point along
+# the hinge axis; the limb rule of docs/design.md §3c now places it, and the bound is kept). Margins for a loaded 2-core machine, where the page may show a fit a
 # few hundred frames older than the newest: 1.4 mm and 7 mm.
 BONE_TOLERANCE_M = 0.023 + 0.007
 BALL_BONE_TOLERANCE_M = 0.0031 + 0.0014
@@ -199,7 +199,7 @@ def test_dashboard_draws_the_skeleton_and_bones_match_the_simulator(dashboard, p
             if a is None or b is None:  # a joint the simulated body does not have (a wrong tree)
                 out.append(("no such joint", r, np.inf))
                 continue
-            # A bone ending at a hinge depends on the min-norm point chosen along the hinge axis.
+            # A bone ending at a hinge depends on the point a rule chooses along the hinge axis.
             kind = "hinge" if any(j in hinges for j in r["joints"]) else "ball"
             out.append((kind, r, abs(r["length"] - float(np.linalg.norm(a - b)))))
         return out
