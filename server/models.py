@@ -137,7 +137,7 @@ class MissingJoint(Open):
     joint: str = Field(description="the joint, named by its child body (= the sensor it belongs to)")
     parent: str | None = None
     label: str = Field(description="the joint as people name it ('left elbow')")
-    state: Literal[STATES] = Field(description="how far it is from calibrated (README.md, \"Progress\")")
+    state: Literal[STATES] = Field(description="how far it is from calibrated (docs/service.md#progress-one-figure-for-the-kiosk-the-dashboard-and-the-api)")
     why: str | None = Field(None, description="why it is not calibrated yet, in plain words")
     undone: dict | None = Field(None, description="{reason: slip | loss | tree, time_s, sensor}: it was calibrated "
                                                   "once and this undid it")
@@ -157,7 +157,8 @@ class Hint(Open):
 
 
 class Progress(Open):
-    """One definition of calibration progress (README.md, "Progress"): what the kiosk ring and the dashboard show."""
+    """One definition of calibration progress (docs/service.md#progress-one-figure-for-the-kiosk-the-dashboard-and-the-api): what the kiosk ring and the dashboard
+    show."""
 
     session_id: str
     live: bool = Field(description="the live session (figures move on), or a stopped one (as it ended)")

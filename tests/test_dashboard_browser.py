@@ -255,6 +255,31 @@ def test_injected_slip_shows_on_the_residual_plot_and_as_an_alert(dashboard, per
     assert not page.errors
 
 
+def test_a_page_opened_after_the_slip_still_marks_it_on_the_residual_plot(browser, server):
+    """Tried as issue #29 did: a dashboard opened well after a slip (the websocket replays only the last
+    5 s of residuals). Its 60 s plot used to start at the page load, without the slip's marker; it now
+    starts from the session's own residuals and events, so the marker is on it."""
+    sid = httpx.get(f"{server.url}/api/status", headers=admin()).json()["session"]["id"]
+    events = httpx.get(f"{server.url}/api/sessions/{sid}/events", headers=admin()).json()["events"]
+    slips = [e for e in events if e["type"] == "slip" and SLIP_SENSOR in [e.get("sensor"), *e.get("candidates", [])]]
+    assert slips, "no slip in the session: the test before injects it"
+    slip = slips[0]
+    # Opened 10 s after the slip: past the websocket's replay, well inside the plot's 60 s.
+    wait_until(lambda: httpx.get(f"{server.url}/api/status", headers=admin()).json()["session"]["time_s"]
+               >= slip["time_s"] + 10, 60, "10 s after the slip")
+    page = open_page(browser, f"{server.url}/?token={ADMIN}")
+    try:
+        page.wait_for_function(
+            "(t) => { const d = document.querySelector('#residuals').dataset;"
+            " return Number(d.slips) >= 1 && d.first !== '' && Number(d.first) <= t; }",
+            arg=slip["time_s"], timeout=15000)
+        px = canvas_pixels(page, "#residuals canvas", ["#f85149"], tolerance=60)
+        assert px["colours"][0] > 30, px  # the dashed red marker is drawn
+        assert not page.errors
+    finally:
+        page.close()
+
+
 def test_pages_show_an_unplugged_tracker_and_recover(dashboard, browser, server, tracker):
     page = dashboard
     kiosk = open_page(browser, f"{server.url}/kiosk?token={READ}", 1600, 900)  # read-only: follows the live session

@@ -100,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _write_take(args: argparse.Namespace) -> int:
     from flockcal.simulator.take import simulate
-    from flockcal.atomic import write_atomic
+    from flockcal.atomic import check_output, write_atomic
     from flockcal.takes import save_take
 
     faults: dict = {}
@@ -117,8 +117,7 @@ def _write_take(args: argparse.Namespace) -> int:
     out: Path = args.output
     if out.suffix != ".npz":
         raise UserError(f"{out}: the take is written as .npz; give a name ending in .npz")
-    if not out.parent.exists():
-        raise UserError(f"{out.parent}: no such directory; create it or write elsewhere with -o")
+    check_output(out)
     birds = args.birds if args.birds is not None else (16 if args.model == "human" else None)
     from flockcal.progress import Stages
 
