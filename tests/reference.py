@@ -28,11 +28,11 @@ class ReferenceFit(NamedTuple):
     n: int
 
 
-def reference_pair_fit(rot_i, pos_i, rot_j, pos_j, valid=None, floor: float = FLOOR, rank: int | None = None) -> ReferenceFit:
+def reference_pair_fit(rot_i, pos_i, rot_j, pos_j, valid=None, floor: float = FLOOR) -> ReferenceFit:
     """Fit the joint between sensors i and j from (n,3,3) rotations and (n,3) positions by a direct SVD.
 
-    Singular values w with (w/√n)² ≤ `floor` are zeroed (the rule `pair_fits` also follows);
-    `rank` forces how many are kept instead. `valid` (n,) selects frames.
+    Singular values w with (w/√n)² ≤ `floor` are zeroed (the rule `pair_fits` also follows, with its own
+    constant): the rank is the oracle's own decision, never read from the fit under test. `valid` (n,) selects frames.
     """
     Ri, ti = np.asarray(rot_i, float), np.asarray(pos_i, float)
     Rj, tj = np.asarray(rot_j, float), np.asarray(pos_j, float)
@@ -44,7 +44,7 @@ def reference_pair_fit(rot_i, pos_i, rot_j, pos_j, valid=None, floor: float = FL
     d = (tj - ti).reshape(3 * n)
     U, w, Vt = np.linalg.svd(Q, full_matrices=False)
     s = w / np.sqrt(n)
-    k = int((s**2 > floor).sum()) if rank is None else int(rank)
+    k = int((s**2 > floor).sum())
     winv = np.zeros(6)
     winv[:k] = 1.0 / w[:k]
     u = Vt.T @ (winv * (U.T @ d))
