@@ -4,9 +4,12 @@ the backlog go down instead of hearing nothing until it is gone, and no frame of
 
 from __future__ import annotations
 
+import io
+import threading
 import time
 
 import httpx
+import numpy as np
 
 from flockcal.server.settings import Settings
 from server_helpers import ServerThread, free_port, wait_connected
@@ -21,7 +24,25 @@ def test_a_backlog_is_worked_off_in_steps_with_snapshots_between(tmp_path):
     with ServerThread(settings) as srv:
         wait_connected(srv.url)
         pipe = srv.service.pipeline
+        # What the fake tracker sent, as the reader decoded it, batch by batch (on the reader's thread).
+        reader = srv.service.source.reader
+        sent: list = []
+        lock = threading.Lock()
+        deliver = reader.on_frames
+
+        def tap(frames):
+            with lock:
+                sent.append((np.array(frames.times), np.array(frames.positions), np.array(frames.valid)))
+            deliver(frames)
+
+        def n_sent() -> int:
+            with lock:
+                return sum(len(b[0]) for b in sent)
+
+        reader.on_frames = tap
+        before_start = n_sent()
         r = httpx.post(srv.url + "/api/sessions", json={"performer": "Backlog"}, timeout=30)
+        after_start = n_sent()
         assert r.status_code == 201, r.text
         sid = r.json()["id"]
         time.sleep(2.0)
@@ -38,10 +59,14 @@ def test_a_backlog_is_worked_off_in_steps_with_snapshots_between(tmp_path):
         stalled = time.monotonic()
         time.sleep(3.0)
         pipe.on_publish = publish
+        before_stop = n_sent()
         r = httpx.post(srv.url + f"/api/sessions/{sid}/stop", timeout=60)
+        after_stop = n_sent()
         assert r.status_code == 200, r.text
-        stored = httpx.get(srv.url + f"/api/sessions/{sid}", timeout=30).json()
-        received = pipe.ingest.frames
+        reader.on_frames = deliver
+        take = httpx.get(srv.url + f"/api/sessions/{sid}/take", timeout=60)
+        assert take.status_code == 200, take.text
+        stored = np.load(io.BytesIO(take.content))
 
     after = [(t, n) for t, n in seen if t >= stalled - 0.05]
     counts = [n for _, n in after]
@@ -50,8 +75,23 @@ def test_a_backlog_is_worked_off_in_steps_with_snapshots_between(tmp_path):
     jumps = [b - a for a, b in zip(counts, counts[1:])]
     assert max(jumps) <= 2.0 * RATE, jumps
     assert sum(j for j in jumps if j > 0.5 * RATE) >= 0.5 * STALL_S * RATE, jumps  # the backlog was there
-    # Every frame the reader delivered during the session is in it (none dropped by the steps).
-    assert 0 < stored["frames"] <= received, (stored["frames"], received)
+    # Every frame the tracker sent during the session is stored once, in order, unchanged: the stored take
+    # is one unbroken run of the sent frames (a dropped, repeated or reordered frame breaks it), from the
+    # first frame sent after the start request to the last sent before the stop took effect.
+    times = np.concatenate([b[0] for b in sent])
+    positions = np.concatenate([b[1] for b in sent])
+    valid = np.concatenate([b[2] for b in sent])
+    n = len(stored["times"])
+    assert n > (STALL_S + 3.0) * 0.5 * RATE, n  # the stall and the 3 s after it are in the session
+    # The take's times count from the session's first frame; that frame is the one sent while the start
+    # request was on its way whose pose the take begins with.
+    first = next((k for k in range(before_start, after_start + 1)
+                  if k < len(times) and np.array_equal(positions[k], stored["positions"][0])), None)
+    assert first is not None, (before_start, after_start)
+    assert before_stop <= first + n <= after_stop, (before_stop, first + n, after_stop)
+    assert np.array_equal(stored["times"], times[first:first + n] - times[first])
+    assert np.array_equal(stored["positions"], positions[first:first + n])
+    assert np.array_equal(stored["valid"], valid[first:first + n])
 
 
 def test_a_pipeline_behind_for_good_still_refits(tmp_path):
