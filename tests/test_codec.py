@@ -11,7 +11,7 @@ from flockcal.drivers.parameters import (
     measurement_rate_from_count, measurement_rate_from_word, measurement_rate_word, software_revision,
 )
 from flockcal.drivers.records import (
-    FORMATS, decode_records, encode_records, quantisation_tolerance, record_length, saturated_records,
+    FORMATS, decode_records, encode_records, record_length, saturated_records,
 )
 from flockcal.drivers.status import (
     ERROR_CODES, decode_flock_status, decode_status_word, encode_status_word, error_is_fatal, error_message,
@@ -20,6 +20,7 @@ from flockcal.drivers.status import (
 from flockcal.drivers.stream import StreamDecoder
 from flockcal.drivers.words import decode_words, encode_words, pack_words
 from flockcal.rotations import from_euler
+from quantisation import position_axis_m, rotation_rad, tolerance
 
 RNG = np.random.default_rng(7)
 
@@ -59,7 +60,7 @@ def test_every_format_round_trips_within_quantisation(name, group):
     # phasing bit only on each record's first byte
     assert np.all(records[:, 0] & 0x80) and not np.any(records[:, 1:] & 0x80)
     r, p, a = decode_records(fmt, records, group=group)
-    tol_rot, tol_pos = quantisation_tolerance(fmt)
+    tol_rot, tol_pos = tolerance(name)[0], position_axis_m(36.0)  # tests/quantisation.py
     if fmt.position:
         assert np.max(np.abs(p - pos)) <= tol_pos
     else:
@@ -80,7 +81,7 @@ def test_72_and_144_inch_scales_round_trip():
     for scale in (72.0, 144.0):
         data = encode_records("position_matrix", rot, pos, scale_inches=scale)
         _, p, _ = decode_records("position_matrix", data, group=False, scale_inches=scale)
-        assert np.max(np.abs(p - pos)) <= quantisation_tolerance("position", scale)[1]
+        assert np.max(np.abs(p - pos)) <= position_axis_m(scale)
 
 
 def test_positions_beyond_full_scale_saturate():
@@ -129,7 +130,7 @@ def test_angles_near_gimbal_lock_decode_to_the_right_rotation():
     rot = from_euler(RNG.uniform(-np.pi, np.pi, n), e, RNG.uniform(-np.pi, np.pi, n))
     r, _, _ = decode_records("angles", encode_records("angles", rot, np.zeros((n, 3))),
                                    group=False)
-    assert np.max(_angle_between(r, rot)) <= quantisation_tolerance("angles")[0]
+    assert np.max(_angle_between(r, rot)) <= rotation_rad("angles")
 
 
 def test_all_zero_record_is_flagged_saturated_not_garbage():

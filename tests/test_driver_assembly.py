@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from flockcal.drivers.hemispheres import fold_to_hemisphere
-from flockcal.drivers.records import decode_block, encode_records, quantisation_tolerance, record_length
+from flockcal.drivers.records import decode_block, encode_records, record_length
+from quantisation import position_axis_m
 from flockcal.drivers.stream import StreamDecoder
 from flockcal.rotations import from_euler
 from flockcal.drivers.assembly import FrameAssembler
@@ -90,7 +91,7 @@ def test_a_position_word_at_full_scale_is_invalid_and_one_step_inside_is_valid()
     _, decoded, valid, clipped = decode_block("position_matrix", rec)
     assert list(clipped) == [False, True, True, True, False]
     assert list(valid) == [True, False, False, False, True]
-    assert np.allclose(decoded[[0, 4]], pos[[0, 4]], atol=quantisation_tolerance("position")[1])
+    assert np.allclose(decoded[[0, 4]], pos[[0, 4]], atol=position_axis_m(36.0))
     out = StreamDecoder("position_matrix", group=False).feed(rec.tobytes())
     assert list(out.valid) == list(valid) and list(out.clipped) == list(clipped)
 
@@ -133,7 +134,7 @@ def test_at_the_72_inch_scale_the_same_reach_is_a_valid_pose():
     asm = FrameAssembler(group_setup(m, "position_quaternion", rate, scale=72.0))
     f = feed_all(asm, data, [512])
     assert f["valid"].all() and asm.saturated_records == 0
-    assert np.max(np.abs(f["positions"] - p)) <= quantisation_tolerance("position", 72.0)[1]
+    assert np.max(np.abs(f["positions"] - p)) <= position_axis_m(72.0)
 
 
 def test_garbage_framing_as_bird_1_after_lost_bytes_does_not_end_the_cycle():
@@ -157,7 +158,7 @@ def test_garbage_framing_as_bird_1_after_lost_bytes_does_not_end_the_cycle():
     expect = np.ones((n, m), bool)
     expect[2, [4, 5]] = False
     assert len(f) == n and np.array_equal(f.valid, expect)
-    assert np.max(np.abs(f.positions[f.valid] - p[f.valid])) <= quantisation_tolerance(fmt)[1]
+    assert np.max(np.abs(f.positions[f.valid] - p[f.valid])) <= position_axis_m(36.0)
 
 
 @pytest.mark.parametrize("mode", ["stream", "point"])

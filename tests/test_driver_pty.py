@@ -10,7 +10,8 @@ import tty
 import numpy as np
 import pytest
 
-from flockcal.drivers.records import FORMATS, quantisation_tolerance
+from flockcal.drivers.records import FORMATS
+from quantisation import tolerance
 from flockcal.rotations import from_euler
 from flockcal.drivers.link import Timing, TrackerError
 from flockcal.drivers.reader import TrackerConfig, TrackerReader
@@ -122,7 +123,7 @@ def test_group_mode_16_birds_decodes_the_simulated_poses_in_every_format(fmt):
     times, R, p, valid = col.arrays()
     assert status["record_format"] == fmt and status["group"]
     assert valid[1:-1].all(), "a complete group response was marked invalid"
-    rot_tol, pos_tol = quantisation_tolerance(fmt, 36)
+    rot_tol, pos_tol = tolerance(fmt, 36)
     rot_err, pos_err, idx = worst_match(src, R, p, valid)
     assert rot_err <= rot_tol + 1e-9 and pos_err <= pos_tol + 1e-9
     assert np.all(np.diff(idx[idx >= 0]) > 0), "frames out of order or repeated"
@@ -138,7 +139,7 @@ def test_one_port_per_bird_16_ports_decodes_the_simulated_poses_in_every_format(
     times, R, p, valid = col.arrays()
     assert not status["group"] and status["record_format"] == fmt
     assert valid.mean() > 0.85, "most records should be aligned into complete cycles"
-    rot_tol, pos_tol = quantisation_tolerance(fmt, 36)
+    rot_tol, pos_tol = tolerance(fmt, 36)
     rot_err, pos_err, _ = worst_match(src, R, p, valid)
     assert rot_err <= rot_tol + 1e-9 and pos_err <= pos_tol + 1e-9, "a bird's record landed in the wrong cycle"
     expected = 40 * (times[-1] - times[0]) + 1
@@ -165,7 +166,7 @@ def test_point_mode_polls_one_frame_per_poll():
     assert valid.all()
     expected = 20 * (times[-1] - times[0]) + 1
     assert abs(len(times) - expected) <= 0.2 * expected
-    rot_tol, pos_tol = quantisation_tolerance("position_matrix")
+    rot_tol, pos_tol = tolerance("position_matrix")
     rot_err, pos_err, _ = worst_match(src, R, p, valid)
     assert rot_err <= rot_tol + 1e-9 and pos_err <= pos_tol + 1e-9
 
@@ -186,7 +187,7 @@ def test_garbage_and_dropped_bytes_lose_only_damaged_records_and_never_a_corrupt
     assert status["resynced"] >= 6 and "resync" in col.kinds()
     lost = int((~valid[1:-1]).sum())
     assert 1 <= lost <= 6 * 2, f"{lost} bird-frames lost for 6 drops"
-    rot_tol, pos_tol = quantisation_tolerance("position_quaternion")
+    rot_tol, pos_tol = tolerance("position_quaternion")
     rot_err, pos_err, _ = worst_match(src, R, p, valid)
     assert rot_err <= rot_tol + 1e-9 and pos_err <= pos_tol + 1e-9
     assert times[-1] - times[0] > 1.2, "the reader stopped after the faults"
@@ -205,7 +206,7 @@ def test_a_2s_stall_is_reported_and_the_flock_is_reinitialised():
     # Every frame, before and after the re-initialisation, is one the source produced, to the format's
     # quantisation: nothing half-decoded from the stall's broken record got through.
     rot_err, pos_err, _ = worst_match(src, R, p, valid)
-    rot_tol, pos_tol = quantisation_tolerance("position_matrix")
+    rot_tol, pos_tol = tolerance("position_matrix")
     assert rot_err <= rot_tol + 1e-9 and pos_err <= pos_tol + 1e-9
 
 
@@ -305,7 +306,7 @@ def test_a_hemisphere_crossing_is_detected_and_corrected():
     times, R, p, valid = col.arrays()
     assert (p[valid[:, 0], 0, 0] < 0).any(), "bird 0 should be seen behind the transmitter"
     _, pos_err, _ = worst_match(src, R, p, valid)
-    assert pos_err <= quantisation_tolerance("position_matrix")[1] + 1e-9
+    assert pos_err <= tolerance("position_matrix")[1] + 1e-9
 
 
 def test_per_session_recordings_each_replay_alone_to_the_poses_streamed_meanwhile(tmp_path):
@@ -333,7 +334,7 @@ def test_per_session_recordings_each_replay_alone_to_the_poses_streamed_meanwhil
             reader.stop()
     assert second.stat().st_size == size, "a stopped recording kept growing"
     live_t = col.arrays()[0]
-    rot_tol, pos_tol = quantisation_tolerance("position_matrix")
+    rot_tol, pos_tol = tolerance("position_matrix")
     replayed = []
     for path in (first, second):
         rec = read_recording(path)

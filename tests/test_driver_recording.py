@@ -11,7 +11,8 @@ import textwrap
 import numpy as np
 import pytest
 
-from flockcal.drivers.records import encode_records, quantisation_tolerance, record_length
+from flockcal.drivers.records import encode_records, record_length
+from quantisation import position_norm_m
 from flockcal.rotations import from_euler
 from flockcal.drivers.assembly import FrameAssembler
 from flockcal.drivers.link import FlockSetup, choose_format
@@ -126,7 +127,7 @@ def test_garbage_inside_records_never_yields_a_corrupt_pose_and_costs_only_those
     assert len(f) == n
     lost = ~f.valid
     assert lost.sum() <= len(hits)
-    _, pos_tol = quantisation_tolerance(fmt)
+    pos_tol = position_norm_m(36.0)  # half a 14-bit step per coordinate (tests/quantisation.py)
     err = np.linalg.norm(f.positions - p, axis=-1)[f.valid]
     assert err.max() <= pos_tol
 

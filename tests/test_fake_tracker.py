@@ -6,7 +6,8 @@ import pytest
 from flockcal.drivers.commands import fbb_prefix, format_command
 from flockcal.drivers.hemispheres import fold_to_hemisphere, hemisphere_command
 from flockcal.drivers.parameters import PARAMETERS, change_command, examine_command, measurement_rate_word
-from flockcal.drivers.records import FORMATS, decode_records, quantisation_tolerance
+from flockcal.drivers.records import FORMATS, decode_records
+from quantisation import position_axis_m, rotation_rad, tolerance
 from flockcal.drivers.status import decode_flock_status, decode_status_word
 from flockcal.drivers.stream import StreamDecoder
 from flockcal.simulator.clocks import ManualClock
@@ -47,8 +48,8 @@ def test_point_before_configuration_answers_the_masters_pos_angles_record():
     assert len(reply) == 12  # POS/ANG power-up default, no group byte
     r, p, _ = decode_records("position_angles", reply, group=False)
     rot, pos, _ = src.poses(np.array([0.0]))
-    assert np.max(np.abs(p[0] - pos[0, 0])) <= quantisation_tolerance("position")[1]
-    assert _angle_between(r[0], rot[0, 0]) <= quantisation_tolerance("angles")[0]
+    assert np.max(np.abs(p[0] - pos[0, 0])) <= position_axis_m(36.0)
+    assert _angle_between(r[0], rot[0, 0]) <= rotation_rad("angles")
 
 
 @pytest.mark.parametrize("birds,addressing", [(4, "normal"), (16, "expanded")])
@@ -139,7 +140,7 @@ def test_every_format_decodes_to_the_source_poses_within_quantisation(group):
         rot, pos, _ = src.poses(times)
         pos = fold_to_hemisphere(pos, "forward")  # what the bird reports in its hemisphere
         fmt = FORMATS[name]
-        tol_r, tol_p = quantisation_tolerance(fmt)
+        tol_r, tol_p = tolerance(name)[0], position_axis_m(36.0)  # tests/quantisation.py
         if fmt.position:
             assert np.max(np.abs(_concat(parts, "positions")[sel] - pos[:, address - 1])) <= tol_p
         if fmt.orientation:
