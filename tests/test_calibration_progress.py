@@ -1,4 +1,5 @@
-"""The one definition of calibration progress (server/progress.py, README.md "Progress"): every sensor but
+"""The one definition of calibration progress (server/progress.py; docs/service.md "Progress: one figure for
+the kiosk, the dashboard and the API"): every sensor but
 the root counts, rigid or undetermined ones count 0 with a reason, "100 %" means done, a done joint stays
 done through wobbles and is undone by a slip or a real loss of fit; and the same on the real solver.
 
@@ -18,7 +19,9 @@ from flockcal.server.settings import Settings
 from flockcal.simulator.performer import Performer
 
 MM = 0.001
-TARGET = 5 * MM  # README: the target is `serve --target-mm`, by default the 5 mm tolerance
+# The rules are tried at a 5 mm target; the service's own (`serve --target-mm`) is by default the 5 mm tolerance
+# over √2 (docs/service.md "Options"), which test_the_default_target… below holds.
+TARGET = 5 * MM
 
 
 def joint(child, parent, err_mm=(1.0, 1.0, 1.0), determined=True, hinge=False):

@@ -58,7 +58,7 @@ def artifacts() -> Path:
 
 
 def record(key: str, value) -> None:
-    """Keep a measured figure with the screenshots (the README quotes them)."""
+    """Keep a measured figure with the screenshots (docs/dashboard.md "Measured" quotes them)."""
     path = artifacts() / "dashboard-figures.json"
     figures = json.loads(path.read_text()) if path.exists() else {}
     figures[key] = value

@@ -30,7 +30,7 @@ from synthetic import articulated
 PLAIN_BALL_M = 1e-3
 PLAIN_KNEE_M = 0.5e-3
 PLAIN_KNEE_ALONG_M = 2e-3
-TOLERANCE_M = 5e-3  # the solver's default tolerance, which the README states
+TOLERANCE_M = 5e-3  # the solver's default tolerance (docs/solver.md "Use": `--tolerance-mm`, default 5)
 
 
 def _fit(take, hierarchy=None):

@@ -32,7 +32,7 @@ pytestmark = [
 ADMIN, KIOSK, READ = "admin-secret-21", "kiosk-secret-21", "read-secret-21"
 RATE = 144.0
 RING_CIRCUMFERENCE = 2 * math.pi * 86  # the ring's circle in kiosk.html has r = 86
-# README / docs/service.md "Time to calibrate": kiosk guests with soft tissue are done within 35 s of their
+# docs/service.md "Time to calibrate": kiosk guests with soft tissue are done within 35 s of their
 # session (p90 target); the session's own clock gives it 5 s of margin. The wall-clock deadline only stops
 # a hung test: a loaded machine delivers the same session seconds later.
 DONE_SESSION_S = 35.0 + 5.0

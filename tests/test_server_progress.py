@@ -1,8 +1,8 @@
 """Progress over the real service (issue 21): a simulated guest does the kiosk routine from the moment a
 session is started over REST; the websocket's `fit` messages, read once a second as the issue did, never say
 done (nor 100 %) while a sensor still rides rigidly on a neighbour or has an undetermined joint, and name
-those; done comes within the README's time, the session, status and stored session say so; a slip after
-done undoes that sensor's joints, and every reader is told why.
+those; done comes within the time docs/service.md "Time to calibrate" states, the session, status and
+stored session say so; a slip after done undoes that sensor's joints, and every reader is told why.
 """
 
 from __future__ import annotations

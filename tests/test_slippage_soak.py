@@ -1,5 +1,6 @@
 """One hour of clean simulated walking at tracker noise, with the simulator's default 12 mm soft tissue,
-through the live loop: no slip reported (README: 0 in an hour each of STA exercise, walk and kiosk).
+through the live loop: no slip reported (docs/slippage.md "Measured (benchmarks/bench_slippage.py)": 0 in an
+hour each of STA exercise, walk and kiosk).
 Slow (about 4 minutes on one core): run with `python -m pytest -m slow tests/test_slippage_soak.py`."""
 
 from __future__ import annotations

@@ -27,8 +27,8 @@ def tree(model) -> np.ndarray:
 
 @pytest.mark.parametrize("routine, seconds", [("exercise", 90.0), ("kiosk", 60.0)])
 def test_soft_tissue_at_the_ends_of_every_range_raises_no_alarm(routine, seconds):
-    # README: no false alarm in an hour each of exercise, walk and kiosk with 12 mm soft tissue
-    # (benchmarks/bench_slippage.py --sta-suite). Here a minute or two of the two routines that take
+    # docs/slippage.md "Measured (benchmarks/bench_slippage.py)": no false alarm in an hour each of exercise,
+    # walk and kiosk with 12 mm soft tissue (benchmarks/bench_slippage.py --sta-suite). Here a minute or two of the two routines that take
     # every joint to the ends of its range, at the same 12 mm; the kiosk loops, so its second half
     # revisits every pose of its first.
     perf = Performer("human", routine=routine, seed=8, noise="tracker", rate_hz=RATE, seconds=seconds,
