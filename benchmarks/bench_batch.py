@@ -1,8 +1,8 @@
 """`flockcal batch` benchmark (design.md §6, Archive): 2 workers against 1 on the same takes, and what the
 cluster costs per take against fitting the takes one after another in one process the way `flockcal fit` does.
 
-Run: python benchmarks/bench_batch.py [--takes N] [--seconds S] [--rate HZ] [--combine] [--repeat K]. Prints figures and
-ratios; asserts nothing. On a machine other work is loading, the ratios say so: the load average is printed.
+Run: python benchmarks/bench_batch.py [--takes N] [--seconds S] [--rate HZ] [--combine] [--repeat K] [--heap]. Prints figures
+and ratios; asserts nothing. On a machine other work is loading, the ratios say so: the load average is printed.
 """
 
 from __future__ import annotations
@@ -45,6 +45,37 @@ def _children_cpu() -> float:
     return r.ru_utime + r.ru_stime
 
 
+def _fit_in_task(path: str, roomy: bool) -> dict:
+    """Run on a Dask worker: one take's `fit --json` path, with or without `roomy_malloc` first; the worker
+    process's system CPU time and page faults during the fit (getrusage)."""
+    from flockcal.malloc import roomy_malloc
+
+    if roomy:
+        roomy_malloc()
+    take = load_take(path)
+    calibrate_take(take, progress=False)  # warm: imports and caches, as the batch's warm-up does
+    r0 = resource.getrusage(resource.RUSAGE_SELF)
+    json_text(fit_result(take, calibrate_take(take, progress=False))[1])
+    r1 = resource.getrusage(resource.RUSAGE_SELF)
+    return {"sys": r1.ru_stime - r0.ru_stime, "user": r1.ru_utime - r0.ru_utime,
+            "faults": (r1.ru_minflt - r0.ru_minflt) + (r1.ru_majflt - r0.ru_majflt)}
+
+
+def heap(path: Path) -> None:
+    """docs/batch.md "Dask and glibc's heap": a take's fit in this process, and in a nanny-started Dask
+    worker (MALLOC_TRIM_THRESHOLD_ set) without and with `roomy_malloc`, each worker fresh."""
+    from dask.distributed import Client, LocalCluster
+
+    here = _fit_in_task(str(path), roomy=False)
+    print(f"one process:                  sys {here['sys']:.3f} s, user {here['user']:.2f} s, {here['faults']:,} page faults")
+    for roomy in (False, True):
+        with LocalCluster(n_workers=1, threads_per_worker=1, processes=True, dashboard_address=None) as cluster, \
+                Client(cluster) as client:
+            r = client.submit(_fit_in_task, str(path), roomy, pure=False).result()
+        how = "with roomy_malloc   " if roomy else "without roomy_malloc"
+        print(f"Dask worker, {how}: sys {r['sys']:.3f} s, user {r['user']:.2f} s, {r['faults']:,} page faults")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__)
     ap.add_argument("--takes", type=int, default=16)
@@ -52,7 +83,16 @@ def main() -> None:
     ap.add_argument("--rate", type=float, default=144.0)
     ap.add_argument("--combine", action="store_true", help="also sum the takes (--combine) in both runs")
     ap.add_argument("--repeat", type=int, default=2, help="runs of each worker count, best kept (default 2)")
+    ap.add_argument("--heap", action="store_true",
+                    help="instead: one take's fit in this process and on a Dask worker without and with roomy_malloc")
     args = ap.parse_args()
+    if args.heap:
+        with tempfile.TemporaryDirectory(prefix="flockcal-bench-batch-") as tmp:
+            take, _ = simulate("human", motion="exercise", seconds=args.seconds, rate_hz=args.rate, seed=1)
+            save_take(Path(tmp) / "take.npz", take)
+            print(f"a {args.seconds:g} s take, 16 sensors, {args.rate:g} Hz; load average {os.getloadavg()[0]:.1f}")
+            heap(Path(tmp) / "take.npz")
+        return
     with tempfile.TemporaryDirectory(prefix="flockcal-bench-batch-") as tmp:
         folder = Path(tmp)
         paths = []
