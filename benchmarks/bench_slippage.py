@@ -8,6 +8,7 @@ without soft-tissue artefact (STA: the simulator's skin moving with the joint an
     python benchmarks/bench_slippage.py --sta-suite              # the STA runs: detection, soaks, 120 kiosk guests
     python benchmarks/bench_slippage.py --fresh 120 --routine kiosk --sta-mm 12   # 120 guests x 30 s
     python benchmarks/bench_slippage.py --phases head --routine exercise --rate 144 --seed 2   # one sensor, 40 moments
+    python benchmarks/bench_slippage.py --tree-seeds 1 2 4       # the searched tree after a slip (docs/slippage.md)
 
 Everything runs through the live loop (segmented accumulator → joint fits → SlipMonitor) in 1/30 s
 micro-batches, as the server feeds it. `--sta-mm 0` (the default outside the suite) is the plain simulator.
@@ -89,11 +90,11 @@ def detection(seeds: int, rate: float, distance: float, follow_s: float, routine
 
 
 def phases(sensor: str, seed: int, rate: float, routine: str, sta_mm: float, start_s: float, stop_s: float,
-           count: int, distance: float, follow_s: float = 1.0) -> None:
+           count: int, distance: float, follow_s: float = 1.0, monitor: dict | None = None) -> None:
     """One sensor slipped at `count` moments from start_s to stop_s of one performance (the service's
     exercise routine by default): which moments of the routine the monitor finds it late or not at all."""
     perf = Performer("human", routine=routine, seed=seed, noise="tracker", rate_hz=rate, sta_mm=sta_mm)
-    base = SlipWatch(tree(perf.model), perf.n_sensors, rate, perf.names)
+    base = SlipWatch(tree(perf.model), perf.n_sensors, rate, perf.names, **(monitor or {}))
     fed, late, delays = 0.0, [], []
     for at in np.round(np.linspace(start_s, stop_s, count), 3):
         perf.clear_faults()
@@ -109,9 +110,47 @@ def phases(sensor: str, seed: int, rate: float, routine: str, sta_mm: float, sta
             late.append((float(at), round(float(delay), 2) if found else "missed"))
     d = np.array(delays)
     print(f"phases: {sensor} slipped {distance * 100:.0f} cm at {count} moments of {start_s:g}-{stop_s:g} s, {routine}, "
-          f"seed {seed}, STA {sta_mm:g} mm, {rate:.0f} Hz; watched {follow_s:g} s after each")
+          f"seed {seed}, STA {sta_mm:g} mm, {rate:.0f} Hz; watched {follow_s:g} s after each"
+          + (f"; monitor {monitor}" if monitor else ""))
     print(f"  found within {follow_s:g} s: {int(np.isfinite(d).sum())}/{count}; median delay "
           f"{np.median(d[np.isfinite(d)]) if np.isfinite(d).any() else float('nan'):.2f} s; late (> 0.5 s) or missed: {late}")
+
+
+def tree_after_slips(seeds: list[int], rate: float = 100.0, slip_s: float = 15.0, after_s: float = 25.0) -> None:
+    """docs/slippage.md "After a slip, the tree": each of the 16 sensors slipped 2 cm at `slip_s` in turn
+    (exercise, tracker noise), a segment opened 0.5 s later as the live monitor would, the tree searched every
+    second for `after_s` s: wrong trees of the segmented search (`SegmentedAccumulator.calibration`) against
+    the whole-take one, the body's own parent list the oracle (as tests/test_segment_tree.py)."""
+    from flockcal.solver.calibration import calibrate
+    from flockcal.solver.segments import SegmentedAccumulator
+
+    def edges(parent_map: dict) -> set:
+        return {frozenset((c, p)) for c, p in parent_map.items() if p is not None}
+
+    total = wrong = whole_wrong = 0
+    step = int(rate // 2)
+    for seed in seeds:
+        for sensor in Performer("human", seed=seed).names:
+            perf = Performer("human", routine="exercise", seed=seed, noise="tracker", rate_hz=rate, seconds=60)
+            perf.inject_slip(sensor, 0.02, at_time=slip_s)
+            times = np.arange(int((slip_s + after_s) * rate)) / rate
+            R, t, v = perf.poses(times)
+            names = list(perf.names)
+            truth = edges({n: (names[p] if p >= 0 else None) for n, p in zip(names, perf.model.parent)})
+            acc = SegmentedAccumulator(len(names))
+            w = ww = 0
+            for a in range(0, len(times), step):
+                acc.update(times[a:a + step], R[a:a + step], t[a:a + step], v[a:a + step])
+                if times[a] >= slip_s + 0.5 and not acc.segments:
+                    acc.start_segment(names.index(sensor), slip_s)
+                if times[a] >= slip_s + 1.0 and a % int(rate) == 0:
+                    total += 1
+                    w += edges(acc.calibration(names=names).parent_map()) != truth
+                    ww += edges(calibrate(acc.whole, names=names).parent_map()) != truth
+            wrong, whole_wrong = wrong + w, whole_wrong + ww
+            print(f"  seed {seed} {sensor:12s}: wrong searches {w:2d} (whole take {ww:2d})", flush=True)
+    print(f"tree after a slip, seeds {seeds}, 16 sensors, exercise at {rate:g} Hz: wrong trees in {wrong} of {total} "
+          f"searches, against {whole_wrong} for the whole-take search")
 
 
 def soak(hours: float, rate: float, routine: str = "walk", seed: int = 11, chunk_s: float = 60.0,
@@ -185,11 +224,19 @@ def main() -> None:
     ap.add_argument("--sta-suite", action="store_true",
                     help="the STA runs: detection during walk and exercise with 12 mm STA, an --hours soak of "
                     "each of exercise, walk and kiosk with it, and --hours x 120 kiosk guests of 30 s")
+    ap.add_argument("--monitor", action="append", default=[], metavar="KEY=VALUE",
+                    help="--phases: a SlipMonitor option other than its default (e.g. confirm_s=0.4)")
+    ap.add_argument("--tree-seeds", type=int, nargs="+", metavar="SEED",
+                    help="instead: the searched tree after a slip of each sensor, these seeds (100 Hz)")
     args = ap.parse_args()
+    if args.tree_seeds:
+        tree_after_slips(args.tree_seeds)
+        return
     if args.phases:
         lo, hi = (float(x) for x in args.between.split(":"))
+        monitor = {k: float(v) for k, v in (o.split("=", 1) for o in args.monitor)}
         phases(args.phases, args.seed, args.rate, args.routine, args.sta_mm, lo, hi, args.moments, args.distance,
-               args.follow)
+               args.follow, monitor)
         return
     if args.fresh:
         fresh_takes(args.fresh, args.take_s, args.rate, args.routine, args.sta_mm)
