@@ -109,6 +109,7 @@ class GuardedConnection(asyncio.Protocol):
         self.waiting_since: float | None = None  # since the first byte of a request not yet whole
         self.seen_cycle: Any = None  # the last request seen whole
         self.seen_at = 0.0  # ... and when
+        self.armed_cycle: Any = None
 
     # --- asyncio.Protocol ---------------------------------------------------------------------------
     def connection_made(self, transport) -> None:
@@ -170,6 +171,7 @@ class GuardedConnection(asyncio.Protocol):
         if self.timer is not None:
             self.timer.cancel()
         self.waiting_since = time.monotonic()
+        self.armed_cycle = getattr(self.inner, "cycle", None)  # the request before the one now awaited
         self.timer = self.loop.call_later(self.guard.deadline_s, self._expired)
 
     def _disarm(self) -> None:
@@ -183,9 +185,14 @@ class GuardedConnection(asyncio.Protocol):
         if self.transport is None or self.transport.is_closing() or self.transport.get_protocol() is not self:
             return
         cycle = getattr(self.inner, "cycle", None)
-        if cycle is not None and cycle is self.seen_cycle and not getattr(cycle, "response_complete", True):
-            # Its response is still going out (a download) and nothing new arrived whole: not a stalled request.
-            self.waiting_since = None
+        if cycle is not None and cycle is not self.armed_cycle and not getattr(cycle, "more_body", True):
+            # A request came whole meanwhile without bytes of its own (pipelined behind the last response).
+            self.seen_cycle, self.seen_at = cycle, time.monotonic()
+            self._disarm()
+            return
+        if cycle is not None and not getattr(cycle, "response_complete", True) and not getattr(cycle, "more_body", True):
+            # Bytes came while a response is still going out (a download): they are read after it; look again then.
+            self._arm()
             return
         self.guard.timed_out += 1
         # A warning, so the log throttle (server/logthrottle.py) writes one a minute with a count.

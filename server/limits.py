@@ -22,6 +22,9 @@ from flockcal.server.errors import InsufficientStorage
 log = logging.getLogger(__name__)
 
 DISK_CHECK_S = 1.0
+# Room again means at least this much free (or the reserve, if larger): with --min-free-mb 0 a disk that
+# refused a write would otherwise count as having room the next second, at 0 bytes free.
+ROOM_BYTES = 2 * 2**20
 
 __all__ = ["InsufficientStorage", "SessionLimits", "free_bytes"]
 
@@ -95,7 +98,7 @@ class SessionLimits:
                            f"{self.min_free_bytes / 2**20:g} MB the service keeps free (--min-free-mb): recording "
                            "stops and no session starts until there is room")
             return
-        if self.full_since is None or (self.flush_held is not None and not self.flush_held()):
+        if self.full_since is None or free < ROOM_BYTES or (self.flush_held is not None and not self.flush_held()):
             return
         with self._lock:
             since, self.full_since, self.full_message = self.full_since, None, None
