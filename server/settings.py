@@ -87,6 +87,7 @@ class Settings:
     min_free_bytes: int = 500 * 2**20  # recording stops before the recordings' disk has less than this free
     max_downloads: int = 8  # take/bvh downloads built at once (server/downloads.py); one more gets 503
     download_stall_s: float = 30.0  # a download whose client takes no data this long is cut off, its slot freed
+    request_deadline_s: float = 10.0  # a request must arrive whole this soon, or its connection is closed
     keep_days: float | None = None  # retention (server/retention.py): recordings of the last N days; None: all
     keep_disk_gb: float | None = None  # ...and/or a data directory under this many GB; None: no budget
     retention_interval_s: float = 60.0  # how often the pruner looks when no session stops meanwhile
@@ -152,6 +153,12 @@ class Settings:
             raise ConfigError(f"--max-session-min must be above 0 (0 turns the limit off), got {self.max_session_s / 60:g}")
         if self.min_free_bytes < 0:
             raise ConfigError("--min-free-mb must be 0 or more")
+        # Under a second a slow but honest client on a poor link loses its requests; over an hour a
+        # half-sent request holds its descriptor as if there were no deadline.
+        if not 1 <= self.request_deadline_s <= 3600:
+            raise ConfigError(f"--request-deadline-s must be from 1 to 3600 s, got {self.request_deadline_s:g}")
+        if not 1 <= self.download_stall_s <= 3600:
+            raise ConfigError(f"--download-stall-s must be from 1 to 3600 s, got {self.download_stall_s:g}")
         tokens = [t for t in (self.token, self.read_token, self.kiosk_token) if t]
         if len(set(tokens)) != len(tokens):
             raise ConfigError("--token, --read-token and --kiosk-token must all differ")

@@ -70,6 +70,12 @@ def register(subparsers) -> None:
     p.add_argument("--min-free-mb", type=float, default=500.0, metavar="MB",
                    help="stop recording cleanly before the data directory's disk has less than MB free, and "
                         "refuse new sessions below it (default 500)")
+    p.add_argument("--request-deadline-s", type=float, default=10.0, metavar="S",
+                   help="a request must arrive whole within S seconds of its first byte, or its connection is "
+                        "closed (default 10)")
+    p.add_argument("--download-stall-s", type=float, default=30.0, metavar="S",
+                   help="a download whose client takes no data for S seconds is cut off and its slot freed "
+                        "(default 30)")
     p.set_defaults(func=run)
 
 
@@ -97,6 +103,8 @@ def settings_from_args(args: argparse.Namespace):
         allow_hosts=tuple(args.allow_host),
         max_session_s=args.max_session_min * 60.0 if args.max_session_min else None,
         min_free_bytes=int(args.min_free_mb * 2**20),
+        request_deadline_s=args.request_deadline_s,
+        download_stall_s=args.download_stall_s,
         fast_init=args.fast_init,
         scale_inches=args.scale,
         baud=args.baud,
@@ -212,7 +220,7 @@ def run(args: argparse.Namespace) -> int:
     # No per-message deflate: compressing every snapshot once per client costs more CPU than the
     # loopback or LAN bandwidth it saves.
     # Every request whole within a deadline, connections capped under the descriptors (server/connections.py).
-    guard = ConnectionGuard(connection_cap(soft))
+    guard = ConnectionGuard(connection_cap(soft), settings.request_deadline_s)
     app.state.connection_guard = guard
     config = uvicorn.Config(app, host=settings.host, port=settings.http_port, log_level="warning",
                             ws_max_size=64 * 1024, ws_per_message_deflate=False, lifespan="on",
