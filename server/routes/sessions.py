@@ -8,7 +8,7 @@ from __future__ import annotations
 import os
 
 from fastapi import APIRouter, Depends, Query, Request
-from fastapi.responses import Response
+from fastapi.responses import Response, StreamingResponse
 
 from flockcal.server.auth import require_admin, require_read, require_session_control
 from flockcal.server.errors import BadRequest, Conflict, NotFound
