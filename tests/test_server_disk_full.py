@@ -16,7 +16,6 @@ import json
 import os
 import subprocess
 import threading
-import time
 from contextlib import contextmanager
 from pathlib import Path
 
