@@ -20,6 +20,7 @@ import sqlite3
 import time
 from pathlib import Path
 
+import h11
 import httpx
 import numpy as np
 import pytest
@@ -390,6 +391,58 @@ def test_downloads_whose_clients_stopped_reading_give_their_slots_back(tmp_path)
         finally:
             for s in held:
                 s.close()
+
+
+def test_a_request_sent_while_a_download_goes_out_is_answered_whole_after_the_deadline(tmp_path):
+    """What was tried: a client that sends its next request (a second take) while the first take is still
+    going out, reads the first whole, pauses past the request deadline (1 s here), then reads the second.
+    The deadline its bytes had started used to go off while the second answer was going out: the connection
+    was closed mid-download. Both takes must arrive whole, equal."""
+    data = tmp_path / "data"
+    sid = big_session(data, frames=5000)  # a 2 MB take: far more than the two sockets' buffers hold
+    with Serve(sim6("pipelined") + ["--data-dir", data, "--request-deadline-s", "1"], free_port(),
+               tmp_path / "serve.log") as srv:
+        path = f"/api/sessions/{sid}/take"
+        client = h11.Connection(h11.CLIENT)
+        sock = socket.socket()
+        sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)
+        sock.settimeout(60)
+        sock.connect(("127.0.0.1", srv.port))
+
+        def request() -> bytes:
+            return client.send(h11.Request(method="GET", target=path, headers=[("Host", "127.0.0.1")])) + \
+                client.send(h11.EndOfMessage())
+
+        def event():
+            while (ev := client.next_event()) is h11.NEED_DATA:
+                client.receive_data(sock.recv(65536))  # b"" (closed by the service) ends in an h11 error
+            return ev
+
+        def body() -> bytes:
+            parts = []
+            while not isinstance(ev := event(), h11.EndOfMessage):
+                parts.append(bytes(ev.data))
+            return b"".join(parts)
+
+        try:
+            sock.sendall(request())
+            first = event()
+            assert isinstance(first, h11.Response) and first.status_code == 200, first
+            second = f"GET {path} HTTP/1.1\r\nHost: 127.0.0.1\r\n\r\n".encode()
+            sock.sendall(second)  # the first answer has only begun: its rest waits on this client
+            one = body()
+            client.start_next_cycle()
+            assert request() == second  # (h11 told what was sent; the bytes went above)
+            time.sleep(2.5)  # the client's pause: the deadline (1 s) and 1.5 s of margin, not a synchronisation
+            response = event()
+            assert isinstance(response, h11.Response) and response.status_code == 200, response
+            two = body()
+        finally:
+            sock.close()
+        assert one == two and len(one) > 1_000_000
+        with np.load(io.BytesIO(two)) as take:
+            assert take["positions"].shape == (5000, 4, 3)
+        assert "Traceback" not in srv.output()
 
 
 # --- damaged recordings --------------------------------------------------------------------------------
