@@ -72,7 +72,7 @@ def test_to_dict_is_exactly_the_section_5_json(exact):
                   "axis_parent", "coverage", "c_stderr_m", "l_stderr_m"]
     # §5's keys first, in order; then the extensions (design.md §3a).
     assert all(list(j)[:13] == joint_keys for j in out["joints"]) and len(out["joints"]) == 6
-    assert all(list(j)[13:] == ["determined", "direction_error_m"] and j["determined"] for j in out["joints"])
+    assert all(list(j)[13:] == ["determined", "direction_error_m", "noise_error_m"] and j["determined"] for j in out["joints"])
     assert all(list(b) == ["body", "from_joint", "to_joint", "length_m", "stderr_m"] for b in out["bones"])
     assert all(len(j["singular_values"]) == 6 and len(j["coverage"]) == 3 for j in out["joints"])
     json.loads(json.dumps(out, allow_nan=False))  # no NaN or inf anywhere

@@ -34,7 +34,6 @@ const kiosk = {
   lastStatus: null,
   doneSession: null,       // a host's session shown as done until it ends
   renewer: null,           // the interval renewing an owned session's lease
-  lastPercent: 0,
 };
 
 // While this page follows a session it started, it renews the session's lease a few times per lease:
@@ -138,7 +137,6 @@ function onFit(msg) {
   if (next && next.undone) el.textContent = instructionFor(next);
   else if (msg.prompt) el.textContent = msg.prompt;
   else if (next) el.textContent = instructionFor(next);
-  kiosk.lastPercent = msg.percent;
 }
 
 // Avatar joints: green when calibrated, amber while pinned but not counted yet, grey while undetermined.
