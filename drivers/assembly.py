@@ -51,6 +51,9 @@ class FrameAssembler:
         # Cycles closed but not yet decoded: (cycle_times, cycle, bird, records) per batch.
         self.pending: list[tuple[np.ndarray, np.ndarray, np.ndarray, HeldRecords]] = []
         self.pending_cycles = 0
+        # Decoded cycles held back from a suspect record on: (cycle_times, R, p, valid, suspect, rec_time,
+        # clipped), until its bird's next record shows whether it was line noise (checks.decide_suspects).
+        self.held: tuple | None = None
         # One-port-per-bird queues of released records.
         self.port_cycle = [-1] * len(self.ports)  # cycle number of each port's last record
         self.port_time = [-np.inf] * len(self.ports)
@@ -127,7 +130,7 @@ class FrameAssembler:
             self.open = self.none
         else:
             self._emit_ports(final=True)
-        self._finish()
+        self._finish(final=True)
 
     def take(self) -> Frames:
         """Frames assembled since the last call."""
@@ -333,9 +336,11 @@ class FrameAssembler:
         if self.pending_cycles >= self.batch_cycles:
             self._finish()
 
-    def _finish(self) -> None:
-        """Decode and check every queued cycle in one batch."""
+    def _finish(self, final: bool = False) -> None:
+        """Decode and check every queued cycle in one batch (`final`: the stream ended, decide what is held)."""
         if not self.pending:
+            if final and self.held is not None:
+                self._check_cycles(*self.held, final=True)
             return
         pending, self.pending, self.pending_cycles = self.pending, [], 0
         if len(pending) == 1:
@@ -346,9 +351,10 @@ class FrameAssembler:
             cycle = np.concatenate([x[1] + s for x, s in zip(pending, sizes)])
             bird = np.concatenate([x[2] for x in pending])
             rec = HeldRecords.concat([x[3] for x in pending])
-        self._decode_cycles(cycle_times, cycle, bird, rec)
+        self._decode_cycles(cycle_times, cycle, bird, rec, final)
 
-    def _decode_cycles(self, cycle_times: np.ndarray, cycle: np.ndarray, bird: np.ndarray, rec: HeldRecords) -> None:
+    def _decode_cycles(self, cycle_times: np.ndarray, cycle: np.ndarray, bird: np.ndarray, rec: HeldRecords,
+                       final: bool = False) -> None:
         n, m = len(cycle_times), self.m
         rotations, positions, rec_valid, rec_clipped = decode_block(
             self.format, rec.raw, scale_inches=self.setup.scale_inches)
@@ -378,10 +384,28 @@ class FrameAssembler:
             np.maximum.at(self.last_seen, b, rec.times[ok])
             clipped = np.zeros((n, m), bool)
             clipped[c, b] = rec_clipped[ok]
-        self.rejected_records += self.checks.apply(cycle_times, R, p, valid, suspect, rec_time,
-                                                   clipped if rec_clipped.any() else None)
+        self._check_cycles(cycle_times.astype(float), R, p, valid, suspect, rec_time, clipped, final)
+
+    def _check_cycles(self, cycle_times, R, p, valid, suspect, rec_time, clipped, final: bool = False) -> None:
+        """Decide the suspect records (holding back cycles from the first that waits for its bird's next
+        record), then finish and queue the cycles before it as frames."""
+        if self.held is not None:
+            parts = (self.held, (cycle_times, R, p, valid, suspect, rec_time, clipped))
+            cycle_times, R, p, valid, suspect, rec_time, clipped = (np.concatenate(x) for x in zip(*parts))
+            self.held = None
+        n = len(cycle_times)
+        if suspect.any():
+            n, rejected = self.checks.decide_suspects(cycle_times, R, p, valid, suspect, rec_time, final)
+            self.rejected_records += rejected
+            if n < len(cycle_times):
+                self.held = tuple(x[n:] for x in (cycle_times, R, p, valid, suspect, rec_time, clipped))
+                cycle_times, R, p, valid, rec_time, clipped = (x[:n] for x in (cycle_times, R, p, valid, rec_time,
+                                                                                clipped))
+        if n == 0:
+            return
+        self.checks.apply(cycle_times, R, p, valid, rec_time, clipped if clipped.any() else None)
         R[~valid] = 0.0
         p[~valid] = 0.0
         self.frames += n
         self.dropped_records += int(np.count_nonzero(~valid))
-        self.out.append(Frames(cycle_times.astype(float), R, p, valid))
+        self.out.append(Frames(cycle_times, R, p, valid))

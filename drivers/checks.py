@@ -15,6 +15,24 @@ from flockcal.drivers.link import FlockSetup
 
 _POSITION_FORMATS = ("position", "position_angles", "position_matrix", "position_quaternion")
 
+# A record read next to lost or garbled bytes (a suspect) is kept only if it continues the bird's motion from
+# its last valid record and also lies on the way to its next trusted record (one not next to lost bytes):
+# line noise can forge a well-formed record whose x alone is wrong by 28 cm, which continues well enough
+# (14 m/s at 50 Hz, under the 20 m/s a limb may reach) but does not return. The way is the straight line
+# between the two neighbours, give or take what an acceleration of MAX_ACCEL_M_S2 bends a path in that time
+# (A/2 · t_before · t_after) plus PATH_NOISE_M; for orientation the detour Q→R→next beyond Q→next, likewise.
+# At 50 Hz with both neighbours one frame away: 2 + 2 cm.
+MAX_ACCEL_M_S2 = 100.0  # 10 g: a fast strike of the arm (a 30 cm swing at 3 Hz peaks at 107 m/s² … only there)
+MAX_ANGULAR_ACCEL = 1000.0  # rad/s²
+PATH_NOISE_M = 0.02  # the tracker's noise far from the transmitter and at speed, with a margin
+PATH_NOISE_RAD = 0.2
+JUMP_NOISE_M, JUMP_NOISE_RAD = 0.03, 0.2  # the continuity test's allowance beyond max speed and turn rate
+CONFIRM_S = 0.25  # a suspect whose bird sends no trusted record this soon after is dropped
+
+
+def _angle(A: np.ndarray, B: np.ndarray) -> float:
+    return float(np.arccos(np.clip((np.trace(A.T @ B) - 1.0) / 2.0, -1.0, 1.0)))
+
 
 class BirdChecks:
     """Per-bird memory (last valid pose and its time, last raw position, hemisphere parity) and the
@@ -38,17 +56,14 @@ class BirdChecks:
         self.saturated_records = 0  # bird-frames whose position was clipped at full scale
         self.last_saturated = -np.inf  # time of the last frame with a clipped position
 
-    def apply(self, cycle_times, R, p, valid, suspect, rec_time, clipped) -> int:
-        """Check one batch of cycles (n, m) in place: invalidates implausible suspect records, unfolds
-        hemisphere flips in `p`, reports clipping (`clipped` None when there is none). Returns the number
-        of records rejected."""
+    def apply(self, cycle_times, R, p, valid, rec_time, clipped) -> None:
+        """Finish one batch of cycles (n, m) whose suspects `decide_suspects` has decided, in place: unfolds
+        hemisphere flips in `p`, reports clipping (`clipped` None when there is none)."""
         if clipped is not None:
             self._report_saturation(cycle_times, clipped)
-        rejected = self._check_suspects(R, p, valid, suspect, rec_time) if suspect.any() else 0
         if self.hemisphere_tracking:
             self._track_hemisphere(p, valid)
         self._remember(R, p, valid, rec_time)
-        return rejected
 
     def _report_saturation(self, cycle_times: np.ndarray, clipped: np.ndarray) -> None:
         """Count clipped positions; one event per burst (clipping after `saturation_quiet` s without)."""
@@ -69,32 +84,69 @@ class BirdChecks:
                                 {"birds": birds, "scale_inches": float(scale)}))
         self.last_saturated = max(self.last_saturated, float(t[-1]))
 
-    def _check_suspects(self, R, p, valid, suspect, rec_time) -> int:
-        """Keep a suspect record only if it continues the bird's motion (a garbled one jumps far away);
-        returns how many were rejected."""
+    def decide_suspects(self, cycle_times, R, p, valid, suspect, rec_time, final: bool) -> tuple[int, int]:
+        """Keep or drop (valid False) each suspect record that can be decided now, in stream order, and clear
+        its `suspect` flag. One whose bird's next trusted record has not arrived, with less than CONFIRM_S of
+        cycles after it, cannot be decided yet (unless `final`: the stream ended). Returns (rows from the start
+        with nothing left undecided, records dropped): the caller holds the rest back for the next batch."""
         rejected = 0
-        for f, b in zip(*np.nonzero(suspect)):  # rare: only records next to lost bytes
+        trusted = valid & ~suspect
+        period = 1.0 / max(self.setup.rate_hz, 1.0)
+        for f, b in zip(*np.nonzero(suspect)):  # rare: only records next to lost bytes; row by row
+            later = np.flatnonzero(trusted[f + 1:, b])
+            g = f + 1 + int(later[0]) if len(later) else None
+            if g is not None and cycle_times[g] - cycle_times[f] > CONFIRM_S:
+                g = None
+            if g is None and not final and cycle_times[-1] - cycle_times[f] <= CONFIRM_S:
+                return int(f), rejected  # wait for the bird's next record
             prev = np.flatnonzero(valid[:f, b])
             if len(prev):
                 q, Q, tq = p[prev[-1], b], R[prev[-1], b], rec_time[prev[-1], b]
             else:
                 q, Q, tq = self.last_pos[b], self.last_rot[b], self.last_time[b]
-            dt = rec_time[f, b] - tq
-            keep = False
-            if np.isfinite(dt) and dt <= 0.5:
-                dt = max(dt, 1.0 / max(self.setup.rate_hz, 1.0))
-                keep = True
-                if np.all(np.isfinite(p[f, b])) and np.all(np.isfinite(q)):
-                    # Mirror-tolerant: a hemisphere crossing flips the reported position.
-                    jump = min(np.linalg.norm(p[f, b] - q), np.linalg.norm(p[f, b] + q))
-                    keep &= jump <= self.max_speed * dt + 0.03
-                if np.all(np.isfinite(R[f, b])) and np.all(np.isfinite(Q)):
-                    cos = (np.trace(Q.T @ R[f, b]) - 1.0) / 2.0
-                    keep &= np.arccos(np.clip(cos, -1.0, 1.0)) <= self.max_turn_rate * dt + 0.2
+            keep = g is not None and self._continues(p[f, b], R[f, b], rec_time[f, b], q, Q, tq, period)
+            if keep:
+                keep = self._on_the_way(p[f, b], R[f, b], rec_time[f, b], q, Q, tq,
+                                        p[g, b], R[g, b], rec_time[g, b], period)
+            suspect[f, b] = False
             if not keep:
                 valid[f, b] = False
                 rejected += 1
-        return rejected
+        return len(cycle_times), rejected
+
+    def _continues(self, x, X, t, q, Q, tq, period: float) -> bool:
+        """The record (x, X at t) is within reach of the bird's last valid one (q, Q at tq)."""
+        dt = t - tq
+        if not (np.isfinite(dt) and dt <= 0.5):
+            return False
+        dt = max(dt, period)
+        if np.all(np.isfinite(x)) and np.all(np.isfinite(q)):
+            # Mirror-tolerant: a hemisphere crossing flips the reported position.
+            jump = min(np.linalg.norm(x - q), np.linalg.norm(x + q))
+            if jump > self.max_speed * dt + JUMP_NOISE_M:
+                return False
+        if np.all(np.isfinite(X)) and np.all(np.isfinite(Q)) and _angle(Q, X) > self.max_turn_rate * dt + JUMP_NOISE_RAD:
+            return False
+        return True
+
+    @staticmethod
+    def _on_the_way(x, X, t, q, Q, tq, r, Rn, tr, period: float) -> bool:
+        """The record lies on the way from the last valid record (q at tq) to the next trusted one (r at tr):
+        a one-record excursion that returns is line noise, not motion."""
+        before, after = max(t - tq, period), max(tr - t, period)
+        if not (np.isfinite(before) and np.all(np.isfinite(q)) and np.all(np.isfinite(x))):
+            return True  # no previous pose to judge by: the continuity test decided
+        # Hemisphere-tolerant: flip the later positions to the side of q.
+        r = r if np.linalg.norm(r - q) <= np.linalg.norm(r + q) else -r
+        x = x if np.linalg.norm(x - q) <= np.linalg.norm(x + q) else -x
+        expected = q + (r - q) * (before / (before + after))
+        if np.linalg.norm(x - expected) > 0.5 * MAX_ACCEL_M_S2 * before * after + PATH_NOISE_M:
+            return False
+        if np.all(np.isfinite(Q)) and np.all(np.isfinite(X)) and np.all(np.isfinite(Rn)):
+            detour = _angle(Q, X) + _angle(X, Rn) - _angle(Q, Rn)
+            if detour > MAX_ANGULAR_ACCEL * before * after + PATH_NOISE_RAD:
+                return False
+        return True
 
     def _track_hemisphere(self, p: np.ndarray, valid: np.ndarray) -> None:
         """Undo hemisphere folding: the bird reports −p once a sensor crosses into the other hemisphere.

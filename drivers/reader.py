@@ -7,6 +7,7 @@ re-initialising the flock), and reports each of these as a `TrackerEvent`.
 
 from __future__ import annotations
 
+import errno
 import logging
 import queue
 import select
@@ -263,6 +264,20 @@ class TrackerReader:
     def _record(self, kind: bytes, port: int, t: float, data: bytes) -> None:
         if (rec := self._recorder) is not None:
             (rec.read if kind == b"R" else rec.wrote)(t, port, data)
+            if rec.error is not None:
+                self._recording_failed(rec)
+
+    def _recording_failed(self, rec: RecordingWriter) -> None:
+        """A write of the recording failed (a full disk): it ended there, whole up to its last flush; say
+        so once, and read on."""
+        with self._recording_lock:
+            if self._recorder is not rec:
+                return
+            self._recorder = None
+        exc = rec.error
+        self._emit("recording_stopped", f"the raw recording {rec.path} stopped: {exc.strerror or exc}; what was "
+                                        "written is kept, and the tracker is still read",
+                   path=str(rec.path), errno=exc.errno, disk_full=exc.errno in (errno.ENOSPC, errno.EDQUOT))
 
     def _deliver(self, asm: FrameAssembler) -> None:
         for kind, message, data in asm.take_events():
@@ -278,6 +293,8 @@ class TrackerReader:
             s["saturated_records"] = self._totals["saturated_records"] + asm.saturated_records
         if (rec := self._recorder) is not None:
             rec.flush()
+            if rec.error is not None:
+                self._recording_failed(rec)
         if len(frames) and self.on_frames is not None:
             try:
                 self.on_frames(frames)

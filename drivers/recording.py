@@ -87,14 +87,25 @@ class RecordingWriter:
             self._fh = open(self._file, "wb")
         except OSError as exc:
             raise RecordingError(f"cannot create the recording {self.path}: {exc.strerror} — check the folder exists and is writable") from None
-        self._fh.write(MAGIC + _U32.pack(len(text)) + text + _U32.pack(zlib.crc32(text)))
-        self._fh.flush()
+        try:
+            self._fh.write(MAGIC + _U32.pack(len(text)) + text + _U32.pack(zlib.crc32(text)))
+            self._fh.flush()
+        except OSError as exc:
+            try:
+                self._fh.close()
+            except OSError:
+                pass
+            self._file.unlink(missing_ok=True)
+            raise RecordingError(f"cannot write the recording {self.path}: {exc.strerror}") from None
         self._buf = bytearray()
         self._lock = threading.Lock()
         self._last_flush = time.monotonic()
         self.bytes_read = 0
         self.chunks = 0
         self.closed = False
+        # A write that failed (a full disk): the recording ended there, whole up to its last flush (each
+        # chunk has its CRC, so a cut one is skipped when read); the tracker is read on regardless.
+        self.error: OSError | None = None
 
     def _append(self, kind: bytes, port: int, t: float, payload: bytes) -> None:
         head = _CHUNK.pack(SYNC, kind, bytes((port,)), t, len(payload))
@@ -126,10 +137,18 @@ class RecordingWriter:
         self._append(MARK, 0, t, json.dumps(info, sort_keys=True, default=str).encode("utf-8"))
 
     def _flush_locked(self, now: float) -> None:
-        if self._buf:
-            self._fh.write(self._buf)
+        try:
+            if self._buf:
+                self._fh.write(self._buf)
+                self._buf.clear()
+            self._fh.flush()
+        except OSError as exc:
             self._buf.clear()
-        self._fh.flush()
+            self.error, self.closed = exc, True
+            try:
+                self._fh.close()  # its buffer cannot be written either; close() may say so again
+            except OSError:
+                pass
         self._last_flush = now
 
     def flush(self) -> None:
@@ -151,15 +170,23 @@ class RecordingWriter:
                 return
             self.closed = True
             if self.pending:  # never committed: nothing worth keeping
-                self._fh.close()
+                try:
+                    self._fh.close()
+                except OSError:
+                    pass
                 self._file.unlink(missing_ok=True)
                 return
             self._flush_locked(time.monotonic())
+            if self.error is not None:  # the flush failed and closed the file
+                return
             try:
                 os.fsync(self._fh.fileno())
             except OSError:
                 pass
-            self._fh.close()
+            try:
+                self._fh.close()
+            except OSError as exc:
+                self.error = exc
 
     def __enter__(self) -> "RecordingWriter":
         return self

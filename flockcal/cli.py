@@ -71,7 +71,7 @@ def main(argv: list[str] | None = None) -> int:
         return int(args.func(args) or 0)
     except FlockcalError as exc:
         print(f"flockcal {args.command}: error: {exc}", file=sys.stderr)
-        return 2
+        return int(getattr(exc, "exit_code", 2))
     except KeyboardInterrupt:
         return 130
     except BrokenPipeError:

@@ -6,7 +6,10 @@ the command line prints any of them as one line and exits non-zero, without a tr
 
 
 class FlockcalError(Exception):
-    """A problem a person can act on; the message names the thing and the fix."""
+    """A problem a person can act on; the message names the thing and the fix. `exit_code` is what the
+    command line exits with when it reports one (2 unless a type says otherwise)."""
+
+    exit_code = 2
 
 
 class UserError(FlockcalError):

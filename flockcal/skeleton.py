@@ -27,6 +27,10 @@ class SkeletonError(FlockcalError, ValueError):
     """A skeleton file that is unreadable, malformed, or made for other sensors."""
 
 
+class SkeletonRangeError(SkeletonError):
+    """A number in a skeleton file that is not finite or not a body's size (the API answers 422)."""
+
+
 @dataclass(frozen=True)
 class Skeleton:
     """A validated skeleton file: the saved tree, ready to fit a new take of the same performer."""
@@ -68,16 +72,33 @@ class Skeleton:
             raise SkeletonError(f"skeleton does not match the take: {exc}") from None
 
 
+# A body is metres: a joint this far from its sensor, or a bone this long, is a damaged or hostile file
+# (a centre of [1e200, 0, 0] overflowed the fit into a 500 and kept the service from starting).
+MAX_BODY_M = 10.0
+
+
 def _vec3(value, where: str) -> list[float]:
     if not isinstance(value, (list, tuple)) or len(value) != 3:
         raise SkeletonError(f"{where} must be a list of 3 numbers")
     try:
         out = [float(x) for x in value]
-    except (TypeError, ValueError):
+    except (TypeError, ValueError, OverflowError):
         raise SkeletonError(f"{where} must be a list of 3 numbers") from None
     if not all(math.isfinite(x) for x in out):
-        raise SkeletonError(f"{where} holds a non-finite number")
+        raise SkeletonRangeError(f"{where} holds a non-finite number")
+    if math.hypot(*out) > MAX_BODY_M:
+        raise SkeletonRangeError(f"{where} is {math.hypot(*out):.3g} m from its sensor; a joint lies within "
+                            f"{MAX_BODY_M:g} m of it (a body is metres): the file is damaged — re-export it")
     return out
+
+
+def _length(value, where: str) -> None:
+    """A bone's stated length or standard error: absent, null, or metres within MAX_BODY_M."""
+    if value is None:
+        return
+    if isinstance(value, bool) or not isinstance(value, (int, float)) or not math.isfinite(float(value)) \
+            or not 0 <= float(value) <= MAX_BODY_M:
+        raise SkeletonRangeError(f"{where} must be a length from 0 to {MAX_BODY_M:g} m, got {str(value)[:40]}")
 
 
 def check_skeleton_data(data, origin: str = "skeleton") -> dict:
@@ -115,6 +136,11 @@ def check_skeleton_data(data, origin: str = "skeleton") -> dict:
             raise SkeletonError(f"{origin}: joints[{k}] needs 'child' and 'parent'")
         joint["c"] = _vec3(joint.get("c"), f"{origin}: joints[{k}].c")
         joint["l"] = _vec3(joint.get("l"), f"{origin}: joints[{k}].l")
+    for k, bone in enumerate(data["bones"]):
+        if not isinstance(bone, dict) or not isinstance(bone.get("to_joint"), str):
+            raise SkeletonError(f"{origin}: bones[{k}] needs 'to_joint' (and 'from_joint', 'length_m')")
+        _length(bone.get("length_m"), f"{origin}: bones[{k}].length_m")
+        _length(bone.get("stderr_m"), f"{origin}: bones[{k}].stderr_m")
     return data
 
 

@@ -181,7 +181,7 @@ def create_app(settings: Settings, service=None) -> FastAPI:
     app.state.settings = settings
     app.state.token_backoff = TokenBackoff()
     app.state.ws_slots = ClientSlots(settings.ws_max_clients)
-    app.state.download_slots = DownloadSlots(settings.max_downloads)
+    app.state.download_slots = DownloadSlots(settings.max_downloads, settings.download_stall_s)
 
     @app.exception_handler(ServerError)
     async def _server_error(request: Request, exc: ServerError):

@@ -7,8 +7,9 @@ outputs equal what flockcal.takes / flockcal.exports make of the whole take load
 
 from __future__ import annotations
 
+import asyncio
 import io
-import json
+import logging
 import os
 import threading
 import zipfile
@@ -16,9 +17,14 @@ from pathlib import Path
 from typing import Iterator
 
 import numpy as np
+from starlette.responses import StreamingResponse
+
+from flockcal.server.wsgate import abort
 
 from flockcal.server.errors import Unavailable
-from flockcal.server.framelog import MAGIC, record_dtype
+from flockcal.server.framelog import parse_header, record_dtype, sanitize, time_span
+
+log = logging.getLogger(__name__)
 
 CHUNK_BYTES = 1024 * 1024  # frames read per step; per download the service holds a few of these
 OUT_BYTES = 256 * 1024  # bytes handed to the connection at a time
@@ -32,21 +38,20 @@ class FrameFile:
         with open(self.path, "rb") as fh:
             line = fh.readline()
             self.offset = fh.tell()
-        try:
-            header = json.loads(line)
-        except ValueError:
-            raise ValueError(f"{self.path.name}: not a flockcal frame log (bad header)") from None
-        if not isinstance(header, dict) or header.get("format") != MAGIC:
-            raise ValueError(f"{self.path.name}: not a flockcal frame log")
+        header = parse_header(line, self.path.name)  # FrameLogError (a ValueError) when cut or damaged
         self.names: list[str] = list(header["names"])
         self.m = len(self.names)
         self.dtype = record_dtype(self.m)
         self.n = (os.path.getsize(self.path) - self.offset) // self.dtype.itemsize
         self.chunk = max(1, CHUNK_BYTES // self.dtype.itemsize)
-        self.t0 = float(self.records(0, 1)["time"][0]) if self.n else 0.0
+        # Damaged records become frames with no valid sensor (server/framelog.py: sanitize), chunk by chunk
+        # exactly as read_frames does for the whole log.
+        self.span = time_span(self.records(0, min(self.n, 100))["time"],
+                              self.records(max(self.n - 100, 0), min(self.n, 100))["time"])
+        self.t0 = float(sanitize(self.records(0, 1), self.span, -np.inf)[0][0]) if self.n else 0.0
         rate = header.get("rate_hz")
         if not rate:  # as SessionManager.take: the mean rate of the arrivals
-            span = float(self.records(self.n - 1, 1)["time"][0]) - self.t0 if self.n > 1 else 0.0
+            span = float(sanitize(self.records(self.n - 1, 1), self.span, self.t0)[0][0]) - self.t0 if self.n > 1 else 0.0
             rate = (self.n - 1) / span if span > 0 else 1.0
         self.rate_hz = float(rate)
 
@@ -59,6 +64,7 @@ class FrameFile:
         """(times from the first frame, rotations, positions, valid) per chunk of `size` frames (default
         CHUNK_BYTES' worth), as a Take holds them: invalid sensor-frames zeroed (flockcal.takes.make_take)."""
         size = size or self.chunk
+        last = -np.inf
         with open(self.path, "rb") as fh:
             fh.seek(self.offset)
             left = self.n
@@ -67,28 +73,33 @@ class FrameFile:
                 if not len(rec):
                     return
                 left -= len(rec)
-                valid = rec["valid"].astype(bool)
-                R, t = rec["rot"], rec["pos"]
-                if not valid.all():
-                    R = np.where(valid[..., None, None], R, 0.0)
-                    t = np.where(valid[..., None], t, 0.0)
-                yield rec["time"] - self.t0, R, t, valid
+                times, R, t, valid, last = sanitize(rec, self.span, last)
+                yield times - self.t0, R, t, valid
+
+
+DOWNLOAD_STALL_S = 30.0  # a download whose client takes no data for this long is cut off, its slot freed
+SLOT_RETRY_AFTER_S = 10  # what a client refused a slot is told to wait
 
 
 class DownloadSlots:
     """At most `limit` downloads built at once (each holds a few chunks and a thread while it runs):
-    one more gets 503 with the number running, instead of memory and CPU growing with the clients."""
+    one more gets 503 (with Retry-After) and the number running, instead of memory and CPU growing with the
+    clients. A client that stops reading gives its slot up after `stall_s` (`SlottedResponse`)."""
 
-    def __init__(self, limit: int = 8):
+    def __init__(self, limit: int = 8, stall_s: float = DOWNLOAD_STALL_S):
         self.limit = limit
+        self.stall_s = float(stall_s)
         self.running = 0
+        self.stalled = 0  # downloads cut off because their client took no data for stall_s
         self._lock = threading.Lock()
 
     def acquire(self) -> None:
         with self._lock:
             if self.running >= self.limit:
                 raise Unavailable(f"{self.running} downloads are being built already (the service builds at most "
-                                  f"{self.limit} at once); try again when one has finished")
+                                  f"{self.limit} at once, and frees the slot of a client that reads nothing for "
+                                  f"{self.stall_s:g} s); try again when one has finished",
+                                  retry_after=SLOT_RETRY_AFTER_S)
             self.running += 1
 
     def release(self) -> None:
@@ -128,6 +139,37 @@ class Slotted:
 
     def __del__(self):
         self.close()
+
+
+class SlottedResponse(StreamingResponse):
+    """A download in a slot: each piece must be taken by the client within the slots' `stall_s`, or the
+    connection is reset and the slot freed (a client that requested a take and stopped reading held its
+    slot for good, and eight such held every slot)."""
+
+    def __init__(self, content: Slotted, slots: DownloadSlots, **kw):
+        super().__init__(content, **kw)
+        self.slotted = content
+        self.slots = slots
+        self._scope = None
+
+    async def __call__(self, scope, receive, send) -> None:
+        self._scope = scope
+        await super().__call__(scope, receive, send)
+
+    async def stream_response(self, send) -> None:
+        await send({"type": "http.response.start", "status": self.status_code, "headers": self.raw_headers})
+        async for chunk in self.body_iterator:
+            try:
+                async with asyncio.timeout(self.slots.stall_s):
+                    await send({"type": "http.response.body", "body": chunk, "more_body": True})
+            except TimeoutError:
+                self.slots.stalled += 1
+                log.warning("a download's client took no data for %g s: connection reset, slot freed",
+                            self.slots.stall_s)
+                self.slotted.close()  # frees the slot now (the stream is idle: this task holds it)
+                abort(self._scope or {})
+                return
+        await send({"type": "http.response.body", "body": b"", "more_body": False})
 
 
 # --- .npz take ------------------------------------------------------------------------------------------

@@ -63,8 +63,31 @@ class Gone(ServerError):
 
 
 class Unavailable(ServerError):
+    """503; `retry_after` (seconds) becomes the reply's Retry-After header: every 503 says when to try again."""
+
     status = 503
     code = "unavailable"
+
+    def __init__(self, message: str, retry_after: int = 5, **kw):
+        super().__init__(message, **kw)
+        self.retry_after = int(retry_after)
+
+
+class InsufficientStorage(ServerError):
+    """507: no room on the disk for what the request would write (a session's recording, a database row)."""
+
+    status = 507
+    code = "insufficient_storage"
+
+
+class DatabaseDamaged(Unavailable):
+    """The service's database (or a row in it) is damaged: 503 for the calls that touch it, and at start
+    `flockcal serve` refuses with its own exit status (the kiosk unit does not restart it)."""
+
+    code = "database_damaged"
+
+    def __init__(self, message: str, retry_after: int = 60):
+        super().__init__(message, retry_after=retry_after)
 
 
 class TooManyAttempts(ServerError):

@@ -37,6 +37,7 @@ class LiveSession:
     tracker: ProgressTracker | None = None  # the session's progress, made on install
     progress: dict | None = None  # its newest document (server/progress.py); None before the first fit
     slip_epoch: int = 0  # slips applied to the accumulator so far: fits carry the epoch they were begun in
+    log_failed: bool = False  # the frame log's write failure was reported (the log ended there)
     profile: Profile | None = None  # how it decides it is calibrated (server/progress.py); None: the pipeline's stage
 
     def summary(self) -> dict:

@@ -18,7 +18,8 @@ Name = str  # validated against NAME_PATTERN where it enters
 
 
 class Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", str_strip_whitespace=True)
+    # strict: a number sent as a string ("0.01") or a boolean is a 422, never converted (an int is a number).
+    model_config = ConfigDict(extra="forbid", str_strip_whitespace=True, strict=True)
 
 
 class Open(BaseModel):
@@ -219,6 +220,11 @@ class Status(Open):
                                                      "sessions pruned and pinned (server/retention.py)")
     process: dict | None = Field(None, description="the service's memory: rss_mb, python_blocks (Python's live "
                                                    "allocations), threads (server/memory.py)")
+    disk: dict | None = Field(None, description="the data directory's disk: full (no room to record: below "
+                                               "--min-free-mb, or a write failed), free_bytes, reserve_bytes, "
+                                               "since, message (server/limits.py)")
+    connections: dict | None = Field(None, description="cap, request_deadline_s, http_open and the connections "
+                                                       "timed_out, evicted and shed (server/connections.py)")
 
 
 class ResidualSeries(BaseModel):

@@ -1,31 +1,46 @@
 """The live session to disk: events into the store (and the ring of recent ones the snapshots show),
 residual rows and frame counts into SQLite once a second, the frame log every `flush_s`.
 Pipeline thread only; the store serialises its own writes.
+
+When the database cannot be written (a full disk, a damaged file) nothing here raises: events are held in
+memory with the ids they will be stored under (the websocket shows them meanwhile), residual rows wait in
+the session, and `flush_held` stores them once it can.
 """
 
 from __future__ import annotations
 
+import logging
 import time
 from collections import deque
+from typing import Callable
 
+from flockcal.server.errors import InsufficientStorage, ServerError
 from flockcal.server.live_session import LiveSession
 from flockcal.server.store import Store
 
+log = logging.getLogger(__name__)
+
 RECENT_EVENTS = 200
 DB_FLUSH_S = 1.0
+MAX_HELD_EVENTS = 10_000  # events kept in memory while the database cannot take them (oldest go first)
+MAX_HELD_RESIDUALS = 72_000  # residual rows likewise: an hour at 20 a second
 
 
 class Persistence:
-    """Writes the live session out; owns the recent events and the time of the last database flush."""
+    """Writes the live session out; owns the recent events and the time of the last database flush.
+    `on_storage_failed(exc)` hears of a write that failed for want of room."""
 
-    def __init__(self, store: Store):
+    def __init__(self, store: Store, on_storage_failed: Callable[[Exception], None] | None = None):
         self.store = store
+        self.on_storage_failed = on_storage_failed
         self.recent: deque[dict] = deque(maxlen=RECENT_EVENTS)
+        self.held_events: list[dict] = []  # shown with their ids, not yet in the database
+        self._last_id: int | None = None
         self._last_db_flush = 0.0
 
     def add_events(self, events: list[dict], live: LiveSession | None, session_time: float | None) -> None:
-        """Store events (slip, session, tracker); those without a session belong to the live one, at
-        `session_time` unless they carry their own."""
+        """Store events (slip, session, tracker, service); those without a session belong to the live one,
+        at `session_time` unless they carry their own."""
         rows = []
         for ev in events:
             ev = dict(ev)
@@ -35,10 +50,52 @@ class Persistence:
                 if "time_s" not in ev:
                     ev["time_s"] = session_time if session_time is not None else 0.0
             rows.append(ev)
-        ids = self.store.add_events(rows)
+        ids = None
+        if not self.held_events:  # otherwise they wait behind the held ones, in order
+            try:
+                ids = self.store.add_events(rows)
+            except ServerError as exc:
+                self._failed(exc, "events")
+        if ids is None:
+            ids = self._hold(rows)
         for ev, i in zip(rows, ids):
             ev["id"] = i
+            self._last_id = i
             self.recent.append(ev)
+
+    def _hold(self, rows: list[dict]) -> list[int]:
+        if self._last_id is None:
+            try:
+                self._last_id = self.store.last_event_id()
+            except ServerError:
+                self._last_id = 0
+        ids = list(range(self._last_id + 1, self._last_id + 1 + len(rows)))
+        for ev, i in zip(rows, ids):
+            self.held_events.append({**ev, "id": i})
+        if len(self.held_events) > MAX_HELD_EVENTS:
+            dropped = len(self.held_events) - MAX_HELD_EVENTS
+            del self.held_events[:dropped]
+            log.warning("%d events held in memory for the database were dropped (at most %d are held)",
+                        dropped, MAX_HELD_EVENTS)
+        return ids
+
+    def flush_held(self) -> bool:
+        """Store the events held in memory; True when none are left."""
+        if not self.held_events:
+            return True
+        try:
+            self.store.add_events(self.held_events)
+        except ServerError:
+            return False
+        log.warning("%d events held in memory while the database could not be written are stored now",
+                    len(self.held_events))
+        self.held_events = []
+        return True
+
+    def _failed(self, exc: ServerError, what: str) -> None:
+        log.warning("could not store the live session's %s: %s", what, exc)
+        if isinstance(exc, InsufficientStorage) and self.on_storage_failed is not None:
+            self.on_storage_failed(exc)
 
     def tick(self, live: LiveSession, now: float) -> None:
         """Flush what is due: the frame log every flush_s, the database once a second."""
@@ -49,11 +106,24 @@ class Persistence:
 
     def flush_db(self, live: LiveSession) -> None:
         rows, live.residual_rows = live.residual_rows, []
-        self.store.add_residuals(live.id, rows)
-        self.store.update_session(live.id, frames=live.frames)
         self._last_db_flush = time.monotonic()
+        try:
+            self.store.add_residuals(live.id, rows)
+        except ServerError as exc:
+            live.residual_rows = (rows + live.residual_rows)[-MAX_HELD_RESIDUALS:]  # tried again next time
+            self._failed(exc, "residuals")
+            return
+        try:
+            self.store.update_session(live.id, frames=live.frames)
+        except ServerError as exc:  # the count is written again next second, and at the stop
+            self._failed(exc, "frame count")
 
     def slip_events(self, live: LiveSession, fields: tuple[str, ...]) -> list[dict]:
-        """The session's stored slip events, with the fields a result carries."""
-        return [{k: e[k] for k in fields if k in e}
-                for e in self.store.events(live.id, limit=100_000) if e["type"] == "slip"]
+        """The session's slip events (stored, and any held in memory), with the fields a result carries."""
+        try:
+            stored = self.store.events(live.id, limit=100_000)
+        except ServerError:
+            stored = []
+        seen = {e["id"] for e in stored}
+        held = [e for e in self.held_events if e.get("session_id") == live.id and e["id"] not in seen]
+        return [{k: e[k] for k in fields if k in e} for e in stored + held if e["type"] == "slip"]

@@ -107,7 +107,7 @@ class Pipeline:
         # The parts, and the state below, belong to the pipeline thread.
         self.ingest = Ingest(self.m)
         self.sampler = ResidualSampler(self.names, 1.0 / residual_hz)
-        self.persistence = Persistence(store)
+        self.persistence = Persistence(store, on_storage_failed=self._storage_failed)
         self.fitter = FitWorker(self.names, self.tolerance, on_done=self._wake)
         self.snapshots = SnapshotMaker(self.names, source_status, self.target)
         self.live: LiveSession | None = None
@@ -272,11 +272,23 @@ class Pipeline:
                     self.live.framelog.flush()
                 return
 
+    def _storage_failed(self, why) -> None:
+        """A write failed for want of room (the database, the frame log, the raw recording): the disk is
+        full, and the live session stops recording (server/limits.py)."""
+        if self.limits is None:
+            return
+        live = self.live
+        self.limits.storage_failed(str(why), live.id if live is not None else None,
+                                   self.ingest.session_time(live) if live is not None else None)
+
     def _process_frames(self, batches: list[Frames]) -> None:
         live = self.live
         frames = self.ingest.take(batches, live)
         if frames is None:
             return
+        if live.framelog.error is not None and not live.log_failed:
+            live.log_failed = True  # the log ended at its last whole record; the live fit goes on
+            self._storage_failed(f"{live.framelog.path.name}: {live.framelog.error.strerror or live.framelog.error}")
         if self.limits is not None:  # session length, free disk (server/limits.py)
             self.limits.check(live.id, float(frames[0][-1]))
         if live.watch is not None:
@@ -306,10 +318,15 @@ class Pipeline:
         live = self.live
         time_s = self.ingest.session_time(live) if live is not None and live.t0 is not None else None
         self.persistence.add_events(events, live, time_s)
+        for ev in events:  # the reader's raw recording ran out of room
+            if ev.get("kind") == "recording_stopped" and (ev.get("data") or {}).get("disk_full"):
+                self._storage_failed(ev.get("message") or "the raw recording")
 
     def _publish(self) -> None:
         live = self.live
         now = time.monotonic()
+        if self.limits is not None:
+            self.limits.tick()  # the disk, once a second (full, or room again)
         if live is not None:
             self.persistence.tick(live, now)
             self._take_fit(live)

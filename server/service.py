@@ -6,6 +6,7 @@ tracker reader; `stop()` closes any live session cleanly. FastAPI reads it from 
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import logging
 import os
@@ -28,7 +29,11 @@ log = logging.getLogger(__name__)
 
 def _lock_data_dir(data: Path) -> int:
     """One service per data directory: two writing the same sessions would corrupt each other's state."""
-    fd = os.open(data / "service.lock", os.O_RDWR | os.O_CREAT, 0o644)
+    path = data / "service.lock"
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+    except OSError as exc:
+        raise ConfigError(f"cannot create {path}: {exc.strerror}; {_room_hint(exc, data)}") from None
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except BlockingIOError:
@@ -36,9 +41,19 @@ def _lock_data_dir(data: Path) -> int:
         os.close(fd)
         raise ConfigError(f"another flockcal serve (pid {other}) uses the data directory {data}; "
                           "stop it or give --data-dir") from None
-    os.ftruncate(fd, 0)
-    os.write(fd, str(os.getpid()).encode())
+    try:
+        os.ftruncate(fd, 0)
+        os.write(fd, str(os.getpid()).encode())
+    except OSError as exc:
+        os.close(fd)
+        raise ConfigError(f"cannot write {path}: {exc.strerror}; {_room_hint(exc, data)}") from None
     return fd
+
+
+def _room_hint(exc: OSError, data: Path) -> str:
+    if exc.errno in (errno.ENOSPC, errno.EDQUOT):
+        return f"the disk holding {data} is full: make room there (or give --data-dir on another disk) and start again"
+    return "check the folder's permissions, or give another --data-dir"
 
 
 class Service:
@@ -48,7 +63,11 @@ class Service:
         data.mkdir(parents=True, exist_ok=True)
         self.data_dir = data
         self._lock_fd = _lock_data_dir(data)
-        self.store = Store(data / "flockcal.sqlite3")
+        try:
+            self.store = Store(data / "flockcal.sqlite3")  # damaged: DatabaseDamaged; full disk: InsufficientStorage
+        except BaseException:
+            os.close(self._lock_fd)
+            raise
         self.source = source if source is not None else TrackerSource(settings)
         self.interrupted = self.store.mark_interrupted()
         if self.interrupted:
@@ -74,7 +93,10 @@ class Service:
         # The session length and free-disk limits the pipeline checks while recording.
         self.limits = SessionLimits(data / "recordings", settings.max_session_s, settings.min_free_bytes,
                                     stop=self.sessions.stop, add_event=self.pipeline.add_event,
-                                    set_note=lambda sid, note: self.store.update_session(sid, note=note))
+                                    set_note=lambda sid, note: self.sessions.update_row(sid, note=note),
+                                    # pipeline thread (limits.tick): what was held while the disk was full
+                                    flush_held=lambda: (self.pipeline.persistence.flush_held()
+                                                        and self.sessions.flush_held_rows()))
         self.pipeline.limits = self.limits
         # Sessions started with a lease end when their client (the kiosk page) stops renewing it.
         self.leases = SessionLeases(stop=self.sessions.stop, add_event=self.pipeline.add_event,
@@ -106,6 +128,8 @@ class Service:
         st.setdefault("birds", self.settings.birds)
         st["device"] = self.settings.device_url
         st["simulator"] = self.simulator is not None
+        limits = getattr(self, "limits", None)  # the pipeline's first snapshot comes before the limits exist
+        st["disk"] = limits.disk_status() if limits is not None else None
         return st
 
     @property
@@ -133,5 +157,9 @@ class Service:
             self.source.stop()
         finally:
             self.pipeline.stop()
+            # What a full disk kept in memory, if there is room now; else the live session comes back
+            # interrupted at the next start, its recording kept.
+            if not (self.pipeline.persistence.flush_held() and self.sessions.flush_held_rows()):
+                log.warning("the database could not take what was held in memory while the disk was full")
             self.store.close()
             os.close(self._lock_fd)

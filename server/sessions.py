@@ -14,7 +14,7 @@ from pathlib import Path
 from typing import Callable
 
 from flockcal.errors import FlockcalError
-from flockcal.server.errors import BadRequest, Conflict, NotFound
+from flockcal.server.errors import BadRequest, Conflict, InsufficientStorage, NotFound, Unavailable
 from flockcal.server.framelog import FrameLog, read_frames
 from flockcal.server.fitting import SLIP_FIELDS, json_safe
 from flockcal.server.live_session import LiveSession
@@ -48,6 +48,9 @@ class SessionManager:
         self.retention = None  # server.retention.Retention: pins, pruned files (410) and the wake after a stop
         self.leases = None  # server.lease.SessionLeases: sessions that end when their client stops renewing
         self._lock = threading.Lock()  # one start/stop at a time
+        # Row updates the database could not take (a full disk): shown from memory, stored once it can.
+        self._held_rows: dict[str, dict] = {}
+        self._held_lock = threading.Lock()
 
     @property
     def names(self) -> tuple[str, ...]:
@@ -138,12 +141,25 @@ class SessionManager:
                 "created_at": time.time(), "frames": 0, "recording": self.frames_path(sid).name,
                 "profile": prof.name,
             }
-            framelog = FrameLog(self.frames_path(sid), list(self.names), rate)
-            if skeleton is not None:
-                import json
+            try:
+                framelog = FrameLog(self.frames_path(sid), list(self.names), rate)
+            except OSError as exc:
+                raise InsufficientStorage(f"cannot create the session's recording {self.frames_path(sid)}: "
+                                          f"{exc.strerror}; make room on that disk (DELETE old sessions)") from None
+            try:
+                if skeleton is not None:
+                    import json
 
-                self.skeleton_path(sid).write_text(json.dumps(dict(skeleton.data, preset=skeleton_name)))
-            self.store.insert_session(row)
+                    self.skeleton_path(sid).write_text(json.dumps(dict(skeleton.data, preset=skeleton_name)))
+                self.store.insert_session(row)
+            except BaseException as exc:  # a full disk: nothing of the session is left behind
+                framelog.close()
+                self.frames_path(sid).unlink(missing_ok=True)
+                self.skeleton_path(sid).unlink(missing_ok=True)
+                if isinstance(exc, OSError):
+                    raise InsufficientStorage(f"cannot start a session: {exc.strerror} ({exc.filename}); make room "
+                                              "on that disk (DELETE old sessions)") from None
+                raise
             if self.raw_recorder is not None:
                 try:
                     self.raw_recorder.start_recording(self.raw_path(sid))
@@ -186,10 +202,12 @@ class SessionManager:
                 except FlockcalError as exc:
                     log.warning("raw recording did not close cleanly: %s", exc)
             live, result, error = self.pipeline.end_session()
-            self.store.update_session(
-                session_id, state="stopped", stopped_at=time.time(), frames=live.frames, result=result,
-                note=None if result else f"no result: {error}", progress=live.progress if result else None,
-            )
+            note = None if result else f"no result: {error}"
+            if live.framelog.error is not None:
+                note = (f"recording stopped early ({live.framelog.error.strerror or live.framelog.error}): "
+                        f"{live.framelog.path.name} holds the frames written until then" + (f"; {note}" if note else ""))
+            self.update_row(session_id, state="stopped", stopped_at=time.time(), frames=live.frames, result=result,
+                            note=note, progress=live.progress if result else None)
             self.pipeline.add_event({"type": "session", "session_id": session_id, "action": "stopped",
                                      "time_s": None, "message": f"session {session_id} stopped after {live.frames} frames"})
             if self.retention is not None:
@@ -201,11 +219,63 @@ class SessionManager:
             row = self._row(session_id)
             if row["state"] == "live" and self.live_id() == session_id:
                 raise Conflict(f"session {session_id} is live; stop it before deleting it")
-            self.store.delete_session(session_id)
-            for p in (self.frames_path(session_id), self.raw_path(session_id), self.skeleton_path(session_id)):
+            files = (self.frames_path(session_id), self.raw_path(session_id), self.skeleton_path(session_id))
+            try:
+                self.store.delete_session(session_id)
+            except InsufficientStorage:
+                # The database needs room to delete rows too: the session's files are what makes it.
+                for p in files:
+                    p.unlink(missing_ok=True)
+                try:
+                    self.store.delete_session(session_id)
+                except InsufficientStorage as exc:
+                    raise InsufficientStorage(f"session {session_id}'s recordings were removed, but its rows could "
+                                              f"not be: {exc}; DELETE it again once there is room") from None
+            for p in files:
                 p.unlink(missing_ok=True)
+            with self._held_lock:
+                self._held_rows.pop(session_id, None)
             if self.retention is not None:
                 self.retention.forget(session_id)
+
+    # --- rows the database could not take ------------------------------------------------------------
+    def update_row(self, session_id: str, **fields) -> None:
+        """Update the session's row; on a full disk the update is held in memory (readers see it) and
+        stored by `flush_held_rows` once the database can take it."""
+        with self._held_lock:
+            fields = {**self._held_rows.pop(session_id, {}), **fields}
+            try:
+                self.store.update_session(session_id, **fields)
+            except (InsufficientStorage, Unavailable) as exc:
+                self._held_rows[session_id] = fields
+                log.warning("session %s's row is held in memory: %s", session_id, exc)
+
+    def flush_held_rows(self) -> bool:
+        """Store the held row updates; True when none are left."""
+        with self._held_lock:
+            for sid in list(self._held_rows):
+                try:
+                    self.store.update_session(sid, **self._held_rows[sid])
+                except (InsufficientStorage, Unavailable):
+                    return False
+                del self._held_rows[sid]
+            return True
+
+    def _held(self, session_id: str) -> dict:
+        with self._held_lock:
+            return dict(self._held_rows.get(session_id, {}))
+
+    def _overlay(self, row: dict) -> dict:
+        """A stored row as it is meant to be: with any update the database has not taken yet."""
+        held = self._held(row["id"])
+        if not held:
+            return row
+        row.update({k: held[k] for k in ("state", "stopped_at", "frames", "note") if k in held})
+        if "result" in held:
+            row["has_result"] = held["result"] is not None
+        if held.get("progress"):
+            row["progress"], row["done"] = held["progress"]["progress"], held["progress"]["done"]
+        return row
 
     def resolve(self, session_id: str) -> dict:
         """Re-fit a stopped or interrupted session from its frame log (same hierarchy and root)."""
@@ -232,8 +302,8 @@ class SessionManager:
                 result = json_safe(solve_take(take, events, row["hierarchy"], row["root"], skeleton,
                                             tolerance=prof.tolerance_m).to_dict())
                 result["slip_events"] = [{k: e[k] for k in SLIP_FIELDS if k in e} for e in slips]
-            except FlockcalError as exc:
-                raise Conflict(f"session {session_id} could not be solved: {exc}") from None
+            except (FlockcalError, ValueError, ArithmeticError) as exc:  # LinAlgError is a ValueError
+                raise Conflict(f"session {session_id} could not be solved from its recording: {exc}") from None
             state = "stopped" if row["state"] == "interrupted" else row["state"]
             # A re-solve is one fit of the whole recording: its progress has no session history to keep.
             progress = progress_of(result, prof.target_m, prof.tolerance_m)
@@ -246,7 +316,7 @@ class SessionManager:
         row = self.store.session(session_id)
         if row is None:
             raise NotFound(f"no session {session_id!r}; GET /api/sessions lists them")
-        return row
+        return self._overlay(row)
 
     def get(self, session_id: str) -> dict:
         row = self._row(session_id)
@@ -287,7 +357,7 @@ class SessionManager:
 
     def list(self) -> list[dict]:
         snap = self.pipeline.snapshot
-        rows = self.store.sessions()
+        rows = [self._overlay(r) for r in self.store.sessions()]
         for row in rows:
             row["has_recording"] = self.frames_path(row["id"]).exists()
             row["has_raw_recording"] = self.raw_path(row["id"]).exists()
@@ -313,7 +383,8 @@ class SessionManager:
             slips = [{k: e[k] for k in SLIP_FIELDS if k in e}
                      for e in self.store.events(session_id, limit=None) if e["type"] == "slip"]
             return ({**snap.fit, "slip_events": slips} if slips else snap.fit), True
-        result = self.store.result(session_id)
+        held = self._held(session_id)
+        result = held["result"] if held.get("result") is not None else self.store.result(session_id)
         if result is None:
             hint = " — POST /api/sessions/{0}/resolve re-solves it from its recording".format(session_id) \
                 if row["state"] == "interrupted" else ""
@@ -330,7 +401,7 @@ class SessionManager:
             head.update(live=True, time_s=snap.session["time_s"], fit_seq=snap.fit_seq if snap.fit else None,
                         frames=snap.session["frames"])
             return {**head, **snap.progress}
-        doc = self.store.progress(session_id)
+        doc = self._held(session_id).get("progress") or self.store.progress(session_id)
         if doc is None:
             result = self.store.result(session_id)
             if result is None:
@@ -371,7 +442,11 @@ class SessionManager:
         if not path.exists():
             self._check_pruned(session_id, "recording (frames)")
             raise NotFound(f"session {session_id} has no recording on disk")
-        data = read_frames(path)
+        try:
+            data = read_frames(path)  # damaged records come back as frames with no valid sensor
+        except (ValueError, OSError) as exc:
+            raise Conflict(f"session {session_id}'s recording {path.name} cannot be read ({exc}); its result "
+                           "and events are unaffected") from None
         n = len(data["times"])
         if n == 0:
             raise Conflict(f"session {session_id}'s recording holds no frames yet")

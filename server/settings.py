@@ -87,6 +87,8 @@ class Settings:
     max_session_s: float | None = 7200.0  # a live session is stopped at this length (server/limits.py); None: never
     min_free_bytes: int = 500 * 2**20  # recording stops before the recordings' disk has less than this free
     max_downloads: int = 8  # take/bvh downloads built at once (server/downloads.py); one more gets 503
+    download_stall_s: float = 30.0  # a download whose client takes no data this long is cut off, its slot freed
+    request_deadline_s: float = 10.0  # a request must arrive whole this soon, or its connection is closed
     keep_days: float | None = None  # retention (server/retention.py): recordings of the last N days; None: all
     keep_disk_gb: float | None = None  # ...and/or a data directory under this many GB; None: no budget
     retention_interval_s: float = 60.0  # how often the pruner looks when no session stops meanwhile
@@ -152,9 +154,22 @@ class Settings:
             raise ConfigError(f"--max-session-min must be above 0 (0 turns the limit off), got {self.max_session_s / 60:g}")
         if self.min_free_bytes < 0:
             raise ConfigError("--min-free-mb must be 0 or more")
+        # Under a second a slow but honest client on a poor link loses its requests; over an hour a
+        # half-sent request holds its descriptor as if there were no deadline.
+        if not 1 <= self.request_deadline_s <= 3600:
+            raise ConfigError(f"--request-deadline-s must be from 1 to 3600 s, got {self.request_deadline_s:g}")
+        if not 1 <= self.download_stall_s <= 3600:
+            raise ConfigError(f"--download-stall-s must be from 1 to 3600 s, got {self.download_stall_s:g}")
         tokens = [t for t in (self.token, self.read_token, self.kiosk_token) if t]
         if len(set(tokens)) != len(tokens):
             raise ConfigError("--token, --read-token and --kiosk-token must all differ")
+        for option, t in (("--token", self.token), ("--read-token", self.read_token),
+                          ("--kiosk-token", self.kiosk_token)):
+            # A blank or spaced token cannot travel in an Authorization header as given (HTTP trims
+            # it), and twelve spaces is no secret: refuse it rather than let it guard the service.
+            if t is not None and (not t.strip() or any(c.isspace() or not c.isprintable() for c in t)):
+                raise ConfigError(f"{option} is blank or holds spaces or control characters; give a token of "
+                                  "8 or more printable characters without spaces")
         if any(len(t) < 8 for t in tokens):
             raise ConfigError("tokens must be at least 8 characters long")
         if (self.read_token or self.kiosk_token) and not self.token:

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from flockcal.atomic import write_atomic
 from flockcal.errors import FlockcalError
-from flockcal.server.errors import BadRequest, Conflict, NotFound
+from flockcal.server.errors import BadRequest, Conflict, NotFound, ServerError
 from flockcal.server.settings import NAME_RE
 
 log = logging.getLogger(__name__)
@@ -96,6 +96,10 @@ class SkeletonLibrary:
                 # A stored file for another sensor set (the tracker changed) stays on disk, unused.
                 log.warning("stored skeleton %s not loaded: %s", path.name, exc)
                 continue
+            except Exception as exc:  # a damaged file must not keep the service from starting
+                log.warning("stored skeleton %s not loaded: it cannot be read as a skeleton (%s: %s); it stays "
+                            "on disk, unused", path.name, type(exc).__name__, str(exc)[:200])
+                continue
             if NAME_RE.fullmatch(name) and name not in RESERVED:
                 self._entries = {**self._entries, name: Entry(name, skel, "upload")}
 
@@ -150,6 +154,7 @@ class SkeletonLibrary:
 
         BadRequest for a malformed or mismatched file, Conflict for a taken name; nothing is written then."""
         from flockcal.exports.skeleton import SkeletonError, parse_skeleton
+        from flockcal.skeleton import SkeletonRangeError
 
         from flockcal.server.jsonbounds import loads_bounded
 
@@ -160,6 +165,8 @@ class SkeletonLibrary:
         try:
             skel = parse_skeleton(data, origin="uploaded skeleton")
             self._check(skel, "uploaded skeleton")
+        except SkeletonRangeError as exc:  # a number out of range, as for any request: 422
+            raise ServerError(str(exc), status=422, code="invalid_request") from None
         except SkeletonError as exc:
             raise BadRequest(str(exc)) from None
         check_performers(skel.data)

@@ -2,15 +2,21 @@
 
 One connection guarded by a lock: writes come from the pipeline thread and from request threads.
 WAL plus `synchronous=NORMAL` keeps the file readable after a kill -9 and costs little per commit.
+A full disk raises InsufficientStorage (507), a damaged file or row DatabaseDamaged (503), never a bare
+sqlite3 error; opening checks the file (`PRAGMA quick_check`) so damage is found at start.
 """
 
 from __future__ import annotations
 
 import json
+import os
 import sqlite3
 import threading
 import time
+from contextlib import contextmanager
 from pathlib import Path
+
+from flockcal.server.errors import DatabaseDamaged, InsufficientStorage, ServerError, Unavailable
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS sessions (
@@ -54,6 +60,41 @@ SESSION_COLUMNS = (
 )
 
 
+def damaged_message(path: Path, what: str) -> str:
+    return (f"the database {path} is damaged ({what}); stop the service, move the file aside "
+            f"(mv {path} {path}.damaged, with its -wal and -shm files) and start it again: it makes a new one. "
+            "The service never deletes it; `sqlite3 FILE .recover` may get rows back")
+
+
+def storage_error(exc: sqlite3.Error, path: Path) -> ServerError | None:
+    """The service error a sqlite3 error stands for: a full disk, a damaged file, an I/O failure; None for
+    anything else (a bug: let it be seen)."""
+    code = getattr(exc, "sqlite_errorcode", None)
+    primary = None if code is None else code & 0xFF
+    if primary == sqlite3.SQLITE_FULL:
+        return InsufficientStorage(f"the disk holding the database {path} is full ({exc}); free some space "
+                                   "(DELETE old sessions, or make room on that disk) and try again")
+    if primary in (sqlite3.SQLITE_CORRUPT, sqlite3.SQLITE_NOTADB) or "malformed JSON" in str(exc):
+        # (the last: SQLite's json functions reading a stored payload that is no longer JSON)
+        return DatabaseDamaged(damaged_message(path, str(exc)))
+    if primary in (sqlite3.SQLITE_IOERR, sqlite3.SQLITE_CANTOPEN) and _disk_full(path):
+        # SQLite reports a full disk as an I/O error where it maps its index (-shm) or opens a file.
+        return InsufficientStorage(f"the disk holding the database {path} is full ({exc}); make room on it "
+                                   "(DELETE old sessions, or free space on that disk) and try again")
+    if primary in (sqlite3.SQLITE_IOERR, sqlite3.SQLITE_CANTOPEN, sqlite3.SQLITE_READONLY):
+        return Unavailable(f"the database {path} could not be read or written ({exc}); check the disk and "
+                           "its permissions", retry_after=10)
+    return None
+
+
+def _disk_full(path: Path) -> bool:
+    try:
+        st = os.statvfs(path.parent)
+    except OSError:
+        return False
+    return st.f_bavail * st.f_frsize < 2**20
+
+
 class Store:
     """The service database; every method is one short transaction."""
 
@@ -61,11 +102,27 @@ class Store:
         self.path = Path(path)
         self.path.parent.mkdir(parents=True, exist_ok=True)
         self._lock = threading.Lock()
-        self._db = sqlite3.connect(str(self.path), check_same_thread=False, isolation_level=None, timeout=10)
+        try:
+            self._db = sqlite3.connect(str(self.path), check_same_thread=False, isolation_level=None, timeout=10)
+        except sqlite3.Error as exc:
+            raise storage_error(exc, self.path) or exc from None
+        try:
+            with self._guard():
+                self._open()
+        except BaseException:
+            self._db.close()
+            raise
+
+    def _open(self) -> None:
         self._db.row_factory = sqlite3.Row
         self._db.execute("PRAGMA journal_mode=WAL")
         self._db.execute("PRAGMA synchronous=NORMAL")
         self._db.execute("PRAGMA foreign_keys=ON")
+        # Damage is found now, not as a 500 on whichever request first reads a bad page (20 of 27 calls
+        # did). quick_check reads every page once: about a second per few hundred MB.
+        problems = [r[0] for r in self._db.execute("PRAGMA quick_check(5)")]
+        if problems != ["ok"]:
+            raise DatabaseDamaged(damaged_message(self.path, "; ".join(problems)[:300]))
         with self._lock:
             self._db.executescript(SCHEMA)
             # Databases made before sessions kept their progress gain the column (empty for old sessions).
@@ -76,6 +133,28 @@ class Store:
             if "profile" not in columns:
                 self._db.execute("ALTER TABLE sessions ADD COLUMN profile TEXT")
 
+    @contextmanager
+    def _guard(self):
+        """sqlite3 errors of a full disk, a damaged file or a failing disk as the service's errors."""
+        try:
+            yield
+        except sqlite3.Error as exc:
+            mapped = storage_error(exc, self.path)
+            if mapped is None:
+                raise
+            raise mapped from None
+
+    def _rollback(self) -> None:
+        # SQLite has already rolled back on some errors (a full disk); a second ROLLBACK would raise.
+        if self._db.in_transaction:
+            self._db.execute("ROLLBACK")
+
+    def _loads(self, text: str, what: str):
+        try:
+            return json.loads(text)
+        except ValueError as exc:
+            raise DatabaseDamaged(damaged_message(self.path, f"{what} is not JSON: {exc}")) from None
+
     def close(self) -> None:
         with self._lock:
             self._db.close()
@@ -85,7 +164,7 @@ class Store:
         return self._run(sql, args)
 
     def _run(self, sql: str, args=()) -> list[sqlite3.Row]:
-        with self._lock:
+        with self._lock, self._guard():
             return self._db.execute(sql, args).fetchall()
 
     # --- sessions -----------------------------------------------------------------------------
@@ -104,24 +183,26 @@ class Store:
     def session(self, session_id: str) -> dict | None:
         rows = self._run(f"SELECT {', '.join(SESSION_COLUMNS)}, result IS NOT NULL AS has_result, progress "
                          "FROM sessions WHERE id = ?", (session_id,))
-        return _session_dict(rows[0]) if rows else None
+        return self._session_dict(rows[0]) if rows else None
 
     def sessions(self) -> list[dict]:
         rows = self._run(f"SELECT {', '.join(SESSION_COLUMNS)}, result IS NOT NULL AS has_result, progress "
                          "FROM sessions ORDER BY created_at DESC")
-        return [_session_dict(r) for r in rows]
+        return [self._session_dict(r) for r in rows]
 
     def progress(self, session_id: str) -> dict | None:
         """The progress document stored when the session stopped or was re-solved, None before."""
         rows = self._run("SELECT progress FROM sessions WHERE id = ?", (session_id,))
-        return json.loads(rows[0]["progress"]) if rows and rows[0]["progress"] else None
+        text = rows[0]["progress"] if rows else None
+        return self._loads(text, f"session {session_id}'s progress") if text else None
 
     def result(self, session_id: str) -> dict | None:
         rows = self._run("SELECT result FROM sessions WHERE id = ?", (session_id,))
-        return json.loads(rows[0]["result"]) if rows and rows[0]["result"] else None
+        text = rows[0]["result"] if rows else None
+        return self._loads(text, f"session {session_id}'s result") if text else None
 
     def delete_session(self, session_id: str) -> None:
-        with self._lock:
+        with self._lock, self._guard():
             self._db.execute("BEGIN")
             try:
                 self._db.execute("DELETE FROM events WHERE session_id = ?", (session_id,))
@@ -129,7 +210,7 @@ class Store:
                 self._db.execute("DELETE FROM sessions WHERE id = ?", (session_id,))
                 self._db.execute("COMMIT")
             except BaseException:
-                self._db.execute("ROLLBACK")
+                self._rollback()
                 raise
 
     def mark_interrupted(self) -> list[str]:
@@ -142,23 +223,29 @@ class Store:
 
     # --- events and residuals ------------------------------------------------------------------
     def add_events(self, events: list[dict]) -> list[int]:
-        """Insert events ({session_id, type, time_s, wall_time, …payload}); returns their ids."""
+        """Insert events ({session_id, type, time_s, wall_time, …payload}); returns their ids. An event that
+        carries an `id` keeps it (one held in memory while the disk was full, already shown with it)."""
         ids = []
-        with self._lock:
+        with self._lock, self._guard():
             self._db.execute("BEGIN")
             try:
                 for ev in events:
                     payload = {k: v for k, v in ev.items() if k not in ("id", "session_id", "type", "time_s", "wall_time")}
                     cur = self._db.execute(
-                        "INSERT INTO events (session_id, type, time_s, wall_time, payload) VALUES (?, ?, ?, ?, ?)",
-                        (ev.get("session_id"), ev["type"], ev.get("time_s"), ev.get("wall_time", time.time()), json.dumps(payload)),
+                        "INSERT INTO events (id, session_id, type, time_s, wall_time, payload) VALUES (?, ?, ?, ?, ?, ?)",
+                        (ev.get("id"), ev.get("session_id"), ev["type"], ev.get("time_s"), ev.get("wall_time", time.time()),
+                         json.dumps(payload)),
                     )
                     ids.append(cur.lastrowid)
                 self._db.execute("COMMIT")
             except BaseException:
-                self._db.execute("ROLLBACK")
+                self._rollback()
                 raise
         return ids
+
+    def last_event_id(self) -> int:
+        """The largest event id stored (a read: it works on a full disk)."""
+        return int(self._run("SELECT COALESCE(MAX(id), 0) AS n FROM events")[0]["n"])
 
     def events(self, session_id: str | None, since_id: int = 0, limit: int | None = 1000) -> list[dict]:
         """Events after `since_id`, oldest first, at most `limit` (None: all of them)."""
@@ -167,12 +254,12 @@ class Store:
             rows = self._run("SELECT * FROM events WHERE id > ? ORDER BY id LIMIT ?", (since_id, limit))
         else:
             rows = self._run("SELECT * FROM events WHERE session_id = ? AND id > ? ORDER BY id LIMIT ?", (session_id, since_id, limit))
-        return [_event_dict(r) for r in rows]
+        return [self._event_dict(r) for r in rows]
 
     def add_residuals(self, session_id: str, samples: list[tuple[float, dict]]) -> None:
         if not samples:
             return
-        with self._lock:
+        with self._lock, self._guard():
             self._db.executemany(
                 "INSERT INTO residuals (session_id, time_s, rms_mm) VALUES (?, ?, ?)",
                 [(session_id, t, json.dumps(v)) for t, v in samples],
@@ -183,13 +270,13 @@ class Store:
             "SELECT time_s, rms_mm FROM residuals WHERE session_id = ? AND time_s > ? ORDER BY time_s LIMIT ?",
             (session_id, since, limit),
         )
-        return [(r["time_s"], json.loads(r["rms_mm"])) for r in rows]
+        return [(r["time_s"], self._loads(r["rms_mm"], f"a residual sample of session {session_id}")) for r in rows]
 
     def thin_residuals(self, session_id: str, every_s: float = 1.0) -> int:
         """Keep one residual sample per `every_s` of a session's time (the first of each), for a session
         whose recordings are pruned: the series still shows how each joint fitted, at a twentieth of the
         rows. Returns the rows removed."""
-        with self._lock:
+        with self._lock, self._guard():
             cur = self._db.execute(
                 "DELETE FROM residuals WHERE session_id = ? AND rowid NOT IN (SELECT MIN(rowid) FROM residuals "
                 "WHERE session_id = ? GROUP BY CAST(time_s / ? AS INTEGER))", (session_id, session_id, float(every_s)))
@@ -200,18 +287,25 @@ class Store:
         return {t: self._run(f"SELECT COUNT(*) AS n FROM {t}")[0]["n"] for t in ("sessions", "events", "residuals")}
 
 
-def _session_dict(row: sqlite3.Row) -> dict:
-    d = dict(row)
-    d["hierarchy"] = json.loads(d["hierarchy"]) if d["hierarchy"] else None
-    d["names"] = json.loads(d["names"])
-    d["has_result"] = bool(d["has_result"])
-    doc = json.loads(d.pop("progress")) if d.get("progress") else None
-    d["progress"] = doc["progress"] if doc else None
-    d["done"] = doc["done"] if doc else None
-    return d
+    def _session_dict(self, row: sqlite3.Row) -> dict:
+        d = dict(row)
+        where = f"session {d.get('id')!r}"
+        d["hierarchy"] = self._loads(d["hierarchy"], f"{where}'s hierarchy") if d["hierarchy"] else None
+        d["names"] = self._loads(d["names"], f"{where}'s sensor names")
+        d["has_result"] = bool(d["has_result"])
+        doc = self._loads(d.pop("progress"), f"{where}'s progress") if d.get("progress") else None
+        try:
+            d["progress"] = doc["progress"] if doc else None
+            d["done"] = doc["done"] if doc else None
+        except (TypeError, KeyError):
+            raise DatabaseDamaged(damaged_message(self.path, f"{where}'s progress is not a progress document")) from None
+        if not isinstance(d["names"], list) or not isinstance(d["id"], str):
+            raise DatabaseDamaged(damaged_message(self.path, f"{where}'s row is malformed"))
+        return d
 
-
-def _event_dict(row: sqlite3.Row) -> dict:
-    d = json.loads(row["payload"])
-    d.update(id=row["id"], session_id=row["session_id"], type=row["type"], time_s=row["time_s"], wall_time=row["wall_time"])
-    return d
+    def _event_dict(self, row: sqlite3.Row) -> dict:
+        d = self._loads(row["payload"], f"event {row['id']}")
+        if not isinstance(d, dict):
+            raise DatabaseDamaged(damaged_message(self.path, f"event {row['id']} is not a JSON object"))
+        d.update(id=row["id"], session_id=row["session_id"], type=row["type"], time_s=row["time_s"], wall_time=row["wall_time"])
+        return d

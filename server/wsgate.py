@@ -62,7 +62,8 @@ TRANSPORT_KEY = "flockcal.transport"
 
 
 class TransportHandle:
-    """ASGI middleware: puts the server's transport of a websocket connection into its scope.
+    """ASGI middleware: puts the server's transport of a websocket or HTTP connection into its scope (a
+    stalled websocket client, or a download's client that stopped reading, is cut off through it).
 
     uvicorn hands the app its protocol's bound `send`; the protocol owns the asyncio transport. ASGI
     offers no way to abort a connection, and a close frame cannot get past a full send buffer."""
@@ -71,7 +72,9 @@ class TransportHandle:
         self.app = app
 
     async def __call__(self, scope, receive, send):
-        if scope["type"] == "websocket":
+        # An HTTP request's send is wrapped by Starlette before it gets here: the connection guard
+        # (server/connections.py) puts its transport into the scope instead.
+        if scope["type"] in ("websocket", "http") and scope.get(TRANSPORT_KEY) is None:
             scope[TRANSPORT_KEY] = getattr(getattr(send, "__self__", None), "transport", None)
 
         return await self.app(scope, receive, send)

@@ -8,6 +8,7 @@ from __future__ import annotations
 import argparse
 import logging
 import os
+import signal
 from pathlib import Path
 
 from flockcal.errors import UserError
@@ -73,6 +74,12 @@ def register(subparsers) -> None:
     p.add_argument("--min-free-mb", type=float, default=500.0, metavar="MB",
                    help="stop recording cleanly before the data directory's disk has less than MB free, and "
                         "refuse new sessions below it (default 500)")
+    p.add_argument("--request-deadline-s", type=float, default=10.0, metavar="S",
+                   help="a request must arrive whole within S seconds of its first byte, or its connection is "
+                        "closed (default 10)")
+    p.add_argument("--download-stall-s", type=float, default=30.0, metavar="S",
+                   help="a download whose client takes no data for S seconds is cut off and its slot freed "
+                        "(default 30)")
     p.set_defaults(func=run)
 
 
@@ -89,9 +96,9 @@ def settings_from_args(args: argparse.Namespace):
         host=args.host,
         http_port=args.http_port,
         data_dir=args.data_dir or default_data_dir(),
-        token=args.token or os.environ.get("FLOCKCAL_TOKEN") or None,
-        read_token=args.read_token or os.environ.get("FLOCKCAL_READ_TOKEN") or None,
-        kiosk_token=args.kiosk_token or os.environ.get("FLOCKCAL_KIOSK_TOKEN") or None,
+        token=_token(args.token, "FLOCKCAL_TOKEN"),
+        read_token=_token(args.read_token, "FLOCKCAL_READ_TOKEN"),
+        kiosk_token=_token(args.kiosk_token, "FLOCKCAL_KIOSK_TOKEN"),
         names=names,
         fit_hz=args.fit_hz,
         tolerance_m=tolerance_m(args),
@@ -101,6 +108,8 @@ def settings_from_args(args: argparse.Namespace):
         allow_hosts=tuple(args.allow_host),
         max_session_s=args.max_session_min * 60.0 if args.max_session_min else None,
         min_free_bytes=int(args.min_free_mb * 2**20),
+        request_deadline_s=args.request_deadline_s,
+        download_stall_s=args.download_stall_s,
         fast_init=args.fast_init,
         scale_inches=args.scale,
         baud=args.baud,
@@ -108,6 +117,21 @@ def settings_from_args(args: argparse.Namespace):
         keep_days=args.keep_days,
         keep_disk_gb=args.keep_disk,
     )
+
+
+class DamagedDatabase(UserError):
+    """The data directory's database is damaged: an exit status of its own, which the kiosk unit's
+    RestartPreventExitStatus keeps systemd from restarting into the same failure every 5 s."""
+
+    exit_code = 4
+
+
+def _token(option: str | None, variable: str) -> str | None:
+    """The option as given (a blank one is refused by Settings.check, not read as "no token"), else the
+    environment variable unless it is empty."""
+    if option is not None:
+        return option
+    return os.environ.get(variable) or None
 
 
 def websocket_library() -> str:
@@ -146,10 +170,15 @@ def run(args: argparse.Namespace) -> int:
     import uvicorn
 
     from flockcal.server.app import create_app
+    from flockcal.server.connections import ConnectionGuard, connection_cap, guarded_protocol, raise_fd_limit
     from flockcal.server.errors import ConfigError
+    from flockcal.server.logthrottle import throttle_all_handlers
+    from flockcal.server.wsprotocol import websocket_protocol
     from flockcal.server.listen import listen_socket
 
     websocket_library()
+    # Descriptors: a unit with no LimitNOFILE gives 1024; take what the hard limit allows.
+    soft, _hard = raise_fd_limit()
     try:
         settings = settings_from_args(args).check()
     except ConfigError as exc:
@@ -159,6 +188,7 @@ def run(args: argparse.Namespace) -> int:
     except OSError as exc:
         raise UserError(f"cannot create the data directory {settings.data_dir}: {exc.strerror}; pick another with --data-dir") from None
     from flockcal.errors import FlockcalError
+    from flockcal.server.errors import DatabaseDamaged
     from flockcal.server.service import Service
 
     try:
@@ -167,10 +197,17 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"cannot listen on {settings.host}:{settings.http_port}: {exc.strerror}; "
                         "choose another --http-port or --host") from None
     try:
-        service = Service(settings)  # opens the database and checks the device before serving
+        service = Service(settings)  # opens (and checks) the database and the device before serving
+    except DatabaseDamaged as exc:
+        sock.close()
+        raise DamagedDatabase(str(exc)) from None
     except FlockcalError as exc:
         sock.close()
         raise UserError(str(exc)) from None
+    except OSError as exc:  # the data directory's recordings or skeletons folder on a full or read-only disk
+        sock.close()
+        where = exc.filename or settings.data_dir
+        raise UserError(f"cannot write {where}: {exc.strerror}; make room on that disk or give another --data-dir") from None
     if settings.http_port == 0:  # the port the system picked is the one to print
         settings = settings.with_(http_port=sock.getsockname()[1])
     app = create_app(settings, service)
@@ -187,12 +224,25 @@ def run(args: argparse.Namespace) -> int:
     log.info("listening on %s", base)
     # No per-message deflate: compressing every snapshot once per client costs more CPU than the
     # loopback or LAN bandwidth it saves.
+    # Every request whole within a deadline, connections capped under the descriptors (server/connections.py).
+    guard = ConnectionGuard(connection_cap(soft), settings.request_deadline_s)
+    app.state.connection_guard = guard
     config = uvicorn.Config(app, host=settings.host, port=settings.http_port, log_level="warning",
-                            ws_max_size=64 * 1024, ws_per_message_deflate=False, lifespan="on")
+                            ws_max_size=64 * 1024, ws_per_message_deflate=False, lifespan="on",
+                            http=guarded_protocol(guard), ws=websocket_protocol(),
+                            # A stop waits this long for responses in flight (a download), then cuts them:
+                            # systemd's TimeoutStopSec (30 s) must not run out first.
+                            timeout_graceful_shutdown=10)
+    throttle_all_handlers()  # after uvicorn.Config: it configures uvicorn's handlers
     server = uvicorn.Server(config)
+    # uvicorn stops gracefully on SIGTERM as on Ctrl-C, then raises the signal again with the handler it
+    # found: Python's default for SIGTERM ends the process there, before the stop report below. With a
+    # handler of ours that re-raised signal only ends `run`, so `systemctl stop` prints what Ctrl-C prints.
+    previous = signal.signal(signal.SIGTERM, lambda *_: None)
     try:
         server.run(sockets=[sock])
     finally:
+        signal.signal(signal.SIGTERM, previous)
         for line in stop_report(service):
             print(f"flockcal serve: {line}", flush=True)
     return 0

@@ -29,6 +29,10 @@ AUTH_TIMEOUT_S = 10.0
 REPLAY_EVENTS = 20  # recent events of the live session sent on subscribe
 MAX_DEPTH = 4  # a subscribe message is one object holding a list
 CLOSE_TIMEOUT_S = 1.0  # a client that does not take our close frame this fast is cut off
+# rate_hz a subscription may ask for: below MIN_RATE_HZ a socket would stay silent for minutes (1e-300 Hz:
+# for good); up to MAX_RATE_HZ is accepted and capped at the publish rate ("every snapshot", as 1000 asks).
+MIN_RATE_HZ = 0.1
+MAX_RATE_HZ = 1000.0
 
 
 class Subscription:
@@ -54,8 +58,9 @@ def parse_subscribe(msg: dict, max_rate: float) -> Subscription:
         finite = not isinstance(rate, bool) and isinstance(rate, (int, float)) and math.isfinite(float(rate))
     except OverflowError:
         finite = False
-    if not finite or rate <= 0:
-        raise ValueError(f"rate_hz must be a positive number (at most {max_rate:g}), got {str(rate)[:40]}")
+    if not finite or not MIN_RATE_HZ <= rate <= MAX_RATE_HZ:
+        raise ValueError(f"rate_hz must be a number from {MIN_RATE_HZ:g} to {MAX_RATE_HZ:g} (messages a second; "
+                         f"above {max_rate:g}, the publish rate, it is capped to it), got {str(rate)[:40]}")
     content = msg.get("content", ["status"])
     if isinstance(content, str):
         content = [content]
@@ -214,7 +219,8 @@ class Connection:
         sub = None
         while True:
             if self.sub is not sub:
-                sub, fit_seq, status_at = self.sub, -1, 0.0
+                # A new subscription paces from now: the old one's wait (20 s at 0.05 Hz) is not kept.
+                sub, fit_seq, status_at, next_due = self.sub, -1, 0.0, 0.0
                 if "residuals" in sub.content:
                     residual_seq = _residual_start(hub.latest)
             now = time.monotonic()
@@ -237,7 +243,8 @@ class Connection:
             out = []
             content = sub.content
             if "status" in content:
-                key = (snap.status.get("connected"), (snap.session or {}).get("id"))
+                key = (snap.status.get("connected"), (snap.session or {}).get("id"),
+                       (snap.status.get("disk") or {}).get("full"))
                 if key != status_key or time.monotonic() - status_at >= STATUS_PERIOD_S:
                     status_key, status_at = key, time.monotonic()
                     out.append(self.envelope("status", snap.status_json))

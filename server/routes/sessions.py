@@ -155,14 +155,14 @@ def get_events(sid: str = Depends(session_id),
             summary="the session's frames as a design.md §5 .npz take (what `flockcal fit` reads)")
 def get_take(request: Request, sid: str = Depends(session_id), service=Depends(get_service),
              _role=Depends(require_read)):
-    from flockcal.server.downloads import npz_stream
+    from flockcal.server.downloads import SlottedResponse, npz_stream
 
     # Streamed from the frame log a chunk at a time (server/downloads.py): memory stays bounded for a
     # session of any length. A live session's take holds the frames recorded when the download began.
     frames = _frames(service, sid)
     body = _slotted(request, lambda: npz_stream(frames))
-    return StreamingResponse(body, media_type="application/octet-stream",
-                             headers={"Content-Disposition": f'attachment; filename="{sid}.npz"'})
+    return SlottedResponse(body, request.app.state.download_slots, media_type="application/octet-stream",
+                           headers={"Content-Disposition": f'attachment; filename="{sid}.npz"'})
 
 
 @router.get("/{id}/skeleton", responses={200: {"content": {"application/json": {}}}, **ERRORS},
@@ -201,13 +201,13 @@ def get_bvh(request: Request, sid: str = Depends(session_id),
             units: str = Query("cm", pattern="^(m|cm|mm|in)$", description="m, cm, mm or in"),
             up: str = Query("-z", pattern="^[+-]?[xyz]$", description="the tracker world's up axis: +y, +z or -z"),
             service=Depends(get_service), _role=Depends(require_read)):
-    from flockcal.server.downloads import bvh_stream, primed
+    from flockcal.server.downloads import SlottedResponse, bvh_stream, primed
 
     result, _live = service.sessions.result(sid)
     frames = _frames(service, sid)
     body = _slotted(request, lambda: _export(lambda: primed(bvh_stream(result, frames, units=units, up=up))))
-    return StreamingResponse(body, media_type="text/plain",
-                             headers={"Content-Disposition": f'attachment; filename="{sid}.bvh"'})
+    return SlottedResponse(body, request.app.state.download_slots, media_type="text/plain",
+                           headers={"Content-Disposition": f'attachment; filename="{sid}.bvh"'})
 
 
 def _slotted(request: Request, make):

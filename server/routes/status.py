@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from fastapi import APIRouter, Depends, Query, Response
+from fastapi import APIRouter, Depends, Query, Request, Response
 
 from flockcal.server.auth import require_read
 from flockcal.server.memory import process_memory
@@ -13,10 +13,12 @@ router = APIRouter(prefix="/api", tags=["status"])
 
 
 @router.get("/status", response_model=Status, summary="tracker and pipeline status")
-def get_status(service=Depends(get_service), _role=Depends(require_read)):
+def get_status(request: Request, service=Depends(get_service), _role=Depends(require_read)):
     """Connected, birds, rate, frames, dropped/resynced records, reconnects, last error, live session,
-    retention, and the process's memory."""
-    return {**service.pipeline.snapshot.status, "retention": service.retention.status(), "process": process_memory()}
+    retention, the process's memory and its connections."""
+    guard = getattr(request.app.state, "connection_guard", None)
+    return {**service.pipeline.snapshot.status, "retention": service.retention.status(), "process": process_memory(),
+            "connections": guard.status() if guard is not None else None}
 
 
 @router.get("/events", response_model=list[Event], summary="events of the whole service (tracker, sessions, slips)")

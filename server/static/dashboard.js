@@ -543,6 +543,8 @@ function showEvent(msg) {
     }
   } else if (kind === 'session') {
     addAlert('info', e.message || `session ${e.action}`, e.id);
+  } else if (kind === 'service') {  // the disk: full (recording stopped) or room again
+    addAlert(e.action === 'disk_ok' ? 'info' : 'warn', e.message || `service ${e.action}`, e.id);
   }
 }
 
