@@ -72,9 +72,11 @@ def joint_point(
     frames: np.ndarray | None = None,
     init: np.ndarray | None = None,
     max_iter: int = 60,
+    extend: bool = False,
 ) -> JointPoint:
     """Solve the Kirk joint-point problem for groups A (n,qa,3) and B (n,qb,3) on `frames` (default all
-    usable frames). `init` (n,3) world points override the built-in guess (sphere fit, else midpoint)."""
+    usable frames). `init` (n,3) world points override the built-in guess (sphere fit, else midpoint).
+    `extend`: the points (and residuals) of the usable frames outside `frames` too, from the fitted radii."""
     M = np.concatenate([markers_a, markers_b], axis=1)
     n, q, _ = M.shape
     use = usable_frames(markers_a, markers_b)
@@ -102,7 +104,34 @@ def joint_point(
     rms = float(np.sqrt(np.nanmean(res**2)))
     out_pts[use] = p
     out_res[use] = res
+    if extend and frames is not None:
+        # The other usable frames get their points from the fitted radii: each frame alone is a
+        # 3-unknown least-squares problem, started from the nearest fitted frame's point.
+        rest = np.setdiff1d(usable_frames(markers_a, markers_b), use)
+        if len(rest):
+            near = use[np.clip(np.searchsorted(use, rest), 0, len(use) - 1)]
+            pts, rres = points_for_radii(M[rest], r, out_pts[near])
+            out_pts[rest], out_res[rest] = pts, rres
     return JointPoint(out_pts, r, rms, use, out_res)
+
+
+def points_for_radii(M: np.ndarray, r: np.ndarray, p0: np.ndarray, iterations: int = 4):
+    """Per-frame points (f, 3) keeping distances r (q,) to the markers M (f, q, 3) (NaN: unseen), by
+    damped Gauss–Newton from p0; returns (points, residuals (f, q) ‖m − p‖ − r, NaN where unseen)."""
+    seen = np.isfinite(M).all(-1)
+    Mz = np.where(seen[..., None], M, 0.0)
+    w = seen.astype(float)
+    p = np.where(np.isfinite(p0), p0, (Mz * w[..., None]).sum(1) / np.maximum(w.sum(1), 1)[:, None])
+    for _ in range(iterations):
+        diff = Mz - p[:, None]
+        d = np.maximum(np.linalg.norm(diff, axis=-1), 1e-12)
+        u = diff / d[..., None] * w[..., None]
+        e = w * (d - r[None])
+        U = u.transpose(0, 2, 1) @ u
+        damp = 1e-6 * np.trace(U, axis1=1, axis2=2) / 3 + 1e-15
+        p = p + (inv3(U + damp[:, None, None] * np.eye(3)) @ (u.transpose(0, 2, 1) @ e[..., None]))[..., 0]
+    d = np.linalg.norm(Mz - p[:, None], axis=-1)
+    return p, np.where(seen, d - r[None], np.nan)
 
 
 @dataclass(frozen=True)

@@ -45,11 +45,15 @@ def project_body(markers: np.ndarray, group: np.ndarray, joint_points: dict[int,
     return BodyShape(group, list(joints), mean[:q], mean[q:], ok)
 
 
-def skeleton_shapes(markers, groups, parent, joint_points, skip=()) -> list[BodyShape]:
+def skeleton_shapes(markers, groups, parent, joint_points, skip=(), only=None, previous=None) -> list[BodyShape]:
     """BodyShape per group; joint j (j's inboard joint) touches groups j and parent[j]. Joints in
-    `skip` are left out (added later by the rigid-transform route)."""
+    `skip` are left out (added later by the rigid-transform route). With `only` (bodies) and `previous`
+    (shapes), the other bodies keep their previous shape."""
     shapes = []
     for g, group in enumerate(groups):
+        if only is not None and previous is not None and g not in only:
+            shapes.append(previous[g])
+            continue
         joints = ([g] if parent[g] >= 0 else []) + [int(c) for c in np.flatnonzero(parent == g)]
         joints = [j for j in joints if j not in skip]
         shapes.append(project_body(markers, group, joint_points, joints))
