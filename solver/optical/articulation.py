@@ -109,6 +109,7 @@ class Verdict:
     rotation_ratio: float  # largest relative-rotation variance over the noise's, along one axis (NaN: unjudged)
     joint_error_m: float  # the centre's error along its least-pinned direction, hinge axis aside (inf: not pinned)
     hinge: bool = False
+    across_m: float = float("nan")  # the error across the least-turned direction (what a hinge would need)
 
     def to_dict(self) -> dict:
         def num(x):
@@ -276,7 +277,7 @@ def judge(A: GroupPose | None, B: GroupPose | None, tolerance: float = JOINT_TOL
     err = pf.direction_error[0]
     worst = float(err[1:].max() if pf.hinge[0] else err.max())
     if not pf.determined[0]:
-        return Verdict("moved", lam, worst)
+        return Verdict("moved", lam, worst, across_m=float(err[1:].max()))
     # Where the joint is, in A's frame, and the line between the groups (B's origin, its markers' centroid).
     line = np.nanmedian(((B.t[ok] - A.t[ok])[:, None, :] @ A.R[ok])[:, 0], axis=0)
     if not between(A.shape, B.shape, pf.c[0], pf.l[0], float(np.linalg.norm(line))):

@@ -47,6 +47,7 @@ class OpticalFit:
     times: np.ndarray
     unused_markers: list[str] = field(default_factory=list)
     exercised: Exercised | None = None  # pair decisions over the bodies' marker-only poses
+    joint_markers: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # child → (its, parent's) markers the joint was fitted on
 
     @property
     def parent(self) -> np.ndarray:
@@ -288,9 +289,10 @@ def fit_markers(
         redo = {int(c) for c in np.flatnonzero(par >= 0) if c in touched or int(par[c]) in touched}
     # Poses for every frame, also those thinned out of the joint fits: markers alone, plus joints where fitted.
     bones = bone_lengths(shapes, tree.parent)
+    joint_markers = {int(c): pick(int(c), int(par[c])) for c in np.flatnonzero(par >= 0)}
     return OpticalFit(
         kept_names, labels, groups, clus, tree, shapes, bones, jp, jrms, R, t, valid, outliers,
-        float(rate_hz), times, unused, exercised,
+        float(rate_hz), times, unused, exercised, joint_markers,
     )  # fmt: skip
 
 
@@ -362,12 +364,64 @@ def fit_calibration(fit: OpticalFit) -> Calibration:
         swap_events=events,
         marker_outlier_threshold_m=fit.outliers.threshold_m,
         joint_decisions=tuple(joint_decision(fit.exercised, c, int(parent[c])) for c in kids),
-        exercise=exercise_report(labels, parent, fit.exercised, fit.clustering),
+        exercise={**exercise_report(labels, parent, fit.exercised, fit.clustering), **merge_report(fit)},
     )
     placement = np.full((m, 3), np.nan)
     placement[kids] = joints.c
     return Calibration(tuple(labels), int(fit.tree.root), np.asarray(parent), np.asarray(fit.tree.order), int(len(fit.times)),
                        joints, bones, placement, optical=extras)
+
+
+def merge_why(kind: str, ratio: float, joint_error_m: float, motion_m: float, tolerance_m: float) -> str:
+    """One sentence: why two groups of markers were made one body (the verdict of `articulation.judge`)."""
+    from flockcal.solver.optical.articulation import JOINT_TOLERANCE_M, ROTATION_MARGIN
+
+    moved = f"moved {1000 * motion_m:.1f} mm against each other"
+    if kind == "skin":
+        return (f"{moved}, but turned no more than their own markers' soft tissue turns their poses (rotation "
+                f"variance {ratio:.1f}× the noise's, under {ROTATION_MARGIN:g}×): skin, not a joint")
+    if kind == "twist":
+        return (f"{moved}, turning about the line between them: one segment twisting about its length "
+                f"(a two-bone forearm, skin rolling about a bone), not a joint between two")
+    if kind == "moved":
+        err = "not pinned at all" if not np.isfinite(joint_error_m) else f"pinned to {1000 * joint_error_m:.0f} mm only"
+        return (f"{moved}, within the {1000 * tolerance_m:g} mm soft tissue reaches; they turned against each "
+                f"other ({ratio:.0f}× the noise) but no joint explains it (its centre {err}, over the "
+                f"{1000 * JOINT_TOLERANCE_M:g} mm tolerance): kept one body")
+    return (f"{moved}, within the {1000 * tolerance_m:g} mm soft tissue reaches; a group of one or two "
+            f"markers has no pose to judge a joint by")
+
+
+def merge_report(fit: OpticalFit) -> dict:
+    """The JSON keys that say which groups of markers were merged into one body and why ("merged": per body
+    with merges of groups of three or more markers: its rigid parts and each merge's verdict), and which
+    markers each joint was fitted on where that is a part of a body ("joints_fitted_on")."""
+    names, labels = fit.marker_names, fit.labels
+    seg = fit.clustering
+    body_of = np.empty(len(names), dtype=int)
+    for g, grp in enumerate(fit.groups):
+        body_of[grp] = g
+    merged: dict[str, dict] = {}
+    for mg in seg.merges:
+        members = list(mg.a) + list(mg.b)
+        g = int(np.bincount(body_of[members]).argmax())
+        entry = merged.setdefault(labels[g], {"parts": [[names[i] for i in p] for p in seg.body_parts(g)], "merges": []})
+        v = mg.verdict
+        entry["merges"].append({
+            "groups": [[names[i] for i in mg.a], [names[i] for i in mg.b]],
+            "verdict": v.kind,
+            "why": merge_why(v.kind, v.rotation_ratio, v.joint_error_m, mg.motion_m, seg.tolerance_m),
+            "rotation_ratio": float(v.rotation_ratio) if np.isfinite(v.rotation_ratio) else None,
+            "joint_error_m": float(v.joint_error_m) if np.isfinite(v.joint_error_m) else None,
+            "relative_motion_m": float(mg.motion_m),
+        })
+    fitted_on = []
+    for c, (mc, mp) in sorted(fit.joint_markers.items()):
+        p = int(fit.tree.parent[c])
+        if len(mc) < len(fit.groups[c]) or len(mp) < len(fit.groups[p]):
+            fitted_on.append({"joint": [labels[c], labels[p]], "child_markers": [names[i] for i in mc],
+                              "parent_markers": [names[i] for i in mp]})
+    return {"merged": merged, "joints_fitted_on": fitted_on}
 
 
 def fit_json(fit: OpticalFit) -> dict:

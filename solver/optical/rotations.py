@@ -63,6 +63,9 @@ class Outliers:
     swaps: list[tuple[int, int, int, int]]  # (start, stop, marker a, marker b) for runs that overlap
 
 
+PARTNERS = 8  # markers of its body each marker is checked against (the nearest)
+
+
 def robust_marker_residuals(markers, shapes, joint_points=None, floor_m: float = 0.006, factor: float = 8.0):
     """(n, k) how far each marker is from where its body says, without trusting any pose: the smallest
     change, against the body's fixed shape, of its distances to the other markers of its body.
@@ -78,10 +81,13 @@ def robust_marker_residuals(markers, shapes, joint_points=None, floor_m: float =
         if q < 3:
             continue
         ref = np.linalg.norm(s.marker_offsets[:, None] - s.marker_offsets[None], axis=-1)
+        # Each marker against its PARTNERS nearest markers of the body (a big body that absorbed several
+        # segments has tens; the nearest keep their distance best, and a few suffice for "at least one").
+        p = min(q - 1, PARTNERS)
+        near = np.argsort(np.where(np.isfinite(ref), ref, np.inf) + np.diag(np.full(q, np.inf)), axis=1)[:, :p]  # (q, p)
         m = markers[:, s.markers]
-        d = np.linalg.norm(m[:, :, None] - m[:, None], axis=-1)  # (n, q, q), NaN where unseen
-        dev = np.abs(d - ref[None])
-        dev[:, np.arange(q), np.arange(q)] = np.nan
+        d = np.linalg.norm(m[:, :, None] - m[:, near], axis=-1)  # (n, q, p), NaN where unseen
+        dev = np.abs(d - np.take_along_axis(ref, near, axis=1)[None])
         partners = np.isfinite(dev).sum(2)
         best = np.nanmin(np.where(np.isfinite(dev), dev, np.inf), axis=2)
         out[:, s.markers] = np.where(partners >= 2, best, np.nan)

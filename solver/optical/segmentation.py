@@ -21,7 +21,7 @@ import numpy as np
 
 from flockcal.errors import FlockcalError
 from flockcal.solver.optical.articulation import (
-    UNJUDGED, GroupPose, Verdict, group_pose, judge, point_joint, relative_motion,
+    JOINT_TOLERANCE_M, UNJUDGED, GroupPose, Verdict, group_pose, judge, point_joint, relative_motion,
 )
 from flockcal.solver.optical.rigid import procrustes_mean, rigid_fit, to_body
 
@@ -36,9 +36,12 @@ LOW_Q, HIGH_Q = 0.10, 0.90
 
 # Frames the segmentation reads: runs of consecutive frames spread over the take, so the poses' rotation
 # jitter (third differences) and the batch-means blocks of the pair fits are those of real consecutive
-# frames, while the runs cover every part of the motion. A run is one batch-means block.
+# frames, while the runs cover every part of the motion. A run is one batch-means block. A verdict that
+# decides a merge is read again on THOROUGH_RUNS runs (every frame of a take up to 1920 frames).
 RUN_FRAMES = 64
 RUNS = 10
+THOROUGH_RUNS = 30
+SEGMENT_FRAMES = 250
 
 # A body needs this many markers to have a frame of its own (three non-collinear points).
 FRAMED = 3
@@ -71,7 +74,7 @@ class Segmentation:
     tolerance_m: float  # relative motion soft tissue makes: within it, no joint, one body
     distance_range: np.ndarray  # (k, k) 10–90 % range of every inter-marker distance (m); inf: never seen together
     internal_motion: np.ndarray  # (G,) mean distance range inside each body (m); 0 for a single marker
-    frames: np.ndarray  # frames the segmentation read
+    frames: np.ndarray  # frames the distance ranges were read on
     parts: np.ndarray = field(default=None)  # (k,) rigid part of every marker: a body's parts moved against each other
     merges: tuple[Merge, ...] = ()  # merges of two groups of three or more markers, in the order made
 
@@ -202,21 +205,23 @@ class Judge:
     """Verdicts on pairs of marker groups, each pose and verdict computed once per membership.
 
     Poses and verdicts are read on the segmentation's runs of frames; a verdict of "moved" (turned, no
-    joint pinned) that would let the size merge the two groups is read again on every frame of the take
+    joint pinned) that would let the size merge the two groups is read again on THOROUGH_RUNS runs
     (`thorough`): a joint exercised in one stretch of the take (one limb after another) is pinned by the
-    blocks where it moved, which the runs sample only a few of."""
+    blocks where it moved, which RUNS runs sample only a few of."""
 
     def __init__(self, markers: np.ndarray, frames: np.ndarray):
-        self.all = markers
+        thorough = judging_frames(len(markers), runs=THOROUGH_RUNS)
         self.markers = markers[frames]
+        # A short take is read whole both ways: the thorough poses are the quick ones.
+        self.same = len(thorough) == len(frames) and bool(np.array_equal(thorough, frames))
+        self.all = self.markers if self.same else markers[thorough]
         self._poses: dict[tuple, GroupPose | None] = {}
-        self._shapes: dict[tuple, np.ndarray] = {}
         self._verdicts: dict[tuple, Verdict] = {}
 
     def pose(self, members, thorough: bool = False) -> GroupPose | None:
-        key = (tuple(sorted(int(i) for i in members)), thorough)
+        key = (tuple(sorted(int(i) for i in members)), thorough and not self.same)
         if key not in self._poses:
-            if thorough:
+            if key[1]:
                 quick = self.pose(key[0])
                 self._poses[key] = None if quick is None else group_pose(self.all, np.array(key[0]), shape=quick.shape)
             else:
@@ -225,12 +230,9 @@ class Judge:
 
     def __call__(self, a, b, thorough: bool = False) -> Verdict:
         ka, kb = tuple(sorted(int(i) for i in a)), tuple(sorted(int(i) for i in b))
-        key = ((ka, kb) if ka < kb else (kb, ka)) + (thorough,)
+        key = ((ka, kb) if ka < kb else (kb, ka)) + (thorough and not self.same,)
         if key not in self._verdicts:
-            if thorough and len(self.all) == len(self.markers):
-                self._verdicts[key] = self(a, b)
-            else:
-                self._verdicts[key] = judge(self.pose(key[0], thorough), self.pose(key[1], thorough))
+            self._verdicts[key] = judge(self.pose(key[0], thorough), self.pose(key[1], thorough))
         return self._verdicts[key]
 
     def small(self, framed, few) -> Verdict:
@@ -258,11 +260,15 @@ class Judge:
         else:
             verdict = self(a, b)
             if verdict.kind == "moved" and motion <= tolerance:
-                verdict = self(a, b, thorough=True)
+                # More frames shrink a standard error as 1/√frames: read again only a joint they could pin.
+                gain = np.sqrt(len(self.all) / len(self.markers))
+                thorough = not self.same and verdict.across_m <= 1.5 * gain * JOINT_TOLERANCE_M
+                if thorough:
+                    verdict = self(a, b, thorough=True)
                 if verdict.kind == "moved":
                     # Groups that turned against each other are one body only if they also stayed within
                     # the tolerance when they moved most (in part of the take, the 10–90 % range hides it).
-                    motion = max(motion, relative_motion(self.pose(a, True).clean, self.pose(b, True).clean))
+                    motion = max(motion, relative_motion(self.pose(a, thorough).clean, self.pose(b, thorough).clean))
         return verdict, joins(verdict, motion, tolerance)
 
 
@@ -487,7 +493,10 @@ def segment_markers(
     if not tolerance > 0:
         raise SegmentationError(f"the rigid tolerance must be positive, got {tolerance!r} m")
     frames = judging_frames(n)
-    M = markers[frames]
+    # Distances and motion in the bodies' frames on SEGMENT_FRAMES of them: relative motion is slow next to
+    # 100 Hz, and more frames change a range by well under a millimetre at a cost of frames × markers².
+    few = frames[np.unique(np.linspace(0, len(frames) - 1, min(len(frames), SEGMENT_FRAMES)).round().astype(int))]
+    M = markers[few]
     ranges = distance_ranges(M)
     grouping = Grouping(k)
     judge_pair = Judge(markers, frames)
@@ -507,5 +516,5 @@ def segment_markers(
             block = ranges[np.ix_(idx, idx)][~np.eye(len(idx), dtype=bool)]
             block = block[np.isfinite(block)]
             internal[g] = float(block.mean()) if block.size else np.nan
-    return Segmentation(labels, G, float(tolerance), ranges, internal, frames, canonical(grouping.parts),
+    return Segmentation(labels, G, float(tolerance), ranges, internal, few, canonical(grouping.parts),
                         tuple(grouping.merges))
