@@ -276,6 +276,57 @@ def read_recording(path: str | os.PathLike, salvage: bool = False) -> Recording:
     return Recording(path, settings, chunks, size, pos if problem else size, problem, markers)
 
 
+def intact_length(path: str | os.PathLike, size: int | None = None) -> int:
+    """Bytes of the recording at `path`, among its first `size` (default: all it holds now), up to the end
+    of its last whole chunk: what a copy of a recording still being written can take and be a whole
+    recording (the writer appends whole chunks, but a reader can see the file between two writes).
+
+    Read backwards from `size`, a window at a time: the last place where a chunk header and its CRC
+    check out, with the chunk ending within `size`, is the last whole chunk (the writer only appends).
+    Returns 0 while the header itself is incomplete."""
+    with open(path, "rb") as fh:
+        size = os.fstat(fh.fileno()).st_size if size is None else int(size)
+        head = fh.read(len(MAGIC) + 4)
+        if len(head) < len(MAGIC) + 4 or not head.startswith(MAGIC):
+            return 0
+        (hlen,) = _U32.unpack_from(head, len(MAGIC))
+        first = len(MAGIC) + 4 + hlen + 4  # where the chunks begin
+        if size < first:
+            return 0
+        window = 1 << 16
+        hi = size
+        while hi > first:
+            lo = max(first, hi - window)
+            fh.seek(lo)
+            data = fh.read(hi + len(SYNC) - 1 - lo)  # a sync straddling `hi` is looked at in this window
+            at = data.rfind(SYNC)
+            while at >= 0:
+                end = _whole_chunk_end(fh, lo + at, size)
+                if end is not None:
+                    return end
+                at = data.rfind(SYNC, 0, at)
+            hi = lo
+            window *= 2
+        return first
+
+
+def _whole_chunk_end(fh, pos: int, size: int) -> int | None:
+    """The end of the chunk starting at `pos` when it is whole within `size` bytes and its CRC holds."""
+    if pos + _CHUNK.size + 4 > size:
+        return None
+    fh.seek(pos)
+    head = fh.read(_CHUNK.size)
+    sync, kind, _port, _t, length = _CHUNK.unpack(head)
+    end = pos + _CHUNK.size + length + 4
+    if sync != SYNC or kind not in (READ, WRITE, MARK) or length > MAX_CHUNK or end > size:
+        return None
+    body = fh.read(length + 4)
+    if len(body) < length + 4:
+        return None
+    (crc,) = _U32.unpack_from(body, length)
+    return end if zlib.crc32(body[:length], zlib.crc32(head)) == crc else None
+
+
 @dataclass
 class Replay:
     """What replaying a recording gave: the frames, the decoding settings, events and counters."""

@@ -7,7 +7,7 @@ problem found gets a one-line `MarkerError` that names the file and the fix.
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +27,7 @@ class MarkerTake:
     rate_hz: float
     times: np.ndarray  # (n,) seconds since start
     source: str = "markers"
+    declared_frames: int | None = None  # frames a C3D header declares, when the file held fewer (--salvage)
 
     @property
     def n_frames(self) -> int:
@@ -98,14 +99,15 @@ def is_marker_take(path) -> bool:
         return False
 
 
-def load_markers(path: str | os.PathLike) -> MarkerTake:
-    """Read a marker take from `.npz` (docs/design.md §5) or `.c3d`; raises MarkerError with the fix."""
+def load_markers(path: str | os.PathLike, salvage: bool = False) -> MarkerTake:
+    """Read a marker take from `.npz` (docs/design.md §5) or `.c3d`; raises MarkerError with the fix.
+    `salvage` reads the frames a C3D cut short still holds instead of refusing it."""
     path = Path(path)
     if not path.exists():
         raise MarkerError(f"{path}: no such file")
     suffix = path.suffix.lower()
     if suffix == ".c3d":
-        return load_c3d(path)
+        return load_c3d(path, salvage=salvage)
     if suffix == ".npz":
         return load_marker_npz(path)
     raise MarkerError(f"{path}: unknown marker file type {suffix!r}; give a .c3d or a marker .npz")
@@ -145,20 +147,84 @@ def _param(params, group, name, default=None):
         return default
 
 
-def load_c3d(path: str | os.PathLike) -> MarkerTake:
+@dataclass(frozen=True)
+class C3dLayout:
+    """What a C3D file's own header says about its size: frames, bytes per frame, where the data start."""
+
+    frames: int  # frames the header declares
+    frame_bytes: int  # 3D points (4 values each) and analog samples of one frame
+    data_start: int  # byte offset of the first frame
+    size: int  # bytes in the file
+
+    @property
+    def held(self) -> int:
+        """Whole frames the file holds."""
+        return max(0, (self.size - self.data_start) // self.frame_bytes)
+
+
+def c3d_layout(path: str | os.PathLike) -> C3dLayout | None:
+    """The layout a C3D header declares, read from its first 512-byte block and the parameter section's
+    processor byte (which fixes the byte order); None when the header cannot tell: not a C3D header,
+    an unknown processor, or a count past the header's 16 bits (the true one is then only in the
+    parameters)."""
+    import struct
+
+    path = Path(path)
+    size = path.stat().st_size
+    with open(path, "rb") as fh:
+        head = fh.read(512)
+        if len(head) < 512 or head[1] != 0x50 or head[0] < 2:
+            return None
+        fh.seek((head[0] - 1) * 512)
+        section = fh.read(4)
+    if len(section) < 4 or section[3] not in (84, 85, 86):  # Intel, DEC, MIPS
+        return None
+    big = section[3] == 86
+    words = struct.unpack((">" if big else "<") + "12H", head[:24])
+    points, analog, first, last, start_block = words[1], words[2], words[3], words[4], words[8]
+    # The scale factor's sign says whether values are floats (4 bytes) or integers (2): IEEE floats keep
+    # it in their last byte (first, big-endian), a DEC float in the high byte of its first word.
+    scale = head[12:16]
+    negative = bool((scale[0] if big else scale[1] if section[3] == 85 else scale[3]) & 0x80)
+    frame_bytes = (4 * points + analog) * (4 if negative else 2)
+    if last == 0xFFFF or last < first or start_block < 2 or frame_bytes == 0:
+        return None
+    return C3dLayout(last - first + 1, frame_bytes, (start_block - 1) * 512, size)
+
+
+def load_c3d(path: str | os.PathLike, salvage: bool = False) -> MarkerTake:
     """Markers of a C3D file in metres: model outputs dropped, invalid points (residual < 0, or exactly
-    at the origin, which some writers use for 'not seen') set to NaN, unnamed points named P1…"""
+    at the origin, which some writers use for 'not seen') set to NaN, unnamed points named P1…
+
+    A file holding fewer frames than its header declares (cut short by a copy or a download) is
+    refused with the count it holds, unless `salvage`: then those frames are read and the take's
+    `declared_frames` says how many there should have been."""
     path = Path(path)
     try:
         import ezc3d
     except ImportError:
         raise MarkerError("reading C3D needs the ezc3d package: pip install 'flockcal[optical]'") from None
+    layout = c3d_layout(path)
+    if layout is not None and layout.size < layout.data_start:
+        raise MarkerError(f"{path}: the file ends at byte {layout.size}, before its marker data (from byte "
+                          f"{layout.data_start}): it was cut short; copy it again")
     try:
         c3d = ezc3d.c3d(str(path))
     except Exception as exc:  # ezc3d raises plain RuntimeError/IOError for a bad file
         raise MarkerError(f"{path}: not a readable C3D file ({exc})") from None
     params = c3d["parameters"]
     pts = np.asarray(c3d["data"]["points"], dtype=float)  # (4, k, n)
+    # ezc3d reads what a cut file holds and says nothing (its copy of the header is rewritten to match);
+    # its count is what decides, the header's layout what the file should have held.
+    declared = None
+    if layout is not None and pts.shape[2] < layout.frames:
+        held = min(layout.held, pts.shape[2])
+        if not salvage or held < 2:
+            fix = f"; copy it again, or fit the {held} frames it holds with --salvage" if held >= 2 else "; copy it again"
+            raise MarkerError(f"{path}: the file ends early: it holds {held} of the {layout.frames} frames its "
+                              f"header declares (cut short by a copy or a download?){fix}")
+        declared = layout.frames
+        pts = pts[:, :, :held]
     k = pts.shape[1]
     if k == 0 or pts.shape[2] == 0:
         raise MarkerError(f"{path}: the C3D file holds no 3D points (analog-only?); nothing to fit")
@@ -181,7 +247,7 @@ def load_c3d(path: str | os.PathLike) -> MarkerTake:
     rate = float(np.atleast_1d(_param(params, "POINT", "RATE", [0.0]))[0])
     xyz = pts[:3].transpose(2, 1, 0) * _UNIT_SCALE[units]  # (n, k, 3)
     try:
-        res = np.asarray(c3d["data"]["meta_points"]["residuals"], dtype=float)[0].T  # (n, k)
+        res = np.asarray(c3d["data"]["meta_points"]["residuals"], dtype=float)[0].T[: xyz.shape[0]]  # (n, k)
         bad = res < 0
     except (KeyError, IndexError, TypeError):
         bad = np.zeros(xyz.shape[:2], dtype=bool)
@@ -190,4 +256,5 @@ def load_c3d(path: str | os.PathLike) -> MarkerTake:
     keep = [i for i, lab in enumerate(labels) if lab not in exclude]
     if len(keep) < 2:
         raise MarkerError(f"{path}: fewer than two marker trajectories after dropping model outputs")
-    return make_marker_take(xyz[:, keep], [labels[i] for i in keep], rate, source=str(path))
+    take = make_marker_take(xyz[:, keep], [labels[i] for i in keep], rate, source=str(path))
+    return take if declared is None else replace(take, declared_frames=declared)

@@ -172,7 +172,7 @@ def create_app(settings: Settings, service=None) -> FastAPI:
         title="flockcal",
         version=__version__,
         description="Live skeleton calibration for 6-DOF magnetic trackers. "
-                    "Live data: websocket /ws/live (protocol in the README's server section).",
+                    "Live data: websocket /ws/live (protocol: docs/service.md#websocket-wslive in the flockcal repository).",
         lifespan=lifespan,
         static_url=DOCS_ASSETS,
         # Swagger UI would otherwise ask validator.swagger.io for a badge about the spec.

@@ -137,7 +137,7 @@ class MissingJoint(Open):
     joint: str = Field(description="the joint, named by its child body (= the sensor it belongs to)")
     parent: str | None = None
     label: str = Field(description="the joint as people name it ('left elbow')")
-    state: Literal[STATES] = Field(description="how far it is from calibrated (README.md, \"Progress\")")
+    state: Literal[STATES] = Field(description="how far it is from calibrated (docs/service.md#progress-one-figure-for-the-kiosk-the-dashboard-and-the-api)")
     why: str | None = Field(None, description="why it is not calibrated yet, in plain words")
     undone: dict | None = Field(None, description="{reason: slip | loss | tree, time_s, sensor}: it was calibrated "
                                                   "once and this undid it")
@@ -157,7 +157,8 @@ class Hint(Open):
 
 
 class Progress(Open):
-    """One definition of calibration progress (README.md, "Progress"): what the kiosk ring and the dashboard show."""
+    """One definition of calibration progress (docs/service.md#progress-one-figure-for-the-kiosk-the-dashboard-and-the-api): what the kiosk ring and the dashboard
+    show."""
 
     session_id: str
     live: bool = Field(description="the live session (figures move on), or a stopped one (as it ended)")
@@ -223,7 +224,13 @@ class EventList(BaseModel):
 
 class SlipRequest(Strict):
     sensor: str = Field(pattern=NAME_PATTERN)
-    distance_m: float = Field(0.02, gt=0, le=0.5, description="how far the sensor slides on the skin, metres")
+    distance_m: float = Field(0.02, gt=0, le=0.5, description="how far the sensor slides on the skin, metres "
+                                                               "(default 0.02: the 2 cm slip of design.md §6)")
+    at_routine_s: float | None = Field(None, ge=0, le=86400, description="when, on the simulated performer's own clock "
+                                       "(seconds since it began its routine: GET /api/simulator's clock_s), the "
+                                       "sensor slides; a moment not streamed yet (409 otherwise). Default: the next "
+                                       "frame. A slip scheduled here lands on the same moment of the routine "
+                                       "whatever the machine's load")
 
 
 class MotionRequest(Strict):
@@ -244,6 +251,19 @@ class SlipReply(SimulatorReply):
                                                  "session that has frames")
     in_s: float | None = Field(None, description="seconds from the reply until that sample is measured (the simulator "
                                                  "computes poses up to 0.1 s ahead; negative if already measured)")
+    routine_s: float = Field(description="the slip's moment on the simulated performer's clock (seconds since it "
+                                         "began its routine)")
+
+
+class SimulatorState(Open):
+    routine: str = Field(description="the routine the simulated performer does: exercise | walk | kiosk | idle")
+    period_s: float = Field(description="the routine's loop length: clock_s modulo this is the moment of the loop")
+    clock_s: float = Field(description="the performer's clock: seconds since it began its routine, up to the last "
+                                       "pose computed (the simulator computes poses up to 0.1 s ahead)")
+    seed: int
+    sta_mm: float = Field(description="soft-tissue artefact: the largest slide of a skin sensor, mm (0: rigid)")
+    slips: list[dict] = Field(description="slips injected so far, on the performer's clock: {time_s, sensor, jump_mm, "
+                                          "angle_deg, displacement_bone_m}")
 
 
 class ErrorReply(BaseModel):

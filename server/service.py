@@ -65,8 +65,9 @@ class Service:
         )
         self.hub = SnapshotHub(self.pipeline.snapshot)
         self.pipeline.on_publish = self.hub.publish
+        # A session records the rate the tracker streams at when it starts (the flock's own unless --rate).
         self.sessions = SessionManager(self.store, self.pipeline, data / "recordings", settings.device_url,
-                                       settings.rate_hz)
+                                       lambda: self.source.status().get("rate_hz") or settings.rate_hz)
         self.sessions.raw_recorder = self.source
         # The session length and free-disk limits the pipeline checks while recording.
         self.limits = SessionLimits(data / "recordings", settings.max_session_s, settings.min_free_bytes,

@@ -11,6 +11,7 @@ import secrets
 import threading
 import time
 from pathlib import Path
+from typing import Callable
 
 from flockcal.errors import FlockcalError
 from flockcal.server.errors import BadRequest, Conflict, NotFound
@@ -34,7 +35,8 @@ def new_session_id() -> str:
 
 
 class SessionManager:
-    def __init__(self, store: Store, pipeline: Pipeline, recordings: Path, device: str, rate_hz: float | None,
+    def __init__(self, store: Store, pipeline: Pipeline, recordings: Path, device: str,
+                 rate_hz: float | None | Callable[[], float | None],
                  raw_recorder=None):
         self.store = store
         self.pipeline = pipeline
@@ -120,12 +122,14 @@ class SessionManager:
             if live is not None:
                 raise Conflict(f"session {live} is live; stop it (POST /api/sessions/{live}/stop) before starting another")
             sid = new_session_id()
+            rate = self.rate_hz() if callable(self.rate_hz) else self.rate_hz
+            rate = float(rate) if rate else None  # None: not known (a take then uses its arrivals' mean rate)
             row = {
                 "id": sid, "performer": performer, "state": "live", "root": root, "hierarchy": hierarchy,
-                "names": list(self.names), "device": self.device, "rate_hz": self.rate_hz,
+                "names": list(self.names), "device": self.device, "rate_hz": rate,
                 "created_at": time.time(), "frames": 0, "recording": self.frames_path(sid).name,
             }
-            framelog = FrameLog(self.frames_path(sid), list(self.names), self.rate_hz)
+            framelog = FrameLog(self.frames_path(sid), list(self.names), rate)
             if skeleton is not None:
                 import json
 
@@ -271,7 +275,11 @@ class SessionManager:
             if snap.fit is None:
                 why = snap.session.get("fit_error") or "not enough frames yet"
                 raise Conflict(f"session {session_id} has no fit yet ({why}); keep the performer moving")
-            return snap.fit, True
+            # The slips reported so far, as the stored result lists them at the stop: the live fit is made
+            # ~30 times a second and carries only its joints; the events are the session's.
+            slips = [{k: e[k] for k in SLIP_FIELDS if k in e}
+                     for e in self.store.events(session_id, limit=None) if e["type"] == "slip"]
+            return ({**snap.fit, "slip_events": slips} if slips else snap.fit), True
         result = self.store.result(session_id)
         if result is None:
             hint = " — POST /api/sessions/{0}/resolve re-solves it from its recording".format(session_id) \

@@ -64,7 +64,7 @@ class Snapshot:
     @cached_property
     def fit_json(self) -> str:
         # The progress document's fields ride at the top level next to the fit: "progress" stays the number
-        # it always was, now the service's one definition (README.md, "Progress").
+        # it always was, now the service's one definition (docs/service.md#progress-one-figure-for-the-kiosk-the-dashboard-and-the-api).
         return json.dumps({
             "result": self.fit, **(self.progress or {}), "hints": self.hints,
             "session": self.session, "fit_seq": self.fit_seq, "snapshot": self.seq, "frames": self.frames,

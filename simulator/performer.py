@@ -166,6 +166,12 @@ class Performer:
         return R, p, valid
 
     @property
+    def clock_s(self) -> float:
+        """The latest time poses were computed for: the performer's clock as a stream sees it."""
+        with self._lock:
+            return self._last_time
+
+    @property
     def sta_mm(self) -> float:
         return 0.0 if self.sta is None else self.sta.size_mm
 
@@ -214,14 +220,20 @@ class Performer:
         at_time: float | None = None,
         direction=None,
         angle_deg: float = 0.0,
+        unstreamed: bool = False,
     ) -> dict:
         """Make `sensor` slide `distance_m` along the skin at `at_time` (default: just after the last time
         streamed). `direction` is a 3-vector in the body's bone frame (default: a seeded direction in the
-        skin's plane); `angle_deg` turns the sensor about the skin normal too. Returns the event."""
+        skin's plane); `angle_deg` turns the sensor about the skin normal too. `unstreamed`: refuse an
+        `at_time` whose poses were already handed out (a live stream cannot take a slip back). Returns
+        the event."""
         i = self.index(sensor)
         if not 0.0 <= float(distance_m) < 0.5:
             raise SimulatorError(f"slip distance {distance_m} m should be between 0 and 0.5 m")
         with self._lock:
+            if unstreamed and at_time is not None and float(at_time) <= self._last_time:
+                raise SimulatorError(f"the performer's clock is already at {self._last_time:.3f} s; "
+                                     f"ask for a slip after that, not at {float(at_time):.3f} s")
             when = self._last_time + 1e-9 if at_time is None else float(at_time)
             S_now = self._sensor_frames(self._faults.slips, when)[0][i]
             if direction is None:

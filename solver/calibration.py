@@ -14,6 +14,7 @@ import numpy as np
 
 from flockcal.solver.errors import SolverError
 from flockcal.solver.fits import TOLERANCE_M, PairFits, pair_fits
+from flockcal.solver.hinge_point import hinge_offsets
 from flockcal.solver.topology import orient, rigid_bodies, spanning_tree
 
 
@@ -76,6 +77,7 @@ class Calibration:
     rms_free: np.ndarray | None = None  # (J,) m: each joint fitted freely (saved-skeleton fits)
     optical: OpticalExtras | None = None
     state: object = None  # what the next refresh starts from (a saved-skeleton fit's KnownFit); not in the JSON
+    hinge_point: "HingePoints | None" = None  # how each hinge's centre was placed on its axis
 
     # Joint arrays, named as the JSON names them.
     @property
@@ -223,8 +225,44 @@ def calibrate(acc, hierarchy=None, root=None, names=None, tolerance: float = TOL
         cal = Calibration(names, topo.root, topo.parent, topo.order, acc.frames, joints, _no_bones(),
                           np.full((m, 3), np.nan), topo.loop_candidates, topo.rigid_groups, topo.ambiguous,
                           fits)
+    joints, how = placed_hinges(acc, cal.joints)
+    cal = replace(cal, joints=joints, hinge_point=how)
     cal = replace(cal, placement=_placement(acc, cal))
     return replace(cal, bones=_bones(acc, cal))
+
+
+@dataclass(frozen=True)
+class HingePoints:
+    """How each tree joint's centre was placed on its hinge axis (solver/hinge_point.py)."""
+
+    rule: np.ndarray  # (J,) 2 or 1: where the limb's bones meet the axis (bones used); 0: min-norm; −1: not a hinge
+    data_share: np.ndarray  # (J,) the share of the least-squares point in it (0: none)
+
+    def take(self, index) -> "HingePoints":
+        return HingePoints(self.rule[index], self.data_share[index])
+
+
+def placed_hinges(acc, joints: PairFits) -> tuple[PairFits, HingePoints]:
+    """The tree's `joints` with each hinge's centre slid along its axis to the rule's point
+    (solver/hinge_point.py), its residual recomputed there; and how each was placed."""
+    s, how, share = hinge_offsets(joints.pairs, joints.c, joints.l, joints.axis_i, joints.axis_j, joints.hinge,
+                                  joints.determined, joints.axis_offset, joints.direction_error[:, 0])
+    moved = np.flatnonzero((how >= 0) & (s != 0))
+    how = HingePoints(how, share)
+    if not len(moved):
+        return joints, how
+    c, l = joints.c.copy(), joints.l.copy()
+    c[moved] += s[moved, None] * joints.axis_i[moved]
+    l[moved] += s[moved, None] * joints.axis_j[moved]
+    # The residual at the new point: SSE(u) = uᵀAu − 2bᵀu + Σ‖d‖². Along the axis it grows by n μ₀ s²
+    # at most, μ₀ being the rotation about the axis's own direction that the data barely saw.
+    A, b, dd, n = acc.normal_equations(joints.pairs[moved])
+    u = np.concatenate([c[moved], l[moved]], axis=1)
+    sse = np.maximum(np.einsum("pi,pij,pj->p", u, A, u) - 2.0 * (b * u).sum(axis=1) + dd, 0.0)
+    nn = np.maximum(n, 1.0)
+    rms, eps = joints.rms.copy(), joints.epsilon.copy()
+    rms[moved], eps[moved] = np.sqrt(sse / nn), np.sqrt(sse) / nn
+    return replace(joints, c=c, l=l, rms=rms, epsilon=eps), how
 
 
 def _no_bones() -> Bones:

@@ -18,6 +18,10 @@ from flockcal.solver.fits import unfitted
 
 
 
+# How a hinge's centre was placed on its axis (solver/hinge_point.py), by the number of limb bones used.
+HINGE_POINT_RULES = {2: "two_bones", 1: "one_bone", 0: "min_norm"}
+
+
 def calibration_json(cal) -> dict:
     """The docs/design.md §5 object of `cal`, with the extensions the solver emits.
 
@@ -26,7 +30,9 @@ def calibration_json(cal) -> dict:
     in an optical fit, whose joints carry "kirk_rms_m" instead; a saved-skeleton fit adds "rms_free_m"
     and "known_skeleton"; a free fit adds "rigid_groups" (sensors that never turned relative to each
     other) and "ambiguous" (children with more than one equally good parent). Joints and bones refitted
-    after a slip carry "segment_start_s". NaN becomes null and every number is a Python int or float:
+    after a slip carry "segment_start_s"; a hinge says how its centre was placed on its axis, "hinge_point":
+    {"rule" (`HINGE_POINT_RULES`: where the limb's bones meet the axis, or the minimum-norm point),
+    "data_share" (the least-squares point's share in it)}. NaN becomes null and every number is a Python int or float:
     the dict is valid JSON as it stands.
     """
     nm = cal.names
@@ -41,6 +47,8 @@ def calibration_json(cal) -> dict:
     free = None if cal.rms_free is None else _json(cal.rms_free)
     kirk = None if optical is None else _json(optical.kirk_rms)
     seg = None if cal.segment_start_s is None else _json(cal.segment_start_s)
+    placed = None if cal.hinge_point is None else cal.hinge_point.rule.tolist()
+    share = None if cal.hinge_point is None else cal.hinge_point.data_share.tolist()
     joints = []
     for k, ((child, parent), hinge) in enumerate(zip(j.pairs.tolist(), j.hinge.tolist())):
         e = {"child": nm[child], "parent": nm[parent], "c": vec[0][k], "l": vec[1][k], "rms_m": num[0][k],
@@ -65,6 +73,8 @@ def calibration_json(cal) -> dict:
             e["direction_error_m"] = vec[5][k]
         if seg is not None and seg[k] is not None:
             e["segment_start_s"] = seg[k]
+        if hinge and placed is not None and placed[k] >= 0:
+            e["hinge_point"] = {"rule": HINGE_POINT_RULES[placed[k]], "data_share": round(float(share[k]), 4)}
         joints.append(e)
     bones = bones_json(cal.bones, nm)
     out = {

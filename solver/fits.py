@@ -61,6 +61,9 @@ class PairFits:
     rotation_noise: np.ndarray  # (p,) what the two sensors' rotation jitter adds to μ_k (rad²)
     separation: np.ndarray  # (p,) m, rms distance between the two sensors (2L)
     rms_floor: np.ndarray  # (p,) m, rounding level of rms read from the Gram: smaller values mean 0
+    # (p,) m: a hinge's least-squares point on its axis, as a slide from c along axis_i (and from l along
+    # axis_j); its error is direction_error[:, 0]. NaN: not a hinge, or no rotation about the axis beyond noise.
+    axis_offset: np.ndarray
 
     def __len__(self) -> int:
         return len(self.pairs)
@@ -102,7 +105,7 @@ def unfitted(pairs) -> PairFits:
     no = np.zeros(p, dtype=bool)
     zero = np.zeros(p, dtype=int)
     return PairFits(P, nan(3), nan(3), nan(), nan(), nan(6), no, no, nan(3), nan(3), nan(3), nan(), nan(),
-                    nan(3, 3), nan(3, 3), zero, zero.copy(), nan(3), nan(), nan(), nan())
+                    nan(3, 3), nan(3, 3), zero, zero.copy(), nan(3), nan(), nan(), nan(), nan())
 
 
 def all_pairs(n_sensors: int) -> np.ndarray:
@@ -191,6 +194,19 @@ def pair_fits(acc, pairs=None, tolerance: float = TOLERANCE_M) -> PairFits:
     lever = np.maximum(np.linalg.norm(u[:, :3], axis=1), np.linalg.norm(u[:, 3:], axis=1))
     hinge = one_free & (lever * tilt <= tolerance) & has
     determined = (ball | hinge) & has
+    # A hinge's point along its axis is not pinned to the tolerance: the fit keeps the minimum-norm point
+    # there and reports the least-squares value apart (a slide along the axis, with its error), and
+    # solver/hinge_point.py places the point by the limb's bones, counting the data as far as they pin it.
+    ls_along = np.where(hinge & keep[:, 0], coef[:, 0] / safe_mu[:, 0], np.nan)  # along v_0, in u's units
+    if hinge.any():
+        keep[:, 0] &= ~hinge
+        rank = keep.sum(axis=1)
+        w = np.where(keep, coef / safe_mu, 0.0)
+        u = np.einsum("pik,pk->pi", V, w)
+        gain = np.where(keep, coef**2 / safe_mu, 0.0)
+        sse = np.maximum(ddn - gain.sum(axis=1), 0.0) * nn
+        rms = np.sqrt(sse / nn)
+        eps = np.sqrt(sse) / nn
 
     # Covariance over the kept directions (a hinge's free axis is the rule's, not the data's).
     inv = np.where(keep, var, 0.0)
@@ -213,6 +229,8 @@ def pair_fits(acc, pairs=None, tolerance: float = TOLERANCE_M) -> PairFits:
     sign = np.where(sign == 0, 1.0, sign)
     axis = np.where(hinge[:, None, None], axis * sign[:, None, None], np.nan)
     ai, aj = axis[:, 0], axis[:, 1]
+    # The least-squares point as a slide from c along a_i (v_0's child half is a_i times its length).
+    axis_offset = ls_along * np.einsum("pi,pi->p", V[:, :3, 0], np.nan_to_num(ai))
 
     sv = np.sqrt(np.maximum(mu, 0.0))[:, ::-1]
     coverage = np.minimum(np.maximum(mu[:, :3], 0.0), 1.0)
@@ -240,6 +258,7 @@ def pair_fits(acc, pairs=None, tolerance: float = TOLERANCE_M) -> PairFits:
         rotation_noise=np.where(np.isfinite(mu0), mu0, np.nan) + nan1,
         separation=np.sqrt(np.maximum(ddn, 0.0)) + nan1,
         rms_floor=np.sqrt(ROUNDING * (np.maximum(ddn, 0.0) + acc.translation_power(P)) / mu_kept) + nan1,
+        axis_offset=axis_offset,
     )
 
 

@@ -16,6 +16,7 @@ from flockcal.rotations import skew
 from flockcal.solver.calibration import Bones, Calibration
 from flockcal.solver.calibration_json import bones_json
 from flockcal.solver.fits import PairFits, unfitted
+from flockcal.solver.hinge_point import LIMB_RULE_SD_M
 from flockcal.solver.reconstruct import Articulation, ArticulationError
 
 
@@ -131,6 +132,7 @@ def fit_known_skeleton(
     a handful of 6m×6m solves whatever the take's length. A live refresh passes the `previous` result
     (same skeleton, same names) to start from it: usually one or two Gauss–Newton steps then.
     """
+    from flockcal.solver.calibration import placed_hinges
     from flockcal.solver.fits import pair_fits
 
     art = saved.reordered(names)
@@ -145,7 +147,10 @@ def fit_known_skeleton(
     if np.any(nfr < 1):
         lacking = [art.names[j] for j, k in zip(child, nfr) if k < 1]
         raise ArticulationError(f"no frame has both sensors of joint(s) {', '.join(lacking)} valid")
-    free = pair_fits(acc, pairs)
+    # Hinges' centres by the same rule the saved skeleton was fitted with (solver/hinge_point.py): the
+    # Procrustes start below matches saved points to these, and a minimum-norm point along an axis would
+    # turn a body with two joints.
+    free, _ = placed_hinges(acc, pair_fits(acc, pairs))
     free_c = np.asarray(free.c, dtype=float)
     free_l = np.asarray(free.l, dtype=float)
 
@@ -165,13 +170,29 @@ def fit_known_skeleton(
         l = np.einsum("pab,pb->pa", Q[par], art.l[child]) + s[par]
         return c, l
 
-    def cost(Q, s):
-        c, l = placed(Q, s)
-        return _joint_sse(A, bvec, dd, np.concatenate([c, l], axis=1))
-
     # Gauss–Newton on Σ SSE_j over per-body rigid motions (ω, δs); the cost is exactly quadratic in the
     # joint points, so only the rotations' curvature is linearised. Free directions (a leaf spinning
     # about its one joint, a joint sliding along its hinge axis) stay where Procrustes put them.
+    # A hinge's centre slides along its axis at almost no cost in the data, and with it the bodies on
+    # either side turn about their other joints: the data's noise, not the motion, would place it. The
+    # hinge rule's point (the free fit above, solver/hinge_point.py) is counted as one more measurement
+    # along each hinge axis with the rule's own sd, weighted against the joint's residual variance per
+    # coordinate: a target that depends on the data alone, so a warm and a cold start agree.
+    hinge = np.asarray(free.hinge, dtype=bool) & np.isfinite(np.asarray(free.axis_i, dtype=float)).all(axis=1)
+    ax_c = np.where(hinge[:, None], np.nan_to_num(np.asarray(free.axis_i, dtype=float)), 0.0)
+    ax_l = np.where(hinge[:, None], np.nan_to_num(np.asarray(free.axis_j, dtype=float)), 0.0)
+    # SSE/σ² + s²/sd² in SSE units, σ² the residual variance per coordinate; half on each side's point.
+    w_axis = np.where(hinge, np.nan_to_num(np.asarray(free.rms, dtype=float)) ** 2 / (3.0 * LIMB_RULE_SD_M ** 2)
+                      / 2.0, 0.0)
+    c0, l0 = free_c, free_l
+
+    def prior(c, l):
+        return w_axis * (np.einsum("pi,pi->p", c - c0, ax_c) ** 2 + np.einsum("pi,pi->p", l - l0, ax_l) ** 2)
+
+    def cost(Q, s):
+        c, l = placed(Q, s)
+        return _joint_sse(A, bvec, dd, np.concatenate([c, l], axis=1)) + prior(c, l)
+
     sse = cost(Q, s)
     done = 0
     for done in range(1, iterations + 1):
@@ -181,9 +202,15 @@ def fit_known_skeleton(
         Jc = np.concatenate([-skew(Qc), np.broadcast_to(np.eye(3), Qc.shape + (3,))], axis=2)  # (p, 3, 6)
         Jl = np.concatenate([-skew(Ql), np.broadcast_to(np.eye(3), Ql.shape + (3,))], axis=2)
         r = np.einsum("pij,pj->pi", A, np.concatenate([c, l], axis=1)) - bvec  # ½ gradient in u
+        Pc = w_axis[:, None, None] * np.einsum("pi,pj->pij", ax_c, ax_c)
+        Pl = w_axis[:, None, None] * np.einsum("pi,pj->pij", ax_l, ax_l)
+        r = r + np.concatenate([np.einsum("pij,pj->pi", Pc, c - c0), np.einsum("pij,pj->pi", Pl, l - l0)], axis=1)
+        A_step = A.copy()
+        A_step[:, :3, :3] += Pc
+        A_step[:, 3:, 3:] += Pl
         H = np.zeros((m, m, 6, 6))
         g = np.zeros((m, 6))
-        Acc, Acl, All = A[:, :3, :3], A[:, :3, 3:], A[:, 3:, 3:]
+        Acc, Acl, All = A_step[:, :3, :3], A_step[:, :3, 3:], A_step[:, 3:, 3:]
         np.add.at(H, (child, child), np.swapaxes(Jc, 1, 2) @ Acc @ Jc)
         np.add.at(H, (par, par), np.swapaxes(Jl, 1, 2) @ All @ Jl)
         cross = np.swapaxes(Jc, 1, 2) @ Acl @ Jl
@@ -217,7 +244,7 @@ def fit_known_skeleton(
     rms = np.full(m, np.nan)
     eps = np.full(m, np.nan)
     rms_free = np.full(m, np.nan)
-    sse = np.maximum(sse, 0.0)
+    sse = np.maximum(_joint_sse(A, bvec, dd, np.concatenate([c, l], axis=1)), 0.0)  # the data's alone
     rms[child] = np.sqrt(sse / nfr)
     eps[child] = np.sqrt(sse) / nfr
     rms_free[child] = np.asarray(free.rms, dtype=float)

@@ -204,6 +204,8 @@ class SegmentedAccumulator:
         segs = self.pair_segments(np.stack([jc, jp], axis=1))
         start = np.full(len(jc), np.nan)
         joints, placement = whole.joints, whole.placement.copy()
+        hinge_rule = None if whole.hinge_point is None else whole.hinge_point.rule.copy()
+        hinge_share = None if whole.hinge_point is None else whole.hinge_point.data_share.copy()
         done: dict[int, Calibration] = {}
         for k, seg in enumerate(segs):
             if seg is None:
@@ -217,8 +219,13 @@ class SegmentedAccumulator:
             theirs = [int(np.flatnonzero(part.joint_child == jc[k])[0]) for k in mine]
             joints = _rows_from(joints, mine, part.joints, theirs)
             placement[jc[mine]] = part.joints.c[theirs]
+            if hinge_rule is not None and part.hinge_point is not None:
+                hinge_rule[mine] = part.hinge_point.rule[theirs]
+                hinge_share[mine] = part.hinge_point.data_share[theirs]
         bones = _bones_after(whole, done, self)
-        return replace(whole, joints=joints, placement=placement, segment_start_s=start, bones=bones)
+        hinge_point = None if hinge_rule is None else replace(whole.hinge_point, rule=hinge_rule, data_share=hinge_share)
+        return replace(whole, joints=joints, placement=placement, segment_start_s=start, bones=bones,
+                       hinge_point=hinge_point)
 
     def tree_fits(self, tolerance: float = TOLERANCE_M) -> PairFits:
         """All pairs fitted on the whole take, for the tree search, with each pair that touches a slipped

@@ -10,6 +10,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from flockcal.simulator.performer import Performer
 from flockcal.takes import make_take, save_take
@@ -45,8 +46,9 @@ def routine_takes(folder: Path, parts: int = 3, slipped: dict | None = None, pre
 
 
 def write_c3d(path: Path, take) -> None:
-    """A marker take as a C3D file in millimetres (what optical systems write)."""
-    import ezc3d
+    """A marker take as a C3D file in millimetres (what optical systems write); the calling test skips,
+    saying why, without the optical extra."""
+    ezc3d = pytest.importorskip("ezc3d", reason="writing C3D needs ezc3d: pip install '.[optical]' (or '.[test]')")
 
     c = ezc3d.c3d()
     c["parameters"]["POINT"]["RATE"]["value"] = [take.rate_hz]

@@ -142,8 +142,16 @@ class ServerProcess:
     def start(self, timeout: float = 60.0, token: str | None = None) -> "ServerProcess":
         out = open(self.log_path, "ab") if self.log_path else subprocess.DEVNULL
         env = dict(os.environ, FLOCKCAL_FAST_INIT="1")
-        self.proc = subprocess.Popen(self.args, stdout=out, stderr=subprocess.STDOUT, env=env)
-        wait_ready(self.url, timeout, token, self.proc)
+        try:
+            self.proc = subprocess.Popen(self.args, stdout=out, stderr=subprocess.STDOUT, env=env)
+        finally:
+            if out is not subprocess.DEVNULL:
+                out.close()  # the child has its own copy
+        try:
+            wait_ready(self.url, timeout, token, self.proc)
+        except BaseException:
+            self.stop()  # never leave a service behind that did not come up in time
+            raise
         return self
 
     def kill9(self) -> None:

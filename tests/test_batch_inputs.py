@@ -1,7 +1,9 @@
 """`flockcal batch` before any cluster starts, and the --combine rule for slips: what a missing Dask, clashing
-names and bad options say (one line, exit 2), how folders and globs expand, and which frames a slipped
-sensor contributes to the combined sums."""
+names, bad options, a path that does not exist and an empty folder say (one line, exit 2, nothing written,
+no cluster), how folders and globs expand, and which frames a slipped sensor contributes to the combined
+sums. None of these needs Dask: they pass where the batch extra is not installed."""
 
+import subprocess
 import sys
 
 import numpy as np
@@ -24,6 +26,7 @@ def test_without_dask_the_error_names_the_extra_to_install(tmp_path, capsys, mon
     # As if dask.distributed were not installed: importing it fails.
     monkeypatch.setitem(sys.modules, "distributed", None)
     monkeypatch.setitem(sys.modules, "dask.distributed", None)
+    (tmp_path / "t.npz").write_bytes(b"")
     err = _one_line_error(capsys, ["batch", str(tmp_path / "t.npz"), "-o", str(tmp_path / "out")])
     assert "flockcal batch runs on Dask" in err and "pip install 'flockcal[batch]'" in err
     assert not (tmp_path / "out").exists()
@@ -54,12 +57,38 @@ def test_folders_are_searched_globs_expanded_and_each_file_taken_once(tmp_path, 
         (tmp_path / rel).parent.mkdir(parents=True, exist_ok=True)
         (tmp_path / rel).write_bytes(b"")
     monkeypatch.chdir(tmp_path)
-    got = expand(["day1", "day2/*.npz", "day1/a.npz", "day3/*.npz", "empty_dir_missing.npz"])
-    assert [name for name, _ in got] == ["day1/a.npz", "day1/deep/b.fobraw", "day2/d.npz", "day3/*.npz",
-                                         "empty_dir_missing.npz"]
+    got = expand(["day1", "day2/*.npz", "day1/a.npz"])
+    assert [name for name, _ in got] == ["day1/a.npz", "day1/deep/b.fobraw", "day2/d.npz"]
     assert got[0][1] == str(tmp_path / "day1" / "a.npz")  # absolute: workers run in other folders
-    assert got[3][1] is None  # a glob that matched nothing is its own failed row
-    assert got[4][1] == str(tmp_path / "empty_dir_missing.npz")  # a missing file fails on the worker, by name
+
+
+def _batch(*argv, cwd):
+    """`flockcal batch` as a user runs it, in a subprocess."""
+    return subprocess.run([sys.executable, "-m", "flockcal", "batch", *map(str, argv)], cwd=cwd,
+                          capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.parametrize("given, says", [
+    # tried: a file that does not exist beside a real one
+    (["a.npz", "missing.npz"], "missing.npz: no such file or folder"),
+    # tried: an empty folder (it read "0 of 1 takes fitted" after starting a cluster)
+    (["empty"], "empty: no take (.npz, .fobraw, .c3d) in this folder"),
+    # tried: a folder holding no take file, only notes
+    (["notes"], "notes: no take (.npz, .fobraw, .c3d) in this folder"),
+    # tried: a quoted glob that matches nothing
+    (["day3/*.npz"], "day3/*.npz: no take file (.npz, .fobraw, .c3d) matches"),
+])
+def test_a_path_with_no_take_is_a_usage_error_before_any_cluster(tmp_path, given, says):
+    (tmp_path / "a.npz").write_bytes(b"")
+    (tmp_path / "empty").mkdir()
+    (tmp_path / "notes").mkdir()
+    (tmp_path / "notes" / "readme.txt").write_text("takes come tomorrow")
+    run = _batch(*given, "-o", "out", cwd=tmp_path)
+    assert run.returncode == 2, run.stderr
+    assert run.stderr.count("\n") == 1 and run.stderr.startswith("flockcal batch: error: "), run.stderr
+    assert says in run.stderr and "Traceback" not in run.stderr
+    # Nothing started and nothing written: no cluster line, no results folder.
+    assert "cluster" not in run.stderr and not (tmp_path / "out").exists()
 
 
 def test_a_slipped_sensor_contributes_only_its_frames_from_before_the_slip(tmp_path):

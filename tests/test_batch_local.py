@@ -44,8 +44,9 @@ def batch(tmp_path_factory):
     markers, _ = so.simulate_markers(model, so.rod_motion(model, 10, 60, 3), per_body=(3, 3), noise_m=0.001, seed=3)
     write_c3d(src / "rods.c3d", markers)
     out_dir = tmp_path_factory.mktemp("out") / "results"  # made by batch
-    # The folder is expanded; a missing file is a take given that fails on its own.
-    run = flockcal("batch", src, src / "missing.npz", "-o", out_dir, "--workers", "2", "--combine", check=False)
+    # The folder is expanded; a broken and a short take fail on their own rows. (A path that does not exist
+    # is a usage error before any cluster starts: tests/test_batch_inputs.py.)
+    run = flockcal("batch", src, "-o", out_dir, "--workers", "2", "--combine", check=False)
     rows = list(csv.DictReader((out_dir / "summary.csv").open()))
     return {"src": src, "out": out_dir, "run": run, "rows": {r["take"]: r for r in rows}, "order": [r["take"] for r in rows],
             "parts": parts, "truth": truth}
@@ -56,10 +57,9 @@ def test_one_row_per_take_bad_ones_named_with_their_error_and_exit_1(batch):
     err = run.stderr.decode()
     assert run.returncode == 1, err  # two files could not be fitted
     names = ["broken.npz", "part0.npz", "part1.npz", "part2.npz", "rods.c3d", "short.npz", "six.npz"]
-    assert batch["order"] == [str(src / n) for n in names] + [str(src / "missing.npz")]
-    broken, missing, short = rows[str(src / "broken.npz")], rows[str(src / "missing.npz")], rows[str(src / "short.npz")]
+    assert batch["order"] == [str(src / n) for n in names]
+    broken, short = rows[str(src / "broken.npz")], rows[str(src / "short.npz")]
     assert "not a .npz take" in broken["error"] and "\n" not in broken["error"]
-    assert missing["error"].endswith("missing.npz: no such file")
     assert "too short to fit" in short["error"] and "--allow-partial" in short["error"]
     for name in ("part0.npz", "part1.npz", "part2.npz", "six.npz", "rods.c3d"):
         r = rows[str(src / name)]
@@ -83,7 +83,7 @@ def test_combined_takes_and_the_ones_left_out_are_named(batch):
     src = batch["src"]
     assert combined["takes"] == [str(src / f"part{k}.npz") for k in range(3)]
     reasons = {e["take"]: e["reason"] for e in combined["left_out"]}
-    assert set(reasons) == {str(src / n) for n in ("broken.npz", "rods.c3d", "short.npz", "six.npz", "missing.npz")}
+    assert set(reasons) == {str(src / n) for n in ("broken.npz", "rods.c3d", "short.npz", "six.npz")}
     assert "sensors" in reasons[str(src / "six.npz")] and "differ" in reasons[str(src / "six.npz")]
     assert "marker take" in reasons[str(src / "rods.c3d")]
     assert "too short" in reasons[str(src / "short.npz")]

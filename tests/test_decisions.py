@@ -23,10 +23,13 @@ from plain_lsq import plain_fit, plain_take_fit
 from real_captures import KNEE, UPPER_LIMB, cluster_take, segment_map
 from synthetic import articulated
 
-# README ("Decisions on real motion"): a determined ball joint is within 1 mm of plain least squares; on
-# the real knee trial the knee is determined and within 0.5 mm of it.
+# docs/solver.md ("Decisions on real motion"): a determined ball joint is within 1 mm of plain least
+# squares; on the real knee trial the knee is determined, a hinge, and within 0.5 mm of it across its axis.
+# On the axis a hinge's point is the rule's (docs/design.md §3c); the trial pins the knee's there to
+# 6 mm, so the data's own point counts for 99 % and it stays within 2 mm of plain least squares there too.
 PLAIN_BALL_M = 1e-3
 PLAIN_KNEE_M = 0.5e-3
+PLAIN_KNEE_ALONG_M = 2e-3
 TOLERANCE_M = 5e-3  # the solver's default tolerance, which the README states
 
 
@@ -67,9 +70,11 @@ def test_knee_trial_knee_is_determined_and_within_half_a_millimetre_of_plain_lea
         result = _fit(knee, hierarchy)
         assert result["parent"]["r_shank"] == "r_thigh"
         j = _joints(result)["r_shank"]
-        assert j["determined"], j
-        assert np.linalg.norm(np.array(j["c"]) - plain.c) < PLAIN_KNEE_M
-        assert np.linalg.norm(np.array(j["l"]) - plain.l) < PLAIN_KNEE_M
+        assert j["determined"] and j["hinge"], j
+        for got, want, axis in ((j["c"], plain.c, j["axis_child"]), (j["l"], plain.l, j["axis_parent"])):
+            off, a = np.array(got) - want, np.array(axis) / np.linalg.norm(axis)
+            assert np.linalg.norm(off - (off @ a) * a) < PLAIN_KNEE_M
+            assert abs(off @ a) < PLAIN_KNEE_ALONG_M
 
 
 def test_knee_trial_segments_that_did_not_move_are_never_a_confident_joint(knee):

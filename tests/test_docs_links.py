@@ -144,3 +144,53 @@ def test_the_checker_reports_a_missing_file_a_wrong_anchor_and_a_link_out_of_the
     assert any("missing.md" in p for p in problems)
     assert any("#no-such-heading" in p for p in problems)
     assert any("leaves the repository" in p for p in problems)
+
+
+def tour_lines() -> list[str]:
+    text = README.read_text(encoding="utf-8")
+    m = re.search(r"^## A tour\n(.*?)(?=^## )", text, re.M | re.S)
+    assert m, 'README.md has no "## A tour" section'
+    return [ln for ln in fenced_lines(m.group(1)) if ln.startswith("flockcal ")]
+
+
+# What each tour command needs beyond `pip install .`: the module it imports and the extra that brings it
+# (a new user ran the tour after the README's install and met these; issue #29).
+NEEDS = {"fit-markers": ("optical", "ezc3d"), "batch": ("batch", "dask")}
+
+
+def test_each_tour_line_that_needs_an_extra_names_it():
+    import tomllib
+
+    extras = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    base = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["dependencies"]
+    seen = set()
+    for line in tour_lines():
+        command = line.split()[1]
+        if command not in NEEDS:
+            continue
+        extra, module = NEEDS[command]
+        seen.add(command)
+        assert any(d.startswith(module) for d in extras[extra]), f"the {extra!r} extra does not bring {module}"
+        assert not any(d.startswith(module) for d in base), f"{module} is a plain dependency now: drop the note"
+        assert f"pip install '.[{extra}]'" in line, f"the tour line {line!r} does not say it needs '.[{extra}]'"
+    assert seen == set(NEEDS), f"the tour lost its {set(NEEDS) - seen} line(s); update NEEDS"
+
+
+CODE = [p for d in ("flockcal", "server", "solver", "drivers", "simulator") for p in sorted((ROOT / d).rglob("*"))
+        if p.suffix in (".py", ".js", ".html") and "vendor" not in p.parts]
+CITED = re.compile(r"docs/([\w-]+\.md)#([\w-]+)")
+# A README section cited by name ("README.md, "Progress"", "the README's server section"): those moved to docs/.
+README_SECTION = re.compile(r"README(?:\.md)?(?:'s \w+ section|,? \\?\"[^\"\\]+\\?\"|,? \(?\"[A-Z])")
+
+
+def test_what_the_code_tells_users_cites_pages_and_headings_that_exist():
+    # Issue #29: the OpenAPI description ("the README's server section") and the HTML report ("README,
+    # Progress") pointed at sections that had moved to docs/.
+    problems = []
+    for path in CODE:
+        text = path.read_text(encoding="utf-8")
+        for page, anchor in CITED.findall(text):
+            if not (ROOT / "docs" / page).exists() or anchor not in anchors(ROOT / "docs" / page):
+                problems.append(f"{path.relative_to(ROOT)}: docs/{page}#{anchor}")
+        problems += [f"{path.relative_to(ROOT)}: {m.group(0)}" for m in README_SECTION.finditer(text)]
+    assert CODE and not problems, problems

@@ -15,7 +15,7 @@ from flockcal.drivers.records import encode_records, quantisation_tolerance, rec
 from flockcal.rotations import from_euler
 from flockcal.drivers.assembly import FrameAssembler
 from flockcal.drivers.link import FlockSetup, choose_format
-from flockcal.drivers.recording import RecordingError, RecordingWriter, read_recording
+from flockcal.drivers.recording import RecordingError, RecordingWriter, intact_length, read_recording
 
 
 def write_some(path, n=20):
@@ -54,6 +54,23 @@ def test_a_cut_tail_is_dropped_and_the_summary_says_how_much_was_recovered(tmp_p
     rec = read_recording(path)
     assert len(rec.chunks) == 20  # the marker and 19 of the 20 reads
     assert rec.good_bytes < size - 7 and f"of {size - 7} bytes" in rec.summary()
+
+
+def test_a_copy_of_a_growing_recording_ends_on_its_last_whole_chunk(tmp_path):
+    """intact_length: what GET /raw sends of a live session's recording. At every length the file may
+    have when it is read (every byte boundary, a chunk header or payload cut anywhere), the length is
+    the end of the last chunk wholly within it, as read_recording finds chunks in the whole file."""
+    path = write_some(tmp_path / "c.fobraw", n=12)
+    data = path.read_bytes()
+    whole = read_recording(path)
+    header = len(data) - sum(16 + len(c.payload) + 4 for c in whole.chunks)  # chunk: 16-byte head, CRC
+    ends = np.cumsum([header] + [16 + len(c.payload) + 4 for c in whole.chunks])
+    for size in range(len(data) + 1):
+        want = 0 if size < header else int(ends[ends <= size].max())
+        assert intact_length(path, size) == want, size
+        if want:
+            (tmp_path / "cut.fobraw").write_bytes(data[:want])
+            assert not read_recording(tmp_path / "cut.fobraw").truncated
 
 
 def test_a_corrupt_chunk_is_a_clear_error_unless_salvaged(tmp_path):

@@ -35,6 +35,8 @@ def run_on_terminal(argv: list[str], env: dict, cwd, timeout: float = 120.0) -> 
         ready, _, _ = select.select([master], [], [], timeout)
         if not ready:
             proc.kill()
+            proc.wait(30)
+            os.close(master)
             raise TimeoutError(f"flockcal {' '.join(argv)} said nothing for {timeout} s")
         try:
             chunk = os.read(master, 65536)

@@ -160,7 +160,8 @@ def test_a_stalled_client_is_dropped_and_its_socket_closed(open_server):
 
     state, clients, clients_before = asyncio.run(main())
     assert state != TCP_ESTABLISHED, "the server left the stalled client's connection established"
-    assert clients == clients_before
+    # (At most as many as before: a client of an earlier test on this server may still have been leaving.)
+    assert clients <= clients_before
 
 
 # --- 3. tokenless sockets cannot take the slots ----------------------------------------------------------

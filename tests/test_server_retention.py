@@ -40,8 +40,9 @@ def settings_for(tracker, data_dir, **kw) -> Settings:
                     data_dir=data_dir, fast_init=True, scale_inches=72, baud=921600, **kw)
 
 
-def session(url: str, seconds: float, pin: bool = False, until_done: bool = False) -> str:
-    """A session of `seconds` (or, `until_done`, until the service says calibrated, within `seconds`)."""
+def session(url: str, seconds: float, pin: bool = False, until_done: bool = False, frames: int | None = None) -> str:
+    """A session of `seconds` (or, `until_done`, until the service says calibrated, within `seconds`; or, with
+    `frames`, until it holds that many frames, within `seconds`: sessions of one size whatever the load)."""
     sid = httpx.post(url + "/api/sessions", json={"performer": "guest"}).json()["id"]
     if pin:
         r = httpx.post(url + f"/api/sessions/{sid}/pin")
@@ -50,7 +51,11 @@ def session(url: str, seconds: float, pin: bool = False, until_done: bool = Fals
     while time.monotonic() < deadline:
         if until_done and httpx.get(url + f"/api/sessions/{sid}/progress").json()["done"]:
             break
-        time.sleep(0.1)
+        if frames is not None and httpx.get(url + f"/api/sessions/{sid}").json()["frames"] >= frames:
+            break
+        time.sleep(0.05 if frames is not None else 0.1)
+    else:
+        assert frames is None, f"session {sid} did not reach {frames} frames within {seconds} s"
     r = httpx.post(url + f"/api/sessions/{sid}/stop", timeout=30)
     assert r.status_code == 200 and r.json()["has_result"], r.text
     return sid
@@ -166,14 +171,15 @@ def test_keep_days_prunes_only_sessions_older_than_the_window(tracker, tmp_path)
 
 def test_budget_keeps_room_for_the_next_session_to_record(tracker, tmp_path):
     # docs/kiosk.md, "Budget": the directory stays under --keep-disk while the next guest records too, so
-    # between sessions it keeps room for one session as large as the last few. Tried: three equal sessions,
-    # then a budget the directory meets now but not with one more such session on top.
+    # between sessions it keeps room for one session as large as the last few. Tried: three equal sessions
+    # (equal in frames: on a loaded machine equal wall times gave sessions of 216 and 516 kB), then a budget
+    # the directory meets now but not with one more such session on top.
     from flockcal.server.retention import GB, Policy
 
     with ServerThread(settings_for(tracker, tmp_path / "data", keep_disk_gb=1000.0)) as srv:
         url = srv.url
         wait_connected(url)
-        sids = [session(url, 1.5) for _ in range(3)]
+        sids = [session(url, 60.0, frames=200) for _ in range(3)]
         ret, mgr = srv.service.retention, srv.service.sessions
         assert ret.prune_once() == []  # 1000 GB: nothing to do
         sizes = [mgr.frames_path(s).stat().st_size + mgr.raw_path(s).stat().st_size for s in sids]

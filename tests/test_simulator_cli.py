@@ -2,7 +2,6 @@
 
 import json
 import os
-import signal
 import subprocess
 import sys
 
@@ -13,6 +12,7 @@ import serial
 from flockcal.cli import main
 from flockcal.simulator.performer import Performer
 from flockcal.takes import load_take
+from processes import reaped
 
 
 def test_simulate_writes_the_npz_take_and_truth_json_beside_it(tmp_path, capsys):
@@ -71,7 +71,7 @@ def test_simulate_pty_serves_a_fake_tracker_that_answers_point(tmp_path):
         [sys.executable, "-m", "flockcal", "simulate", "--pty", "--birds", "2", "--noise", "none", "--seed", "3"],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
     )  # fmt: skip
-    try:
+    with reaped(proc):  # Ctrl-C on leaving, as a user stops it; killed if it does not go
         device = proc.stdout.readline().strip()
         assert device and os.path.exists(device), proc.stderr.read()
         with serial.Serial(device, 115200, timeout=2.0) as port:
@@ -84,21 +84,14 @@ def test_simulate_pty_serves_a_fake_tracker_that_answers_point(tmp_path):
         pelvis = Performer(birds=2, seed=3, noise=None).poses(np.array([0.0]))[1][0, 0]
         # It is the performer's pelvis sensor (a few cm of motion since start aside), at the 72-inch scale.
         assert np.linalg.norm(inches * 0.0254 - pelvis) < 0.2
-    finally:
-        proc.send_signal(signal.SIGINT)
-        try:
-            rc = proc.wait(timeout=10)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            raise
-    assert rc == 0  # Ctrl-C is the documented way to stop it: a clean exit
+    assert proc.returncode == 0  # Ctrl-C is the documented way to stop it: a clean exit
 
 
 def test_the_record_line_simulate_pty_prints_fits_the_fake_and_keeps_its_names(tmp_path):
     # The README tour: `flockcal simulate --pty`, then the `flockcal record` it suggests, then convert.
     proc = subprocess.Popen([sys.executable, "-m", "flockcal", "simulate", "--pty", "--motion", "exercise"],
                             stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    try:
+    with reaped(proc):
         device = proc.stdout.readline().strip()
         proc.stderr.readline()
         suggested = proc.stderr.readline().strip()
@@ -107,9 +100,6 @@ def test_the_record_line_simulate_pty_prints_fits_the_fake_and_keeps_its_names(t
         argv[argv.index("recorded.fobraw")] = str(tmp_path / "recorded.fobraw")
         rec = subprocess.run([sys.executable, "-m", "flockcal", *argv, "--seconds", "4"], capture_output=True,
                              text=True, timeout=120)
-    finally:
-        proc.send_signal(signal.SIGINT)
-        proc.wait(timeout=10)
     assert rec.returncode == 0, rec.stderr
     # The tracker's own 72-inch scale is kept (nothing saturates) and the line carries the rate asked.
     assert "72-inch scale (the tracker's own)" in rec.stderr

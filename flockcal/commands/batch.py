@@ -63,10 +63,11 @@ def register(subparsers) -> None:
 # -- inputs --------------------------------------------------------------------------------------------
 
 
-def expand(items: list[str]) -> list[tuple[str, str | None]]:
-    """(name as given, absolute path or None) per take: folders searched recursively for take files,
-    globs expanded (`**` too), each file once; None with the reason as the name's error when nothing matched."""
-    out: list[tuple[str, str | None]] = []
+def expand(items: list[str]) -> list[tuple[str, str]]:
+    """(name as given, absolute path) per take: folders searched recursively for take files, globs
+    expanded (`**` too), each file once. A path that does not exist, and a folder or glob with no take
+    in it, is a UserError naming it: a usage error, found before any cluster starts."""
+    out: list[tuple[str, str]] = []
     seen: set[str] = set()
 
     def add(name: str) -> None:
@@ -80,7 +81,7 @@ def expand(items: list[str]) -> list[tuple[str, str | None]]:
         if p.is_dir():
             found = sorted(str(f) for f in p.rglob("*") if f.is_file() and f.suffix.lower() in SUFFIXES)
             if not found:
-                out.append((item, None))
+                raise UserError(nothing_found(item))
             for f in found:
                 add(f)
         elif glob.has_magic(item) and not p.exists():
@@ -89,28 +90,29 @@ def expand(items: list[str]) -> list[tuple[str, str | None]]:
             for d in (f for f in found if Path(f).is_dir()):
                 files += sorted(str(f) for f in Path(d).rglob("*") if f.is_file() and f.suffix.lower() in SUFFIXES)
             if not files:
-                out.append((item, None))
+                raise UserError(nothing_found(item))
             for f in files:
                 add(f)
+        elif not p.exists():
+            raise UserError(f"{item}: no such file or folder; check the path (folders and quoted globs are "
+                            "searched for takes)")
         else:
-            add(item)  # missing or unreadable files are reported in their row by the worker
+            add(item)  # an unreadable file or one that is not a take is reported in its row by the worker
     return out
 
 
 def nothing_found(item: str) -> str:
     kinds = ", ".join(SUFFIXES)
     if Path(item).is_dir():
-        return f"{item}: no take ({kinds}) in this folder"
-    return f"{item}: no take file ({kinds}) matches"
+        return f"{item}: no take ({kinds}) in this folder or below it; give the folder that holds the takes"
+    return f"{item}: no take file ({kinds}) matches; check the pattern"
 
 
-def check_names(takes: list[tuple[str, str | None]], combine: bool) -> None:
+def check_names(takes: list[tuple[str, str]], combine: bool) -> None:
     """Every take must have its own DIR/<stem>.json: two takes of one stem would overwrite each other."""
     stems: dict[str, str] = {}
     reserved = {"combined"} if combine else set()
     for name, path in takes:
-        if path is None:
-            continue
         stem = Path(path).stem
         if stem in reserved:
             raise UserError(f"{name} would write DIR/combined.json, which --combine writes; rename the take")
@@ -160,8 +162,6 @@ def start_client(args: argparse.Namespace, n_takes: int):
             raise
         return client, None, f"the cluster at {args.scheduler}"
     n = default_workers() if args.workers is None else args.workers
-    if n < 1:
-        raise UserError(f"--workers must be 1 or more, got {n}")
     n = min(n, max(1, n_takes))  # an idle worker process costs start-up time and memory, nothing more
     # One thread per process: the fit holds the GIL between its numpy calls, so processes, not threads,
     # give parallel takes. The dashboard listens on loopback, on a free port.
@@ -209,9 +209,12 @@ def dashboard(client) -> str | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    import_dask()  # before anything else: without Dask the command says what to install
+    # Inputs and options first, then Dask, then the cluster: a usage error is reported as one, at once,
+    # with or without Dask installed, and nothing is written or started for it.
     if not args.timeout > 0:
         raise UserError(f"--timeout must be a positive number of seconds, got {args.timeout}")
+    if args.workers is not None and args.workers < 1:
+        raise UserError(f"--workers must be 1 or more, got {args.workers}")
     options = FitOptions(
         hierarchy=load_hierarchy(args.hierarchy) if args.hierarchy else None,
         root=args.root,
@@ -223,13 +226,15 @@ def run(args: argparse.Namespace) -> int:
     takes = expand(args.takes)
     check_names(takes, args.combine)
     out_dir = Path(args.output)
+    if out_dir.exists() and not out_dir.is_dir():
+        raise UserError(f"-o {out_dir}: that is a file; give a folder for the results")
+    import_dask()  # without Dask the command says what to install
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
     except OSError as exc:
         raise UserError(f"-o {out_dir}: cannot make the output folder ({exc.strerror})") from None
-    todo = [(name, path) for name, path in takes if path is not None]
-    outcomes: dict[str, TakeOutcome] = {name: TakeOutcome(name, error=nothing_found(name))
-                                        for name, path in takes if path is None}
+    todo = takes  # expand() found at least one take, or said why not
+    outcomes: dict[str, TakeOutcome] = {}
     combined_ok = True
     if todo:
         started = time.perf_counter()
@@ -282,7 +287,7 @@ def fit_all(client, todo: list[tuple[str, str]], options: FitOptions, out_dir: P
         fits[name] = f
     groups: dict[tuple, list] = {}  # names → [folded sum futures]; counts → takes in each
     counts: dict[tuple, list[str]] = {}
-    left_out = [{"take": name, "reason": f"it failed: {o.error}"} for name, o in outcomes.items()]
+    left_out: list[dict] = []  # takes --combine leaves out, with the reason
     with bar(len(rows), "fitting", unit="take") as shown:
         for fut in as_completed(list(rows)):
             name = rows[fut]

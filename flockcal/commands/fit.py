@@ -91,9 +91,12 @@ def run(args: argparse.Namespace) -> int:
     from flockcal.threads import single_threaded_blas
 
     single_threaded_blas()  # before numpy loads
+    from flockcal.atomic import check_output
     from flockcal.exports.bvh import write_bvh
     from flockcal.takes import load_take
 
+    if args.bvh:
+        check_output(args.bvh, "--bvh")  # before the fit, which can take minutes
     take = load_take(args.file)
     if args.scale is not None:
         from flockcal.commands.outputs import scale_factor

@@ -26,6 +26,8 @@ def register(subparsers) -> None:
     p.add_argument("--rigid-mm", type=float, default=None, metavar="MM",
                    help="relative motion (10-90 %% range) soft tissue makes: within it, with no joint pinned, groups are one body; default 15")
     p.add_argument("--take", metavar="OUT.npz", help="also write the per-body poses as a take .npz (for fit, exports)")
+    p.add_argument("--salvage", action="store_true",
+                   help="fit the frames a C3D file cut short still holds (refused without it), with a warning")
     p.set_defaults(func=run)
 
 
@@ -49,16 +51,17 @@ def _clean(x):
     return x
 
 
-def fit_marker_file(path, bodies: int | None = None, root: str | None = None, step=None, **options):
+def fit_marker_file(path, bodies: int | None = None, root: str | None = None, step=None, salvage: bool = False,
+                    **options):
     """(marker take, MarkerFit, the JSON dict `fit-markers --json` prints) for a .c3d or marker .npz;
-    shared with `flockcal batch` so both print the same bytes. `options` go to `fit_markers`
-    (`rigid_tolerance`)."""
+    shared with `flockcal batch` so both print the same bytes. `salvage` fits what a cut-short C3D holds
+    (flockcal.markers.load_c3d); `options` go to `fit_markers` (`rigid_tolerance`)."""
     from flockcal.markers import load_markers
     from flockcal.solver.optical.pipeline import fit_markers
 
     step = step or (lambda name: None)
     step("reading")
-    take = load_markers(path)
+    take = load_markers(path, salvage=salvage)
     fit = fit_markers(take.markers, take.marker_names, take.rate_hz, take.times, n_groups=bodies,
                       root=root, progress=step, **options)
     step("poses and JSON")
@@ -79,12 +82,20 @@ def run(args) -> int:
     if args.rigid_mm is not None and not (args.rigid_mm > 0 and math.isfinite(args.rigid_mm)):
         raise UserError(f"--rigid-mm must be a positive number of millimetres, got {args.rigid_mm}")
     extra = {} if args.rigid_mm is None else {"rigid_tolerance": args.rigid_mm / 1000.0}
+    if args.take:
+        from flockcal.atomic import check_output
+
+        check_output(args.take, "--take")
     with Stages("fit-markers", ["reading", *STAGES, "poses and JSON"]) as stages:
-        take, fit, out = fit_marker_file(args.file, bodies=args.bodies, root=args.root, step=stages.step, **extra)
+        take, fit, out = fit_marker_file(args.file, bodies=args.bodies, root=args.root, step=stages.step,
+                                         salvage=args.salvage, **extra)
         if args.take:
             from flockcal.takes import save_take
 
             save_take(args.take, fit.take())
+    if take.declared_frames is not None:
+        print(f"flockcal fit-markers: warning: {args.file} ends early: fitted the {take.n_frames} frames it holds "
+              f"of the {take.declared_frames} its header declares (--salvage)", file=sys.stderr)
     if args.take:
         print(f"wrote {args.take}", file=sys.stderr)
     if args.json:
@@ -113,7 +124,8 @@ def run(args) -> int:
         w(f"joints to bodies under three markers (Kirk fit only): {', '.join(f'{c}–{p}' for c, p in out['kirk_only_joints'])}\n")
     if out["unjoined"]:
         w(f"no exercised joint reaches: {', '.join(out['unjoined'])}\n")
-    w("bones:\n")
+    # A bone runs between two joints of one body: a tree of one joint (the knee trial) has none.
+    w("bones:" + ("\n" if out["bones"] else " none (no body has two joints in the tree)\n"))
     for b in out["bones"]:
         w(f"  {b['body']:<16} {str(b['from_joint']):>16} → {b['to_joint']:<16} {b['length_m'] * 1000:8.1f} mm\n")
     for e in out["swap_events"]:

@@ -88,6 +88,9 @@ def fitted_take(args, command: str):
     --allow-partial was not given (the warning is printed)."""
     from flockcal.commands.takecheck import stop_for, too_short, too_still
 
+    from flockcal.atomic import check_output
+
+    check_output(args.output)  # before the fit, which can take minutes
     take = load_scaled_take(args.take, args.scale)
     # Fitted first, so bad input (names, hierarchy, skeleton file) is reported as such before the take is judged.
     cal, free = fit_take(take, args.hierarchy, args.root, args.skeleton, with_free=True)
@@ -111,6 +114,10 @@ def cmd_scale(args) -> int:
     from flockcal.solver.scale import apply_scale, rigid_pair_scale
     from flockcal.takes import load_take, save_take
 
+    if args.apply and args.output:
+        from flockcal.atomic import check_output
+
+        check_output(args.output)
     take = load_take(args.take)
     if args.sensors:
         names = [x.strip() for x in args.sensors.split(",")]

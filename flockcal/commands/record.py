@@ -3,7 +3,9 @@ again (at real time or as fast as possible), and turn one into the .npz take int
 
 from __future__ import annotations
 
+import signal
 import sys
+import threading
 import time
 
 from flockcal.errors import UserError
@@ -76,9 +78,12 @@ def default_names(m: int) -> list[str]:
 def _record(args) -> int:
     import logging
 
+    from flockcal.atomic import check_output
+
     names = parse_names(args.names, args.birds)
     if args.seconds is not None and args.seconds <= 0:
         raise UserError("--seconds must be positive")
+    check_output(args.output)  # before the tracker is configured, which takes seconds
     # Events are printed below, once each; the reader's own log would repeat them (shown with -v).
     reader_log = logging.getLogger("flockcal.drivers.reader")
     level = reader_log.level
@@ -124,14 +129,21 @@ def _record_with(args, names: list[str] | None) -> int:
     print(f"flockcal record: {setup.birds} birds on {', '.join(setup.urls)}: {setup.model or 'unknown model'}, "
           f"software {setup.software_revision:.2f}, {scale}, {setup.rate_hz:g} Hz, {setup.record_format} at "
           f"{setup.baud} baud; recording to {args.output} (Ctrl-C stops)", file=sys.stderr, flush=True)
+    # SIGTERM (kill, systemd, a supervisor) stops the recording as Ctrl-C does: the file is closed and
+    # the "wrote" line printed, instead of the process ending mid-write without a word.
+    stop = threading.Event()
+    installed = _main_thread()
+    previous = signal.signal(signal.SIGTERM, lambda *_: stop.set()) if installed else None
     try:
         end = time.monotonic() + args.seconds if args.seconds else None
-        while reader.running and (end is None or time.monotonic() < end):
-            time.sleep(0.1)
+        while reader.running and not stop.is_set() and (end is None or time.monotonic() < end):
+            stop.wait(0.1)
     except KeyboardInterrupt:
         pass
     finally:
         reader.stop()
+        if installed:
+            signal.signal(signal.SIGTERM, signal.SIG_DFL if previous is None else previous)
     s = reader.status()
     first, last, n = span
     seconds = (last - first) if n > 1 else 0.0
@@ -145,6 +157,11 @@ def _record_with(args, names: list[str] | None) -> int:
     if warning and not any(e.kind == "rate_low" for e in events):
         print(f"flockcal record: warning: {warning}", file=sys.stderr)
     return 0
+
+
+def _main_thread() -> bool:
+    """Signal handlers can only be set from the main thread (tests call the command from others)."""
+    return threading.current_thread() is threading.main_thread()
 
 
 def _decode(rec, replay, **options):
@@ -194,8 +211,10 @@ def _replay(args) -> int:
 
 
 def _convert(args) -> int:
+    from flockcal.atomic import check_output
     from flockcal.takes import save_take
 
+    check_output(args.output)
     take = recording_take(args.recording, names=args.names, salvage=args.salvage)
     save_take(args.output, take)
     print(f"wrote {args.output}: {take.n_frames} frames of {take.n_sensors} sensors ({', '.join(take.names)}), "

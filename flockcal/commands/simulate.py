@@ -100,7 +100,7 @@ def run(args: argparse.Namespace) -> int:
 
 def _write_take(args: argparse.Namespace) -> int:
     from flockcal.simulator.take import simulate
-    from flockcal.atomic import write_atomic
+    from flockcal.atomic import check_output, write_atomic
     from flockcal.takes import save_take
 
     faults: dict = {}
@@ -117,8 +117,7 @@ def _write_take(args: argparse.Namespace) -> int:
     out: Path = args.output
     if out.suffix != ".npz":
         raise UserError(f"{out}: the take is written as .npz; give a name ending in .npz")
-    if not out.parent.exists():
-        raise UserError(f"{out.parent}: no such directory; create it or write elsewhere with -o")
+    check_output(out)
     birds = args.birds if args.birds is not None else (16 if args.model == "human" else None)
     from flockcal.progress import Stages
 
@@ -157,11 +156,15 @@ def _serve_pty(args: argparse.Namespace) -> int:
         source.set_unit_scale(args.unit_scale)
     for s in _slips(args.slip):
         source.inject_slip(s["sensor"], s["distance_m"], at_time=s["at_time"], angle_deg=s["angle_deg"])
+    # Ctrl-C and SIGTERM only set an event the main loop waits on: a KeyboardInterrupt raised wherever the
+    # main thread happens to be (under load, in a print or in interpreter shutdown) left the process dying
+    # of SIGINT, or hanging, instead of stopping the tracker and exiting 0 (tests/test_simulator_cli.py).
+    stop = threading.Event()
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, lambda *_: stop.set())
     tracker = PtyTracker(source, birds=source.n_sensors, rate_hz=args.rate, scale_inches=source.full_scale_in,
                          baud=PTY_BAUD)
     tracker.start()
-    stop = threading.Event()
-    signal.signal(signal.SIGTERM, lambda *_: stop.set())
     try:
         print(tracker.device, flush=True)
         print(
@@ -173,8 +176,6 @@ def _serve_pty(args: argparse.Namespace) -> int:
         print(f"record it with: {record_command(tracker.device, source.names, args.rate)}", file=sys.stderr, flush=True)
         while not stop.wait(0.5):
             pass
-    except KeyboardInterrupt:
-        pass
     finally:
         tracker.stop()
     return 0

@@ -404,7 +404,7 @@ def _progress_html(doc: dict) -> str:
     rows = [[Text(m["label"]), Text(m["joint"]), Text(m["parent"] or "–"), Text(m["why"] or m["state"])]
             for m in doc["missing"]]
     return head + _table(["<joint", "<child", "<parent", "<why not yet"], rows) + \
-        "<p class=meta>Same rule as the live service's progress (README, \"Progress\").</p>"
+        "<p class=meta>Same rule as the live service's progress (flockcal's docs/service.md#progress-one-figure-for-the-kiosk-the-dashboard-and-the-api).</p>"
 
 
 def write_report(path: str | os.PathLike, calibration, take, **options) -> None:

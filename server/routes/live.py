@@ -1,7 +1,7 @@
 """WebSocket /ws/live: each client subscribes to a rate and content; messages carry type, seq, time.
 
 One sender task per client reads the hub's newest snapshot when its rate allows, so a slow client
-only skips snapshots; it never slows the pipeline or the others. Protocol: README.md, "WebSocket /ws/live".
+only skips snapshots; it never slows the pipeline or the others. Protocol: docs/service.md#websocket-wslive.
 """
 
 from __future__ import annotations

@@ -5,6 +5,8 @@ Handlers only validate and read: fits come from the pipeline's snapshots or the 
 
 from __future__ import annotations
 
+import os
+
 from fastapi import APIRouter, Depends, Query, Request
 from fastapi.responses import Response, StreamingResponse
 
@@ -245,6 +247,9 @@ def _export(make):
 @router.get("/{id}/raw", responses={200: {"content": {"application/octet-stream": {}}}, **ERRORS},
             summary="the raw tracker bytes (.fobraw) of the session, when the driver recorded them")
 def get_raw(sid: str = Depends(session_id), service=Depends(get_service), _role=Depends(require_read)):
+    """A live session's recording grows while it is sent: the download is the recording as it stood when
+    asked, cut after its last whole chunk, with that exact Content-Length (a whole .fobraw that `flockcal
+    convert` reads without --salvage). A stopped session's is its file."""
     from fastapi.responses import FileResponse
 
     service.sessions.get(sid)
@@ -252,4 +257,31 @@ def get_raw(sid: str = Depends(session_id), service=Depends(get_service), _role=
     if not path.exists():
         service.retention.check_files(sid, "raw recording")
         raise NotFound(f"session {sid} has no raw recording")
-    return FileResponse(path, media_type="application/octet-stream", filename=f"{sid}.fobraw")
+    name = f"{sid}.fobraw"
+    if service.sessions.live_id() != sid:
+        return FileResponse(path, media_type="application/octet-stream", filename=name)
+    # FileResponse declares the size it saw, then sends to the end of the file: a live recording had grown
+    # meanwhile, h11 refused the surplus and the client got a body cut short of what was declared.
+    from flockcal.drivers.recording import intact_length
+
+    fh = open(path, "rb")  # held open: the snapshot stays readable whatever happens to the name
+    try:
+        length = intact_length(path, os.fstat(fh.fileno()).st_size)
+    except BaseException:
+        fh.close()
+        raise
+    return StreamingResponse(_file_prefix(fh, length), media_type="application/octet-stream",
+                             headers={"Content-Length": str(length),
+                                      "Content-Disposition": f'attachment; filename="{name}"'})
+
+
+def _file_prefix(fh, length: int, piece: int = 256 * 1024):
+    """The first `length` bytes of the open file `fh`, a piece at a time; closes it."""
+    with fh:
+        left = length
+        while left > 0:
+            data = fh.read(min(piece, left))
+            if not data:  # cannot happen to a file that only grows; ends the body short rather than hang
+                return
+            left -= len(data)
+            yield data

@@ -10,9 +10,9 @@ import time
 from fastapi import APIRouter, Depends
 
 from flockcal.errors import FlockcalError
-from flockcal.server.auth import require_admin
+from flockcal.server.auth import require_admin, require_read
 from flockcal.server.errors import BadRequest, Conflict
-from flockcal.server.models import ErrorReply, MotionRequest, SimulatorReply, SlipReply, SlipRequest
+from flockcal.server.models import ErrorReply, MotionRequest, SimulatorReply, SimulatorState, SlipReply, SlipRequest
 from flockcal.server.routes.deps import get_service
 
 router = APIRouter(prefix="/api/simulator", tags=["simulator"])
@@ -26,15 +26,31 @@ def _simulator(service):
     return sim
 
 
+@router.get("", response_model=SimulatorState, responses=ERRORS, summary="the simulated performer's routine and clock")
+def state(service=Depends(get_service), _role=Depends(require_read)):
+    """What the performer does and where it is in its routine: schedule slips on its clock
+    (`POST /api/simulator/slip` with `at_routine_s`), so they land on a chosen moment of the routine."""
+    sim = _simulator(service)
+    motion = sim.motion
+    return {"routine": motion.name, "period_s": float(motion.period), "clock_s": round(sim.clock_s, 4),
+            "seed": sim.seed, "sta_mm": sim.sta_mm, "slips": sim.slips}
+
+
 @router.post("/slip", response_model=SlipReply, responses=ERRORS, summary="make a sensor slide on the skin")
 def slip(body: SlipRequest, service=Depends(get_service), _role=Depends(require_admin)):
     sim = _simulator(service)
     if body.sensor not in service.pipeline.names:
         raise BadRequest(f"no sensor {body.sensor!r}; the sensors are: {', '.join(service.pipeline.names)}")
-    try:
-        ev = sim.inject_slip(body.sensor, body.distance_m)
-    except FlockcalError as exc:
-        raise BadRequest(str(exc)) from None
+    if body.at_routine_s is not None:
+        try:
+            ev = sim.inject_slip(body.sensor, body.distance_m, at_time=body.at_routine_s, unstreamed=True)
+        except FlockcalError as exc:
+            raise Conflict(str(exc)) from None
+    else:
+        try:
+            ev = sim.inject_slip(body.sensor, body.distance_m)
+        except FlockcalError as exc:
+            raise BadRequest(str(exc)) from None
     clock = getattr(service.source, "reader_time", None)
     ev["reader_time"] = clock(ev["time_s"]) if clock is not None else None
     # Seconds from now to the slip's sample: the simulator computes poses up to 0.1 s ahead.
@@ -43,7 +59,7 @@ def slip(body: SlipRequest, service=Depends(get_service), _role=Depends(require_
     when = f" at {at_s:.3f} s into session {session_id}" if at_s is not None else ""
     return {"message": f"sensor {body.sensor} slipped by {body.distance_m * 1000:.0f} mm{when}",
             "sensor": body.sensor, "distance_m": body.distance_m, "session_id": session_id, "at_s": at_s,
-            "in_s": in_s}
+            "in_s": in_s, "routine_s": round(ev["time_s"], 4)}
 
 
 def _session_time(live, reader_time: float | None) -> tuple[str | None, float | None]:

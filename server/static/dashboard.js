@@ -14,7 +14,7 @@ const state = {
   lastSessionId: null,  // newest session (live or stopped): what the download buttons fetch
   lastPerformer: '',
   fit: null,
-  progress: null,       // the service's progress of the fit shown (README "Progress"): the page computes none
+  progress: null,       // the service's progress of the fit shown (docs/service.md, Progress): the page computes none
   trackerConnected: null,
   rate: [],             // [wall seconds, frames] samples for the measured frame rate
 };
@@ -86,10 +86,11 @@ function fmtDuration(s) {
 function setSession(session) {
   const prev = state.session;
   if (session && (!prev || prev.id !== session.id)) {
-    // A new session (from here, the kiosk or the API): start its plots afresh.
+    // A new session (from here, the kiosk or the API): start its plots afresh, with what it already has.
     resetSessionViews();
     state.lastSessionId = session.id;
     state.lastPerformer = session.performer;
+    backfill(session);
   }
   state.session = session;
   $('start').disabled = !!session;
@@ -108,6 +109,27 @@ function setSession(session) {
   $('dl-skeleton').disabled = !state.lastSessionId;
   $('dl-take').disabled = !state.lastSessionId;
   $('dl-bvh').disabled = !state.lastSessionId;
+}
+
+// A page opened (or a session found) mid-session: the websocket replays only its last few seconds of
+// residuals, so the plot's window and the slips in it come from the REST API (a slip 2 min in keeps its
+// marker on a page loaded at 2:30). Samples the websocket has delivered meanwhile are kept as they are.
+async function backfill(session) {
+  const since = Math.max(0, (Number(session.time_s) || 0) - WINDOW_S);
+  const base = `/api/sessions/${encodeURIComponent(session.id)}`;
+  try {
+    const series = await api(`${base}/residuals?since=${since}`);
+    if (!state.session || state.session.id !== session.id) return;
+    residuals.prepend(series);
+    let after = 0;
+    for (let page = 0; page < 20; page += 1) {  // 20 pages of 1000 events: more than any session holds
+      const got = await api(`${base}/events?since=${after}&limit=1000`);
+      if (!state.session || state.session.id !== session.id) return;
+      for (const e of got.events) if (e.type === 'slip' || e.type === 'swap') residuals.addSlip(slipMarker(e));
+      if (!got.more) break;
+      after = got.next_since;
+    }
+  } catch (e) { /* the live plot still fills from the websocket */ }
 }
 
 function resetSessionViews() {
@@ -365,11 +387,36 @@ const residuals = {
       this.times.push(t);
       for (const name of this.names) this.cols[name].push(joints[name] ? joints[name][k] ?? null : null);
     });
+    this.trim();
+    this.draw();
+  },
+  // Keep the last WINDOW_S seconds.
+  trim() {
+    const last = this.times.length ? this.times[this.times.length - 1] : 0;
     const cut = this.times.findIndex((t) => t >= last - WINDOW_S);
     if (cut > 0) {
       this.times.splice(0, cut);
       for (const name of this.names) this.cols[name].splice(0, cut);
     }
+  },
+  // Older samples (the REST series) before the ones the websocket brought.
+  prepend(msg) {
+    const first = this.times.length ? this.times[0] : Infinity;
+    const times = (msg && msg.times) || [];
+    const joints = (msg && msg.joints) || {};
+    const keep = [];
+    times.forEach((t, k) => { if (t < first && (!keep.length || t > times[keep[keep.length - 1]])) keep.push(k); });
+    if (!keep.length) return;
+    for (const name of Object.keys(joints)) {
+      if (!this.cols[name]) { this.cols[name] = this.times.map(() => null); this.names.push(name); }
+    }
+    this.names.sort();
+    this.times = keep.map((k) => times[k]).concat(this.times);
+    for (const name of this.names) {
+      const src = joints[name];
+      this.cols[name] = keep.map((k) => (src ? src[k] ?? null : null)).concat(this.cols[name]);
+    }
+    this.trim();
     this.draw();
   },
   addSlip(ev) {
@@ -381,6 +428,7 @@ const residuals = {
   draw() {
     const el = $('residuals');
     el.dataset.samples = this.times.length;
+    el.dataset.first = this.times.length ? this.times[0] : '';
     el.dataset.slips = this.slips.length;
     // Labels depend on the newest topology ("mid back" vs "lower back"): rebuild when they change.
     const key = this.labels().join(',');
@@ -469,6 +517,13 @@ function addAlert(kind, text, id) {
   while (alerts.children.length > 6) alerts.lastChild.remove();
 }
 
+// A slip or swap event as the residual plot marks it (a swap names both sensors).
+function slipMarker(e) {
+  if (e.type !== 'swap') return e;
+  const [a, b] = e.sensors || e.candidates || [e.a, e.b];
+  return Object.assign({ sensor: `${a}⇄${b}` }, e);
+}
+
 function showEvent(msg) {
   const e = msg.event || msg;
   const kind = e.type;
@@ -481,7 +536,7 @@ function showEvent(msg) {
   } else if (kind === 'swap') {
     const [a, b] = e.sensors || e.candidates || [e.a, e.b];
     addAlert('slip', `Sensors swapped: ${readable(a)} ⇄ ${readable(b)} at ${Number(e.time_s).toFixed(1)} s — check the cables.`, e.id);
-    if (!state.session || e.session_id === state.session.id) residuals.addSlip(Object.assign({ sensor: `${a}⇄${b}` }, e));
+    if (!state.session || e.session_id === state.session.id) residuals.addSlip(slipMarker(e));
   } else if (kind === 'tracker') {
     if (['disconnected', 'connected', 'reconnecting', 'error', 'stalled', 'bird_error'].includes(e.kind)) {
       addAlert(e.kind === 'connected' ? 'info' : 'warn', `Tracker ${e.kind.replace('_', ' ')}${e.message ? ': ' + e.message : ''}`, e.id);

@@ -1,6 +1,6 @@
 // The guest-facing kiosk: an avatar that follows the guest, a progress ring, what to move next, and a
 // "done" state; one session per guest, then it resets itself. The ring, the chips and "done" are the
-// service's progress as published (README "Progress"): the page computes none of it.
+// service's progress as published (docs/service.md, Progress): the page computes none of it.
 // URL options: ?token=… (a kiosk token starts and stops sessions; a read-only token follows the
 // sessions a host starts), reset_s=10 (how long "done" stays up), max_s=300 (a guest who walks away:
 // start afresh), mirror=0 (show the avatar as others see the guest, not as a mirror).
