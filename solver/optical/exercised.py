@@ -127,17 +127,53 @@ def judge_pairs(markers: np.ndarray, groups: list[np.ndarray], tolerance_m: floa
 def candidate_costs(
     markers: np.ndarray, groups: list[np.ndarray], frames: np.ndarray, candidate: np.ndarray, penalty: float = 1e-5,
     joint_groups: Callable[[int, int], tuple[np.ndarray, np.ndarray]] | None = None,
+    exercised: Exercised | None = None,
 ) -> np.ndarray:
-    """(G, G) Kirk joint-point residual rms of the candidate pairs on `frames`; inf elsewhere (no edge).
-    `joint_groups` as in `judge_pairs`."""
+    """(G, G) cost of every candidate pair, inf elsewhere (no edge): the pair fit's residual rms where both
+    bodies have a pose (`exercised.judged`), else the Kirk joint-point residual rms on `frames`, each kind
+    over its own scale (`on_own_scale`). `joint_groups` as in `judge_pairs`.
+
+    The pair fit holds one offset per body for the whole take, so a pair with no joint between them leaves
+    centimetres (16–220 mm on the simulated walk, its true joints 3–7 mm); Kirk's point is free in every
+    frame and fits almost any two groups to a few millimetres, so it only decides where no pose can."""
     G = len(groups)
     pick = joint_groups or (lambda a, b: (groups[a], groups[b]))
     cost = np.full((G, G), np.inf)
+    cache: dict = {}
+
+    def poses(points):  # one group's pose on these frames, shared by all its pairs (points are small here)
+        key = points.shape, hash(points.tobytes())
+        if key not in cache:
+            cache[key] = procrustes_mean(points)[1:]
+        return cache[key]
+
     for a, b in zip(*np.nonzero(np.triu(candidate, 1))):
+        if exercised is not None and exercised.judged[a, b] and np.isfinite(exercised.rms[a, b]):
+            cost[a, b] = cost[b, a] = exercised.rms[a, b]
+            continue
         ia, ib = pick(int(a), int(b))
-        fit = joint_point(markers[:, ia], markers[:, ib], penalty=penalty, frames=frames, max_iter=15)
+        fit = joint_point(markers[:, ia], markers[:, ib], penalty=penalty, frames=frames, max_iter=15, poses=poses)
         cost[a, b] = cost[b, a] = fit.rms
-    return cost
+    if exercised is None:
+        return cost
+    return on_own_scale(cost, exercised.judged & np.isfinite(exercised.rms))
+
+
+def on_own_scale(cost: np.ndarray, kind: np.ndarray) -> np.ndarray:
+    """`cost` with the pairs of each kind (`kind` True: pair fit, False: Kirk) divided by that kind's typical
+    true-joint residual: the median over bodies of their cheapest pair of the kind (a body's cheapest pair
+    is its joint in all but the rare case). The two residuals differ in size (the pair fit's is a 3-D error
+    with one offset for the take, Kirk's a distance error with a free point per frame); over their own
+    scales they compare, so a spanning tree can use both."""
+    out = cost.copy()
+    for mask in (kind, ~kind):
+        c = np.where(mask, cost, np.inf)
+        np.fill_diagonal(c, np.inf)
+        best = c.min(axis=1)
+        best = best[np.isfinite(best) & (best > 0)]
+        if best.size:
+            out[mask] = cost[mask] / float(np.median(best))
+    return out
 
 
 def spanning_forest(cost: np.ndarray, sizes: np.ndarray, root: int | None = None) -> Tree:

@@ -36,18 +36,19 @@ def usable_frames(markers_a: np.ndarray, markers_b: np.ndarray) -> np.ndarray:
     return np.flatnonzero(va.any(1) & vb.any(1) & (va.sum(1) + vb.sum(1) >= min(4, va.shape[1] + vb.shape[1])))
 
 
-def sphere_centre_guess(markers_a: np.ndarray, markers_b: np.ndarray, frames: np.ndarray):
+def sphere_centre_guess(markers_a: np.ndarray, markers_b: np.ndarray, frames: np.ndarray, poses=None):
     """Initial joint points (f,3) for `frames`, or None: B's markers seen from A's frame lie on spheres
     about the joint, so one linear solve (shared centre c, per-marker r² − ‖c‖²) finds it.
 
-    Needs a group with three or more markers to give a frame; the larger one is used.
+    Needs a group with three or more markers to give a frame; the larger one is used. `poses`: a callable
+    giving (R, t, ok) of a group's markers (n, q, 3) on `frames`, to share one group's pose between pairs.
     """
     A, Bm = markers_a[frames], markers_b[frames]
     if A.shape[1] < Bm.shape[1]:
         A, Bm = Bm, A
     if A.shape[1] < 3:
         return None
-    _, R, t, ok = procrustes_mean(A)
+    R, t, ok = procrustes_mean(A)[1:] if poses is None else poses(A)
     if ok.sum() < 10:
         return None
     y = to_body(R[ok], t[ok], Bm[ok])  # (f', qb, 3)
@@ -73,10 +74,12 @@ def joint_point(
     init: np.ndarray | None = None,
     max_iter: int = 60,
     extend: bool = False,
+    poses=None,
 ) -> JointPoint:
     """Solve the Kirk joint-point problem for groups A (n,qa,3) and B (n,qb,3) on `frames` (default all
     usable frames). `init` (n,3) world points override the built-in guess (sphere fit, else midpoint).
-    `extend`: the points (and residuals) of the usable frames outside `frames` too, from the fitted radii."""
+    `extend`: the points (and residuals) of the usable frames outside `frames` too, from the fitted radii.
+    `poses`: see `sphere_centre_guess`."""
     M = np.concatenate([markers_a, markers_b], axis=1)
     n, q, _ = M.shape
     use = usable_frames(markers_a, markers_b)
@@ -93,7 +96,7 @@ def joint_point(
     if init is not None and np.isfinite(init[use]).all():
         p0 = init[use]
     else:
-        p0 = sphere_centre_guess(markers_a, markers_b, use)
+        p0 = sphere_centre_guess(markers_a, markers_b, use, poses)
         mid = 0.5 * (nanmean(markers_a[use], axis=1) + nanmean(markers_b[use], axis=1))
         p0 = mid if p0 is None else np.where(np.isfinite(p0), p0, mid)
     dist0 = np.linalg.norm(Mz - p0[:, None], axis=-1)

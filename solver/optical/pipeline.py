@@ -15,10 +15,12 @@ import numpy as np
 
 from flockcal.errors import FlockcalError
 from flockcal.solver.calibration import Calibration
+from flockcal.solver.fits import TOLERANCE_M as SENSOR_TOLERANCE_M
 from flockcal.solver.optical.exercised import (
     Exercised, candidate_costs, exercise_report, joint_decision, judge_pairs, spanning_forest,
 )  # fmt: skip
 from flockcal.solver.optical.joints import Tree, joint_point
+from flockcal.solver.optical.pair_joints import pair_joint_points
 from flockcal.solver.optical.projection import BodyShape, bone_lengths, skeleton_shapes
 from flockcal.solver.optical.rotations import Outliers, body_poses, find_outliers, rigid_route_joint, robust_marker_residuals
 from flockcal.solver.optical.segmentation import RIGID_TOLERANCE_M, Segmentation, segment_markers
@@ -193,6 +195,22 @@ def joint_groups_of(segmentation: Segmentation, groups: list[np.ndarray]):
     return lambda a, b: (side(a, b), side(b, a))
 
 
+# A joint is placed by the pair fit over the marker-only poses when those pin its centre within the sensor
+# path's own tolerance (design.md §3a, 5 mm) along every direction a joint pins (a hinge: across its axis).
+# Beyond it a pose is too noisy at the joint (three markers close together on a pelvis: 16 mm of residual at
+# the hip with 1 mm of noise) and Kirk's per-frame point, which needs no pose, does better.
+PAIR_ROUTE_M = SENSOR_TOLERANCE_M
+
+
+def pair_route(exercised: Exercised, child: int, parent: int) -> bool:
+    """Whether the tree joint child–parent is placed by the pair fit over the bodies' poses (PAIR_ROUTE_M)."""
+    if not exercised.judged[child, parent] or not exercised.determined[child, parent]:
+        return False
+    err = exercised.direction_error[child, parent]
+    pinned = err[1:] if exercised.hinge[child, parent] else err
+    return bool((pinned <= PAIR_ROUTE_M).all())
+
+
 STAGES = ("segmentation", "exercised joints and tree", "joints and poses", "second pass without swaps")
 
 
@@ -245,7 +263,8 @@ def fit_markers(
     pick = joint_groups_of(clus, groups)
     exercised = judge_pairs(M, groups, joint_groups=pick)
     sizes = np.array([len(g) for g in groups])
-    tree = spanning_forest(candidate_costs(M, groups, topo, exercised.candidate(), joint_groups=pick), sizes, root=root)
+    tree = spanning_forest(candidate_costs(M, groups, topo, exercised.candidate(), joint_groups=pick,
+                                          exercised=exercised), sizes, root=root)
 
     work = M.copy()
     outliers = None
@@ -259,13 +278,22 @@ def fit_markers(
         points = [sizes[b] + sum(1 for j in range(len(par)) if j not in weak and (j == b or par[j] == b) and par[j] >= 0) for b in (c, p)]
         if min(points) < 3:
             weak.discard(c)
-    jp, jrms, base, poses, redo = None, {}, None, None, None
+    # A joint between two bodies with poses of their own is placed by the pair fit over those poses (one
+    # offset per body for the whole take: sharper under soft tissue than Kirk's free point per frame; swaps
+    # and glitches already left out of the poses) when those poses pin it as the sensor path asks of a
+    # sensor (PAIR_ROUTE_M); the others by the Kirk fit, which needs no pose.
+    kids = {int(c) for c in np.flatnonzero(par >= 0)}
+    posed = {c for c in kids if pair_route(exercised, c, int(par[c]))}
+    pair_jp, pair_rms = pair_joint_points(M, groups, par, sorted(posed), exercised, pick)
+    kirk = kids - posed
+    jp, jrms, base, poses, redo = dict(pair_jp), dict(pair_rms), None, None, None
     for k in range(2):  # second pass: refit without the marker-frames the first pass found wrong
         step(STAGES[2 + k])
         # Not started from the first pass's points: those carry the swaps, and a hinge's point creeps along
         # its axis (a flat valley) from wherever it starts.
-        new_jp, new_rms, suspects = fit_joints(work, groups, par, fit_frames, joint_groups=pick, only=redo)
-        jp, jrms = {**(jp or {}), **new_jp}, {**jrms, **new_rms}
+        only = kirk if redo is None else kirk & redo
+        new_jp, new_rms, suspects = fit_joints(work, groups, par, fit_frames, joint_groups=pick, only=only)
+        jp, jrms = {**jp, **new_jp}, {**jrms, **new_rms}
         strong = {c: v for c, v in jp.items() if c not in weak}
         # Bodies whose markers or joints changed: all of them in the first pass.
         moved = None if redo is None else touched | {int(par[c]) for c in redo} | set(redo)
@@ -284,8 +312,11 @@ def fit_markers(
         if not outliers.mask.any() or (not outliers.swaps and glitch_shift(res, outliers.mask, groups) < REFIT_SHIFT_M):
             break
         work = np.where(outliers.mask[..., None], np.nan, work)
-        # Only what the masked marker-frames reach is fitted again: their bodies and the joints to them.
-        touched = {g for g, grp in enumerate(groups) if outliers.mask[:, grp].any()}
+        # Only what the masked marker-frames reach is fitted again: the bodies of swapped markers and those
+        # whose fit the masked marker-frames could move (REFIT_SHIFT_M), and the joints to them.
+        swapped = {int(x) for sw in outliers.swaps for x in sw[2:]}
+        touched = {g for g, grp in enumerate(groups)
+                   if swapped & set(grp.tolist()) or glitch_shift(res, outliers.mask, [grp]) >= REFIT_SHIFT_M}
         redo = {int(c) for c in np.flatnonzero(par >= 0) if c in touched or int(par[c]) in touched}
     # Poses for every frame, also those thinned out of the joint fits: markers alone, plus joints where fitted.
     bones = bone_lengths(shapes, tree.parent)

@@ -28,9 +28,9 @@ def body_points(markers: np.ndarray, group: np.ndarray, joint_points: dict[int, 
     return np.concatenate([markers[:, group]] + extra, axis=1) if extra else markers[:, group]
 
 
-# Frames a body's fixed offsets are averaged over at most (evenly spread): they are means, and 2000 frames
+# Frames a body's fixed offsets are averaged over at most (evenly spread): they are means, and 1000 frames
 # hold them to a small fraction of a millimetre while a 30 s take at 144 Hz has 4320.
-SHAPE_FRAMES = 2000
+SHAPE_FRAMES = 1000
 
 
 def project_body(markers: np.ndarray, group: np.ndarray, joint_points: dict[int, np.ndarray], joints: list[int]) -> BodyShape:
