@@ -120,6 +120,9 @@ def run(args) -> int:
         w(f"joint {f['joint'][0]}–{f['joint'][1]} fitted on {', '.join(f['child_markers'])} | {', '.join(f['parent_markers'])}\n")
     joints = ", ".join(f"{c}–{p}" for c, p in out["exercised_joints"]) or "none"
     w(f"joints the take exercised (centre pinned within {out['joint_tolerance_m'] * 1000:g} mm): {joints}\n")
+    if out.get("pair_fit_joints"):
+        w(f"placed by the pair fit over the bodies' poses (the others by Kirk's fit): "
+          f"{', '.join(f'{c}–{p}' for c, p in out['pair_fit_joints'])}\n")
     if out["kirk_only_joints"]:
         w(f"joints to bodies under three markers (Kirk fit only): {', '.join(f'{c}–{p}' for c, p in out['kirk_only_joints'])}\n")
     if out["unjoined"]:

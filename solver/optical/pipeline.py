@@ -50,6 +50,7 @@ class OpticalFit:
     unused_markers: list[str] = field(default_factory=list)
     exercised: Exercised | None = None  # pair decisions over the bodies' marker-only poses
     joint_markers: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # child → (its, parent's) markers the joint was fitted on
+    pair_route: frozenset = frozenset()  # children of the joints placed by the pair fit over marker-only poses
 
     @property
     def parent(self) -> np.ndarray:
@@ -170,7 +171,7 @@ def glitch_shift(residuals: np.ndarray, mask: np.ndarray, groups) -> float:
 
 
 # Frames the joint fits are solved on at most (evenly thinned); the other frames get their joint points from
-# the fitted radii. 1500 frames leave a joint's radii within a fraction of a millimetre of the all-frame fit
+# the fitted radii. 1000 frames leave a joint's radii within a fraction of a millimetre of the all-frame fit
 # on the simulated takes, at a third of the cost of a 30 s take at 144 Hz.
 FIT_FRAMES = 1000
 
@@ -323,7 +324,7 @@ def fit_markers(
     joint_markers = {int(c): pick(int(c), int(par[c])) for c in np.flatnonzero(par >= 0)}
     return OpticalFit(
         kept_names, labels, groups, clus, tree, shapes, bones, jp, jrms, R, t, valid, outliers,
-        float(rate_hz), times, unused, exercised, joint_markers,
+        float(rate_hz), times, unused, exercised, joint_markers, frozenset(posed),
     )  # fmt: skip
 
 
@@ -452,7 +453,8 @@ def merge_report(fit: OpticalFit) -> dict:
         if len(mc) < len(fit.groups[c]) or len(mp) < len(fit.groups[p]):
             fitted_on.append({"joint": [labels[c], labels[p]], "child_markers": [names[i] for i in mc],
                               "parent_markers": [names[i] for i in mp]})
-    return {"merged": merged, "joints_fitted_on": fitted_on}
+    pair_fit = [[labels[c], labels[int(fit.tree.parent[c])]] for c in sorted(fit.pair_route)]
+    return {"merged": merged, "joints_fitted_on": fitted_on, "pair_fit_joints": pair_fit}
 
 
 def fit_json(fit: OpticalFit) -> dict:
