@@ -191,16 +191,22 @@ def main() -> None:
                             "db_mb": db / 1e6, "data_mb": tree_bytes(data) / 1e6, "sessions": len(sessions)})
 
         while time.monotonic() < end:
-            r = request("POST", "/api/sessions", json={"performer": f"soak guest {len(sessions) + 1}"})
+            # As the kiosk page starts a guest: the kiosk profile, a lease it renews while the guest moves.
+            r = request("POST", "/api/sessions", json={"performer": f"soak guest {len(sessions) + 1}",
+                                                       "profile": "kiosk", "lease_s": 30})
             if r is None:
                 time.sleep(2.0)
                 continue
             sid = r.json()["id"]
             stop_at = time.monotonic() + rng.uniform(lo, hi)
+            renewed = time.monotonic()
             while time.monotonic() < stop_at:
                 if time.monotonic() >= next_sample:
                     sample()
                     next_sample += args.sample_s
+                if time.monotonic() - renewed >= 5.0:
+                    request("POST", f"/api/sessions/{sid}/lease")
+                    renewed = time.monotonic()
                 time.sleep(0.2)
             stopped = request("POST", f"/api/sessions/{sid}/stop")
             result = request("GET", f"/api/sessions/{sid}/result")

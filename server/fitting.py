@@ -109,6 +109,7 @@ class FitJob:
     root: str | None
     skeleton: object
     stamp: tuple[float, int]  # (session time, slip epoch) the fit was begun at
+    tolerance: float | None = None  # the session's (its profile's); None: the worker's own
 
 
 @dataclass(frozen=True)
@@ -204,7 +205,8 @@ class FitWorker:
 
     def _fit(self, job: FitJob) -> tuple[dict, Calibration]:
         if job.skeleton is None:
-            return fit_calibration(job.acc, self.names, job.hierarchy, job.root, tolerance=self.tolerance)
+            tolerance = self.tolerance if job.tolerance is None else job.tolerance
+            return fit_calibration(job.acc, self.names, job.hierarchy, job.root, tolerance=tolerance)
         # Start from this session's last known-skeleton fit: one or two Gauss–Newton steps.
         prev = self._known_prev[1] if self._known_prev and self._known_prev[0] == job.session_id else None
         fit, known = fit_calibration(job.acc, self.names, skeleton=job.skeleton, previous=prev)

@@ -8,7 +8,7 @@ import time
 from dataclasses import dataclass, field
 
 from flockcal.server.framelog import FrameLog
-from flockcal.server.progress import ProgressTracker
+from flockcal.server.progress import Profile, ProgressTracker
 from flockcal.solver.calibration import Calibration
 from flockcal.solver.slip_watch import SlipWatch
 
@@ -37,6 +37,7 @@ class LiveSession:
     tracker: ProgressTracker | None = None  # the session's progress, made on install
     progress: dict | None = None  # its newest document (server/progress.py); None before the first fit
     slip_epoch: int = 0  # slips applied to the accumulator so far: fits carry the epoch they were begun in
+    profile: Profile | None = None  # how it decides it is calibrated (server/progress.py); None: the pipeline's stage
 
     def summary(self) -> dict:
         return {
@@ -44,6 +45,7 @@ class LiveSession:
             "started_at": self.started_wall,
             "hierarchy": self.hierarchy, "root": self.root,
             "known_skeleton": self.skeleton is not None,
+            "profile": self.profile.name if self.profile else "stage",
             "progress": self.progress["progress"] if self.progress else 0.0,
             "done": bool(self.progress and self.progress["done"]),
         }

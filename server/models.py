@@ -88,6 +88,14 @@ class SessionCreate(Strict):
         None, pattern=NAME_PATTERN,
         description="named preset instead of `hierarchy` (GET /api/sessions/presets): 'auto' (default), 'human' "
                     "(the simulator's body) or a saved skeleton (its tree and bones kept, only placements fitted)")
+    profile: Literal["stage", "kiosk"] | None = Field(
+        None, description="how the session decides it is calibrated: 'stage' (joints pinned to the service's "
+                          "--target-mm) or 'kiosk' (pinned to 10 mm and no longer changed by more data: what a "
+                          "guest's avatar needs); default: the service's --profile (docs/service.md, Progress)")
+    lease_s: float | None = Field(
+        None, ge=1.0, le=3600.0, allow_inf_nan=False,
+        description="end the session this many seconds after its client last renewed it (POST "
+                    "/api/sessions/{id}/lease): a kiosk page that goes away does not leave it live; default: no lease")
 
 
 class SessionSummary(Open):
@@ -120,6 +128,9 @@ class Session(Open):
     has_recording: bool = False
     has_raw_recording: bool = False
     skeleton: str | None = Field(None, description="the saved skeleton the session was started with, if any")
+    profile: str | None = Field(None, description="'stage' or 'kiosk': how the session decides it is calibrated")
+    lease_s: float | None = Field(None, description="a live session's lease (it ends this long after its client "
+                                                    "last renewed it); null: none")
     progress: float | None = Field(None, description="calibration progress 0..1 (GET /api/sessions/{id}/progress)")
     done: bool | None = Field(None, description="every joint calibrated (null: not known for this session)")
     pinned: bool = Field(False, description="kept whole by retention (POST /api/sessions/{id}/pin)")
@@ -156,6 +167,12 @@ class Hint(Open):
     hint: str
 
 
+class Lease(Open):
+    session_id: str
+    lease_s: float = Field(description="the lease's length, seconds")
+    expires_in_s: float = Field(description="seconds until the session ends unless renewed again")
+
+
 class Progress(Open):
     """One definition of calibration progress (docs/service.md#progress-one-figure-for-the-kiosk-the-dashboard-and-the-api): what the kiosk ring and the dashboard
     show."""
@@ -177,6 +194,12 @@ class Progress(Open):
     joint_progress: list[JointProgress] = Field(description="every sensor but the root, in the tree's order")
     hints: list[Hint] = []
     note: str | None = None
+    profile: str | None = Field(None, description="'stage' or 'kiosk': the rule `done` follows (`rule`)")
+    rule: str | None = Field(None, description="that rule in plain words, for a help text")
+    stalled_s: float | None = Field(None, description="session seconds over which the figure gained less than "
+                                                      "10 points, once that is 8 s or more (a guest who stopped "
+                                                      "moving); else null")
+    prompt: str | None = Field(None, description="a patient prompt while stalled: the joint to move and how")
 
 
 class Status(Open):

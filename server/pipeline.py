@@ -20,7 +20,7 @@ from flockcal.server.fitting import SLIP_FIELDS, FitJob, FitWorker, fit_calibrat
 from flockcal.server.ingest import Ingest
 from flockcal.server.live_session import LiveSession
 from flockcal.server.persistence import Persistence
-from flockcal.server.progress import ProgressTracker, default_target
+from flockcal.server.progress import Profile, ProgressTracker, default_target, profile
 from flockcal.server.sampling import ResidualSampler, watch_flush, watch_step
 from flockcal.server.snapshot import Snapshot, SnapshotMaker
 from flockcal.server.store import Store
@@ -89,6 +89,7 @@ class Pipeline:
         self.tolerance = float(tolerance)
         # The joint-centre error at which a joint counts as calibrated (progress, done): at most the tolerance.
         self.target = default_target(self.tolerance) if target is None else float(target)
+        self.default_profile = "stage"  # a session that names none (`flockcal serve --profile`)
         self.m = len(self.names)
         self.store = store
         self.min_publish_s = 1.0 / publish_hz
@@ -167,6 +168,10 @@ class Pipeline:
         with self._cond:
             self._cond.notify()
 
+    def profile(self, name: str | None = None) -> Profile:
+        """The named profile (default: the service's), the stage one with this service's tolerance and target."""
+        return profile(name or self.default_profile, self.tolerance, self.target)
+
     # --- session control (run on the pipeline thread through `call`) ----------------------------------
     def begin_session(self, live: LiveSession) -> None:
         def install():
@@ -177,8 +182,10 @@ class Pipeline:
                 # The slip loop feeds the accumulator in its micro-batches (it refits between them).
                 live.watch = SlipWatch(None, self.m, self.rate_hz(), self.names, segments=live.acc, strict=False)
             # A given tree (hierarchy or saved skeleton) cannot re-link, so its joints need not wait for it to settle.
-            live.tracker = ProgressTracker(self.target, self.tolerance,
-                                           tree_fixed=live.hierarchy is not None or live.skeleton is not None)
+            if live.profile is None:
+                live.profile = self.profile()
+            live.tracker = ProgressTracker.for_profile(
+                live.profile, tree_fixed=live.hierarchy is not None or live.skeleton is not None)
             self.live = live
             self._tree_candidate = None
             self.sampler.reset()
@@ -203,7 +210,7 @@ class Pipeline:
             if live.acc.frames > 0:
                 try:
                     result, live.calibration = fit_calibration(live.acc, self.names, live.hierarchy, live.root,
-                                                               live.skeleton, self.tolerance)
+                                                               live.skeleton, live.profile.tolerance_m)
                     slips = self.persistence.slip_events(live, SLIP_FIELDS)
                     if slips:
                         result["slip_events"] = slips
@@ -312,7 +319,7 @@ class Pipeline:
                     and (since >= BEHIND_FIT_S or not self._behind(now))):
                 # Hand a copy of the Gram matrix to the fit thread; frames keep flowing meanwhile.
                 self.fitter.submit(FitJob(live.id, live.acc.copy(), live.hierarchy, live.root, live.skeleton,
-                                          (self.ingest.session_time(live), live.slip_epoch)))
+                                          (self.ingest.session_time(live), live.slip_epoch), live.profile.tolerance_m))
                 # Keep a fixed grid (not "period after the last start") so the rate holds at fit_hz.
                 self._last_fit_time = max(self._last_fit_time + self.min_fit_s, now - self.min_fit_s)
                 live.fit_frames = live.acc.frames
@@ -379,8 +386,10 @@ class Pipeline:
             n = live.progress["joints_needed"]
             self._add_events([{
                 "type": "session", "session_id": live.id, "action": "calibrated", "time_s": time_s,
-                "message": f"{live.performer} is calibrated: all {n} joints pinned to "
-                           f"{1000 * self.target:.1f} mm after {time_s:.1f} s"}])
+                "message": f"{live.performer} is calibrated: all {n} joints "
+                           + (f"pinned to {1000 * live.profile.target_m:.1f} mm" if live.profile.steady is None else
+                              f"pinned to {1000 * live.profile.tolerance_m:.0f} mm and steady")
+                           + f" after {time_s:.1f} s"}])
         elif was_done and not done:
             why = next((m["why"] for m in live.progress["missing"] if m.get("undone")), None)
             if why is None and live.progress["missing"]:

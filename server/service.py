@@ -13,6 +13,7 @@ from pathlib import Path
 
 from flockcal.server.errors import ConfigError
 from flockcal.server.hub import SnapshotHub
+from flockcal.server.lease import SessionLeases
 from flockcal.server.limits import SessionLimits
 from flockcal.server.pipeline import Pipeline
 from flockcal.server.retention import Retention, policy_from
@@ -63,6 +64,7 @@ class Service:
             tolerance=settings.tolerance_m,
             target=settings.progress_target_m,
         )
+        self.pipeline.default_profile = settings.profile
         self.hub = SnapshotHub(self.pipeline.snapshot)
         self.pipeline.on_publish = self.hub.publish
         # A session records the rate the tracker streams at when it starts (the flock's own unless --rate).
@@ -74,6 +76,10 @@ class Service:
                                     stop=self.sessions.stop, add_event=self.pipeline.add_event,
                                     set_note=lambda sid, note: self.store.update_session(sid, note=note))
         self.pipeline.limits = self.limits
+        # Sessions started with a lease end when their client (the kiosk page) stops renewing it.
+        self.leases = SessionLeases(stop=self.sessions.stop, add_event=self.pipeline.add_event,
+                                    set_note=lambda sid, note: self.store.update_session(sid, note=note))
+        self.sessions.leases = self.leases
         # Retention: prunes old sessions' frames and raw recordings between sessions.
         self.retention = Retention(self.store, self.sessions, data,
                                    policy_from(settings.keep_days, settings.keep_disk_gb),
@@ -111,6 +117,7 @@ class Service:
         self.pipeline.start()
         self.source.start(self.pipeline.feed, self.pipeline.tracker_event)
         self.retention.start()
+        self.leases.start()
         self.started = True
 
     def stop(self) -> None:
@@ -121,6 +128,7 @@ class Service:
             except Exception:
                 log.exception("could not stop session %s cleanly", live)
         self.retention.stop()
+        self.leases.stop()
         try:
             self.source.stop()
         finally:

@@ -46,6 +46,7 @@ class SessionManager:
         self.rate_hz = rate_hz
         self.raw_recorder = raw_recorder  # the frame source (start_recording(path)/stop_recording()) for the .fobraw, or None
         self.retention = None  # server.retention.Retention: pins, pruned files (410) and the wake after a stop
+        self.leases = None  # server.lease.SessionLeases: sessions that end when their client stops renewing
         self._lock = threading.Lock()  # one start/stop at a time
 
     @property
@@ -107,9 +108,16 @@ class SessionManager:
 
     # --- lifecycle ---------------------------------------------------------------------------------
     def start(self, performer: str, hierarchy: dict | None = None, root: str | None = None,
-              skeleton=None, skeleton_name: str | None = None) -> dict:
+              skeleton=None, skeleton_name: str | None = None, profile: str | None = None,
+              lease_s: float | None = None) -> dict:
         """Start a session; with a saved `skeleton` (flockcal.exports.skeleton.Skeleton) its tree and
-        bones are kept and only the sensor placements are fitted."""
+        bones are kept and only the sensor placements are fitted. `profile` ("stage" or "kiosk", default
+        the service's) says how it decides it is calibrated (server/progress.py). With `lease_s` the session
+        ends that long after its client last renewed it (server/lease.py)."""
+        try:
+            prof = self.pipeline.profile(profile)
+        except ValueError as exc:
+            raise BadRequest(str(exc)) from None
         if not PERFORMER_RE.fullmatch(performer) or not performer.strip():
             raise BadRequest(f"performer name must be {PERFORMER_RULE}")
         if skeleton is not None:
@@ -128,6 +136,7 @@ class SessionManager:
                 "id": sid, "performer": performer, "state": "live", "root": root, "hierarchy": hierarchy,
                 "names": list(self.names), "device": self.device, "rate_hz": rate,
                 "created_at": time.time(), "frames": 0, "recording": self.frames_path(sid).name,
+                "profile": prof.name,
             }
             framelog = FrameLog(self.frames_path(sid), list(self.names), rate)
             if skeleton is not None:
@@ -140,7 +149,7 @@ class SessionManager:
                     self.raw_recorder.start_recording(self.raw_path(sid))
                 except FlockcalError as exc:
                     log.warning("raw recording unavailable: %s", exc)
-            session = LiveSession(sid, performer, self.names, hierarchy, root, framelog, skeleton=skeleton)
+            session = LiveSession(sid, performer, self.names, hierarchy, root, framelog, skeleton=skeleton, profile=prof)
             try:
                 self.pipeline.begin_session(session)
             except BaseException:
@@ -148,15 +157,29 @@ class SessionManager:
                 self.store.delete_session(sid)
                 self.skeleton_path(sid).unlink(missing_ok=True)
                 raise
+            if lease_s is not None and self.leases is not None:
+                self.leases.grant(sid, lease_s)
             self.pipeline.add_event({"type": "session", "session_id": sid, "time_s": 0.0, "action": "started",
                                      "message": f"session {sid} started for {performer}"})
             return self.get(sid)
+
+    def renew(self, session_id: str) -> dict:
+        """Renew a live session's lease (POST /api/sessions/{id}/lease)."""
+        row = self._row(session_id)
+        if row["state"] != "live" or self.live_id() != session_id:
+            raise Conflict(f"session {session_id} is not live (it is {row['state']}); there is no lease to renew")
+        lease = self.leases.renew(session_id) if self.leases is not None else None
+        if lease is None:
+            raise Conflict(f"session {session_id} was started without a lease (POST /api/sessions with lease_s)")
+        return {"session_id": session_id, "lease_s": lease, "expires_in_s": round(self.leases.remaining(session_id), 3)}
 
     def stop(self, session_id: str) -> dict:
         with self._lock:
             row = self._row(session_id)
             if row["state"] != "live" or self.live_id() != session_id:
                 raise Conflict(f"session {session_id} is not live (it is {row['state']}); nothing to stop")
+            if self.leases is not None:
+                self.leases.release(session_id)
             if self.raw_recorder is not None:
                 try:
                     self.raw_recorder.stop_recording()
@@ -205,14 +228,15 @@ class SessionManager:
 
                 events = [SimpleNamespace(kind="slip", time_s=float(e["time_s"]),
                                           sensor_index=take.names.index(e["sensor"])) for e in slips]
+                prof = self._profile(row)
                 result = json_safe(solve_take(take, events, row["hierarchy"], row["root"], skeleton,
-                                            tolerance=self.pipeline.tolerance).to_dict())
+                                            tolerance=prof.tolerance_m).to_dict())
                 result["slip_events"] = [{k: e[k] for k in SLIP_FIELDS if k in e} for e in slips]
             except FlockcalError as exc:
                 raise Conflict(f"session {session_id} could not be solved: {exc}") from None
             state = "stopped" if row["state"] == "interrupted" else row["state"]
             # A re-solve is one fit of the whole recording: its progress has no session history to keep.
-            progress = progress_of(result, self.pipeline.target, self.pipeline.tolerance)
+            progress = progress_of(result, prof.target_m, prof.tolerance_m)
             self.store.update_session(session_id, result=result, frames=n, state=state, progress=progress,
                                       note=f"re-solved from its recording ({n} frames)")
             return self.get(session_id)
@@ -234,9 +258,18 @@ class SessionManager:
         row["has_recording"] = self.frames_path(session_id).exists()
         row["has_raw_recording"] = self.raw_path(session_id).exists()
         row["skeleton"] = self._skeleton_name(session_id)
+        if self.leases is not None and row["state"] == "live":
+            row["lease_s"] = self.leases.lease_s(session_id)
         if self.retention is not None:
             self.retention.annotate([row])
         return row
+
+    def _profile(self, row: dict):
+        """The profile a stored session was recorded under (sessions from before profiles: stage)."""
+        try:
+            return self.pipeline.profile(row.get("profile") or "stage")
+        except ValueError:
+            return self.pipeline.profile("stage")
 
     def _check_pruned(self, session_id: str, what: str) -> None:
         if self.retention is not None:
@@ -302,9 +335,10 @@ class SessionManager:
             result = self.store.result(session_id)
             if result is None:
                 why = row["note"] or (f"the session is {row['state']} and has no result")
-                return {**head, **waiting(row["names"], self.pipeline.target, why)}
+                return {**head, **waiting(row["names"], self._profile(row).target_m, why)}
             # Stopped before sessions kept their progress: its stored result, on its own.
-            doc = progress_of(result, self.pipeline.target, self.pipeline.tolerance)
+            prof = self._profile(row)
+            doc = progress_of(result, prof.target_m, prof.tolerance_m)
         return {**head, **doc}
 
     def residuals(self, session_id: str, joint: str | None, since: float | None,

@@ -28,7 +28,8 @@ CREATE TABLE IF NOT EXISTS sessions (
     recording TEXT,                 -- file name inside the recordings directory
     result TEXT,                    -- JSON of design.md §5, NULL until stopped or re-solved
     note TEXT,
-    progress TEXT                   -- JSON of server/progress.py as the session ended (or was re-solved)
+    progress TEXT,                  -- JSON of server/progress.py as the session ended (or was re-solved)
+    profile TEXT                    -- stage | kiosk: how it decides it is calibrated (NULL: stage, older sessions)
 );
 CREATE TABLE IF NOT EXISTS events (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -49,7 +50,7 @@ CREATE INDEX IF NOT EXISTS residuals_session ON residuals (session_id, time_s);
 
 SESSION_COLUMNS = (
     "id", "performer", "state", "root", "hierarchy", "names", "device", "rate_hz",
-    "created_at", "stopped_at", "frames", "recording", "note",
+    "created_at", "stopped_at", "frames", "recording", "note", "profile",
 )
 
 
@@ -71,6 +72,9 @@ class Store:
             columns = {r["name"] for r in self._db.execute("PRAGMA table_info(sessions)")}
             if "progress" not in columns:
                 self._db.execute("ALTER TABLE sessions ADD COLUMN progress TEXT")
+            # ... and, since sessions chose how they decide they are calibrated, their profile (stage before).
+            if "profile" not in columns:
+                self._db.execute("ALTER TABLE sessions ADD COLUMN profile TEXT")
 
     def close(self) -> None:
         with self._lock:

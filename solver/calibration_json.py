@@ -25,8 +25,9 @@ HINGE_POINT_RULES = {2: "two_bones", 1: "one_bone", 0: "min_norm"}
 def calibration_json(cal) -> dict:
     """The docs/design.md §5 object of `cal`, with the extensions the solver emits.
 
-    Every joint carries "determined" (docs/design.md §3a) and "direction_error_m" (how closely the data pin
-    the centre along its three least-turned directions, ascending; null where nothing turned), except
+    Every joint carries "determined" (docs/design.md §3a), "direction_error_m" (how closely the data pin
+    the centre along its three least-turned directions, ascending; null where nothing turned) and
+    "noise_error_m" (the part of that error more frames shrink: the classical, white-noise error), except
     in an optical fit, whose joints carry "kirk_rms_m" instead; a saved-skeleton fit adds "rms_free_m"
     and "known_skeleton"; a free fit adds "rigid_groups" (sensors that never turned relative to each
     other) and "ambiguous" (children with more than one equally good parent). Joints and bones refitted
@@ -40,7 +41,7 @@ def calibration_json(cal) -> dict:
     optical = cal.optical
     # Fields are converted together for all joints (the live server calls this ~30×/s), to Python
     # floats with None for NaN: the dict is JSON-safe as it stands, with no second pass over it.
-    vec = _json(np.stack([j.c, j.l, j.axis_i, j.axis_j, j.coverage, j.direction_error]))
+    vec = _json(np.stack([j.c, j.l, j.axis_i, j.axis_j, j.coverage, j.direction_error, j.noise_error]))
     num = _json(np.stack([j.rms, j.epsilon, j.c_stderr, j.l_stderr]))
     sv = _json(j.singular_values)
     det = j.determined.tolist()
@@ -71,6 +72,7 @@ def calibration_json(cal) -> dict:
         else:
             e["determined"] = det[k]
             e["direction_error_m"] = vec[5][k]
+            e["noise_error_m"] = vec[6][k]
         if seg is not None and seg[k] is not None:
             e["segment_start_s"] = seg[k]
         if hinge and placed is not None and placed[k] >= 0:

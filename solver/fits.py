@@ -64,6 +64,10 @@ class PairFits:
     # (p,) m: a hinge's least-squares point on its axis, as a slide from c along axis_i (and from l along
     # axis_j); its error is direction_error[:, 0]. NaN: not a hinge, or no rotation about the axis beyond noise.
     axis_offset: np.ndarray
+    # (p, 3) m: the classical (white-noise) standard error along the three least-turned directions, the part
+    # of direction_error that more frames of any motion shrink as 1/√n (inf where nothing turned). Where it is
+    # far below direction_error, correlated residuals (soft tissue) set the error, not the frame count.
+    noise_error: np.ndarray
 
     def __len__(self) -> int:
         return len(self.pairs)
@@ -105,7 +109,7 @@ def unfitted(pairs) -> PairFits:
     no = np.zeros(p, dtype=bool)
     zero = np.zeros(p, dtype=int)
     return PairFits(P, nan(3), nan(3), nan(), nan(), nan(6), no, no, nan(3), nan(3), nan(3), nan(), nan(),
-                    nan(3, 3), nan(3, 3), zero, zero.copy(), nan(3), nan(), nan(), nan(), nan())
+                    nan(3, 3), nan(3, 3), zero, zero.copy(), nan(3), nan(), nan(), nan(), nan(), nan(3))
 
 
 def all_pairs(n_sensors: int) -> np.ndarray:
@@ -174,6 +178,7 @@ def pair_fits(acc, pairs=None, tolerance: float = TOLERANCE_M) -> PairFits:
     var_bm, blocks = _batch_means_variance(acc, P, u, V, nn, safe_mu)
     ok_bm = np.isfinite(var_bm)
     factor = _upper_chi2_factor(np.maximum(blocks - 1.0, 1.0))
+    keep_cl = keep.copy()  # (a hinge's axis direction is dropped from `keep` below; its noise error stays)
     var = np.maximum(var_cl, np.where(ok_bm, var_bm, 0.0))  # the estimate, as reported
     var_hi = np.maximum(var_cl, np.where(ok_bm, var_bm * factor[:, None], 0.0))  # its upper bound, for deciding
     se = np.where(keep, np.sqrt(var_hi), np.inf)
@@ -259,6 +264,7 @@ def pair_fits(acc, pairs=None, tolerance: float = TOLERANCE_M) -> PairFits:
         separation=np.sqrt(np.maximum(ddn, 0.0)) + nan1,
         rms_floor=np.sqrt(ROUNDING * (np.maximum(ddn, 0.0) + acc.translation_power(P)) / mu_kept) + nan1,
         axis_offset=axis_offset,
+        noise_error=np.where(has[:, None] & keep_cl[:, :3], np.sqrt(var_cl[:, :3]), np.inf),
     )
 
 

@@ -120,8 +120,11 @@ def test_every_joint_done_again_while_one_wobbles_stays_below_100_until_one_clea
     # The right hip is re-pinned from fresh frames while the left one wobbles just above the target.
     wobble = fit([joint("l_thigh", "pelvis", err_mm=(5.6, 2.0, 1.0), determined=False), joint("r_thigh", "pelvis")])
     doc = track(tr, [wobble] * 12, t0=1.2, epoch=1)
-    assert doc["joints_done"] == 2  # each joint is done…
-    assert not doc["done"] and doc["percent"] == 99 and doc["progress"] < 1  # …but 100 % waits for one clear fit
+    # Each joint was done once, but 100 % waits for one clear fit; meanwhile the one this fit leaves short
+    # is shown as not done (issue #30: 15 chips ticked and "15 / 15" at 99 % told the guest nothing was left).
+    assert not doc["done"] and doc["percent"] == 99 and doc["progress"] < 1
+    assert doc["joints_done"] == 1 == sum(j["done"] for j in doc["joint_progress"])
+    assert [m["joint"] for m in doc["missing"]] == ["l_thigh"]
     doc = tr.update(both, 2.5, epoch=1)
     assert doc["done"] and doc["percent"] == 100
 
@@ -264,6 +267,7 @@ def test_all_calibrated_but_waiting_for_one_fit_still_names_what_is_missing():
     tracker.update(fit([joint("l_thigh", "pelvis"), joint("r_thigh", "pelvis", err_mm=(6.0, 1.0, 1.0))]), 1.0)
     tracker.update(fit([joint("l_thigh", "pelvis", err_mm=(6.0, 1.0, 1.0)), both[1]]), 2.0)
     doc = tracker.latest
-    assert doc["joints_done"] == 2 and not doc["done"] and doc["percent"] < 100
+    assert doc["joints_done"] == 1 and not doc["done"] and doc["percent"] < 100
+    assert not all(j["done"] for j in doc["joint_progress"])
     assert [m["joint"] for m in doc["missing"]] == ["l_thigh"] and "waiting for a fit" in doc["missing"][0]["why"]
     assert tracker.update(fit(both), 3.0)["done"]

@@ -3,7 +3,10 @@ simulated guest on a pty whose kiosk routine starts with the kiosk's own session
 the kiosk page (and the operator dashboard beside it). At every sampled moment the ring shows the percent
 of the very fit message the page last drew (captured off the page's own websocket), which REST serves too
 for that fit; "100 %" only ever appears when every sensor's joint in that fit is determined; the ring never
-goes back on a clean take; the dashboard's "joints calibrated" and its labels say the same.
+goes back on a clean take and never shows every chip ticked below 100 %; the dashboard's "joints calibrated"
+and its labels say the same. The guest wears skin-mounted sensors (the simulator's default soft tissue) and
+the kiosk starts its sessions under the kiosk profile (issue #30); a page that goes away ends its session
+after its lease; a guest who stands still gets a patient prompt.
 """
 
 from __future__ import annotations
@@ -29,16 +32,17 @@ pytestmark = [
 ADMIN, KIOSK, READ = "admin-secret-21", "kiosk-secret-21", "read-secret-21"
 RATE = 144.0
 RING_CIRCUMFERENCE = 2 * math.pi * 86  # the ring's circle in kiosk.html has r = 86
-# README: simulated kiosk guests are done 18.4–20 s after their session starts (p90 target 30 s); the
-# test gives the 30 s target 15 s of margin for a loaded machine.
-DONE_WITHIN_S = 45.0
+# README / docs/service.md "Time to calibrate": kiosk guests with soft tissue are done within 35 s of their
+# session (p90 target); the session's own clock gives it 5 s of margin. The wall-clock deadline only stops
+# a hung test: a loaded machine delivers the same session seconds later.
+DONE_SESSION_S = 35.0 + 5.0
+DONE_WITHIN_S = 120.0
 
 
 @pytest.fixture(scope="module")
 def guest():
-    # Rigid sensors: the time-to-done promise (docs/service.md, "Time to calibrate") is measured on them;
-    # soft tissue slows a guest down and has its own, benchmark-only figures there.
-    performer = Performer("human", "kiosk", seed=21, rate_hz=RATE, height=1.66, sta_mm=0)
+    # The simulator's default soft tissue: what skin-mounted sensors do, and what the kiosk profile is for.
+    performer = Performer("human", "kiosk", seed=21, rate_hz=RATE, height=1.66)
     tracker = PtyTracker(performer, birds=16, baud=921600, rate_hz=RATE)
     stream = GuestSource(performer, tracker.flock.clock)
     tracker.flock.source = stream
@@ -85,6 +89,7 @@ RING_JS = """() => {
     return {text: el.textContent, seq: el.dataset.fitSeq, offset: document.querySelector('#ring-fill').style.strokeDashoffset,
             state: document.querySelector('#kiosk-state').dataset.state,
             chips: document.querySelectorAll('#chips .chip').length,
+            rule: document.querySelector('#rule').textContent,
             ticked: document.querySelectorAll('#chips .chip.done').length};
 }"""
 
@@ -139,6 +144,9 @@ def test_the_ring_is_the_services_progress_at_every_step_and_never_100_before_ev
                 assert msg["percent"] == math.floor(round(msg["progress"] * 100, 6))
                 assert float(ring["offset"]) == pytest.approx(RING_CIRCUMFERENCE * (1 - msg["progress"]), abs=0.5)
                 assert ring["ticked"] == msg["joints_done"] and ring["chips"] == msg["joints_needed"] == 15
+                assert msg.get("profile") == "kiosk" and ring["rule"] == msg["rule"], ring
+                # Never every chip ticked below 100 %: 15 ticks and 99 % told a guest nothing was left.
+                assert ring["ticked"] < ring["chips"] or msg["done"], (ring, msg["percent"])
                 # …"100 %" only when done, and done only when every sensor's joint in it is determined.
                 if ring["text"] == "100%" or msg["done"]:
                     assert msg["done"] and ring["text"] == "100%"
@@ -182,6 +190,7 @@ def test_the_ring_is_the_services_progress_at_every_step_and_never_100_before_ev
         # What the kiosk showed is what the service keeps: the guest's session is stored done.
         stored = _wait_stopped(server, sid)
         assert stored["done"] is True and stored["missing"] == [] and stored["joints_done"] == 15
+        assert stored["done_at_s"] <= DONE_SESSION_S, stored["done_at_s"]
         print(f"kiosk done after {took:.1f} s of wall time; {len(shown)} ring samples, {rest_matches} REST matches")
         assert not kiosk.errors and not dashboard.errors
     finally:
@@ -210,7 +219,7 @@ def _artifacts():
 def test_a_read_only_kiosk_showing_a_hosts_session_done_goes_back_and_says_why_when_a_sensor_slips(
         browser, server, guest):
     performer, tracker, stream = guest
-    r = httpx.post(f"{server.url}/api/sessions", json={"performer": "Host guest"}, headers=admin())
+    r = httpx.post(f"{server.url}/api/sessions", json={"performer": "Host guest", "profile": "kiosk"}, headers=admin())
     assert r.status_code == 201, r.text
     sid = r.json()["id"]
     stream.begin()
@@ -236,15 +245,16 @@ def test_a_read_only_kiosk_showing_a_hosts_session_done_goes_back_and_says_why_w
 
 def test_a_guest_who_never_finishes_is_handed_on_after_max_s(browser, server, guest):
     # docs/dashboard.md: `max_s` (default 300 s) ends the session of a guest who walks away before done
-    # and starts afresh. Tried: a guest who stands still (the idle routine: no joint ever turns enough)
-    # in front of a kiosk opened with max_s=8.
+    # and starts afresh; before that, a guest who stopped moving gets a patient prompt once the ring has not
+    # risen for 8 s of session time (docs/service.md, Progress). Tried: a guest who stands still (the idle
+    # routine: no joint ever turns enough) in front of a kiosk opened with max_s=14.
     performer, tracker, stream = guest
     live = httpx.get(f"{server.url}/api/sessions", headers=admin()).json()["live"]
     if live:
         httpx.post(f"{server.url}/api/sessions/{live}/stop", headers=admin(), timeout=30)
     still = Performer("human", "idle", seed=21, rate_hz=RATE, height=1.66, sta_mm=0)
     stream.begin(still)
-    page = open_capturing(browser, f"{server.url}/kiosk?token={KIOSK}&max_s=8&reset_s=3", 1600, 900)
+    page = open_capturing(browser, f"{server.url}/kiosk?token={KIOSK}&max_s=14&reset_s=3", 1600, 900)
     try:
         page.wait_for_selector("#kiosk-state[data-state=live]", timeout=15000)
         first = httpx.get(f"{server.url}/api/sessions", headers=admin()).json()["live"]
@@ -252,15 +262,22 @@ def test_a_guest_who_never_finishes_is_handed_on_after_max_s(browser, server, gu
         started = time.monotonic()
         # The kiosk checks on each status message (about one a second): handed on within max_s + 2 s,
         # plus 5 s for a loaded machine's session stop and start.
-        nxt = None
-        while time.monotonic() - started < 8 + 2 + 5:
+        nxt, prompt = None, None
+        while time.monotonic() - started < 14 + 2 + 5:
             nxt = httpx.get(f"{server.url}/api/sessions", headers=admin()).json()["live"]
             if nxt and nxt != first:
                 break
+            shown = page.evaluate("() => { const el = document.querySelector('#instruction');"
+                                  " return {why: el.dataset.why, text: el.textContent}; }")
+            if shown["why"] == "stalled" and prompt is None:
+                prompt = shown["text"]
+                doc = httpx.get(f"{server.url}/api/sessions/{first}/progress", headers=admin()).json()
+                assert doc["stalled_s"] >= 8 and doc["prompt"], doc
             time.sleep(0.2)
         waited = time.monotonic() - started
         assert nxt and nxt != first, f"still on the first guest's session after {waited:.1f} s"
-        assert waited > 8 - 1, f"handed on after {waited:.1f} s, before max_s"
+        assert waited > 14 - 1, f"handed on after {waited:.1f} s, before max_s"
+        assert prompt and prompt.startswith("Take your time"), prompt
         gone = httpx.get(f"{server.url}/api/sessions/{first}", headers=admin()).json()
         assert gone["state"] == "stopped" and gone["done"] is False  # stored, and honestly not done
         page.wait_for_selector("#kiosk-state[data-state=live]", timeout=15000)
@@ -268,3 +285,35 @@ def test_a_guest_who_never_finishes_is_handed_on_after_max_s(browser, server, gu
     finally:
         page.close()
         stream.begin(performer)
+
+
+def test_a_guest_session_ends_after_its_lease_once_the_kiosk_page_goes_away(browser, server, guest):
+    # Issue #30: a kiosk page closed just after it started the next guest left that session live, and
+    # POST /api/sessions answered 409 until someone stopped it by hand. Tried: the page (lease_s=3) is
+    # closed while its guest's session is live; the session must end within the lease plus the
+    # watcher's half second, plus 10 s for a loaded machine's stop, and the next session must start.
+    performer, tracker, stream = guest
+    live = httpx.get(f"{server.url}/api/sessions", headers=admin()).json()["live"]
+    if live:
+        httpx.post(f"{server.url}/api/sessions/{live}/stop", headers=admin(), timeout=30)
+    stream.begin(performer)
+    page = open_capturing(browser, f"{server.url}/kiosk?token={KIOSK}&lease_s=3", 1600, 900)
+    try:
+        page.wait_for_selector("#kiosk-state[data-state=live]", timeout=15000)
+        sid = httpx.get(f"{server.url}/api/sessions", headers=admin()).json()["live"]
+        row = httpx.get(f"{server.url}/api/sessions/{sid}", headers=admin()).json()
+        assert row["lease_s"] == 3 and row["profile"] == "kiosk", row
+        # While the page is open it renews: the session outlives several leases.
+        page.wait_for_timeout(7000)
+        assert httpx.get(f"{server.url}/api/sessions", headers=admin()).json()["live"] == sid
+    finally:
+        page.close()
+    closed = time.monotonic()
+    # Stopped, with the reason stored on its row (the note is written just after the stop).
+    while not ((row := httpx.get(f"{server.url}/api/sessions/{sid}", headers=admin()).json())["state"] == "stopped"
+               and "lease" in (row.get("note") or "")):
+        assert time.monotonic() - closed < 3 + 0.5 + 10, f"the session outlived its page by more than its lease: {row}"
+        time.sleep(0.1)
+    r = httpx.post(f"{server.url}/api/sessions", json={"performer": "Next guest"}, headers=admin())
+    assert r.status_code == 201, r.text
+    httpx.post(f"{server.url}/api/sessions/{r.json()['id']}/stop", headers=admin(), timeout=30)

@@ -1,6 +1,7 @@
-"""Why a kiosk guest under the simulator's 12 mm soft tissue is not done in 20 s with bones within 5 mm
-(issue #21, docs/service.md "Time to calibrate"): the artefact itself moves the centres a sensor can see,
-and the batch-means error that holds `done` back is about as large as the real spread between performances.
+"""Why the kiosk profile judges a soft-tissue guest's bones against more data of the same guest, not
+against the simulated skeleton, and reads the batch-means error next to the white-noise one instead of
+shrinking it (issues #21, #30; docs/service.md "Time to calibrate"): the artefact itself moves the centres
+a sensor can see, and the batch-means error is about as large as the real spread between performances.
 """
 
 from __future__ import annotations

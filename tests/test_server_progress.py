@@ -24,8 +24,8 @@ from flockcal.simulator.performer import Performer
 from flockcal.simulator.pty_tracker import PtyTracker
 
 RATE = 144.0
-# README "Progress": simulated kiosk guests are done 18.4–20 s after their session starts (target: p90 30 s);
-# 15 s of margin for a loaded build machine.
+# docs/service.md "Time to calibrate": on rigid sensors a guest under the stage profile is done in a median
+# 19.8 s of session time (the kiosk's p90 target is 35 s); done_at_s (session clock) gets 10 s over that.
 DONE_WITHIN_S = 45.0
 SLIPPED = "l_forearm"
 
@@ -53,12 +53,17 @@ def server(guest, tmp_path_factory):
         yield srv
 
 
-async def read_fits(url: str, sid: str, until, rate_hz: float = 1.0, timeout: float = 60.0) -> list[dict]:
-    """The session's fit messages at `rate_hz` until `until(message)` holds."""
+async def read_fits(url: str, sid: str, until, rate_hz: float = 1.0, timeout: float = 120.0,
+                    subscribed=None) -> list[dict]:
+    """The session's fit messages at `rate_hz` until `until(message)` holds; `subscribed()` is called once
+    the subscription is sent (the guest starts moving then, so the first second is seen however loaded the
+    machine). `timeout` (wall clock) only stops a hung test: the promises are checked on session time."""
     out = []
     deadline = time.monotonic() + timeout
     async with websockets.connect(url.replace("http://", "ws://") + "/ws/live", max_size=None) as ws:
         await ws.send(json.dumps({"type": "subscribe", "rate_hz": rate_hz, "content": ["fit"]}))
+        if subscribed is not None:
+            subscribed()
         while time.monotonic() < deadline:
             msg = json.loads(await asyncio.wait_for(ws.recv(), 10))
             if msg["type"] != "fit" or msg["session"]["id"] != sid:
@@ -74,9 +79,8 @@ def test_progress_is_honest_every_second_done_holds_and_a_slip_undoes_it(server,
     r = httpx.post(server.url + "/api/sessions", json={"performer": "Guest"})
     assert r.status_code == 201
     sid = r.json()["id"]
-    source.begin()
     try:
-        check_session(server, performer, sid)
+        check_session(server, performer, sid, source.begin)
     finally:
         httpx.post(f"{server.url}/api/sessions/{sid}/stop", timeout=30)
     # Stopped, the session keeps what it had reached when it stopped.
@@ -85,8 +89,8 @@ def test_progress_is_honest_every_second_done_holds_and_a_slip_undoes_it(server,
     assert httpx.get(f"{server.url}/api/sessions/{sid}").json()["done"] is False
 
 
-def check_session(server, performer, sid: str) -> None:
-    msgs = asyncio.run(read_fits(server.url, sid, lambda m: m["done"], timeout=DONE_WITHIN_S))
+def check_session(server, performer, sid: str, begin) -> None:
+    msgs = asyncio.run(read_fits(server.url, sid, lambda m: m["done"], subscribed=begin))
     done = msgs[-1]
     assert done["done_at_s"] <= DONE_WITHIN_S
     for m in msgs:
@@ -116,7 +120,7 @@ def check_session(server, performer, sid: str) -> None:
     # them still ride on a neighbour and which have moved but not turned depends on the frame the first fit
     # ends on (at 1.1 s 6 rigid and 6 not turned, at 1.4 s 2 and 10), so the two are counted together.
     unmoved = sum(x["state"] in ("rigid", "not_turned") for x in msgs[0]["missing"])
-    assert msgs[0]["progress"] <= 0.2 and unmoved >= 8, msgs[0]["missing"]
+    assert msgs[0]["progress"] <= 0.2 and unmoved >= 8, (msgs[0]["session"]["time_s"], msgs[0]["missing"])
     values = [m["progress"] for m in msgs]
     assert values == sorted(values), values  # a clean take: it only goes up
 
@@ -134,7 +138,7 @@ def check_session(server, performer, sid: str) -> None:
     # has, the slip is the reason every entry of that sensor gives, the loss included.
     performer.inject_slip(SLIPPED, 0.03)
     msgs = asyncio.run(read_fits(server.url, sid, lambda m: not m["done"] and slip_undone(m), rate_hz=30,
-                                 timeout=10))
+                                 timeout=60))
     undone_at = next(k for k, m in enumerate(msgs) if not m["done"])
     assert not any(m["done"] for m in msgs[undone_at:])  # undone, done does not come back before the reason
     after = msgs[-1]

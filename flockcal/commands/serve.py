@@ -46,6 +46,10 @@ def register(subparsers) -> None:
                    help="a joint counts as calibrated (progress, done, the kiosk ring) once the data pin its centre "
                         "to within MM along every direction it needs (default: --tolerance-mm / 1.414, so bones "
                         "between two such joints are within the tolerance)")
+    p.add_argument("--profile", choices=("stage", "kiosk"), default="stage",
+                   help="how a session decides it is calibrated when its start does not say (the kiosk page "
+                        "always asks for kiosk): stage = pinned to --target-mm (default); kiosk = pinned to "
+                        "10 mm and no longer changed by more data, what a guest's avatar needs (docs/service.md)")
     p.add_argument("--fast-init", action="store_true", default=bool(os.environ.get("FLOCKCAL_FAST_INIT")),
                    help="skip the tracker's reset delays (for simulated trackers on a pty)")
     p.add_argument("--skeleton", action="append", default=[], type=Path, metavar="FILE",
@@ -92,6 +96,7 @@ def settings_from_args(args: argparse.Namespace):
         fit_hz=args.fit_hz,
         tolerance_m=tolerance_m(args),
         target_m=None if args.target_mm is None else float(args.target_mm) / 1000.0,
+        profile=args.profile,
         cors_origins=tuple(args.cors_origin),
         allow_hosts=tuple(args.allow_host),
         max_session_s=args.max_session_min * 60.0 if args.max_session_min else None,

@@ -13,7 +13,7 @@ from fastapi.responses import Response, StreamingResponse
 from flockcal.server.auth import require_admin, require_read, require_session_control
 from flockcal.server.errors import BadRequest, Conflict, NotFound
 from flockcal.server.models import (
-    CalibrationResult, ErrorReply, EventList, Progress, ResidualSeries, Session, SessionCreate, SessionList,
+    CalibrationResult, ErrorReply, EventList, Lease, Progress, ResidualSeries, Session, SessionCreate, SessionList,
 )
 from flockcal.server.routes.deps import MAX_ID, get_service, session_id
 from flockcal.server.settings import NAME_RE
@@ -55,7 +55,8 @@ def start_session(body: SessionCreate, service=Depends(get_service), _role=Depen
     if saved is not None:
         if hierarchy is not None:
             raise BadRequest("give either 'hierarchy' or 'skeleton', not both")
-        return service.sessions.start(body.performer, root=body.root, skeleton=saved, skeleton_name=body.skeleton)
+        return service.sessions.start(body.performer, root=body.root, skeleton=saved, skeleton_name=body.skeleton,
+                                      profile=body.profile, lease_s=body.lease_s)
     if body.skeleton is not None:
         if hierarchy is not None:
             raise BadRequest("give either 'hierarchy' or 'skeleton', not both")
@@ -67,7 +68,7 @@ def start_session(body: SessionCreate, service=Depends(get_service), _role=Depen
         bad = [x for kv in hierarchy.items() for x in kv if not NAME_RE.fullmatch(x)]
         if bad:
             raise BadRequest(f"hierarchy name {bad[0][:80]!r} is not a valid sensor name")
-    return service.sessions.start(body.performer, hierarchy, body.root)
+    return service.sessions.start(body.performer, hierarchy, body.root, profile=body.profile, lease_s=body.lease_s)
 
 
 @router.get("/presets", summary="named hierarchies a session can start with")
@@ -89,6 +90,13 @@ def delete_session(sid: str = Depends(session_id), service=Depends(get_service),
 @router.post("/{id}/stop", response_model=Session, responses=ERRORS, summary="stop the live session and store its result")
 def stop_session(sid: str = Depends(session_id), service=Depends(get_service), _role=Depends(require_session_control)):
     return service.sessions.stop(sid)
+
+
+@router.post("/{id}/lease", response_model=Lease, responses=ERRORS,
+             summary="renew a live session's lease (sessions started with lease_s)")
+def renew_lease(sid: str = Depends(session_id), service=Depends(get_service), _role=Depends(require_session_control)):
+    """Push the session's end `lease_s` from now; 409 when it is not live or has no lease."""
+    return service.sessions.renew(sid)
 
 
 @router.post("/{id}/resolve", response_model=Session, responses=ERRORS,

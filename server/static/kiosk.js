@@ -3,7 +3,8 @@
 // service's progress as published (docs/service.md, Progress): the page computes none of it.
 // URL options: ?token=… (a kiosk token starts and stops sessions; a read-only token follows the
 // sessions a host starts), reset_s=10 (how long "done" stays up), max_s=300 (a guest who walks away:
-// start afresh), mirror=0 (show the avatar as others see the guest, not as a mirror).
+// start afresh), mirror=0 (show the avatar as others see the guest, not as a mirror), lease_s=30 (a guest's
+// session ends this long after this page stops renewing it: closed, crashed or unplugged).
 
 import { api, ApiError, connectLive, readable, SkeletonView } from './common.js';
 
@@ -15,6 +16,7 @@ const num = (key, fallback) => {
 };
 const RESET_S = num('reset_s', 10);
 const MAX_S = num('max_s', 300);
+const LEASE_S = num('lease_s', 30);
 
 const avatar = new SkeletonView($('avatar'), { colour: 0x7ee787, follow: true, mirror: params.get('mirror') !== '0' });
 const ring = $('ring-fill');
@@ -31,7 +33,20 @@ const kiosk = {
   timer: null,
   lastStatus: null,
   doneSession: null,       // a host's session shown as done until it ends
+  renewer: null,           // the interval renewing an owned session's lease
+  lastPercent: 0,
 };
+
+// While this page follows a session it started, it renews the session's lease a few times per lease:
+// if the page goes away, the service ends the session after LEASE_S instead of blocking the next guest.
+function keepLease(session) {
+  if (kiosk.renewer) { clearInterval(kiosk.renewer); kiosk.renewer = null; }
+  if (!session) return;
+  kiosk.renewer = setInterval(() => {
+    if (!kiosk.session || kiosk.session.id !== session.id || !kiosk.owned) { keepLease(null); return; }
+    api(`/api/sessions/${encodeURIComponent(session.id)}/lease`, { method: 'POST' }).catch(() => {});
+  }, Math.max(1000, (LEASE_S * 1000) / 5));
+}
 
 const TITLES = { done: 'Calibrated!', waiting: 'Welcome!', error: 'One moment…' };
 
@@ -91,7 +106,8 @@ function showChips(joints, next) {
 function instructionFor(m) {
   const act = actionFor(m.joint);
   if (m.undone && m.undone.reason === 'slip') return `Your ${readable(m.undone.sensor)} sensor moved — once more: ${act}`;
-  if (m.undone) return `Once more: ${act}`;
+  if (m.undone && m.undone.reason === 'tree') return `Once more, so your ${readable(m.joint)} is placed right: ${act}`;
+  if (m.undone) return `Your ${readable(m.joint)} needs a little more: ${act}`;
   return act;
 }
 
@@ -105,16 +121,24 @@ function onFit(msg) {
   if (kiosk.state !== 'live' || !result || !kiosk.session) return;
   if (msg.session && msg.session.id !== kiosk.session.id) return;
   avatar.setFit(result);
+  if (msg.rule) $('rule').textContent = msg.rule;
   const joints = msg.joint_progress || [];
   avatar.setJointState(Object.fromEntries(joints.map((j) => [j.joint, jointColour(j)])));
-  const next = (msg.missing || [])[0];
+  // A joint undone (a slip, a lost fit) is what the guest hears about first: it is why the ring went back.
+  const missing = msg.missing || [];
+  const next = missing.find((m) => m.undone) || missing[0];
   showChips(joints, next ? next.joint : null);
   setProgress(msg.progress, msg.percent, msg.fit_seq);
   if (msg.done) {
     finishGuest();
     return;
   }
-  if (next) $('instruction').textContent = instructionFor(next);
+  const el = $('instruction');
+  el.dataset.why = next && next.undone ? 'undone' : (msg.prompt ? 'stalled' : 'next');
+  if (next && next.undone) el.textContent = instructionFor(next);
+  else if (msg.prompt) el.textContent = msg.prompt;
+  else if (next) el.textContent = instructionFor(next);
+  kiosk.lastPercent = msg.percent;
 }
 
 // Avatar joints: green when calibrated, amber while pinned but not counted yet, grey while undetermined.
@@ -128,6 +152,7 @@ function clearTimer() { if (kiosk.timer) { clearTimeout(kiosk.timer); kiosk.time
 function follow(session, owned) {
   kiosk.session = session;
   kiosk.owned = owned;
+  keepLease(owned ? session : null);  // a reloaded page takes over renewing its guest's session
   kiosk.startedAt = performance.now();
   setProgress(0, 0, null);
   $('chips').innerHTML = '';
@@ -142,7 +167,8 @@ async function startGuest() {
   setProgress(0, 0, null);
   try {
     const stamp = new Date().toTimeString().slice(0, 8).replace(/:/g, '.');
-    const s = await api('/api/sessions', { method: 'POST', json: { performer: `guest ${stamp}` } });
+    const s = await api('/api/sessions', { method: 'POST',
+      json: { performer: `guest ${stamp}`, profile: 'kiosk', lease_s: LEASE_S } });
     follow({ id: s.id, performer: s.performer }, true);
   } catch (err) {
     if (err instanceof ApiError && (err.status === 403 || err.status === 401)) {
