@@ -113,6 +113,16 @@ def distance_ranges(markers: np.ndarray) -> np.ndarray:
     return out
 
 
+def linkage_matrix(ranges: np.ndarray, tolerance: float) -> np.ndarray:
+    """The distance ranges as average linkage starts from them: pairs never seen together far beyond any
+    merge (10 × the largest range or the tolerance), the diagonal closed."""
+    finite = np.isfinite(ranges)
+    big = 10.0 * max(float(ranges[finite].max()) if finite.any() else 1.0, tolerance)
+    D = np.where(finite, ranges, big).astype(float)
+    np.fill_diagonal(D, np.inf)
+    return D
+
+
 def linkage_labels(ranges: np.ndarray, tolerance: float, n_groups: int | None = None) -> np.ndarray:
     """Average-linkage (UPGMA) clusters of the distance ranges, merged while the closest two clusters'
     mean range is within `tolerance` (or until `n_groups` remain).
@@ -122,10 +132,7 @@ def linkage_labels(ranges: np.ndarray, tolerance: float, n_groups: int | None = 
     Written out (k − 1 merges of a k × k matrix) rather than taken from scipy.cluster, whose import alone
     costs a third of the time budget of a small take."""
     k = len(ranges)
-    finite = np.isfinite(ranges)
-    big = 10.0 * max(float(ranges[finite].max()) if finite.any() else 1.0, tolerance)
-    D = np.where(finite, ranges, big).astype(float)
-    np.fill_diagonal(D, np.inf)
+    D = linkage_matrix(ranges, tolerance)
     size = np.ones(k)
     labels = np.arange(k)
     target = 1 if n_groups is None else max(1, min(int(n_groups), k))
@@ -338,10 +345,7 @@ def judged_linkage(ranges: np.ndarray, tolerance: float, judge_pair: Judge, grou
     """Average linkage of the distance ranges, closest pair first, each merge allowed by `joins`; a pair
     it refuses is set aside and the next closest tried, until no pair within SKIN_REACH × tolerance is left."""
     k = len(ranges)
-    finite = np.isfinite(ranges)
-    big = 10.0 * max(float(ranges[finite].max()) if finite.any() else 1.0, tolerance)
-    D = np.where(finite, ranges, big).astype(float)
-    np.fill_diagonal(D, np.inf)
+    D = linkage_matrix(ranges, tolerance)
     size = np.ones(k)
     refused = np.zeros((k, k), dtype=bool)
     reach = SKIN_REACH * tolerance
