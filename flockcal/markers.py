@@ -84,6 +84,21 @@ def make_marker_take(markers, marker_names, rate_hz, times=None, source: str = "
     return MarkerTake(M, names, rate, ts, source)
 
 
+def is_marker_take(path) -> bool:
+    """Whether `path` holds a marker take rather than a sensor take: a .c3d file, or an .npz with a
+    `markers` array (a missing or unreadable file is left to the loader that reports it)."""
+    import zipfile
+
+    path = Path(path)
+    if path.suffix.lower() == ".c3d":
+        return True
+    try:
+        with zipfile.ZipFile(path) as z:
+            return "markers.npy" in z.namelist()
+    except (OSError, zipfile.BadZipFile):
+        return False
+
+
 def load_markers(path: str | os.PathLike, salvage: bool = False) -> MarkerTake:
     """Read a marker take from `.npz` (docs/design.md §5) or `.c3d`; raises MarkerError with the fix.
     `salvage` reads the frames a C3D cut short still holds instead of refusing it."""

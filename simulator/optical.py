@@ -1,7 +1,8 @@
 """The simulator's optical mode: skin markers fixed in the bone frames of a BodyModel, seen by cameras.
 
-2–4 markers per body, Gaussian marker noise, occlusion gaps (NaN runs) and label swaps between two
-markers over a span of frames; plus the paper's three-rod rig with universal joints. Truth (which body
+2–4 markers per body, soft tissue (each marker sliding over its bone with the neighbouring joints' angles,
+the sensor path's rule in soft_tissue.py), Gaussian marker noise, occlusion gaps (NaN runs) and label swaps
+between two markers over a span of frames; plus the paper's three-rod rig with universal joints. Truth (which body
 each marker rides, joint-to-joint bone lengths, the parent map) comes back beside the take.
 """
 
@@ -32,14 +33,7 @@ def place_markers(model: BodyModel, per_body=(2, 4), seed: int = 0, standoff=(0.
     )
     body, offsets, names = [], [], []
     for i in range(m):
-        kids = model.children(i)
-        if kids:
-            far = np.mean([model.joint_offset[k] for k in kids], axis=0)
-        else:
-            # A leaf continues its parent's joint direction for a typical hand/foot/head length.
-            d = model.joint_offset[i] if model.parent[i] >= 0 else np.array([0, 0, 1.0])
-            far = 0.6 * d if np.linalg.norm(d) > 1e-6 else np.array([0.0, 0.0, 0.1])
-            far = far / max(np.linalg.norm(far), 1e-9) * np.clip(np.linalg.norm(far), 0.08, 0.25)
+        far = body_axis(model, i)
         axis = far / max(np.linalg.norm(far), 1e-9)
         for j in range(int(counts[i])):
             along = rng.uniform(0.15, 0.85) * far
@@ -50,6 +44,29 @@ def place_markers(model: BodyModel, per_body=(2, 4), seed: int = 0, standoff=(0.
             body.append(i)
             names.append(f"{model.names[i]}_{j + 1}")
     return np.array(body), np.array(offsets), tuple(names)
+
+
+def body_axis(model: BodyModel, i: int) -> np.ndarray:
+    """From body i's inboard joint to its far end (its outboard joints' mean, or a point past the joint
+    for a leaf), in the bone frame: the line its markers sit along."""
+    kids = model.children(i)
+    if kids:
+        return np.mean([model.joint_offset[k] for k in kids], axis=0)
+    # A leaf continues its parent's joint direction for a typical hand/foot/head length.
+    d = model.joint_offset[i] if model.parent[i] >= 0 else np.array([0, 0, 1.0])
+    far = 0.6 * d if np.linalg.norm(d) > 1e-6 else np.array([0.0, 0.0, 0.1])
+    return far / max(np.linalg.norm(far), 1e-9) * np.clip(np.linalg.norm(far), 0.08, 0.25)
+
+
+def skin_normals(model: BodyModel, body: np.ndarray, offsets: np.ndarray) -> np.ndarray:
+    """(k, 3) each marker's outward skin normal in its bone frame: its offset's part across the body's axis."""
+    out = np.zeros((len(body), 3))
+    for j, (i, off) in enumerate(zip(body, offsets)):
+        a = body_axis(model, int(i))
+        a = a / max(np.linalg.norm(a), 1e-9)
+        r = off - off.dot(a) * a
+        out[j] = r / max(np.linalg.norm(r), 1e-9)
+    return out
 
 
 def marker_positions(B: np.ndarray, b: np.ndarray, body: np.ndarray, offsets: np.ndarray) -> np.ndarray:
@@ -104,11 +121,13 @@ def random_swaps(body: np.ndarray, markers: np.ndarray, n_swaps: int, rate_hz: f
     return out
 
 
-def smooth_local_rotations(model: BodyModel, seconds: float, rate_hz: float, seed: int = 0, amplitude: float = 0.8):
+def smooth_local_rotations(model: BodyModel, seconds: float, rate_hz: float, seed: int = 0, amplitude: float = 0.8,
+                           with_coordinates: bool = False):
     """A generic exercise: every joint sweeps its range with a few incommensurate sinusoids.
 
-    Returns (local rotations (n,m,3,3), root translation (n,3), times (n,)). Used when the motion
-    library's named routines are not wanted (rods, tests); ball joints move about all three axes.
+    Returns (local rotations (n,m,3,3), root translation (n,3), times (n,)), plus the joint coordinates
+    (n, m, 3) soft tissue follows when `with_coordinates`. Used when the motion library's named routines
+    are not wanted (rods, tests); ball joints move about all three axes.
     """
     rng = np.random.default_rng([int(seed), 0x5E0])
     n = max(2, int(round(seconds * rate_hz)))
@@ -133,7 +152,7 @@ def smooth_local_rotations(model: BodyModel, seconds: float, rate_hz: float, see
     root_rv = np.stack([0.5 * np.sin(0.31 * times + 1), 0.4 * np.sin(0.23 * times), 1.2 * np.sin(0.11 * times + 2)], 1)
     L[:, root] = model.home_rotation @ from_rotvec(root_rv)
     trans = model.home_position + 0.3 * np.stack([np.sin(0.2 * times), np.sin(0.13 * times + 1), 0.1 * np.sin(0.5 * times)], 1)
-    return L, trans, times
+    return (L, trans, times, coords) if with_coordinates else (L, trans, times)
 
 
 def rods(lengths=(0.45, 0.50, 0.45), seed: int = 0) -> BodyModel:
@@ -184,27 +203,42 @@ def simulate_markers(
     noise_m: float = 0.001,
     occlusion: float = 0.0,
     n_swaps: int = 0,
+    sta_mm: float = 0.0,
 ) -> tuple[MarkerTake, dict]:
     """A marker take and its truth.
 
     `motion`: None for `smooth_local_rotations`, a routine name for `flockcal.simulator.motion.routine`,
-    or a (local rotations, root translation, times) tuple. Truth: the model's `truth()` plus
-    "marker_body" {marker: body}, "marker_offset" {marker: [x,y,z] bone frame}, "swaps" [(start, stop, a, b)].
+    or a (local rotations, root translation, times[, joint coordinates]) tuple. `sta_mm`: soft tissue, the
+    largest slide of each marker over its bone from one joint (soft_tissue.py's rule; needs the joint
+    coordinates, so a tuple motion must carry them). Truth: the model's `truth()` plus "marker_body"
+    {marker: body}, "marker_offset" {marker: [x,y,z] bone frame, at rest}, "swaps" [(start, stop, a, b)],
+    "soft_tissue" {"size_mm", "seed"}.
     """
     if isinstance(model, str):
         model = by_name(model, seed=seed)
+    q = None
     if motion is None:
-        L, root_t, times = smooth_local_rotations(model, seconds, rate_hz, seed)
+        L, root_t, times, q = smooth_local_rotations(model, seconds, rate_hz, seed, with_coordinates=True)
     elif isinstance(motion, str):
         from flockcal.simulator import motion as motion_lib
 
         mo = motion_lib.routine(model, motion, seconds, rate_hz, seed)
-        L, root_t, times = mo.local_rotations, mo.root_translation, mo.times
+        L, root_t, q = mo.pose(mo.times)
+        times = mo.times
     else:
-        L, root_t, times = motion
+        L, root_t, times = motion[:3]
+        q = motion[3] if len(motion) > 3 else None
     B, b = bone_poses(model, L, root_t)
     body, offsets, names = place_markers(model, per_body, seed)
-    exact = marker_positions(B, b, body, offsets)
+    if sta_mm > 0:
+        if q is None:
+            raise SimulatorError("soft tissue follows the joint angles: give the motion's joint coordinates too")
+        from flockcal.simulator.soft_tissue import SoftTissue
+
+        sta = SoftTissue.for_sites(model, body, skin_normals(model, body, offsets), sta_mm, seed, stream=0x0A57)
+        exact = np.einsum("nkij,nkj->nki", B[:, body], offsets[None] + sta.slides(q)) + b[:, body]
+    else:
+        exact = marker_positions(B, b, body, offsets)
     swaps = random_swaps(body, exact, n_swaps, rate_hz, seed) if n_swaps else []
     obs = add_noise(exact, noise_m, seed) if noise_m > 0 else exact.copy()
     obs = occlude(obs, occlusion, rate_hz, seed)
@@ -217,5 +251,6 @@ def simulate_markers(
         marker_body={nm: model.names[i] for nm, i in zip(names, body)},
         marker_offset={nm: o.tolist() for nm, o in zip(names, offsets)},
         swaps=[(int(s), int(e), names[a], names[c]) for s, e, a, c in swaps],
+        soft_tissue={"size_mm": float(sta_mm), "seed": int(seed)},
     )
     return take, truth

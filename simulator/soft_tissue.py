@@ -43,19 +43,29 @@ class SoftTissue:
 
     @classmethod
     def for_model(cls, model: BodyModel, size_mm: float, seed: int) -> "SoftTissue":
+        """One skin sensor per body, at the model's sensor sites (its box's z axis is the skin normal)."""
+        normals = [model.sensor_rotation[i][:, 2] for i in range(model.m)]
+        return cls.for_sites(model, np.arange(model.m), np.array(normals), size_mm, seed)
+
+    @classmethod
+    def for_sites(cls, model: BodyModel, body: np.ndarray, normal: np.ndarray, size_mm: float, seed: int,
+                  stream: int = 0x57A) -> "SoftTissue":
+        """Skin sites (sensors or markers) `body` (s,) on the model's bodies, each with its skin `normal`
+        (s, 3) in the bone frame; every site gets its own slide by the rule above (`stream` keeps the
+        sensor path's draws when markers are added)."""
         if not 0.0 <= float(size_mm) <= 50.0:
             raise SimulatorError(f"soft-tissue artefact of {size_mm} mm is outside 0–50 mm; real skin moves 5–15 mm")
-        m = model.m
-        rng = np.random.default_rng([int(seed), 0x57A])
+        m, sites = model.m, len(body)
+        rng = np.random.default_rng([int(seed), stream])
         lo, hi, rest = model.limits[..., 0], model.limits[..., 1], model.rest
         half = np.maximum(hi - rest, rest - lo)
         dofs = np.array([model.dofs(i) for i in range(m)])
         used = np.arange(3)[None, :] < dofs[:, None]
         scale = np.where(used & (half > 0), 1.0 / np.where(half > 0, half, 1.0), 0.0)
-        slide = np.zeros((2, m, 3, m, 3))  # (feature kind, joint, dof, sensor, xyz)
-        tilt = np.zeros((2, m, 3, m, 3))
-        for i in range(m):
-            normal = model.sensor_rotation[i][:, 2]  # the box's z axis points into the body
+        slide = np.zeros((2, m, 3, sites, 3))  # (feature kind, joint, dof, site, xyz)
+        tilt = np.zeros((2, m, 3, sites, 3))
+        for s_, i in enumerate(np.asarray(body, dtype=int)):
+            normal_s = np.asarray(normal[s_], dtype=float)
             inboard = [i] if dofs[i] else []
             outboard = [k for k in model.children(i) if dofs[k]]
             shares = [(k, 1.0) for k in inboard] + [(k, 1.0 / len(outboard)) for k in outboard]
@@ -63,7 +73,7 @@ class SoftTissue:
                 d = int(dofs[k])
                 # Mostly along the skin, a little into or out of it (the muscle under it bulges).
                 vec = rng.normal(size=(2, d, 3))
-                vec -= 0.7 * np.einsum("...j,j->...", vec, normal)[..., None] * normal
+                vec -= 0.7 * np.einsum("...j,j->...", vec, normal_s)[..., None] * normal_s
                 vec *= rng.uniform(0.3, 1.0, size=(2, d, 1))  # linear and quadratic parts, per axis
                 rot = rng.normal(size=(2, d, 3)) * rng.uniform(0.3, 1.0, size=(2, d, 1))
                 z_lo = np.where(scale[k, :d] > 0, (lo[k, :d] - rest[k, :d]) * scale[k, :d], 0.0)
@@ -72,10 +82,10 @@ class SoftTissue:
                 F = np.concatenate([grid, grid**2], axis=1)  # (g, 2d)
                 peak_slide = np.linalg.norm(F @ vec.reshape(2 * d, 3), axis=1).max()
                 peak_tilt = np.linalg.norm(F @ rot.reshape(2 * d, 3), axis=1).max()
-                slide[:, k, :d, i] = vec * (share * size_mm * 1e-3 / max(peak_slide, 1e-12))
-                tilt[:, k, :d, i] = rot * (share * size_mm * 1e-3 * TILT_RAD_PER_M / max(peak_tilt, 1e-12))
+                slide[:, k, :d, s_] = vec * (share * size_mm * 1e-3 / max(peak_slide, 1e-12))
+                tilt[:, k, :d, s_] = rot * (share * size_mm * 1e-3 * TILT_RAD_PER_M / max(peak_tilt, 1e-12))
         return cls(float(size_mm), int(seed), scale, rest.copy(),
-                   slide.reshape(6 * m, 3 * m), tilt.reshape(6 * m, 3 * m))
+                   slide.reshape(6 * m, 3 * sites), tilt.reshape(6 * m, 3 * sites))
 
     def features(self, q: np.ndarray) -> np.ndarray:
         """[z, z²] (n, 2·3m) of joint coordinates q (n, m, 3), z clipped to the range."""

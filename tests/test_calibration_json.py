@@ -12,7 +12,9 @@ The files were written by the code of commit 899630f (whose outputs matched the 
 bbfbb3c on the machine that recorded them). "markers" had been re-recorded after issue #17 changed the
 optical fit on purpose; "free", "hierarchy", "skeleton_file" and "saved_skeleton" after issue #36 placed a
 hinge's centre on its axis by the limb's bones (the elbow's bones moved 9.6–19.7 mm, towards the truth);
-all but "markers" gained `joints[].noise_error_m` with issue #30 (every other value kept as recorded).
+all but "markers" gained `joints[].noise_error_m` with issue #30 (every other value kept as recorded);
+"markers" again after issue #31 (keys "merged", "joints_fitted_on", "pair_fit_joints"; its two joints placed
+by the pair fit over the rods' poses: the middle rod 496.7 -> 499.4 mm, truth 500).
 A deliberate change of the output re-records a file, and its commit says why.
 """
 

@@ -24,11 +24,20 @@ def register(subparsers) -> None:
     p.add_argument("--bodies", type=int, metavar="N", help="number of rigid bodies (default: chosen from the data)")
     p.add_argument("--root", metavar="LABEL", help="hang the tree from this body label")
     p.add_argument("--rigid-mm", type=float, default=None, metavar="MM",
-                   help="relative motion (10-90 %% range) still read as one rigid body; default 15 (soft tissue)")
+                   help="relative motion (10-90 %% range) soft tissue makes: within it, with no joint pinned, groups are one body; default 15")
     p.add_argument("--take", metavar="OUT.npz", help="also write the per-body poses as a take .npz (for fit, exports)")
     p.add_argument("--salvage", action="store_true",
                    help="fit the frames a C3D file cut short still holds (refused without it), with a warning")
     p.set_defaults(func=run)
+
+
+# How the table names each kind of merge (articulation.Verdict.kind).
+MERGE_WORDS = {
+    "skin": "turned within their soft tissue's noise",
+    "twist": "twisting about their own length",
+    "moved": "moved within the tolerance with no joint pinned",
+    "unjudged": "too small to judge, within the tolerance",
+}
 
 
 def _clean(x):
@@ -99,9 +108,21 @@ def run(args) -> int:
         parent = out["parent"].get(label, "-")
         motion = out["body_motion_m"].get(label) or 0.0
         w(f"  {label:<16} parent {parent:<16} {motion * 1000:5.1f} mm  markers {', '.join(names)}\n")
-    w(f"  (mm: mean relative motion inside the body; under {out['rigid_tolerance_m'] * 1000:g} mm reads as one rigid body)\n")
+    w(f"  (mm: mean relative motion inside the body; within {out['rigid_tolerance_m'] * 1000:g} mm and no joint pinned, "
+      "groups are one body; a joint that moves separates them at any size)\n")
+    for label, info in out.get("merged", {}).items():
+        kinds = {}
+        for mg in info["merges"]:
+            kinds[mg["verdict"]] = kinds.get(mg["verdict"], 0) + 1
+        why = ", ".join(f"{n} {MERGE_WORDS.get(k, k)}" for k, n in kinds.items())
+        w(f"merged into {label}: {len(info['parts'])} rigid part(s), {why} (--json \"merged\" says why, each)\n")
+    for f in out.get("joints_fitted_on", []):
+        w(f"joint {f['joint'][0]}–{f['joint'][1]} fitted on {', '.join(f['child_markers'])} | {', '.join(f['parent_markers'])}\n")
     joints = ", ".join(f"{c}–{p}" for c, p in out["exercised_joints"]) or "none"
     w(f"joints the take exercised (centre pinned within {out['joint_tolerance_m'] * 1000:g} mm): {joints}\n")
+    if out.get("pair_fit_joints"):
+        w(f"placed by the pair fit over the bodies' poses (the others by Kirk's fit): "
+          f"{', '.join(f'{c}–{p}' for c, p in out['pair_fit_joints'])}\n")
     if out["kirk_only_joints"]:
         w(f"joints to bodies under three markers (Kirk fit only): {', '.join(f'{c}–{p}' for c, p in out['kirk_only_joints'])}\n")
     if out["unjoined"]:

@@ -158,14 +158,37 @@ def cmd_scale(args) -> int:
 
 def cmd_report(args) -> int:
     from flockcal.exports.report import REPORT_STAGES, write_report
+    from flockcal.markers import is_marker_take
     from flockcal.progress import Stages
 
+    if is_marker_take(args.take):
+        return report_markers(args)
     with Stages("report", ["fitting", *REPORT_STAGES]) as stages:
         stages.step("fitting")
         take, cal = fitted_take(args, "report")
         if cal is None:
             return PARTIAL_EXIT
         write_report(args.output, cal, take, source=Path(args.take).name, up=args.up, progress=stages.step)
+    print(f"wrote {args.output}", file=sys.stderr)
+    return 0
+
+
+def report_markers(args) -> int:
+    """`flockcal report` on a marker take (.c3d, marker .npz): fitted as `flockcal fit-markers` fits it (the
+    page adds its bodies, what was merged and why), the derived per-body poses as the take."""
+    from flockcal.commands.markers import fit_marker_file
+    from flockcal.exports.report import REPORT_STAGES, write_report
+    from flockcal.progress import Stages
+    from flockcal.solver.optical.pipeline import STAGES
+
+    for option in ("hierarchy", "skeleton", "scale"):
+        if getattr(args, option, None):
+            raise UserError(f"--{option} applies to sensor takes; {args.take} is a marker take, whose skeleton "
+                            f"comes from its markers (leave --{option} out)")
+    with Stages("report", ["reading", *STAGES, "poses and JSON", *REPORT_STAGES]) as stages:
+        _, fit, _ = fit_marker_file(args.take, root=args.root, step=stages.step)
+        write_report(args.output, fit.calibration(), fit.take(), source=Path(args.take).name, up=args.up,
+                     progress=stages.step)
     print(f"wrote {args.output}", file=sys.stderr)
     return 0
 
@@ -222,7 +245,7 @@ def register(subparsers) -> None:
     p.add_argument("-o", "--output", metavar="OUT.npz", help="where --apply writes the rescaled take")
     p.set_defaults(func=cmd_scale)
 
-    p = subparsers.add_parser("report", help="one self-contained HTML page of a take's calibration")
+    p = subparsers.add_parser("report", help="one self-contained HTML page of a take's calibration (sensor or marker take)")
     _add_fit_options(p)
     p.add_argument("-o", "--output", required=True, metavar="REPORT.html")
     p.add_argument("--up", default="-z", choices=["-z", "+z", "+y"], help="tracker world's up axis (default -z, the Flock's)")

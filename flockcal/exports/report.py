@@ -208,6 +208,69 @@ def _longest_gap_s(valid: np.ndarray, rate_hz: float) -> np.ndarray:
 REPORT_STAGES = ("residuals", "slips", "figures")
 
 
+def joined_forest(d: dict, take) -> dict:
+    """An optical fit's forest (bodies no exercised joint reaches hang from nothing) made one tree for the
+    page: each part's root hangs from the main root by the plain least-squares joint of the two bodies'
+    poses, marked undetermined (drawn dotted, listed as unjoined). A tree is returned as it is."""
+    names = list(d["sensors"])
+    if len(d.get("parent", {})) == len(names) - 1:
+        return d
+    from flockcal.solver.accumulator import GramAccumulator
+    from flockcal.solver.fits import pair_fits
+
+    root = d["root"]
+    loose = [x for x in names if x != root and x not in d["parent"]]
+    idx = {n: take.names.index(n) for n in names}
+    acc = GramAccumulator(take.n_sensors)
+    acc.update(take.rotations, take.positions, take.valid)
+    pf = pair_fits(acc, np.array([[idx[x], idx[root]] for x in loose]))
+    joints = list(d.get("joints", []))
+    for k, x in enumerate(loose):
+        joints.append({"child": x, "parent": root, "c": pf.c[k].tolist(), "l": pf.l[k].tolist(),
+                       "rms_m": float(pf.rms[k]), "hinge": False, "determined": False, "unjoined": True,
+                       "coverage": pf.coverage[k].tolist()})
+    return {**d, "parent": {**d["parent"], **{x: root for x in loose}}, "joints": joints}
+
+
+def optical_html(d: dict) -> str:
+    """What a marker fit adds: its bodies and their markers, which groups of markers were merged into one
+    body and why, the joints fitted on part of a body, the bodies no exercised joint reaches."""
+    motion = d.get("body_motion_m", {})
+    unjoined = set(d.get("unjoined", []))
+    rows = [[Text(b), Text(d["parent"].get(b, "–") if b not in unjoined else "unjoined"), _fmt(motion.get(b), 1000, 1),
+             Text(", ".join(m))] for b, m in d["bodies"].items()]
+    out = ["<h2>Bodies from the markers</h2>",
+           f"<p class=meta>Two groups of markers are two bodies when a joint explains their relative motion, "
+           f"however small; one body when they turned no more than their own soft tissue turns them, or barely "
+           f"moved (within {_fmt(d.get('rigid_tolerance_m'), 1000, 0)} mm) with no joint pinned "
+           f"(docs/optical.md, \"Segmentation\"). Internal motion: the mean 10–90 % range of the distances "
+           f"between a body's markers.</p>",
+           _table(["<body", "<parent", "internal motion (mm)", "<markers"], rows)]
+    merged = d.get("merged") or {}
+    out.append("<h3>Merged, and why</h3>")
+    if not merged:
+        out.append("<p>No body was made of groups of three or more markers that could have been bodies of their own.</p>")
+    for body, info in merged.items():
+        parts = info.get("parts") or []
+        out.append(f"<p><b>{html.escape(body)}</b>: {len(parts)} rigid part{'s' if len(parts) != 1 else ''} "
+                   f"({'; '.join(html.escape(', '.join(p)) for p in parts)})</p><ul>")
+        for mg in info.get("merges", []):
+            a, b = (", ".join(g) for g in mg["groups"])
+            out.append(f"<li>{html.escape(a)} + {html.escape(b)}: {html.escape(mg['why'])}</li>")
+        out.append("</ul>")
+    fitted = d.get("joints_fitted_on") or []
+    if fitted:
+        out.append("<h3>Joints fitted on part of a body</h3><p class=meta>A joint to a body that absorbed several "
+                   "segments is fitted on its rigid part next to the other body, not the whole.</p>")
+        out.append(_table(["<joint", "<child's markers", "<parent's markers"],
+                          [[Text(" – ".join(f["joint"])), Text(", ".join(f["child_markers"])),
+                            Text(", ".join(f["parent_markers"]))] for f in fitted]))
+    if unjoined:
+        out.append(f"<p>No exercised joint reaches {html.escape(', '.join(sorted(unjoined)))}: drawn dotted from the root "
+                   "(its plain least-squares joint, not a bone).</p>")
+    return "\n".join(out)
+
+
 def report_html(
     calibration, take, *, title: str | None = None, source: str | None = None, slips=None, up: str = "-z",
     progress=None,
@@ -227,6 +290,9 @@ def report_html(
 
     step(REPORT_STAGES[0])
     d = calibration.to_dict() if hasattr(calibration, "to_dict") else dict(calibration)
+    optical = "bodies" in d
+    if optical:
+        d = joined_forest(d, take)
     art = articulation(d).reordered(take.names).completed(take.rotations, take.positions, take.valid)
     names = art.names
     # The service's one definition of progress, for this one fit (a given tree cannot re-link).
@@ -266,6 +332,8 @@ def report_html(
         "<h2>Calibration progress</h2>",
         _progress_html(calibrated),
     ]
+    if optical:
+        parts.append(optical_html(d))
     loops = d.get("loop_candidates") or []
     if loops:
         parts.append("<p>Loop candidates (non-tree pairs that fit as well as tree joints):</p>")

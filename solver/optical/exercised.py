@@ -8,21 +8,17 @@ correlated in time does not pass for precision) say whether each pair's joint ce
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import numpy as np
 
+from flockcal.solver.optical.articulation import JOINT_TOLERANCE_M as TOLERANCE_M
 from flockcal.solver.optical.joints import Tree, joint_point
 from flockcal.solver.optical.rigid import apply, procrustes_mean, rigid_fit
 from flockcal.solver.optical.segmentation import RIGID_TOLERANCE_M
 
 FRAMED = 3  # markers a body needs for a pose of its own
-
-# The sensor path's rule with the sensor path's tolerance scaled to skin markers: a marker cluster's pose
-# carries the soft tissue's 5–15 mm, so a centre pinned within 10 mm along every direction (or a hinge whose
-# axis moves it at most that) counts as exercised. Real trials sit on either side of it by a margin: the
-# joints a trial moved come out at ≤ 9 mm, the ones it did not at ≥ 15 mm (docs/optical.md).
-TOLERANCE_M = 0.010
 
 # A marker this many times its body's median fit residual off the body's shape (and beyond the rigid
 # tolerance) is a label swap or glitch in that frame, not soft tissue.
@@ -79,13 +75,33 @@ def marker_poses(markers: np.ndarray, groups: list[np.ndarray]):
     return R, t, valid
 
 
-def judge_pairs(markers: np.ndarray, groups: list[np.ndarray], tolerance_m: float | None = None) -> Exercised:
-    """Pair fits over the bodies' marker-only poses, and which joints they determine (design.md §3a)."""
+def judge_pairs(markers: np.ndarray, groups: list[np.ndarray], tolerance_m: float | None = None,
+                joint_groups: Callable[[int, int], tuple[np.ndarray, np.ndarray]] | None = None) -> Exercised:
+    """Pair fits over the bodies' marker-only poses, and which joints they determine (design.md §3a).
+    `joint_groups(a, b)` gives the markers of a and of b a joint between them is judged on (a body that
+    absorbed several segments: its rigid part next to the other body); default the whole bodies."""
     from flockcal.solver.accumulator import GramAccumulator
-    from flockcal.solver.fits import all_pairs, pair_fits
+    from flockcal.solver.fits import pair_fits
 
     G = len(groups)
+    pick = joint_groups or (lambda a, b: (groups[a], groups[b]))
     R, t, valid = marker_poses(markers, groups)
+    # Each pair's two marker sets; the distinct sets are the "sensors" of one accumulator.
+    sets: dict[tuple, int] = {}
+    pair_sets = {}
+    for a in range(G):
+        for b in range(a + 1, G):
+            ia, ib = pick(a, b)
+            pair_sets[a, b] = tuple(sets.setdefault(tuple(int(i) for i in x), len(sets)) for x in (ia, ib))
+    whole = {tuple(int(i) for i in g): k for k, g in enumerate(groups)}
+    extra_keys = [key for key in sets if key not in whole]
+    Rx, tx, vx = marker_poses(markers, [np.array(key) for key in extra_keys]) if extra_keys else (R, t, valid)
+    SR = np.empty((len(markers), len(sets), 3, 3))
+    St = np.empty((len(markers), len(sets), 3))
+    Sv = np.empty((len(markers), len(sets)), dtype=bool)
+    for key, k in sets.items():
+        src, j = ((R, t, valid), whole[key]) if key in whole else ((Rx, tx, vx), extra_keys.index(key))
+        SR[:, k], St[:, k], Sv[:, k] = src[0][:, j], src[1][:, j], src[2][:, j]
     framed = valid.sum(0) >= 10
     determined = np.zeros((G, G), dtype=bool)
     judged = framed[:, None] & framed[None, :]
@@ -94,12 +110,12 @@ def judge_pairs(markers: np.ndarray, groups: list[np.ndarray], tolerance_m: floa
     rms = np.full((G, G), np.nan)
     derr = np.full((G, G, 3), np.inf)
     if G >= 2 and judged.any():
-        acc = GramAccumulator(G)
-        acc.update(R, t, valid)
-        P = all_pairs(G)
-        P = P[judged[P[:, 0], P[:, 1]]]
+        acc = GramAccumulator(len(sets))
+        acc.update(SR, St, Sv)
+        body_pairs = np.array([(a, b) for (a, b) in pair_sets if judged[a, b]], dtype=int).reshape(-1, 2)
+        P = np.array([pair_sets[a, b] for a, b in body_pairs], dtype=int).reshape(-1, 2)
         pf = pair_fits(acc, P, tolerance=TOLERANCE_M if tolerance_m is None else tolerance_m)
-        a, b = P[:, 0], P[:, 1]
+        a, b = body_pairs[:, 0], body_pairs[:, 1]
         determined[a, b] = determined[b, a] = pf.determined
         hinge[a, b] = hinge[b, a] = pf.hinge
         rms[a, b] = rms[b, a] = pf.rms
@@ -109,15 +125,55 @@ def judge_pairs(markers: np.ndarray, groups: list[np.ndarray], tolerance_m: floa
 
 
 def candidate_costs(
-    markers: np.ndarray, groups: list[np.ndarray], frames: np.ndarray, candidate: np.ndarray, penalty: float = 1e-5
+    markers: np.ndarray, groups: list[np.ndarray], frames: np.ndarray, candidate: np.ndarray, penalty: float = 1e-5,
+    joint_groups: Callable[[int, int], tuple[np.ndarray, np.ndarray]] | None = None,
+    exercised: Exercised | None = None,
 ) -> np.ndarray:
-    """(G, G) Kirk joint-point residual rms of the candidate pairs on `frames`; inf elsewhere (no edge)."""
+    """(G, G) cost of every candidate pair, inf elsewhere (no edge): the pair fit's residual rms where both
+    bodies have a pose (`exercised.judged`), else the Kirk joint-point residual rms on `frames`, each kind
+    over its own scale (`on_own_scale`). `joint_groups` as in `judge_pairs`.
+
+    The pair fit holds one offset per body for the whole take, so a pair with no joint between them leaves
+    centimetres (16–220 mm on the simulated walk, its true joints 3–7 mm); Kirk's point is free in every
+    frame and fits almost any two groups to a few millimetres, so it only decides where no pose can."""
     G = len(groups)
+    pick = joint_groups or (lambda a, b: (groups[a], groups[b]))
     cost = np.full((G, G), np.inf)
+    cache: dict = {}
+
+    def poses(points):  # one group's pose on these frames, shared by all its pairs (points are small here)
+        key = points.shape, hash(points.tobytes())
+        if key not in cache:
+            cache[key] = procrustes_mean(points)[1:]
+        return cache[key]
+
     for a, b in zip(*np.nonzero(np.triu(candidate, 1))):
-        fit = joint_point(markers[:, groups[a]], markers[:, groups[b]], penalty=penalty, frames=frames, max_iter=15)
+        if exercised is not None and exercised.judged[a, b] and np.isfinite(exercised.rms[a, b]):
+            cost[a, b] = cost[b, a] = exercised.rms[a, b]
+            continue
+        ia, ib = pick(int(a), int(b))
+        fit = joint_point(markers[:, ia], markers[:, ib], penalty=penalty, frames=frames, max_iter=15, poses=poses)
         cost[a, b] = cost[b, a] = fit.rms
-    return cost
+    if exercised is None:
+        return cost
+    return on_own_scale(cost, exercised.judged & np.isfinite(exercised.rms))
+
+
+def on_own_scale(cost: np.ndarray, kind: np.ndarray) -> np.ndarray:
+    """`cost` with the pairs of each kind (`kind` True: pair fit, False: Kirk) divided by that kind's typical
+    true-joint residual: the median over bodies of their cheapest pair of the kind (a body's cheapest pair
+    is its joint in all but the rare case). The two residuals differ in size (the pair fit's is a 3-D error
+    with one offset for the take, Kirk's a distance error with a free point per frame); over their own
+    scales they compare, so a spanning tree can use both."""
+    out = cost.copy()
+    for mask in (kind, ~kind):
+        c = np.where(mask, cost, np.inf)
+        np.fill_diagonal(c, np.inf)
+        best = c.min(axis=1)
+        best = best[np.isfinite(best) & (best > 0)]
+        if best.size:
+            out[mask] = cost[mask] / float(np.median(best))
+    return out
 
 
 def spanning_forest(cost: np.ndarray, sizes: np.ndarray, root: int | None = None) -> Tree:

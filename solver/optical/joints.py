@@ -36,18 +36,19 @@ def usable_frames(markers_a: np.ndarray, markers_b: np.ndarray) -> np.ndarray:
     return np.flatnonzero(va.any(1) & vb.any(1) & (va.sum(1) + vb.sum(1) >= min(4, va.shape[1] + vb.shape[1])))
 
 
-def sphere_centre_guess(markers_a: np.ndarray, markers_b: np.ndarray, frames: np.ndarray):
+def sphere_centre_guess(markers_a: np.ndarray, markers_b: np.ndarray, frames: np.ndarray, poses=None):
     """Initial joint points (f,3) for `frames`, or None: B's markers seen from A's frame lie on spheres
     about the joint, so one linear solve (shared centre c, per-marker r² − ‖c‖²) finds it.
 
-    Needs a group with three or more markers to give a frame; the larger one is used.
+    Needs a group with three or more markers to give a frame; the larger one is used. `poses`: a callable
+    giving (R, t, ok) of a group's markers (n, q, 3) on `frames`, to share one group's pose between pairs.
     """
     A, Bm = markers_a[frames], markers_b[frames]
     if A.shape[1] < Bm.shape[1]:
         A, Bm = Bm, A
     if A.shape[1] < 3:
         return None
-    _, R, t, ok = procrustes_mean(A)
+    R, t, ok = procrustes_mean(A)[1:] if poses is None else poses(A)
     if ok.sum() < 10:
         return None
     y = to_body(R[ok], t[ok], Bm[ok])  # (f', qb, 3)
@@ -72,9 +73,13 @@ def joint_point(
     frames: np.ndarray | None = None,
     init: np.ndarray | None = None,
     max_iter: int = 60,
+    extend: bool = False,
+    poses=None,
 ) -> JointPoint:
     """Solve the Kirk joint-point problem for groups A (n,qa,3) and B (n,qb,3) on `frames` (default all
-    usable frames). `init` (n,3) world points override the built-in guess (sphere fit, else midpoint)."""
+    usable frames). `init` (n,3) world points override the built-in guess (sphere fit, else midpoint).
+    `extend`: the points (and residuals) of the usable frames outside `frames` too, from the fitted radii.
+    `poses`: see `sphere_centre_guess`."""
     M = np.concatenate([markers_a, markers_b], axis=1)
     n, q, _ = M.shape
     use = usable_frames(markers_a, markers_b)
@@ -91,7 +96,7 @@ def joint_point(
     if init is not None and np.isfinite(init[use]).all():
         p0 = init[use]
     else:
-        p0 = sphere_centre_guess(markers_a, markers_b, use)
+        p0 = sphere_centre_guess(markers_a, markers_b, use, poses)
         mid = 0.5 * (nanmean(markers_a[use], axis=1) + nanmean(markers_b[use], axis=1))
         p0 = mid if p0 is None else np.where(np.isfinite(p0), p0, mid)
     dist0 = np.linalg.norm(Mz - p0[:, None], axis=-1)
@@ -102,7 +107,34 @@ def joint_point(
     rms = float(np.sqrt(np.nanmean(res**2)))
     out_pts[use] = p
     out_res[use] = res
+    if extend and frames is not None:
+        # The other usable frames get their points from the fitted radii: each frame alone is a
+        # 3-unknown least-squares problem, started from the nearest fitted frame's point.
+        rest = np.setdiff1d(usable_frames(markers_a, markers_b), use)
+        if len(rest):
+            near = use[np.clip(np.searchsorted(use, rest), 0, len(use) - 1)]
+            pts, rres = points_for_radii(M[rest], r, out_pts[near])
+            out_pts[rest], out_res[rest] = pts, rres
     return JointPoint(out_pts, r, rms, use, out_res)
+
+
+def points_for_radii(M: np.ndarray, r: np.ndarray, p0: np.ndarray, iterations: int = 4):
+    """Per-frame points (f, 3) keeping distances r (q,) to the markers M (f, q, 3) (NaN: unseen), by
+    damped Gauss–Newton from p0; returns (points, residuals (f, q) ‖m − p‖ − r, NaN where unseen)."""
+    seen = np.isfinite(M).all(-1)
+    Mz = np.where(seen[..., None], M, 0.0)
+    w = seen.astype(float)
+    p = np.where(np.isfinite(p0), p0, (Mz * w[..., None]).sum(1) / np.maximum(w.sum(1), 1)[:, None])
+    for _ in range(iterations):
+        diff = Mz - p[:, None]
+        d = np.maximum(np.linalg.norm(diff, axis=-1), 1e-12)
+        u = diff / d[..., None] * w[..., None]
+        e = w * (d - r[None])
+        U = u.transpose(0, 2, 1) @ u
+        damp = 1e-6 * np.trace(U, axis1=1, axis2=2) / 3 + 1e-15
+        p = p + (inv3(U + damp[:, None, None] * np.eye(3)) @ (u.transpose(0, 2, 1) @ e[..., None]))[..., 0]
+    d = np.linalg.norm(Mz - p[:, None], axis=-1)
+    return p, np.where(seen, d - r[None], np.nan)
 
 
 @dataclass(frozen=True)

@@ -15,10 +15,12 @@ import numpy as np
 
 from flockcal.errors import FlockcalError
 from flockcal.solver.calibration import Calibration
+from flockcal.solver.fits import TOLERANCE_M as SENSOR_TOLERANCE_M
 from flockcal.solver.optical.exercised import (
     Exercised, candidate_costs, exercise_report, joint_decision, judge_pairs, spanning_forest,
 )  # fmt: skip
 from flockcal.solver.optical.joints import Tree, joint_point
+from flockcal.solver.optical.pair_joints import pair_joint_points
 from flockcal.solver.optical.projection import BodyShape, bone_lengths, skeleton_shapes
 from flockcal.solver.optical.rotations import Outliers, body_poses, find_outliers, rigid_route_joint, robust_marker_residuals
 from flockcal.solver.optical.segmentation import RIGID_TOLERANCE_M, Segmentation, segment_markers
@@ -47,6 +49,8 @@ class OpticalFit:
     times: np.ndarray
     unused_markers: list[str] = field(default_factory=list)
     exercised: Exercised | None = None  # pair decisions over the bodies' marker-only poses
+    joint_markers: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # child → (its, parent's) markers the joint was fitted on
+    pair_route: frozenset = frozenset()  # children of the joints placed by the pair fit over marker-only poses
 
     @property
     def parent(self) -> np.ndarray:
@@ -115,19 +119,25 @@ def add_rigid_route_joints(shapes, weak, parent, R, t, valid, jp):
     return shapes, jp
 
 
-def fit_joints(markers, groups, parent, frames=None, penalty: float = 1e-5):
-    """Kirk fit of every tree joint on all (or the given) frames. Returns (points, rms, suspects):
-    suspects (n, k) marks, in frames where a joint's residual jumps, the marker furthest from its
-    constant distance (a swap shows up this way as a discontinuity of the joint centre).
+def fit_joints(markers, groups, parent, frames=None, penalty: float = 1e-5, joint_groups=None, only=None):
+    """Kirk fit of every tree joint on all (or the given, then extended to all) frames. Returns (points,
+    rms, suspects): suspects (n, k) marks, in frames where a joint's residual jumps, the marker furthest
+    from its constant distance (a swap shows up this way as a discontinuity of the joint centre).
+    `joint_groups(child, parent)`: the markers of each side the joint is fitted on (default the bodies);
+    `only`: the joints (by child) to fit, default all.
 
     The penalty stays (small): at a hinge every point of the axis keeps constant distances, and the
     penalty picks the one nearest the markers instead of letting it drift along the axis."""
     n, k, _ = markers.shape
+    pick = joint_groups or (lambda a, b: (groups[a], groups[b]))
     joint_points, joint_rms = {}, {}
     suspects = np.zeros((n, k), dtype=bool)
     for child in np.flatnonzero(parent >= 0):
-        idx = np.concatenate([groups[child], groups[parent[child]]])
-        fit = joint_point(markers[:, groups[child]], markers[:, groups[parent[child]]], penalty=penalty, frames=frames)
+        if only is not None and int(child) not in only:
+            continue
+        gc, gp = pick(int(child), int(parent[child]))
+        idx = np.concatenate([gc, gp])
+        fit = joint_point(markers[:, gc], markers[:, gp], penalty=penalty, frames=frames, extend=True)
         joint_points[int(child)] = fit.points
         joint_rms[int(child)] = fit.rms
         res = np.abs(fit.residuals)
@@ -160,6 +170,48 @@ def glitch_shift(residuals: np.ndarray, mask: np.ndarray, groups) -> float:
     return worst
 
 
+# Frames the joint fits are solved on at most (evenly thinned); the other frames get their joint points from
+# the fitted radii. 1000 frames leave a joint's radii within a fraction of a millimetre of the all-frame fit
+# on the simulated takes, at a third of the cost of a 30 s take at 144 Hz.
+FIT_FRAMES = 1000
+
+
+def joint_groups_of(segmentation: Segmentation, groups: list[np.ndarray]):
+    """`joint_groups(a, b)`: the markers of body a and of body b a joint between them is fitted on. A body
+    that absorbed several segments (rigid parts that turned against each other within the soft-tissue
+    tolerance) is fitted on its part next to the other body (the smallest mean distance range to it), if
+    that part has a pose of its own; otherwise on all its markers."""
+    R = np.where(np.isfinite(segmentation.distance_range), segmentation.distance_range, 1e3)
+    parts = [[p for p in segmentation.body_parts(g) if len(p) >= 3] for g in range(len(groups))]
+    cache: dict = {}
+
+    def side(a: int, b: int) -> np.ndarray:
+        if (a, b) not in cache:
+            if len(segmentation.body_parts(a)) == 1 or not parts[a]:
+                cache[a, b] = groups[a]
+            else:
+                cache[a, b] = min(parts[a], key=lambda p: float(R[np.ix_(p, groups[b])].mean()))
+        return cache[a, b]
+
+    return lambda a, b: (side(a, b), side(b, a))
+
+
+# A joint is placed by the pair fit over the marker-only poses when those pin its centre within the sensor
+# path's own tolerance (design.md §3a, 5 mm) along every direction a joint pins (a hinge: across its axis).
+# Beyond it a pose is too noisy at the joint (three markers close together on a pelvis: 16 mm of residual at
+# the hip with 1 mm of noise) and Kirk's per-frame point, which needs no pose, does better.
+PAIR_ROUTE_M = SENSOR_TOLERANCE_M
+
+
+def pair_route(exercised: Exercised, child: int, parent: int) -> bool:
+    """Whether the tree joint child–parent is placed by the pair fit over the bodies' poses (PAIR_ROUTE_M)."""
+    if not exercised.judged[child, parent] or not exercised.determined[child, parent]:
+        return False
+    err = exercised.direction_error[child, parent]
+    pinned = err[1:] if exercised.hinge[child, parent] else err
+    return bool((pinned <= PAIR_ROUTE_M).all())
+
+
 STAGES = ("segmentation", "exercised joints and tree", "joints and poses", "second pass without swaps")
 
 
@@ -171,7 +223,7 @@ def fit_markers(
     n_groups: int | None = None,
     root: int | str | None = None,
     topology_frame_count: int = 120,
-    max_frames: int | None = 6000,
+    max_frames: int | None = FIT_FRAMES,
     min_seen: float = 0.2,
     rigid_tolerance: float = RIGID_TOLERANCE_M,
     progress: Callable[[str], None] | None = None,
@@ -209,9 +261,11 @@ def fit_markers(
     fit_frames = None if max_frames is None or n <= max_frames else np.linspace(0, n - 1, max_frames).astype(int)
     step(STAGES[1])
     topo = topology_frames(np.isfinite(M).all(-1), topology_frame_count)
-    exercised = judge_pairs(M, groups)
+    pick = joint_groups_of(clus, groups)
+    exercised = judge_pairs(M, groups, joint_groups=pick)
     sizes = np.array([len(g) for g in groups])
-    tree = spanning_forest(candidate_costs(M, groups, topo, exercised.candidate()), sizes, root=root)
+    tree = spanning_forest(candidate_costs(M, groups, topo, exercised.candidate(), joint_groups=pick,
+                                          exercised=exercised), sizes, root=root)
 
     work = M.copy()
     outliers = None
@@ -225,30 +279,52 @@ def fit_markers(
         points = [sizes[b] + sum(1 for j in range(len(par)) if j not in weak and (j == b or par[j] == b) and par[j] >= 0) for b in (c, p)]
         if min(points) < 3:
             weak.discard(c)
+    # A joint between two bodies with poses of their own is placed by the pair fit over those poses (one
+    # offset per body for the whole take: sharper under soft tissue than Kirk's free point per frame; swaps
+    # and glitches already left out of the poses) when those poses pin it as the sensor path asks of a
+    # sensor (PAIR_ROUTE_M); the others by the Kirk fit, which needs no pose.
+    kids = {int(c) for c in np.flatnonzero(par >= 0)}
+    posed = {c for c in kids if pair_route(exercised, c, int(par[c]))}
+    pair_jp, pair_rms = pair_joint_points(M, groups, par, sorted(posed), exercised, pick)
+    kirk = kids - posed
+    jp, jrms, base, poses, redo = dict(pair_jp), dict(pair_rms), None, None, None
     for k in range(2):  # second pass: refit without the marker-frames the first pass found wrong
         step(STAGES[2 + k])
-        jp, jrms, suspects = fit_joints(work, groups, par, fit_frames)
+        # Not started from the first pass's points: those carry the swaps, and a hinge's point creeps along
+        # its axis (a flat valley) from wherever it starts.
+        only = kirk if redo is None else kirk & redo
+        new_jp, new_rms, suspects = fit_joints(work, groups, par, fit_frames, joint_groups=pick, only=only)
+        jp, jrms = {**jp, **new_jp}, {**jrms, **new_rms}
         strong = {c: v for c, v in jp.items() if c not in weak}
-        shapes = skeleton_shapes(work, groups, par, strong, skip=weak)
-        R, t, valid = body_poses(work, shapes, strong)
+        # Bodies whose markers or joints changed: all of them in the first pass.
+        moved = None if redo is None else touched | {int(par[c]) for c in redo} | set(redo)
+        shapes = base = skeleton_shapes(work, groups, par, strong, skip=weak, only=moved, previous=base)
+        poses = R, t, valid = body_poses(work, shapes, strong, only=moved, previous=poses)
         if weak:
             shapes, jp = add_rigid_route_joints(shapes, weak, par, R, t, valid, jp)
+        if k == 1:
+            break
         res, thr = robust_marker_residuals(work, shapes, jp)
         # Bodies too small for a rigid check (NaN residual) fall back on the joint-centre test.
         res = np.where(np.isnan(res) & suspects & np.isfinite(work).all(-1), np.inf, res)
-        found = find_outliers(res, floor_m=thr)
-        for start, stop, a, b in found.swaps:  # both labels are wrong over the whole span, seen or not
-            found.mask[start:stop, [a, b]] = True
-        if outliers is None:
-            outliers = found
-        if not found.mask.any() or (not found.swaps and glitch_shift(res, found.mask, groups) < REFIT_SHIFT_M):
+        outliers = find_outliers(res, floor_m=thr)
+        for start, stop, a, b in outliers.swaps:  # both labels are wrong over the whole span, seen or not
+            outliers.mask[start:stop, [a, b]] = True
+        if not outliers.mask.any() or (not outliers.swaps and glitch_shift(res, outliers.mask, groups) < REFIT_SHIFT_M):
             break
-        work = np.where(found.mask[..., None], np.nan, work)
+        work = np.where(outliers.mask[..., None], np.nan, work)
+        # Only what the masked marker-frames reach is fitted again: the bodies of swapped markers and those
+        # whose fit the masked marker-frames could move (REFIT_SHIFT_M), and the joints to them.
+        swapped = {int(x) for sw in outliers.swaps for x in sw[2:]}
+        touched = {g for g, grp in enumerate(groups)
+                   if swapped & set(grp.tolist()) or glitch_shift(res, outliers.mask, [grp]) >= REFIT_SHIFT_M}
+        redo = {int(c) for c in np.flatnonzero(par >= 0) if c in touched or int(par[c]) in touched}
     # Poses for every frame, also those thinned out of the joint fits: markers alone, plus joints where fitted.
     bones = bone_lengths(shapes, tree.parent)
+    joint_markers = {int(c): pick(int(c), int(par[c])) for c in np.flatnonzero(par >= 0)}
     return OpticalFit(
         kept_names, labels, groups, clus, tree, shapes, bones, jp, jrms, R, t, valid, outliers,
-        float(rate_hz), times, unused, exercised,
+        float(rate_hz), times, unused, exercised, joint_markers, frozenset(posed),
     )  # fmt: skip
 
 
@@ -320,12 +396,65 @@ def fit_calibration(fit: OpticalFit) -> Calibration:
         swap_events=events,
         marker_outlier_threshold_m=fit.outliers.threshold_m,
         joint_decisions=tuple(joint_decision(fit.exercised, c, int(parent[c])) for c in kids),
-        exercise=exercise_report(labels, parent, fit.exercised, fit.clustering),
+        exercise={**exercise_report(labels, parent, fit.exercised, fit.clustering), **merge_report(fit)},
     )
     placement = np.full((m, 3), np.nan)
     placement[kids] = joints.c
     return Calibration(tuple(labels), int(fit.tree.root), np.asarray(parent), np.asarray(fit.tree.order), int(len(fit.times)),
                        joints, bones, placement, optical=extras)
+
+
+def merge_why(kind: str, ratio: float, joint_error_m: float, motion_m: float, tolerance_m: float) -> str:
+    """One sentence: why two groups of markers were made one body (the verdict of `articulation.judge`)."""
+    from flockcal.solver.optical.articulation import JOINT_TOLERANCE_M, ROTATION_MARGIN
+
+    moved = f"moved {1000 * motion_m:.1f} mm against each other"
+    if kind == "skin":
+        return (f"{moved}, but turned no more than their own markers' soft tissue turns their poses (rotation "
+                f"variance {ratio:.1f}× the noise's, under {ROTATION_MARGIN:g}×): skin, not a joint")
+    if kind == "twist":
+        return (f"{moved}, turning about the line between them: one segment twisting about its length "
+                f"(a two-bone forearm, skin rolling about a bone), not a joint between two")
+    if kind == "moved":
+        err = "not pinned at all" if not np.isfinite(joint_error_m) else f"pinned to {1000 * joint_error_m:.0f} mm only"
+        return (f"{moved}, within the {1000 * tolerance_m:g} mm soft tissue reaches; they turned against each "
+                f"other ({ratio:.0f}× the noise) but no joint explains it (its centre {err}, over the "
+                f"{1000 * JOINT_TOLERANCE_M:g} mm tolerance): kept one body")
+    return (f"{moved}, within the {1000 * tolerance_m:g} mm soft tissue reaches; a group of one or two "
+            f"markers has no pose to judge a joint by")
+
+
+def merge_report(fit: OpticalFit) -> dict:
+    """The JSON keys that say which groups of markers were merged into one body and why ("merged": per body
+    with merges of groups of three or more markers: its rigid parts and each merge's verdict), and which
+    markers each joint was fitted on where that is a part of a body ("joints_fitted_on")."""
+    names, labels = fit.marker_names, fit.labels
+    seg = fit.clustering
+    body_of = np.empty(len(names), dtype=int)
+    for g, grp in enumerate(fit.groups):
+        body_of[grp] = g
+    merged: dict[str, dict] = {}
+    for mg in seg.merges:
+        members = list(mg.a) + list(mg.b)
+        g = int(np.bincount(body_of[members]).argmax())
+        entry = merged.setdefault(labels[g], {"parts": [[names[i] for i in p] for p in seg.body_parts(g)], "merges": []})
+        v = mg.verdict
+        entry["merges"].append({
+            "groups": [[names[i] for i in mg.a], [names[i] for i in mg.b]],
+            "verdict": v.kind,
+            "why": merge_why(v.kind, v.rotation_ratio, v.joint_error_m, mg.motion_m, seg.tolerance_m),
+            "rotation_ratio": float(v.rotation_ratio) if np.isfinite(v.rotation_ratio) else None,
+            "joint_error_m": float(v.joint_error_m) if np.isfinite(v.joint_error_m) else None,
+            "relative_motion_m": float(mg.motion_m),
+        })
+    fitted_on = []
+    for c, (mc, mp) in sorted(fit.joint_markers.items()):
+        p = int(fit.tree.parent[c])
+        if len(mc) < len(fit.groups[c]) or len(mp) < len(fit.groups[p]):
+            fitted_on.append({"joint": [labels[c], labels[p]], "child_markers": [names[i] for i in mc],
+                              "parent_markers": [names[i] for i in mp]})
+    pair_fit = [[labels[c], labels[int(fit.tree.parent[c])]] for c in sorted(fit.pair_route)]
+    return {"merged": merged, "joints_fitted_on": fitted_on, "pair_fit_joints": pair_fit}
 
 
 def fit_json(fit: OpticalFit) -> dict:

@@ -16,15 +16,22 @@ from flockcal.solver.optical.projection import BodyShape, body_points
 from flockcal.solver.optical.rigid import apply, rigid_fit
 
 
-def body_poses(markers: np.ndarray, shapes: list[BodyShape], joint_points: dict[int, np.ndarray]):
+def body_poses(markers: np.ndarray, shapes: list[BodyShape], joint_points: dict[int, np.ndarray], only=None, previous=None):
     """rotations (n,m,3,3) body→world, positions (n,m,3) of each body's origin (its markers'
-    centroid), valid (n,m) where the pose is determined."""
+    centroid), valid (n,m) where the pose is determined. With `only` (bodies) and `previous`
+    ((rotations, positions, valid)), the other bodies keep their previous poses."""
     n = markers.shape[0]
     m = len(shapes)
-    Rs = np.tile(np.eye(3), (n, m, 1, 1))
-    ts = np.zeros((n, m, 3))
-    valid = np.zeros((n, m), dtype=bool)
+    if only is not None and previous is not None:
+        Rs, ts, valid = (x.copy() for x in previous)
+    else:
+        Rs = np.tile(np.eye(3), (n, m, 1, 1))
+        ts = np.zeros((n, m, 3))
+        valid = np.zeros((n, m), dtype=bool)
+        only = None
     for g, s in enumerate(shapes):
+        if only is not None and g not in only:
+            continue
         ref = np.concatenate([s.marker_offsets, s.joint_offsets], axis=0)
         obs = body_points(markers, s.markers, joint_points, s.joints)
         R, t, ok = rigid_fit(ref, obs)
@@ -56,6 +63,9 @@ class Outliers:
     swaps: list[tuple[int, int, int, int]]  # (start, stop, marker a, marker b) for runs that overlap
 
 
+PARTNERS = 8  # markers of its body each marker is checked against (the nearest)
+
+
 def robust_marker_residuals(markers, shapes, joint_points=None, floor_m: float = 0.006, factor: float = 8.0):
     """(n, k) how far each marker is from where its body says, without trusting any pose: the smallest
     change, against the body's fixed shape, of its distances to the other markers of its body.
@@ -71,10 +81,13 @@ def robust_marker_residuals(markers, shapes, joint_points=None, floor_m: float =
         if q < 3:
             continue
         ref = np.linalg.norm(s.marker_offsets[:, None] - s.marker_offsets[None], axis=-1)
+        # Each marker against its PARTNERS nearest markers of the body (a big body that absorbed several
+        # segments has tens; the nearest keep their distance best, and a few suffice for "at least one").
+        p = min(q - 1, PARTNERS)
+        near = np.argsort(np.where(np.isfinite(ref), ref, np.inf) + np.diag(np.full(q, np.inf)), axis=1)[:, :p]  # (q, p)
         m = markers[:, s.markers]
-        d = np.linalg.norm(m[:, :, None] - m[:, None], axis=-1)  # (n, q, q), NaN where unseen
-        dev = np.abs(d - ref[None])
-        dev[:, np.arange(q), np.arange(q)] = np.nan
+        d = np.linalg.norm(m[:, :, None] - m[:, near], axis=-1)  # (n, q, p), NaN where unseen
+        dev = np.abs(d - np.take_along_axis(ref, near, axis=1)[None])
         partners = np.isfinite(dev).sum(2)
         best = np.nanmin(np.where(np.isfinite(dev), dev, np.inf), axis=2)
         out[:, s.markers] = np.where(partners >= 2, best, np.nan)
@@ -85,17 +98,26 @@ def robust_marker_residuals(markers, shapes, joint_points=None, floor_m: float =
 
 def find_outliers(residuals: np.ndarray, factor: float = 8.0, floor_m: float = 0.006, min_run: int = 3) -> Outliers:
     """Marker-frames whose residual exceeds max(factor × robust σ, floor): a swapped label puts a
-    marker centimetres from its body. Two markers off together for at least `min_run` frames are
-    reported as a swap; shorter glitches are only masked."""
+    marker centimetres from its body, at once (a run that rises and falls smoothly through the threshold,
+    by less than half of it in a frame at both ends, both seen, is soft tissue at the end of a range: kept). Two markers off together for
+    at least `min_run` frames are reported as a swap; shorter glitches are only masked."""
     r = residuals[np.isfinite(residuals)]
     sigma = 1.4826 * np.median(np.abs(r - np.median(r))) if r.size else 0.0
     thr = max(factor * sigma, floor_m)
     mask = np.nan_to_num(residuals, nan=0.0) > thr
     runs = []
+    n = len(residuals)
     for a in np.flatnonzero(mask.any(0)):
         col = np.concatenate([[0], mask[:, a].astype(np.int8), [0]])
         edges = np.flatnonzero(np.diff(col))
         for s, e in zip(edges[::2], edges[1::2]):
+            # A swap or glitch starts or ends at once; soft tissue at the end of a range rises and falls
+            # smoothly through the threshold: such a run is kept, not masked.
+            steps = [residuals[s, a] - residuals[s - 1, a] if s > 0 else np.nan,
+                     residuals[e - 1, a] - residuals[e, a] if e < n else np.nan]
+            if all(np.isfinite(steps)) and not any(x >= 0.5 * thr for x in steps):
+                mask[s:e, a] = False
+                continue
             runs.append((int(a), int(s), int(e), float(np.nanmax(np.where(np.isinf(residuals[s:e, a]), np.nan, residuals[s:e, a]), initial=thr))))
     # Pair runs of two different markers that cover nearly the same frames, best overlap first.
     long_runs = [r for r in runs if r[2] - r[1] >= min_run]

@@ -1,0 +1,150 @@
+"""`fit_markers` on the simulator's walk and kiosk routines with soft tissue (issue 31's figures): bodies
+found, markers on the right body, the tree, bone lengths, time. Prints a table, asserts nothing.
+
+Each case: the simulated human (16 bodies), 2–4 skin markers a body, 30 s at 144 Hz, 1 mm noise, 3.6 %
+occlusion gaps, one label swap, soft tissue `--sta` mm (simulator/soft_tissue.py's rule). "markers right":
+each found body is matched to the true body most of its markers ride (one to one, largest overlap first);
+a marker is right when its found body is matched to its own. Bones are compared where the found tree has
+the true joints at both ends. "fresh s" (with `--fresh`) is `flockcal fit-markers --json` on the take
+saved as a marker .npz, in a new interpreter, start-up included (issue 31: ≤ 3 s for 46 markers × 30 s).
+
+    python benchmarks/bench_optical_sim.py                       # walk and kiosk, seeds 0-5, 8 mm
+    python benchmarks/bench_optical_sim.py --seeds 0 1 --sta 12 --fresh
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+
+def adjusted_rand(a: np.ndarray, b: np.ndarray) -> float:
+    """Adjusted Rand index of two labelings (1: the same partition)."""
+    from math import comb
+
+    _, ia = np.unique(a, return_inverse=True)
+    _, ib = np.unique(b, return_inverse=True)
+    table = np.zeros((ia.max() + 1, ib.max() + 1), dtype=int)
+    np.add.at(table, (ia, ib), 1)
+    pairs = sum(comb(int(x), 2) for x in table.ravel())
+    ra = sum(comb(int(x), 2) for x in table.sum(1))
+    rb = sum(comb(int(x), 2) for x in table.sum(0))
+    expected = ra * rb / comb(len(a), 2)
+    top = (ra + rb) / 2
+    return 1.0 if top == expected else (pairs - expected) / (top - expected)
+
+
+def matched(found: dict[str, list[str]], marker_body: dict[str, str]) -> dict[str, str]:
+    """Found body → true body, one to one, largest overlap first."""
+    overlap = sorted(((sum(marker_body[m] == t for m in ms), f, t) for f, ms in found.items()
+                      for t in set(marker_body.values())), reverse=True)
+    out, used = {}, set()
+    for count, f, t in overlap:
+        if count and f not in out and t not in used:
+            out[f] = t
+            used.add(t)
+    return out
+
+
+def score(out: dict, truth: dict) -> dict:
+    """The issue's figures for one fit's JSON against the simulator's truth."""
+    mb = truth["marker_body"]
+    names = [m for ms in out["bodies"].values() for m in ms]
+    to_true = matched(out["bodies"], mb)
+    found_of = {m: f for f, ms in out["bodies"].items() for m in ms}
+    right = sum(to_true.get(found_of[m]) == mb[m] for m in names)
+    true_edges = {frozenset(e) for e in truth["parent"].items()}
+    found_edges = {frozenset((to_true.get(c, c), to_true.get(p, p))) for c, p in out["parent"].items()}
+    true_bones = {}
+    for b in truth["bones"]:
+        f, t = b["from_joint"], b["to_joint"]
+        true_bones[frozenset([frozenset([f, truth["parent"][f]]), frozenset([t, truth["parent"][t]])])] = b["length_m"]
+    errs = []
+    par = {to_true.get(c, c): to_true.get(p, p) for c, p in out["parent"].items()}
+    for b in out["bones"]:
+        f, t = to_true.get(b["from_joint"], b["from_joint"]), to_true.get(b["to_joint"], b["to_joint"])
+        if f in par and t in par:
+            key = frozenset([frozenset([f, par[f]]), frozenset([t, par[t]])])
+            if key in true_bones:
+                errs.append(abs(b["length_m"] - true_bones[key]))
+    labels_true = np.array([mb[m] for m in names])
+    labels_found = np.array([found_of[m] for m in names])
+    return {
+        "bodies": len(out["bodies"]), "true_bodies": len(set(mb.values())),
+        "markers_right": right / len(names), "ari": adjusted_rand(labels_true, labels_found),
+        "edges": len(found_edges & true_edges), "true_edges": len(true_edges),
+        "wrong_edges": len(found_edges - true_edges),
+        "bones": len(errs), "true_bones": len(true_bones),
+        "bone_median_mm": 1000 * float(np.median(errs)) if errs else float("nan"),
+        "bone_max_mm": 1000 * float(np.max(errs)) if errs else float("nan"),
+        "swaps": truth["swaps"], "swap_events": [(e["markers"], round(e["time_s"], 2)) for e in out["swap_events"]],
+    }
+
+
+def simulate(routine: str, seed: int, sta_mm: float, seconds: float, rate_hz: float, per_body=(2, 4)):
+    from flockcal.simulator import optical as so
+
+    return so.simulate_markers("human", routine, seconds=seconds, rate_hz=rate_hz, seed=seed, per_body=tuple(per_body),
+                               noise_m=0.001, occlusion=0.036, n_swaps=1, sta_mm=sta_mm)
+
+
+def fresh_wall(take, tmp: Path) -> float:
+    """Wall time of `flockcal fit-markers --json` on the take in a new interpreter."""
+    from flockcal.markers import save_markers
+
+    path = tmp / "take.npz"
+    save_markers(path, take)
+    t0 = time.perf_counter()
+    proc = subprocess.run([sys.executable, "-m", "flockcal", "fit-markers", str(path), "--json"],
+                          capture_output=True, text=True, check=False)  # fmt: skip
+    wall = time.perf_counter() - t0
+    if proc.returncode != 0:
+        sys.exit(f"fit-markers failed: {proc.stderr.strip()}")
+    return wall
+
+
+def main() -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--routines", nargs="+", default=["walk", "kiosk"])
+    ap.add_argument("--seeds", nargs="+", type=int, default=list(range(6)))
+    ap.add_argument("--sta", type=float, default=8.0, help="soft tissue, mm (default 8)")
+    ap.add_argument("--seconds", type=float, default=30.0)
+    ap.add_argument("--rate", type=float, default=144.0)
+    ap.add_argument("--per-body", nargs=2, type=int, default=[2, 4], metavar=("LOW", "HIGH"),
+                    help="markers a body (default 2 4)")
+    ap.add_argument("--fresh", action="store_true", help="also time a fresh `flockcal fit-markers` process")
+    ap.add_argument("--verbose", action="store_true", help="print the swaps and the wrong edges")
+    args = ap.parse_args()
+    from flockcal.solver.optical.pipeline import fit_markers
+
+    print(f"load average before: {' '.join(f'{x:.1f}' for x in os.getloadavg())}  (cores: {os.cpu_count()})")
+    print(f"{'routine':<7} {'seed':>4} {'k':>3} {'bodies':>7} {'markers':>7} {'ARI':>6} {'edges':>6} {'wrong':>5} "
+          f"{'bones':>6} {'med mm':>6} {'max mm':>6} {'fit s':>6} {'fresh s':>7}")
+    with tempfile.TemporaryDirectory() as tmp:
+        for routine in args.routines:
+            for seed in args.seeds:
+                take, truth = simulate(routine, seed, args.sta, args.seconds, args.rate, args.per_body)
+                t0 = time.perf_counter()
+                out = fit_markers(take.markers, take.marker_names, take.rate_hz, take.times).to_dict()
+                wall = time.perf_counter() - t0
+                s = score(out, truth)
+                fresh = f"{fresh_wall(take, Path(tmp)):7.2f}" if args.fresh else f"{'-':>7}"
+                print(f"{routine:<7} {seed:>4} {take.markers.shape[1]:>3} {s['bodies']:>3}/{s['true_bodies']:<3} "
+                      f"{s['markers_right']:7.3f} {s['ari']:6.3f} {s['edges']:>3}/{s['true_edges']:<2} {s['wrong_edges']:>5} "
+                      f"{s['bones']:>3}/{s['true_bones']:<2} {s['bone_median_mm']:6.1f} {s['bone_max_mm']:6.1f} "
+                      f"{wall:6.2f} {fresh}")
+                if args.verbose:
+                    print(f"        swaps {s['swaps']} found {s['swap_events']}")
+    print(f"load average after: {' '.join(f'{x:.1f}' for x in os.getloadavg())}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
