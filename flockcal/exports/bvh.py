@@ -100,21 +100,32 @@ def rest_frames(rec: Reconstruction, world: np.ndarray, rest: str | int) -> np.n
     return world @ rec.rotations[k0]  # held rotations: defined at every frame
 
 
+def local_rotations(rec: Reconstruction, world: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """(n, m, 3, 3) each body's rotation in its parent's file axes, indexed like the articulation.
+
+    Child j under p: A_p R_pᵀ R_j A_jᵀ; the root: W R_root A_rootᵀ. The glTF rig (exports/gltf.py)
+    animates its nodes with these same rotations.
+    """
+    art = rec.articulation
+    R = rec.rotations @ np.swapaxes(A, -1, -2)[None]  # file frames in the tracker world, (n, m, 3, 3)
+    local = np.empty_like(R)
+    root = art.root
+    local[:, root] = world @ R[:, root]
+    child = art.parent >= 0
+    local[:, child] = np.swapaxes(R[:, art.parent[child]], -1, -2) @ R[:, child]
+    return local
+
+
 def motion_channels(rec: Reconstruction, world: np.ndarray, scale: float, A: np.ndarray) -> np.ndarray:
     """(n, 3 + 3m) MOTION rows in hierarchy order: root position, then Z X Y angles of every body.
 
     Local rotation of child j under p: A_p R_pᵀ R_j A_jᵀ; of the root: W R_root A_rootᵀ.
     """
     art = rec.articulation
-    R = rec.rotations @ np.swapaxes(A, -1, -2)[None]  # BVH frames in the tracker world, (n, m, 3, 3)
-    local = np.empty_like(R)
     root = art.root
-    local[:, root] = world @ R[:, root]
-    child = art.parent >= 0
-    local[:, child] = np.swapaxes(R[:, art.parent[child]], -1, -2) @ R[:, child]
-    angles = _euler_degrees(local[:, depth_first(art)])  # (n, m, 3)
+    angles = _euler_degrees(local_rotations(rec, world, A)[:, depth_first(art)])  # (n, m, 3)
     position = (rec.joint_positions[:, root] @ world.T) * scale
-    return np.concatenate([position, angles.reshape(len(R), -1)], axis=1)
+    return np.concatenate([position, angles.reshape(len(angles), -1)], axis=1)
 
 
 def hierarchy_text(art: Articulation, scale: float, A: np.ndarray | None = None, names: list[str] | None = None) -> str:
