@@ -272,3 +272,31 @@ def test_assimp_lists_the_joints_the_channels_and_the_duration(run):
     seconds = float(head.group(1)) / float(head.group(2))
     span = take["times"][-1] - take["times"][0] if "times" in take else (len(take["rotations"]) - 1) / float(take["rate_hz"])
     assert seconds == pytest.approx(span, abs=1e-3)
+
+
+def test_keyframe_quaternions_never_turn_the_long_way_also_across_chunks():
+    """A forearm spinning three full turns: consecutive keyframes keep one hemisphere (dot ≥ 0), or
+    glTF's linear interpolation would swing through the far side; the service writes the take in chunks
+    (server/downloads.py) and must pick the same signs as the whole take."""
+    from scipy.spatial.transform import Rotation
+
+    from flockcal.exports.gltf import animation_rows, build_rig
+    from flockcal.solver.reconstruct import Articulation, reconstruct
+
+    n = 200
+    spin = Rotation.from_rotvec(np.outer(np.linspace(0, 6 * np.pi, n), [0.3, 0.9, 0.1])).as_matrix()
+    R = np.stack([np.broadcast_to(np.eye(3), (n, 3, 3)), spin], axis=1)
+    t = np.zeros((n, 2, 3))
+    art = Articulation(("arm", "fore"), np.array([-1, 0]), np.array([[0, 0, 0], [0.1, 0, 0.0]]),
+                       np.array([[0, 0, 0], [0, 0.3, 0.0]]), np.array([0, 1]))
+    rec = reconstruct(R, t, art)
+    A = np.broadcast_to(np.eye(3), (2, 3, 3))
+    rig = build_rig(rec.articulation, A, np.zeros(3), {})
+    whole, _ = animation_rows(rec, np.eye(3), A, rig)
+    assert (np.einsum("nk,nk->n", whole[1:, 1], whole[:-1, 1]) > 0).all()
+    cut = 77
+    first = reconstruct(R[:cut], t[:cut], art)
+    rest = reconstruct(R[cut:], t[cut:], art)
+    a, _ = animation_rows(first, np.eye(3), A, rig)
+    b, _ = animation_rows(rest, np.eye(3), A, rig, previous=a[-1])
+    np.testing.assert_array_equal(np.concatenate([a, b]), whole)

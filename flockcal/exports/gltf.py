@@ -57,7 +57,7 @@ class Rig:
     extras: list[dict]  # per node: what kind of joint it pivots at (and a hinge's axis in its own axes)
 
 
-def _joint_notes(calibration) -> dict[str, dict]:
+def joint_notes(calibration) -> dict[str, dict]:
     """{child sensor name: its §5 joint entry} when the calibration carries them (not for an Articulation)."""
     if isinstance(calibration, Articulation):
         return {}
@@ -191,31 +191,53 @@ def key_times(times: np.ndarray, rate_hz: float) -> np.ndarray:
 
 # --- the file ----------------------------------------------------------------------------------------
 class _Buffer:
-    """The binary buffer being laid out: views aligned to 4 bytes, accessors over them."""
+    """The binary buffer being laid out: views aligned to 4 bytes, accessors over them. A part is bytes,
+    or an int: that many bytes the animation fills in later (so a long take can be written in chunks)."""
 
     def __init__(self):
-        self.parts: list[bytes] = []
+        self.parts: list[bytes | int] = []
         self.size = 0
         self.views: list[dict] = []
         self.accessors: list[dict] = []
 
-    def add(self, array: np.ndarray, component: int, kind: str, target: int | None = None, bounds: bool = False) -> int:
-        data = np.ascontiguousarray(array).tobytes()
-        view = {"buffer": 0, "byteOffset": self.size, "byteLength": len(data)}
+    def add(self, array: np.ndarray | None, component: int, kind: str, target: int | None = None,
+            bounds: bool = False, count: int = 0) -> int:
+        """An accessor over `array`, or with array=None over `count` elements reserved for later."""
+        width = {"SCALAR": 1, "VEC3": 3, "VEC4": 4, "MAT4": 16}[kind]
+        data = np.ascontiguousarray(array).tobytes() if array is not None else 4 * width * count
+        size = len(data) if array is not None else data
+        view = {"buffer": 0, "byteOffset": self.size, "byteLength": size}
         if target is not None:
             view["target"] = target
         self.parts.append(data)
-        pad = -len(data) % 4
-        self.parts.append(b"\0" * pad)
-        self.size += len(data) + pad
+        pad = -size % 4
+        if pad:
+            self.parts.append(b"\0" * pad)
+        self.size += size + pad
         self.views.append(view)
-        acc = {"bufferView": len(self.views) - 1, "componentType": component, "count": int(len(array)), "type": kind}
+        acc = {"bufferView": len(self.views) - 1, "componentType": component,
+               "count": int(len(array)) if array is not None else int(count), "type": kind}
         if bounds:
             flat = np.asarray(array, dtype=float).reshape(len(array), -1)
             acc["min"] = flat.min(axis=0).tolist()
             acc["max"] = flat.max(axis=0).tolist()
         self.accessors.append(acc)
         return len(self.accessors) - 1
+
+    def offset_of(self, accessor: int) -> int:
+        return self.views[self.accessors[accessor]["bufferView"]]["byteOffset"]
+
+
+@dataclass(frozen=True)
+class Layout:
+    """The file but for its animation values: the JSON, the buffer's parts (bytes, or an int for a
+    reserved block), and where the root's translations and each body's rotations go in the buffer."""
+
+    doc: dict
+    parts: list
+    size: int
+    root_at: int  # byte offset of the (n, 3) float32 root translations
+    rotation_at: list[int]  # byte offset of body node k's (n, 4) float32 quaternions
 
 
 def gltf_document(calibration, take, *, up: str = "-z", rest: str | int = "first", name: str = "take"):
@@ -228,15 +250,20 @@ def gltf_document(calibration, take, *, up: str = "-z", rest: str | int = "first
     art = rec.articulation  # rigidly attached sensors now have their offsets
     A = rest_frames(rec, world, rest)
     k0 = 0 if rest in ("first", "sensor") else int(rest)
-    rig = build_rig(art, A, world @ rec.joint_positions[k0, art.root], _joint_notes(calibration))
+    rig = build_rig(art, A, world @ rec.joint_positions[k0, art.root], joint_notes(calibration))
     quats, root = animation_rows(rec, world, A, rig)
-    return document(rig, key_times(take.times, take.rate_hz), quats, root, name=name,
-                    extras={"units": "m", "up": "+y", "tracker_up": up, "rest": rest, "rate_hz": float(take.rate_hz)})
+    plan = layout(rig, key_times(take.times, take.rate_hz), name=name, extras=file_extras(up, rest, take.rate_hz))
+    return plan.doc, filled(plan, quats, root)
 
 
-def document(rig: Rig, times: np.ndarray, quats: np.ndarray, root: np.ndarray, name: str = "take",
-             extras: dict | None = None) -> tuple[dict, bytes]:
-    """(glTF JSON, binary buffer) of a rig and its animation rows (see animation_rows, key_times)."""
+def file_extras(up: str, rest, rate_hz: float) -> dict:
+    """What the file says about itself under extras.flockcal."""
+    return {"units": "m", "up": "+y", "tracker_up": up, "rest": rest, "rate_hz": float(rate_hz)}
+
+
+def layout(rig: Rig, times: np.ndarray, name: str = "take", extras: dict | None = None) -> Layout:
+    """The document of a rig and its keyframe times (key_times), its animation values still to fill."""
+    n = len(times)
     pos = bind_positions(rig)
     buf = _Buffer()
     verts, normals, vjoints, tris = figure(rig, pos)
@@ -258,12 +285,13 @@ def document(rig: Rig, times: np.ndarray, quats: np.ndarray, root: np.ndarray, n
     a_ibm = buf.add(np.swapaxes(ibm, 1, 2).reshape(len(pos), 16).astype(np.float32), FLOAT, "MAT4")
     a_time = buf.add(np.asarray(times, dtype=np.float32), FLOAT, "SCALAR", bounds=True)
     samplers, channels = [], []
-    a_root = buf.add(np.asarray(root, dtype=np.float32), FLOAT, "VEC3")
+    a_root = buf.add(None, FLOAT, "VEC3", count=n)
     samplers.append({"input": a_time, "output": a_root, "interpolation": "LINEAR"})
     channels.append({"sampler": 0, "target": {"node": 0, "path": "translation"}})
+    a_rot = []
     for k in range(len(rig.bodies)):
-        a_q = buf.add(np.ascontiguousarray(quats[:, k]), FLOAT, "VEC4")
-        samplers.append({"input": a_time, "output": a_q, "interpolation": "LINEAR"})
+        a_rot.append(buf.add(None, FLOAT, "VEC4", count=n))
+        samplers.append({"input": a_time, "output": a_rot[-1], "interpolation": "LINEAR"})
         channels.append({"sampler": len(samplers) - 1, "target": {"node": k, "path": "rotation"}})
 
     nodes = []
@@ -294,17 +322,32 @@ def document(rig: Rig, times: np.ndarray, quats: np.ndarray, root: np.ndarray, n
     }
     if extras:
         doc["extras"] = {"flockcal": extras}
-    return doc, b"".join(buf.parts)
+    return Layout(doc, buf.parts, buf.size, buf.offset_of(a_root), [buf.offset_of(a) for a in a_rot])
+
+
+def filled(plan: Layout, quats: np.ndarray, root: np.ndarray) -> bytes:
+    """The whole buffer in memory, the animation rows (animation_rows) in their reserved blocks."""
+    out = bytearray(b"".join(p if isinstance(p, bytes) else bytes(p) for p in plan.parts))
+    for at, rows in [(plan.root_at, root)] + list(zip(plan.rotation_at, np.swapaxes(quats, 0, 1))):
+        data = np.ascontiguousarray(rows, dtype=np.float32).tobytes()
+        out[at:at + len(data)] = data
+    return bytes(out)
+
+
+def glb_head(doc: dict, bin_size: int) -> bytes:
+    """The binary glTF container up to its buffer: 12-byte header, the JSON chunk (space-padded), the BIN
+    chunk's header. `bin_size` must be a multiple of 4 (layouts are)."""
+    text = json.dumps(doc, separators=(",", ":")).encode("utf-8")
+    text += b" " * (-len(text) % 4)
+    total = 12 + 8 + len(text) + 8 + bin_size
+    return b"".join([struct.pack("<III", GLB_MAGIC, 2, total), struct.pack("<II", len(text), GLB_JSON), text,
+                     struct.pack("<II", bin_size, GLB_BIN)])
 
 
 def glb(doc: dict, binary: bytes) -> bytes:
-    """The binary glTF container: 12-byte header, the JSON chunk (space-padded), the BIN chunk (zero-padded)."""
-    text = json.dumps(doc, separators=(",", ":")).encode("utf-8")
-    text += b" " * (-len(text) % 4)
+    """The .glb file: glb_head, then the buffer (zero-padded to 4 bytes)."""
     binary += b"\0" * (-len(binary) % 4)
-    total = 12 + 8 + len(text) + 8 + len(binary)
-    return b"".join([struct.pack("<III", GLB_MAGIC, 2, total), struct.pack("<II", len(text), GLB_JSON), text,
-                     struct.pack("<II", len(binary), GLB_BIN), binary])
+    return glb_head(doc, len(binary)) + binary
 
 
 def gltf_json(doc: dict, binary: bytes) -> bytes:
