@@ -191,6 +191,9 @@ def cmd_export_gltf(args) -> int:
     from flockcal.exports.gltf import binary_for, write_gltf
     from flockcal.progress import Stages
 
+    from flockcal.atomic import check_output
+
+    check_output(args.output)
     binary_for(args.output, "-o")  # a wrong extension is told before the fit
     with Stages("export-gltf", ["fitting", "writing"]) as stages:
         stages.step("fitting")
