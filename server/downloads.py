@@ -287,8 +287,9 @@ def bvh_stream(calibration: dict, frames: FrameFile, units: str = "cm", up: str 
         yield out.getvalue().encode("ascii")
 
 
-def gltf_stream(calibration: dict, frames: FrameFile, up: str = "-z", name: str = "take") -> Iterator[bytes]:
-    """flockcal.exports.gltf.gltf_bytes(calibration, take, up=) for the frame log: the .glb's head first,
+def gltf_stream(calibration: dict, frames: FrameFile, up: str = "-z", name: str = "take",
+                rest: str = "first") -> Iterator[bytes]:
+    """flockcal.exports.gltf.gltf_bytes(calibration, take, up=, rest=) for the frame log (rest "first" or "sensor"): the .glb's head first,
     then its buffer, whose animation blocks are filled chunk by chunk in a temporary file (glTF keeps
     each joint's keyframes in one block, so a chunk's rows land in every block). Errors in the
     calibration or the recording are raised by the first next(), before any byte."""
@@ -301,11 +302,12 @@ def gltf_stream(calibration: dict, frames: FrameFile, up: str = "-z", name: str 
     world = bvh_world(up)
     art = completed(articulation(calibration).reordered(frames.names), frames)
     carry_R, carry_t = first_valid_pose(frames)
-    A = world @ carry_R  # rest_frames(rest="first"), as bvh_stream
+    # rest_frames: "first" as bvh_stream; "sensor" keeps the sensor axes (the live pose's `rig` frame).
+    A = np.broadcast_to(np.eye(3), carry_R.shape) if rest == "sensor" else world @ carry_R
     root = art.root
     rig = build_rig(art, A, world @ (carry_R[root] @ art.c[root] + carry_t[root]), joint_notes(calibration))
     times = np.concatenate([chunk[0] for chunk in frames.chunks()])  # 8 bytes a frame: an hour is 4 MB
-    plan = layout(rig, key_times(times, frames.rate_hz), name=name, extras=file_extras(up, "first", frames.rate_hz))
+    plan = layout(rig, key_times(times, frames.rate_hz), name=name, extras=file_extras(up, rest, frames.rate_hz))
     del times
     yield glb_head(plan.doc, plan.size)
     with tempfile.TemporaryFile() as buf:
