@@ -255,12 +255,29 @@ def first_valid_pose(frames: FrameFile) -> tuple[np.ndarray, np.ndarray]:
     return R0, t0
 
 
+def played_chunks(frames: FrameFile, art, carry_R: np.ndarray, carry_t: np.ndarray):
+    """The log reconstructed through `art` (solver.reconstruct) a chunk at a time, as a whole Take would be.
+
+    A Take holds each sensor's last valid pose through its dropouts, its first before it starts
+    (`first_valid_pose`, passed in): carried from chunk to chunk as a leading frame every sensor is valid
+    in. A quarter of a read chunk per step: reconstruction and Euler angles hold ~10 arrays of its size."""
+    from flockcal.solver.reconstruct import held_poses, reconstruct
+
+    for _times, R, t, valid in frames.chunks(max(1, frames.chunk // 4)):
+        R = np.concatenate([carry_R[None], R])
+        t = np.concatenate([carry_t[None], t])
+        ok = np.concatenate([np.ones((1, frames.m), dtype=bool), valid])
+        R, t = held_poses(R, t, ok)
+        carry_R, carry_t = R[-1], t[-1]
+        yield reconstruct(R[1:], t[1:], art)
+
+
 def bvh_stream(calibration: dict, frames: FrameFile, units: str = "cm", up: str = "-z") -> Iterator[bytes]:
     """flockcal.exports.bvh.bvh_text(calibration, take, units=, up=) for the frame log, chunk by chunk.
 
     Errors in the calibration or the recording are raised by the first next(), before any byte."""
     from flockcal.exports.bvh import BvhError, UNITS_PER_METRE, bvh_world, hierarchy_text, motion_channels
-    from flockcal.solver.reconstruct import articulation, held_poses, reconstruct
+    from flockcal.solver.reconstruct import articulation
 
     if units not in UNITS_PER_METRE:
         raise BvhError(f"units must be one of {', '.join(UNITS_PER_METRE)}, got {units!r}")
@@ -268,20 +285,11 @@ def bvh_stream(calibration: dict, frames: FrameFile, units: str = "cm", up: str 
     world = bvh_world(up)
     art = articulation(calibration).reordered(frames.names)
     art = completed(art, frames)
-    # A Take holds each sensor's last valid pose through its dropouts, its first before it starts:
-    # carried from chunk to chunk as a leading frame every sensor is valid in.
-    carry_R, carry_t = first_valid_pose(frames)
+    carry_R, carry_t = first_valid_pose(frames)  # what a Take holds before each sensor's first record
     A = world @ carry_R  # rest_frames(rest="first"): the held rotations of frame 0
     yield (hierarchy_text(art, scale, A) + f"MOTION\nFrames: {frames.n}\nFrame Time: {1.0 / frames.rate_hz:.8f}\n"
            ).encode("ascii")
-    # A quarter of a read chunk per step: reconstruction and Euler angles hold ~10 arrays of its size.
-    for _times, R, t, valid in frames.chunks(max(1, frames.chunk // 4)):
-        R = np.concatenate([carry_R[None], R])
-        t = np.concatenate([carry_t[None], t])
-        ok = np.concatenate([np.ones((1, frames.m), dtype=bool), valid])
-        R, t = held_poses(R, t, ok)
-        carry_R, carry_t = R[-1], t[-1]
-        rec = reconstruct(R[1:], t[1:], art)
+    for rec in played_chunks(frames, art, carry_R, carry_t):
         out = io.StringIO()
         np.savetxt(out, motion_channels(rec, world, scale, A), fmt="%.6f")
         yield out.getvalue().encode("ascii")
@@ -297,7 +305,7 @@ def gltf_stream(calibration: dict, frames: FrameFile, up: str = "-z", name: str 
 
     from flockcal.exports.bvh import bvh_world
     from flockcal.exports.gltf import animation_rows, build_rig, file_extras, glb_head, joint_notes, key_times, layout
-    from flockcal.solver.reconstruct import articulation, held_poses, reconstruct
+    from flockcal.solver.reconstruct import articulation
 
     world = bvh_world(up)
     art = completed(articulation(calibration).reordered(frames.names), frames)
@@ -318,13 +326,7 @@ def gltf_stream(calibration: dict, frames: FrameFile, up: str = "-z", name: str 
                 buf.seek(part, os.SEEK_CUR)  # a reserved block: filled below
         buf.truncate(plan.size)
         k, last = 0, None
-        for _times, R, t, valid in frames.chunks(max(1, frames.chunk // 4)):
-            R = np.concatenate([carry_R[None], R])
-            t = np.concatenate([carry_t[None], t])
-            ok = np.concatenate([np.ones((1, frames.m), dtype=bool), valid])
-            R, t = held_poses(R, t, ok)
-            carry_R, carry_t = R[-1], t[-1]
-            rec = reconstruct(R[1:], t[1:], art)
+        for rec in played_chunks(frames, art, carry_R, carry_t):
             quats, root_rows = animation_rows(rec, world, A, rig, previous=last)
             last = quats[-1]
             for at, rows, width in [(plan.root_at, root_rows, 12)] + [

@@ -166,6 +166,15 @@ def hierarchy_text(art: Articulation, scale: float, A: np.ndarray | None = None,
     return "\n".join(lines) + "\n"
 
 
+def played(calibration, take, up: str, rest: str | int):
+    """(Reconstruction, world turn W, rest frames A) of `take` played through `calibration` (a Calibration,
+    its §5 dict or an Articulation): what the BVH and the glTF rig (exports/gltf.py) both write."""
+    world = bvh_world(up)
+    art = calibration if isinstance(calibration, Articulation) else articulation(calibration)
+    rec = reconstruct(take.rotations, take.positions, art.reordered(take.names), take.valid)
+    return rec, world, rest_frames(rec, world, rest)  # rec.articulation: rigid sensors have their offsets
+
+
 def bvh_text(calibration, take, *, units: str = "cm", up: str = "-z", rest: str | int = "first") -> str:
     """The BVH file for `take` (a flockcal.takes.Take) played through `calibration` (a Calibration or its
     §5 dict, or an Articulation). `up` names the tracker world's up axis; the file is Y-up. `rest`:
@@ -173,12 +182,8 @@ def bvh_text(calibration, take, *, units: str = "cm", up: str = "-z", rest: str 
     if units not in UNITS_PER_METRE:
         raise BvhError(f"units must be one of {', '.join(UNITS_PER_METRE)}, got {units!r}")
     scale = UNITS_PER_METRE[units]
-    world = bvh_world(up)
-    art = calibration if isinstance(calibration, Articulation) else articulation(calibration)
-    art = art.reordered(take.names)
-    rec = reconstruct(take.rotations, take.positions, art, take.valid)
-    art = rec.articulation  # rigidly attached sensors now have their offsets
-    A = rest_frames(rec, world, rest)
+    rec, world, A = played(calibration, take, up, rest)
+    art = rec.articulation
     rows = motion_channels(rec, world, scale, A)
     out = io.StringIO()
     out.write(hierarchy_text(art, scale, A))

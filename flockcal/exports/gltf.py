@@ -20,8 +20,8 @@ from scipy.spatial.transform import Rotation
 
 from flockcal.atomic import write_atomic
 from flockcal.errors import FlockcalError
-from flockcal.exports.bvh import bvh_names, bvh_world, depth_first, local_rotations, rest_frames
-from flockcal.solver.reconstruct import Articulation, Reconstruction, articulation, reconstruct
+from flockcal.exports.bvh import bvh_names, depth_first, local_rotations, played
+from flockcal.solver.reconstruct import Articulation, Reconstruction
 
 GLB_MAGIC, GLB_JSON, GLB_BIN = 0x46546C67, 0x4E4F534A, 0x004E4942
 FLOAT, UBYTE, USHORT, UINT = 5126, 5121, 5123, 5125
@@ -243,12 +243,8 @@ class Layout:
 def gltf_document(calibration, take, *, up: str = "-z", rest: str | int = "first", name: str = "take"):
     """(the glTF JSON as a dict, the binary buffer) for `take` played through `calibration` (a
     Calibration, a KnownFit, a §5 dict or an Articulation), as `bvh_text` plays it."""
-    world = bvh_world(up)
-    art = calibration if isinstance(calibration, Articulation) else articulation(calibration)
-    art = art.reordered(take.names)
-    rec = reconstruct(take.rotations, take.positions, art, take.valid)
-    art = rec.articulation  # rigidly attached sensors now have their offsets
-    A = rest_frames(rec, world, rest)
+    rec, world, A = played(calibration, take, up, rest)
+    art = rec.articulation
     k0 = 0 if rest in ("first", "sensor") else int(rest)
     rig = build_rig(art, A, world @ rec.joint_positions[k0, art.root], joint_notes(calibration))
     quats, root = animation_rows(rec, world, A, rig)
