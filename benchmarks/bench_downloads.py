@@ -1,11 +1,11 @@
 """Memory of `flockcal serve` while clients download a 1-hour session: RSS growth of the service process
-during 4 concurrent downloads of each kind (/take, /bvh, /skeleton, /raw). Target (issue 16): < 50 MB.
+during 4 concurrent downloads of each kind (/take, /bvh, /gltf, /skeleton, /raw). Target (issue 16): < 50 MB.
 
 The hour is generated, not recorded: 60 s of the simulated performer (16 birds, 144 Hz) fitted once,
 then written to the session's frame log over and over with the clock running on, and a .fobraw of
 the same size. The session row is put in the service's database before it starts.
 
-    python benchmarks/bench_downloads.py [--minutes 60] [--clients 4] [--kinds take bvh skeleton raw]
+    python benchmarks/bench_downloads.py [--minutes 60] [--clients 4] [--kinds take bvh gltf skeleton raw]
 """
 
 from __future__ import annotations
@@ -115,7 +115,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--minutes", type=float, default=60.0)
     ap.add_argument("--clients", type=int, default=4)
-    ap.add_argument("--kinds", nargs="+", default=["take", "bvh", "skeleton", "raw"])
+    ap.add_argument("--kinds", nargs="+", default=["take", "bvh", "gltf", "skeleton", "raw"])
     args = ap.parse_args()
     data = Path(tempfile.mkdtemp(prefix="flockcal-bench-dl-"))
     try:

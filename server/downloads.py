@@ -1,5 +1,5 @@
 """Session downloads built from the frame log a chunk at a time, so memory stays bounded by the chunk
-(a few MB) whatever the session's length: the .npz take, the BVH motion and the skeleton file.
+(a few MB) whatever the session's length: the .npz take, the BVH motion, the glTF rig and the skeleton file.
 
 Each reads the frames the log held when the download began (a live session keeps growing). The
 outputs equal what flockcal.takes / flockcal.exports make of the whole take loaded at once.
@@ -297,12 +297,29 @@ def first_valid_pose(frames: FrameFile) -> tuple[np.ndarray, np.ndarray]:
     return R0, t0
 
 
+def played_chunks(frames: FrameFile, art, carry_R: np.ndarray, carry_t: np.ndarray):
+    """The log reconstructed through `art` (solver.reconstruct) a chunk at a time, as a whole Take would be.
+
+    A Take holds each sensor's last valid pose through its dropouts, its first before it starts
+    (`first_valid_pose`, passed in): carried from chunk to chunk as a leading frame every sensor is valid
+    in. A quarter of a read chunk per step: reconstruction and Euler angles hold ~10 arrays of its size."""
+    from flockcal.solver.reconstruct import held_poses, reconstruct
+
+    for _times, R, t, valid in frames.chunks(max(1, frames.chunk // 4)):
+        R = np.concatenate([carry_R[None], R])
+        t = np.concatenate([carry_t[None], t])
+        ok = np.concatenate([np.ones((1, frames.m), dtype=bool), valid])
+        R, t = held_poses(R, t, ok)
+        carry_R, carry_t = R[-1], t[-1]
+        yield reconstruct(R[1:], t[1:], art)
+
+
 def bvh_stream(calibration: dict, frames: FrameFile, units: str = "cm", up: str = "-z") -> Iterator[bytes]:
     """flockcal.exports.bvh.bvh_text(calibration, take, units=, up=) for the frame log, chunk by chunk.
 
     Errors in the calibration or the recording are raised by the first next(), before any byte."""
     from flockcal.exports.bvh import BvhError, UNITS_PER_METRE, bvh_world, hierarchy_text, motion_channels
-    from flockcal.solver.reconstruct import articulation, held_poses, reconstruct
+    from flockcal.solver.reconstruct import articulation
 
     if units not in UNITS_PER_METRE:
         raise BvhError(f"units must be one of {', '.join(UNITS_PER_METRE)}, got {units!r}")
@@ -310,23 +327,58 @@ def bvh_stream(calibration: dict, frames: FrameFile, units: str = "cm", up: str 
     world = bvh_world(up)
     art = articulation(calibration).reordered(frames.names)
     art = completed(art, frames)
-    # A Take holds each sensor's last valid pose through its dropouts, its first before it starts:
-    # carried from chunk to chunk as a leading frame every sensor is valid in.
-    carry_R, carry_t = first_valid_pose(frames)
+    carry_R, carry_t = first_valid_pose(frames)  # what a Take holds before each sensor's first record
     A = world @ carry_R  # rest_frames(rest="first"): the held rotations of frame 0
     yield (hierarchy_text(art, scale, A) + f"MOTION\nFrames: {frames.n}\nFrame Time: {1.0 / frames.rate_hz:.8f}\n"
            ).encode("ascii")
-    # A quarter of a read chunk per step: reconstruction and Euler angles hold ~10 arrays of its size.
-    for _times, R, t, valid in frames.chunks(max(1, frames.chunk // 4)):
-        R = np.concatenate([carry_R[None], R])
-        t = np.concatenate([carry_t[None], t])
-        ok = np.concatenate([np.ones((1, frames.m), dtype=bool), valid])
-        R, t = held_poses(R, t, ok)
-        carry_R, carry_t = R[-1], t[-1]
-        rec = reconstruct(R[1:], t[1:], art)
+    for rec in played_chunks(frames, art, carry_R, carry_t):
         out = io.StringIO()
         np.savetxt(out, motion_channels(rec, world, scale, A), fmt="%.6f")
         yield out.getvalue().encode("ascii")
+
+
+def gltf_stream(calibration: dict, frames: FrameFile, up: str = "-z", name: str = "take",
+                rest: str = "first") -> Iterator[bytes]:
+    """flockcal.exports.gltf.gltf_bytes(calibration, take, up=, rest=) for the frame log (rest "first" or "sensor"): the .glb's head first,
+    then its buffer, whose animation blocks are filled chunk by chunk in a temporary file (glTF keeps
+    each joint's keyframes in one block, so a chunk's rows land in every block). Errors in the
+    calibration or the recording are raised by the first next(), before any byte."""
+    import tempfile
+
+    from flockcal.exports.bvh import bvh_world
+    from flockcal.exports.gltf import animation_rows, build_rig, file_extras, glb_head, joint_notes, key_times, layout
+    from flockcal.solver.reconstruct import articulation
+
+    world = bvh_world(up)
+    art = completed(articulation(calibration).reordered(frames.names), frames)
+    carry_R, carry_t = first_valid_pose(frames)
+    # rest_frames: "first" as bvh_stream; "sensor" keeps the sensor axes (the live pose's `rig` frame).
+    A = np.broadcast_to(np.eye(3), carry_R.shape) if rest == "sensor" else world @ carry_R
+    root = art.root
+    rig = build_rig(art, A, world @ (carry_R[root] @ art.c[root] + carry_t[root]), joint_notes(calibration))
+    times = np.concatenate([chunk[0] for chunk in frames.chunks()])  # 8 bytes a frame: an hour is 4 MB
+    plan = layout(rig, key_times(times, frames.rate_hz), name=name, extras=file_extras(up, rest, frames.rate_hz))
+    del times
+    yield glb_head(plan.doc, plan.size)
+    with tempfile.TemporaryFile() as buf:
+        for part in plan.parts:
+            if isinstance(part, bytes):
+                buf.write(part)
+            else:
+                buf.seek(part, os.SEEK_CUR)  # a reserved block: filled below
+        buf.truncate(plan.size)
+        k, last = 0, None
+        for rec in played_chunks(frames, art, carry_R, carry_t):
+            quats, root_rows = animation_rows(rec, world, A, rig, previous=last)
+            last = quats[-1]
+            for at, rows, width in [(plan.root_at, root_rows, 12)] + [
+                    (plan.rotation_at[j], quats[:, j], 16) for j in range(quats.shape[1])]:
+                buf.seek(at + k * width)
+                buf.write(np.ascontiguousarray(rows).tobytes())
+            k += len(quats)
+        buf.seek(0)
+        while piece := buf.read(OUT_BYTES):
+            yield piece
 
 
 def primed(stream: Iterator[bytes]) -> Iterator[bytes]:

@@ -3,7 +3,9 @@
 Each body is placed from its parent's pose, starting at the root sensor, so bones never stretch; the
 message holds plain points, index pairs and sensor poses so the page needs no math of its own. As in the
 solver's bones, only determined joints end a bone (design.md §3a): an undetermined one is still placed
-(its children hang from it) but drawn as a point, not joined.
+(its children hang from it) but drawn as a point, not joined. With a fit it also carries `rig`: each
+body's local rotation as a quaternion in the glTF rig's frame (exports/gltf.py, rest "sensor") and the
+root's position, so an engine that loaded `/gltf?rest=sensor` sets its nodes with no maths.
 """
 
 from __future__ import annotations
@@ -31,11 +33,18 @@ def sensors_only(names, rotations, positions, valid) -> dict:
     }
 
 
+# The live rig's frame: the Flock's world (+Z down) turned Y-up, as the /gltf download's default `up`.
+RIG_UP = "-z"
+
+
 class _Layout:
     """What a fit fixes about the drawing: the articulation, point names and kinds, bones, leaves."""
 
     def __init__(self, art, names: tuple[str, ...], determined: set[str] | None = None):
+        from flockcal.exports.bvh import bvh_names
+
         self.art = art
+        self.rig_names = bvh_names(names)  # the rig's node names (the BVH's)
         art.levels  # worked out once here; the per-frame completed copies of `art` inherit it
         m = len(names)
         root = art.root
@@ -104,4 +113,46 @@ def live_pose(names, rotations, positions, valid, fit: Calibration | dict | None
     base["joints"] = [{"name": n, "kind": k, "p": p, "determined": d} for (n, k, d), p in zip(layout.heads, at)]
     base["bones"] = layout.bones
     base["root"] = layout.root
+    base["rig"] = rig_pose(rec, layout)
     return base
+
+
+def rig_pose(rec, layout: _Layout) -> dict:
+    """The frame as the glTF rig plays it with rest "sensor" (node axes = sensor axes, so no rest frame
+    to carry): node name → local rotation [x, y, z, w] (child: R_pᵀ R_j; root: W R_root, as
+    exports/bvh.local_rotations with A = I), and the root node's translation W t_root, metres, Y-up
+    (the same numbers `/gltf?rest=sensor` keys its animation with)."""
+    from flockcal.exports.bvh import bvh_world
+
+    art = layout.art
+    world = bvh_world(RIG_UP)
+    R = rec.rotations[0]
+    local = np.swapaxes(R[np.maximum(art.parent, 0)], -1, -2) @ R
+    local[art.root] = world @ R[art.root]
+    q = np.round(quaternions(local), 7).tolist()
+    root = _round(world @ rec.joint_positions[0, art.root], 6)
+    return {"up": RIG_UP, "rest": "sensor", "root": root, "rotations": dict(zip(layout.rig_names, q))}
+
+
+def quaternions(R: np.ndarray) -> np.ndarray:
+    """(m, 4) unit quaternions x, y, z, w of rotation matrices (m, 3, 3), by the largest of w², x², y², z²
+    (Shepperd's rule, numerically safe at every angle). scipy's Rotation.from_matrix gives the same
+    rotations but costs about 40 µs a matrix here, which a 16-sensor pose at 15 Hz would pay in full."""
+    R = np.asarray(R, dtype=float)
+    m = len(R)
+    d = np.stack([R[:, 0, 0], R[:, 1, 1], R[:, 2, 2], R[:, 0, 0] + R[:, 1, 1] + R[:, 2, 2]], axis=1)
+    big = d.argmax(axis=1)
+    q = np.empty((m, 4))
+    w = big == 3
+    q[w, 3] = 1 + d[w, 3]
+    q[w, 0] = R[w, 2, 1] - R[w, 1, 2]
+    q[w, 1] = R[w, 0, 2] - R[w, 2, 0]
+    q[w, 2] = R[w, 1, 0] - R[w, 0, 1]
+    for i in range(3):
+        s = big == i
+        j, k = (i + 1) % 3, (i + 2) % 3
+        q[s, i] = 1 - d[s, 3] + 2 * R[s, i, i]
+        q[s, j] = R[s, j, i] + R[s, i, j]
+        q[s, k] = R[s, k, i] + R[s, i, k]
+        q[s, 3] = R[s, k, j] - R[s, j, k]
+    return q / np.linalg.norm(q, axis=1, keepdims=True)

@@ -55,6 +55,8 @@ WRITERS = [
     ("scale", ["pair.npz", "--distance", "0.565", "--apply", "pair.npz", "-o"], "-o", "x.npz"),
     ("simulate", ["--seconds", "2", "-o"], "-o", "x.npz"),
     ("record", ["--port", "sim://outputs?birds=2", "--birds", "2", "--seconds", "1", "-o"], "-o", "x.fobraw"),
+    ("fit", ["take.npz", "--gltf"], "--gltf", "x.glb"),
+    ("export-gltf", ["take.npz", "-o"], "-o", "x.glb"),
 ]
 
 

@@ -1,5 +1,5 @@
 """Session downloads stream from the frame log a chunk at a time (server/downloads.py) and hold what
-loading the whole take at once gives: the .npz take, the BVH and the skeleton file.
+loading the whole take at once gives: the .npz take, the BVH, the glTF rig and the skeleton file.
 
 A real uvicorn on loopback records a short session from the built-in simulator; the references are
 built the way the service built them before it streamed (read_frames → make_take → exports). The
@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 from flockcal.exports.bvh import bvh_text
+from flockcal.exports.gltf import gltf_bytes
 from flockcal.exports.skeleton import skeleton_dict
 from flockcal.server.framelog import FrameLog, read_frames
 from flockcal.server.settings import Settings
@@ -81,6 +82,52 @@ def test_streamed_bvh_and_skeleton_equal_the_exports_of_the_whole_take(session):
     assert got["source"]["frames"] == len(take.times)
 
 
+def same_numbers(got, want, where="") -> None:
+    """JSON values equal, numbers to 1e-12 m: a chunked mean (a rigid sensor's offset) rounds differently."""
+    if isinstance(want, dict):
+        assert got.keys() == want.keys(), where
+        for key in want:
+            same_numbers(got[key], want[key], f"{where}.{key}")
+    elif isinstance(want, list):
+        assert len(got) == len(want), where
+        for k, (a, b) in enumerate(zip(got, want)):
+            same_numbers(a, b, f"{where}[{k}]")
+    elif isinstance(want, float):
+        assert got == pytest.approx(want, abs=1e-12), where
+    else:
+        assert got == want, where
+
+
+def glb_parts(data: bytes) -> tuple[dict, bytes]:
+    """(JSON, BIN) of a .glb, each file's own chunk lengths (glTF 2.0 §4.4)."""
+    assert data[:4] == b"glTF" and int.from_bytes(data[8:12], "little") == len(data)
+    size = int.from_bytes(data[12:16], "little")
+    return json.loads(data[20:20 + size]), data[20 + size + 8:]
+
+
+def same_glb(got: bytes, want: bytes) -> None:
+    """Equal .glb files up to rounding: the JSON's numbers to 1e-12 (a chunked mean prints with other
+    digits, so the JSON chunk's length may differ), the buffer's floats to 1e-6 (chunked rotations are
+    the same numbers but may round in their last float32 bit)."""
+    (got_doc, got_bin), (want_doc, want_bin) = glb_parts(got), glb_parts(want)
+    same_numbers(got_doc, want_doc)
+    assert len(got_bin) == len(want_bin)
+    np.testing.assert_allclose(np.frombuffer(got_bin, "<f4"), np.frombuffer(want_bin, "<f4"), atol=1e-6, rtol=0)
+
+
+def test_streamed_gltf_equals_the_export_of_the_whole_take(session):
+    srv, sid = session
+    result = httpx.get(srv.url + f"/api/sessions/{sid}/result").json()
+    take = take_of(srv.service.sessions.frames_path(sid))
+    r = httpx.get(srv.url + f"/api/sessions/{sid}/gltf?up=%2Bz", timeout=60)
+    assert r.status_code == 200 and r.headers["content-type"] == "model/gltf-binary"
+    assert "content-length" not in r.headers and r.content[:4] == b"glTF"
+    same_glb(r.content, gltf_bytes(result, take, up="+z", name=sid))
+    # Tried: an up axis the tracker cannot have: the BVH's answer, one line, before any byte.
+    bad = httpx.get(srv.url + f"/api/sessions/{sid}/gltf?up=%2Bx", timeout=60)
+    assert bad.status_code == 409 and "up must be one of" in bad.json()["detail"]
+
+
 def test_chunked_exports_hold_dropouts_and_rigid_sensors_like_the_whole_take(session, tmp_path, monkeypatch):
     """Chunks of 7 frames, sensors dropping out across chunk edges (one invalid for its first 20
     frames), and a sensor declared rigid on its parent: what a whole-take export does with each."""
@@ -115,6 +162,7 @@ def test_chunked_exports_hold_dropouts_and_rigid_sensors_like_the_whole_take(ses
         assert got.splitlines()[:head] == want.splitlines()[:head]
         np.testing.assert_allclose(np.loadtxt(got.splitlines()[head:]), np.loadtxt(want.splitlines()[head:]),
                                    atol=2e-6)
+        same_glb(b"".join(downloads.gltf_stream(calibration, frames)), gltf_bytes(calibration, take))
 
 
 def held_download(base_url: str, path: str) -> tuple[socket.socket, int]:

@@ -50,7 +50,8 @@ def test_allow_partial_fits_it_anyway_with_the_warning(takes, capsys, which):
     assert err.count("\n") == 1 and "fitting it anyway (--allow-partial)" in err
 
 
-@pytest.mark.parametrize("command, suffix", [("report", "html"), ("export-bvh", "bvh"), ("skeleton", "json")])
+@pytest.mark.parametrize("command, suffix", [("report", "html"), ("export-bvh", "bvh"), ("export-gltf", "glb"),
+                                             ("skeleton", "json")])
 def test_output_commands_write_nothing_for_a_still_take(takes, tmp_path, capsys, command, suffix):
     out = tmp_path / f"out.{suffix}"
     rc, _, err = _run(capsys, command, takes["still"], "-o", out)

@@ -29,6 +29,8 @@ def register(subparsers) -> None:
     p.add_argument("--root", metavar="NAME", help="hang the tree from this sensor (default: the body that splits it most evenly)")
     p.add_argument("--json", action="store_true", help="print the JSON object of docs/design.md §5 instead of a table")
     p.add_argument("--bvh", metavar="OUT.bvh", help="also write the take as BVH through the fitted skeleton")
+    p.add_argument("--gltf", metavar="OUT.glb", help="also write the fitted skeleton as a glTF 2.0 rig (skin, figure "
+                   "and the take as its animation; .glb or .gltf)")
     p.add_argument("--scale", metavar="FACTOR", help="multiply positions by FACTOR before fitting (unit scale, paper §4): "
                    "a number or the JSON file `flockcal scale --json` wrote")
     p.add_argument("--no-slips", action="store_true", help="skip the sensor-slip search (faster on long takes)")
@@ -97,6 +99,11 @@ def run(args: argparse.Namespace) -> int:
 
     if args.bvh:
         check_output(args.bvh, "--bvh")  # before the fit, which can take minutes
+    if args.gltf:
+        from flockcal.exports.gltf import binary_for
+
+        check_output(args.gltf, "--gltf")
+        binary_for(args.gltf, "--gltf")
     take = load_take(args.file)
     if args.scale is not None:
         from flockcal.commands.outputs import scale_factor
@@ -108,13 +115,19 @@ def run(args: argparse.Namespace) -> int:
     cal = calibrate_take(take, hierarchy=hierarchy, root=args.root, tolerance=tol)
     if stop_for("fit", args.file, too_short(take) or too_still(cal), args.allow_partial):
         return PARTIAL_EXIT
-    with Stages("fit", ["searching for slips", "re-fitting after slips", "writing BVH"]) as stages:
+    with Stages("fit", ["searching for slips", "re-fitting after slips", "writing BVH", "writing glTF"]) as stages:
         slips, result = fit_result(take, cal, tolerance=tol, find_slips=not args.no_slips, step=stages.step)
         if args.bvh:
             stages.step("writing BVH")
             write_bvh(args.bvh, cal, take)
-    if args.bvh:
-        print(f"wrote {args.bvh}", file=sys.stderr)
+        if args.gltf:
+            from flockcal.exports.gltf import write_gltf
+
+            stages.step("writing glTF")
+            write_gltf(args.gltf, cal, take)  # the skeleton the BVH plays, so the two files agree
+    for path in (args.bvh, args.gltf):
+        if path:
+            print(f"wrote {path}", file=sys.stderr)
     if args.json:
         sys.stdout.write(json_text(result))
     else:

@@ -1,6 +1,6 @@
 """Sub-commands for what people take away from a calibration: `scale` (tracker unit scale from a rigid
-pair), `report` (one HTML page), `export-bvh` (animation for Blender/Maya/MotionBuilder) and
-`skeleton` (the performer's skeleton file, to fit their next take with it).
+pair), `report` (one HTML page), `export-bvh` (animation for Blender/Maya/MotionBuilder), `export-gltf`
+(a glTF 2.0 rig for engines and viewers) and `skeleton` (the performer's skeleton file, for their next take).
 """
 
 from __future__ import annotations
@@ -210,6 +210,26 @@ def cmd_export_bvh(args) -> int:
     return 0
 
 
+def cmd_export_gltf(args) -> int:
+    from flockcal.exports.gltf import binary_for, write_gltf
+    from flockcal.progress import Stages
+
+    from flockcal.atomic import check_output
+
+    check_output(args.output)
+    binary_for(args.output, "-o")  # a wrong extension is told before the fit
+    with Stages("export-gltf", ["fitting", "writing"]) as stages:
+        stages.step("fitting")
+        take, cal = fitted_take(args, "export-gltf")
+        if cal is None:
+            return PARTIAL_EXIT
+        stages.step("writing")
+        rest = int(args.rest) if args.rest.isdigit() else args.rest
+        write_gltf(args.output, cal, take, up=args.up, rest=rest)
+    print(f"wrote {args.output}", file=sys.stderr)
+    return 0
+
+
 def cmd_skeleton(args) -> int:
     from flockcal.exports.skeleton import write_skeleton
     from flockcal.progress import Stages
@@ -259,6 +279,14 @@ def register(subparsers) -> None:
     p.add_argument("--rest", default="first", metavar="first|sensor|FRAME",
                    help="the file's rest pose: the take's first frame (default), a frame number, or raw sensor axes")
     p.set_defaults(func=cmd_export_bvh)
+
+    p = subparsers.add_parser("export-gltf", help="the fitted skeleton as a glTF 2.0 rig, the take as its animation")
+    _add_fit_options(p)
+    p.add_argument("-o", "--output", required=True, metavar="OUT.glb", help=".glb (binary) or .gltf (JSON)")
+    p.add_argument("--up", default="-z", choices=["-z", "+z", "+y"], help="tracker world's up axis (default -z, the Flock's)")
+    p.add_argument("--rest", default="first", metavar="first|sensor|FRAME",
+                   help="the rig's rest (bind) pose: the take's first frame (default), a frame number, or raw sensor axes")
+    p.set_defaults(func=cmd_export_gltf)
 
     p = subparsers.add_parser("skeleton", help="save the performer's calibrated skeleton for their next take")
     _add_fit_options(p)

@@ -100,21 +100,32 @@ def rest_frames(rec: Reconstruction, world: np.ndarray, rest: str | int) -> np.n
     return world @ rec.rotations[k0]  # held rotations: defined at every frame
 
 
+def local_rotations(rec: Reconstruction, world: np.ndarray, A: np.ndarray) -> np.ndarray:
+    """(n, m, 3, 3) each body's rotation in its parent's file axes, indexed like the articulation.
+
+    Child j under p: A_p R_pᵀ R_j A_jᵀ; the root: W R_root A_rootᵀ. The glTF rig (exports/gltf.py)
+    animates its nodes with these same rotations.
+    """
+    art = rec.articulation
+    R = rec.rotations @ np.swapaxes(A, -1, -2)[None]  # file frames in the tracker world, (n, m, 3, 3)
+    local = np.empty_like(R)
+    root = art.root
+    local[:, root] = world @ R[:, root]
+    child = art.parent >= 0
+    local[:, child] = np.swapaxes(R[:, art.parent[child]], -1, -2) @ R[:, child]
+    return local
+
+
 def motion_channels(rec: Reconstruction, world: np.ndarray, scale: float, A: np.ndarray) -> np.ndarray:
     """(n, 3 + 3m) MOTION rows in hierarchy order: root position, then Z X Y angles of every body.
 
     Local rotation of child j under p: A_p R_pᵀ R_j A_jᵀ; of the root: W R_root A_rootᵀ.
     """
     art = rec.articulation
-    R = rec.rotations @ np.swapaxes(A, -1, -2)[None]  # BVH frames in the tracker world, (n, m, 3, 3)
-    local = np.empty_like(R)
     root = art.root
-    local[:, root] = world @ R[:, root]
-    child = art.parent >= 0
-    local[:, child] = np.swapaxes(R[:, art.parent[child]], -1, -2) @ R[:, child]
-    angles = _euler_degrees(local[:, depth_first(art)])  # (n, m, 3)
+    angles = _euler_degrees(local_rotations(rec, world, A)[:, depth_first(art)])  # (n, m, 3)
     position = (rec.joint_positions[:, root] @ world.T) * scale
-    return np.concatenate([position, angles.reshape(len(R), -1)], axis=1)
+    return np.concatenate([position, angles.reshape(len(angles), -1)], axis=1)
 
 
 def hierarchy_text(art: Articulation, scale: float, A: np.ndarray | None = None, names: list[str] | None = None) -> str:
@@ -155,6 +166,15 @@ def hierarchy_text(art: Articulation, scale: float, A: np.ndarray | None = None,
     return "\n".join(lines) + "\n"
 
 
+def played(calibration, take, up: str, rest: str | int):
+    """(Reconstruction, world turn W, rest frames A) of `take` played through `calibration` (a Calibration,
+    its §5 dict or an Articulation): what the BVH and the glTF rig (exports/gltf.py) both write."""
+    world = bvh_world(up)
+    art = calibration if isinstance(calibration, Articulation) else articulation(calibration)
+    rec = reconstruct(take.rotations, take.positions, art.reordered(take.names), take.valid)
+    return rec, world, rest_frames(rec, world, rest)  # rec.articulation: rigid sensors have their offsets
+
+
 def bvh_text(calibration, take, *, units: str = "cm", up: str = "-z", rest: str | int = "first") -> str:
     """The BVH file for `take` (a flockcal.takes.Take) played through `calibration` (a Calibration or its
     §5 dict, or an Articulation). `up` names the tracker world's up axis; the file is Y-up. `rest`:
@@ -162,12 +182,8 @@ def bvh_text(calibration, take, *, units: str = "cm", up: str = "-z", rest: str 
     if units not in UNITS_PER_METRE:
         raise BvhError(f"units must be one of {', '.join(UNITS_PER_METRE)}, got {units!r}")
     scale = UNITS_PER_METRE[units]
-    world = bvh_world(up)
-    art = calibration if isinstance(calibration, Articulation) else articulation(calibration)
-    art = art.reordered(take.names)
-    rec = reconstruct(take.rotations, take.positions, art, take.valid)
-    art = rec.articulation  # rigidly attached sensors now have their offsets
-    A = rest_frames(rec, world, rest)
+    rec, world, A = played(calibration, take, up, rest)
+    art = rec.articulation
     rows = motion_channels(rec, world, scale, A)
     out = io.StringIO()
     out.write(hierarchy_text(art, scale, A))

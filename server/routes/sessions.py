@@ -210,6 +210,22 @@ def get_bvh(request: Request, sid: str = Depends(session_id),
                            headers={"Content-Disposition": f'attachment; filename="{sid}.bvh"'})
 
 
+@router.get("/{id}/gltf", responses={200: {"content": {"model/gltf-binary": {}}}, **ERRORS},
+            summary="the calibrated skeleton as a glTF 2.0 rig (.glb), the session's motion as its animation")
+def get_gltf(request: Request, sid: str = Depends(session_id),
+             up: str = Query("-z", pattern="^[+-]?[xyz]$", description="the tracker world's up axis: +y, +z or -z"),
+             rest: str = Query("first", pattern="^(first|sensor)$",
+                               description="bind pose: the take's first frame, or the sensor axes (the live pose's `rig`)"),
+             service=Depends(get_service), _role=Depends(require_read)):
+    from flockcal.server.downloads import gltf_stream, primed
+
+    result, _live = service.sessions.result(sid)
+    frames = _frames(service, sid)
+    body = _slotted(request, lambda: _export(lambda: primed(gltf_stream(result, frames, up=up, name=sid, rest=rest))))
+    return StreamingResponse(body, media_type="model/gltf-binary",
+                             headers={"Content-Disposition": f'attachment; filename="{sid}.glb"'})
+
+
 def _slotted(request: Request, make):
     """make() → a stream, built and run within one of the app's download slots (503 when all are taken)."""
     slots = request.app.state.download_slots

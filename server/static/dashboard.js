@@ -109,6 +109,7 @@ function setSession(session) {
   $('dl-skeleton').disabled = !state.lastSessionId;
   $('dl-take').disabled = !state.lastSessionId;
   $('dl-bvh').disabled = !state.lastSessionId;
+  $('dl-gltf').disabled = !state.lastSessionId;
 }
 
 // A page opened (or a session found) mid-session: the websocket replays only its last few seconds of
@@ -188,6 +189,7 @@ async function downloadFile(kind) {
     const base = `/api/sessions/${encodeURIComponent(id)}`;
     if (kind === 'skeleton') await download(`${base}/skeleton`, `${who}-${id}-skeleton.json`);
     else if (kind === 'bvh') await download(`${base}/bvh`, `${who}-${id}.bvh`);
+    else if (kind === 'glTF') await download(`${base}/gltf`, `${who}-${id}.glb`);
     else await download(`${base}/take`, `${who}-${id}.npz`);
   } catch (err) {
     const why = err instanceof ApiError && err.status === 409 ? 'no fit yet — move a little first' : err.message;
@@ -197,6 +199,7 @@ async function downloadFile(kind) {
 $('dl-skeleton').addEventListener('click', () => downloadFile('skeleton'));
 $('dl-take').addEventListener('click', () => downloadFile('take'));
 $('dl-bvh').addEventListener('click', () => downloadFile('bvh'));
+$('dl-gltf').addEventListener('click', () => downloadFile('glTF'));
 
 // ---------------------------------------------------------------------------------- the fit
 
