@@ -50,6 +50,8 @@ async def subscriber(url: str, rate: float, content: list[str], seconds: float) 
             msg = json.loads(raw)
             msg["_at"] = time.monotonic()
             got.append(msg)
+    for msg in got:
+        msg["_end"] = end  # the subscriber's window ends here, on its own clock
     return got
 
 
@@ -96,7 +98,9 @@ def test_fifty_clients_get_their_rate_while_a_stalled_client_is_dropped(server):
         # Never faster than asked (one tick of slack), and a steady stream to the end of the window.
         assert len(poses) <= RATE * WINDOW_S + 2
         assert len(poses) >= 0.3 * RATE * WINDOW_S
-        assert poses[-1]["_at"] - msgs[0]["_at"] > WINDOW_S - 1.5
+        # To the end of its own window: the last pose within 2 s of it (ten ticks; with 50 clients connecting
+        # on a loaded machine a client's first message came 2 s late, so its start is not the measure).
+        assert msgs[0]["_end"] - poses[-1]["_at"] < 2.0, (msgs[0]["_end"] - poses[-1]["_at"], len(poses))
         snapshots = [p["snapshot"] for p in poses]
         assert snapshots == sorted(snapshots)
         assert any(m["type"] == "fit" for m in msgs) and any(m["type"] == "status" for m in msgs)
