@@ -193,41 +193,37 @@ def report_markers(args) -> int:
     return 0
 
 
+def _export(args, command: str, write) -> int:
+    """Fit the take and write it through the fitted skeleton: `write(path, cal, take, rest)`."""
+    from flockcal.progress import Stages
+
+    with Stages(command, ["fitting", "writing"]) as stages:
+        stages.step("fitting")
+        take, cal = fitted_take(args, command)
+        if cal is None:
+            return PARTIAL_EXIT
+        stages.step("writing")
+        rest = int(args.rest) if args.rest.isdigit() else args.rest
+        write(args.output, cal, take, rest)
+    print(f"wrote {args.output}", file=sys.stderr)
+    return 0
+
+
 def cmd_export_bvh(args) -> int:
     from flockcal.exports.bvh import write_bvh
 
-    from flockcal.progress import Stages
-
-    with Stages("export-bvh", ["fitting", "writing"]) as stages:
-        stages.step("fitting")
-        take, cal = fitted_take(args, "export-bvh")
-        if cal is None:
-            return PARTIAL_EXIT
-        stages.step("writing")
-        rest = int(args.rest) if args.rest.isdigit() else args.rest
-        write_bvh(args.output, cal, take, units=args.units, up=args.up, rest=rest)
-    print(f"wrote {args.output}", file=sys.stderr)
-    return 0
+    return _export(args, "export-bvh",
+                   lambda path, cal, take, rest: write_bvh(path, cal, take, units=args.units, up=args.up, rest=rest))
 
 
 def cmd_export_gltf(args) -> int:
-    from flockcal.exports.gltf import binary_for, write_gltf
-    from flockcal.progress import Stages
-
     from flockcal.atomic import check_output
+    from flockcal.exports.gltf import binary_for, write_gltf
 
     check_output(args.output)
     binary_for(args.output, "-o")  # a wrong extension is told before the fit
-    with Stages("export-gltf", ["fitting", "writing"]) as stages:
-        stages.step("fitting")
-        take, cal = fitted_take(args, "export-gltf")
-        if cal is None:
-            return PARTIAL_EXIT
-        stages.step("writing")
-        rest = int(args.rest) if args.rest.isdigit() else args.rest
-        write_gltf(args.output, cal, take, up=args.up, rest=rest)
-    print(f"wrote {args.output}", file=sys.stderr)
-    return 0
+    return _export(args, "export-gltf",
+                   lambda path, cal, take, rest: write_gltf(path, cal, take, up=args.up, rest=rest))
 
 
 def cmd_skeleton(args) -> int:
