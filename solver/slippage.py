@@ -140,6 +140,7 @@ class SlipMonitor:
         # Poses of the last revisit_s at about 50 Hz, to see whether the residual came back with the pose.
         self._history = PoseHistory(J, self.m, rate_hz, revisit_s, every=int(round(rate_hz / 50.0)))
         self.came_back = 0  # suspected slips that the same pose before showed to be soft tissue
+        self.reseated = 0  # suspicions moved to a slip's later start before being confirmed
         self._chunk = max(1, int(round(step_s * rate_hz)))
         self.segment_start = np.full(p, np.nan)  # time each joint's current segment began
         self._t0 = np.nan  # time of the first frame seen
@@ -358,7 +359,15 @@ class SlipMonitor:
         if age < self.attribute_s or now < item.next_try:
             return False, []  # gather a little more evidence before naming the sensor
         self.confirmations += 1
-        att = self._attribute(onset, fired, ready, c, l, last)
+        att, later = self._attribute(onset, fired, ready, c, l, last)
+        if later is not None:
+            # The step this suspicion would confirm starts well after its onset: a slip landed inside the
+            # window of a suspicion kept for another look. Test it again at the step's own start.
+            item.onset = later
+            item.next_try = now + self.step_s - 0.5 / self.rate_hz
+            self._pending.items.sort(key=lambda x: x.onset)
+            self.reseated += 1
+            return False, []
         if att.kind is None:
             if age + self.step_s <= self.confirm_s + 1e-9 and att.evidence > 0:
                 # A step is likelier than not, but not yet by the margin: look again one step later.
@@ -412,7 +421,8 @@ class SlipMonitor:
 
     def _attribute(self, onset: int, fired: np.ndarray, ready: np.ndarray, c, l, last: int):
         """Put the suspicion to the confirming test on the window from `baseline_s` before the onset
-        to global frame `last`."""
+        to global frame `last`. Returns the attribution and, when the slip it names starts well after
+        the onset, that start (global frame; else None)."""
         buf = self._buf
         full = slice(buf.slot(onset - self._baseline_frames), buf.slot(last) + 1)
         onset_row = buf.slot(onset) - full.start
@@ -455,7 +465,10 @@ class SlipMonitor:
             return bool(cross < stay)
 
         win = Window(times, g, Q, use, weight, onset_row, c, l, swapped, swap_plausible)
-        att = attribute(win, self.joints, self._nbrs, ready, fired, self.m, self.min_jump, self.min_evidence)
+        att = attribute(win, self.joints, self._nbrs, ready, fired, self.m, self.min_jump, self.min_evidence,
+                        late_rows=self._pending.merge, min_tail=self.min_frames)
+        if att.kind == "slip" and att.later_row is not None:
+            return att, buf.index_of(int(rows[att.later_row]))
         if att.kind == "slip":
             J = self.joints
             child, parent = J[:, 0] == att.sensor, J[:, 1] == att.sensor
@@ -466,8 +479,8 @@ class SlipMonitor:
                              att.step)
             if back:  # (None: poses not seen before, no verdict; the slip stands)
                 self.came_back += 1
-                return Attribution(None, evidence=att.evidence)
-        return att
+                return Attribution(None, evidence=att.evidence), None
+        return att, None
 
     def _refresh(self, now: float, c, l) -> None:
         """Recompute every joint's baseline with the current estimates from the lagged window."""

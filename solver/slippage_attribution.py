@@ -19,7 +19,7 @@ from itertools import combinations
 
 import numpy as np
 
-from flockcal.solver.slippage_local import configuration_design, prediction_rss, step_fits
+from flockcal.solver.slippage_local import configuration_design, prediction_rss, step_fits, step_scan
 from flockcal.solver.slippage_stats import residual
 
 # Other sensors are listed as candidates down to this posterior share.
@@ -43,6 +43,7 @@ class Attribution:
     jump_m: float = 0.0
     evidence: float = 0.0  # nats by which the best hypothesis beats "nothing"
     step: np.ndarray | None = None  # slip: the fitted step (3,) in the sensor's own frame, metres
+    later_row: int | None = None  # slip: a later window row its step starts at much likelier than the onset
 
 
 @dataclass
@@ -69,12 +70,17 @@ class Window:
 
 
 def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarray,
-              suspects: np.ndarray, n_sensors: int, min_jump: float, min_evidence: float) -> Attribution:
+              suspects: np.ndarray, n_sensors: int, min_jump: float, min_evidence: float,
+              late_rows: int = 0, min_tail: int = 4) -> Attribution:
     """Score slip and swap hypotheses around the change (see module docstring).
 
     joints (P, 2) (child, parent); nbrs (P, width): `slippage_local.neighbours(joints)`; ready (P,)
     joints with a baseline; suspects (P,) joints whose step test fired. Only joints sharing a sensor
     with a suspect are fitted: a sensor none of whose joints fired cannot be the one that slipped.
+    `late_rows` > 0: also look for the slipped sensor's step starting at every later row (up to
+    `min_tail` rows before the end); one starting more than `late_rows` after the onset and likelier
+    than the onset's by more than the search costs is reported as `later_row` (the suspicion's onset
+    belongs to something else, soft tissue before the slip, and the slip to that later start).
     """
     P = len(joints)
     after = np.arange(len(win.times)) >= win.onset_row
@@ -142,7 +148,34 @@ def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarr
         return Attribution(None, evidence=evidence)
     order = np.argsort(-post[:m])
     cands = [(int(k), float(post[k])) for k in order if post[k] >= CANDIDATE_SHARE]
-    return Attribution("slip", s, -1, cands, float(post[s]), mine.tolist(), float(size[s]), evidence, steps[s])
+    later = _later_start(D, x, y, w, sel, inc_c[s], inc_p[s], win.onset_row, late_rows, min_tail) if late_rows > 0 else None
+    return Attribution("slip", s, -1, cands, float(post[s]), mine.tolist(), float(size[s]), evidence, steps[s], later)
+
+
+def _later_start(D, x, y, w, sel, child, parent, onset_row: int, late_rows: int, min_tail: int) -> int | None:
+    """The row a sensor's step most likely starts at, from the onset on, if more than `late_rows`
+    after the onset and likelier than a step from the onset by more than log(rows searched) nats.
+
+    A suspicion raised by soft tissue and kept for another look can have a slip land inside its window
+    a moment later: a step from the suspicion's onset then explains part of it, on the joints that
+    fired, and can name the wrong sensor (a leaf beside the one that slipped). The sensor's joints
+    combine as in `_slip_costs`: +δ where it is the child, −δ where it is the parent."""
+    L = len(x)
+    starts = np.arange(onset_row, L - min_tail)
+    own = (child | parent)[sel]
+    if len(starts) < 2 or not own.any():
+        return None
+    k = np.flatnonzero(own)
+    g, h = step_scan(D[:, k], [x[:, k], y[:, k]], w[:, k], starts, prior_sd=NEIGHBOUR_PRIOR_M, prior_from=OWN_COLUMNS)
+    sign_c, sign_p = child[sel][k].astype(float), parent[sel][k].astype(float)
+    G = (sign_c[None, :, None] * g[:, :, 0] - sign_p[None, :, None] * g[:, :, 1]).sum(axis=1)  # (n, 3)
+    H = ((sign_c + sign_p)[None, :] * h).sum(axis=1)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        reduction = np.nan_to_num((G * G).sum(axis=1) / H)
+    best = int(np.argmax(reduction))
+    if best > late_rows and 0.5 * (reduction[best] - reduction[0]) > np.log(len(starts)):
+        return int(starts[best])
+    return None
 
 
 def _slip_costs(D, x, y, w, after, sel, inc_c, inc_p, min_jump):

@@ -253,3 +253,29 @@ def prediction_rss(D: np.ndarray, series: np.ndarray, weight: np.ndarray, after:
     err = series[after] - np.einsum("lqk,qka->lqa", D[after], coef)
     return np.einsum("lq,lqa,lqa->q", weight[after], err, err)
 
+
+
+def step_scan(D: np.ndarray, series: list[np.ndarray], weight: np.ndarray, starts: np.ndarray,
+              ridge: float = 1e-9, prior_sd: float = 0.0, prior_from: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """`step_fits`' g and h for a step from each row in `starts` (n,) instead of one onset: g (n, q,
+    len(series), 3), h (n, q). The smooth part's normal matrix does not depend on where the step
+    starts, so one factorisation serves every start; the step column's cross products are suffix sums."""
+    K = D.shape[-1]
+    q = D.shape[1]
+    X = np.concatenate(series, axis=-1)  # (L, q, 3·ns)
+    wD = D * weight[..., None]
+    A = np.einsum("lqk,lqj->qkj", wD, D)
+    scale = np.maximum(A.trace(axis1=1, axis2=2) / K, 1e-300)
+    A = A + (ridge * scale)[:, None, None] * np.eye(K)
+    if prior_sd > 0 and prior_from < K:
+        A = A + np.diag(np.r_[np.zeros(prior_from), np.full(K - prior_from, 1.0 / prior_sd**2)])
+    r = np.einsum("lqk,lqa->qka", wD, X)  # (q, K, 3·ns)
+    sol_x = np.linalg.solve(A, r)
+    # Suffix sums from each start: Σ_{l ≥ k} w D, Σ w, Σ w x.
+    b = np.cumsum(wD[::-1], axis=0)[::-1][starts]  # (n, q, K)
+    c = np.cumsum(weight[::-1], axis=0)[::-1][starts]  # (n, q)
+    e = np.cumsum((X * weight[..., None])[::-1], axis=0)[::-1][starts]  # (n, q, 3·ns)
+    sol_b = np.linalg.solve(A[None], b[..., None])[..., 0]  # (n, q, K)
+    h = c - (b * sol_b).sum(axis=-1)
+    g = e - np.einsum("nqk,qka->nqa", b, sol_x)
+    return g.reshape(len(starts), q, len(series), 3), np.maximum(h, 0.0)
