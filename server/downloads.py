@@ -343,7 +343,7 @@ def gltf_stream(calibration: dict, frames: FrameFile, up: str = "-z", name: str 
     then its buffer, whose animation blocks are filled chunk by chunk in a temporary file (glTF keeps
     each joint's keyframes in one block, so a chunk's rows land in every block). Errors in the
     calibration or the recording are raised by the first next(), before any byte. animation=False: the
-    rig alone (190 kB for 16 bodies, no pass over the frames but the first valid pose and any rigid sensor's mean)."""
+    rig alone (193 kB for 16 bodies, no pass over the frames but the first valid pose and any rigid sensor's mean)."""
     import tempfile
 
     from flockcal.exports.bvh import bvh_world

@@ -11,7 +11,7 @@ import { GLTFLoader } from './vendor/three/GLTFLoader.js';
 export const RIG_UP = '-z';
 const RIG_TO_VIEW_Y = Math.PI / 2;
 
-// The rig only, without the take's animation (not needed to drive it): 190 kB for 16 bodies, whatever
+// The rig only, without the take's animation (not needed to drive it): 193 kB for 16 bodies, whatever
 // the session's length.
 export function rigPath(session) {
   return `/api/sessions/${encodeURIComponent(session)}/gltf?rest=sensor&animation=false`;
