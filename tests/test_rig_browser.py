@@ -9,7 +9,9 @@ WebGL through SwiftShader) shows the pages. The page's positions come from its `
 (node origins from three.js's world matrices, in the rig's Y-up frame); the test turns them into the
 tracker's frame with its own matrix and compares them with the joints of the very message the page set
 the rig from. Tried: before any fit the page keeps its own drawing (no rig in the stream); during the
-session the live rig is shown; after the stop the stopped session's final rig.
+session the live rig is shown; after the stop the stopped session's final rig. The positions are compared
+on the stopped session's fit, which the stream then draws with: a live fit changes many times a second,
+and the page refetches its rig at most every 2 s, so a live pose of exactly the loaded fit is chance.
 """
 
 from __future__ import annotations
