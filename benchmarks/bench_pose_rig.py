@@ -1,6 +1,7 @@
 """Cost of the pose message's `rig` (issue 34, item 2: under 1 % of a core at a 15 Hz client): the time
-to build and serialise it (server.pose.rig_pose) for a 16-sensor fitted performer, and the whole message's.
-Prints figures, asserts nothing.
+to build and serialise it (server.pose.rig_pose) for a 16-sensor fitted performer, and the whole message's;
+and the rig file the pages fetch to draw it (`/gltf?rest=sensor&animation=false`, server.downloads.gltf_stream
+from a frame log), which a page fetches at most every 2 s during a live session. Prints figures, asserts nothing.
 
     python benchmarks/bench_pose_rig.py [--calls 7000]
 """
@@ -9,9 +10,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import tempfile
 import time
+from pathlib import Path
 
 from flockcal.server import pose
+from flockcal.server.downloads import FrameFile, gltf_stream
+from flockcal.server.framelog import FrameLog
 from flockcal.simulator.take import simulate
 from flockcal.solver.accumulator import GramAccumulator
 from flockcal.solver.calibration import calibrate
@@ -51,6 +56,16 @@ def main() -> None:
           f"{extra * 1e3:.3f} ms, {size} bytes")
     print(f"at a 15 Hz client: {15 * extra * 100:.2f} % of a core for the rig (target < 1 %), "
           f"{15 * whole * 100:.2f} % for the whole pose message")
+    with tempfile.TemporaryDirectory() as tmp:
+        path = Path(tmp) / "take.frames"
+        log = FrameLog(path, list(take.names), take.rate_hz)
+        log.write(take.times, take.rotations, take.positions, take.valid)
+        log.close()
+        frames, result = FrameFile(path), cal.to_dict()
+        rig_file = lambda: b"".join(gltf_stream(result, frames, rest="sensor", animation=False))  # noqa: E731
+        each = per_call(rig_file, 70)
+        print(f"the pages' rig file (16 bodies): {len(rig_file()) / 1e3:.0f} kB built in {each * 1e3:.1f} ms; "
+              f"one page fetching it every 2 s: {each / 2 * 100:.2f} % of a core")
 
 
 if __name__ == "__main__":

@@ -338,11 +338,12 @@ def bvh_stream(calibration: dict, frames: FrameFile, units: str = "cm", up: str 
 
 
 def gltf_stream(calibration: dict, frames: FrameFile, up: str = "-z", name: str = "take",
-                rest: str = "first") -> Iterator[bytes]:
+                rest: str = "first", animation: bool = True) -> Iterator[bytes]:
     """flockcal.exports.gltf.gltf_bytes(calibration, take, up=, rest=) for the frame log (rest "first" or "sensor"): the .glb's head first,
     then its buffer, whose animation blocks are filled chunk by chunk in a temporary file (glTF keeps
     each joint's keyframes in one block, so a chunk's rows land in every block). Errors in the
-    calibration or the recording are raised by the first next(), before any byte."""
+    calibration or the recording are raised by the first next(), before any byte. animation=False: the
+    rig alone (193 kB for 16 bodies, no pass over the frames but the first valid pose and any rigid sensor's mean)."""
     import tempfile
 
     from flockcal.exports.bvh import bvh_world
@@ -356,6 +357,10 @@ def gltf_stream(calibration: dict, frames: FrameFile, up: str = "-z", name: str 
     A = np.broadcast_to(np.eye(3), carry_R.shape) if rest == "sensor" else world @ carry_R
     root = art.root
     rig = build_rig(art, A, world @ (carry_R[root] @ art.c[root] + carry_t[root]), joint_notes(calibration))
+    if not animation:
+        plan = layout(rig, None, name=name, extras=file_extras(up, rest, frames.rate_hz))
+        yield glb_head(plan.doc, plan.size) + b"".join(plan.parts)
+        return
     times = np.concatenate([chunk[0] for chunk in frames.chunks()])  # 8 bytes a frame: an hour is 4 MB
     plan = layout(rig, key_times(times, frames.rate_hz), name=name, extras=file_extras(up, rest, frames.rate_hz))
     del times

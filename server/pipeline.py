@@ -112,6 +112,9 @@ class Pipeline:
         self.snapshots = SnapshotMaker(self.names, source_status, self.target)
         self.live: LiveSession | None = None
         self.pose_fit: Calibration | None = None  # the fit the live skeleton is drawn with
+        # Whose fit that is: (session id, fit_seq), fit_seq None for a stopped session's final (stored) fit;
+        # the pose's `rig` carries it so a page knows which /gltf rig the stream drives.
+        self.pose_fit_id: tuple[str, int | None] | None = None
         self.fits_done = 0
         self.fit_seconds = 0.0
         self._fit_seq = 0
@@ -224,6 +227,7 @@ class Pipeline:
             self.live = None
             if result:
                 self.pose_fit = live.calibration
+                self.pose_fit_id = (live.id, None)
             self._publish()
             return live, result, error
 
@@ -367,6 +371,7 @@ class Pipeline:
         live.fit_error = None
         self.pose_fit = done.calibration
         self._fit_seq += 1
+        self.pose_fit_id = (live.id, self._fit_seq)
         time_s, epoch = done.stamp
         if live.watch is not None and len(done.calibration.joints):
             self._watch_tree(live, self.sampler.joints(done.calibration).pairs, time_s)
@@ -420,4 +425,5 @@ class Pipeline:
         return self.snapshots.make(
             live=live, session_time=self.ingest.session_time(live) if live is not None else 0.0,
             ingest=self.ingest, sampler=self.sampler, persistence=self.persistence, fit_seq=self._fit_seq,
-            fits_done=self.fits_done, fit_seconds=self.fit_seconds, pose_fit=self.pose_fit)
+            fits_done=self.fits_done, fit_seconds=self.fit_seconds, pose_fit=self.pose_fit,
+            pose_fit_id=self.pose_fit_id)

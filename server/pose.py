@@ -5,7 +5,8 @@ message holds plain points, index pairs and sensor poses so the page needs no ma
 solver's bones, only determined joints end a bone (design.md §3a): an undetermined one is still placed
 (its children hang from it) but drawn as a point, not joined. With a fit it also carries `rig`: each
 body's local rotation as a quaternion in the glTF rig's frame (exports/gltf.py, rest "sensor") and the
-root's position, so an engine that loaded `/gltf?rest=sensor` sets its nodes with no maths.
+root's position, so an engine that loaded `/gltf?rest=sensor` sets its nodes with no maths, and whose fit
+drew it (`session`, `fit_seq`), so a page knows which rig the stream drives.
 """
 
 from __future__ import annotations
@@ -88,9 +89,11 @@ def _layout(fit: Calibration | dict, names: tuple[str, ...]) -> _Layout | None:
     return layout
 
 
-def live_pose(names, rotations, positions, valid, fit: Calibration | dict | None) -> dict:
+def live_pose(names, rotations, positions, valid, fit: Calibration | dict | None,
+              fit_id: tuple[str, int | None] | None = None) -> dict:
     """Pose message body for one frame: (m,3,3) rotations, (m,3) positions, (m,) valid; fit = the live
-    service's Calibration, or a §5 dict (a stored result, a truth file).
+    service's Calibration, or a §5 dict (a stored result, a truth file); fit_id = (session id, fit_seq)
+    of that fit, fit_seq None for a stopped session's stored fit (the rig's `session` and `fit_seq`).
 
     joints: one point per tree joint (named by its child body; `determined` false for one the data do not
     pin yet), one for the root sensor and one for each leaf's sensor (so end bones have a far end); bones:
@@ -114,6 +117,8 @@ def live_pose(names, rotations, positions, valid, fit: Calibration | dict | None
     base["bones"] = layout.bones
     base["root"] = layout.root
     base["rig"] = rig_pose(rec, layout)
+    if fit_id is not None:
+        base["rig"]["session"], base["rig"]["fit_seq"] = fit_id
     return base
 
 

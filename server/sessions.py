@@ -372,6 +372,12 @@ class SessionManager:
 
     def result(self, session_id: str) -> tuple[dict, bool]:
         """(§5 result, live?) — the live fit for the live session, the stored one otherwise."""
+        result, fit_seq = self.result_seq(session_id)
+        return result, fit_seq is not None
+
+    def result_seq(self, session_id: str) -> tuple[dict, int | None]:
+        """(§5 result, fit_seq): the live session's fit with its number (read from one snapshot, so the
+        two agree), or the stored result with None — the pair a pose's `rig` names (server/pose.py)."""
         row = self._row(session_id)
         snap = self.pipeline.snapshot
         if snap.session and snap.session["id"] == session_id:
@@ -382,14 +388,14 @@ class SessionManager:
             # ~30 times a second and carries only its joints; the events are the session's.
             slips = [{k: e[k] for k in SLIP_FIELDS if k in e}
                      for e in self.store.events(session_id, limit=None) if e["type"] == "slip"]
-            return ({**snap.fit, "slip_events": slips} if slips else snap.fit), True
+            return ({**snap.fit, "slip_events": slips} if slips else snap.fit), snap.fit_seq
         held = self._held(session_id)
         result = held["result"] if held.get("result") is not None else self.store.result(session_id)
         if result is None:
             hint = " — POST /api/sessions/{0}/resolve re-solves it from its recording".format(session_id) \
                 if row["state"] == "interrupted" else ""
             raise Conflict(f"session {session_id} has no result ({row['note'] or row['state']}){hint}")
-        return result, False
+        return result, None
 
     def progress(self, session_id: str) -> dict:
         """The session's progress document (server/progress.py) with where it comes from: the live one as

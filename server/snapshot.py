@@ -44,6 +44,7 @@ class Snapshot:
     positions: np.ndarray | None  # (m,3)
     valid: np.ndarray | None  # (m,) whether the newest frame held a valid record for each sensor
     pose_fit: Calibration | None = None  # fit used to draw the skeleton (live or the last stopped session's)
+    pose_fit_id: tuple | None = None  # (session id, fit_seq or None for its stored final fit) of pose_fit
     progress: dict | None = None  # the live session's progress document (server/progress.py), None without one
 
     @property
@@ -54,7 +55,8 @@ class Snapshot:
     def pose(self) -> dict | None:
         if self.rotations is None:
             return None
-        return live_pose(list(self.names), self.rotations, self.positions, self.valid, self.pose_fit)
+        return live_pose(list(self.names), self.rotations, self.positions, self.valid, self.pose_fit,
+                         fit_id=self.pose_fit_id)
 
     # JSON bodies without their envelope: a sender splices in type, seq and time per connection.
     @cached_property
@@ -100,7 +102,7 @@ class SnapshotMaker:
         self.current: Snapshot | None = None
 
     def make(self, *, live, session_time: float, ingest, sampler, persistence, fit_seq: int,
-             fits_done: int, fit_seconds: float, pose_fit) -> Snapshot:
+             fits_done: int, fit_seconds: float, pose_fit, pose_fit_id=None) -> Snapshot:
         self.seq += 1
         try:
             tracker = dict(self.source_status())
@@ -137,6 +139,7 @@ class SnapshotMaker:
             positions=ingest.positions.copy() if ingest.have_pose else None,
             valid=ingest.valid.copy(),
             pose_fit=pose_fit,
+            pose_fit_id=pose_fit_id,
             progress=progress,
         )
         return self.current

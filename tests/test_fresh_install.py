@@ -5,8 +5,9 @@ system site packages, so nothing the test extra brings (websockets, httpx, playw
 missing runtime dependency. That venv's `flockcal serve` runs on a free loopback port with a temporary
 data directory; from the test environment we check that /ws/live streams fit and pose, that /docs and
 /redoc name no external host and their assets load, and that the dashboard and kiosk load their scripts
-in chromium without errors (screenshots in $FLOCKCAL_ARTIFACTS). pip's cache is used, so this costs
-seconds once the wheels are cached; CI reaches PyPI for the first download.
+(the vendored three.js and its GLTFLoader among them, which draw the session's rig) in chromium without
+errors (screenshots in $FLOCKCAL_ARTIFACTS). pip's cache is used, so this costs seconds once the wheels are
+cached; CI reaches PyPI for the first download.
 """
 
 from __future__ import annotations
@@ -189,6 +190,8 @@ def test_dashboard_and_kiosk_load_their_scripts_and_go_live_in_chromium(fresh_se
     page = open_offline(browser, fresh_serve.url + "/")
     page.wait_for_selector("#tracker[data-state=connected]", timeout=20000)
     page.wait_for_function("document.querySelectorAll('#coverage .cov').length >= 5", timeout=40000)
+    # The skeleton is the session's glTF rig, parsed by the vendored GLTFLoader: its files are in the wheel.
+    page.wait_for_selector("#view[data-rig=shown]", timeout=40000)
     page.wait_for_timeout(1500)
     page.screenshot(path=str(artifacts() / "fresh-dashboard.png"))
     assert page.scripts and all(status == 200 for _, status in page.scripts), page.scripts
@@ -212,6 +215,7 @@ def test_dashboard_and_kiosk_load_their_scripts_and_go_live_in_chromium(fresh_se
 
     kiosk = open_offline(browser, fresh_serve.url + "/kiosk", width=1280, height=800)
     kiosk.wait_for_function("!document.body.innerText.includes('Reconnecting')", timeout=20000)
+    kiosk.wait_for_selector("#avatar[data-rig=shown]", timeout=40000)
     kiosk.wait_for_timeout(2500)
     kiosk.screenshot(path=str(artifacts() / "fresh-kiosk.png"))
     assert any(u.endswith("kiosk.js") for u, _ in kiosk.scripts)

@@ -22,7 +22,7 @@ import websockets
 
 from flockcal.server.settings import Settings
 from server_helpers import ServerThread, free_port, wait_connected
-from test_outputs_gltf import accessor, node_parents, quat_matrix, read_glb
+from test_outputs_gltf import accessor, node_parents, quat_matrix, read_glb, validator_issues
 
 CLAIM_M = 1e-4
 RATE_HZ = 15
@@ -89,6 +89,8 @@ def test_live_rotations_drive_the_served_rig_to_the_pose_joints(stopped):
     for pose in msgs:
         rig = pose["rig"]
         assert rig["up"] == "-z" and rig["rest"] == "sensor"
+        # Whose fit drew it: the stopped session's stored one (no live fit number), the one /gltf serves.
+        assert rig["session"] == sid and rig["fit_seq"] is None
         assert set(rig["rotations"]) == {n["name"] for n in doc["nodes"][:len(rig["rotations"])]}
         got = rig_positions(doc, binary, rig)
         for joint in pose["joints"]:
@@ -102,3 +104,27 @@ def test_live_rotations_drive_the_served_rig_to_the_pose_joints(stopped):
     # The rig's rest pose is its animation's: keyframe 0 is what the message would say at frame 0, which
     # the reader checks through the times and rotations being there at all.
     assert accessor(doc, binary, doc["animations"][0]["samplers"][0]["input"]).shape[0] > 1
+
+
+def test_the_pages_rig_is_the_download_without_its_animation(stopped, tmp_path):
+    """`animation=false` (what the dashboard and the kiosk load, docs/dashboard.md): the same rig — nodes,
+    skin, figure, their numbers — without the take's keyframes, and valid glTF on its own."""
+    srv, sid = stopped
+    full = httpx.get(srv.url + f"/api/sessions/{sid}/gltf?rest=sensor", timeout=60)
+    bare = httpx.get(srv.url + f"/api/sessions/{sid}/gltf?rest=sensor&animation=false", timeout=60)
+    assert full.status_code == bare.status_code == 200
+    # The fit's number the pages match with the pose's rig.fit_seq: "final" for a stopped session's result.
+    assert full.headers["x-flockcal-fit-seq"] == bare.headers["x-flockcal-fit-seq"] == "final"
+    (doc, binary), (rig, rig_binary) = read_glb(full.content), read_glb(bare.content)
+    assert "animations" not in rig and len(doc["animations"]) == 1
+    for key in ("scene", "scenes", "nodes", "meshes", "materials", "skins", "extras"):
+        assert rig[key] == doc[key], key
+    prim = rig["meshes"][0]["primitives"][0]
+    for k in [*prim["attributes"].values(), prim["indices"], rig["skins"][0]["inverseBindMatrices"]]:
+        np.testing.assert_array_equal(accessor(rig, rig_binary, k), accessor(doc, binary, k))
+    assert len(bare.content) < len(full.content) - 16 * len(rig["nodes"])  # no keyframes carried
+    # Tried: a value that is not a boolean is refused like any bad query.
+    assert httpx.get(srv.url + f"/api/sessions/{sid}/gltf?animation=maybe", timeout=60).status_code == 422
+    (tmp_path / "rig.glb").write_bytes(bare.content)
+    issues = validator_issues(tmp_path / "rig.glb")
+    assert issues["numErrors"] == 0 and issues["numWarnings"] == 0, issues["messages"]

@@ -236,7 +236,7 @@ class Layout:
     doc: dict
     parts: list
     size: int
-    root_at: int  # byte offset of the (n, 3) float32 root translations
+    root_at: int  # byte offset of the (n, 3) float32 root translations (-1: no animation)
     rotation_at: list[int]  # byte offset of body node k's (n, 4) float32 quaternions
 
 
@@ -257,9 +257,9 @@ def file_extras(up: str, rest, rate_hz: float) -> dict:
     return {"units": "m", "up": "+y", "tracker_up": up, "rest": rest, "rate_hz": float(rate_hz)}
 
 
-def layout(rig: Rig, times: np.ndarray, name: str = "take", extras: dict | None = None) -> Layout:
-    """The document of a rig and its keyframe times (key_times), its animation values still to fill."""
-    n = len(times)
+def layout(rig: Rig, times: np.ndarray | None, name: str = "take", extras: dict | None = None) -> Layout:
+    """The document of a rig and its keyframe times (key_times), its animation values still to fill;
+    times None: the rig alone, no animation (what a page loads to drive from the live pose's `rig`)."""
     pos = bind_positions(rig)
     buf = _Buffer()
     verts, normals, vjoints, tris = figure(rig, pos)
@@ -279,16 +279,17 @@ def layout(rig: Rig, times: np.ndarray, name: str = "take", extras: dict | None 
     bind[:, :3, 3] = pos
     ibm = np.linalg.inv(bind)
     a_ibm = buf.add(np.swapaxes(ibm, 1, 2).reshape(len(pos), 16).astype(np.float32), FLOAT, "MAT4")
-    a_time = buf.add(np.asarray(times, dtype=np.float32), FLOAT, "SCALAR", bounds=True)
-    samplers, channels = [], []
-    a_root = buf.add(None, FLOAT, "VEC3", count=n)
-    samplers.append({"input": a_time, "output": a_root, "interpolation": "LINEAR"})
-    channels.append({"sampler": 0, "target": {"node": 0, "path": "translation"}})
-    a_rot = []
-    for k in range(len(rig.bodies)):
-        a_rot.append(buf.add(None, FLOAT, "VEC4", count=n))
-        samplers.append({"input": a_time, "output": a_rot[-1], "interpolation": "LINEAR"})
-        channels.append({"sampler": len(samplers) - 1, "target": {"node": k, "path": "rotation"}})
+    samplers, channels, a_root, a_rot = [], [], None, []
+    if times is not None:
+        n = len(times)
+        a_time = buf.add(np.asarray(times, dtype=np.float32), FLOAT, "SCALAR", bounds=True)
+        a_root = buf.add(None, FLOAT, "VEC3", count=n)
+        samplers.append({"input": a_time, "output": a_root, "interpolation": "LINEAR"})
+        channels.append({"sampler": 0, "target": {"node": 0, "path": "translation"}})
+        for k in range(len(rig.bodies)):
+            a_rot.append(buf.add(None, FLOAT, "VEC4", count=n))
+            samplers.append({"input": a_time, "output": a_rot[-1], "interpolation": "LINEAR"})
+            channels.append({"sampler": len(samplers) - 1, "target": {"node": k, "path": "rotation"}})
 
     nodes = []
     for k, nm in enumerate(rig.names):
@@ -316,9 +317,12 @@ def layout(rig: Rig, times: np.ndarray, name: str = "take", extras: dict | None 
         "bufferViews": buf.views,
         "buffers": [{"byteLength": buf.size}],
     }
+    if times is None:
+        del doc["animations"]
     if extras:
         doc["extras"] = {"flockcal": extras}
-    return Layout(doc, buf.parts, buf.size, buf.offset_of(a_root), [buf.offset_of(a) for a in a_rot])
+    return Layout(doc, buf.parts, buf.size, buf.offset_of(a_root) if a_root is not None else -1,
+                  [buf.offset_of(a) for a in a_rot])
 
 
 def filled(plan: Layout, quats: np.ndarray, root: np.ndarray) -> bytes:

@@ -216,14 +216,20 @@ def get_gltf(request: Request, sid: str = Depends(session_id),
              up: str = Query("-z", pattern="^[+-]?[xyz]$", description="the tracker world's up axis: +y, +z or -z"),
              rest: str = Query("first", pattern="^(first|sensor)$",
                                description="bind pose: the take's first frame, or the sensor axes (the live pose's `rig`)"),
+             animation: bool = Query(True, description="false: the rig alone, without the take as its animation "
+                                                       "(what the pages load to drive from the live pose)"),
              service=Depends(get_service), _role=Depends(require_read)):
     from flockcal.server.downloads import gltf_stream, primed
 
-    result, _live = service.sessions.result(sid)
+    # The fit's number travels in a header (the file stays the CLI's): a page matches it with the live
+    # pose's `rig.fit_seq` to know the rig it loaded is the one the stream drives ("final": the stored fit).
+    result, fit_seq = service.sessions.result_seq(sid)
     frames = _frames(service, sid)
-    body = _slotted(request, lambda: _export(lambda: primed(gltf_stream(result, frames, up=up, name=sid, rest=rest))))
+    body = _slotted(request, lambda: _export(lambda: primed(
+        gltf_stream(result, frames, up=up, name=sid, rest=rest, animation=animation))))
     return StreamingResponse(body, media_type="model/gltf-binary",
-                             headers={"Content-Disposition": f'attachment; filename="{sid}.glb"'})
+                             headers={"Content-Disposition": f'attachment; filename="{sid}.glb"',
+                                      "X-Flockcal-Fit-Seq": "final" if fit_seq is None else str(fit_seq)})
 
 
 def _slotted(request: Request, make):

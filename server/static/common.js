@@ -1,8 +1,11 @@
 // Shared by the operator dashboard and the kiosk: REST and websocket access with automatic
-// reconnection, readable body and joint names, and the 3D skeleton view (three.js, 2D fallback).
+// reconnection, readable body and joint names, and the 3D skeleton view: the session's glTF rig
+// (rig.js) driven by the live pose once there is a fit, the pose's own points and bones before that,
+// a 2D drawing without WebGL.
 
 import * as THREE from './vendor/three/three.module.js';
 import { OrbitControls } from './vendor/three/OrbitControls.js';
+import { parseRig, rigPath } from './rig.js';
 
 // A token given once as ?token=… is kept for the tab, so reloads and reconnects keep working.
 const params = new URLSearchParams(location.search);
@@ -169,7 +172,7 @@ export function normalisePose(msg) {
   const joints = (src.joints || []).map((j) => ({ name: j.name || '', kind: j.kind || 'joint', p: j.p }));
   const sensors = (src.sensors || []).map((s) => ({ name: s.name, p: s.p, R: s.R, valid: s.valid !== false }));
   const bones = (src.bones || []).filter((b) => Array.isArray(b) && b.length === 2);
-  return { joints, bones, sensors, root: src.root || null };
+  return { joints, bones, sensors, root: src.root || null, rig: src.rig || null };
 }
 
 // Where the fitted model puts each sensor: its body's joint centre minus R·c (c = that joint in the
@@ -190,6 +193,10 @@ function modelSensors(pose, placement) {
 
 const BG = 0x0d1117;
 const STATE_COLOURS = { done: 0x3fb950, work: 0xffc857, none: 0x6e7681 };
+// A live session's fit changes many times a second: its rig is fetched again at most this often (a new
+// session's, or a stopped session's final fit, at once); a failed fetch is tried again after RIG_RETRY_MS.
+const RIG_RELOAD_MS = 2000;
+const RIG_RETRY_MS = 5000;
 
 export class SkeletonView {
   // follow: keep the camera on the performer and in front of them (kiosk); otherwise it is aimed
@@ -206,10 +213,27 @@ export class SkeletonView {
     this.placement = null;   // {body: c} from the newest fit
     this.jointState = {};    // {body: 'done' | 'work' | 'none'} colours the joint spheres
     this.frames = 0;         // poses drawn (tests and the status line read it)
+    this.rig = null;         // the loaded glTF rig (rig.js LoadedRig), null before the first fit
+    this.rigLoading = false;
+    this.rigLoadedAt = -Infinity;
+    this.rigRetryAt = 0;
+    this.rigShown = null;    // {rig, pose}: the rig last drawn and the pose message it was set from
     container.dataset.renderer = this.webgl ? 'webgl' : '2d';
+    container.dataset.rig = 'none';
     if (this.webgl) this._initThree(); else this._init2d();
     new ResizeObserver(() => this.resize()).observe(container);
     this.resize();
+    // A small debugging hook (docs/dashboard.md, "The skeleton view"): what the view drew from the rig and
+    // three.js's own joint positions for it, for the console and the browser tests.
+    const view = this;
+    window.flockcalRig = {
+      get state() { return view.container.dataset.rig; },
+      get session() { return view.rigShown ? view.rigShown.rig.session : null; },
+      get fitSeq() { return view.rigShown ? view.rigShown.rig.fitSeq : null; },
+      get pose() { return view.rigShown ? view.rigShown.pose : null; },
+      get error() { return view.rigError || null; },
+      joints() { return view.rigShown ? view.rigShown.rig.jointPositions() : null; },
+    };
   }
 
   setFit(result) {
@@ -324,6 +348,66 @@ export class SkeletonView {
     return lateral.normalize().cross(new THREE.Vector3(0, 1, 0)).normalize();
   }
 
+  // The rig the pose's `rig` is for: fetched when there is none, when the session changes, when a session's
+  // final fit replaces its live one, and at most every RIG_RELOAD_MS while a live fit moves on.
+  _fetchRig(want) {
+    if (this.rigLoading || performance.now() < this.rigRetryAt) return;
+    const have = this.rig;
+    const seq = want.fit_seq === undefined ? null : want.fit_seq;
+    if (have && have.session === want.session) {
+      const since = performance.now() - this.rigLoadedAt;
+      if (have.fitSeq === seq) { if (have.fits(want) || since < RIG_RETRY_MS) return; }
+      else if (seq !== null && since < RIG_RELOAD_MS) return;
+    }
+    this.rigLoading = true;
+    this.rigLoadedAt = performance.now();
+    if (!this.rigShown) this.container.dataset.rig = 'loading';
+    (async () => {
+      const response = await api(rigPath(want.session), { raw: true });
+      const header = response.headers.get('X-Flockcal-Fit-Seq');
+      const fitSeq = header === null || header === 'final' ? null : Number(header);
+      return parseRig(await response.arrayBuffer(), want.session, fitSeq,
+                      { colour: this.colour, markers: { geometry: this.jointGeo, endGeometry: this.endGeo } });
+    })().then((rig) => {
+      if (this.rig && !(this.rigShown && this.rigShown.rig === this.rig)) this.rig.dispose();
+      this.rig = rig;
+      rig.holder.visible = false;  // until a pose sets it
+      this.world.add(rig.holder);
+      this.rigError = null;
+    }, (e) => {
+      this.rigError = (e && e.message) || String(e);
+      this.rigRetryAt = performance.now() + RIG_RETRY_MS;
+      if (!this.rigShown) this.container.dataset.rig = 'failed';
+    }).finally(() => { this.rigLoading = false; });
+  }
+
+  // Draw the pose with the rig when the loaded one is the pose's tree; false: draw the fallback instead.
+  _drawRig(poseMsg, pose) {
+    const want = pose.rig;
+    if (!want || !want.session) return this._hideRig('none');  // no fit yet: nothing to load
+    this._fetchRig(want);
+    const rig = this.rig;
+    if (!rig || !rig.fits(want)) return this._hideRig(this.rigLoading ? 'loading' : (this.rigError ? 'failed' : 'waiting'));
+    rig.apply(want, (kind, sensor) => this.mats[kind === 'end' || kind === 'root' ? 'done' : (this.jointState[sensor] || 'work')] || this.mats.work);
+    rig.holder.visible = true;
+    if (this.rigShown && this.rigShown.rig !== rig) this.rigShown.rig.dispose();
+    this.rigShown = { rig, pose: poseMsg };
+    const seq = want.fit_seq === undefined ? null : want.fit_seq;
+    this.container.dataset.rig = 'shown';
+    this.container.dataset.rigSession = rig.session;
+    this.container.dataset.rigFitSeq = rig.fitSeq === null ? 'final' : String(rig.fitSeq);
+    this.container.dataset.rigCurrent = String(rig.fitSeq === seq);
+    return true;
+  }
+
+  _hideRig(state) {
+    if (this.rigShown && this.rigShown.rig !== this.rig) this.rigShown.rig.dispose();
+    if (this.rig) this.rig.holder.visible = false;
+    this.rigShown = null;
+    this.container.dataset.rig = state;
+    return false;
+  }
+
   update(poseMsg) {
     const pose = normalisePose(poseMsg);
     pose.sensors = modelSensors(pose, this.placement);
@@ -362,7 +446,8 @@ export class SkeletonView {
       }
     }
     if (!this.webgl) { this._draw2d(); return; }
-    const named = pose.joints;
+    // With the rig drawn, the pose's own points and bones step aside; the sensors stay either way.
+    const named = this._drawRig(poseMsg, pose) ? [] : pose.joints;
     const joints = this._pool('joints', named.length, () => new THREE.Mesh(this.jointGeo, this.mats.work));
     named.forEach((j, i) => {
       const m = joints[i];
@@ -372,9 +457,10 @@ export class SkeletonView {
       const st = j.kind === 'end' || j.kind === 'root' ? 'done' : (this.jointState[j.name] || 'work');
       m.material = this.mats[st] || this.mats.work;
     });
-    const bones = this._pool('bones', pose.bones.length, () => new THREE.Mesh(this.boneGeo, this.boneMat));
+    const boneList = named.length ? pose.bones : [];
+    const bones = this._pool('bones', boneList.length, () => new THREE.Mesh(this.boneGeo, this.boneMat));
     const up = new THREE.Vector3(0, 1, 0);
-    pose.bones.forEach(([a, b], i) => {
+    boneList.forEach(([a, b], i) => {
       const pa = named[a] && named[a].p, pb = named[b] && named[b].p;
       if (!pa || !pb) { bones[i].visible = false; return; }
       const va = toView(pa), vb = toView(pb);
