@@ -2,8 +2,7 @@
 
 What counts as a reference (docs/development.md states the same convention for writers):
 
-- In a code span (`…`) outside fenced blocks, its head — the span up to the first space, `(`, `[`, `,`,
-  `:`, `=` or `→`:
+- In a code span (`…`) outside fenced blocks, its head — the dotted name it starts with:
   * a dotted name whose first part is a module of the repository (`flockcal.solver.fits`,
     `fits.pair_fits`, `server.fitting.fit_calibration`: any tail of a module's dotted name), a class of it
     (`PairFits.rms`), a variable name the pages use for a known type (`take.names`: VARIABLES below) or an
@@ -15,10 +14,13 @@ What counts as a reference (docs/development.md states the same convention for w
     (`detect_slips(take, batch_s=10.0)`) must be parameters of the function it resolves to, and a
     number, string, True/False/None given for one must be its default (pages write signatures, not
     example calls, in code spans; an example is a fenced block).
-  * a CamelCase name alone (`SlipWatch`): a class (or other CamelCase name) defined in the repository.
+  * a capitalised name alone (`SlipWatch`, `Take`): a class (or other such name) defined in the
+    repository, tests and benchmarks included; NOT_OURS lists the few that belong to other programs.
   * a path of the repository (`tests/server_helpers.py`, `routes/status.py`): a file or folder of that
-    name from the repository root or from one of the package folders; globs and placeholders
-    (`benchmarks/*.py`, `tests/test_x.py`) are not paths.
+    name from the repository root, the page's folder or a package folder, when its first folder is one
+    of those (`DIR/summary.csv` is a user's file) and git does not ignore it; globs and placeholders
+    (`benchmarks/*.py`, `tests/test_x.py`) are not paths. A bare source file name (`fitting.py`) must be
+    a file somewhere in the repository; other file names (`take.npz`) are a user's.
 - Not references: spans starting with a dot (`.names`, an attribute of what the sentence is about),
   single lowercase words (options, JSON fields, variables), dotted names whose head is nothing above
   (`args.func`), commands (`flockcal fit`), URLs, environment variables.
