@@ -497,3 +497,51 @@ def test_the_checker_reports_each_kind_of_reference_that_is_gone(tmp_path):
     for name in gone:
         assert any(name in p for p in problems), (name, problems)
     assert len(problems) == len(gone), problems
+
+
+# --- docs/internals.md's table of layers --------------------------------------------------------------
+LAYERS = ("base", "drivers", "simulator", "solver", "exports", "server", "commands")
+
+
+def layer_of(module: str) -> str | None:
+    """The layer of a dotted module name of this repository (None: not ours)."""
+    parts = module.split(".")
+    if parts[0] != "flockcal":
+        return None
+    if len(parts) > 1 and parts[1] in LAYERS:
+        return parts[1]
+    return "commands" if len(parts) > 1 and parts[1] in ("cli", "__main__") else "base"
+
+
+def imported_modules(tree: ast.AST) -> set[str]:
+    """Every module an import statement names, at any depth, except under `if TYPE_CHECKING:`."""
+    out: set[str] = set()
+
+    def visit(node):
+        if isinstance(node, ast.If) and isinstance(node.test, ast.Name) and node.test.id == "TYPE_CHECKING":
+            return
+        if isinstance(node, ast.ImportFrom) and node.module and not node.level:
+            out.add(node.module)
+        elif isinstance(node, ast.Import):
+            out.update(a.name for a in node.names)
+        for child in ast.iter_child_nodes(node):
+            visit(child)
+
+    visit(tree)
+    return out
+
+
+def test_the_table_of_layers_in_internals_is_what_the_modules_import():
+    # Tried against the code as it is: each layer's imports of other layers, besides the base layer.
+    found = {layer: set() for layer in LAYERS}
+    for name, path in module_files().items():
+        own = layer_of(name)
+        for mod in imported_modules(ast.parse(path.read_text(encoding="utf-8"))):
+            other = layer_of(mod)
+            if other not in (None, own, "base"):
+                found[own].add(other)
+    text = (ROOT / "docs" / "internals.md").read_text(encoding="utf-8")
+    rows = re.findall(r"^\| (\w+) \| [^|]+ \| ([^|]+) \|$", text, re.M)
+    table = {layer: {w for w in re.findall(r"\w+", cell) if w in LAYERS} for layer, cell in rows if layer in LAYERS}
+    assert set(table) == set(LAYERS), f"internals.md's table of layers lacks {set(LAYERS) - set(table)}"
+    assert table == found, {k: (table[k], found[k]) for k in LAYERS if table[k] != found[k]}
