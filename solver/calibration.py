@@ -7,7 +7,7 @@ JSON of docs/design.md §5 (built in solver/calibration_json.py).
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 
 import numpy as np
