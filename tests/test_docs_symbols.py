@@ -116,19 +116,15 @@ def code_index():
             elif isinstance(node, ast.ClassDef):
                 defined.add(node.name)
                 info = ClassInfo()
-                for sub in ast.walk(node):
-                    if isinstance(sub, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
-                        info.attrs.add(sub.name)
-                    elif isinstance(sub, ast.AnnAssign) and isinstance(sub.target, ast.Name):
-                        info.attrs.add(sub.target.id)
-                    elif isinstance(sub, (ast.Assign, ast.AnnAssign, ast.AugAssign)):
-                        for t in sub.targets if isinstance(sub, ast.Assign) else [sub.target]:
-                            for n in ast.walk(t):
-                                if isinstance(n, ast.Name):
-                                    info.attrs.add(n.id)
-                                elif (isinstance(n, ast.Attribute) and isinstance(n.value, ast.Name)
-                                      and n.value.id == "self"):
-                                    info.attrs.add(n.attr)
+                for stmt in node.body:  # the class body's own names (a method's locals are not attributes)
+                    if isinstance(stmt, (ast.FunctionDef, ast.AsyncFunctionDef, ast.ClassDef)):
+                        info.attrs.add(stmt.name)
+                    elif isinstance(stmt, (ast.Assign, ast.AnnAssign)):
+                        for t in stmt.targets if isinstance(stmt, ast.Assign) else [stmt.target]:
+                            info.attrs |= {n.id for n in ast.walk(t) if isinstance(n, ast.Name)}
+                info.attrs |= {n.attr for n in ast.walk(node)  # what its methods set on self
+                               if isinstance(n, ast.Attribute) and isinstance(n.ctx, ast.Store)
+                               and isinstance(n.value, ast.Name) and n.value.id == "self"}
                 classes.setdefault(node.name, []).append(info)
     for path in [*sorted((ROOT / "tests").glob("*.py")), *sorted((ROOT / "benchmarks").glob("*.py"))]:
         # Helpers the pages name (`ServerThread` of tests/server_helpers.py): names only, never imported.
@@ -159,9 +155,12 @@ def _attr_of_class(cls, attr: str) -> bool:
                if klass.__module__.startswith("flockcal"))
 
 
+_INSTANCE = object()  # what `_walk` gives past a class's attribute: something, of a type not followed
+
+
 def _walk(obj, parts: list[str]) -> tuple[object, str | None]:
     """Follow `parts` from `obj` (a module or class); (what it resolved to, the first part that did not)."""
-    for k, part in enumerate(parts):
+    for part in parts:
         if inspect.ismodule(obj):
             if hasattr(obj, part):
                 obj = getattr(obj, part)
@@ -177,9 +176,6 @@ def _walk(obj, parts: list[str]) -> tuple[object, str | None]:
         else:
             return _INSTANCE, None
     return obj, None
-
-
-_INSTANCE = object()
 
 
 def heads(first: str) -> list[object]:
