@@ -10,7 +10,7 @@ Two ways to run a guest, the same progress code either way (server/progress.py):
   pty streaming the guest in real time; a session is started over REST and the websocket's `fit` messages
   are read until one says done (≈ 25 s of wall time per guest);
 - `--mode pipeline` (quick, ≈ 5 s per guest): the service's own per-fit steps in session time, without
-  driver, server or slip monitor: the segmented accumulator, `calibrate_dict` and `ProgressTracker`, one
+  driver, server or slip monitor: the segmented accumulator, `fit_calibration` and `ProgressTracker`, one
   refit every 1/30 s of data (the service's fit rate).
 
 Bones: a bone between two ball joints is compared by length; a bone ending at a hinge (elbow, knee) by the
@@ -128,13 +128,13 @@ def bone_errors(fit: dict, truth: dict) -> dict:
 
 def reference_fit(perf: Performer, tolerance_m: float, seconds: float = REFERENCE_S) -> dict:
     """The guest's fit after `seconds` of the routine (the same per-fit code as the service, one fit)."""
-    from flockcal.server.fitting import accumulate, calibrate_dict, new_accumulator
+    from flockcal.server.fitting import accumulate, fit_calibration, new_accumulator
 
     acc = new_accumulator(perf.n_sensors, segmented=True)
     for k in range(int(seconds)):
         times = np.arange(int(k * RATE), int((k + 1) * RATE)) / RATE
         accumulate(acc, times, *perf.poses(times))
-    return calibrate_dict(acc, perf.names, tolerance=tolerance_m)
+    return fit_calibration(acc, perf.names, tolerance=tolerance_m)[0]
 
 
 def bones_moved(fit: dict, later: dict) -> float:
@@ -148,7 +148,7 @@ def bones_moved(fit: dict, later: dict) -> float:
 
 
 def run_pipeline(perf: Performer, max_s: float, prof: Profile, fit_hz: float = 30.0) -> dict:
-    from flockcal.server.fitting import accumulate, calibrate_dict, new_accumulator
+    from flockcal.server.fitting import accumulate, fit_calibration, new_accumulator
     from flockcal.server.progress import ProgressTracker
 
     acc = new_accumulator(perf.n_sensors, segmented=True)
@@ -159,7 +159,7 @@ def run_pipeline(perf: Performer, max_s: float, prof: Profile, fit_hz: float = 3
         times = np.arange(k * frames, (k + 1) * frames) / RATE
         R, t, valid = perf.poses(times)
         accumulate(acc, times, R, t, valid)
-        fit = calibrate_dict(acc, perf.names, tolerance=prof.tolerance_m)
+        fit = fit_calibration(acc, perf.names, tolerance=prof.tolerance_m)[0]
         doc = tracker.update(fit, float(times[-1]))
         docs.append((float(times[-1]), doc))
         if doc["done"]:
@@ -272,7 +272,7 @@ def real_knee(prof: Profile, fit_hz: float = 30.0) -> None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
     from real_captures import KNEE, cluster_take  # noqa: E402
 
-    from flockcal.server.fitting import accumulate, calibrate_dict, new_accumulator
+    from flockcal.server.fitting import accumulate, fit_calibration, new_accumulator
     from flockcal.server.progress import ProgressTracker
 
     take = cluster_take(KNEE)
@@ -284,7 +284,7 @@ def real_knee(prof: Profile, fit_hz: float = 30.0) -> None:
     for k in range(0, len(take.times), step):
         sl = slice(k, k + step)
         accumulate(acc, take.times[sl], take.rotations[sl], take.positions[sl], take.valid[sl])
-        fit = calibrate_dict(acc, list(take.names), tolerance=prof.tolerance_m)
+        fit = fit_calibration(acc, list(take.names), tolerance=prof.tolerance_m)[0]
         doc = tracker.update(fit, float(take.times[sl][-1] - take.times[0]))
         knee = next((j for j in doc["joint_progress"] if {j["joint"], j["parent"]} == {"r_thigh", "r_shank"}), None)
         if knee is not None and knee["done"] and knee_at is None:

@@ -24,7 +24,7 @@ import httpx
 import numpy as np
 
 from flockcal.server.framelog import FrameLog
-from flockcal.server.fitting import calibrate_dict, new_accumulator
+from flockcal.server.fitting import fit_calibration, new_accumulator
 from flockcal.server.store import Store
 from flockcal.simulator.performer import Performer
 
@@ -49,7 +49,7 @@ def make_session(data: Path, minutes: float) -> dict:
     R, p, valid = performer.poses(t)
     acc = new_accumulator(performer.n_sensors)
     acc.update(R, p, valid)
-    result = calibrate_dict(acc, performer.names)
+    result = fit_calibration(acc, performer.names)[0]
     rec = data / "recordings"
     rec.mkdir(parents=True, exist_ok=True)
     log = FrameLog(rec / f"{SID}.frames", list(performer.names), RATE)

@@ -1,7 +1,7 @@
 """Readable names for sensors and joints: 'l_forearm' → 'left forearm', the joint it ends → 'left elbow'.
 
 Base layer: the CLI tables, the report and the server's coaching all name things the same way; the
-dashboard's pages (server/static/common.js) mirror the table here.
+dashboard's pages read the table here too, as the script the service makes of it (/static/names.js).
 """
 
 from __future__ import annotations
@@ -11,9 +11,9 @@ from functools import lru_cache
 
 # Body keyword → the joint at its inboard end, and how far out along the body that joint sits: a joint is
 # named after the more distal of its two bodies, whichever way the tree happens to be rooted (docs/design.md §5
-# names a joint by its child, and the fitted tree's root need not be the pelvis). Same table as
-# static/common.js BODY_JOINTS.
-_BODY_JOINTS = [
+# names a joint by its child, and the fitted tree's root need not be the pelvis). The pages' jointLabel
+# reads it from the service (server/app.py serves it as /static/names.js), so patterns are JavaScript too.
+BODY_JOINTS = [
     (r"hand|wrist", "wrist", 5), (r"foot|ankle", "ankle", 5), (r"toe", "toes", 6), (r"head", "neck", 5),
     (r"fore ?arm|lower ?arm", "elbow", 4), (r"shin|shank|calf|lower ?leg|low ?leg|tibia", "knee", 4),
     (r"upper ?arm|up ?arm|humerus|\barm\b", "shoulder", 3), (r"thigh|upper ?leg|up ?leg|femur", "hip", 3),
@@ -51,7 +51,7 @@ def _body_joint(name: str) -> tuple[str, int] | None:
     for s in ("left ", "right "):
         if body.startswith(s):
             side, body = s, body[len(s):]
-    for pattern, joint, rank in _BODY_JOINTS:
+    for pattern, joint, rank in BODY_JOINTS:
         if re.search(pattern, body):
             return f"{side}{joint}", rank
     return None

@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import asyncio
+import json
 import logging
 from contextlib import asynccontextmanager
 from pathlib import Path
@@ -14,12 +15,13 @@ from pathlib import Path
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
 from fastapi.middleware.cors import CORSMiddleware
-from fastapi.responses import FileResponse, HTMLResponse, JSONResponse
+from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from flockcal import __version__
+from flockcal.names import BODY_JOINTS
 from flockcal.server.errors import ServerError
 from flockcal.server.backoff import TokenBackoff
 from flockcal.server.downloads import DownloadSlots
@@ -35,6 +37,14 @@ DOCS_ASSETS = "/static-docs"  # where Swagger UI's and ReDoc's scripts are serve
 PLACEHOLDER = """<!doctype html><meta charset="utf-8"><title>flockcal</title>
 <h1>flockcal is running</h1><p>The {what} page is not installed. The API is described at
 <a href="/docs">/docs</a>; live data streams from <code>/ws/live</code>.</p>"""
+
+
+def names_module() -> str:
+    """flockcal.names' joint-name table as the ES module the pages import (/static/names.js): one table
+    names the joints for the service's coaching and the pages' labels alike."""
+    rows = ",\n".join(f"  [new RegExp({json.dumps(p)}), {json.dumps(j)}, {r}]" for p, j, r in BODY_JOINTS)
+    head = "// Made by the service from flockcal/names.py: body keyword, its joint, how far out it sits."
+    return f"{head}\nexport const BODY_JOINTS = [\n{rows},\n];\n"
 
 
 def _error(status: int, message: str, code: str, headers: dict | None = None) -> JSONResponse:
@@ -221,7 +231,12 @@ def create_app(settings: Settings, service=None) -> FastAPI:
 
         return serve_page
 
+    async def names_script():
+        return Response(names_module(), media_type="text/javascript")
+
     app.add_api_route("/", page("index.html", "dashboard"), include_in_schema=False, methods=["GET"])
+    # Before the static mount, which would answer 404 for a file that is not there.
+    app.add_api_route("/static/names.js", names_script, include_in_schema=False, methods=["GET"])
     app.add_api_route("/kiosk", page("kiosk.html", "kiosk"), include_in_schema=False, methods=["GET"])
     if STATIC.is_dir():
         app.mount("/static", StaticFiles(directory=STATIC), name="static")

@@ -60,11 +60,6 @@ def fit_calibration(acc, names, hierarchy=None, root=None, skeleton=None, tolera
     return cal.to_dict(), cal
 
 
-def calibrate_dict(acc, names, hierarchy=None, root=None, skeleton=None, tolerance: float = 0.005) -> dict:
-    """The §5 dict of `fit_calibration`."""
-    return fit_calibration(acc, names, hierarchy, root, skeleton, tolerance)[0]
-
-
 def new_accumulator(m: int, segmented: bool = False) -> GramAccumulator | SegmentedAccumulator:
     """The session's accumulator; segmented ones can restart a slipped sensor's joints (docs/slippage.md)."""
     return SegmentedAccumulator(m) if segmented else GramAccumulator(m)

@@ -22,6 +22,7 @@ from flockcal.server.pipeline import Pipeline
 from flockcal.server.progress import progress_of, waiting
 from flockcal.server.settings import PERFORMER_RE, PERFORMER_RULE
 from flockcal.server.store import Store
+from flockcal.solver.hierarchy import check_hierarchy
 
 log = logging.getLogger(__name__)
 
@@ -83,31 +84,9 @@ class SessionManager:
 
     # --- checks ------------------------------------------------------------------------------------
     def check_hierarchy(self, hierarchy: dict | None, root: str | None) -> None:
-        names = set(self.names)
-        if root is not None and root not in names:
-            raise BadRequest(f"root {root!r} is not a sensor name; the sensors are: {', '.join(self.names)}")
-        if hierarchy is None:
-            return
-        unknown = sorted({x for kv in hierarchy.items() for x in kv} - names)
-        if unknown:
-            raise BadRequest(f"hierarchy names unknown sensor(s) {', '.join(unknown)}; the sensors are: {', '.join(self.names)}")
-        roots = names - set(hierarchy)
-        if len(roots) != 1:
-            raise BadRequest(
-                f"hierarchy must give a parent to every sensor but one (the root); "
-                f"{len(roots)} have none: {', '.join(sorted(roots))}"
-            )
-        if root is not None and root in hierarchy:
-            raise BadRequest(f"root {root!r} has a parent in the hierarchy; leave the root out of the map")
-        # Every chain must end at the root (no cycles).
-        (top,) = roots
-        for child in hierarchy:
-            seen, x = set(), child
-            while x != top:
-                if x in seen:
-                    raise BadRequest(f"hierarchy has a cycle through {x!r}")
-                seen.add(x)
-                x = hierarchy[x]
+        """BadRequest, with the solver's message, unless `root` is a sensor and `hierarchy` one tree over
+        the sensors rooted there (solver/hierarchy.py: the one check, which the fit makes again)."""
+        check_hierarchy(hierarchy, self.names, root, error=BadRequest)
 
     # --- lifecycle ---------------------------------------------------------------------------------
     def start(self, performer: str, hierarchy: dict | None = None, root: str | None = None,

@@ -7,13 +7,14 @@ JSON of docs/design.md §5 (built in solver/calibration_json.py).
 
 from __future__ import annotations
 
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from flockcal.solver.errors import SolverError
 from flockcal.solver.fits import TOLERANCE_M, PairFits, pair_fits
+from flockcal.solver.hierarchy import parse_hierarchy, sensor_index
 from flockcal.solver.hinge_point import hinge_offsets
 from flockcal.solver.topology import orient, rigid_bodies, spanning_tree
 
@@ -122,60 +123,6 @@ class Calibration:
         return calibration_json(cal)
 
 
-def _index(name, names: Sequence[str], what: str) -> int:
-    if isinstance(name, (int, np.integer)) and not isinstance(name, bool):
-        if 0 <= int(name) < len(names):
-            return int(name)
-        raise SolverError(f"{what}: sensor index {name} is out of range (0..{len(names) - 1})")
-    try:
-        return list(names).index(str(name))
-    except ValueError:
-        raise SolverError(f"{what}: unknown sensor {name!r} (the take has: {', '.join(names)})") from None
-
-
-def parse_hierarchy(hierarchy, names: Sequence[str]) -> np.ndarray:
-    """A parent index array (−1 at the root) from a {child: parent} map (names or indices, root omitted or
-    mapped to None) or from a parent array; SolverError naming the problem for anything that is not one tree.
-    """
-    m = len(names)
-    if isinstance(hierarchy, Mapping):
-        parent = np.full(m, -1)
-        explicit_roots = []
-        for child, par in hierarchy.items():
-            i = _index(child, names, "hierarchy")
-            if par is None or par == "":
-                explicit_roots.append(names[i])
-                continue
-            p = _index(par, names, "hierarchy")
-            if p == i:
-                raise SolverError(f"hierarchy: {names[i]!r} is given as its own parent")
-            parent[i] = p
-        if len(explicit_roots) > 1:
-            raise SolverError(f"hierarchy: the root is given twice ({', '.join(explicit_roots)}); a skeleton has one root")
-    else:
-        parent = np.asarray(hierarchy)
-        if parent.shape != (m,) or not np.issubdtype(parent.dtype, np.integer):
-            raise SolverError(f"hierarchy: a parent array must hold {m} integers, got {parent.shape} {parent.dtype}")
-        parent = parent.astype(int)
-        if ((parent < -1) | (parent >= m)).any() or (parent == np.arange(m)).any():
-            raise SolverError("hierarchy: parent indices must be −1 (root) or another sensor's index")
-    roots = np.flatnonzero(parent < 0)
-    # Walk up from every sensor at once, doubling the stride (up = the 2^k-th ancestor, −1 past a root):
-    # once 2^k ≥ m only sensors on or below a cycle have not reached a root.
-    up = parent.copy()
-    for _ in range(max(m - 1, 1).bit_length()):
-        up = np.where(up >= 0, up[np.maximum(up, 0)], up)
-    cyc = np.flatnonzero(up >= 0)
-    if len(cyc):
-        raise SolverError(f"hierarchy: {', '.join(names[i] for i in cyc)} form a cycle; a skeleton must be a tree")
-    if len(roots) > 1:
-        raise SolverError(
-            f"hierarchy: {len(roots)} sensors have no parent ({', '.join(names[i] for i in roots)}); "
-            "give every sensor but the root a parent"
-        )
-    return parent
-
-
 def calibrate(acc, hierarchy=None, root=None, names=None, tolerance: float = TOLERANCE_M,
               fits: PairFits | None = None) -> Calibration:
     """Fit the skeleton from accumulator `acc`: the given `hierarchy` ({child: parent}) or a searched tree.
@@ -190,12 +137,10 @@ def calibrate(acc, hierarchy=None, root=None, names=None, tolerance: float = TOL
     names = tuple(str(x) for x in (names if names is not None else range(m)))
     if len(names) != m:
         raise SolverError(f"{len(names)} names given for {m} sensors")
-    root_i = None if root is None else _index(root, names, "root")
+    root_i = None if root is None else sensor_index(root, names, "root")
     if hierarchy is not None:
-        parent = parse_hierarchy(hierarchy, names)
+        parent = parse_hierarchy(hierarchy, names, root)
         hroot = int(np.flatnonzero(parent < 0)[0])
-        if root_i is not None and root_i != hroot:
-            raise SolverError(f"root {names[root_i]!r} disagrees with the hierarchy, whose root is {names[hroot]!r}")
         kids = np.flatnonzero(parent >= 0)
         _, order = orient(np.stack([kids, parent[kids]], axis=1), m, hroot)
         jc = order[1:]

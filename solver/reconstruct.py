@@ -13,6 +13,7 @@ from functools import cached_property
 import numpy as np
 
 from flockcal.errors import FlockcalError
+from flockcal.solver.hierarchy import check_tree
 
 
 class ArticulationError(FlockcalError, ValueError):
@@ -122,25 +123,14 @@ class Articulation:
 
 
 def tree_order(parent: np.ndarray) -> np.ndarray:
-    """Root first, parents before children; raises ArticulationError unless `parent` is one rooted tree."""
+    """Root first, parents before children; raises ArticulationError unless `parent` is one rooted tree
+    (solver/hierarchy.py's `check_tree`, the one check of a tree)."""
     parent = np.asarray(parent, dtype=int)
-    roots = np.flatnonzero(parent < 0)
-    if len(roots) != 1:
-        raise ArticulationError(f"the parent map must have exactly one root, it has {len(roots)}")
-    order = [int(roots[0])]
-    seen = {order[0]}
+    order = [check_tree(parent, what="the parent map", error=ArticulationError)]
     k = 0
     while k < len(order):
-        for j in np.flatnonzero(parent == order[k]):
-            if int(j) not in seen:
-                seen.add(int(j))
-                order.append(int(j))
+        order += np.flatnonzero(parent == order[k]).tolist()
         k += 1
-    if len(order) != len(parent):
-        return_cycle = sorted(set(range(len(parent))) - seen)
-        raise ArticulationError(
-            f"bodies {return_cycle} are not connected to the root (a cycle or a missing parent in the map)"
-        )
     return np.asarray(order)
 
 

@@ -247,11 +247,6 @@ class SegmentedAccumulator:
                 rms[rows] = np.where(n > 0, np.sqrt(sq / n), fits.rms[rows])
         return replace(fits, rms=rms)
 
-    def calibration_dict(self, hierarchy=None, root=None, names=None, slip_events=None,
-                         tolerance: float = TOLERANCE_M) -> dict:
-        """docs/design.md §5 JSON of `calibration` (the same arguments)."""
-        return self.calibration(hierarchy, root, names, slip_events, tolerance).to_dict()
-
 
 def _rows_from(fits: PairFits, rows, other: PairFits, other_rows) -> PairFits:
     """`fits` with its `rows` replaced by `other`'s `other_rows` (same pairs, another segment's data)."""
@@ -352,17 +347,3 @@ def segmented_from_take(take, events) -> SegmentedAccumulator:
     seg.last_time = float(times[-1]) if n else float("nan")
     seg.apply(sorted(events, key=lambda e: e.time_s))
     return seg
-
-
-def calibrated_after_slips(take, events, hierarchy=None, root=None, tolerance: float = TOLERANCE_M) -> Calibration:
-    """A recorded take with slips calibrated: the whole-take calibration, except that every joint and
-    bone involving a slipped sensor is fitted on the frames since its (latest) slip, and `slip_events`
-    holds the events. `take` as for `detect_slips`; `events` from it."""
-    seg = segmented_from_take(take, events)
-    names = getattr(take, "names", None)
-    return seg.calibration(hierarchy=hierarchy, root=root, names=names, slip_events=events, tolerance=tolerance)
-
-
-def calibration_after_slips(take, events, hierarchy=None, root=None, tolerance: float = TOLERANCE_M) -> dict:
-    """docs/design.md §5 JSON of `calibrated_after_slips` (the same arguments)."""
-    return calibrated_after_slips(take, events, hierarchy, root, tolerance).to_dict()

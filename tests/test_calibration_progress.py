@@ -13,7 +13,7 @@ import math
 import numpy as np
 import pytest
 
-from flockcal.server.fitting import accumulate, calibrate_dict, new_accumulator
+from flockcal.server.fitting import accumulate, fit_calibration, new_accumulator
 from flockcal.server.progress import ProgressTracker, default_target, progress_of
 from flockcal.server.settings import Settings
 from flockcal.simulator.performer import Performer
@@ -228,7 +228,7 @@ def kiosk_guest():
         times = np.arange(int(round(k * step * 100)), int(round((k + 1) * step * 100))) / 100.0
         R, t, valid = perf.poses(times)
         accumulate(acc, times, R, t, valid)
-        f = calibrate_dict(acc, perf.names)
+        f = fit_calibration(acc, perf.names)[0]
         out.append((f, tracker.update(f, float(times[-1]))))
         if out[-1][1]["done"]:
             break
@@ -257,7 +257,7 @@ def test_a_performer_standing_still_is_never_calibrated():
     times = np.arange(0, 1500) / 100.0
     R, t, valid = perf.poses(times)
     accumulate(acc, times, R, t, valid)
-    doc = progress_of(calibrate_dict(acc, perf.names), TARGET)
+    doc = progress_of(fit_calibration(acc, perf.names)[0], TARGET)
     # design.md §3a: standing still determines no joint, so nothing is calibrated and every joint is named.
     assert doc["progress"] == 0.0 and not doc["done"] and len(doc["missing"]) == perf.n_sensors - 1
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from flockcal.server.fitting import accumulate, calibrate_dict, new_accumulator
+from flockcal.server.fitting import accumulate, fit_calibration, new_accumulator
 from flockcal.server.progress import ProgressTracker, profile
 from flockcal.simulator.performer import Performer
 
@@ -114,7 +114,7 @@ def guest_run(perf: Performer, max_s: float):
     for k in range(int(max_s * 30)):
         times = np.arange(k * step, (k + 1) * step) / RATE
         accumulate(acc, times, *perf.poses(times))
-        fit = calibrate_dict(acc, perf.names, tolerance=tracker.tolerance_m)
+        fit = fit_calibration(acc, perf.names, tolerance=tracker.tolerance_m)[0]
         doc = tracker.update(fit, float(times[-1]))
         if doc["done"]:
             return doc["done_at_s"], fit
@@ -134,7 +134,7 @@ def later_fit(perf: Performer, seconds: float) -> dict:
     for k in range(int(seconds)):
         times = np.arange(int(k * RATE), int((k + 1) * RATE)) / RATE
         accumulate(acc, times, *perf.poses(times))
-    return calibrate_dict(acc, perf.names, tolerance=0.010)
+    return fit_calibration(acc, perf.names, tolerance=0.010)[0]
 
 
 @pytest.mark.parametrize("seed, height", [(116, 1.948)])

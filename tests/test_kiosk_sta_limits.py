@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from flockcal.server.fitting import accumulate, calibrate_dict, new_accumulator
+from flockcal.server.fitting import accumulate, fit_calibration, new_accumulator
 from flockcal.server.progress import needed_errors
 from flockcal.simulator.motion import routine
 from flockcal.simulator.performer import Performer
@@ -26,7 +26,7 @@ def _whole_loop(perf: Performer) -> dict:
     for k in range(0, len(times), 2000):
         t = times[k:k + 2000]
         accumulate(acc, t, *perf.poses(t))
-    return calibrate_dict(acc, perf.names, hierarchy=perf.truth()["parent"], tolerance=TOLERANCE_M)
+    return fit_calibration(acc, perf.names, hierarchy=perf.truth()["parent"], tolerance=TOLERANCE_M)[0]
 
 
 def _ball_bone_errors(fit: dict, truth: dict) -> list[float]:

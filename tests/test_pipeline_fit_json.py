@@ -1,5 +1,6 @@
-"""calibrate_dict's §5 JSON is JSON-safe as the solver builds it (no NaN or infinity, no numpy scalars), so the
-live refit (~30×/s) returns it without a second walk; NaN in the fit arrays is null at the same places."""
+"""The live fit's §5 JSON (`fit_calibration`, what the fit worker runs) is JSON-safe as the solver builds it
+(no NaN or infinity, no numpy scalars), so the live refit (~30×/s) returns it without a second walk; NaN in
+the fit arrays is null at the same places."""
 
 import json
 import math
@@ -7,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from flockcal.server.fitting import accumulate, calibrate_dict, json_safe, new_accumulator
+from flockcal.server.fitting import accumulate, fit_calibration, json_safe, new_accumulator
 from flockcal.solver.calibration import calibrate
 from synthetic import articulated
 
@@ -45,11 +46,11 @@ def _assert_plain(x, path="fit"):
 
 @pytest.mark.parametrize("segmented", [False, True])
 @pytest.mark.parametrize("given", [False, True])
-def test_calibrate_dict_is_json_safe_as_built_with_no_data_pairs(take, segmented, given):
+def test_live_fit_dict_is_json_safe_as_built_with_no_data_pairs(take, segmented, given):
     acc, times = _fed(take, segmented)
     if segmented:
         acc.start_segment(2, times[len(times) // 2])  # a slip: sensor 2's joints refit on the frames since
-    fit = calibrate_dict(acc.copy(), take.names, hierarchy=take.parent if given else None)
+    fit = fit_calibration(acc.copy(), take.names, hierarchy=take.parent if given else None)[0]
     json.dumps(fit, allow_nan=False)
     _assert_plain(fit)
     assert json_safe(fit) == fit  # the walk the live path no longer makes would change nothing

@@ -3,7 +3,7 @@ guest never goes down without a reason it states: each fall names, on the joint 
 fit or a tree that now joins it elsewhere (issue #21's "no flapping", issue #19's soft-tissue guest).
 
 The guest runs through the service's own per-fit steps in session time (the segmented accumulator,
-`calibrate_dict`, `ProgressTracker`, one refit per 1/30 s as `serve --fit-hz 30`), without driver and
+`fit_calibration`, `ProgressTracker`, one refit per 1/30 s as `serve --fit-hz 30`), without driver and
 server: the same code the live pipeline calls, quick enough for CI.
 """
 
@@ -12,7 +12,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from flockcal.server.fitting import accumulate, calibrate_dict, new_accumulator
+from flockcal.server.fitting import accumulate, fit_calibration, new_accumulator
 from flockcal.server.progress import ProgressTracker, default_target
 from flockcal.simulator.performer import Performer
 
@@ -32,7 +32,7 @@ def published(seed: int, height: float, seconds: float) -> list[tuple[float, dic
         times = np.arange(k * step, (k + 1) * step) / RATE
         R, t, valid = perf.poses(times)
         accumulate(acc, times, R, t, valid)
-        docs.append((float(times[-1]), tracker.update(calibrate_dict(acc, perf.names, tolerance=TOLERANCE_M),
+        docs.append((float(times[-1]), tracker.update(fit_calibration(acc, perf.names, tolerance=TOLERANCE_M)[0],
                                                       float(times[-1]))))
     return docs
 

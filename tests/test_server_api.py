@@ -52,8 +52,8 @@ def assert_error(r: httpx.Response, status: int, *words: str):
 
 
 @pytest.mark.parametrize("case", ["malformed_json", "wrong_type", "missing_field", "unknown_field",
-                                  "traversal_name", "bad_hierarchy", "unknown_root", "oversized",
-                                  "oversized_chunked"])
+                                  "traversal_name", "bad_hierarchy", "cyclic_hierarchy", "unknown_root",
+                                  "root_off_the_hierarchy", "oversized", "oversized_chunked"])
 def test_bad_session_requests_get_4xx_and_change_nothing(server, case):
     before = db_rows(server)
     url = server.url + "/api/sessions"
@@ -75,6 +75,14 @@ def test_bad_session_requests_get_4xx_and_change_nothing(server, case):
     elif case == "bad_hierarchy":  # a hierarchy naming a sensor that does not exist
         r = httpx.post(url, json={"performer": "ann", "hierarchy": {"nope": "pelvis"}}, headers=hdr(ADMIN))
         assert_error(r, 400, "unknown sensor")
+    elif case == "cyclic_hierarchy":  # two sensors each other's parent (the solver's one check of a tree)
+        a, b, c, d = httpx.get(server.url + "/api/status", headers=hdr(READ)).json()["sensors"]
+        r = httpx.post(url, json={"performer": "ann", "hierarchy": {b: c, c: b, d: a}}, headers=hdr(ADMIN))
+        assert_error(r, 400, "cycle", b, c)
+    elif case == "root_off_the_hierarchy":  # a root the hierarchy gives a parent
+        a, b, c, d = httpx.get(server.url + "/api/status", headers=hdr(READ)).json()["sensors"]
+        r = httpx.post(url, json={"performer": "ann", "hierarchy": {b: a, c: b, d: c}, "root": c}, headers=hdr(ADMIN))
+        assert_error(r, 400, "root", repr(a), repr(c))
     elif case == "unknown_root":  # a root that is not a sensor
         r = httpx.post(url, json={"performer": "ann", "root": "tail"}, headers=hdr(ADMIN))
         assert_error(r, 400, "root")

@@ -1,5 +1,5 @@
-"""Slippage on recorded takes (`detect_slips`, `calibration_after_slips`), exact data, the event JSON
-and the errors a caller sees for unusable input."""
+"""Slippage on recorded takes (`detect_slips`, and `solve_take`: the re-fit after slips that `flockcal fit`
+and session resolve run), exact data, the event JSON and the errors a caller sees for unusable input."""
 
 from __future__ import annotations
 
@@ -10,8 +10,9 @@ from flockcal.simulator.take import simulate
 from flockcal.solver.accumulator import GramAccumulator
 from flockcal.solver.calibration import calibrate
 from flockcal.solver.fits import pair_fits
-from flockcal.solver.segments import SegmentedAccumulator, calibration_after_slips
+from flockcal.solver.segments import SegmentedAccumulator
 from flockcal.solver.slippage import SlipMonitor, SlippageError, detect_slips
+from flockcal.solver.solve import solve_take
 
 SLIP_AT = 12.0
 
@@ -45,7 +46,7 @@ def test_fit_output_after_a_slip_uses_post_slip_frames_for_the_slipped_sensor_on
     events = detect_slips(take, cal)
     tree = cal.to_dict()
     whole = calibrate(acc, hierarchy=tree["parent"], root=tree["root"], names=take.names).to_dict()
-    out = calibration_after_slips(take, events, hierarchy=tree["parent"], root=tree["root"])
+    out = solve_take(take, events, hierarchy=tree["parent"], root=tree["root"]).to_dict()
     assert [e["sensor"] for e in out["slip_events"]] == ["r_shin"]
     after = GramAccumulator(take.n_sensors, origin=acc.origin)
     keep = take.times >= events[0].time_s
@@ -135,7 +136,7 @@ def test_refit_accepts_stored_events_without_the_event_classes(slipped_take):
 
     take, truth = slipped_take
     stored = [SimpleNamespace(kind="slip", time_s=SLIP_AT, sensor_index=take.index("r_shin"))]
-    out = calibration_after_slips(take, stored, hierarchy=truth["parent"], root=truth["root"])
+    out = solve_take(take, stored, hierarchy=truth["parent"], root=truth["root"]).to_dict()
     refit = sorted(j["child"] for j in out["joints"] if "segment_start_s" in j)
     assert refit == ["r_foot", "r_shin"]
     assert out["slip_events"][0]["time_s"] == SLIP_AT

@@ -6,6 +6,7 @@
 import * as THREE from './vendor/three/three.module.js';
 import { OrbitControls } from './vendor/three/OrbitControls.js';
 import { parseRig, rigPath } from './rig.js';
+import { BODY_JOINTS } from './names.js'; // made by the service from flockcal/names.py
 
 // A token given once as ?token=… is kept for the tab, so reloads and reconnects keep working.
 const params = new URLSearchParams(location.search);
@@ -76,18 +77,6 @@ export function readable(name) {
   }
   return out.join(' ');
 }
-
-// Body keyword → the joint at its inboard end, with how far out along the body it sits (a joint
-// sits at the inboard end of the more distal of its two bodies, whichever way the tree is rooted).
-// The same table as flockcal.server.coaching, so the service's labels and the page's agree.
-const BODY_JOINTS = [
-  [/hand|wrist/, 'wrist', 5], [/foot|ankle/, 'ankle', 5], [/toe/, 'toes', 6], [/head/, 'neck', 5],
-  [/fore ?arm|lower ?arm/, 'elbow', 4], [/shin|shank|calf|lower ?leg|low ?leg|tibia/, 'knee', 4],
-  [/upper ?arm|up ?arm|humerus|\barm\b/, 'shoulder', 3], [/thigh|upper ?leg|up ?leg|femur/, 'hip', 3],
-  [/neck/, 'lower neck', 3], [/clavicle|shoulder/, 'collarbone', 2],
-  [/chest|thorax|upper ?back/, 'mid back', 2], [/abdomen|spine|torso|back|waist/, 'lower back', 1],
-  [/pelvis|hips?\b/, 'lower back', 0],
-];
 
 function bodyJoint(name) {
   let body = readable(name);
