@@ -142,7 +142,15 @@ def test_pages_draw_the_rig_and_three_js_puts_its_joints_on_the_pose(server, bro
         page.wait_for_selector("#session-state[data-state=stopped]", timeout=WAIT_MS)
 
         rig = final_rig(page, sid)
-        assert len(rig["pose"]["joints"]) == 16 + 5  # 16 bodies and the 5 leaves' sensors (hands, feet, head)
+        # 16 bodies (one the root), then an end at each leaf's sensor of the stored fit's tree: the human's
+        # 5 (hands, feet, head) once the tree is right; a take stopped this early may still have another.
+        result = page.evaluate("fetch('/api/sessions/%s/result', {headers: {Authorization: 'Bearer %s'}})"
+                               ".then(r => r.json())" % (sid, ADMIN))
+        parents = {j["parent"] for j in result["joints"]}
+        leaves = {j["child"] for j in result["joints"]} - parents
+        kinds = [j["kind"] for j in rig["pose"]["joints"]]
+        assert kinds.count("root") == 1 and kinds.count("joint") == 15, kinds
+        assert sorted(j["name"] for j in rig["pose"]["joints"] if j["kind"] == "end") == sorted(f"{x} sensor" for x in leaves)
         worst = agree(rig)
         # A second message of the same fit: the rig follows the stream, it is not one frozen frame.
         first_root = rig["pose"]["rig"]["root"]
