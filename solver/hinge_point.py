@@ -8,9 +8,10 @@ from __future__ import annotations
 import numpy as np
 
 # How far the true centre may lie from each rule's point, as a standard deviation: where the limb's bones
-# meet the axis is the centre up to an elbow's carrying angle or a knee's off-centre axis (the simulated
-# elbows and knees lie within 5 mm of it); the minimum-norm point is only "closest to the sensor origins",
-# and skin sensors sit 2–8 cm to one side of the bone.
+# meet the axis is the centre up to the bones' own bend about it (the simulated elbows and knees lie within
+# 6 mm of it on exact neighbours; the known-skeleton fit counts it as a measurement with this sd); the
+# minimum-norm point is only "closest to the sensor origins", and skin sensors sit 2–8 cm to one side of
+# the bone.
 LIMB_RULE_SD_M = 0.005
 MIN_NORM_SD_M = 0.05
 
@@ -36,16 +37,19 @@ def hinge_offsets(pairs: np.ndarray, c: np.ndarray, l: np.ndarray, axis_child: n
     Rule ("feet", docs/design.md §3c): a hinge joins two bodies; each of them that is a limb segment
     (exactly two joints) whose other joint is determined — a ball joint, or a hinge already placed by this
     rule — gives the foot of the perpendicular from that joint's centre onto the hinge axis, in that body's
-    frame: where the segment's long axis (joint centre to joint centre) meets the hinge axis. The hinge
-    sits at the mean of the feet it has (one or two). Chains of hinges are placed outward from the ball
+    frame (along the axis f, the distance r of that joint from the axis). With two, the hinge sits at
+    (r₁f₀ + r₀f₁)/(r₀ + r₁): the point from which both bones make the same angle with the axis, where the
+    limb's line crosses the axis once each bone is turned about it into one plane; an axis tilted along the
+    limb (a carrying angle) then cancels whatever the bones' lengths (the plain mean of the feet cancels
+    it only for equal bones). With one, its foot. Chains of hinges are placed outward from the ball
     joints, a hinge counting as a neighbour once it is placed itself. A hinge with no such neighbour keeps
     the minimum-norm point of its axis (the paper's "closest to the sensor origins").
 
-    The data count as far as they pin the point: the rule's point and the least-squares one are averaged
-    with weights 1/sd² — the rule's own sd (LIMB_RULE_SD_M, MIN_NORM_SD_M) and the least-squares error.
-    A hinge's error along its axis is over the tolerance by definition, so next to the limb rule the data
-    count for at most half, and under soft tissue (errors of 4–6 cm) for about 1 %; with no determined
-    neighbour, a real knee whose axis the trial pins to 6 mm keeps its measured point.
+    The data's own least-squares point counts only for the minimum-norm fallback, averaged with it by
+    weights 1/sd² (MIN_NORM_SD_M and the least-squares error): a real knee whose axis point the trial pins
+    to 6 mm, with no determined neighbour, keeps its measured point. Next to the limb rule it does not
+    count: along a barely turned axis under soft tissue it is off by centimetres while its stated error,
+    read from a routine that repeats, says millimetres (docs/design.md §3c has the figures).
 
     Returns (s, how, share): how is 2 or 1 (feet used), 0 (minimum-norm) or -1 (not a hinge: s = 0).
     """
@@ -92,13 +96,19 @@ def hinge_offsets(pairs: np.ndarray, c: np.ndarray, l: np.ndarray, axis_child: n
                 across = float(np.linalg.norm(d - along * a[k, side]))
                 if abs(along) * np.tan(MIN_BONE_AXIS_ANGLE) > across:
                     continue  # the bone runs too nearly along the axis to say where it meets it
-                feet.append(along)
-            if feet:
-                now[k] = (float(np.mean(feet)), len(feet))
+                feet.append((along, across))
+            if len(feet) == 2:
+                # Each bone weighted by the other's length: the point from which both bones make the same
+                # angle with the axis, so an axis tilted along the limb (a carrying angle) cancels whatever
+                # the two bones' lengths; the plain mean of the feet cancels it only for equal bones.
+                (f0, r0), (f1, r1) = feet
+                now[k] = ((r1 * f0 + r0 * f1) / (r0 + r1), 2)
+            elif feet:
+                now[k] = (feet[0][0], 1)
         if not now:
             break
         for k, (sk, n) in now.items():  # placed together: a pass sees only the passes before it
-            s[k], how[k], placed[k] = blended(k, sk, LIMB_RULE_SD_M), n, True
+            s[k], how[k], placed[k] = sk, n, True
             todo.discard(k)
     for k in todo:  # no placed neighbour anywhere along its chain: the minimum-norm point of the axis line
         s[k] = blended(k, -float(x[k, 0] @ a[k, 0] + x[k, 1] @ a[k, 1]) / 2.0, MIN_NORM_SD_M)

@@ -14,7 +14,10 @@ optical fit on purpose; "free", "hierarchy", "skeleton_file" and "saved_skeleton
 hinge's centre on its axis by the limb's bones (the elbow's bones moved 9.6–19.7 mm, towards the truth);
 all but "markers" gained `joints[].noise_error_m` with issue #30 (every other value kept as recorded);
 "markers" again after issue #31 (keys "merged", "joints_fitted_on", "pair_fit_joints"; its two joints placed
-by the pair fit over the rods' poses: the middle rod 496.7 -> 499.4 mm, truth 500).
+by the pair fit over the rods' poses: the middle rod 496.7 -> 499.4 mm, truth 500). "free", "hierarchy",
+"skeleton_file" and "saved_skeleton" again when a hinge's two feet were weighted by the other bone's length
+and the data's own point stopped counting next to the limb rule (issue #36: the left elbow moved 2.3 mm
+along its axis; its bones with it).
 A deliberate change of the output re-records a file, and its commit says why.
 """
 
