@@ -127,7 +127,7 @@ def judge_pairs(markers: np.ndarray, groups: list[np.ndarray], tolerance_m: floa
 def candidate_costs(
     markers: np.ndarray, groups: list[np.ndarray], frames: np.ndarray, candidate: np.ndarray, penalty: float = 1e-5,
     joint_groups: Callable[[int, int], tuple[np.ndarray, np.ndarray]] | None = None,
-    exercised: Exercised | None = None,
+    exercised: Exercised | None = None, points: np.ndarray | None = None,
 ) -> np.ndarray:
     """(G, G) cost of every candidate pair, inf elsewhere (no edge): the pair fit's residual rms where both
     bodies have a pose (`exercised.judged`), else the Kirk joint-point residual rms on `frames`, each kind
@@ -135,7 +135,9 @@ def candidate_costs(
 
     The pair fit holds one offset per body for the whole take, so a pair with no joint between them leaves
     centimetres (16–220 mm on the simulated walk, its true joints 3–7 mm); Kirk's point is free in every
-    frame and fits almost any two groups to a few millimetres, so it only decides where no pose can."""
+    frame and fits almost any two groups to a few millimetres, so it only decides where no pose can.
+    `points` (G, G): the residual of the point joint (`two_marker`) where judged (finite), before the
+    others: a take with bodies of two markers has its costs of this one kind wherever a body has a pose."""
     G = len(groups)
     pick = joint_groups or (lambda a, b: (groups[a], groups[b]))
     cost = np.full((G, G), np.inf)
@@ -148,6 +150,9 @@ def candidate_costs(
         return cache[key]
 
     for a, b in zip(*np.nonzero(np.triu(candidate, 1))):
+        if points is not None and np.isfinite(points[a, b]):
+            cost[a, b] = cost[b, a] = points[a, b]
+            continue
         if exercised is not None and exercised.judged[a, b] and np.isfinite(exercised.rms[a, b]):
             cost[a, b] = cost[b, a] = exercised.rms[a, b]
             continue
@@ -156,17 +161,22 @@ def candidate_costs(
         cost[a, b] = cost[b, a] = fit.rms
     if exercised is None:
         return cost
-    return on_own_scale(cost, exercised.judged & np.isfinite(exercised.rms))
+    kind = np.where(exercised.judged & np.isfinite(exercised.rms), 1, 0)
+    if points is not None:
+        kind = np.where(np.isfinite(points), 2, kind)
+    return on_own_scale(cost, kind)
 
 
 def on_own_scale(cost: np.ndarray, kind: np.ndarray) -> np.ndarray:
-    """`cost` with the pairs of each kind (`kind` True: pair fit, False: Kirk) divided by that kind's typical
-    true-joint residual: the median over bodies of their cheapest pair of the kind (a body's cheapest pair
-    is its joint in all but the rare case). The two residuals differ in size (the pair fit's is a 3-D error
-    with one offset for the take, Kirk's a distance error with a free point per frame); over their own
-    scales they compare, so a spanning tree can use both."""
+    """`cost` with the pairs of each kind (`kind`: 1 pair fit, 2 point joint, 0 Kirk; a bool array: pair fit
+    or Kirk) divided by that kind's typical true-joint residual: the median over bodies of their cheapest
+    pair of the kind (a body's cheapest pair is its joint in all but the rare case). The residuals differ in
+    size (the pair fit's is a 3-D error with one offset for the take, a point joint's and Kirk's distance
+    errors, Kirk's with a free point per frame); over their own scales they compare, so a spanning tree can
+    use them all."""
     out = cost.copy()
-    for mask in (kind, ~kind):
+    kind = np.asarray(kind).astype(int)
+    for mask in (kind == k for k in np.unique(kind)):
         c = np.where(mask, cost, np.inf)
         np.fill_diagonal(c, np.inf)
         best = c.min(axis=1)

@@ -1,0 +1,158 @@
+"""Bodies of two markers, whose pose is free about the line between them: a joint to one is judged and
+placed by the point fixed in a posed neighbour's frame at constant distances from both markers
+(`articulation.point_joints`), and the joint lends the body the third point its pose lacks, so that two
+such bodies can judge each other the same way.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from flockcal.solver.fits import TOLERANCE_M as SENSOR_TOLERANCE_M
+from flockcal.solver.optical.articulation import GroupPose, Verdict, group_pose, point_joints
+from flockcal.solver.optical.rigid import apply, rigid_fit
+
+FRAMED = 3  # markers a body needs for a pose of its own
+PAIR = 2  # markers of a body judged here
+PINNED_M = SENSOR_TOLERANCE_M  # a tree joint to a body of two markers: its centre pinned this well
+
+
+@dataclass(frozen=True)
+class PointJoint:
+    """The joint between `framed` (a body with a pose: its own, or lent) and `pair` (a body of two markers,
+    or of more: then both have a pose, and this is the direction with the smaller residual)."""
+
+    framed: int
+    pair: int
+    verdict: Verdict
+    centre: np.ndarray  # (3,) in `framed`'s pose frame
+    rms_m: float  # the pair's markers' distance from the centre, rms about their constant radii
+
+
+@dataclass
+class TwoMarkerJoints:
+    """Point joints of every pair of bodies where one has two markers and the other a pose (its own or lent
+    by its best joint); `lent[b] = (lender, centre)`: body b's pose from its two markers and its joint to the
+    lender."""
+
+    joints: dict[frozenset, PointJoint] = field(default_factory=dict)
+    lent: dict[int, PointJoint] = field(default_factory=dict)
+    poses: dict[int, GroupPose] = field(default_factory=dict)  # on the judging frames
+
+    def rms(self, G: int) -> np.ndarray:
+        """(G, G) the point joints' residuals (NaN where none was judged)."""
+        out = np.full((G, G), np.nan)
+        for j in self.joints.values():
+            out[j.framed, j.pair] = out[j.pair, j.framed] = j.rms_m
+        return out
+
+    def candidate(self, G: int) -> np.ndarray:
+        """(G, G) pairs whose joint the take determined: turned beyond noise, centre between them and pinned
+        within the sensor path's own tolerance (PINNED_M), not the 10 mm a posed pair earns: two markers
+        are any two the segmentation left together, and skin sliding in step with a joint pins a pivot too
+        (the upper-limb file's two clavicle markers against the box: 7.8 mm). Only those may be a tree edge,
+        as for two posed bodies (design.md §3a)."""
+        out = np.zeros((G, G), dtype=bool)
+        for j in self.joints.values():
+            out[j.framed, j.pair] = out[j.pair, j.framed] = (j.verdict.kind == "joint"
+                                                             and j.verdict.joint_error_m <= PINNED_M)
+        return out
+
+
+def lend(pose: GroupPose, pair: np.ndarray, centre: np.ndarray) -> GroupPose | None:
+    """The pose of a body of two markers `pair` (n, 2, 3) from them and a joint at `centre` in `pose`'s frame."""
+    p = apply(np.where(pose.ok[:, None, None], pose.R, np.eye(3)), pose.t, centre[None])  # (n, 1, 3)
+    p[~pose.ok] = np.nan
+    return group_pose(np.concatenate([pair, p], axis=1), np.arange(3))
+
+
+def padded(markers: np.ndarray, groups: list[np.ndarray], bodies: list[int]) -> np.ndarray:
+    """(n, S, q, 3) the markers of `bodies`, each padded with unseen markers to the largest's count q."""
+    q = max(len(groups[b]) for b in bodies)
+    M = np.concatenate([markers, np.full((len(markers), 1, 3), np.nan)], axis=1)
+    gap = markers.shape[1]
+    return np.stack([M[:, np.concatenate([groups[b], np.full(q - len(groups[b]), gap)]).astype(int)] for b in bodies], axis=1)
+
+
+def judge_two_marker(markers: np.ndarray, groups: list[np.ndarray], poses: dict[int, GroupPose]) -> TwoMarkerJoints:
+    """Point joints over the judging frames `markers` (n, k, 3): every posed body against every other body
+    of two markers or more (a pair of posed bodies keeps the direction with the smaller residual), so that
+    all their residuals are of one kind; then each body of two markers with a joint ("joint" verdict) to a
+    posed one borrows the best such joint (least residual) as its third point, and is judged against the
+    other bodies of two markers with that pose; repeated while new poses are lent (a chain of two-marker
+    bodies from the trunk out)."""
+    out = TwoMarkerJoints(poses=dict(poses))
+    pairs = [g for g in range(len(groups)) if len(groups[g]) == PAIR]
+    if not pairs:
+        return out
+    framers = [g for g in poses if poses[g] is not None]
+    targets = [g for g in range(len(groups)) if len(groups[g]) >= PAIR]
+    done: set[int] = set()
+    while True:
+        for a in framers:
+            if a in done:
+                continue
+            done.add(a)
+            lent = a in out.lent
+            others = [b for b in (pairs if lent else targets) if b != a
+                      and not (lent and frozenset((a, b)) in out.joints)]
+            if not others:
+                continue
+            pj = point_joints(out.poses[a], padded(markers, groups, others))
+            for s, b in enumerate(others):
+                key = frozenset((a, b))
+                if np.isfinite(pj.rms_m[s]) and (key not in out.joints or pj.rms_m[s] < out.joints[key].rms_m):
+                    out.joints[key] = PointJoint(a, b, pj.verdicts[s], pj.centre[s], float(pj.rms_m[s]))
+        fresh = []
+        for b in pairs:
+            if b in out.lent:
+                continue
+            best = min((j for j in out.joints.values() if j.pair == b and j.verdict.kind == "joint"),
+                       key=lambda j: j.rms_m, default=None)
+            if best is None:
+                continue
+            pose = lend(out.poses[best.framed], markers[:, groups[b]], best.centre)
+            if pose is not None:
+                out.lent[b], out.poses[b] = best, pose
+                fresh.append(b)
+        if not fresh:
+            return out
+        framers = fresh
+
+
+def full_pose(markers: np.ndarray, groups: list[np.ndarray], two: TwoMarkerJoints, g: int,
+              cache: dict | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(R, t, ok) of body g on every frame of `markers`, in the frame its judging pose was read in: its own
+    markers, or (a lent pose) its two markers and its lender's joint."""
+    cache = {} if cache is None else cache
+    if g not in cache:
+        pose = two.poses[g]
+        if g in two.lent:
+            j = two.lent[g]
+            R, t, ok = full_pose(markers, groups, two, j.framed, cache)
+            p = apply(np.where(ok[:, None, None], R, np.eye(3)), t, j.centre[None])
+            p[~ok] = np.nan
+            pts = np.concatenate([markers[:, groups[g]], p], axis=1)
+        else:
+            pts = markers[:, groups[g]]
+        full = group_pose(pts, np.arange(pts.shape[1]), shape=pose.shape)
+        cache[g] = (full.R, full.t, full.ok) if full is not None else rigid_fit(pose.shape, pts)
+    return cache[g]
+
+
+def point_joint_centres(markers: np.ndarray, groups: list[np.ndarray], two: TwoMarkerJoints, parent: np.ndarray,
+                        joints) -> tuple[dict[int, np.ndarray], dict[int, float]]:
+    """({child: (n, 3) world joint centre per frame}, {child: residual rms (m)}) for the tree joints `joints`
+    (children) that are point joints: the centre fixed in the framed side's pose (one point for the take,
+    as the pair fit places a joint between two posed bodies), NaN where that pose is unknown."""
+    cache: dict = {}
+    points, rms = {}, {}
+    for c in joints:
+        j = two.joints[frozenset((int(c), int(parent[c])))]
+        R, t, ok = full_pose(markers, groups, two, j.framed, cache)
+        p = apply(np.where(ok[:, None, None], R, np.eye(3)), t, j.centre[None])[:, 0]
+        p[~ok] = np.nan
+        points[int(c)], rms[int(c)] = p, j.rms_m
+    return points, rms
