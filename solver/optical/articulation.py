@@ -200,6 +200,7 @@ class PointJoints:
     verdicts: list  # (S,) Verdict
     centre: np.ndarray  # (S, 3) the joint in A's frame
     rms_m: np.ndarray  # (S,) rms of the two markers' distance from the centre about their constant radii
+    axis: np.ndarray  # (S, 3) the least-pinned direction in A's frame (a hinge's axis)
 
 
 def point_joints(A: GroupPose, pts: np.ndarray, tolerance: float = JOINT_TOLERANCE_M) -> PointJoints:
@@ -258,7 +259,7 @@ def point_joints(A: GroupPose, pts: np.ndarray, tolerance: float = JOINT_TOLERAN
     slide = np.einsum("si,si->s", free, 0.5 * np.nanmean(ybar, axis=1) - c)
     c = np.where(hinge[:, None], c + slide[:, None] * free, c)
     verdicts = [point_verdict(A, lam[s], err[s], c[s], ybar[s], free[s], tolerance) for s in range(S)]
-    return PointJoints(verdicts, c, np.where(np.isfinite(lam), rms, np.nan))
+    return PointJoints(verdicts, c, np.where(np.isfinite(lam), rms, np.nan), free)
 
 
 def point_verdict(A: GroupPose, lam: float, err: np.ndarray, c: np.ndarray, ybar: np.ndarray, free: np.ndarray,

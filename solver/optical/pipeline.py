@@ -309,7 +309,7 @@ def fit_markers(
     kids = {int(c) for c in np.flatnonzero(par >= 0)}
     posed = {c for c in kids if pair_route(exercised, c, int(par[c]))}
     pair_jp, pair_rms = pair_joint_points(M, groups, par, sorted(posed), exercised, pick)
-    point_jp, point_jrms = point_joint_centres(M, groups, two, par, sorted(pointed))
+    point_jp, point_jrms = point_joint_centres(M, groups, two, par, sorted(pointed), pair_jp)
     pair_jp, pair_rms = {**pair_jp, **point_jp}, {**pair_rms, **point_jrms}
     kirk = kids - posed - pointed
     jp, jrms, base, poses, redo = dict(pair_jp), dict(pair_rms), None, None, None

@@ -11,7 +11,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from flockcal.solver.fits import TOLERANCE_M as SENSOR_TOLERANCE_M
-from flockcal.solver.optical.articulation import GroupPose, Verdict, group_pose, point_joints
+from flockcal.solver.optical.articulation import JOINT_TOLERANCE_M, GroupPose, Verdict, group_pose, point_joints
 from flockcal.solver.optical.rigid import apply, rigid_fit
 
 FRAMED = 3  # markers a body needs for a pose of its own
@@ -29,6 +29,7 @@ class PointJoint:
     verdict: Verdict
     centre: np.ndarray  # (3,) in `framed`'s pose frame
     rms_m: float  # the pair's markers' distance from the centre, rms about their constant radii
+    axis: np.ndarray  # (3,) its least-pinned direction in `framed`'s frame (a hinge's axis)
 
 
 @dataclass
@@ -56,9 +57,16 @@ class TwoMarkerJoints:
         as for two posed bodies (design.md §3a)."""
         out = np.zeros((G, G), dtype=bool)
         for j in self.joints.values():
-            out[j.framed, j.pair] = out[j.pair, j.framed] = (j.verdict.kind == "joint"
-                                                             and j.verdict.joint_error_m <= PINNED_M)
+            out[j.framed, j.pair] = out[j.pair, j.framed] = determined(j)
         return out
+
+
+def determined(j: PointJoint) -> bool:
+    """A point joint the take determined: turned beyond noise, its centre between the two bodies and pinned
+    within PINNED_M, and the markers' distances to it constant within what skin leaves (JOINT_TOLERANCE_M
+    rms: a larger residual is no joint, however well a least-squares point is pinned; the simulated walk's
+    right forearm against the chest: 17 mm)."""
+    return j.verdict.kind == "joint" and j.verdict.joint_error_m <= PINNED_M and j.rms_m <= JOINT_TOLERANCE_M
 
 
 def lend(pose: GroupPose, pair: np.ndarray, centre: np.ndarray) -> GroupPose | None:
@@ -104,7 +112,7 @@ def judge_two_marker(markers: np.ndarray, groups: list[np.ndarray], poses: dict[
             for s, b in enumerate(others):
                 key = frozenset((a, b))
                 if np.isfinite(pj.rms_m[s]) and (key not in out.joints or pj.rms_m[s] < out.joints[key].rms_m):
-                    out.joints[key] = PointJoint(a, b, pj.verdicts[s], pj.centre[s], float(pj.rms_m[s]))
+                    out.joints[key] = PointJoint(a, b, pj.verdicts[s], pj.centre[s], float(pj.rms_m[s]), pj.axis[s])
         fresh = []
         for b in pairs:
             if b in out.lent:
@@ -143,16 +151,29 @@ def full_pose(markers: np.ndarray, groups: list[np.ndarray], two: TwoMarkerJoint
 
 
 def point_joint_centres(markers: np.ndarray, groups: list[np.ndarray], two: TwoMarkerJoints, parent: np.ndarray,
-                        joints) -> tuple[dict[int, np.ndarray], dict[int, float]]:
+                        joints, placed: dict[int, np.ndarray]) -> tuple[dict[int, np.ndarray], dict[int, float]]:
     """({child: (n, 3) world joint centre per frame}, {child: residual rms (m)}) for the tree joints `joints`
     (children) that are point joints: the centre fixed in the framed side's pose (one point for the take,
-    as the pair fit places a joint between two posed bodies), NaN where that pose is unknown."""
+    as the pair fit places a joint between two posed bodies), NaN where that pose is unknown. A hinge's
+    point on its axis follows design.md §3c's first rule where it can: the foot of the perpendicular from
+    the framed body's other joint (`placed`: world centres per frame of joints already placed, by child)."""
     cache: dict = {}
     points, rms = {}, {}
     for c in joints:
         j = two.joints[frozenset((int(c), int(parent[c])))]
         R, t, ok = full_pose(markers, groups, two, j.framed, cache)
-        p = apply(np.where(ok[:, None, None], R, np.eye(3)), t, j.centre[None])[:, 0]
+        Rv = np.where(ok[:, None, None], R, np.eye(3))
+        centre = j.centre
+        if j.verdict.hinge:
+            feet = []
+            for other in (k for k in placed if k != int(c) and j.framed in (k, int(parent[k]))):
+                y = np.einsum("nji,nj->ni", Rv, placed[other] - t)[ok]  # its centre in the framed body's frame
+                s = np.nanmedian(y, axis=0)
+                if np.isfinite(s).all():
+                    feet.append(centre + j.axis * float(j.axis @ (s - centre)))
+            if feet:
+                centre = np.mean(feet, axis=0)
+        p = apply(Rv, t, centre[None])[:, 0]
         p[~ok] = np.nan
         points[int(c)], rms[int(c)] = p, j.rms_m
     return points, rms
