@@ -39,6 +39,7 @@ class Exercised:
     rotations: np.ndarray  # (n, G, 3, 3) marker-only poses (identity where not valid)
     positions: np.ndarray  # (n, G, 3)
     valid: np.ndarray  # (n, G)
+    shapes: dict | None = None  # {g: (q, 3) body g's mean shape, the frame of its pose}
 
     def candidate(self) -> np.ndarray:
         """(G, G) pairs that may be a tree edge: determined, or not judgeable from poses (a body of two
@@ -50,9 +51,10 @@ class Exercised:
         return c
 
 
-def marker_poses(markers: np.ndarray, groups: list[np.ndarray]):
+def marker_poses(markers: np.ndarray, groups: list[np.ndarray], shapes: dict | None = None):
     """Per-body rotations (n, G, 3, 3), positions (n, G, 3), valid (n, G) from each framed body's own
-    markers (generalised Procrustes shape, Kabsch per frame), label swaps and glitches left out."""
+    markers (generalised Procrustes shape, Kabsch per frame), label swaps and glitches left out; each
+    framed body's shape goes into `shapes` when given."""
     n = markers.shape[0]
     G = len(groups)
     R = np.tile(np.eye(3), (n, G, 1, 1))
@@ -63,6 +65,8 @@ def marker_poses(markers: np.ndarray, groups: list[np.ndarray]):
             continue
         pts = markers[:, idx]
         shape, Rg, tg, ok = procrustes_mean(pts)
+        if shapes is not None:
+            shapes[g] = shape
         # A swapped or glitching label sits centimetres off the shape; soft tissue stays within the
         # segmentation's tolerance. Such marker-frames are dropped and the frame refitted once.
         res = np.linalg.norm(apply(Rg, tg, shape) - pts, axis=-1)
@@ -85,7 +89,8 @@ def judge_pairs(markers: np.ndarray, groups: list[np.ndarray], tolerance_m: floa
 
     G = len(groups)
     pick = joint_groups or (lambda a, b: (groups[a], groups[b]))
-    R, t, valid = marker_poses(markers, groups)
+    shapes: dict = {}
+    R, t, valid = marker_poses(markers, groups, shapes)
     # Each pair's two marker sets; the distinct sets are the "sensors" of one accumulator.
     sets: dict[tuple, int] = {}
     pair_sets = {}
@@ -121,7 +126,7 @@ def judge_pairs(markers: np.ndarray, groups: list[np.ndarray], tolerance_m: floa
         rms[a, b] = rms[b, a] = pf.rms
         derr[a, b] = derr[b, a] = pf.direction_error
     sizes = np.array([len(g) for g in groups])
-    return Exercised(framed, sizes, determined, judged, hinge, rms, derr, R, t, valid)
+    return Exercised(framed, sizes, determined, judged, hinge, rms, derr, R, t, valid, shapes)
 
 
 def candidate_costs(

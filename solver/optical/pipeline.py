@@ -214,17 +214,20 @@ def pair_route(exercised: Exercised, child: int, parent: int) -> bool:
     return bool((pinned <= PAIR_ROUTE_M).all())
 
 
-def two_marker_joints(markers: np.ndarray, groups: list[np.ndarray]) -> TwoMarkerJoints:
+def two_marker_joints(markers: np.ndarray, groups: list[np.ndarray], shapes: dict | None = None,
+                      posed_pairs: np.ndarray | None = None) -> TwoMarkerJoints:
     """The point joints of the bodies of two markers (`two_marker`), read on the segmentation's thorough
-    frames with each posed body's pose there."""
+    frames with each posed body's pose there (from its whole-take shape in `shapes` where given); of the
+    pairs of posed bodies, those in `posed_pairs` (default all)."""
     from flockcal.solver.optical.articulation import group_pose
     from flockcal.solver.optical.segmentation import THOROUGH_RUNS, judging_frames
 
     if not any(len(g) == 2 for g in groups):
         return TwoMarkerJoints()
     M = markers[judging_frames(len(markers), runs=THOROUGH_RUNS)]
-    poses = {g: group_pose(M, idx) for g, idx in enumerate(groups) if len(idx) >= 3}
-    return judge_two_marker(M, groups, poses)
+    shapes = shapes or {}
+    poses = {g: group_pose(M, idx, shape=shapes.get(g)) for g, idx in enumerate(groups) if len(idx) >= 3}
+    return judge_two_marker(M, groups, poses, posed_pairs)
 
 
 STAGES = ("segmentation", "exercised joints and tree", "joints and poses", "second pass without swaps")
@@ -281,7 +284,7 @@ def fit_markers(
     sizes = np.array([len(g) for g in groups])
     # A body of two markers has no pose, but a joint to it has a centre fixed in its posed neighbour's frame:
     # judged so (`two_marker`), it needs no Kirk fit, which fits almost any pair.
-    two = two_marker_joints(M, groups)
+    two = two_marker_joints(M, groups, exercised.shapes, exercised.candidate())
     point_rms = two.rms(len(groups))
     posed_pair = exercised.judged & np.isfinite(exercised.rms)
     candidate = np.where(np.isfinite(point_rms) & ~posed_pair, two.candidate(len(groups)), exercised.candidate())

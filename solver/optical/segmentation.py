@@ -262,12 +262,13 @@ class Judge:
         framed, few = (a, b) if len(a) >= len(b) else (b, a)
         if len(few) < FRAMED:
             verdict = UNJUDGED
-            if len(few) == 2 and len(framed) >= FRAMED:
+            if len(few) == 2 and len(framed) >= FRAMED and motion <= tolerance:
                 # Two markers have a direction: a joint that pins a point between them and a framed group
                 # keeps them apart (a pelvis of two markers must not go into the abdomen a joint moved it
                 # against). Read at the sensor path's 5 mm (PAIR_JOINT_M): the pair is any two markers the
                 # linkage put together so far, and skin sliding in step with a joint pins a pivot too (the
-                # real knee trial's RTHI2+RTHI3 against the epicondyles and RTHI1: 8.9 mm).
+                # real knee trial's RTHI2+RTHI3 against the epicondyles and RTHI1: 8.9 mm). Read only
+                # where the size alone would merge them: beyond the tolerance it refuses anyway.
                 verdict = self.small(framed, few, PAIR_JOINT_M)
             if motion <= tolerance and len(few) >= 2:
                 # Two markers with no pose of their own join a group only if they stay within the tolerance

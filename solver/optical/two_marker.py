@@ -76,27 +76,51 @@ def lend(pose: GroupPose, pair: np.ndarray, centre: np.ndarray) -> GroupPose | N
     return group_pose(np.concatenate([pair, p], axis=1), np.arange(3))
 
 
-def padded(markers: np.ndarray, groups: list[np.ndarray], bodies: list[int]) -> np.ndarray:
-    """(n, S, q, 3) the markers of `bodies`, each padded with unseen markers to the largest's count q."""
-    q = max(len(groups[b]) for b in bodies)
+# A body's markers a point joint is judged on at most: four spread ones pin a point as well as all of a
+# thorax's thirteen (constant distances to three non-collinear markers already fix it in their frame), at
+# a third of the cost.
+JUDGED_MARKERS = 4
+
+
+def spread(markers: np.ndarray, idx: np.ndarray, count: int = JUDGED_MARKERS) -> np.ndarray:
+    """Up to `count` of the markers `idx`, spread out: greedily the farthest from those chosen (median
+    distances over the frames), starting from the pair farthest apart."""
+    if len(idx) <= count:
+        return idx
+    few = markers[:: max(1, len(markers) // 100), idx]  # a hundred frames give the distances to a millimetre
+    d = np.nanmedian(np.linalg.norm(few[:, :, None] - few[:, None, :], axis=-1), axis=0)
+    d = np.where(np.isfinite(d), d, 0.0)
+    a, b = np.unravel_index(np.argmax(d), d.shape)
+    chosen = [int(a), int(b)]
+    while len(chosen) < count:
+        chosen.append(int(np.argmax(d[chosen].min(0))))
+    return idx[np.sort(chosen)]
+
+
+def padded(markers: np.ndarray, picks: list[np.ndarray]) -> np.ndarray:
+    """(n, S, q, 3) the markers `picks` of S bodies, each padded with unseen markers to q, the most any has."""
+    q = max(len(p) for p in picks)
     M = np.concatenate([markers, np.full((len(markers), 1, 3), np.nan)], axis=1)
     gap = markers.shape[1]
-    return np.stack([M[:, np.concatenate([groups[b], np.full(q - len(groups[b]), gap)]).astype(int)] for b in bodies], axis=1)
+    return np.stack([M[:, np.concatenate([p, np.full(q - len(p), gap)]).astype(int)] for p in picks], axis=1)
 
 
-def judge_two_marker(markers: np.ndarray, groups: list[np.ndarray], poses: dict[int, GroupPose]) -> TwoMarkerJoints:
+def judge_two_marker(markers: np.ndarray, groups: list[np.ndarray], poses: dict[int, GroupPose],
+                     posed_pairs: np.ndarray | None = None) -> TwoMarkerJoints:
     """Point joints over the judging frames `markers` (n, k, 3): every posed body against every other body
     of two markers or more (a pair of posed bodies keeps the direction with the smaller residual), so that
     all their residuals are of one kind; then each body of two markers with a joint ("joint" verdict) to a
     posed one borrows the best such joint (least residual) as its third point, and is judged against the
     other bodies of two markers with that pose; repeated while new poses are lent (a chain of two-marker
-    bodies from the trunk out)."""
+    bodies from the trunk out). `posed_pairs` (G, G): the pairs of posed bodies to judge so (default all;
+    a pair the pair fit left undetermined is no tree edge whatever its cost)."""
     out = TwoMarkerJoints(poses=dict(poses))
     pairs = [g for g in range(len(groups)) if len(groups[g]) == PAIR]
     if not pairs:
         return out
     framers = [g for g in poses if poses[g] is not None]
     targets = [g for g in range(len(groups)) if len(groups[g]) >= PAIR]
+    picks = {b: spread(markers, groups[b]) for b in targets}
     done: set[int] = set()
     while True:
         for a in framers:
@@ -105,10 +129,11 @@ def judge_two_marker(markers: np.ndarray, groups: list[np.ndarray], poses: dict[
             done.add(a)
             lent = a in out.lent
             others = [b for b in (pairs if lent else targets) if b != a
-                      and not (lent and frozenset((a, b)) in out.joints)]
+                      and not (lent and frozenset((a, b)) in out.joints)
+                      and (len(groups[b]) == PAIR or posed_pairs is None or posed_pairs[a, b])]
             if not others:
                 continue
-            pj = point_joints(out.poses[a], padded(markers, groups, others))
+            pj = point_joints(out.poses[a], padded(markers, [picks[b] for b in others]))
             for s, b in enumerate(others):
                 key = frozenset((a, b))
                 if np.isfinite(pj.rms_m[s]) and (key not in out.joints or pj.rms_m[s] < out.joints[key].rms_m):
