@@ -78,7 +78,7 @@ def two_marker_fit(request):
 
 def test_two_marker_bodies_are_found_and_joined_by_their_point_joints(two_marker_fit):
     # docs/optical.md, issue 31 table (2-4 markers, seed 0): every body and every marker (walk and kiosk
-    # 16/16, 1.000), 12 of 15 true edges, 2 wrong on the walk and none on the kiosk. Before (Kirk's fit
+    # 16/16, 1.000), 12 of 15 true edges, 1 wrong on the walk and none on the kiosk. Before (Kirk's fit
     # judging every joint to a body of two markers): 15/16 bodies on the walk, 11/15 and 12/15 edges with 3
     # wrong each. Margins: one edge either way.
     truth, out = two_marker_fit
@@ -87,6 +87,6 @@ def test_two_marker_bodies_are_found_and_joined_by_their_point_joints(two_marker
         assert {truth["marker_body"][m] for m in markers} == {label}, (label, markers)
     found, true = ({frozenset(e) for e in p.items()} for p in (out["parent"], truth["parent"]))
     assert len(found & true) >= 11
-    assert len(found - true) <= 3
+    assert len(found - true) <= 2
     two = {b for b, ms in out["bodies"].items() if len(ms) == 2}
     assert out["point_joints"] and all(set(j) & two for j in out["point_joints"])

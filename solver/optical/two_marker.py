@@ -14,7 +14,6 @@ from flockcal.solver.fits import TOLERANCE_M as SENSOR_TOLERANCE_M
 from flockcal.solver.optical.articulation import JOINT_TOLERANCE_M, GroupPose, Verdict, group_pose, point_joints
 from flockcal.solver.optical.rigid import apply, rigid_fit
 
-FRAMED = 3  # markers a body needs for a pose of its own
 PAIR = 2  # markers of a body judged here
 PINNED_M = SENSOR_TOLERANCE_M  # a tree joint to a body of two markers: its centre pinned this well
 
@@ -35,8 +34,9 @@ class PointJoint:
 @dataclass
 class TwoMarkerJoints:
     """Point joints of every pair of bodies where one has two markers and the other a pose (its own or lent
-    by its best joint); `lent[b] = (lender, centre)`: body b's pose from its two markers and its joint to the
-    lender."""
+    by its best joint), by the pair; `lent[b]`: the joint whose centre, with body b's two markers, gives b
+    its pose (its best "joint" verdict: pinned within the 10 mm a pose earns, for judging only, not yet an
+    edge)."""
 
     joints: dict[frozenset, PointJoint] = field(default_factory=dict)
     lent: dict[int, PointJoint] = field(default_factory=dict)
