@@ -10,6 +10,11 @@ saved as a marker .npz, in a new interpreter, start-up included (issue 31: ≤ 3
 
     python benchmarks/bench_optical_sim.py                       # walk and kiosk, seeds 0-5, 8 mm
     python benchmarks/bench_optical_sim.py --seeds 0 1 --sta 12 --fresh
+    python benchmarks/bench_optical_sim.py --routines walk --seeds 1 --per-body 3 4 --joint-bias   # and --sta 0
+
+`--joint-bias` also prints, per case, how far each tree joint's reported centre (`fit.joint_points`) sits
+from the simulator's true joint centre (the child bone's origin): the constant offset (median over frames,
+in the true bone's frame) and the scatter about it; median and range over the true joints found.
 """
 
 from __future__ import annotations
@@ -95,6 +100,34 @@ def simulate(routine: str, seed: int, sta_mm: float, seconds: float, rate_hz: fl
                                noise_m=0.001, occlusion=0.036, n_swaps=1, sta_mm=sta_mm)
 
 
+def joint_bias(fit, truth: dict, routine: str, seed: int, seconds: float, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
+    """(offset, scatter) in metres for each found tree joint that is a true joint: the median over frames
+    of the reported centre minus the true one, in the true bone's frame (its norm), and the median
+    distance of the per-frame error from that offset."""
+    from flockcal.simulator import motion as motion_lib
+    from flockcal.simulator.optical import bone_poses, by_name
+
+    model = by_name("human", seed=seed)
+    mo = motion_lib.routine(model, routine, seconds, rate_hz, seed)
+    L, root_t, _ = mo.pose(mo.times)
+    B, b = bone_poses(model, L, root_t)
+    names, tp = list(model.names), truth["parent"]
+    offset, scatter = [], []
+    for c in np.flatnonzero(fit.tree.parent >= 0):
+        child, parent = fit.labels[c], fit.labels[fit.tree.parent[c]]
+        bone = child if tp.get(child) == parent else parent if tp.get(parent) == child else None
+        if bone is None or int(c) not in fit.joint_points:
+            continue
+        j = names.index(bone)
+        e = fit.joint_points[int(c)] - b[:, j]
+        ok = np.isfinite(e).all(1)
+        local = np.einsum("nji,nj->ni", B[ok, j], e[ok])
+        med = np.median(local, axis=0)
+        offset.append(float(np.linalg.norm(med)))
+        scatter.append(float(np.median(np.linalg.norm(local - med, axis=1))))
+    return np.array(offset), np.array(scatter)
+
+
 def fresh_wall(take, tmp: Path) -> float:
     """Wall time of `flockcal fit-markers --json` on the take in a new interpreter."""
     from flockcal.markers import save_markers
@@ -121,6 +154,7 @@ def main() -> int:
                     help="markers a body (default 2 4)")
     ap.add_argument("--fresh", action="store_true", help="also time a fresh `flockcal fit-markers` process")
     ap.add_argument("--verbose", action="store_true", help="print the swaps and the wrong edges")
+    ap.add_argument("--joint-bias", action="store_true", help="print the joint centres' offset from the truth")
     args = ap.parse_args()
     from flockcal.solver.optical.pipeline import fit_markers
 
@@ -132,7 +166,8 @@ def main() -> int:
             for seed in args.seeds:
                 take, truth = simulate(routine, seed, args.sta, args.seconds, args.rate, args.per_body)
                 t0 = time.perf_counter()
-                out = fit_markers(take.markers, take.marker_names, take.rate_hz, take.times).to_dict()
+                fit = fit_markers(take.markers, take.marker_names, take.rate_hz, take.times)
+                out = fit.to_dict()
                 wall = time.perf_counter() - t0
                 s = score(out, truth)
                 fresh = f"{fresh_wall(take, Path(tmp)):7.2f}" if args.fresh else f"{'-':>7}"
@@ -142,6 +177,12 @@ def main() -> int:
                       f"{wall:6.2f} {fresh}")
                 if args.verbose:
                     print(f"        swaps {s['swaps']} found {s['swap_events']}")
+                if args.joint_bias:
+                    off, sc = joint_bias(fit, truth, routine, seed, args.seconds, args.rate)
+                    if off.size:
+                        print(f"        joint centres: offset median {1000 * np.median(off):.1f} mm "
+                              f"({1000 * off.min():.1f}-{1000 * off.max():.1f}) over {off.size} joints; "
+                              f"scatter about it {1000 * sc.min():.1f}-{1000 * sc.max():.1f} mm")
     print(f"load average after: {' '.join(f'{x:.1f}' for x in os.getloadavg())}")
     return 0
 

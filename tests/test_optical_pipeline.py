@@ -48,15 +48,22 @@ def test_bodies_are_recovered_and_named_after_their_markers(human_fit):
         assert {truth["marker_body"][m] for m in markers} == {label}
 
 
-def test_topology_is_the_true_tree(human_fit):
+def test_topology_has_only_true_edges(human_fit):
+    # 2-4 markers a body: a joint to a body of two markers is a tree edge only when a point fixed in its
+    # posed neighbour's frame is pinned within the sensor path's 5 mm (docs/optical.md); one pinned worse
+    # leaves a forest rather than a wrong edge. Measured 14 of 15 true edges, none wrong (the pelvis of two
+    # markers to the left thigh is pinned to 5.2 mm); margin 1 edge. Before, Kirk's fit judged these joints
+    # and this take's tree was right, while the simulated walks under soft tissue had 3-4 wrong edges.
     _, truth, _, out = human_fit
-    assert edge_set(out["parent"]) == edge_set(truth["parent"])
+    found, true = edge_set(out["parent"]), edge_set(truth["parent"])
+    assert found <= true
+    assert len(found) >= len(true) - 2
 
 
 def test_bone_lengths_within_a_few_mm_at_1mm_marker_noise(human_fit):
     _, truth, _, out = human_fit
     errs, n_true = bone_errors(out, truth)
-    assert len(errs) >= n_true - 3  # root bones differ when the chosen root is another body
+    assert len(errs) >= n_true - 6  # the bones between the forest's found joints (measured 10 of 15)
     assert np.median(errs) < 0.003
     assert errs.max() < 0.008
 
@@ -88,7 +95,8 @@ def test_json_has_the_fit_contract_shape_plus_bodies(human_fit):
         assert key in j
     assert len(j["singular_values"]) == 6 and len(j["coverage"]) == 3
     assert out["sensors"] == list(fit.labels)
-    assert out["root"] not in out["parent"] and len(out["parent"]) == len(out["sensors"]) - 1
+    assert out["root"] not in out["parent"] and len(out["parent"]) <= len(out["sensors"]) - 1
+    assert set(out["parent"]) | set(out["parent"].values()) | set(out["unjoined"]) | {out["root"]} == set(out["sensors"])
 
 
 def test_derived_poses_go_through_the_magnetic_solver_and_agree(human_fit):

@@ -221,3 +221,7 @@ def test_upper_limb_tree_follows_the_arm_in_anatomical_order_where_exercised(upp
     assert relative_turn_deg(take, "humerus", "forearm") > MOVED_DEG and relative_turn_deg(take, "forearm", "hand") > MOVED_DEG
     edges = tree_edges(out)
     assert frozenset([humerus, forearm]) in edges and frozenset([forearm, hand]) in edges
+    # Issue 31: the humerus hangs from the scapula's markers (the acromion group), not the sternum's, once
+    # the two clavicle markers that a joint moved against the thorax are a body of their own.
+    assert "scapula" in segments_in(fit, mt, info, out["parent"][humerus]), out["parent"][humerus]
+    assert body_of(fit, mt, "boite:gauche_ext") in out["unjoined"] and body_of(fit, mt, "ASISr") in out["unjoined"]

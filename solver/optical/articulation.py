@@ -14,7 +14,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flockcal.solver.optical.rigid import apply, procrustes_mean, rigid_fit
+from flockcal.solver.optical.rigid import apply, procrustes_mean, rigid_fit, to_body
 
 # The sensor path's rule with the sensor path's tolerance scaled to skin markers: a marker cluster's pose
 # carries the soft tissue's 5–15 mm, so a centre pinned within 10 mm along every direction (or a hinge whose
@@ -157,77 +157,119 @@ def rotation_ratio(A: GroupPose, B: GroupPose, ok: np.ndarray) -> float:
     return float(np.linalg.eigvalsh(Li @ C @ Li.T).max())
 
 
-def direction_ratio(A: GroupPose, pair: np.ndarray) -> float:
-    """For a group of two markers `pair` (n, 2, 3), which has a direction but no pose: the largest variance
-    of its direction in A's frame, across the direction, over what A's pose noise and the pair's own skin
-    add there (the pair's skin read from how much its own distance varies)."""
-    ok = A.ok & np.isfinite(pair).all(axis=(1, 2))
-    if ok.sum() < MIN_FRAMES:
-        return float("nan")
-    y = (pair[ok] - A.t[ok][:, None, :]) @ A.R[ok]  # (f, 2, 3) in A's frame
-    v = y[:, 1] - y[:, 0]
-    d = np.linalg.norm(v, axis=1)
-    u = v / d[:, None]
-    um = u.mean(0)
-    um /= np.linalg.norm(um)
-    P = np.eye(3) - np.outer(um, um)
-    C = P @ np.cov(u.T) @ P
-    skin = np.var(d) / 2.0  # the distance varies by the two markers' slide along it: σ² per coordinate
-    ux = np.array([[0, -um[2], um[1]], [um[2], 0, -um[0]], [-um[1], um[0], 0]])
-    N = ux @ A.noise @ ux.T + (2.0 * skin / float(np.mean(d)) ** 2) * P
+def direction_ratios(A: GroupPose, pairs: np.ndarray) -> np.ndarray:
+    """For groups of two markers `pairs` (n, S, 2, 3), each with a direction but no pose: the largest
+    variance of its direction in A's frame, across the direction, over what A's pose noise and the pair's
+    own skin add there (the pair's skin read from how much its own distance varies); (S,), NaN where the
+    pair and A share too few frames."""
+    y = to_body(np.where(A.ok[:, None, None], A.R, np.eye(3)), A.t, pairs.reshape(len(pairs), -1, 3))
+    y = y.reshape(pairs.shape)  # (n, S, 2, 3) in A's frame
+    ok = A.ok[:, None] & np.isfinite(y).all(axis=(2, 3))  # (n, S)
+    cnt = ok.sum(0)
+    v = y[:, :, 1] - y[:, :, 0]
+    d = np.linalg.norm(v, axis=-1)
+    u = np.where(ok[..., None], v / np.where(ok, d, 1.0)[..., None], 0.0)
+    um = u.sum(0) / np.maximum(cnt, 1)[:, None]
+    um /= np.maximum(np.linalg.norm(um, axis=1), 1e-300)[:, None]
+    du = np.where(ok[..., None], u - u.sum(0)[None] / np.maximum(cnt, 1)[None, :, None], 0.0)
+    C = np.einsum("nsi,nsj->sij", du, du) / np.maximum(cnt - 1, 1)[:, None, None]
+    P = np.eye(3)[None] - np.einsum("si,sj->sij", um, um)
+    C = P @ C @ P
+    dm = np.where(ok, d, 0.0).sum(0) / np.maximum(cnt, 1)
+    skin = np.where(ok, (d - dm[None]) ** 2, 0.0).sum(0) / np.maximum(cnt, 1) / 2.0  # σ² per coordinate
+    zero = np.zeros(len(um))
+    ux = np.stack([np.stack([zero, -um[:, 2], um[:, 1]], -1), np.stack([um[:, 2], zero, -um[:, 0]], -1),
+                   np.stack([-um[:, 1], um[:, 0], zero], -1)], axis=1)
+    N = ux @ A.noise @ ux.transpose(0, 2, 1) + (2.0 * skin / np.maximum(dm, 1e-12) ** 2)[:, None, None] * P
     # Across the direction only (the plane P): whiten there and read the largest ratio.
     w, V = np.linalg.eigh(N)
-    plane = V[:, np.argsort(w)[1:]]  # N's null direction is along the pair; keep the other two
-    Np, Cp = plane.T @ N @ plane, plane.T @ C @ plane
-    Li = np.linalg.inv(np.linalg.cholesky(Np + 1e-18 * np.eye(2)))
-    return float(np.linalg.eigvalsh(Li @ Cp @ Li.T).max())
+    plane = np.take_along_axis(V, np.argsort(w, axis=1)[:, None, 1:], axis=2)  # N's null direction is along the pair
+    Np, Cp = plane.transpose(0, 2, 1) @ N @ plane, plane.transpose(0, 2, 1) @ C @ plane
+    Li = np.linalg.inv(np.linalg.cholesky(Np + 1e-18 * np.eye(2)[None]))
+    lam = np.linalg.eigvalsh(Li @ Cp @ Li.transpose(0, 2, 1)).max(axis=1)
+    return np.where(cnt >= MIN_FRAMES, lam, np.nan)
 
 
 SCORE_BLOCK = 64  # frames per batch-means block, as the accumulator's (design.md §3a)
 
 
-def point_joint(A: GroupPose, pts: np.ndarray, tolerance: float = JOINT_TOLERANCE_M) -> Verdict:
-    """The joint between a framed group A and one or two markers `pts` (n, q, 3) with no pose of their
-    own: a point fixed in A's frame that keeps a constant distance to each of them (Kirk's joint, seen
-    from A). Linear in A's frame: ‖y‖² − mean = 2 (y − ȳ)ᵀ c per marker. Pinned along a direction when
-    its standard error — the larger of the classical and the batch-means one (blocks of SCORE_BLOCK
-    frames, read at the sensor path's upper confidence bound) — is within `tolerance`; a ball has all
-    three pinned, a hinge all but the least-spread one. The turn itself is judged first: a pair's
-    direction beyond its noise (`direction_ratio`); a lone marker has none, and stays unjudged."""
+@dataclass(frozen=True)
+class PointJoints:
+    """Joints between a framed group A and groups of two markers with no pose of their own (S of them)."""
+
+    verdicts: list  # (S,) Verdict
+    centre: np.ndarray  # (S, 3) the joint in A's frame
+    rms_m: np.ndarray  # (S,) rms of the two markers' distance from the centre about their constant radii
+    axis: np.ndarray  # (S, 3) the least-pinned direction in A's frame (a hinge's axis)
+
+
+def point_joints(A: GroupPose, pts: np.ndarray, tolerance: float = JOINT_TOLERANCE_M) -> PointJoints:
+    """The joints between a framed group A and S pairs of markers `pts` (n, S, 2, 3), each with no pose
+    of its own: for each, a point fixed in A's frame that keeps a constant distance to both markers (Kirk's
+    joint, seen from A; with two markers a body's pose is free only about the line between them, which
+    the distances to a point do not see). Linear in A's frame: ‖y‖² − mean = 2 (y − ȳ)ᵀ c per marker.
+    Pinned along a direction when its standard error — the larger of the classical and the batch-means one
+    (blocks of SCORE_BLOCK frames, read at the sensor path's upper confidence bound) — is within
+    `tolerance`; a ball has all three pinned, a hinge all but the least-spread one. The turn itself is
+    judged first: a pair's direction beyond its noise (`direction_ratios`), else "skin".
+
+    One constant point per take is what a pose-to-pose pair fit asks of two posed bodies: a pair with no
+    joint between them leaves centimetres of residual (`rms_m`), where Kirk's point, free in every frame,
+    fits almost any two groups to a few millimetres."""
     from flockcal.solver.fits import _upper_chi2_factor
 
-    q = pts.shape[1]
-    if q < 2:
-        return UNJUDGED
-    lam = direction_ratio(A, pts[:, :2])
+    n, S, q, _ = pts.shape
+    lam = direction_ratios(A, pts[:, :, :2])
+    frames = np.flatnonzero(A.ok)
+    y = to_body(A.R[frames], A.t[frames], pts[frames].reshape(len(frames), -1, 3)).reshape(len(frames), S, q, 3)
+    seen = np.isfinite(y).all(-1)  # (f, S, q)
+    cnt = np.maximum(seen.sum(0), 1)
+    y0 = np.where(seen[..., None], y, 0.0)
+    ybar = y0.sum(0) / cnt[..., None]  # (S, q, 3)
+    X = 2.0 * np.where(seen[..., None], y - ybar[None], 0.0)
+    ybar[~seen.any(0)] = np.nan  # a marker never seen (padding) is nowhere
+    z = (y0**2).sum(-1)
+    z = np.where(seen, z - z.sum(0)[None] / cnt[None], 0.0)
+    H = np.einsum("fsqi,fsqj->sij", X, X) + 1e-30 * np.eye(3)[None]
+    c = np.linalg.solve(H, np.einsum("fsqi,fsq->si", X, z)[..., None])[..., 0]  # (S, 3)
+    e = np.where(seen, z - np.einsum("fsqi,si->fsq", X, c), 0.0)  # (f, S, q), m²
+    dist = np.linalg.norm(y - c[None, :, None], axis=-1)
+    dist0 = np.where(seen, dist, 0.0)
+    radius = dist0.sum(0) / cnt
+    rms = np.sqrt(np.where(seen, (dist - radius[None]) ** 2, 0.0).sum((0, 2)) / np.maximum(seen.sum((0, 2)), 1))
+    m = seen.sum((0, 2))
+    w, V = np.linalg.eigh(H)
+    w = np.maximum(w, 1e-30)
+    var_cl = ((e**2).sum((0, 2)) / np.maximum(m - 3 - q, 1))[:, None] / w
+    g = np.einsum("fsqi,fsq->fsi", X, e)
+    nb = len(frames) // SCORE_BLOCK
+    if nb >= 2:
+        gb = g[: nb * SCORE_BLOCK].reshape(nb, SCORE_BLOCK, S, 3).sum(1)  # (nb, S, 3)
+        G = np.einsum("bsi,bsj->sij", gb, gb)
+        Sd = np.einsum("sik,sij,sjk->sk", V, G, V)
+        var_bm = Sd / w**2 * _upper_chi2_factor(np.array([max(nb - 1, 1)], dtype=float))[0]
+    else:
+        var_bm = np.full((S, 3), np.inf)
+    err = np.sqrt(np.maximum(var_cl, var_bm))  # ascending spread: err[:, 0] is the least-pinned direction
+    # A hinge leaves its point along the axis to a rule (Kirk's penalty: the point nearest the markers):
+    # the axis's point nearest the middle of A's centroid and the pair's, before it is judged to lie between
+    # them (least squares along a direction barely turned can put it anywhere on the axis).
+    free = V[:, :, 0]
+    hinge = ~(err <= tolerance).all(1) & (err[:, 1:] <= tolerance).all(1)
+    slide = np.einsum("si,si->s", free, 0.5 * np.nanmean(ybar, axis=1) - c)
+    c = np.where(hinge[:, None], c + slide[:, None] * free, c)
+    verdicts = [point_verdict(A, lam[s], err[s], c[s], ybar[s], free[s], tolerance) for s in range(S)]
+    return PointJoints(verdicts, c, np.where(np.isfinite(lam), rms, np.nan), free)
+
+
+def point_verdict(A: GroupPose, lam: float, err: np.ndarray, c: np.ndarray, ybar: np.ndarray, free: np.ndarray,
+                  tolerance: float) -> Verdict:
+    """The verdict on one point joint (`point_joints`): skin, moved (not pinned, or not between the two
+    groups, or a hinge about the line between them) or joint."""
     if not np.isfinite(lam):
         return UNJUDGED
     if lam < ROTATION_MARGIN:
         return Verdict("skin", lam, float("nan"))
-    frames = np.flatnonzero(A.ok)
-    y = (pts[frames] - A.t[frames][:, None, :]) @ A.R[frames]  # (f, q, 3) in A's frame
-    seen = np.isfinite(y).all(-1)
-    ybar = np.array([np.nanmean(y[seen[:, j], j], axis=0) for j in range(q)])
-    X = 2.0 * np.where(seen[..., None], y - ybar[None], 0.0)  # (f, q, 3)
-    z = np.where(seen, (np.where(seen[..., None], y, 0.0) ** 2).sum(-1), 0.0)
-    zbar = np.array([z[seen[:, j], j].mean() for j in range(q)])
-    z = np.where(seen, z - zbar[None], 0.0)
-    H = np.einsum("fqi,fqj->ij", X, X)
-    c = np.linalg.lstsq(H, np.einsum("fqi,fq->i", X, z), rcond=None)[0]
-    e = np.where(seen, z - X @ c, 0.0)  # (f, q), m²
-    n = int(seen.sum())
-    w, V = np.linalg.eigh(H)
-    w = np.maximum(w, 1e-30)
-    var_cl = float((e**2).sum() / max(n - 3 - q, 1)) / w
-    g = np.einsum("fqi,fq->fi", X, e)
-    nb = len(frames) // SCORE_BLOCK
-    if nb >= 2:
-        gb = g[: nb * SCORE_BLOCK].reshape(nb, SCORE_BLOCK, 3).sum(1)
-        S = V.T @ (gb.T @ gb) @ V
-        var_bm = np.diag(S) / w**2 * _upper_chi2_factor(np.array([max(nb - 1, 1)], dtype=float))[0]
-    else:
-        var_bm = np.full(3, np.inf)
-    err = np.sqrt(np.maximum(var_cl, var_bm))  # ascending spread: err[0] is the least-pinned direction
     ball = bool((err <= tolerance).all())
     hinge = not ball and bool((err[1:] <= tolerance).all())
     worst = float(err.max() if ball else err[1:].max())
@@ -238,11 +280,19 @@ def point_joint(A: GroupPose, pts: np.ndarray, tolerance: float = JOINT_TOLERANC
     reach_b = float(np.nanmin(np.linalg.norm(ybar - c, axis=1)))
     if max(reach_a, reach_b) > float(np.linalg.norm(line)):
         return Verdict("moved", lam, worst, hinge=hinge)
-    if hinge and abs(float(V[:, 0] @ line)) >= np.cos(np.radians(TWIST_DEG)) * float(np.linalg.norm(line)):
+    if hinge and abs(float(free @ line)) >= np.cos(np.radians(TWIST_DEG)) * float(np.linalg.norm(line)):
         # A turn about the line between them: with two markers a twist cannot be told from a joint whose
         # other turns the pair does not show; the size decides.
         return Verdict("moved", lam, worst, hinge=True)
     return Verdict("joint", lam, worst, hinge=hinge)
+
+
+def point_joint(A: GroupPose, pts: np.ndarray, tolerance: float = JOINT_TOLERANCE_M) -> Verdict:
+    """The verdict on a framed group A and one or two markers `pts` (n, q, 3) with no pose of their own
+    (`point_joints`); a lone marker has no direction, and stays unjudged."""
+    if pts.shape[1] < 2:
+        return UNJUDGED
+    return point_joints(A, pts[:, None, :2], tolerance).verdicts[0]
 
 
 def second_ratio(A: GroupPose, B: GroupPose, ok: np.ndarray) -> float:

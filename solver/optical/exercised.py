@@ -39,6 +39,7 @@ class Exercised:
     rotations: np.ndarray  # (n, G, 3, 3) marker-only poses (identity where not valid)
     positions: np.ndarray  # (n, G, 3)
     valid: np.ndarray  # (n, G)
+    shapes: dict | None = None  # {g: (q, 3) body g's mean shape, the frame of its pose}
 
     def candidate(self) -> np.ndarray:
         """(G, G) pairs that may be a tree edge: determined, or not judgeable from poses (a body of two
@@ -50,9 +51,10 @@ class Exercised:
         return c
 
 
-def marker_poses(markers: np.ndarray, groups: list[np.ndarray]):
+def marker_poses(markers: np.ndarray, groups: list[np.ndarray], shapes: dict | None = None):
     """Per-body rotations (n, G, 3, 3), positions (n, G, 3), valid (n, G) from each framed body's own
-    markers (generalised Procrustes shape, Kabsch per frame), label swaps and glitches left out."""
+    markers (generalised Procrustes shape, Kabsch per frame), label swaps and glitches left out; each
+    framed body's shape goes into `shapes` when given."""
     n = markers.shape[0]
     G = len(groups)
     R = np.tile(np.eye(3), (n, G, 1, 1))
@@ -63,6 +65,8 @@ def marker_poses(markers: np.ndarray, groups: list[np.ndarray]):
             continue
         pts = markers[:, idx]
         shape, Rg, tg, ok = procrustes_mean(pts)
+        if shapes is not None:
+            shapes[g] = shape
         # A swapped or glitching label sits centimetres off the shape; soft tissue stays within the
         # segmentation's tolerance. Such marker-frames are dropped and the frame refitted once.
         res = np.linalg.norm(apply(Rg, tg, shape) - pts, axis=-1)
@@ -85,7 +89,8 @@ def judge_pairs(markers: np.ndarray, groups: list[np.ndarray], tolerance_m: floa
 
     G = len(groups)
     pick = joint_groups or (lambda a, b: (groups[a], groups[b]))
-    R, t, valid = marker_poses(markers, groups)
+    shapes: dict = {}
+    R, t, valid = marker_poses(markers, groups, shapes)
     # Each pair's two marker sets; the distinct sets are the "sensors" of one accumulator.
     sets: dict[tuple, int] = {}
     pair_sets = {}
@@ -121,13 +126,13 @@ def judge_pairs(markers: np.ndarray, groups: list[np.ndarray], tolerance_m: floa
         rms[a, b] = rms[b, a] = pf.rms
         derr[a, b] = derr[b, a] = pf.direction_error
     sizes = np.array([len(g) for g in groups])
-    return Exercised(framed, sizes, determined, judged, hinge, rms, derr, R, t, valid)
+    return Exercised(framed, sizes, determined, judged, hinge, rms, derr, R, t, valid, shapes)
 
 
 def candidate_costs(
     markers: np.ndarray, groups: list[np.ndarray], frames: np.ndarray, candidate: np.ndarray, penalty: float = 1e-5,
     joint_groups: Callable[[int, int], tuple[np.ndarray, np.ndarray]] | None = None,
-    exercised: Exercised | None = None,
+    exercised: Exercised | None = None, points: np.ndarray | None = None,
 ) -> np.ndarray:
     """(G, G) cost of every candidate pair, inf elsewhere (no edge): the pair fit's residual rms where both
     bodies have a pose (`exercised.judged`), else the Kirk joint-point residual rms on `frames`, each kind
@@ -135,7 +140,9 @@ def candidate_costs(
 
     The pair fit holds one offset per body for the whole take, so a pair with no joint between them leaves
     centimetres (16–220 mm on the simulated walk, its true joints 3–7 mm); Kirk's point is free in every
-    frame and fits almost any two groups to a few millimetres, so it only decides where no pose can."""
+    frame and fits almost any two groups to a few millimetres, so it only decides where no pose can.
+    `points` (G, G): the residual of the point joint (`two_marker`) where judged (finite), before the
+    others: a take with bodies of two markers has its costs of this one kind wherever a body has a pose."""
     G = len(groups)
     pick = joint_groups or (lambda a, b: (groups[a], groups[b]))
     cost = np.full((G, G), np.inf)
@@ -148,6 +155,9 @@ def candidate_costs(
         return cache[key]
 
     for a, b in zip(*np.nonzero(np.triu(candidate, 1))):
+        if points is not None and np.isfinite(points[a, b]):
+            cost[a, b] = cost[b, a] = points[a, b]
+            continue
         if exercised is not None and exercised.judged[a, b] and np.isfinite(exercised.rms[a, b]):
             cost[a, b] = cost[b, a] = exercised.rms[a, b]
             continue
@@ -156,17 +166,22 @@ def candidate_costs(
         cost[a, b] = cost[b, a] = fit.rms
     if exercised is None:
         return cost
-    return on_own_scale(cost, exercised.judged & np.isfinite(exercised.rms))
+    kind = np.where(exercised.judged & np.isfinite(exercised.rms), 1, 0)
+    if points is not None:
+        kind = np.where(np.isfinite(points), 2, kind)
+    return on_own_scale(cost, kind)
 
 
 def on_own_scale(cost: np.ndarray, kind: np.ndarray) -> np.ndarray:
-    """`cost` with the pairs of each kind (`kind` True: pair fit, False: Kirk) divided by that kind's typical
-    true-joint residual: the median over bodies of their cheapest pair of the kind (a body's cheapest pair
-    is its joint in all but the rare case). The two residuals differ in size (the pair fit's is a 3-D error
-    with one offset for the take, Kirk's a distance error with a free point per frame); over their own
-    scales they compare, so a spanning tree can use both."""
+    """`cost` with the pairs of each kind (`kind`: 1 pair fit, 2 point joint, 0 Kirk; a bool array: pair fit
+    or Kirk) divided by that kind's typical true-joint residual: the median over bodies of their cheapest
+    pair of the kind (a body's cheapest pair is its joint in all but the rare case). The residuals differ in
+    size (the pair fit's is a 3-D error with one offset for the take, a point joint's and Kirk's distance
+    errors, Kirk's with a free point per frame); over their own scales they compare, so a spanning tree can
+    use them all."""
     out = cost.copy()
-    for mask in (kind, ~kind):
+    kind = np.asarray(kind).astype(int)
+    for mask in (kind == k for k in np.unique(kind)):
         c = np.where(mask, cost, np.inf)
         np.fill_diagonal(c, np.inf)
         best = c.min(axis=1)

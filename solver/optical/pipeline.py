@@ -24,6 +24,7 @@ from flockcal.solver.optical.pair_joints import pair_joint_points
 from flockcal.solver.optical.projection import BodyShape, bone_lengths, skeleton_shapes
 from flockcal.solver.optical.rotations import Outliers, body_poses, find_outliers, rigid_route_joint, robust_marker_residuals
 from flockcal.solver.optical.segmentation import RIGID_TOLERANCE_M, Segmentation, segment_markers
+from flockcal.solver.optical.two_marker import TwoMarkerJoints, judge_two_marker, point_joint_centres
 
 
 class OpticalError(FlockcalError):
@@ -51,6 +52,7 @@ class OpticalFit:
     exercised: Exercised | None = None  # pair decisions over the bodies' marker-only poses
     joint_markers: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # child → (its, parent's) markers the joint was fitted on
     pair_route: frozenset = frozenset()  # children of the joints placed by the pair fit over marker-only poses
+    point_route: frozenset = frozenset()  # children of the joints to a body of two markers placed by `two_marker`
 
     @property
     def parent(self) -> np.ndarray:
@@ -212,6 +214,22 @@ def pair_route(exercised: Exercised, child: int, parent: int) -> bool:
     return bool((pinned <= PAIR_ROUTE_M).all())
 
 
+def two_marker_joints(markers: np.ndarray, groups: list[np.ndarray], shapes: dict | None = None,
+                      posed_pairs: np.ndarray | None = None) -> TwoMarkerJoints:
+    """The point joints of the bodies of two markers (`two_marker`), read on the segmentation's thorough
+    frames with each posed body's pose there (from its whole-take shape in `shapes` where given); of the
+    pairs of posed bodies, those in `posed_pairs` (default all)."""
+    from flockcal.solver.optical.articulation import group_pose
+    from flockcal.solver.optical.segmentation import THOROUGH_RUNS, judging_frames
+
+    if not any(len(g) == 2 for g in groups):
+        return TwoMarkerJoints()
+    M = markers[judging_frames(len(markers), runs=THOROUGH_RUNS)]
+    shapes = shapes or {}
+    poses = {g: group_pose(M, idx, shape=shapes.get(g)) for g, idx in enumerate(groups) if len(idx) >= 3}
+    return judge_two_marker(M, groups, poses, posed_pairs)
+
+
 STAGES = ("segmentation", "exercised joints and tree", "joints and poses", "second pass without swaps")
 
 
@@ -264,8 +282,14 @@ def fit_markers(
     pick = joint_groups_of(clus, groups)
     exercised = judge_pairs(M, groups, joint_groups=pick)
     sizes = np.array([len(g) for g in groups])
-    tree = spanning_forest(candidate_costs(M, groups, topo, exercised.candidate(), joint_groups=pick,
-                                          exercised=exercised), sizes, root=root)
+    # A body of two markers has no pose, but a joint to it has a centre fixed in its posed neighbour's frame:
+    # judged so (`two_marker`), it needs no Kirk fit, which fits almost any pair.
+    two = two_marker_joints(M, groups, exercised.shapes, exercised.candidate())
+    point_rms = two.rms(len(groups))
+    posed_pair = exercised.judged & np.isfinite(exercised.rms)
+    candidate = np.where(np.isfinite(point_rms) & ~posed_pair, two.candidate(len(groups)), exercised.candidate())
+    tree = spanning_forest(candidate_costs(M, groups, topo, candidate, joint_groups=pick, exercised=exercised,
+                                          points=point_rms), sizes, root=root)
 
     work = M.copy()
     outliers = None
@@ -273,7 +297,9 @@ def fit_markers(
     # A joint between two bodies of one or two markers each is poorly pinned by the Kirk fit (four
     # distances for three unknowns a frame); such "weak" joints do not steer the poses and are solved
     # afterwards by the rigid-transform route from the poses the other joints and markers give.
-    weak = {int(c) for c in np.flatnonzero(par >= 0) if sizes[c] < 3 and sizes[par[c]] < 3}
+    pointed = {int(c) for c in np.flatnonzero(par >= 0)
+               if frozenset((int(c), int(par[c]))) in two.joints and min(sizes[c], sizes[par[c]]) < 3}
+    weak = {int(c) for c in np.flatnonzero(par >= 0) if sizes[c] < 3 and sizes[par[c]] < 3 and c not in pointed}
     for c in sorted(weak):  # keep the Kirk joint where a body would be left with under three points
         p = int(par[c])
         points = [sizes[b] + sum(1 for j in range(len(par)) if j not in weak and (j == b or par[j] == b) and par[j] >= 0) for b in (c, p)]
@@ -286,7 +312,9 @@ def fit_markers(
     kids = {int(c) for c in np.flatnonzero(par >= 0)}
     posed = {c for c in kids if pair_route(exercised, c, int(par[c]))}
     pair_jp, pair_rms = pair_joint_points(M, groups, par, sorted(posed), exercised, pick)
-    kirk = kids - posed
+    point_jp, point_jrms = point_joint_centres(M, groups, two, par, sorted(pointed), pair_jp)
+    pair_jp, pair_rms = {**pair_jp, **point_jp}, {**pair_rms, **point_jrms}
+    kirk = kids - posed - pointed
     jp, jrms, base, poses, redo = dict(pair_jp), dict(pair_rms), None, None, None
     for k in range(2):  # second pass: refit without the marker-frames the first pass found wrong
         step(STAGES[2 + k])
@@ -324,7 +352,7 @@ def fit_markers(
     joint_markers = {int(c): pick(int(c), int(par[c])) for c in np.flatnonzero(par >= 0)}
     return OpticalFit(
         kept_names, labels, groups, clus, tree, shapes, bones, jp, jrms, R, t, valid, outliers,
-        float(rate_hz), times, unused, exercised, joint_markers, frozenset(posed),
+        float(rate_hz), times, unused, exercised, joint_markers, frozenset(posed), frozenset(pointed),
     )  # fmt: skip
 
 
@@ -454,7 +482,8 @@ def merge_report(fit: OpticalFit) -> dict:
             fitted_on.append({"joint": [labels[c], labels[p]], "child_markers": [names[i] for i in mc],
                               "parent_markers": [names[i] for i in mp]})
     pair_fit = [[labels[c], labels[int(fit.tree.parent[c])]] for c in sorted(fit.pair_route)]
-    return {"merged": merged, "joints_fitted_on": fitted_on, "pair_fit_joints": pair_fit}
+    point = [[labels[c], labels[int(fit.tree.parent[c])]] for c in sorted(fit.point_route)]
+    return {"merged": merged, "joints_fitted_on": fitted_on, "pair_fit_joints": pair_fit, "point_joints": point}
 
 
 def fit_json(fit: OpticalFit) -> dict:

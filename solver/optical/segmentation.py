@@ -43,6 +43,10 @@ RUNS = 10
 THOROUGH_RUNS = 30
 SEGMENT_FRAMES = 250
 
+# A joint between a framed group and two markers the linkage is about to merge keeps them apart only when
+# pinned within the sensor path's own tolerance (design.md §3a), not the 10 mm three-marker poses earn.
+PAIR_JOINT_M = 0.005
+
 # A body needs this many markers to have a frame of its own (three non-collinear points).
 FRAMED = 3
 LEAVE_OUT_BELOW = 8  # bodies this small judge their own markers with each left out of the fit
@@ -242,14 +246,15 @@ class Judge:
             self._verdicts[key] = judge(self.pose(key[0], thorough), self.pose(key[1], thorough))
         return self._verdicts[key]
 
-    def small(self, framed, few) -> Verdict:
+    def small(self, framed, few, tolerance: float = JOINT_TOLERANCE_M) -> Verdict:
         """The verdict on a framed group and one or two markers (`articulation.point_joint`), read on
         every frame."""
         ka, kb = tuple(sorted(int(i) for i in framed)), tuple(sorted(int(i) for i in few))
-        key = ("small", ka, kb)
+        key = ("small", ka, kb, tolerance)
         if key not in self._verdicts:
             pose = self.pose(ka, thorough=True)
-            self._verdicts[key] = UNJUDGED if pose is None else point_joint(pose, self.all[:, np.array(kb)])
+            self._verdicts[key] = (UNJUDGED if pose is None else
+                                   point_joint(pose, self.all[:, np.array(kb)], tolerance=tolerance))
         return self._verdicts[key]
 
     def decide(self, a, b, motion: float, tolerance: float) -> tuple[Verdict, bool]:
@@ -257,6 +262,14 @@ class Judge:
         framed, few = (a, b) if len(a) >= len(b) else (b, a)
         if len(few) < FRAMED:
             verdict = UNJUDGED
+            if len(few) == 2 and len(framed) >= FRAMED and motion <= tolerance:
+                # Two markers have a direction: a joint that pins a point between them and a framed group
+                # keeps them apart (a pelvis of two markers must not go into the abdomen a joint moved it
+                # against). Read at the sensor path's 5 mm (PAIR_JOINT_M): the pair is any two markers the
+                # linkage put together so far, and skin sliding in step with a joint pins a pivot too (the
+                # real knee trial's RTHI2+RTHI3 against the epicondyles and RTHI1: 8.9 mm). Read only
+                # where the size alone would merge them: beyond the tolerance it refuses anyway.
+                verdict = self.small(framed, few, PAIR_JOINT_M)
             if motion <= tolerance and len(few) >= 2:
                 # Two markers with no pose of their own join a group only if they stay within the tolerance
                 # also where they moved most (5–95 %, not 10–90 %); a framed group's swaps left out. A lone
