@@ -198,19 +198,11 @@ class SegmentedAccumulator:
     def pair_fits(self, pairs, **options) -> PairFits:
         """`fits.pair_fits` per pair on its segment (see class docstring), in the order of `pairs`."""
         P = np.asarray(pairs, dtype=int).reshape(-1, 2)
-        segs = self.pair_segments(P)
-        groups: dict[int, list[int]] = {}
-        keyed: dict[int, Segment | None] = {}
-        for k, s in enumerate(segs):
-            groups.setdefault(id(s), []).append(k)
-            keyed[id(s)] = s
+        groups = self._pair_groups(P)
         if len(groups) == 1:
-            s = segs[0] if len(segs) else None
-            return pair_fits(self.whole if s is None else self.segment_accumulator(s), P, **options)
+            return pair_fits(groups[0][0], P, **options)
         parts, order = [], []
-        for key, rows in groups.items():
-            s = keyed[key]
-            acc = self.whole if s is None else self.segment_accumulator(s)
+        for acc, rows in groups:
             parts.append(pair_fits(acc, P[rows], **options))
             order += rows
         inv = np.argsort(np.asarray(order))
