@@ -5,9 +5,22 @@ pump tick) to the websocket client receiving the first snapshot whose pose shows
 sample time is encoded in sensor 0's x position (a 6 s sawtooth the whole body follows), so nothing
 but the wire format carries it. CPU: user+system time of the service process over the window, as % of
 one core, and per named thread. One window per probe rate: by default a dashboard's 15 Hz, then every
-snapshot. Targets (issue 5): p99 < 50 ms, CPU < 25 % of one core.
+snapshot. Targets (issue 5): p99 < 50 ms, CPU < 25 % of one core (issue 33: 15 %).
 
     python benchmarks/bench_server.py [--seconds 20] [--dashboards 0] [--probe-hz 15 1000]
+
+A/B mode (`--ab REV`): the service of git revision REV and the service of this working tree run in
+turn, each on a fresh fake tracker and a fresh service, same settings, `--rounds` times (the order
+swaps every round, so a machine that speeds up or slows down during the call favours neither), one
+window each at the first `--probe-hz`. REV is exported with `git archive` into a temporary folder
+(nothing in the repository or its worktrees changes) and laid out as an importable `flockcal` package
+(symlinks mirroring pyproject's package-dir), which goes first on the service's PYTHONPATH; the same
+interpreter and dependencies run both, and this tree's fake tracker and probe serve both. Printed per
+run and as medians: service CPU (% of one core, the service process only), the fake tracker's thread
+CPU (in this process) separately, p99 latency, refits/s and slip alarms; then the ratio this tree / REV
+of each pair of neighbouring runs, and its median.
+
+    python benchmarks/bench_server.py --ab main --rounds 3 --seconds 30
 """
 
 from __future__ import annotations
@@ -17,6 +30,8 @@ import asyncio
 import json
 import multiprocessing
 import os
+import shutil
+import subprocess
 import sys
 import tempfile
 import time
@@ -135,59 +150,170 @@ def main(argv=None) -> int:
     ap.add_argument("--probe-hz", type=float, nargs="+", default=[15.0, 1000.0],
                     help="rate(s) the latency probe subscribes at, one window each (default: 15, a dashboard's "
                          "rate, then 1000: every snapshot the service publishes)")
+    ap.add_argument("--ab", metavar="REV", help="A/B mode: the service of git revision REV against this tree's, in turn")
+    ap.add_argument("--rounds", type=int, default=3, help="A/B mode: runs of each side (default 3)")
     args = ap.parse_args(argv)
+    if args.ab:
+        return ab(args.ab, args.rounds, args.seconds, args.dashboards, args.probe_hz[0])
 
-    performer = Performer("human", "exercise", seed=1, rate_hz=RATE)
-    pty = PtyTracker(MarkedSource(performer), birds=16, baud=921600, rate_hz=RATE).start()
-    clock_t0 = pty.flock.clock._t0
-    data = tempfile.mkdtemp(prefix="flockcal-bench-")
-    port = free_port()
-    proc = ServerProcess(["--device", pty.device, "--birds", "16", "--fast-init", "--scale", "72", "--baud", "921600", "--data-dir", data,
-                          "--names", ",".join(performer.names)], port, log_path=os.path.join(data, "serve.log"))
-    try:
-        proc.start()
-        wait_connected(proc.url, frames=int(RATE))
-        httpx.post(proc.url + "/api/sessions", json={"performer": "bench"}).raise_for_status()
-        time.sleep(3.0)  # let the fit settle into its steady state
-        url = proc.url.replace("http://", "ws://") + "/ws/live"
+    with Service() as svc:
         for probe_hz in args.probe_hz:
-            window(proc, url, clock_t0, args.seconds, args.dashboards, probe_hz)
-    finally:
-        proc.stop()
-        pty.stop()
+            window(svc, args.seconds, args.dashboards, probe_hz)
     return 0
 
 
-def window(proc: ServerProcess, url: str, clock_t0: float, seconds: float, dashboards: int, probe_hz: float) -> None:
-    """Measure and print one window: latency at the probe, CPU of the service process and its threads."""
-    st0 = httpx.get(proc.url + "/api/status").json()
-    cpu0, wall0, threads0 = cpu_seconds(proc.proc.pid), time.monotonic(), thread_cpu(proc.proc.pid)
-    lat, probe_rate = measure_apart(url, clock_t0, seconds, dashboards, probe_hz)
+class Service:
+    """A fake tracker on a pty (a thread of this process) and a `flockcal serve` reading it, with a live
+    session settled into its steady state. `pythonpath` goes first on the service's PYTHONPATH."""
+
+    def __init__(self, pythonpath: str | None = None):
+        self.pythonpath = pythonpath
+
+    def __enter__(self) -> "Service":
+        performer = Performer("human", "exercise", seed=1, rate_hz=RATE)
+        self.pty = PtyTracker(MarkedSource(performer), birds=16, baud=921600, rate_hz=RATE).start()
+        self.clock_t0 = self.pty.flock.clock._t0
+        self.data = tempfile.mkdtemp(prefix="flockcal-bench-")
+        self.proc = ServerProcess(["--device", self.pty.device, "--birds", "16", "--fast-init", "--scale", "72",
+                                   "--baud", "921600", "--data-dir", self.data, "--names", ",".join(performer.names)],
+                                  free_port(), log_path=os.path.join(self.data, "serve.log"))
+        saved = os.environ.get("PYTHONPATH")
+        try:
+            if self.pythonpath:  # the child copies this process's environment when it starts
+                os.environ["PYTHONPATH"] = os.pathsep.join(x for x in (self.pythonpath, saved) if x)
+            self.proc.start()
+            wait_connected(self.proc.url, frames=int(RATE))
+            httpx.post(self.proc.url + "/api/sessions", json={"performer": "bench"}).raise_for_status()
+            time.sleep(3.0)  # let the fit settle into its steady state
+        except BaseException:
+            self.__exit__()
+            raise
+        finally:
+            if saved is None:
+                os.environ.pop("PYTHONPATH", None)
+            else:
+                os.environ["PYTHONPATH"] = saved
+        self.url = self.proc.url.replace("http://", "ws://") + "/ws/live"
+        return self
+
+    def __exit__(self, *exc) -> None:
+        try:
+            self.proc.stop()
+        finally:
+            self.pty.stop()
+            shutil.rmtree(self.data, ignore_errors=True)
+
+    def tracker_cpu(self) -> float:
+        """CPU seconds of the fake tracker's thread (in this process)."""
+        with open(f"/proc/self/task/{self.pty._thread.native_id}/stat") as fh:
+            fields = fh.read().rsplit(")", 1)[1].split()
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def measure_window(svc: Service, seconds: float, dashboards: int, probe_hz: float) -> dict:
+    """One window's figures: latency at the probe, CPU of the service process and its threads, the
+    fake tracker's thread, refits and slip alarms."""
+    pid, url = svc.proc.proc.pid, svc.proc.url
+    st0 = httpx.get(url + "/api/status").json()
+    cpu0, wall0, threads0, trk0 = cpu_seconds(pid), time.monotonic(), thread_cpu(pid), svc.tracker_cpu()
+    lat, probe_rate = measure_apart(svc.url, svc.clock_t0, seconds, dashboards, probe_hz)
     lat = np.array(lat) * 1000
-    cpu1, wall1, threads1 = cpu_seconds(proc.proc.pid), time.monotonic(), thread_cpu(proc.proc.pid)
-    st1 = httpx.get(proc.url + "/api/status").json()
+    cpu1, wall1, threads1, trk1 = cpu_seconds(pid), time.monotonic(), thread_cpu(pid), svc.tracker_cpu()
+    st1 = httpx.get(url + "/api/status").json()
     session = st1["session"]["id"]
-    slips = [e for e in httpx.get(f"{proc.url}/api/sessions/{session}/events").json()["events"]
-             if e["type"] == "slip"]
-    cpu = 100 * (cpu1 - cpu0) / (wall1 - wall0)
-    frames_hz = (st1["frames"] - st0["frames"]) / (wall1 - wall0)
-    fits_hz = (st1["fits"] - st0["fits"]) / (wall1 - wall0)
+    slips = [e for e in httpx.get(f"{url}/api/sessions/{session}/events").json()["events"] if e["type"] == "slip"]
+    wall = wall1 - wall0
     p50, p99 = np.percentile(lat, [50, 99])
+    return {
+        "seconds": seconds, "dashboards": dashboards, "probe_rate": probe_rate,
+        "cpu": 100 * (cpu1 - cpu0) / wall, "tracker_cpu": 100 * (trk1 - trk0) / wall,
+        "threads": {k: 100 * (v - threads0.get(k, 0.0)) / wall for k, v in threads1.items()},
+        "frames_hz": (st1["frames"] - st0["frames"]) / wall, "dropped": st1["dropped_records"] - st0["dropped_records"],
+        "fits_hz": (st1["fits"] - st0["fits"]) / wall, "fit_ms": st1["fit_ms"], "slips": len(slips),
+        "samples": len(lat), "p50": p50, "p99": p99, "max": lat.max(), "load": os.getloadavg()[0],
+    }
+
+
+def window(svc: Service, seconds: float, dashboards: int, probe_hz: float) -> None:
+    """Measure and print one window: latency at the probe, CPU of the service process and its threads."""
+    w = measure_window(svc, seconds, dashboards, probe_hz)
     print(f"flockcal serve, 16 birds at {RATE:g} Hz on a pty, {seconds:g} s, {dashboards} extra dashboards, "
-          f"latency probe subscribed at {probe_rate:g} Hz (in its own process)")
-    print(f"  frames received     {frames_hz:8.1f} /s   (dropped records in the window: {st1['dropped_records'] - st0['dropped_records']})")
-    print(f"  full refits         {fits_hz:8.1f} /s   (target >= 30; {st1['fit_ms']} ms each)")
-    print(f"  slip alarms         {len(slips):8d}     (none expected: the performer's sensors stay put)")
-    print(f"  latency samples     {len(lat):8d}")
-    print(f"  latency p50         {p50:8.1f} ms")
-    print(f"  latency p99         {p99:8.1f} ms   (target < 50 ms: {50 / p99:.2f}x margin)")
-    print(f"  latency max         {lat.max():8.1f} ms")
-    print(f"  service CPU         {cpu:8.1f} % of one core   (target < 25 %: {25 / cpu:.2f}x margin)")
-    for name in sorted(threads1, key=lambda k: threads0.get(k, 0.0) - threads1[k]):
-        share = 100 * (threads1[name] - threads0.get(name, 0.0)) / (wall1 - wall0)
+          f"latency probe subscribed at {w['probe_rate']:g} Hz (in its own process)")
+    print(f"  frames received     {w['frames_hz']:8.1f} /s   (dropped records in the window: {w['dropped']})")
+    print(f"  full refits         {w['fits_hz']:8.1f} /s   (target >= 30; {w['fit_ms']} ms each)")
+    print(f"  slip alarms         {w['slips']:8d}     (none expected: the performer's sensors stay put)")
+    print(f"  latency samples     {w['samples']:8d}")
+    print(f"  latency p50         {w['p50']:8.1f} ms")
+    print(f"  latency p99         {w['p99']:8.1f} ms   (target < 50 ms: {50 / w['p99']:.2f}x margin)")
+    print(f"  latency max         {w['max']:8.1f} ms")
+    print(f"  service CPU         {w['cpu']:8.1f} % of one core   (target < 15 %: {15 / w['cpu']:.2f}x margin)")
+    for name, share in sorted(w["threads"].items(), key=lambda kv: -kv[1]):
         if share >= 0.5:
             print(f"    thread {name:18s} {share:5.1f} %")
-    print(f"  load average        {os.getloadavg()[0]:8.2f}   (on {os.cpu_count()} cores; other work inflates the latency)")
+    print(f"  fake tracker thread {w['tracker_cpu']:8.1f} % of one core   (in the benchmark's process, not the service's)")
+    print(f"  load average        {w['load']:8.2f}   (on {os.cpu_count()} cores; other work inflates the latency)")
+
+
+def export_revision(rev: str, into: str) -> str:
+    """REV's tree as an importable `flockcal` package under `into`; returns the folder for PYTHONPATH."""
+    repo = Path(__file__).resolve().parents[1]
+    src, site = Path(into, "src"), Path(into, "site")
+    src.mkdir()
+    archive = subprocess.run(["git", "-C", str(repo), "archive", rev], capture_output=True, check=False)
+    if archive.returncode != 0:
+        raise SystemExit(f"bench_server: git archive {rev}: {archive.stderr.decode().strip()}")
+    subprocess.run(["tar", "-x", "-C", str(src)], input=archive.stdout, check=True)
+    # pyproject's package-dir: flockcal.<part> lives in the top-level folder <part>.
+    pkg = site / "flockcal"
+    pkg.mkdir(parents=True)
+    for entry in (src / "flockcal").iterdir():
+        (pkg / entry.name).symlink_to(entry)
+    for part in ("drivers", "simulator", "solver", "server"):
+        (pkg / part).symlink_to(src / part)
+    return str(site)
+
+
+def ab(rev: str, rounds: int, seconds: float, dashboards: int, probe_hz: float) -> int:
+    repo = Path(__file__).resolve().parents[1]
+    commit = subprocess.run(["git", "-C", str(repo), "rev-parse", "--short", rev], capture_output=True, text=True)
+    if commit.returncode != 0:
+        print(f"bench_server: no git revision {rev!r} in {repo}", file=sys.stderr)
+        return 2
+    head = subprocess.run(["git", "-C", str(repo), "rev-parse", "--short", "HEAD"], capture_output=True, text=True).stdout.strip()
+    dirty = subprocess.run(["git", "-C", str(repo), "status", "--porcelain", "--untracked-files=no"],
+                           capture_output=True, text=True).stdout.strip()
+    tmp = tempfile.mkdtemp(prefix="flockcal-ab-")
+    try:
+        sides = {"A": export_revision(rev, tmp), "B": None}
+        label = {"A": f"{rev} ({commit.stdout.strip()})", "B": f"this tree ({head}{' + changes' if dirty else ''})"}
+        print(f"A/B: A = {label['A']}, B = {label['B']}; 16 birds at {RATE:g} Hz, {seconds:g} s windows, "
+              f"probe at {probe_hz:g} Hz, {dashboards} extra dashboards, {rounds} rounds")
+        runs: list[tuple[str, dict]] = []
+        for r in range(rounds):
+            for side in ("AB" if r % 2 == 0 else "BA"):
+                with Service(sides[side]) as svc:
+                    w = measure_window(svc, seconds, dashboards, probe_hz)
+                runs.append((side, w))
+                top = ", ".join(f"{k} {v:.1f}" for k, v in sorted(w["threads"].items(), key=lambda kv: -kv[1]) if v >= 0.5)
+                print(f"  round {r + 1} {side}: service {w['cpu']:5.1f} % ({top}); tracker {w['tracker_cpu']:5.1f} %; "
+                      f"p99 {w['p99']:5.1f} ms; refits {w['fits_hz']:4.1f}/s ({w['fit_ms']} ms); slip alarms {w['slips']}; "
+                      f"load {w['load']:.1f}", flush=True)
+        print("medians (A, B):")
+        for key, what in (("cpu", "service CPU % of one core"), ("tracker_cpu", "fake tracker CPU %"),
+                          ("p99", "latency p99 ms"), ("fits_hz", "refits /s"), ("slips", "slip alarms")):
+            a = np.median([w[key] for s, w in runs if s == "A"])
+            b = np.median([w[key] for s, w in runs if s == "B"])
+            print(f"  {what:27s} A {a:6.1f}   B {b:6.1f}")
+        # Ratios of neighbouring runs (one A, one B, in the order they ran): drift moves both.
+        ratios = []
+        for k in range(0, len(runs) - 1, 2):
+            (s0, w0), (s1, w1) = runs[k], runs[k + 1]
+            a, b = (w0, w1) if s0 == "A" else (w1, w0)
+            ratios.append(b["cpu"] / a["cpu"])
+        print(f"  service CPU B/A per round: {' '.join(f'{x:.2f}' for x in ratios)}; median {np.median(ratios):.2f}")
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return 0
 
 
 if __name__ == "__main__":

@@ -120,6 +120,7 @@ class Pipeline:
         self._fit_seq = 0
         self._last_fit_time = 0.0
         self._tree_candidate: tuple[frozenset, float] | None = None  # a fitted tree waiting to settle
+        self._watched: tuple | None = None  # (the slip loop's joints array, its (child, parent) set)
         self._make_snapshot()
 
     # --- called from other threads -----------------------------------------------------------------
@@ -382,8 +383,14 @@ class Pipeline:
         fits' tree for TREE_SETTLE_S (a tree that flickers back is never handed on)."""
         key = frozenset(map(tuple, pairs.tolist()))
         watched = live.watch.joints
-        if live.hierarchy is not None or live.skeleton is not None or (
-                watched is not None and key == frozenset(map(tuple, watched.tolist()))):
+        if watched is not None and (self._watched is None or self._watched[0] is not watched):
+            self._watched = (watched, frozenset(map(tuple, watched.tolist())))
+        if watched is not None and key == self._watched[1]:
+            # The tree watched already (nearly every refit): `watch` would find no change, at the cost of
+            # comparing the two lists in numpy 30 times a second.
+            self._tree_candidate = None
+            return
+        if live.hierarchy is not None or live.skeleton is not None:
             self._tree_candidate = None
             live.watch.watch(pairs)
             return

@@ -286,6 +286,11 @@ class ProgressTracker:
         self.profile: Profile | None = None
         self._ring = 0.0  # the figure last published (`_hold_ring`)
         self._history: deque = deque()  # (time_s, published figure), for `_stall`
+        # The entries of `_history` newer than every later lower-or-equal figure ((index, time_s, figure),
+        # figures rising towards the newest): where `_stall`'s backward search can end. `_hist_gone`: entries
+        # trimmed off `_history` so far, `_hist_n`: ever appended (indices).
+        self._lows: deque = deque()
+        self._hist_n = self._hist_gone = 0
         self._recent: deque = deque()  # (time_s, {child: parent}, {bone key: length}) over the steadiness window
         self._first_info: dict[frozenset, float] = {}  # pair → its information when it was first determined
         self.latched: dict[frozenset, dict] = {}  # pair → {hinge, time_s}: done
@@ -511,13 +516,26 @@ class ProgressTracker:
     def _stall(self, doc: dict, time_s: float) -> None:
         """`stalled_s` (how long the ring took to gain less than STALL_GAIN, once that is STALL_S or more)
         and a patient `prompt` naming the joint to move."""
-        hist = self._history
+        hist, lows = self._history, self._lows
         if doc["done"]:
             hist.clear()
-        hist.append((time_s, doc["progress"]))
+            lows.clear()
+            self._hist_gone = self._hist_n
+        figure = doc["progress"]
+        hist.append((time_s, figure))
+        # An entry with a figure at or above this one can no longer be the newest low enough: drop it from
+        # the search (at 30 fits a second a plateau held 80 s of history, scanned on every fit).
+        while lows and lows[-1][2] >= figure:
+            lows.pop()
+        lows.append((self._hist_n, time_s, figure))
+        self._hist_n += 1
         while len(hist) > 2 and hist[1][0] <= time_s - 10 * STALL_S:
             hist.popleft()
-        since = next((t for t, p in reversed(hist) if p <= doc["progress"] - STALL_GAIN), hist[0][0])
+            self._hist_gone += 1
+        while lows[0][0] < self._hist_gone:
+            lows.popleft()
+        # The newest entry whose figure is at least STALL_GAIN below this one, else the oldest kept.
+        since = next((t for _, t, p in reversed(lows) if p <= figure - STALL_GAIN), hist[0][0])
         idle = time_s - since
         doc["stalled_s"] = round(idle, 1) if idle >= STALL_S and not doc["done"] else None
         doc["prompt"] = None

@@ -15,7 +15,7 @@ import numpy as np
 from flockcal.solver.accumulator import GramAccumulator
 from flockcal.solver.calibration import Bones, Calibration, calibrate
 from flockcal.solver.errors import SolverError
-from flockcal.solver.fits import TOLERANCE_M, PairFits, pair_fits
+from flockcal.solver.fits import TOLERANCE_M, JointEstimates, PairFits, joint_estimates, pair_fits
 
 
 @dataclass
@@ -169,22 +169,40 @@ class SegmentedAccumulator:
         seg = self.pair_segments([pair])[0]
         return self.whole if seg is None else self.segment_accumulator(seg)
 
-    def pair_fits(self, pairs, **options) -> PairFits:
-        """`fits.pair_fits` per pair on its segment (see class docstring), in the order of `pairs`."""
+    def joint_estimates(self, pairs, tolerance: float = TOLERANCE_M) -> JointEstimates:
+        """`pair_fits(pairs).c` and `.l` alone (`fits.joint_estimates`), per pair on its segment: what the
+        slip loop refits after every micro-batch."""
         P = np.asarray(pairs, dtype=int).reshape(-1, 2)
+        parts, order = [], []
+        for acc, rows in self._pair_groups(P):
+            parts.append(joint_estimates(acc, P[rows], tolerance))
+            order += rows
+        if len(parts) == 1:
+            return parts[0]
+        inv = np.argsort(np.asarray(order))
+        return JointEstimates(*(np.concatenate([getattr(e, f) for e in parts])[inv] for f in JointEstimates._fields))
+
+    def _pair_groups(self, P: np.ndarray) -> list[tuple[GramAccumulator, list[int]]]:
+        """(accumulator, rows of P) per governing segment, in order of first appearance."""
         segs = self.pair_segments(P)
         groups: dict[int, list[int]] = {}
         keyed: dict[int, Segment | None] = {}
         for k, s in enumerate(segs):
             groups.setdefault(id(s), []).append(k)
             keyed[id(s)] = s
+        if not groups:
+            return [(self.whole, [])]
+        return [(self.whole if keyed[key] is None else self.segment_accumulator(keyed[key]), rows)
+                for key, rows in groups.items()]
+
+    def pair_fits(self, pairs, **options) -> PairFits:
+        """`fits.pair_fits` per pair on its segment (see class docstring), in the order of `pairs`."""
+        P = np.asarray(pairs, dtype=int).reshape(-1, 2)
+        groups = self._pair_groups(P)
         if len(groups) == 1:
-            s = segs[0] if len(segs) else None
-            return pair_fits(self.whole if s is None else self.segment_accumulator(s), P, **options)
+            return pair_fits(groups[0][0], P, **options)
         parts, order = [], []
-        for key, rows in groups.items():
-            s = keyed[key]
-            acc = self.whole if s is None else self.segment_accumulator(s)
+        for acc, rows in groups:
             parts.append(pair_fits(acc, P[rows], **options))
             order += rows
         inv = np.argsort(np.asarray(order))

@@ -9,7 +9,7 @@ import logging
 
 import numpy as np
 
-from flockcal.solver.fits import PairFits
+from flockcal.solver.fits import JointEstimates
 from flockcal.solver.segments import SegmentedAccumulator
 from flockcal.solver.slippage import SlipMonitor
 
@@ -48,7 +48,7 @@ class SlipWatch:
         self.strict = bool(strict)
         self.joints: np.ndarray | None = None
         self.monitor: SlipMonitor | None = None
-        self.fits: PairFits | None = None
+        self.fits: JointEstimates | None = None  # the watched joints' latest refit (c, l)
         self.events: list = []  # every event found, across tree changes
         self.failure: BaseException | None = None
         self._held: tuple | None = None  # frames of an unfinished micro-batch (times, R, t, valid)
@@ -138,7 +138,7 @@ class SlipWatch:
             if self.monitor is None:
                 continue
             try:
-                self.fits = self.segments.pair_fits(self.joints)
+                self.fits = self.segments.joint_estimates(self.joints)
                 found = self.monitor.update(ts[sl], R[sl], t[sl], v[sl], self.fits.c, self.fits.l)
                 if found:
                     self.segments.apply(found)

@@ -15,6 +15,8 @@ import time
 import httpx
 import pytest
 import websockets
+from hypothesis import given
+from hypothesis import strategies as st
 
 from flockcal.server.errors import ConfigError
 from flockcal.server.settings import Settings
@@ -200,3 +202,33 @@ def test_a_database_from_before_progress_was_kept_opens_and_reads_it_as_unknown(
         assert store.session(row["id"])["progress"] == 0.5
     finally:
         store.close()
+
+
+@given(st.lists(st.tuples(st.floats(0.0, 3.0), st.sampled_from([0.0, 0.05, 0.1, 0.2, 0.3, 0.5, 0.7, 0.9, 1.0])),
+                min_size=1, max_size=300),
+       st.lists(st.booleans(), min_size=300, max_size=300))
+def test_the_stall_clock_is_the_plain_backward_search_over_the_kept_history(steps, done_at):
+    # `_stall` searches a pruned list of candidates (a plateau's 80 s of history was scanned on every fit);
+    # it must give what the plain rule gives: the newest kept entry at least STALL_GAIN below the figure
+    # now, else the oldest kept one (history older than 10 STALL_S trimmed, cleared once done).
+    from collections import deque
+
+    from flockcal.server.progress import ProgressTracker
+
+    STALL_S, STALL_GAIN = 8.0, 0.1  # the documented stall: under 10 points gained in 8 s
+
+    tracker = ProgressTracker(0.005)
+    plain: deque = deque()
+    time_s = 0.0
+    for (dt, figure), done in zip(steps, done_at):
+        time_s += dt * STALL_S / 2  # some steps jump past the trimming horizon
+        doc = {"done": done and figure == 1.0, "progress": figure, "missing": []}
+        tracker._stall(doc, time_s)
+        if doc["done"]:
+            plain.clear()
+        plain.append((time_s, figure))
+        while len(plain) > 2 and plain[1][0] <= time_s - 10 * STALL_S:
+            plain.popleft()
+        since = next((t for t, p in reversed(plain) if p <= figure - STALL_GAIN), plain[0][0])
+        idle = time_s - since
+        assert doc["stalled_s"] == (round(idle, 1) if idle >= STALL_S and not doc["done"] else None)

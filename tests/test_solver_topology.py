@@ -74,3 +74,25 @@ def test_property_random_skeletons_in_random_motion_give_their_own_tree(seed, m,
     d = articulated(m=m, n=200, seed=seed, dropout=dropout)
     topo = _topology(d, root=0)
     assert np.array_equal(topo.parent, d.parent)
+
+
+@given(st.integers(1, 16), st.floats(0.2, 1.0), st.integers(0, 2**16))
+def test_the_tree_links_are_csgraphs_minimum_spanning_forest(n, density, seed):
+    # `_tree_links` runs Kruskal's in Python instead of csgraph (a fifth of a live refit went into its
+    # sparse set-up); on distinct rank weights the forest is unique, so csgraph's must be the same.
+    from scipy.sparse import csr_matrix
+    from scipy.sparse.csgraph import minimum_spanning_tree
+
+    from flockcal.solver.topology import _tree_links
+
+    rng = np.random.default_rng(seed)
+    upper = np.array([(i, j) for i in range(n) for j in range(i + 1, n)], dtype=np.intp).reshape(-1, 2)
+    links = upper[rng.random(len(upper)) < density]
+    if not len(links):
+        return
+    a, b = links[:, 0].copy(), links[:, 1].copy()
+    w = np.empty(len(links))
+    w[rng.permutation(len(links))] = np.arange(1, len(links) + 1)
+    mst = minimum_spanning_tree(csr_matrix((w, (a, b)), shape=(n, n))).toarray()
+    expected = (mst[a, b] > 0) | (mst[b, a] > 0)
+    np.testing.assert_array_equal(_tree_links(n, a.tobytes(), b.tobytes(), w.tobytes()), expected)
