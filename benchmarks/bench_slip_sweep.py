@@ -91,12 +91,13 @@ def main() -> None:
     ap.add_argument("--follow", type=float, default=1.0)
     ap.add_argument("--jobs", type=int, default=2, help="processes (one performance each)")
     ap.add_argument("--monitor", action="append", default=[], metavar="KEY=VALUE",
-                    help="a SlipMonitor option other than its default")
+                    help="a SlipMonitor option other than its default (a tuple as A,B)")
     ap.add_argument("--list", action="store_true", help="print every late, missed or wrongly named slip")
     args = ap.parse_args()
     lo, hi = (float(x) for x in args.between.split(":"))
     moments = [float(x) for x in np.round(np.linspace(lo, hi, args.moments), 3)]
-    monitor = {k: float(v) for k, v in (o.split("=", 1) for o in args.monitor)}
+    monitor = {k: tuple(float(x) for x in v.split(",")) if "," in v else float(v)
+               for k, v in (o.split("=", 1) for o in args.monitor)}
     jobs = [(r, s) for r in args.routines for s in args.seeds]
     print(f"sweep: {len(args.sensors or range(16))} sensors x {len(moments)} moments of {lo:g}-{hi:g} s x "
           f"{len(args.seeds)} seeds x {', '.join(args.routines)}; {args.distance * 100:g} cm slips, STA {args.sta_mm:g} mm, "

@@ -154,13 +154,13 @@ def tree_after_slips(seeds: list[int], rate: float = 100.0, slip_s: float = 15.0
 
 
 def soak(hours: float, rate: float, routine: str = "walk", seed: int = 11, chunk_s: float = 60.0,
-         sta_mm: float = 0.0) -> None:
+         sta_mm: float = 0.0, monitor: dict | None = None) -> None:
     seconds = hours * 3600.0
     # The kiosk routine is a half-minute loop by nature; the others are planned over the whole soak.
     period = None if routine == "kiosk" else max(seconds, 60.0)
     perf = Performer("human", routine=routine, seed=seed, noise="tracker", rate_hz=rate, seconds=seconds,
                      period=period, sta_mm=sta_mm)
-    replay = SlipWatch(tree(perf.model), perf.n_sensors, rate, perf.names)
+    replay = SlipWatch(tree(perf.model), perf.n_sensors, rate, perf.names, **(monitor or {}))
     start = time.perf_counter()
     t0 = 0.0
     while t0 < seconds:
@@ -171,7 +171,7 @@ def soak(hours: float, rate: float, routine: str = "walk", seed: int = 11, chunk
     n = len(replay.events)
     skin = f"STA {sta_mm:g} mm" if sta_mm else "no STA"
     print(f"soak: {seconds / 3600:.2f} h of {routine} (seed {seed}) at tracker noise, {skin}, {rate:.0f} Hz, "
-          "live loop in 1/30 s batches, nothing slipped")
+          "live loop in 1/30 s batches, nothing slipped" + (f"; monitor {monitor}" if monitor else ""))
     print(f"  false alarms: {n}  ({n / hours:.2f} per hour); suspicions put to the confirming test: "
           f"{replay.monitor.confirmations} ({replay.monitor.confirmations / seconds:.2f}/s)")
     for e in replay.events[:10]:
@@ -180,7 +180,8 @@ def soak(hours: float, rate: float, routine: str = "walk", seed: int = 11, chunk
           flush=True)
 
 
-def fresh_takes(count: int, seconds: float, rate: float, routine: str, sta_mm: float, first_seed: int = 1000) -> None:
+def fresh_takes(count: int, seconds: float, rate: float, routine: str, sta_mm: float, first_seed: int = 1000,
+                monitor: dict | None = None, catch_up: int = 1) -> None:
     """False alarms over `count` takes of `seconds`, each a new performer (seed) doing the routine once
     from the start, as kiosk guests do: every pose is a first visit, which the hour-long soak, looping
     through the same poses, hardly has."""
@@ -190,15 +191,16 @@ def fresh_takes(count: int, seconds: float, rate: float, routine: str, sta_mm: f
     for k in range(count):
         perf = Performer("human", routine=routine, seed=first_seed + k, noise="tracker", rate_hz=rate,
                          seconds=seconds, sta_mm=sta_mm)
-        replay = SlipWatch(tree(perf.model), perf.n_sensors, rate, perf.names)
-        replay.feed(*frames(perf, rate, 0.0, seconds))
+        replay = SlipWatch(tree(perf.model), perf.n_sensors, rate, perf.names, **(monitor or {}))
+        replay.feed(*frames(perf, rate, 0.0, seconds), catch_up=catch_up)
         alarms += [(first_seed + k, e.sensor, round(e.time_s, 2), round(e.jump_mm, 1)) for e in replay.events]
         confirmations += replay.monitor.confirmations
     took = time.perf_counter() - start
     skin = f"STA {sta_mm:g} mm" if sta_mm else "no STA"
     hours = count * seconds / 3600
     print(f"fresh takes: {count} performers x {seconds:g} s of {routine} from the start ({hours:.2f} h), {skin}, "
-          f"{rate:.0f} Hz, live loop, nothing slipped")
+          f"{rate:.0f} Hz, live loop" + (f" {catch_up}x behind" if catch_up > 1 else "") + ", nothing slipped"
+          + (f"; monitor {monitor}" if monitor else ""))
     print(f"  false alarms: {len(alarms)} ({len(alarms) / hours:.2f} per hour of takes); confirming tests: {confirmations}")
     for a in alarms[:10]:
         print("   (seed, sensor, time_s, jump_mm):", a)
@@ -221,37 +223,42 @@ def main() -> None:
     ap.add_argument("--fresh", type=int, default=0, metavar="N",
                     help="instead: N takes of --take-s seconds of --routine, each a new performer from the start")
     ap.add_argument("--take-s", type=float, default=30.0)
+    ap.add_argument("--catch-up", type=int, default=1,
+                    help="--fresh: feed the loop as a service that has fallen behind does (10: 1/3 s micro-batches)")
     ap.add_argument("--sta-suite", action="store_true",
                     help="the STA runs: detection during walk and exercise with 12 mm STA, an --hours soak of "
                     "each of exercise, walk and kiosk with it, and --hours x 120 kiosk guests of 30 s")
     ap.add_argument("--monitor", action="append", default=[], metavar="KEY=VALUE",
-                    help="--phases: a SlipMonitor option other than its default (e.g. confirm_s=0.4)")
+                    help="--phases, the soaks and --fresh: a SlipMonitor option other than its default (e.g. "
+                    "confirm_s=0.4; a tuple as A,B)")
     ap.add_argument("--tree-seeds", type=int, nargs="+", metavar="SEED",
                     help="instead: the searched tree after a slip of each sensor, these seeds (100 Hz)")
     args = ap.parse_args()
     if args.tree_seeds:
         tree_after_slips(args.tree_seeds)
         return
+    monitor = {k: tuple(float(x) for x in v.split(",")) if "," in v else float(v)
+               for k, v in (o.split("=", 1) for o in args.monitor)}
     if args.phases:
         lo, hi = (float(x) for x in args.between.split(":"))
-        monitor = {k: float(v) for k, v in (o.split("=", 1) for o in args.monitor)}
         phases(args.phases, args.seed, args.rate, args.routine, args.sta_mm, lo, hi, args.moments, args.distance,
                args.follow, monitor)
         return
     if args.fresh:
-        fresh_takes(args.fresh, args.take_s, args.rate, args.routine, args.sta_mm)
+        fresh_takes(args.fresh, args.take_s, args.rate, args.routine, args.sta_mm, monitor=monitor,
+                    catch_up=args.catch_up)
         return
     if args.sta_suite:
         for routine in ("walk", "exercise"):
             detection(args.seeds, args.rate, args.distance, args.follow, routine, sta_mm=12.0)
         for routine in ("exercise", "walk", "kiosk"):
-            soak(args.hours, args.rate, routine, args.seed, sta_mm=12.0)
-        fresh_takes(int(round(args.hours * 120)), 30.0, args.rate, "kiosk", 12.0)
+            soak(args.hours, args.rate, routine, args.seed, sta_mm=12.0, monitor=monitor)
+        fresh_takes(int(round(args.hours * 120)), 30.0, args.rate, "kiosk", 12.0, monitor=monitor)
         return
     if args.seeds > 0:
         detection(args.seeds, args.rate, args.distance, args.follow, args.routine, args.sta_mm)
     if args.hours > 0:
-        soak(args.hours, args.rate, args.routine, args.seed, sta_mm=args.sta_mm)
+        soak(args.hours, args.rate, args.routine, args.seed, sta_mm=args.sta_mm, monitor=monitor)
 
 
 if __name__ == "__main__":

@@ -101,6 +101,9 @@ class SlipMonitor:
     from dividing by zero. A pair whose residual rms exceeds `max_rms_m` is not a joint and is not
     watched. Frames are examined `step_s` at a time, whatever the batches they arrive in. Suspicions
     whose onsets are more than `merge_s` apart are kept and tested apart (`slippage_pending`).
+    Where a joint moves into poses its lagged baseline has not seen, the step test and the confirming
+    test count `extrapolation_share` (step, confirming) of the baseline's own uncertainty as noise
+    (docs/slippage.md measures the confirming test's share).
     """
 
     def __init__(self, joints, n_sensors: int, rate_hz: float, names=None, *,
@@ -109,7 +112,7 @@ class SlipMonitor:
                  threshold: float = 25.0, attribute_s: float = 0.15, confirm_s: float = 0.8,
                  step_s: float = 0.1, min_frames: int = 4, min_evidence: float = 20.0,
                  scale_floor_m: float = 2e-4, max_rms_m: float = 0.05, revisit_s: float = 40.0,
-                 merge_s: float = 0.05):
+                 merge_s: float = 0.05, extrapolation_share: tuple[float, float] = (1.0, 1.0)):
         J = _checked_joints(joints, n_sensors)
         if not rate_hz > 0:
             raise SlippageError(f"rate_hz must be positive, got {rate_hz!r}")
@@ -117,6 +120,11 @@ class SlipMonitor:
             raise SlippageError("lag_s must exceed window_s, so a step is never inside its own baseline")
         if not confirm_s >= attribute_s:
             raise SlippageError("confirm_s must be at least attribute_s: a suspicion is tested from attribute_s to confirm_s")
+        share = np.asarray(extrapolation_share, dtype=float)
+        if share.shape != (2,) or not ((share >= 0) & (share <= 1)).all():
+            raise SlippageError(f"extrapolation_share is (step test, confirming test), each within [0, 1]: "
+                                f"{extrapolation_share!r}")
+        self.extrapolation_share = (float(share[0]), float(share[1]))
         self.joints = J
         self.m = int(n_sensors)
         self.rate_hz = float(rate_hz)
@@ -414,9 +422,15 @@ class SlipMonitor:
         sigma2 = np.nan_to_num(self.base.sigma, nan=0.0) ** 2
         floor = np.maximum(0.25 * sigma2, self.scale_floor**2)
         ok = np.isfinite(var)
-        # Where the configuration is new the baseline extrapolates: its own uncertainty adds to the noise.
-        var = np.maximum(np.where(ok, var, 1.0), floor) + sigma2 * self.base.leverage(Q)
-        buf.w[sl] = np.where(buf.pv[sl] & ok, 1.0 / var, 0.0)
+        var = np.maximum(np.where(ok, var, 1.0), floor)
+        # Where the configuration is new the baseline extrapolates: the step test, which measures against
+        # it, counts its uncertainty as noise. The confirming test fits its own smooth function over
+        # the window and extrapolates no baseline: a share of it (`extrapolation_share`).
+        extra = sigma2 * self.base.leverage(Q)
+        live = buf.pv[sl] & ok
+        step_share, confirm_share = self.extrapolation_share
+        buf.w[sl] = np.where(live, 1.0 / (var + step_share * extra), 0.0)
+        buf.wc[sl] = np.where(live, 1.0 / (var + confirm_share * extra), 0.0)
         self._fresh = (min(first, new_from) if self._fresh is None else min(self._fresh[0], new_from), end)
 
     def _attribute(self, onset: int, fired: np.ndarray, ready: np.ndarray, c, l, last: int):
@@ -433,7 +447,7 @@ class SlipMonitor:
         rows = np.concatenate([np.arange(cut % stride, cut, stride), np.arange(cut, full.stop - full.start)]) + full.start
         times = buf.times[rows]
         use = buf.pv[rows] & (times[:, None] >= self.segment_start[None, :])
-        weight = np.where(use, buf.w[rows], 0.0)
+        weight = np.where(use, buf.wc[rows], 0.0)
         weight[:int(np.searchsorted(rows, full.start + cut))] *= stride
         onset_row = int(np.searchsorted(rows, full.start + onset_row))
         post = slice(rows[onset_row], full.stop)
