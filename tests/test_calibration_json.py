@@ -17,7 +17,10 @@ all but "markers" gained `joints[].noise_error_m` with issue #30 (every other va
 by the pair fit over the rods' poses: the middle rod 496.7 -> 499.4 mm, truth 500). "free", "hierarchy",
 "skeleton_file" and "saved_skeleton" again when a hinge's two feet were weighted by the other bone's length
 and the data's own point stopped counting next to the limb rule (issue #36: the left elbow moved 2.3 mm
-along its axis; its bones with it).
+along its axis; its bones with it). "slip" when the slip monitor re-tested a suspicion at a later start
+where another sensor's step begins (issue #32): the take's second event, the forearm after the hand, now
+has its onset at 12.42 s instead of 12.2 s (the slip, with a 20° turn, is at 12.0 s), and the elbow
+moved 1.8 mm.
 A deliberate change of the output re-records a file, and its commit says why.
 """
 
