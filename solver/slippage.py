@@ -424,8 +424,9 @@ class SlipMonitor:
         ok = np.isfinite(var)
         var = np.maximum(np.where(ok, var, 1.0), floor)
         # Where the configuration is new the baseline extrapolates: the step test, which measures against
-        # it, counts its uncertainty as noise. The confirming test fits its own smooth function over
-        # the window and extrapolates no baseline: a share of it (`extrapolation_share`).
+        # it, counts its uncertainty as noise. The confirming test fits its own smooth function over the
+        # window, yet counting less of it there raised false alarms in new poses (docs/slippage.md), so
+        # by default it counts all of it too (`extrapolation_share`).
         extra = sigma2 * self.base.leverage(Q)
         live = buf.pv[sl] & ok
         step_share, confirm_share = self.extrapolation_share
