@@ -27,7 +27,7 @@ from flockcal.solver.slip_watch import SlipWatch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the scoring rule is the tests'
-from bench_slippage import frames, tree  # noqa: E402
+from bench_slippage import frames, monitor_options, tree  # noqa: E402
 from slip_scoring import attributes_slip_to  # noqa: E402
 
 
@@ -96,8 +96,7 @@ def main() -> None:
     args = ap.parse_args()
     lo, hi = (float(x) for x in args.between.split(":"))
     moments = [float(x) for x in np.round(np.linspace(lo, hi, args.moments), 3)]
-    monitor = {k: tuple(float(x) for x in v.split(",")) if "," in v else float(v)
-               for k, v in (o.split("=", 1) for o in args.monitor)}
+    monitor = monitor_options(args.monitor)
     jobs = [(r, s) for r in args.routines for s in args.seeds]
     print(f"sweep: {len(args.sensors or range(16))} sensors x {len(moments)} moments of {lo:g}-{hi:g} s x "
           f"{len(args.seeds)} seeds x {', '.join(args.routines)}; {args.distance * 100:g} cm slips, STA {args.sta_mm:g} mm, "

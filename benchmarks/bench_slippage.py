@@ -207,6 +207,12 @@ def fresh_takes(count: int, seconds: float, rate: float, routine: str, sta_mm: f
     print(f"  ({took:.1f} s)", flush=True)
 
 
+def monitor_options(items: list[str]) -> dict:
+    """`--monitor KEY=VALUE` options as SlipMonitor keywords: a number, or a tuple written A,B."""
+    return {k: tuple(float(x) for x in v.split(",")) if "," in v else float(v)
+            for k, v in (o.split("=", 1) for o in items)}
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--seeds", type=int, default=20)
@@ -237,8 +243,7 @@ def main() -> None:
     if args.tree_seeds:
         tree_after_slips(args.tree_seeds)
         return
-    monitor = {k: tuple(float(x) for x in v.split(",")) if "," in v else float(v)
-               for k, v in (o.split("=", 1) for o in args.monitor)}
+    monitor = monitor_options(args.monitor)
     if args.phases:
         lo, hi = (float(x) for x in args.between.split(":"))
         phases(args.phases, args.seed, args.rate, args.routine, args.sta_mm, lo, hi, args.moments, args.distance,

@@ -431,7 +431,8 @@ class SlipMonitor:
         live = buf.pv[sl] & ok
         step_share, confirm_share = self.extrapolation_share
         buf.w[sl] = np.where(live, 1.0 / (var + step_share * extra), 0.0)
-        buf.wc[sl] = np.where(live, 1.0 / (var + confirm_share * extra), 0.0)
+        if confirm_share != step_share:  # (equal shares, the default: the confirming test reads buf.w)
+            buf.wc[sl] = np.where(live, 1.0 / (var + confirm_share * extra), 0.0)
         self._fresh = (min(first, new_from) if self._fresh is None else min(self._fresh[0], new_from), end)
 
     def _attribute(self, onset: int, fired: np.ndarray, ready: np.ndarray, c, l, last: int):
@@ -448,7 +449,8 @@ class SlipMonitor:
         rows = np.concatenate([np.arange(cut % stride, cut, stride), np.arange(cut, full.stop - full.start)]) + full.start
         times = buf.times[rows]
         use = buf.pv[rows] & (times[:, None] >= self.segment_start[None, :])
-        weight = np.where(use, buf.wc[rows], 0.0)
+        share = self.extrapolation_share
+        weight = np.where(use, (buf.wc if share[1] != share[0] else buf.w)[rows], 0.0)
         weight[:int(np.searchsorted(rows, full.start + cut))] *= stride
         onset_row = int(np.searchsorted(rows, full.start + onset_row))
         post = slice(rows[onset_row], full.stop)

@@ -206,6 +206,17 @@ class StepFits:
             return self.rss_none - np.nan_to_num((self.g * self.g).sum(axis=1) / self.h)
 
 
+def _regularised(A: np.ndarray, ridge: float, prior_sd: float, prior_from: int) -> np.ndarray:
+    """Normal matrices (q, K, K) with `step_fits`' ridge (relative to their mean diagonal) and the prior of
+    sd `prior_sd` on the coefficients of columns from `prior_from` on."""
+    K = A.shape[-1]
+    scale = np.maximum(A.trace(axis1=1, axis2=2) / K, 1e-300)
+    A = A + (ridge * scale)[:, None, None] * np.eye(K)
+    if prior_sd > 0 and prior_from < K:
+        A = A + np.diag(np.r_[np.zeros(prior_from), np.full(K - prior_from, 1.0 / prior_sd**2)])
+    return A
+
+
 def step_fits(D: np.ndarray, series: list[np.ndarray], weight: np.ndarray, after: np.ndarray,
               ridge: float = 1e-9, prior_sd: float = 0.0, prior_from: int = 0) -> list[StepFits]:
     """Least squares of each series (L, q, 3) in `series` on D (L, q, K), and what a step (after: (L,)
@@ -220,11 +231,7 @@ def step_fits(D: np.ndarray, series: list[np.ndarray], weight: np.ndarray, after
     K = D.shape[-1]
     q = len(G)
     ns = len(series)
-    A = G[:, :K, :K]
-    scale = np.maximum(A.trace(axis1=1, axis2=2) / K, 1e-300)
-    A = A + (ridge * scale)[:, None, None] * np.eye(K)
-    if prior_sd > 0 and prior_from < K:
-        A = A + np.diag(np.r_[np.zeros(prior_from), np.full(K - prior_from, 1.0 / prior_sd**2)])
+    A = _regularised(G[:, :K, :K], ridge, prior_sd, prior_from)
     rhs = G[:, :K, K:]  # the step column, then the data
     sol = np.linalg.solve(A, rhs)
     data = G[:, K + 1:, K + 1:].diagonal(axis1=1, axis2=2).reshape(q, ns, 3).sum(axis=2)
@@ -247,12 +254,9 @@ def prediction_rss(D: np.ndarray, series: np.ndarray, weight: np.ndarray, after:
     Zt = Zb.transpose(1, 2, 0)
     G = Zt @ Zt.transpose(0, 2, 1)
     K = D.shape[-1]
-    A = G[:, :K, :K]
-    scale = np.maximum(A.trace(axis1=1, axis2=2) / K, 1e-300)
-    coef = np.linalg.solve(A + (ridge * scale)[:, None, None] * np.eye(K), G[:, :K, K:])  # (q, K, 3)
+    coef = np.linalg.solve(_regularised(G[:, :K, :K], ridge, 0.0, 0), G[:, :K, K:])  # (q, K, 3)
     err = series[after] - np.einsum("lqk,qka->lqa", D[after], coef)
     return np.einsum("lq,lqa,lqa->q", weight[after], err, err)
-
 
 
 def step_scan(D: np.ndarray, series: list[np.ndarray], weight: np.ndarray, starts: np.ndarray,
@@ -264,11 +268,7 @@ def step_scan(D: np.ndarray, series: list[np.ndarray], weight: np.ndarray, start
     q = D.shape[1]
     X = np.concatenate(series, axis=-1)  # (L, q, 3·ns)
     wD = D * weight[..., None]
-    A = np.einsum("lqk,lqj->qkj", wD, D)
-    scale = np.maximum(A.trace(axis1=1, axis2=2) / K, 1e-300)
-    A = A + (ridge * scale)[:, None, None] * np.eye(K)
-    if prior_sd > 0 and prior_from < K:
-        A = A + np.diag(np.r_[np.zeros(prior_from), np.full(K - prior_from, 1.0 / prior_sd**2)])
+    A = _regularised(np.einsum("lqk,lqj->qkj", wD, D), ridge, prior_sd, prior_from)
     r = np.einsum("lqk,lqa->qka", wD, X)  # (q, K, 3·ns)
     sol_x = np.linalg.solve(A, r)
     # Suffix sums from each start: Σ_{l ≥ k} w D, Σ w, Σ w x.
