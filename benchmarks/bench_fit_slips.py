@@ -52,22 +52,33 @@ def import_seconds(module: str, runs: int) -> float:
     return best
 
 
-def old_monitor(rev: str, folder: Path):
-    """The slippage modules of commit `rev` (git show), importable beside today's under other names."""
-    root = Path(__file__).resolve().parents[1]
-    names = ("slippage", "slippage_stats", "slippage_attribution", "slippage_local", "slippage_revisit")
-    for name in names:
-        got = subprocess.run(["git", "-C", str(root), "show", f"{rev}:solver/{name}.py"], capture_output=True, text=True)
-        if got.returncode:
-            continue  # that commit did not have this module
-        text = got.stdout
-        for other in names:
-            text = text.replace(f"from flockcal.solver.{other} import", f"from old_{other} import")
-        (folder / f"old_{name}.py").write_text(text)
-    sys.path.insert(0, str(folder))
-    import old_slippage
+# The slip modules before solver/slippage/ became a package (issue 33), and their names inside it.
+MODULES = {"slippage": "monitor", "slippage_stats": "stats", "slippage_attribution": "attribution",
+           "slippage_local": "baseline", "slippage_revisit": "revisit", "slippage_buffer": "buffer",
+           "slippage_pending": "pending"}
 
-    return old_slippage
+
+def old_monitor(rev: str, folder: Path):
+    """The slippage modules of commit `rev` (git show; flat or in the package), importable beside today's
+    under other names."""
+    root = Path(__file__).resolve().parents[1]
+
+    def show(path: str) -> str | None:
+        got = subprocess.run(["git", "-C", str(root), "show", f"{rev}:{path}"], capture_output=True, text=True)
+        return None if got.returncode else got.stdout  # that commit did not have this module
+
+    for flat, inner in MODULES.items():
+        text = show(f"solver/slippage/{inner}.py") or show(f"solver/{flat}.py")
+        if text is None:
+            continue
+        for other_flat, other in MODULES.items():
+            text = text.replace(f"from flockcal.solver.slippage.{other} import", f"from old_slippage_{other} import")
+            text = text.replace(f"from flockcal.solver.{other_flat} import", f"from old_slippage_{other} import")
+        (folder / f"old_slippage_{inner}.py").write_text(text)
+    sys.path.insert(0, str(folder))
+    import old_slippage_monitor
+
+    return old_slippage_monitor
 
 
 def live_monitor_share(sta_mm: float, seconds: float = 60.0, module=None) -> tuple[float, int]:

@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from flockcal.simulator.performer import Performer
-from flockcal.solver.slip_watch import SlipWatch
+from flockcal.solver.slippage.watch import SlipWatch
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))  # the scoring rule is the tests'

@@ -10,7 +10,7 @@ from dataclasses import dataclass, field
 from flockcal.server.framelog import FrameLog
 from flockcal.server.progress import Profile, ProgressTracker
 from flockcal.solver.calibration import Calibration
-from flockcal.solver.slip_watch import SlipWatch
+from flockcal.solver.slippage.watch import SlipWatch
 
 
 @dataclass

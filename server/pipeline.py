@@ -25,7 +25,7 @@ from flockcal.server.sampling import ResidualSampler, watch_flush, watch_step
 from flockcal.server.snapshot import Snapshot, SnapshotMaker
 from flockcal.server.store import Store
 from flockcal.solver.calibration import Calibration
-from flockcal.solver.slip_watch import SlipWatch
+from flockcal.solver.slippage.watch import SlipWatch
 from flockcal.threads import name_os_thread
 
 __all__ = ["SLIP_FIELDS", "LiveSession", "Pipeline"]
@@ -50,7 +50,7 @@ MAX_STEP_S = 1.0
 # A fitted tree (automatic topology) must stay the fits' tree this long, in session time, before the slip
 # loop watches it, the first one too: early fitted trees flicker, and a step on a wrong edge is no slip
 # (early trees raised false events in the first seconds). Nothing is lost by waiting: the monitor keeps
-# the joints both trees share and works new ones out from the frames it keeps (solver/slip_watch.py).
+# the joints both trees share and works new ones out from the frames it keeps (solver/slippage/watch.py).
 TREE_SETTLE_S = 3.0
 
 

@@ -1,5 +1,5 @@
 """What the live service watches in the session's frames: each joint's residual rms, sampled
-`residual_hz` times a second against the newest fit, and the slip loop (solver/slip_watch.py).
+`residual_hz` times a second against the newest fit, and the slip loop (solver/slippage/watch.py).
 Both run on the pipeline thread only and own their state.
 """
 

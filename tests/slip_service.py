@@ -71,7 +71,7 @@ def spread_order(names, parent) -> list[str]:
 
 
 def attributed(event: dict, sensor: str, names, parent) -> bool:
-    """The event blames `sensor` (or offers a leaf with its parent), as solver/slippage.py scores it."""
+    """The event blames `sensor` (or offers a leaf with its parent), as solver/slippage/monitor.py scores it."""
     ev = SimpleNamespace(sensor=event.get("sensor"), candidates=event.get("candidates") or [])
     return attributes_slip_to(ev, sensor, names, parent)
 

@@ -61,7 +61,7 @@ VARIABLES = {
     "acc": "flockcal.solver.accumulator.GramAccumulator",
     "skeleton": "flockcal.skeleton.Skeleton",
     "reader": "flockcal.drivers.reader.TrackerReader",
-    "watch": "flockcal.solver.slip_watch.SlipWatch",
+    "watch": "flockcal.solver.slippage.watch.SlipWatch",
     "settings": "flockcal.server.settings.Settings",
     "service": "flockcal.server.service.Service",
 }

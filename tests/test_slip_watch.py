@@ -1,4 +1,4 @@
-"""The one slip loop (solver/slip_watch.py): the live service hands frames over in whatever pieces the
+"""The one slip loop (solver/slippage/watch.py): the live service hands frames over in whatever pieces the
 reader delivers and still runs the micro-batches the slip figures were measured on; a changed tree
 keeps watching (a slip just after it is found); a failing monitor stops watching but loses no frame, and the live service says so.
 """
@@ -15,7 +15,7 @@ import pytest
 from flockcal.server.settings import Settings
 from flockcal.simulator.performer import Performer
 from flockcal.solver.accumulator import GramAccumulator
-from flockcal.solver.slip_watch import SlipWatch
+from flockcal.solver.slippage.watch import SlipWatch
 from flockcal.solver.slippage import SlipMonitor
 from server_helpers import ServerThread, free_port, wait_connected
 
@@ -155,7 +155,7 @@ class Failing(SlipMonitor):
 
 
 def test_a_failing_monitor_stops_watching_but_every_frame_reaches_the_accumulator(monkeypatch):
-    monkeypatch.setattr("flockcal.solver.slip_watch.SlipMonitor", Failing)
+    monkeypatch.setattr("flockcal.solver.slippage.watch.SlipMonitor", Failing)
     perf, frames = walk(4.0)
     Failing.calls = 0
     strict = SlipWatch(tree(perf.model), perf.n_sensors, RATE, perf.names)
@@ -180,7 +180,7 @@ def test_live_service_reports_a_failing_slip_monitor_once_as_a_tracker_event(tmp
         def update(self, *args, **kwargs):
             raise RuntimeError("monitor broke")
 
-    monkeypatch.setattr("flockcal.solver.slip_watch.SlipMonitor", Broken)
+    monkeypatch.setattr("flockcal.solver.slippage.watch.SlipMonitor", Broken)
     settings = Settings(device="sim://walk?birds=16&motion=walk&rate=100&baud=921600&seed=2", birds=16,
                         http_port=free_port(), data_dir=tmp_path)
     with caplog.at_level(logging.ERROR, logger="flockcal.server"), ServerThread(settings) as srv:

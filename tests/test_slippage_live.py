@@ -15,7 +15,7 @@ from flockcal.simulator.performer import Performer
 from flockcal.solver.accumulator import GramAccumulator
 from flockcal.solver.fits import pair_fits
 from slip_scoring import attributes_slip_to
-from flockcal.solver.slip_watch import SlipWatch
+from flockcal.solver.slippage.watch import SlipWatch
 
 RATE = 100.0
 SLIP_AT = 10.0

@@ -7,8 +7,8 @@ from __future__ import annotations
 import numpy as np
 
 from flockcal.simulator.performer import Performer
-from flockcal.solver.slip_watch import SlipWatch
-from flockcal.solver.slippage_local import step_fits, step_scan
+from flockcal.solver.slippage.watch import SlipWatch
+from flockcal.solver.slippage.baseline import step_fits, step_scan
 from slip_scoring import attributes_slip_to
 
 RATE = 144.0

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from flockcal.simulator.performer import Performer
-from flockcal.solver.slip_watch import SlipWatch
+from flockcal.solver.slippage.watch import SlipWatch
 
 RATE = 100.0
 

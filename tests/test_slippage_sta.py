@@ -14,8 +14,8 @@ from flockcal.solver.accumulator import GramAccumulator
 from flockcal.solver.calibration import calibrate
 from flockcal.solver.fits import pair_fits
 from flockcal.solver.slippage import SlipMonitor, detect_slips
-from flockcal.solver.slippage_pending import PendingSuspicions
-from flockcal.solver.slip_watch import SlipWatch
+from flockcal.solver.slippage.pending import PendingSuspicions
+from flockcal.solver.slippage.watch import SlipWatch
 from real_captures import KNEE, UPPER_LIMB, cluster_take, segment_map
 
 RATE = 100.0

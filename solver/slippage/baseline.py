@@ -16,7 +16,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from flockcal.solver.slippage_stats import CHI3_MEDIAN
+from flockcal.solver.slippage.stats import CHI3_MEDIAN
 
 
 def neighbours(joints: np.ndarray) -> np.ndarray:

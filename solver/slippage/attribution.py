@@ -2,7 +2,7 @@
 
 Every hypothesis is scored by how well it explains the residuals of the joints near the change over
 the window (8 s before the onset and the frames since), each joint's residual fitted as a smooth
-function of the configuration (`slippage_local`): "sensor s slipped" = its placement moved at the
+function of the configuration (`baseline`): "sensor s slipped" = its placement moved at the
 onset by one vector (of at least the minimum jump) in its own frame, which every joint of s shows and
 no other joint does; "a and b swapped" = exchanging their data from the onset on brings every joint
 back to what the frames before predict; "nothing" = the smooth fit explains every joint before and
@@ -19,8 +19,8 @@ from itertools import combinations
 
 import numpy as np
 
-from flockcal.solver.slippage_local import configuration_design, prediction_rss, step_fits, step_scan
-from flockcal.solver.slippage_stats import residual
+from flockcal.solver.slippage.baseline import configuration_design, prediction_rss, step_fits, step_scan
+from flockcal.solver.slippage.stats import residual
 
 # Other sensors are listed as candidates down to this posterior share.
 CANDIDATE_SHARE = 0.05
@@ -50,7 +50,7 @@ class Attribution:
 class Window:
     """The frames around a suspected change, as the monitor hands them over (L frames, P joints).
 
-    g, Q: cached joint geometry (`slippage_stats.joint_geometry`); use (L, P): frames each joint may
+    g, Q: cached joint geometry (`stats.joint_geometry`); use (L, P): frames each joint may
     use (valid, in its current segment); weight (L, P) = 1/σ²; times (L,); onset_row: first row of the
     change; c, l (P, 3): the estimates; swapped(perm, joints) -> (g, Q) of the frames from the onset on
     with the sensors' data permuted, for those joints; swap_plausible(a, b): whether exchanging a's and
@@ -74,7 +74,7 @@ def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarr
               late_rows: int = 0, min_tail: int = 4) -> Attribution:
     """Score slip and swap hypotheses around the change (see module docstring).
 
-    joints (P, 2) (child, parent); nbrs (P, width): `slippage_local.neighbours(joints)`; ready (P,)
+    joints (P, 2) (child, parent); nbrs (P, width): `baseline.neighbours(joints)`; ready (P,)
     joints with a baseline; suspects (P,) joints whose step test fired. Only joints sharing a sensor
     with a suspect are fitted: a sensor none of whose joints fired cannot be the one that slipped.
     `late_rows` > 0: also look for the slipped sensor's step starting at every later row (up to

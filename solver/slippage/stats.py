@@ -1,8 +1,8 @@
 """Numerical pieces of the slippage monitor's watch: joint geometry per frame, local noise from frame
 differences and the window-limited GLR step test that raises a suspicion. (The baseline the test
-measures from, and the test that confirms a suspicion, are `slippage_local`.)
+measures from, and the test that confirms a suspicion, are `baseline`.)
 
-Pure numpy, vectorised over frames and joints; `flockcal.solver.slippage` puts them together.
+Pure numpy, vectorised over frames and joints; `slippage.monitor` puts them together.
 """
 
 from __future__ import annotations

@@ -1,13 +1,13 @@
 """The slip monitor's recent frames: times, rotations, positions and validity with their global frame
 index, each watched joint's geometry worked out once per frame, and the step test's deviations and
-noise weights, kept until the baseline changes (solver/slippage.py).
+noise weights, kept until the baseline changes (solver/slippage/monitor.py).
 """
 
 from __future__ import annotations
 
 import numpy as np
 
-from flockcal.solver.slippage_stats import joint_geometry
+from flockcal.solver.slippage.stats import joint_geometry
 
 
 class FrameBuffer:

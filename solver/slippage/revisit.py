@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from flockcal.solver.slippage_stats import joint_geometry, residual
+from flockcal.solver.slippage.stats import joint_geometry, residual
 
 # Two poses are the same when every joint involved is within this angle of where it was (radians): soft
 # tissue moves a sensor by about a centimetre per radian, so 4° leaves well under a millimetre.

@@ -11,7 +11,7 @@ import numpy as np
 
 from flockcal.solver.fits import JointEstimates
 from flockcal.solver.segments import SegmentedAccumulator
-from flockcal.solver.slippage import SlipMonitor
+from flockcal.solver.slippage.monitor import SlipMonitor
 
 log = logging.getLogger(__name__)
 

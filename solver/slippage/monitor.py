@@ -3,9 +3,9 @@ the accumulator plus the current joint estimates, and `detect_slips` for a recor
 
 Per joint, a window-limited GLR test for a step in the residual vector (seen from either sensor of the
 joint, against that joint's own baseline, weighted by the noise the data shows) raises a suspicion;
-`slippage_attribution` then asks whether a step at that moment is needed at all once each joint's
+`attribution` then asks whether a step at that moment is needed at all once each joint's
 residual is fitted as a smooth function of the configuration (soft tissue is one, a slip is not), and
-names the sensor whose joints all stepped (or the pair that swapped); `slippage_revisit` lets the same
+names the sensor whose joints all stepped (or the pair that swapped); `revisit` lets the same
 pose seen before overrule it. Only then is an event reported.
 """
 
@@ -16,12 +16,12 @@ from dataclasses import dataclass
 import numpy as np
 
 from flockcal.errors import FlockcalError
-from flockcal.solver.slippage_attribution import Attribution, Window, attribute
-from flockcal.solver.slippage_buffer import FrameBuffer
-from flockcal.solver.slippage_local import SmoothBaseline, neighbours, smooth_baseline
-from flockcal.solver.slippage_pending import PendingSuspicions, Suspicion
-from flockcal.solver.slippage_revisit import PoseHistory, came_back
-from flockcal.solver.slippage_stats import joint_geometry, local_variance, residual, window_glr
+from flockcal.solver.slippage.attribution import Attribution, Window, attribute
+from flockcal.solver.slippage.buffer import FrameBuffer
+from flockcal.solver.slippage.baseline import SmoothBaseline, neighbours, smooth_baseline
+from flockcal.solver.slippage.pending import PendingSuspicions, Suspicion
+from flockcal.solver.slippage.revisit import PoseHistory, came_back
+from flockcal.solver.slippage.stats import joint_geometry, local_variance, residual, window_glr
 
 
 class SlippageError(FlockcalError, ValueError):
@@ -100,7 +100,7 @@ class SlipMonitor:
     `min_jump_m` is the smallest step worth reporting and `scale_floor_m` stops exact, noise-free data
     from dividing by zero. A pair whose residual rms exceeds `max_rms_m` is not a joint and is not
     watched. Frames are examined `step_s` at a time, whatever the batches they arrive in. Suspicions
-    whose onsets are more than `merge_s` apart are kept and tested apart (`slippage_pending`).
+    whose onsets are more than `merge_s` apart are kept and tested apart (`pending`).
     Where a joint moves into poses its lagged baseline has not seen, the step test and the confirming
     test count `extrapolation_share` (step, confirming) of the baseline's own uncertainty as noise
     (docs/slippage.md measures the confirming test's share).
