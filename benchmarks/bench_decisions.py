@@ -38,7 +38,7 @@ def hinged(seed: int):
 
 
 def evaluate(take, truth=None, hierarchy=None):
-    acc = GramAccumulator(take.n_sensors).update(take.rotations, take.positions, take.valid)
+    acc = GramAccumulator(take.n_sensors).add_poses(take.rotations, take.positions, take.valid)
     res = calibrate(acc, hierarchy=hierarchy, names=take.names).to_dict()
     tj = {j["child"]: j for j in (truth or {}).get("joints", [])}
     ball = hinge = 0

@@ -48,7 +48,7 @@ def make_session(data: Path, minutes: float) -> dict:
     t = np.arange(int(60 * RATE)) / RATE
     R, p, valid = performer.poses(t)
     acc = new_accumulator(performer.n_sensors)
-    acc.update(R, p, valid)
+    acc.add_poses(R, p, valid)
     result = fit_calibration(acc, performer.names)[0]
     rec = data / "recordings"
     rec.mkdir(parents=True, exist_ok=True)

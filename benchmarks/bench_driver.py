@@ -119,11 +119,11 @@ def _run(asm: FrameAssembler, m: int, n: int, reads, take_every: int) -> tuple[f
         if k % take_every == take_every - 1:
             f = asm.take()
             if len(f):
-                acc.update(f.rotations, f.positions, f.valid)
+                acc.add_poses(f.rotations, f.positions, f.valid)
                 frames += len(f)
     asm.flush()
     f = asm.take()
-    acc.update(f.rotations, f.positions, f.valid)
+    acc.add_poses(f.rotations, f.positions, f.valid)
     frames += len(f)
     elapsed = time.perf_counter() - t0
     assert frames == n, (frames, n)

@@ -59,11 +59,11 @@ def main() -> None:
 
     # (b) Gram batch path: accumulate + all-pair fits + MST
     def batch():
-        acc = GramAccumulator(m).update(R, t)
+        acc = GramAccumulator(m).add_poses(R, t)
         spanning_tree(pair_fits(acc), m)
 
     batch_fps = n / best_of(batch)
-    acc_only = n / best_of(lambda: GramAccumulator(m).update(R, t).gram)
+    acc_only = n / best_of(lambda: GramAccumulator(m).add_poses(R, t).gram)
     print(f"(b) Gram batch (accumulate + fit):   {batch_fps:14,.0f} frames/s   (accumulate only {acc_only:,.0f})")
 
     # (c) incremental path: 1-frame and 64-frame updates
@@ -72,13 +72,13 @@ def main() -> None:
     def one_by_one():
         acc = GramAccumulator(m)
         for k in range(n1):
-            acc.update(R[k], t[k])
+            acc.add_poses(R[k], t[k])
         acc.gram
 
     def by_64():
         acc = GramAccumulator(m)
         for s in range(0, n, 64):
-            acc.update(R[s:s + 64], t[s:s + 64])
+            acc.add_poses(R[s:s + 64], t[s:s + 64])
         acc.gram
 
     inc1 = n1 / best_of(one_by_one, 2)
@@ -87,7 +87,7 @@ def main() -> None:
     print(f"    incremental, 64-frame updates:   {inc64:14,.0f} frames/s")
 
     # refit all pairs + MST from the Gram, and the whole calibrate() the live server calls
-    acc = GramAccumulator(m).update(R, t)
+    acc = GramAccumulator(m).add_poses(R, t)
     k = 50
     refit = best_of(lambda: [spanning_tree(pair_fits(acc), m) for _ in range(k)]) / k
     cal = best_of(lambda: [calibrate(acc) for _ in range(k)]) / k

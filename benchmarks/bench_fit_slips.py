@@ -96,9 +96,10 @@ def live_monitor_share(sta_mm: float, seconds: float = 60.0, module=None) -> tup
     times = np.arange(int(seconds * RATE)) / RATE
     R, t, v = perf.poses(times)
     acc = GramAccumulator(perf.n_sensors)
-    acc.update(R, t, v)
+    acc.add_poses(R, t, v)
     fits = pair_fits(acc, J)
     mon = SlipMonitor(J, perf.n_sensors, RATE, perf.names)
+    add_frames = getattr(mon, "add_frames", None) or mon.update  # `update` before issue 33's rename
     step = int(round(0.1 * RATE))
     rng = np.random.default_rng(0)
     cpu = 0.0
@@ -106,7 +107,7 @@ def live_monitor_share(sta_mm: float, seconds: float = 60.0, module=None) -> tup
         sl = slice(a, a + step)
         jitter = rng.normal(scale=1e-4, size=fits.c.shape)  # a running fit moves between refits
         c0 = time.process_time()
-        mon.update(times[sl], R[sl], t[sl], v[sl], fits.c + jitter, fits.l - jitter)
+        add_frames(times[sl], R[sl], t[sl], v[sl], fits.c + jitter, fits.l - jitter)
         cpu += time.process_time() - c0
     return cpu / seconds, len(mon.events)
 

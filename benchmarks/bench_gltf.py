@@ -39,7 +39,7 @@ def main() -> None:
     for rate in args.rates:
         take, _ = simulate("human", "exercise", seconds=args.seconds, rate_hz=rate, seed=1, birds=16)
         acc = GramAccumulator(take.n_sensors)
-        acc.update(take.rotations, take.positions, take.valid)
+        acc.add_poses(take.rotations, take.positions, take.valid)
         cal = calibrate(acc, names=list(take.names))
         best, median, glb = timed(lambda: gltf_bytes(cal, take))
         _, _, text = timed(lambda: gltf_bytes(cal, take, binary=False), 1)

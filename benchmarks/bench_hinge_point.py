@@ -87,7 +87,7 @@ def simulated(seeds: list[int], routines: list[str], prefixes: list[float], sta_
             for t_end in sorted(prefixes):
                 times = np.arange(int(round(done * RATE)), int(round(t_end * RATE))) / RATE
                 R, p, v = perf.poses(times)
-                acc.update(R, p, v)
+                acc.add_poses(R, p, v)
                 done = t_end
                 cal = calibrate(acc, names=perf.names)
                 rows = hinge_rows(cal, truth)
@@ -143,7 +143,7 @@ def real_knee() -> None:
     mid = 0.5 * (lat + med)
     for label, seconds in (("whole trial", None), ("first half", take.times[-1] / 2)):
         n = len(take.times) if seconds is None else int(np.searchsorted(take.times, seconds))
-        acc = GramAccumulator(take.n_sensors).update(take.rotations[:n], take.positions[:n], take.valid[:n])
+        acc = GramAccumulator(take.n_sensors).add_poses(take.rotations[:n], take.positions[:n], take.valid[:n])
         cal = calibrate(acc, names=take.names)
         for k, (i, p) in enumerate(cal.joints.pairs.tolist()):
             if {cal.names[i], cal.names[p]} != {"r_thigh", "r_shank"}:

@@ -44,7 +44,7 @@ def _timed(fn, repeat: int = 1) -> float:
 
 
 def _acc(take) -> GramAccumulator:
-    return GramAccumulator(take.n_sensors).update(take.rotations, take.positions, take.valid)
+    return GramAccumulator(take.n_sensors).add_poses(take.rotations, take.positions, take.valid)
 
 
 def bench_bvh_and_report(folder: Path, only: set[str]) -> None:

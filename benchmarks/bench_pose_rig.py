@@ -41,7 +41,7 @@ def main() -> None:
     args = ap.parse_args()
     take, _ = simulate("human", "exercise", seconds=20, rate_hz=100, seed=1, birds=16)
     acc = GramAccumulator(take.n_sensors)
-    acc.update(take.rotations, take.positions, take.valid)
+    acc.add_poses(take.rotations, take.positions, take.valid)
     cal = calibrate(acc, names=list(take.names))
     k = take.n_frames // 2
     frame = (list(take.names), take.rotations[k], take.positions[k], take.valid[k])

@@ -140,7 +140,7 @@ def tree_after_slips(seeds: list[int], rate: float = 100.0, slip_s: float = 15.0
             acc = SegmentedAccumulator(len(names))
             w = ww = 0
             for a in range(0, len(times), step):
-                acc.update(times[a:a + step], R[a:a + step], t[a:a + step], v[a:a + step])
+                acc.ingest(times[a:a + step], R[a:a + step], t[a:a + step], v[a:a + step])
                 if times[a] >= slip_s + 0.5 and not acc.segments:
                     acc.start_segment(names.index(sensor), slip_s)
                 if times[a] >= slip_s + 1.0 and a % int(rate) == 0:

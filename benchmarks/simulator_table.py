@@ -33,7 +33,7 @@ def row(motion: str, seconds: float, rate: float, seed: int) -> tuple[float, flo
     # The position words saturate per axis at the 36-inch full scale.
     far = (np.abs(exact.positions).max(axis=-1) > 36 * INCH).mean()
     acc = GramAccumulator(noisy.n_sensors)
-    acc.update(noisy.rotations, noisy.positions, noisy.valid)
+    acc.add_poses(noisy.rotations, noisy.positions, noisy.valid)
     names = list(noisy.names)
     joints = truth["joints"]
     pairs = np.array([[names.index(j["child"]), names.index(j["parent"])] for j in joints])
@@ -45,7 +45,7 @@ def row(motion: str, seconds: float, rate: float, seed: int) -> tuple[float, flo
 
 def accuracy(seconds: float, rate: float, seed: int) -> tuple[float, float, float, bool]:
     take, truth = simulate(motion="exercise", seconds=seconds, rate_hz=rate, seed=seed, noise="tracker", sta_mm=0)
-    acc = GramAccumulator(take.n_sensors).update(take.rotations, take.positions, take.valid)
+    acc = GramAccumulator(take.n_sensors).add_poses(take.rotations, take.positions, take.valid)
     fit = calibrate(acc, names=list(take.names)).to_dict()
     true = {}
     for j in truth["joints"]:  # a joint's centre and axis in each of its two sensors' frames

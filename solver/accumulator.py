@@ -107,8 +107,8 @@ class GramAccumulator:
         self._pend_w = np.empty((BLOCK, m), dtype=bool)
 
     # -- feeding -----------------------------------------------------------------------------------
-    def update(self, rotations, positions, valid=None) -> "GramAccumulator":
-        """Add a batch of frames (n, m, 3, 3) / (n, m, 3) / (n, m), or a single frame (m, 3, 3) / (m, 3) / (m,)."""
+    def add_poses(self, rotations, positions, valid=None) -> "GramAccumulator":
+        """Add poses: a batch (n, m, 3, 3) / (n, m, 3) / (n, m), or one frame (m, 3, 3) / (m, 3) / (m,)."""
         R, t, w = as_frames(rotations, positions, valid, self.n_sensors)
         n = R.shape[0]
         if n == 0:
@@ -352,8 +352,8 @@ class GramAccumulator:
         self._jitter += np.bincount(sensor * _JIT_BINS + bins, minlength=m * _JIT_BINS).reshape(m, _JIT_BINS)
 
     def ingest(self, times, rotations, positions, valid=None) -> "GramAccumulator":
-        """`update` in the `Accumulator` protocol's form: the frames' `times` do not matter here."""
-        return self.update(rotations, positions, valid)
+        """`add_poses` in the `Accumulator` protocol's form: the frames' `times` do not matter here."""
+        return self.add_poses(rotations, positions, valid)
 
     # -- the Accumulator protocol: a plain accumulator is its own whole take, with no segments --------
     @property

@@ -44,7 +44,7 @@ class Segment:
 class SegmentedAccumulator:
     """A `GramAccumulator` over the whole take that also answers fits per segment after slips.
 
-    `update(times, rotations, positions, valid)` feeds every frame once; `start_segment(sensor, time_s)`
+    `ingest(times, rotations, positions, valid)` feeds every frame once; `start_segment(sensor, time_s)`
     (or `apply(events)` with `SlipEvent`/`SwapEvent`s) opens a segment; `pair_fits(pairs)` fits each pair
     on the latest segment among its two sensors (after a slip: the frames since; after a swap: the
     frames before it, until the sensors are relabelled) and on the whole take otherwise.
@@ -67,10 +67,6 @@ class SegmentedAccumulator:
         return self.whole.frames
 
     # -- the Accumulator protocol --------------------------------------------------------------------
-    def ingest(self, times, rotations, positions, valid=None) -> "SegmentedAccumulator":
-        """`update`, in the `Accumulator` protocol's name."""
-        return self.update(times, rotations, positions, valid)
-
     @property
     def whole_take(self) -> GramAccumulator:
         """The whole-take sums, every frame fed (segments are read from them)."""
@@ -81,8 +77,9 @@ class SegmentedAccumulator:
         take while no segment is open)."""
         return SegmentView(self) if self.segments else self.whole
 
-    def update(self, times, rotations, positions, valid=None) -> "SegmentedAccumulator":
-        """Add a batch of frames; a snapshot is taken before the first frame at or after each grid time."""
+    def ingest(self, times, rotations, positions, valid=None) -> "SegmentedAccumulator":
+        """Add a batch of frames (the `Accumulator` protocol's `ingest`); a snapshot is taken before the
+        first frame at or after each grid time."""
         ts = np.atleast_1d(np.asarray(times, dtype=float))
         R = np.asarray(rotations, dtype=float)
         t = np.asarray(positions, dtype=float)
@@ -100,7 +97,7 @@ class SegmentedAccumulator:
             # Frames before the next grid time go in as one batch; then snapshot, then move the grid on.
             b = a + int(np.searchsorted(ts[a:], self._next_snap, side="left"))
             if b > a:
-                self.whole.update(R[a:b], t[a:b], None if valid is None else valid[a:b])
+                self.whole.add_poses(R[a:b], t[a:b], None if valid is None else valid[a:b])
             if b < len(ts):
                 self._snaps.append((float(ts[b]), self.whole.copy()))
                 self._next_snap = max(self._next_snap + self.snapshot_every, ts[b] + 0.5 * self.snapshot_every)
@@ -361,7 +358,7 @@ def segmented_from_take(take, events) -> SegmentedAccumulator:
         if k > 0:
             seg._snaps.append((cuts[k - 1], seg.whole.copy()))
         if b > a:
-            seg.whole.update(R[a:b], t[a:b], None if valid is None else valid[a:b])
+            seg.whole.add_poses(R[a:b], t[a:b], None if valid is None else valid[a:b])
     seg.last_time = float(times[-1]) if n else float("nan")
     seg.apply(sorted(events, key=lambda e: e.time_s))
     return seg

@@ -34,7 +34,7 @@ TOLERANCE_M = 5e-3  # the solver's default tolerance (docs/solver.md "Use": `--t
 
 
 def _fit(take, hierarchy=None):
-    acc = GramAccumulator(take.n_sensors).update(take.rotations, take.positions, take.valid)
+    acc = GramAccumulator(take.n_sensors).add_poses(take.rotations, take.positions, take.valid)
     return calibrate(acc, hierarchy=hierarchy, names=take.names).to_dict()
 
 
@@ -212,7 +212,7 @@ def test_small_range_spine_joint_turned_3_to_5_degrees_is_a_ball_not_a_false_hin
     rel = Rotation.from_matrix(np.einsum("nba,nbc->nac", d.rotations[:, 0], d.rotations[:, 1]))
     small = np.sort(np.degrees(np.sqrt(np.linalg.eigvalsh(np.cov((rel.mean().inv() * rel).as_rotvec().T)))))[:2]
     assert np.all((small > 3.0) & (small < 5.0)), small  # the case the issue names
-    acc = GramAccumulator(2).update(d.rotations, d.positions)
+    acc = GramAccumulator(2).add_poses(d.rotations, d.positions)
     j = calibrate(acc, hierarchy={"b1": "b0"}, names=d.names).to_dict()["joints"][0]
     assert j["determined"] and not j["hinge"]
     plain = plain_fit(d.rotations[:, 1], d.positions[:, 1], d.rotations[:, 0], d.positions[:, 0])
@@ -256,7 +256,7 @@ def test_tolerance_option_moves_the_line_and_bad_values_are_refused(tmp_path):
 
 def test_exact_data_is_still_exact_and_every_exercised_joint_determined():
     d = articulated(m=6, n=500, seed=3, joint_types=["root", "ball", "hinge", "ball", "hinge", "ball"])
-    acc = GramAccumulator(6).update(d.rotations, d.positions)
+    acc = GramAccumulator(6).add_poses(d.rotations, d.positions)
     r = calibrate(acc, hierarchy={d.names[i]: d.names[d.parent[i]] for i in range(1, 6)}, names=d.names).to_dict()
     for j in r["joints"]:
         i = d.names.index(j["child"])

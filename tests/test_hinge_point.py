@@ -44,7 +44,7 @@ def _fit(perf: Performer, seconds: float, start: float = 0.0, acc=None):
     acc = acc or GramAccumulator(perf.n_sensors)
     times = np.arange(int(round(start * RATE)), int(round(seconds * RATE))) / RATE
     R, p, v = perf.poses(times)
-    acc.update(R, p, v)
+    acc.add_poses(R, p, v)
     return calibrate(acc, names=perf.names), acc
 
 
@@ -67,7 +67,7 @@ def test_a_lone_hinge_keeps_the_minimum_norm_point_of_its_axis():
     # Two bodies only: no neighbouring joint, so no bone to meet the axis; the point is the one closest to
     # the sensor origins (c·a_c + l·a_p = 0), and the JSON says so.
     d = articulated(m=2, n=600, seed=13, joint_types=["root", "hinge"], offset_scale=0.1)
-    acc = GramAccumulator(2).update(d.rotations, d.positions)
+    acc = GramAccumulator(2).add_poses(d.rotations, d.positions)
     j = calibrate(acc).to_dict()["joints"][0]
     assert j["hinge"] and j["hinge_point"] == {"rule": "min_norm", "data_share": 0.0}
     assert abs(np.dot(j["c"], j["axis_child"]) + np.dot(j["l"], j["axis_parent"])) < 1e-9

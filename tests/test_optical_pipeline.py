@@ -106,7 +106,7 @@ def test_derived_poses_go_through_the_magnetic_solver_and_agree(human_fit):
     _, _, fit, out = human_fit
     take = fit.take()
     acc = GramAccumulator(take.n_sensors)
-    acc.update(take.rotations, take.positions, take.valid)
+    acc.add_poses(take.rotations, take.positions, take.valid)
     idx = {n: i for i, n in enumerate(take.names)}
     pairs = np.array([[idx[j["child"]], idx[j["parent"]]] for j in out["joints"]])
     pf = pair_fits(acc, pairs)

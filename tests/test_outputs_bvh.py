@@ -185,7 +185,7 @@ def fitted_human():
 
     take, _ = simulate("human", "exercise", seconds=6, rate_hz=50, seed=7, birds=8, faults={"dropout": 0.01})
     acc = GramAccumulator(take.n_sensors)
-    acc.update(take.rotations, take.positions, take.valid)
+    acc.add_poses(take.rotations, take.positions, take.valid)
     return take, calibrate(acc, names=list(take.names))
 
 
@@ -220,7 +220,7 @@ def test_rigidly_attached_sensor_rides_on_its_parent_in_the_bvh(tmp_path):
     # The rigid pair never turns one sensor against the other: the solver reports no joint for it.
     take, _ = simulate("pair", "walk", seconds=4, rate_hz=50, seed=2)
     acc = GramAccumulator(2)
-    acc.update(take.rotations, take.positions, take.valid)
+    acc.add_poses(take.rotations, take.positions, take.valid)
     cal = calibrate(acc, names=list(take.names))
     assert cal.to_dict()["joints"] == []
     path = tmp_path / "pair.bvh"

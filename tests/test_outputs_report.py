@@ -81,7 +81,7 @@ def test_report_shows_the_services_progress_and_draws_no_bone_to_an_undetermined
     assert main(["report", str(tmp_path / "take.npz"), "-o", str(tmp_path / "report.html")]) == 0
     text = (tmp_path / "report.html").read_text()
     acc = GramAccumulator(take.n_sensors)
-    acc.update(take.rotations, take.positions, take.valid)
+    acc.add_poses(take.rotations, take.positions, take.valid)
     doc = progress_of(calibrate(acc, names=list(take.names)).to_dict(), 0.005 / 2**0.5, 0.005)
     assert not doc["done"] and doc["missing"]
     assert "<h2>Calibration progress</h2>" in text

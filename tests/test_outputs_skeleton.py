@@ -22,7 +22,7 @@ from flockcal.takes import make_take, save_take
 
 def accumulate(take) -> GramAccumulator:
     acc = GramAccumulator(take.n_sensors)
-    acc.update(take.rotations, take.positions, take.valid)
+    acc.add_poses(take.rotations, take.positions, take.valid)
     return acc
 
 
@@ -202,9 +202,9 @@ def test_live_refresh_from_the_previous_fit_lands_on_the_same_placements(perform
     take2 = performer["take2"]
     half = take2.n_frames // 2
     acc = GramAccumulator(take2.n_sensors)
-    acc.update(take2.rotations[:half], take2.positions[:half], take2.valid[:half])
+    acc.add_poses(take2.rotations[:half], take2.positions[:half], take2.valid[:half])
     earlier = fit_saved(skeleton, acc, take2.names)
-    acc.update(take2.rotations[half:], take2.positions[half:], take2.valid[half:])
+    acc.add_poses(take2.rotations[half:], take2.positions[half:], take2.valid[half:])
     cold = fit_saved(skeleton, acc, take2.names)
     warm = fit_saved(skeleton, acc, take2.names, previous=earlier)
     # Same least-squares optimum; placements agree to well under a millimetre (a hinge joint's position

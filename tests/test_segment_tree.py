@@ -35,7 +35,7 @@ def test_the_tree_after_a_slip_is_the_body_s_tree(sensor):
     acc = SegmentedAccumulator(len(names))
     wrong, whole_wrong = [], 0
     for a in range(0, len(times), 50):
-        acc.update(times[a:a + 50], R[a:a + 50], t[a:a + 50], v[a:a + 50])
+        acc.ingest(times[a:a + 50], R[a:a + 50], t[a:a + 50], v[a:a + 50])
         if times[a] >= SLIP_S + 0.5 and not acc.segments:
             acc.start_segment(names.index(sensor), SLIP_S)
         if times[a] >= SLIP_S + 1.0 and a % int(RATE) == 0:

@@ -77,7 +77,7 @@ def test_the_live_calibration_draws_what_its_dict_draws():
     times = np.arange(600) / 100.0
     R, t, valid = performer.poses(times)
     acc = GramAccumulator(performer.n_sensors)
-    acc.update(R, t, valid)
+    acc.add_poses(R, t, valid)
     cal = solve(acc, list(performer.names))
     assert not all(cal.joints.determined) and any(cal.joints.determined)  # both kinds are drawn
     names = list(performer.names)

@@ -207,7 +207,7 @@ def test_after_a_slip_the_known_fit_places_the_slipped_sensor_from_the_frames_si
     take, truth = simulate("human", motion="exercise", seconds=16, rate_hz=60, seed=2, period=8.0)
     names = list(take.names)
     acc = GramAccumulator(len(names))
-    acc.update(take.rotations, take.positions, take.valid)
+    acc.add_poses(take.rotations, take.positions, take.valid)
     skeleton = parse_skeleton(skeleton_dict(calibrate(acc, hierarchy=truth["parent"], names=names), take=take))
     # The left forearm's sensor slides 3 cm along its own x axis half way through the take.
     k, d = names.index("l_forearm"), np.array([0.03, 0.0, 0.0])

@@ -12,7 +12,7 @@ from flockcal.solver.fits import pair_fits
 
 def _accumulate(take):
     acc = GramAccumulator(take.n_sensors)
-    acc.update(take.rotations, take.positions, take.valid)
+    acc.add_poses(take.rotations, take.positions, take.valid)
     return acc
 
 

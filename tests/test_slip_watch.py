@@ -147,11 +147,11 @@ class Failing(SlipMonitor):
 
     calls = 0
 
-    def update(self, *args, **kwargs):
+    def add_frames(self, *args, **kwargs):
         Failing.calls += 1
         if Failing.calls > 40:
             raise RuntimeError("monitor broke")
-        return super().update(*args, **kwargs)
+        return super().add_frames(*args, **kwargs)
 
 
 def test_a_failing_monitor_stops_watching_but_every_frame_reaches_the_accumulator(monkeypatch):
@@ -170,14 +170,14 @@ def test_a_failing_monitor_stops_watching_but_every_frame_reaches_the_accumulato
     assert isinstance(watch.failure, RuntimeError) and watch.monitor is None
     assert not watch.watch(tree(perf.model)[:-1])  # it stays stopped for the session
     reference = GramAccumulator(perf.n_sensors)
-    reference.update(frames[1], frames[2], frames[3])
+    reference.add_poses(frames[1], frames[2], frames[3])
     assert watch.segments.frames == strict.segments.frames == reference.frames == len(frames[0])
 
 
 def test_live_service_reports_a_failing_slip_monitor_once_as_a_tracker_event(tmp_path, monkeypatch, caplog):
-    # Tried: a slip monitor that raises on every update during a live session.
+    # Tried: a slip monitor that raises on every batch during a live session.
     class Broken(SlipMonitor):
-        def update(self, *args, **kwargs):
+        def add_frames(self, *args, **kwargs):
             raise RuntimeError("monitor broke")
 
     monkeypatch.setattr("flockcal.solver.slippage.watch.SlipMonitor", Broken)

@@ -109,13 +109,13 @@ def test_refit_after_slip_converges_to_new_placement_and_other_joints_keep_all_d
     assert seg.start_s == pytest.approx(SLIP_AT, abs=0.05) and seg.before is not None
     times, R, t, v = frames(perf, 0.0, 30.0)
     after = GramAccumulator(perf.n_sensors, origin=slipped.segments.whole.origin)
-    after.update(R[times >= seg.base_s], t[times >= seg.base_s], v[times >= seg.base_s])
+    after.add_poses(R[times >= seg.base_s], t[times >= seg.base_s], v[times >= seg.base_s])
     direct = pair_fits(after, J[touching])
     np.testing.assert_allclose(slipped.fits.c[touching], direct.c, rtol=0, atol=1e-7)
     np.testing.assert_allclose(slipped.fits.l[touching], direct.l, rtol=0, atol=1e-7)
     # Joints away from the slipped sensor keep all the data: the fit of every frame of the take.
     everything = GramAccumulator(perf.n_sensors, origin=slipped.segments.whole.origin)
-    everything.update(R, t, v)
+    everything.add_poses(R, t, v)
     whole = pair_fits(everything, J[~touching])
     np.testing.assert_allclose(slipped.fits.c[~touching], whole.c, rtol=0, atol=1e-9)
     np.testing.assert_allclose(slipped.fits.l[~touching], whole.l, rtol=0, atol=1e-9)

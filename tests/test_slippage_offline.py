@@ -19,7 +19,7 @@ SLIP_AT = 12.0
 
 def whole_take_fit(take):
     acc = GramAccumulator(take.n_sensors)
-    acc.update(take.rotations, take.positions, take.valid)
+    acc.add_poses(take.rotations, take.positions, take.valid)
     return acc, calibrate(acc, names=take.names)
 
 
@@ -50,7 +50,7 @@ def test_fit_output_after_a_slip_uses_post_slip_frames_for_the_slipped_sensor_on
     assert [e["sensor"] for e in out["slip_events"]] == ["r_shin"]
     after = GramAccumulator(take.n_sensors, origin=acc.origin)
     keep = take.times >= events[0].time_s
-    after.update(take.rotations[keep], take.positions[keep], take.valid[keep])
+    after.add_poses(take.rotations[keep], take.positions[keep], take.valid[keep])
     by_child = {e["child"]: e for e in whole["joints"]}
     assert sorted(by_child) == sorted(e["child"] for e in out["joints"])
     for entry in out["joints"]:
@@ -92,17 +92,17 @@ def test_segment_holds_exactly_the_frames_since_the_slip(slipped_take):
     seg = SegmentedAccumulator(take.n_sensors)
     half = len(take.times) // 2
     for a in range(0, len(take.times), 7):  # uneven micro-batches, as a live stream gives
-        seg.update(take.times[a:a + 7], take.rotations[a:a + 7], take.positions[a:a + 7], take.valid[a:a + 7])
+        seg.ingest(take.times[a:a + 7], take.rotations[a:a + 7], take.positions[a:a + 7], take.valid[a:a + 7])
         if a <= half < a + 7:
             s = seg.start_segment(3, take.times[half] - 0.3)
     ref = GramAccumulator(take.n_sensors, origin=seg.whole.origin)
     keep = take.times >= s.base_s
     assert s.base_s >= s.start_s
-    ref.update(take.rotations[keep], take.positions[keep], take.valid[keep])
+    ref.add_poses(take.rotations[keep], take.positions[keep], take.valid[keep])
     np.testing.assert_allclose(seg.since(3).gram, ref.gram, rtol=1e-9, atol=1e-9)
     # A copy answers the same and does not move when the original keeps growing.
     frozen = seg.copy()
-    seg.update(take.times[-1:] + 0.01, take.rotations[-1:], take.positions[-1:])
+    seg.ingest(take.times[-1:] + 0.01, take.rotations[-1:], take.positions[-1:])
     np.testing.assert_allclose(frozen.since(3).gram, ref.gram, rtol=1e-9, atol=1e-9)
     assert frozen.frames == seg.frames - 1
 
@@ -117,10 +117,10 @@ def test_bad_input_is_reported_as_a_slippage_error(slipped_take):
     # frames of 15 sensors fed to a 16-sensor monitor
     mon = SlipMonitor([[1, 0]], 16, 100.0)
     with pytest.raises(SlippageError, match="rotations"):
-        mon.update(np.zeros(2), np.zeros((2, 15, 3, 3)), np.zeros((2, 15, 3)), None, np.zeros((1, 3)), np.zeros((1, 3)))
+        mon.add_frames(np.zeros(2), np.zeros((2, 15, 3, 3)), np.zeros((2, 15, 3)), None, np.zeros((1, 3)), np.zeros((1, 3)))
     # no joint estimates at all
     with pytest.raises(SlippageError, match="c and l"):
-        mon.update(np.zeros(1), np.tile(np.eye(3), (1, 16, 1, 1)), np.zeros((1, 16, 3)))
+        mon.add_frames(np.zeros(1), np.tile(np.eye(3), (1, 16, 1, 1)), np.zeros((1, 16, 3)))
     # neither a calibration nor joints
     with pytest.raises(SlippageError, match="calibration"):
         detect_slips(take)

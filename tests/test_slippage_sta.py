@@ -52,7 +52,7 @@ def anatomical_joints(take, name):
 def test_real_captures_where_nothing_slipped_give_no_slip_event(capture):
     take = cluster_take(capture)
     acc = GramAccumulator(take.n_sensors)
-    acc.update(take.rotations, take.positions, take.valid)
+    acc.add_poses(take.rotations, take.positions, take.valid)
     # The monitor as it runs live (it watches a joint from 5 s of data on: the last 4 s of the knee
     # trial, the last 0.8 s of the upper-limb one). With the tree `flockcal fit` finds (whatever it
     # is: every pair it joins is watched, or refused as no joint)...
@@ -62,7 +62,7 @@ def test_real_captures_where_nothing_slipped_give_no_slip_event(capture):
     J = anatomical_joints(take, capture)
     fits = pair_fits(acc, J)
     mon = SlipMonitor(J, take.n_sensors, take.rate_hz, take.names)
-    mon.update(take.times, take.rotations, take.positions, take.valid, fits.c, fits.l)
+    mon.add_frames(take.times, take.rotations, take.positions, take.valid, fits.c, fits.l)
     assert mon.events == []
     assert mon.ready.all()  # every anatomical joint was watched
 
@@ -74,10 +74,10 @@ def test_a_pair_that_is_no_joint_is_not_watched():
     box, humerus = take.index("box"), take.index("humerus")
     J = np.array([[box, humerus], [take.index("forearm"), humerus]])
     acc = GramAccumulator(take.n_sensors)
-    acc.update(take.rotations, take.positions, take.valid)
+    acc.add_poses(take.rotations, take.positions, take.valid)
     fits = pair_fits(acc, J)
     mon = SlipMonitor(J, take.n_sensors, take.rate_hz, take.names, warmup_s=2.0)
-    mon.update(take.times, take.rotations, take.positions, take.valid, fits.c, fits.l)
+    mon.add_frames(take.times, take.rotations, take.positions, take.valid, fits.c, fits.l)
     status = mon.status()["joints"]
     assert status["box"]["joined"] is False and status["box"]["rms_mm"] > 50 and not status["box"]["ready"]
     assert status["forearm"]["joined"] is True and status["forearm"]["ready"]

@@ -25,7 +25,7 @@ def data():
 
 
 def test_gram_is_the_sum_of_frame_blocks_in_the_documented_layout(data):
-    acc = GramAccumulator(5).update(data.rotations, data.positions, data.valid)
+    acc = GramAccumulator(5).add_poses(data.rotations, data.positions, data.valid)
     want = _direct_gram(np.nan_to_num(data.rotations), np.nan_to_num(data.positions), data.valid, acc.origin)
     assert np.allclose(acc.gram, want, rtol=1e-12, atol=1e-9)
     assert acc.frames == 700
@@ -34,19 +34,19 @@ def test_gram_is_the_sum_of_frame_blocks_in_the_documented_layout(data):
 
 def test_one_frame_at_a_time_random_batches_and_merged_halves_give_the_same_gram(data):
     R, t, v = data.rotations, data.positions, data.valid
-    whole = GramAccumulator(5).update(R, t, v)
+    whole = GramAccumulator(5).add_poses(R, t, v)
     single = GramAccumulator(5)
     for k in range(len(R)):
-        single.update(R[k], t[k], v[k])  # the (m, 3, 3) single-frame form
+        single.add_poses(R[k], t[k], v[k])  # the (m, 3, 3) single-frame form
     rng = np.random.default_rng(0)
     batched = GramAccumulator(5)
     s = 0
     while s < len(R):
         e = s + int(rng.integers(1, 300))
-        batched.update(R[s:e], t[s:e], v[s:e])
+        batched.add_poses(R[s:e], t[s:e], v[s:e])
         s = e
-    first = GramAccumulator(5, origin=whole.origin).update(R[:333], t[:333], v[:333])
-    second = GramAccumulator(5, origin=whole.origin).update(R[333:], t[333:], v[333:])
+    first = GramAccumulator(5, origin=whole.origin).add_poses(R[:333], t[:333], v[:333])
+    second = GramAccumulator(5, origin=whole.origin).add_poses(R[333:], t[333:], v[333:])
     merged = first + second
     for other in (single, batched, merged):
         assert np.allclose(other.gram, whole.gram, rtol=1e-12, atol=1e-10)
@@ -58,7 +58,7 @@ def test_one_frame_at_a_time_random_batches_and_merged_halves_give_the_same_gram
 
 
 def test_invalid_sensor_frames_holding_nan_do_not_poison_any_pair(data):
-    acc = GramAccumulator(5).update(data.rotations, data.positions, data.valid)
+    acc = GramAccumulator(5).add_poses(data.rotations, data.positions, data.valid)
     assert np.isnan(data.positions).any()  # the generator really put NaN in the dropped sensor-frames
     assert np.isfinite(acc.gram).all()
     A, b, dd, n = acc.normal_equations(np.array([[i, j] for i in range(5) for j in range(5) if i != j]))
@@ -66,8 +66,8 @@ def test_invalid_sensor_frames_holding_nan_do_not_poison_any_pair(data):
 
 
 def test_nan_without_a_valid_mask_counts_as_invalid(data):
-    with_mask = GramAccumulator(5).update(data.rotations, data.positions, data.valid)
-    without = GramAccumulator(5).update(data.rotations, data.positions)
+    with_mask = GramAccumulator(5).add_poses(data.rotations, data.positions, data.valid)
+    without = GramAccumulator(5).add_poses(data.rotations, data.positions)
     assert np.allclose(without.gram, with_mask.gram, rtol=1e-12, atol=1e-10)
     assert np.array_equal(without.pair_frames, with_mask.pair_frames)
 
@@ -75,10 +75,10 @@ def test_nan_without_a_valid_mask_counts_as_invalid(data):
 def test_forgetting_weights_each_frame_by_its_age_whatever_the_batching(data):
     lam = 0.99
     R, t, v = data.rotations[:300], data.positions[:300], data.valid[:300]
-    batch = GramAccumulator(5, forgetting=lam).update(R, t, v)
+    batch = GramAccumulator(5, forgetting=lam).add_poses(R, t, v)
     single = GramAccumulator(5, forgetting=lam, origin=batch.origin)
     for k in range(300):
-        single.update(R[k:k + 1], t[k:k + 1], v[k:k + 1])
+        single.add_poses(R[k:k + 1], t[k:k + 1], v[k:k + 1])
     assert np.allclose(single.gram, batch.gram, rtol=1e-10, atol=1e-12)
     # Frame k carries weight λ^(299−k): compare with the explicitly weighted direct sum.
     w = lam ** np.arange(299, -1, -1)
@@ -89,20 +89,20 @@ def test_forgetting_weights_each_frame_by_its_age_whatever_the_batching(data):
 
 def test_copy_is_a_snapshot_and_difference_of_snapshots_is_a_window(data):
     R, t, v = data.rotations, data.positions, data.valid
-    acc = GramAccumulator(5).update(R[:400], t[:400], v[:400])
+    acc = GramAccumulator(5).add_poses(R[:400], t[:400], v[:400])
     snap = acc.copy()
-    acc.update(R[400:], t[400:], v[400:])
+    acc.add_poses(R[400:], t[400:], v[400:])
     assert snap.frames == 400
     window = acc - snap
-    direct = GramAccumulator(5, origin=acc.origin).update(R[400:], t[400:], v[400:])
+    direct = GramAccumulator(5, origin=acc.origin).add_poses(R[400:], t[400:], v[400:])
     assert np.allclose(window.gram, direct.gram, rtol=1e-9, atol=1e-8)
     assert np.array_equal(window.pair_frames, direct.pair_frames)
 
 
 def test_merging_accumulators_with_different_origins_is_refused(data):
     # Tried: two workers that each picked their own first-frame origin.
-    a = GramAccumulator(5).update(data.rotations[:10], data.positions[:10])
-    b = GramAccumulator(5).update(data.rotations[500:510], data.positions[500:510])
+    a = GramAccumulator(5).add_poses(data.rotations[:10], data.positions[:10])
+    b = GramAccumulator(5).add_poses(data.rotations[500:510], data.positions[500:510])
     with pytest.raises(SolverError, match="origin"):
         a.merge(b)
 
@@ -116,7 +116,7 @@ def test_wrong_shapes_are_refused_with_a_solver_error(shapes):
     # Tried: frames whose shapes do not match each other or the accumulator.
     acc = GramAccumulator(5)
     with pytest.raises(SolverError):
-        acc.update(np.zeros(shapes[0]), np.zeros(shapes[1]))
+        acc.add_poses(np.zeros(shapes[0]), np.zeros(shapes[1]))
 
 
 from hypothesis import given  # noqa: E402
@@ -132,13 +132,13 @@ from hypothesis import strategies as st  # noqa: E402
 def test_property_any_batching_and_any_split_across_workers_give_the_same_normal_equations(seed, m, cuts, worker_cut):
     d = articulated(m=m, n=400, seed=seed, dropout=0.1)
     R, t, v = d.rotations, d.positions, d.valid
-    whole = GramAccumulator(m).update(R, t, v)
+    whole = GramAccumulator(m).add_poses(R, t, v)
     pieces = GramAccumulator(m)
     edges = [0, *sorted(set(cuts)), 400]
     for s, e in zip(edges[:-1], edges[1:]):
-        pieces.update(R[s:e], t[s:e], v[s:e])
-    a = GramAccumulator(m, origin=whole.origin).update(R[:worker_cut], t[:worker_cut], v[:worker_cut])
-    b = GramAccumulator(m, origin=whole.origin).update(R[worker_cut:], t[worker_cut:], v[worker_cut:])
+        pieces.add_poses(R[s:e], t[s:e], v[s:e])
+    a = GramAccumulator(m, origin=whole.origin).add_poses(R[:worker_cut], t[:worker_cut], v[:worker_cut])
+    b = GramAccumulator(m, origin=whole.origin).add_poses(R[worker_cut:], t[worker_cut:], v[worker_cut:])
     pairs = np.array([[i, j] for i in range(m) for j in range(m) if i != j])
     want = whole.normal_equations(pairs)
     for acc in (pieces, a.merge(b)):

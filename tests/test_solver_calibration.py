@@ -17,7 +17,7 @@ from synthetic import articulated
 @pytest.fixture(scope="module")
 def exact():
     d = articulated(m=7, n=500, seed=31, dropout=0.05)
-    return d, GramAccumulator(7).update(d.rotations, d.positions, d.valid)
+    return d, GramAccumulator(7).add_poses(d.rotations, d.positions, d.valid)
 
 
 def _bone_table(b):
@@ -49,7 +49,7 @@ def test_given_hierarchy_fits_only_its_joints_and_agrees_with_the_search(exact):
 
 def test_rigid_member_gets_its_placement_and_the_body_keeps_its_bones():
     d = articulated(m=4, n=400, seed=32, joint_types=["root", "ball", "rigid", "ball"], parent=[-1, 0, 1, 2])
-    cal = calibrate(GramAccumulator(4).update(d.rotations, d.positions), root=0)
+    cal = calibrate(GramAccumulator(4).add_poses(d.rotations, d.positions), root=0)
     # Body {1, 2} is one rigid body: joint 1 (to 0) and joint 3 (to 2); its bone is |c_1 − l_3| in a member's frame.
     assert cal.rigid_groups == [[1, 2]]
     entry = 1 if 1 in cal.joint_child else 2

@@ -13,7 +13,7 @@ MIXED = ["root", "ball", "hinge", "rigid", "ball", "hinge", "lowrange"]
 
 
 def _fit(d, pairs=None):
-    acc = GramAccumulator(d.n_sensors).update(d.rotations, d.positions, d.valid)
+    acc = GramAccumulator(d.n_sensors).add_poses(d.rotations, d.positions, d.valid)
     return pair_fits(acc, pairs)
 
 
@@ -131,7 +131,7 @@ def test_standard_errors_match_the_scatter_of_repeated_noisy_fits():
     est, se = [], []
     for trial in range(12):  # same motion, fresh 2 mm position noise each time
         t = exact.positions + np.random.default_rng(100 + trial).normal(0, 2e-3, exact.positions.shape)
-        f = pair_fits(GramAccumulator(2).update(exact.rotations, t))
+        f = pair_fits(GramAccumulator(2).add_poses(exact.rotations, t))
         est.append(f.c[0])
         se.append(f.c_stderr[0])
     scatter = np.sqrt(np.sum(np.var(np.array(est), axis=0, ddof=1)))
@@ -140,7 +140,7 @@ def test_standard_errors_match_the_scatter_of_repeated_noisy_fits():
 
 def test_fits_for_a_subset_of_pairs_equal_the_same_rows_of_all_pairs():
     d = articulated(m=5, n=300, seed=15)
-    acc = GramAccumulator(5).update(d.rotations, d.positions)
+    acc = GramAccumulator(5).add_poses(d.rotations, d.positions)
     whole = pair_fits(acc)
     some = pair_fits(acc, d.joints)  # (child, parent): the reverse of all_pairs' (low, high) order
     rows = [int(np.flatnonzero((whole.pairs == sorted(p)).all(axis=1))[0]) for p in d.joints]
@@ -176,7 +176,7 @@ def test_the_slip_loops_joint_estimates_are_the_full_fits_centres_bit_for_bit(se
     # `pair_fits`' c and l, so they must be the same numbers, hinges (whose centre is re-solved) included.
     d = articulated(m=5, n=300, seed=seed, joint_types=kind, dropout=dropout, position_noise=1e-4,
                     rotation_noise=1e-3)
-    acc = GramAccumulator(d.n_sensors).update(d.rotations, d.positions, d.valid)
+    acc = GramAccumulator(d.n_sensors).add_poses(d.rotations, d.positions, d.valid)
     pairs = all_pairs(d.n_sensors)[::-1]  # any order of pairs
     full = pair_fits(acc, pairs)
     lean = joint_estimates(acc, pairs)

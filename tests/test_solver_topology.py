@@ -11,7 +11,7 @@ from synthetic import articulated
 
 
 def _topology(d, root=None):
-    acc = GramAccumulator(d.n_sensors).update(d.rotations, d.positions, d.valid)
+    acc = GramAccumulator(d.n_sensors).add_poses(d.rotations, d.positions, d.valid)
     return spanning_tree(pair_fits(acc), d.n_sensors, root)
 
 

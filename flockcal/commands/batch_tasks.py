@@ -231,7 +231,7 @@ def contribution(take, events, origin):
     valid = contribution_mask(take, events)
     for s in range(0, take.n_frames, CHUNK):
         e = min(take.n_frames, s + CHUNK)
-        acc.update(take.rotations[s:e], take.positions[s:e], valid[s:e])
+        acc.add_poses(take.rotations[s:e], take.positions[s:e], valid[s:e])
     return acc
 
 

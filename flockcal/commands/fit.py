@@ -82,7 +82,7 @@ def accumulate(take, progress: bool = True):
         shown.disable = shown.disable or not progress
         for s in range(0, n, CHUNK):
             e = min(n, s + CHUNK)
-            acc.update(take.rotations[s:e], take.positions[s:e], take.valid[s:e])
+            acc.add_poses(take.rotations[s:e], take.positions[s:e], take.valid[s:e])
             shown.update(e - s)
     return acc
 

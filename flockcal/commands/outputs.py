@@ -70,7 +70,7 @@ def fit_take(take, hierarchy: str | None = None, root: str | None = None, skelet
     from flockcal.solver.calibration import calibrate
 
     acc = GramAccumulator(take.n_sensors)
-    acc.update(take.rotations, take.positions, take.valid)
+    acc.add_poses(take.rotations, take.positions, take.valid)
     if skeleton is not None:
         if hierarchy is not None or root is not None:
             raise UserError("--skeleton fixes the tree; leave out --hierarchy and --root")

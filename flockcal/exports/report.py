@@ -222,7 +222,7 @@ def joined_forest(d: dict, take) -> dict:
     loose = [x for x in names if x != root and x not in d["parent"]]
     idx = {n: take.names.index(n) for n in names}
     acc = GramAccumulator(take.n_sensors)
-    acc.update(take.rotations, take.positions, take.valid)
+    acc.add_poses(take.rotations, take.positions, take.valid)
     pf = pair_fits(acc, np.array([[idx[x], idx[root]] for x in loose]))
     joints = list(d.get("joints", []))
     for k, x in enumerate(loose):

@@ -322,7 +322,7 @@ def judge(A: GroupPose | None, B: GroupPose | None, tolerance: float = JOINT_TOL
     eye = np.eye(3)
     R = np.stack([np.where(A.ok[:, None, None], A.R, eye), np.where(B.ok[:, None, None], B.R, eye)], axis=1)
     t = np.stack([np.where(A.ok[:, None], A.t, 0.0), np.where(B.ok[:, None], B.t, 0.0)], axis=1)
-    acc.update(R, t, np.stack([A.ok, B.ok], axis=1))
+    acc.add_poses(R, t, np.stack([A.ok, B.ok], axis=1))
     pf = pair_fits(acc, np.array([[0, 1]]), tolerance=tolerance)
     err = pf.direction_error[0]
     worst = float(err[1:].max() if pf.hinge[0] else err.max())

@@ -116,7 +116,7 @@ def judge_pairs(markers: np.ndarray, groups: list[np.ndarray], tolerance_m: floa
     derr = np.full((G, G, 3), np.inf)
     if G >= 2 and judged.any():
         acc = GramAccumulator(len(sets))
-        acc.update(SR, St, Sv)
+        acc.add_poses(SR, St, Sv)
         body_pairs = np.array([(a, b) for (a, b) in pair_sets if judged[a, b]], dtype=int).reshape(-1, 2)
         P = np.array([pair_sets[a, b] for a, b in body_pairs], dtype=int).reshape(-1, 2)
         pf = pair_fits(acc, P, tolerance=TOLERANCE_M if tolerance_m is None else tolerance_m)

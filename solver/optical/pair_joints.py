@@ -52,7 +52,7 @@ def pair_joint_points(
             j = parts.index(key)
             R[:, k], t[:, k], V[:, k] = pR[:, j], pt[:, j], pv[:, j]
     acc = GramAccumulator(len(sets))
-    acc.update(R, t, V)
+    acc.add_poses(R, t, V)
     fits, _ = placed_hinges(acc, pair_fits(acc, np.array(pairs, dtype=int), tolerance=JOINT_TOLERANCE_M))
     points, rms = {}, {}
     for k, c in enumerate(joints):

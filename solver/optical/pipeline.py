@@ -376,7 +376,7 @@ def fit_calibration(fit: OpticalFit) -> Calibration:
     for g, grp in enumerate(fit.groups):
         body_of[grp] = g
     acc = GramAccumulator(m)
-    acc.update(fit.rotations, fit.positions, fit.valid)
+    acc.add_poses(fit.rotations, fit.positions, fit.valid)
     kids = [int(c) for c in fit.tree.order if parent[c] >= 0]
     pairs = np.array([[c, parent[c]] for c in kids], dtype=int).reshape(-1, 2)
     pf = pair_fits(acc, pairs)

@@ -87,7 +87,7 @@ class SwapEvent:
 class SlipMonitor:
     """Live slippage detector over the p joints of a tree (or any joint list).
 
-    joints: (p, 2) sensor indices (child, parent). Feed `update` every batch of frames with the current
+    joints: (p, 2) sensor indices (child, parent). Feed `add_frames` every batch of frames with the current
     joint estimates c, l (p, 3) (the child and parent frame coordinates of each joint centre); it returns
     the events confirmed in this batch. After an event the affected joints re-baseline from the slip
     time on (they stay quiet for `warmup_s`, at least `lag_s`); the others keep their state.
@@ -152,7 +152,7 @@ class SlipMonitor:
         self._chunk = max(1, int(round(step_s * rate_hz)))
         self.segment_start = np.full(p, np.nan)  # time each joint's current segment began
         self._t0 = np.nan  # time of the first frame seen
-        self._updated = False
+        self._fed = False
         self.ready = np.zeros(p, dtype=bool)
         self.rms = np.full(p, np.nan)  # each joint's residual rms over its baseline window, metres
         self.base: SmoothBaseline | None = None
@@ -167,17 +167,17 @@ class SlipMonitor:
         self.events: list[SlipEvent | SwapEvent] = []
 
     # -- public -------------------------------------------------------------------------------------
-    def update(self, times, rotations, positions, valid=None, c=None, l=None) -> list:
+    def add_frames(self, times, rotations, positions, valid=None, c=None, l=None) -> list:
         """Take a batch of frames and the current joint estimates; return the events confirmed now."""
         ts, R, t, v = self._frames(times, rotations, positions, valid)
         n = len(ts)
         p = len(self.joints)
         if c is None or l is None:
-            raise SlippageError("update needs the current joint estimates c and l, each (p, 3)")
+            raise SlippageError("add_frames needs the current joint estimates c and l, each (p, 3)")
         c = np.asarray(c, dtype=float).reshape(p, 3)
         l = np.asarray(l, dtype=float).reshape(p, 3)
         self._begin(ts)
-        self._updated = True
+        self._fed = True
         finite = np.isfinite(c).all(axis=1) & np.isfinite(l).all(axis=1)
         c, l = np.where(finite[:, None], c, 0.0), np.where(finite[:, None], l, 0.0)
         out = []
@@ -192,9 +192,9 @@ class SlipMonitor:
     def prime(self, times, rotations, positions, valid=None) -> None:
         """Take frames that came before the watch began (the session's first seconds, before there was a
         tree): they fill the baselines' window and the pose history, and are not tested for steps. The
-        next `update` continues from them. Nothing to do once `update` has run."""
-        if self._updated:
-            raise SlippageError("prime takes the frames before the first update, not after it")
+        next `add_frames` continues from them. Nothing to do once `add_frames` has run."""
+        if self._fed:
+            raise SlippageError("prime takes the frames before the first add_frames, not after it")
         ts, R, t, v = self._frames(times, rotations, positions, valid)
         for a in range(0, len(ts), self._buf.capacity):
             sl = slice(a, a + self._buf.capacity)
@@ -568,7 +568,7 @@ def detect_slips(take, calibration=None, *, joints=None, c=None, l=None, batch_s
     step = max(1, int(round(batch_s * rate)))
     for a in range(0, n, step):
         b = min(n, a + step)
-        mon.update(times[a:b], R[a:b], t[a:b], None if valid is None else valid[a:b], c, l)
+        mon.add_frames(times[a:b], R[a:b], t[a:b], None if valid is None else valid[a:b], c, l)
     return mon.events
 
 

@@ -103,7 +103,7 @@ class SlipWatch:
             self._held = None
         if self.monitor is None:  # nothing to refit between batches: the accumulator takes them at once
             if len(ts):
-                self.segments.update(ts, R, t, v)
+                self.segments.ingest(ts, R, t, v)
                 self._keep_before(ts, R, t, v)
             return []
         step = self.step * max(1, int(catch_up))
@@ -118,7 +118,7 @@ class SlipWatch:
             return []
         held, self._held = self._held, None
         if self.monitor is None:
-            self.segments.update(*held)
+            self.segments.ingest(*held)
             self._keep_before(*held)
             return []
         return self._batches(*held, len(held[0]))
@@ -134,18 +134,18 @@ class SlipWatch:
         out = []
         for a in range(0, len(ts), step):
             sl = slice(a, a + step)
-            self.segments.update(ts[sl], R[sl], t[sl], v[sl])
+            self.segments.ingest(ts[sl], R[sl], t[sl], v[sl])
             if self.monitor is None:
                 continue
             try:
                 self.fits = self.segments.joint_estimates(self.joints)
-                found = self.monitor.update(ts[sl], R[sl], t[sl], v[sl], self.fits.c, self.fits.l)
+                found = self.monitor.add_frames(ts[sl], R[sl], t[sl], v[sl], self.fits.c, self.fits.l)
                 if found:
                     self.segments.apply(found)
             except Exception as exc:
                 self.failure, self.monitor = exc, None
                 if a + step < len(ts):
-                    self.segments.update(ts[a + step:], R[a + step:], t[a + step:], v[a + step:])
+                    self.segments.ingest(ts[a + step:], R[a + step:], t[a + step:], v[a + step:])
                 self.events += out
                 if self.strict:
                     raise
