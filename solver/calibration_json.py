@@ -2,7 +2,8 @@
 
 `calibration_json` is what `flockcal fit --json`, `fit-markers --json`, the REST API and the exports
 print; `calibration_from_json` is the one parser for a §5 object read from a file or a store, and
-`as_calibration` what solver functions call on whatever calibration they are handed.
+`as_calibration` what solver functions call on whatever calibration they are handed. The §5 object rounds
+and leaves fields out: to store a result and rebuild it whole, solver/records.py.
 """
 
 from __future__ import annotations
