@@ -271,12 +271,10 @@ class SessionManager:
             slips = [e for e in self.store.events(session_id, limit=None) if e["type"] == "slip" and e.get("sensor") in take.names]
             try:
                 _name, skeleton = self.session_skeleton(session_id)
-                from types import SimpleNamespace
-
+                from flockcal.solver.calibration_json import event_from_json
                 from flockcal.solver.solve import solve_take
 
-                events = [SimpleNamespace(kind="slip", time_s=float(e["time_s"]),
-                                          sensor_index=take.names.index(e["sensor"])) for e in slips]
+                events = [event_from_json(e, take.names) for e in slips]
                 prof = self._profile(row)
                 result = json_safe(solve_take(take, events, row["hierarchy"], row["root"], skeleton,
                                             tolerance=prof.tolerance_m).to_dict())

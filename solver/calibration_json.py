@@ -125,6 +125,43 @@ def event_json(ev) -> dict:
     return dict(ev) if isinstance(ev, Mapping) else dict(vars(ev))
 
 
+def event_from_json(d, names, error: type[Exception] = SolverError):
+    """The `SlipEvent` (or `SwapEvent`) of a §5 `slip_events` entry read from a file or a store (its kind
+    under "kind", or "type" as the service stores it); sensor indices from `names`, the take's sensors.
+    Fields the entry lacks are NaN (numbers) or empty, and so are `joint_indices` (rows of the monitor's
+    joint list, which no entry keeps); it must name a time and a sensor of `names`."""
+    from flockcal.solver.slippage.monitor import SlipEvent, SwapEvent
+
+    if not isinstance(d, Mapping):
+        raise error(f"expected a slip event entry, got {type(d).__name__}")
+    kind = d.get("kind", d.get("type", "slip"))
+    if kind not in ("slip", "swap"):
+        raise error(f"event of type {kind!r} is no slip or swap")
+    names = [str(x) for x in names]
+    try:
+        time_s, sensor = float(d["time_s"]), str(d["sensor"])
+        candidates = tuple(str(x) for x in d.get("candidates") or (sensor,))
+        joints = tuple(str(x) for x in d.get("joints") or ())
+        jump_mm, confidence, detected_s = (_or_nan(d.get(k)) for k in ("jump_mm", "confidence", "detected_s"))
+        sensors = tuple(str(x) for x in d.get("sensors") or candidates) if kind == "swap" else (sensor,)
+    except (KeyError, TypeError) as exc:
+        raise error(f"slip event lacks {exc} (docs/design.md §5 lists the fields)") from None
+    except ValueError as exc:
+        raise error(f"slip event at {d.get('time_s')!r} s: {exc}") from None
+    unknown = [x for x in sensors if x not in names]
+    if unknown or len(sensors) != (2 if kind == "swap" else 1):
+        raise error(f"slip event at {time_s} s names sensor(s) {', '.join(map(repr, unknown or sensors))}, "
+                    f"not {'two' if kind == 'swap' else 'one'} of the take's")
+    index = tuple(names.index(x) for x in sensors)
+    if kind == "swap":
+        return SwapEvent(time_s, *sensors, joints, jump_mm, confidence, detected_s, index)
+    return SlipEvent(time_s, sensor, candidates, confidence, joints, jump_mm, detected_s, index[0])
+
+
+def _or_nan(x) -> float:
+    return float("nan") if x is None else float(x)
+
+
 def _num(x) -> float | None:
     x = float(x)
     return x if np.isfinite(x) else None

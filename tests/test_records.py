@@ -148,3 +148,26 @@ def test_a_record_of_another_type_is_refused_when_a_type_is_expected(slipped):
     _, events, _ = slipped
     with pytest.raises(SolverError, match="holds a SlipEvent, not a Calibration"):
         from_record(record_text(events[0]), expected=Calibration)
+
+
+def test_a_stored_slip_entry_becomes_the_event_again_to_its_rounding(slipped):
+    # The service stores each event's §5 entry with its kind under "type" and re-solves a session from
+    # them (server/sessions.py): the typed event comes back, to the entry's rounding, its sensor index
+    # from the take's names. Tried also: a swap, an entry naming no sensor of the take, one with no time.
+    from flockcal.solver.calibration_json import event_from_json
+
+    take, events, _ = slipped
+    for ev in events:
+        stored = json.loads(json.dumps(ev.to_dict()))
+        stored["type"] = stored.pop("kind")
+        back = event_from_json(stored, take.names)
+        assert type(back) is SlipEvent and back.sensor_index == ev.sensor_index == take.names.index(ev.sensor)
+        assert back.to_dict() == ev.to_dict() and abs(back.time_s - ev.time_s) <= 5e-5
+    swap = SwapEvent(3.25, "l_hand", "r_hand", ("l_hand",), 25.0, detected_s=3.5, sensor_indices=(6, 9))
+    back = event_from_json(json.loads(json.dumps(swap.to_dict())), take.names)
+    assert type(back) is SwapEvent and back.sensor_indices == (take.names.index("l_hand"), take.names.index("r_hand"))
+    assert back.to_dict() == swap.to_dict()
+    with pytest.raises(SolverError, match=r"names sensor\(s\) 'nobody', not one of the take's"):
+        event_from_json({"type": "slip", "time_s": 1.0, "sensor": "nobody"}, take.names)
+    with pytest.raises(SolverError, match="lacks 'time_s'"):
+        event_from_json({"type": "slip", "sensor": "head"}, take.names)
