@@ -3,9 +3,9 @@ their session starts; how long until the service says `done`, how far the bones 
 and from the same guest's bones after 120 s. Targets (issue #30, the kiosk profile, the simulator's default
 12 mm soft tissue): median ≤ 25 s, p90 ≤ 35 s, every guest done, bones at done within 5 mm of the bones
 after 120 s; on rigid sensors (`--performer-option sta_mm=0`) median ≤ 20 s and bones within 5 mm of the
-truth. `--profile stage` runs the operator's profile instead (server/progress.py).
+truth. `--profile stage` runs the operator's profile instead (solver/progress.py).
 
-Two ways to run a guest, the same progress code either way (server/progress.py):
+Two ways to run a guest, the same progress code either way (solver/progress.py):
 - `--mode service` (the figures in README.md): a real `flockcal serve` process reads a fake tracker on a
   pty streaming the guest in real time; a session is started over REST and the websocket's `fit` messages
   are read until one says done (≈ 25 s of wall time per guest);
@@ -37,7 +37,7 @@ from pathlib import Path
 
 import numpy as np
 
-from flockcal.server.progress import Profile, profile
+from flockcal.solver.progress import Profile, profile
 from flockcal.simulator.performer import Performer
 
 RATE = 144.0
@@ -149,7 +149,7 @@ def bones_moved(fit: dict, later: dict) -> float:
 
 def run_pipeline(perf: Performer, max_s: float, prof: Profile, fit_hz: float = 30.0) -> dict:
     from flockcal.server.fitting import accumulate, fit_calibration, new_accumulator
-    from flockcal.server.progress import ProgressTracker
+    from flockcal.solver.progress_tracker import ProgressTracker
 
     acc = new_accumulator(perf.n_sensors, segmented=True)
     tracker = ProgressTracker.for_profile(prof)
@@ -159,8 +159,8 @@ def run_pipeline(perf: Performer, max_s: float, prof: Profile, fit_hz: float = 3
         times = np.arange(k * frames, (k + 1) * frames) / RATE
         R, t, valid = perf.poses(times)
         accumulate(acc, times, R, t, valid)
-        fit = fit_calibration(acc, perf.names, tolerance=prof.tolerance_m)[0]
-        doc = tracker.update(fit, float(times[-1]))
+        fit, cal = fit_calibration(acc, perf.names, tolerance=prof.tolerance_m)
+        doc = tracker.add_fit(cal, float(times[-1])).to_dict()  # the typed fit, as the service passes it
         docs.append((float(times[-1]), doc))
         if doc["done"]:
             return {"done_s": doc["done_at_s"], "fit": fit, "docs": docs}
@@ -273,7 +273,7 @@ def real_knee(prof: Profile, fit_hz: float = 30.0) -> None:
     from real_captures import KNEE, cluster_take  # noqa: E402
 
     from flockcal.server.fitting import accumulate, fit_calibration, new_accumulator
-    from flockcal.server.progress import ProgressTracker
+    from flockcal.solver.progress_tracker import ProgressTracker
 
     take = cluster_take(KNEE)
     acc = new_accumulator(take.n_sensors, segmented=True)
@@ -284,8 +284,8 @@ def real_knee(prof: Profile, fit_hz: float = 30.0) -> None:
     for k in range(0, len(take.times), step):
         sl = slice(k, k + step)
         accumulate(acc, take.times[sl], take.rotations[sl], take.positions[sl], take.valid[sl])
-        fit = fit_calibration(acc, list(take.names), tolerance=prof.tolerance_m)[0]
-        doc = tracker.update(fit, float(take.times[sl][-1] - take.times[0]))
+        cal = fit_calibration(acc, list(take.names), tolerance=prof.tolerance_m)[1]
+        doc = tracker.add_fit(cal, float(take.times[sl][-1] - take.times[0])).to_dict()
         knee = next((j for j in doc["joint_progress"] if {j["joint"], j["parent"]} == {"r_thigh", "r_shank"}), None)
         if knee is not None and knee["done"] and knee_at is None:
             knee_at = float(take.times[sl][-1] - take.times[0])

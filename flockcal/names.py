@@ -1,6 +1,6 @@
 """Readable names for sensors and joints: 'l_forearm' → 'left forearm', the joint it ends → 'left elbow'.
 
-Base layer: the CLI tables, the report and the server's coaching all name things the same way; the
+Base layer: the CLI tables, the report and the progress hints all name things the same way; the
 dashboard's pages read the table here too, as the script the service makes of it (/static/names.js).
 """
 

@@ -41,7 +41,7 @@ PLACEHOLDER = """<!doctype html><meta charset="utf-8"><title>flockcal</title>
 
 def names_module() -> str:
     """flockcal.names' joint-name table as the ES module the pages import (/static/names.js): one table
-    names the joints for the service's coaching and the pages' labels alike."""
+    names the joints for the progress hints and the pages' labels alike."""
     rows = ",\n".join(f"  [new RegExp({json.dumps(p)}), {json.dumps(j)}, {r}]" for p, j, r in BODY_JOINTS)
     head = "// Made by the service from flockcal/names.py: body keyword, its joint, how far out it sits."
     return f"{head}\nexport const BODY_JOINTS = [\n{rows},\n];\n"

@@ -8,8 +8,9 @@ import time
 from dataclasses import dataclass, field
 
 from flockcal.server.framelog import FrameLog
-from flockcal.server.progress import Profile, ProgressTracker
 from flockcal.solver.calibration import Calibration
+from flockcal.solver.progress import Profile, Progress
+from flockcal.solver.progress_tracker import ProgressTracker
 from flockcal.solver.slippage.watch import SlipWatch
 
 
@@ -35,10 +36,10 @@ class LiveSession:
     fit_frames: int = 0  # accumulator frames the newest fit used
     residual_rows: list = field(default_factory=list)  # (time_s, {joint: mm}) not yet in the store
     tracker: ProgressTracker | None = None  # the session's progress, made on install
-    progress: dict | None = None  # its newest document (server/progress.py); None before the first fit
+    progress: Progress | None = None  # its newest (solver/progress.py); None before the first fit
     slip_epoch: int = 0  # slips applied to the accumulator so far: fits carry the epoch they were begun in
     log_failed: bool = False  # the frame log's write failure was reported (the log ended there)
-    profile: Profile | None = None  # how it decides it is calibrated (server/progress.py); None: the pipeline's stage
+    profile: Profile | None = None  # how it decides it is calibrated (solver/progress.py); None: the pipeline's stage
 
     def summary(self) -> dict:
         return {
@@ -47,6 +48,6 @@ class LiveSession:
             "hierarchy": self.hierarchy, "root": self.root,
             "known_skeleton": self.skeleton is not None,
             "profile": self.profile.name if self.profile else "stage",
-            "progress": self.progress["progress"] if self.progress else 0.0,
-            "done": bool(self.progress and self.progress["done"]),
+            "progress": self.progress.progress if self.progress is not None else 0.0,
+            "done": self.progress is not None and self.progress.done,
         }

@@ -10,7 +10,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from flockcal.server.progress import STATES
+from flockcal.solver.progress import STATES
 from flockcal.server.settings import PERFORMER_PATTERN
 
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9 _.\-]{0,63}$"

@@ -20,11 +20,13 @@ from flockcal.server.fitting import SLIP_FIELDS, FitJob, FitWorker, fit_calibrat
 from flockcal.server.ingest import Ingest
 from flockcal.server.live_session import LiveSession
 from flockcal.server.persistence import Persistence
-from flockcal.server.progress import Profile, ProgressTracker, default_target, profile
 from flockcal.server.sampling import ResidualSampler, watch_flush, watch_step
 from flockcal.server.snapshot import Snapshot, SnapshotMaker
 from flockcal.server.store import Store
 from flockcal.solver.calibration import Calibration
+from flockcal.solver.progress import Profile, default_target, profile
+from flockcal.solver.progress_tracker import ProgressTracker
+from flockcal.solver.progress_words import done_change
 from flockcal.solver.slippage.watch import SlipWatch
 from flockcal.threads import name_os_thread
 
@@ -219,7 +221,7 @@ class Pipeline:
                     if slips:
                         result["slip_events"] = slips
                     # What the session had reached, as the stored result has it (done joints stay done).
-                    self._progress_step(live, result, self.ingest.session_time(live), live.slip_epoch)
+                    self._progress_step(live, live.calibration, self.ingest.session_time(live), live.slip_epoch)
                 except FlockcalError as exc:
                     error = str(exc)
             else:
@@ -312,11 +314,12 @@ class Pipeline:
         slips = [d for d in events if d["type"] != "tracker"]
         if slips:
             live.slip_epoch += 1  # fits begun from here on see the new segments
-            was_done = bool(live.progress and live.progress["done"])
+            was_done = live.progress is not None and live.progress.done
             for d in slips:
                 live.tracker.slip(d, live.slip_epoch)
-            if live.fit is not None:
-                self._progress_step(live, live.fit, self.ingest.session_time(live), live.slip_epoch - 1, was_done)
+            if live.calibration is not None:
+                self._progress_step(live, live.calibration, self.ingest.session_time(live), live.slip_epoch - 1,
+                                    was_done)
         self._add_events(events)
 
     def _add_events(self, events: list[dict]) -> None:
@@ -376,7 +379,7 @@ class Pipeline:
         time_s, epoch = done.stamp
         if live.watch is not None and len(done.calibration.joints):
             self._watch_tree(live, self.sampler.joints(done.calibration).pairs, time_s)
-        self._progress_step(live, done.fit, time_s, epoch)
+        self._progress_step(live, done.calibration, time_s, epoch)
 
     def _watch_tree(self, live: LiveSession, pairs, time_s: float) -> None:
         """Hand the fit's tree to the slip loop: at once for a given tree, else once it has stayed the
@@ -400,32 +403,21 @@ class Pipeline:
             self._tree_candidate = None
             live.watch.watch(pairs)
 
-    def _progress_step(self, live: LiveSession, fit: dict, time_s: float, epoch: int,
+    def _progress_step(self, live: LiveSession, fit: Calibration, time_s: float, epoch: int,
                        was_done: bool | None = None) -> None:
         """Fold a fit into the session's progress; becoming done (or undone) is an event of its own."""
         if was_done is None:
-            was_done = bool(live.progress and live.progress["done"])
+            was_done = live.progress is not None and live.progress.done
         try:
-            live.progress = live.tracker.update(fit, time_s, epoch)
+            live.progress = live.tracker.add_fit(fit, time_s, epoch)
         except (KeyError, TypeError, ValueError) as exc:  # a malformed fit must not stop the pipeline
             log.warning("progress not updated: %s", exc)
             return
-        done = live.progress["done"]
-        if done and not was_done:
-            n = live.progress["joints_needed"]
-            self._add_events([{
-                "type": "session", "session_id": live.id, "action": "calibrated", "time_s": time_s,
-                "message": f"{live.performer} is calibrated: all {n} joints "
-                           + (f"pinned to {1000 * live.profile.target_m:.1f} mm" if live.profile.steady is None else
-                              f"pinned to {1000 * live.profile.tolerance_m:.0f} mm and steady")
-                           + f" after {time_s:.1f} s"}])
-        elif was_done and not done:
-            why = next((m["why"] for m in live.progress["missing"] if m.get("undone")), None)
-            if why is None and live.progress["missing"]:
-                why = f"{live.progress['missing'][0]['label']}: {live.progress['missing'][0]['why']}"
-            self._add_events([{
-                "type": "session", "session_id": live.id, "action": "calibration_undone", "time_s": time_s,
-                "message": f"{live.performer} is no longer calibrated: {why or 'a joint was undone'}"}])
+        change = done_change(live.progress, was_done, live.performer, live.profile, time_s)
+        if change is not None:
+            action, message = change
+            self._add_events([{"type": "session", "session_id": live.id, "action": action, "time_s": time_s,
+                               "message": message}])
 
     def _make_snapshot(self) -> Snapshot:
         live = self.live

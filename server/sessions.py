@@ -19,10 +19,10 @@ from flockcal.server.framelog import FrameLog, read_frames
 from flockcal.server.fitting import SLIP_FIELDS, json_safe
 from flockcal.server.live_session import LiveSession
 from flockcal.server.pipeline import Pipeline
-from flockcal.server.progress import progress_of, waiting
 from flockcal.server.settings import PERFORMER_RE, PERFORMER_RULE
 from flockcal.server.store import Store
 from flockcal.solver.hierarchy import check_hierarchy
+from flockcal.solver.progress import progress_of, waiting
 
 log = logging.getLogger(__name__)
 
@@ -94,7 +94,7 @@ class SessionManager:
               lease_s: float | None = None) -> dict:
         """Start a session; with a saved `skeleton` (flockcal.exports.skeleton.Skeleton) its tree and
         bones are kept and only the sensor placements are fitted. `profile` ("stage" or "kiosk", default
-        the service's) says how it decides it is calibrated (server/progress.py). With `lease_s` the session
+        the service's) says how it decides it is calibrated (solver/progress.py). With `lease_s` the session
         ends that long after its client last renewed it (server/lease.py)."""
         try:
             prof = self.pipeline.profile(profile)
@@ -186,7 +186,7 @@ class SessionManager:
                 note = (f"recording stopped early ({live.framelog.error.strerror or live.framelog.error}): "
                         f"{live.framelog.path.name} holds the frames written until then" + (f"; {note}" if note else ""))
             self.update_row(session_id, state="stopped", stopped_at=time.time(), frames=live.frames, result=result,
-                            note=note, progress=live.progress if result else None)
+                            note=note, progress=live.progress.to_dict() if result and live.progress else None)
             self.pipeline.add_event({"type": "session", "session_id": session_id, "action": "stopped",
                                      "time_s": None, "message": f"session {session_id} stopped after {live.frames} frames"})
             if self.retention is not None:
@@ -276,14 +276,14 @@ class SessionManager:
 
                 events = [event_from_json(e, take.names) for e in slips]
                 prof = self._profile(row)
-                result = json_safe(solve_take(take, events, row["hierarchy"], row["root"], skeleton,
-                                            tolerance=prof.tolerance_m).to_dict())
+                cal = solve_take(take, events, row["hierarchy"], row["root"], skeleton, tolerance=prof.tolerance_m)
+                result = json_safe(cal.to_dict())
                 result["slip_events"] = [{k: e[k] for k in SLIP_FIELDS if k in e} for e in slips]
             except (FlockcalError, ValueError, ArithmeticError) as exc:  # LinAlgError is a ValueError
                 raise Conflict(f"session {session_id} could not be solved from its recording: {exc}") from None
             state = "stopped" if row["state"] == "interrupted" else row["state"]
             # A re-solve is one fit of the whole recording: its progress has no session history to keep.
-            progress = progress_of(result, prof.target_m, prof.tolerance_m)
+            progress = progress_of(cal, prof.target_m, prof.tolerance_m).to_dict()
             self.store.update_session(session_id, result=result, frames=n, state=state, progress=progress,
                                       note=f"re-solved from its recording ({n} frames)")
             return self.get(session_id)
@@ -375,7 +375,7 @@ class SessionManager:
         return result, None
 
     def progress(self, session_id: str) -> dict:
-        """The session's progress document (server/progress.py) with where it comes from: the live one as
+        """The session's progress document (solver/progress.py) with where it comes from: the live one as
         the service keeps it, a stopped one as it stood at its stop (or its re-solve)."""
         row = self._row(session_id)
         snap = self.pipeline.snapshot
@@ -383,16 +383,16 @@ class SessionManager:
         if snap.session and snap.session["id"] == session_id and snap.progress is not None:
             head.update(live=True, time_s=snap.session["time_s"], fit_seq=snap.fit_seq if snap.fit else None,
                         frames=snap.session["frames"])
-            return {**head, **snap.progress}
+            return {**head, **snap.progress_doc}
         doc = self._held(session_id).get("progress") or self.store.progress(session_id)
         if doc is None:
             result = self.store.result(session_id)
             if result is None:
                 why = row["note"] or (f"the session is {row['state']} and has no result")
-                return {**head, **waiting(row["names"], self._profile(row).target_m, why)}
+                return {**head, **waiting(row["names"], self._profile(row).target_m, why).to_dict()}
             # Stopped before sessions kept their progress: its stored result, on its own.
             prof = self._profile(row)
-            doc = progress_of(result, prof.target_m, prof.tolerance_m)
+            doc = progress_of(result, prof.target_m, prof.tolerance_m).to_dict()
         return {**head, **doc}
 
     def residuals(self, session_id: str, joint: str | None, since: float | None,

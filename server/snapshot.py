@@ -16,8 +16,8 @@ from typing import Callable
 import numpy as np
 
 from flockcal.server.pose import live_pose
-from flockcal.server.progress import waiting
 from flockcal.solver.calibration import Calibration
+from flockcal.solver.progress import Progress, waiting
 
 
 @dataclass(frozen=True, eq=False)
@@ -45,11 +45,16 @@ class Snapshot:
     valid: np.ndarray | None  # (m,) whether the newest frame held a valid record for each sensor
     pose_fit: Calibration | None = None  # fit used to draw the skeleton (live or the last stopped session's)
     pose_fit_id: tuple | None = None  # (session id, fit_seq or None for its stored final fit) of pose_fit
-    progress: dict | None = None  # the live session's progress document (server/progress.py), None without one
+    progress: Progress | None = None  # the live session's progress (solver/progress.py), None without one
+
+    @cached_property
+    def progress_doc(self) -> dict | None:
+        """The progress as the service publishes it (docs/service.md), None without a live session."""
+        return None if self.progress is None else self.progress.to_dict()
 
     @property
     def hints(self) -> list[dict]:
-        return self.progress["hints"] if self.progress else []
+        return self.progress_doc["hints"] if self.progress is not None else []
 
     @cached_property
     def pose(self) -> dict | None:
@@ -68,7 +73,7 @@ class Snapshot:
         # The progress document's fields ride at the top level next to the fit: "progress" stays the number
         # it always was, now the service's one definition (docs/service.md#progress-one-figure-for-the-kiosk-the-dashboard-and-the-api).
         return json.dumps({
-            "result": self.fit, **(self.progress or {}), "hints": self.hints,
+            "result": self.fit, **(self.progress_doc or {}), "hints": self.hints,
             "session": self.session, "fit_seq": self.fit_seq, "snapshot": self.seq, "frames": self.frames,
         })
 

@@ -34,7 +34,7 @@ CREATE TABLE IF NOT EXISTS sessions (
     recording TEXT,                 -- file name inside the recordings directory
     result TEXT,                    -- JSON of design.md §5, NULL until stopped or re-solved
     note TEXT,
-    progress TEXT,                  -- JSON of server/progress.py as the session ended (or was re-solved)
+    progress TEXT,                  -- JSON of solver/progress.py's Progress as the session ended (or was re-solved)
     profile TEXT                    -- stage | kiosk: how it decides it is calibrated (NULL: stage, older sessions)
 );
 CREATE TABLE IF NOT EXISTS events (

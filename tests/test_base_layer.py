@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-BASE = ["errors", "takes", "atomic", "threads", "frames", "markers", "progress", "skeleton", "names"]
+BASE = ["errors", "takes", "atomic", "threads", "frames", "markers", "bars", "skeleton", "names"]
 LAYERS = ("flockcal.solver", "flockcal.server", "flockcal.drivers", "flockcal.simulator", "flockcal.commands",
           "flockcal.exports", "flockcal.cli")
 

@@ -1,5 +1,5 @@
-"""The one definition of calibration progress (server/progress.py; docs/service.md "Progress: one figure for
-the kiosk, the dashboard and the API"): every sensor but
+"""The one definition of calibration progress (solver/progress.py, solver/progress_tracker.py; docs/service.md
+"Progress: one figure for the kiosk, the dashboard and the API"): every sensor but
 the root counts, rigid or undetermined ones count 0 with a reason, "100 %" means done, a done joint stays
 done through wobbles and is undone by a slip or a real loss of fit; and the same on the real solver.
 
@@ -14,7 +14,8 @@ import numpy as np
 import pytest
 
 from flockcal.server.fitting import accumulate, fit_calibration, new_accumulator
-from flockcal.server.progress import ProgressTracker, default_target, progress_of
+from flockcal.solver.progress import Undone, default_target, progress_of
+from flockcal.solver.progress_tracker import ProgressTracker
 from flockcal.server.settings import Settings
 from flockcal.simulator.performer import Performer
 
@@ -44,7 +45,7 @@ def test_rigid_and_undetermined_sensors_count_zero_and_are_named_with_a_reason()
     f = fit([joint("l_thigh", "pelvis"), joint("r_thigh", "pelvis", err_mm=(None, 12.0, 3.0), determined=False),
              joint("l_shin", "l_thigh", err_mm=(30.0, 2.0, 2.0), determined=True, hinge=True)],
             rigid_members=[("chest", "pelvis"), ("head", "pelvis")], rigid_groups=[["pelvis", "chest", "head"]])
-    doc = progress_of(f, TARGET)
+    doc = progress_of(f, TARGET).to_dict()
     assert doc["joints_needed"] == 5  # every sensor but the root
     assert doc["joints_done"] == 2  # the left hip, and the left knee (a hinge: its free axis is not needed)
     assert doc["progress"] == pytest.approx(2 / 5, abs=1e-4) and doc["percent"] == 40 and not doc["done"]
@@ -59,7 +60,7 @@ def test_rigid_and_undetermined_sensors_count_zero_and_are_named_with_a_reason()
 
 
 def test_a_joint_pinned_along_two_directions_is_undetermined_and_says_so():
-    doc = progress_of(fit([joint("l_upper_arm", "pelvis", err_mm=(9.0, 2.0, 1.0), determined=False)]), TARGET)
+    doc = progress_of(fit([joint("l_upper_arm", "pelvis", err_mm=(9.0, 2.0, 1.0), determined=False)]), TARGET).to_dict()
     (m,) = doc["missing"]
     assert m["state"] == "undetermined" and "2 of 3 directions" in m["why"]
     assert doc["progress"] == 0.0
@@ -68,7 +69,7 @@ def test_a_joint_pinned_along_two_directions_is_undetermined_and_says_so():
 def test_a_stricter_target_ramps_with_the_share_of_frames_still_needed():
     # Determined to the 5 mm tolerance at 4 mm, target 2 mm: the error falls as 1/sqrt(frames), so a
     # quarter of the frames it needs are in.
-    doc = progress_of(fit([joint("l_thigh", "pelvis", err_mm=(4.0, 1.0, 1.0))]), 2 * MM, tolerance_m=TARGET)
+    doc = progress_of(fit([joint("l_thigh", "pelvis", err_mm=(4.0, 1.0, 1.0))]), 2 * MM, tolerance_m=TARGET).to_dict()
     assert doc["joint_progress"][0]["state"] == "pinning"
     assert doc["progress"] == pytest.approx(0.25, abs=1e-4)
     assert "4.0 mm" in doc["missing"][0]["why"]
@@ -83,14 +84,14 @@ def test_the_default_target_holds_a_bone_between_two_such_joints_to_the_toleranc
 def track(tracker, fits, t0=0.0, dt=0.1, epoch=0):
     doc = None
     for k, f in enumerate(fits):
-        doc = tracker.update(f, t0 + k * dt, epoch)
+        doc = tracker.add_fit(f, t0 + k * dt, epoch).to_dict()
     return doc
 
 
 def test_done_needs_every_joint_held_for_a_second_and_the_ring_shows_100_only_then():
     tr = ProgressTracker(TARGET)
     both = fit([joint("l_thigh", "pelvis"), joint("r_thigh", "pelvis")])
-    first = tr.update(both, 0.0)
+    first = tr.add_fit(both, 0.0).to_dict()
     # Pinned, but a joint counts only once it has held for CONFIRM_S (1 s): nothing is counted yet.
     assert first["progress"] == 0.0 and {m["state"] for m in first["missing"]} == {"confirming"}
     doc = track(tr, [both] * 11, t0=0.1)  # up to 1.1 s
@@ -102,14 +103,14 @@ def test_a_wobble_about_the_target_leaves_done_joints_done_but_a_real_loss_undoe
     tr = ProgressTracker(TARGET)
     good = fit([joint("l_thigh", "pelvis"), joint("r_thigh", "pelvis")])
     track(tr, [good] * 12)
-    assert tr.latest["done"]
+    assert tr.latest.done
     # The right hip's newest fit reads 5.6 mm, undetermined: a wobble, nothing moves.
     wobble = fit([joint("l_thigh", "pelvis"), joint("r_thigh", "pelvis", err_mm=(5.6, 2.0, 1.0), determined=False)])
     doc = track(tr, [wobble] * 5, t0=1.2)
     assert doc["done"] and doc["progress"] == 1.0
     # Far beyond the target (over twice it): the fit is really lost; the page is told why.
     lost = fit([joint("l_thigh", "pelvis"), joint("r_thigh", "pelvis", err_mm=(14.0, 2.0, 1.0), determined=False)])
-    doc = tr.update(lost, 2.0)
+    doc = tr.add_fit(lost, 2.0).to_dict()
     assert not doc["done"] and doc["progress"] == 0.5
     (m,) = doc["missing"]
     assert m["joint"] == "r_thigh" and m["undone"]["reason"] == "loss" and "no longer fits" in m["why"]
@@ -128,7 +129,7 @@ def test_every_joint_done_again_while_one_wobbles_stays_below_100_until_one_clea
     assert not doc["done"] and doc["percent"] == 99 and doc["progress"] < 1
     assert doc["joints_done"] == 1 == sum(j["done"] for j in doc["joint_progress"])
     assert [m["joint"] for m in doc["missing"]] == ["l_thigh"]
-    doc = tr.update(both, 2.5, epoch=1)
+    doc = tr.add_fit(both, 2.5, epoch=1).to_dict()
     assert doc["done"] and doc["percent"] == 100
 
 
@@ -137,7 +138,7 @@ def test_a_slip_undoes_its_sensors_joints_and_a_fit_begun_before_it_cannot_redo_
     arm = fit([joint("l_upper_arm", "pelvis"), joint("l_forearm", "l_upper_arm", err_mm=(30, 1, 1), hinge=True),
                joint("l_hand", "l_forearm")])
     track(tr, [arm] * 12)
-    assert tr.latest["done"]
+    assert tr.latest.done
     undone = tr.slip({"type": "slip", "sensor": "l_forearm", "time_s": 12.3, "joints": ["l_forearm", "l_hand"]}, 1)
     assert undone == ["l_forearm", "l_hand"]  # its inboard and outboard joints
     # The fit in flight was computed from the accumulator before the slip (epoch 0): it still reads pinned.
@@ -160,16 +161,16 @@ def test_a_fit_lost_to_a_slip_before_the_monitor_confirmed_it_gives_the_slip_as_
     track(tr, [arm] * 12)
     lost = fit([joint("l_upper_arm", "pelvis"), joint("l_forearm", "l_upper_arm"),
                 joint("l_hand", "l_forearm", err_mm=(14.0, 2.0, 1.0), determined=False)])
-    doc = tr.update(lost, 2.0)
+    doc = tr.add_fit(lost, 2.0).to_dict()
     assert doc["missing"][0]["undone"]["reason"] == "loss"
     # An earlier loss (before the slip's onset) is not the slip's: an unrelated shoulder lost at 1.5 s.
-    tr.undone[frozenset(("l_upper_arm", "pelvis"))] = {"reason": "loss", "time_s": 1.5, "sensor": "l_upper_arm"}
+    tr.joint("l_upper_arm", "pelvis").undone = Undone("loss", 1.5, "l_upper_arm")
     assert tr.slip({"type": "slip", "sensor": "l_forearm", "time_s": 1.8}, 1) == ["l_forearm"]
-    doc = tr.update(lost, 2.1, epoch=0)
+    doc = tr.add_fit(lost, 2.1, epoch=0).to_dict()
     missing = {m["joint"]: m["undone"] for m in doc["missing"]}
     assert missing["l_hand"] == {"reason": "slip", "time_s": 1.8, "sensor": "l_forearm"}
     assert missing["l_forearm"]["reason"] == "slip"
-    assert tr.undone[frozenset(("l_upper_arm", "pelvis"))]["reason"] == "loss"
+    assert tr.joint("l_upper_arm", "pelvis").undone.reason == "loss"
 
 
 def test_a_joint_pinning_towards_a_stricter_target_never_shows_less_than_it_reached():
@@ -180,12 +181,12 @@ def test_a_joint_pinning_towards_a_stricter_target_never_shows_less_than_it_reac
 
     doc = track(tr, [at(4.0)] * 11)  # determined for a second: (2/4)² of the frames it needs
     assert doc["progress"] == pytest.approx(0.25, abs=1e-4)
-    doc = tr.update(at(4.5), 1.1)  # the error wobbles up: the share shown stays
+    doc = tr.add_fit(at(4.5), 1.1).to_dict()  # the error wobbles up: the share shown stays
     assert doc["progress"] == pytest.approx(0.25, abs=1e-4)
-    doc = tr.update(at(3.0), 1.2)
+    doc = tr.add_fit(at(3.0), 1.2).to_dict()
     assert doc["progress"] == pytest.approx((2 / 3) ** 2, abs=1e-4)
     # Undetermined far beyond the tolerance (over twice it): lost, shown as such.
-    doc = tr.update(fit([joint("l_thigh", "pelvis", err_mm=(11.0, 1.0, 1.0), determined=False)]), 1.3)
+    doc = tr.add_fit(fit([joint("l_thigh", "pelvis", err_mm=(11.0, 1.0, 1.0), determined=False)]), 1.3).to_dict()
     assert doc["progress"] == 0.0 and doc["missing"][0]["undone"]["reason"] == "loss"
 
 
@@ -200,7 +201,7 @@ def test_a_joint_done_against_a_rigid_group_stays_done_when_the_group_comes_apar
     # The wrist moves: the tree re-links the elbow to the forearm; the wrist is a new joint.
     after = fit([joint("l_upper_arm", "pelvis"), joint("l_forearm", "l_upper_arm", err_mm=(30, 1, 1), hinge=True),
                  joint("l_hand", "l_forearm", err_mm=(None, 20, 9), determined=False)])
-    doc = tr.update(after, 1.2)
+    doc = tr.add_fit(after, 1.2).to_dict()
     assert doc["joints_done"] == 2  # the elbow kept its done, now under the forearm's name
     by = {j["joint"]: j for j in doc["joint_progress"]}
     assert by["l_forearm"]["done"] and not by["l_hand"]["done"]
@@ -210,7 +211,7 @@ def test_a_joint_done_against_a_rigid_group_stays_done_when_the_group_comes_apar
 def test_a_child_that_fits_two_parents_is_not_counted_until_the_tree_settles():
     f = fit([joint("l_hand", "l_upper_arm")], ambiguous=[{"child": "l_hand", "parents": ["l_upper_arm", "l_forearm"],
                                                            "note": "fits equally well to each"}])
-    (m,) = progress_of(f, TARGET)["missing"]
+    (m,) = progress_of(f, TARGET).to_dict()["missing"]
     assert m["state"] == "unsettled" and "left upper arm and the left forearm" in m["why"]
 
 
@@ -228,8 +229,8 @@ def kiosk_guest():
         times = np.arange(int(round(k * step * 100)), int(round((k + 1) * step * 100))) / 100.0
         R, t, valid = perf.poses(times)
         accumulate(acc, times, R, t, valid)
-        f = fit_calibration(acc, perf.names)[0]
-        out.append((f, tracker.update(f, float(times[-1]))))
+        f, cal = fit_calibration(acc, perf.names)
+        out.append((f, tracker.add_fit(cal, float(times[-1])).to_dict()))  # the typed fit, as the service
         if out[-1][1]["done"]:
             break
     return perf, out
@@ -257,7 +258,7 @@ def test_a_performer_standing_still_is_never_calibrated():
     times = np.arange(0, 1500) / 100.0
     R, t, valid = perf.poses(times)
     accumulate(acc, times, R, t, valid)
-    doc = progress_of(fit_calibration(acc, perf.names)[0], TARGET)
+    doc = progress_of(fit_calibration(acc, perf.names)[0], TARGET).to_dict()
     # design.md §3a: standing still determines no joint, so nothing is calibrated and every joint is named.
     assert doc["progress"] == 0.0 and not doc["done"] and len(doc["missing"]) == perf.n_sensors - 1
 
@@ -267,10 +268,10 @@ def test_all_calibrated_but_waiting_for_one_fit_still_names_what_is_missing():
     # not done yet, and `missing` must say which one, or a kiosk has no instruction to show.
     tracker = ProgressTracker(TARGET, confirm_s=0.0)
     both = [joint("l_thigh", "pelvis"), joint("r_thigh", "pelvis")]
-    tracker.update(fit([joint("l_thigh", "pelvis"), joint("r_thigh", "pelvis", err_mm=(6.0, 1.0, 1.0))]), 1.0)
-    tracker.update(fit([joint("l_thigh", "pelvis", err_mm=(6.0, 1.0, 1.0)), both[1]]), 2.0)
-    doc = tracker.latest
+    tracker.add_fit(fit([joint("l_thigh", "pelvis"), joint("r_thigh", "pelvis", err_mm=(6.0, 1.0, 1.0))]), 1.0)
+    tracker.add_fit(fit([joint("l_thigh", "pelvis", err_mm=(6.0, 1.0, 1.0)), both[1]]), 2.0)
+    doc = tracker.latest.to_dict()
     assert doc["joints_done"] == 1 and not doc["done"] and doc["percent"] < 100
     assert not all(j["done"] for j in doc["joint_progress"])
     assert [m["joint"] for m in doc["missing"]] == ["l_thigh"] and "waiting for a fit" in doc["missing"][0]["why"]
-    assert tracker.update(fit(both), 3.0)["done"]
+    assert tracker.add_fit(fit(both), 3.0).to_dict()["done"]

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from flockcal.server.fitting import accumulate, fit_calibration, new_accumulator
-from flockcal.server.progress import ProgressTracker, profile
+from flockcal.solver.progress import profile
+from flockcal.solver.progress_tracker import ProgressTracker
 from flockcal.simulator.performer import Performer
 
 MM = 0.001
@@ -40,7 +41,7 @@ def run(tracker, lengths_mm, t0=0.0, rate=30.0, **kw):
     doc = None
     for k, length in enumerate(lengths_mm):
         t = t0 + k / rate
-        doc = tracker.update(skin_fit(int(100 * (t + 1)), length, **kw), t)
+        doc = tracker.add_fit(skin_fit(int(100 * (t + 1)), length, **kw), t).to_dict()
     return doc
 
 
@@ -106,7 +107,7 @@ STA_DONE_S, RIGID_DONE_S, BONES_M = 35.0 + 5.0, 22.4 + 5.0, 0.005 + 0.001
 
 
 def guest_run(perf: Performer, max_s: float):
-    """The service's per-fit steps (server/fitting.py, server/progress.py) at 30 fits a second, session
+    """The service's per-fit steps (server/fitting.py, solver/progress_tracker.py) at 30 fits a second, session
     clock, until done: (done_at_s, the fit at done)."""
     acc = new_accumulator(perf.n_sensors, segmented=True)
     tracker = ProgressTracker.for_profile(profile("kiosk", 5 * MM))
@@ -114,8 +115,8 @@ def guest_run(perf: Performer, max_s: float):
     for k in range(int(max_s * 30)):
         times = np.arange(k * step, (k + 1) * step) / RATE
         accumulate(acc, times, *perf.poses(times))
-        fit = fit_calibration(acc, perf.names, tolerance=tracker.tolerance_m)[0]
-        doc = tracker.update(fit, float(times[-1]))
+        fit, cal = fit_calibration(acc, perf.names, tolerance=tracker.tolerance_m)
+        doc = tracker.add_fit(cal, float(times[-1])).to_dict()  # the typed fit, as the service passes it
         if doc["done"]:
             return doc["done_at_s"], fit
     return None, fit

@@ -9,7 +9,7 @@ from __future__ import annotations
 import numpy as np
 
 from flockcal.server.fitting import accumulate, fit_calibration, new_accumulator
-from flockcal.server.progress import needed_errors
+from flockcal.solver.progress import FitFacts
 from flockcal.simulator.motion import routine
 from flockcal.simulator.performer import Performer
 
@@ -51,7 +51,7 @@ def test_batch_means_error_is_about_the_spread_between_performances_under_soft_t
     # doing the routine with other phases and frequencies (motion seeds), noise-free, lands its centres
     # about one reported error apart (spread/error median 1.16–1.33 over 3 guests, 8 performances each).
     perf = Performer("human", "kiosk", seed=SEED, rate_hz=RATE, height=HEIGHT, sta_mm=12)
-    error = {j["child"]: max(needed_errors(j)) for j in _whole_loop(perf)["joints"]}
+    error = {child: max(j.needed()) for child, j in FitFacts.of(_whole_loop(perf)).joints.items()}
     centres: dict[str, list] = {}
     for k in range(6):
         other = Performer("human", "kiosk", seed=SEED, rate_hz=RATE, height=HEIGHT, noise=None, sta_mm=12)

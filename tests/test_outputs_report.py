@@ -71,7 +71,7 @@ def test_report_renders_in_headless_chromium_with_every_image_decoded(report):
 
 
 def test_report_shows_the_services_progress_and_draws_no_bone_to_an_undetermined_joint(tmp_path):
-    from flockcal.server.progress import progress_of
+    from flockcal.solver.progress import progress_of
     from flockcal.solver.accumulator import GramAccumulator
     from flockcal.solver.calibration import calibrate
 
@@ -82,7 +82,7 @@ def test_report_shows_the_services_progress_and_draws_no_bone_to_an_undetermined
     text = (tmp_path / "report.html").read_text()
     acc = GramAccumulator(take.n_sensors)
     acc.add_poses(take.rotations, take.positions, take.valid)
-    doc = progress_of(calibrate(acc, names=list(take.names)).to_dict(), 0.005 / 2**0.5, 0.005)
+    doc = progress_of(calibrate(acc, names=list(take.names)).to_dict(), 0.005 / 2**0.5, 0.005).to_dict()
     assert not doc["done"] and doc["missing"]
     assert "<h2>Calibration progress</h2>" in text
     assert f"{doc['joints_done']} of {doc['joints_needed']} joints calibrated ({doc['percent']} %)" in text

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 
 from flockcal.server.fitting import accumulate, fit_calibration, new_accumulator
-from flockcal.server.progress import ProgressTracker, default_target
+from flockcal.solver.progress import default_target
+from flockcal.solver.progress_tracker import ProgressTracker
 from flockcal.simulator.performer import Performer
 
 RATE = 144.0
@@ -32,8 +33,8 @@ def published(seed: int, height: float, seconds: float) -> list[tuple[float, dic
         times = np.arange(k * step, (k + 1) * step) / RATE
         R, t, valid = perf.poses(times)
         accumulate(acc, times, R, t, valid)
-        docs.append((float(times[-1]), tracker.update(fit_calibration(acc, perf.names, tolerance=TOLERANCE_M)[0],
-                                                      float(times[-1]))))
+        docs.append((float(times[-1]), tracker.add_fit(fit_calibration(acc, perf.names, tolerance=TOLERANCE_M)[1],
+                                                       float(times[-1])).to_dict()))
     return docs
 
 

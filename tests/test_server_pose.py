@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from flockcal.server.coaching import joint_label, joint_name
+from flockcal.names import joint_label, joint_name
 from flockcal.server.pose import live_pose
 from flockcal.simulator.performer import Performer
 

@@ -208,12 +208,12 @@ def test_a_database_from_before_progress_was_kept_opens_and_reads_it_as_unknown(
                 min_size=1, max_size=300),
        st.lists(st.booleans(), min_size=300, max_size=300))
 def test_the_stall_clock_is_the_plain_backward_search_over_the_kept_history(steps, done_at):
-    # `_stall` searches a pruned list of candidates (a plateau's 80 s of history was scanned on every fit);
-    # it must give what the plain rule gives: the newest kept entry at least STALL_GAIN below the figure
+    # The stall clock searches a pruned list of candidates (a plateau's 80 s of history was scanned on every
+    # fit); it must give what the plain rule gives: the newest kept entry at least STALL_GAIN below the figure
     # now, else the oldest kept one (history older than 10 STALL_S trimmed, cleared once done).
     from collections import deque
 
-    from flockcal.server.progress import ProgressTracker
+    from flockcal.solver.progress_tracker import ProgressTracker
 
     STALL_S, STALL_GAIN = 8.0, 0.1  # the documented stall: under 10 points gained in 8 s
 
@@ -223,7 +223,7 @@ def test_the_stall_clock_is_the_plain_backward_search_over_the_kept_history(step
     for (dt, figure), done in zip(steps, done_at):
         time_s += dt * STALL_S / 2  # some steps jump past the trimming horizon
         doc = {"done": done and figure == 1.0, "progress": figure, "missing": []}
-        tracker._stall(doc, time_s)
+        doc["stalled_s"] = tracker.stall.tick(doc["progress"], doc["done"], time_s)
         if doc["done"]:
             plain.clear()
         plain.append((time_s, figure))

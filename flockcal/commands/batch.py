@@ -270,7 +270,7 @@ def fit_all(client, todo: list[tuple[str, str]], options: FitOptions, out_dir: P
 
     from flockcal.atomic import write_atomic
     from flockcal.commands import batch_tasks as tasks
-    from flockcal.progress import bar
+    from flockcal.bars import bar
 
     run_id = uuid.uuid4().hex[:8]  # keys unique to this run: other batches may share the scheduler
     origin = None

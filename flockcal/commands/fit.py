@@ -13,7 +13,7 @@ from pathlib import Path
 
 from flockcal.commands.takecheck import PARTIAL_EXIT, add_option, stop_for, too_short, too_still
 from flockcal.errors import UserError
-from flockcal.progress import Stages
+from flockcal.bars import Stages
 
 CHUNK = 65536  # frames per accumulator update; also the progress bar's step
 
@@ -73,7 +73,7 @@ def load_hierarchy(path: str) -> dict:
 
 def accumulate(take, progress: bool = True):
     """A GramAccumulator over the whole take, with a progress bar on a terminal once it takes a while."""
-    from flockcal.progress import bar
+    from flockcal.bars import bar
     from flockcal.solver.accumulator import GramAccumulator
 
     acc = GramAccumulator(take.n_sensors)

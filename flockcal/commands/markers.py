@@ -74,7 +74,7 @@ def json_text(out: dict) -> str:
 
 
 def run(args) -> int:
-    from flockcal.progress import Stages
+    from flockcal.bars import Stages
     from flockcal.solver.optical.pipeline import STAGES
 
     if args.bodies is not None and args.bodies < 2:

@@ -159,7 +159,7 @@ def cmd_scale(args) -> int:
 def cmd_report(args) -> int:
     from flockcal.exports.report import REPORT_STAGES, write_report
     from flockcal.markers import is_marker_take
-    from flockcal.progress import Stages
+    from flockcal.bars import Stages
 
     if is_marker_take(args.take):
         return report_markers(args)
@@ -178,7 +178,7 @@ def report_markers(args) -> int:
     page adds its bodies, what was merged and why), the derived per-body poses as the take."""
     from flockcal.commands.markers import fit_marker_file
     from flockcal.exports.report import REPORT_STAGES, write_report
-    from flockcal.progress import Stages
+    from flockcal.bars import Stages
     from flockcal.solver.optical.pipeline import STAGES
 
     for option in ("hierarchy", "skeleton", "scale"):
@@ -195,7 +195,7 @@ def report_markers(args) -> int:
 
 def _export(args, command: str, write) -> int:
     """Fit the take and write it through the fitted skeleton: `write(path, cal, take, rest)`."""
-    from flockcal.progress import Stages
+    from flockcal.bars import Stages
 
     with Stages(command, ["fitting", "writing"]) as stages:
         stages.step("fitting")
@@ -228,7 +228,7 @@ def cmd_export_gltf(args) -> int:
 
 def cmd_skeleton(args) -> int:
     from flockcal.exports.skeleton import write_skeleton
-    from flockcal.progress import Stages
+    from flockcal.bars import Stages
 
     with Stages("skeleton", ["fitting", "writing"]) as stages:
         stages.step("fitting")

@@ -166,7 +166,7 @@ def _main_thread() -> bool:
 
 def _decode(rec, replay, **options):
     """`replay(rec)` with a progress bar over its chunks on a terminal (long recordings take a while)."""
-    from flockcal.progress import bar
+    from flockcal.bars import bar
 
     with bar(len(rec.chunks), "decoding", unit="chunk", unit_scale=True) as shown:
         done = [0]

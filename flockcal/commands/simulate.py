@@ -119,7 +119,7 @@ def _write_take(args: argparse.Namespace) -> int:
         raise UserError(f"{out}: the take is written as .npz; give a name ending in .npz")
     check_output(out)
     birds = args.birds if args.birds is not None else (16 if args.model == "human" else None)
-    from flockcal.progress import Stages
+    from flockcal.bars import Stages
 
     tp = truth_path(out)
     with Stages("simulate", ["simulating", "writing"]) as stages:

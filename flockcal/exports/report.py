@@ -285,8 +285,9 @@ def report_html(
     from flockcal.exports.bvh import bvh_world
     from flockcal.solver.known_skeleton import bones as bones_of
 
-    from flockcal.server.progress import default_target, progress_of
+    from flockcal.solver.calibration import Calibration
     from flockcal.solver.fits import TOLERANCE_M
+    from flockcal.solver.progress import default_target, progress_of
 
     step(REPORT_STAGES[0])
     d = calibration.to_dict() if hasattr(calibration, "to_dict") else dict(calibration)
@@ -295,9 +296,11 @@ def report_html(
         d = joined_forest(d, take)
     art = articulation(d).reordered(take.names).completed(take.rotations, take.positions, take.valid)
     names = art.names
-    # The service's one definition of progress, for this one fit (a given tree cannot re-link).
+    # The service's one definition of progress, for this one fit (a given tree cannot re-link): read off the
+    # typed fit, or off the dict where there is none (a §5 file, an optical fit's forest joined above).
     fixed = bool(getattr(calibration, "hierarchy_given", False) or d.get("known_skeleton"))
-    calibrated = progress_of(d, default_target(TOLERANCE_M), TOLERANCE_M, tree_fixed=fixed)
+    fit = calibration if isinstance(calibration, Calibration) and not optical else d
+    calibrated = progress_of(fit, default_target(TOLERANCE_M), TOLERANCE_M, tree_fixed=fixed).to_dict()
     standing = {j["joint"]: j for j in calibrated["joint_progress"]}
     e = tree_residuals(take.rotations, take.positions, art, take.valid)
     sep = np.linalg.norm(e, axis=-1)

@@ -60,7 +60,7 @@ export async function download(path, filename) {
 }
 
 // Body names arrive as "l_forearm", "RightUpLeg", "bird3"; people read "left forearm".
-// Mirrors flockcal.server.coaching.readable_body so page and hints agree.
+// Mirrors flockcal.names.readable_body so page and hints agree.
 export function readable(name) {
   if (!name) return '';
   const s = String(name).replace(/([a-z])([A-Z])/g, '$1 $2').replace(/([A-Za-z])(\d)/g, '$1 $2');
