@@ -24,13 +24,14 @@ def skeleton_dict(calibration, source: dict | None = None, take=None, acc=None) 
     (e.g. {"take": "walk.npz", "frames": n, "rate_hz": r}); sessions may add their own keys.
 
     A sensor rigidly attached to its parent (a calibration's `rigid_groups`) has no fitted joint; the
-    file then pins it at its own sensor, which needs the `take` (a Take) or its accumulator `acc`.
+    file then pins it at its own sensor, which needs the `take` (a Take, or any `flockcal.takes.ChunkedTake`:
+    the service's frame log, read a chunk at a time) or its accumulator `acc`.
     """
     d = calibration.to_dict() if hasattr(calibration, "to_dict") else dict(calibration)
     art = articulation(d)
     if art.incomplete.any():
         if take is not None:
-            art = art.reordered(take.names).completed(take.rotations, take.positions, take.valid).reordered(art.names)
+            art = art.reordered(take.names).completed(frames=take.chunks()).reordered(art.names)
         elif acc is not None:
             art = art.completed(acc=acc)
         else:
