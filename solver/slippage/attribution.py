@@ -43,7 +43,7 @@ class Attribution:
     jump_m: float = 0.0
     evidence: float = 0.0  # nats by which the best hypothesis beats "nothing"
     step: np.ndarray | None = None  # slip: the fitted step (3,) in the sensor's own frame, metres
-    later_row: int | None = None  # slip: a later window row its step starts at much likelier than the onset
+    later_row: int | None = None  # a later window row the (likeliest) sensor's step starts at, much likelier than the onset
 
 
 @dataclass
@@ -105,6 +105,8 @@ def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarr
     inc_c = joints[:, 0][None, :] == np.arange(m)[:, None]  # (m, P) sensor is the joint's child
     inc_p = joints[:, 1][None, :] == np.arange(m)[:, None]
     slip_cost, steps, fx = _slip_costs(D, x, y, w, after, sel, inc_c, inc_p, min_jump)
+    # Only a sensor one of whose joints stepped can have slipped (its other joints may lag behind).
+    possible = np.isin(np.arange(m), sensors) & ((inc_c | inc_p) & near[None, :]).any(axis=1)
     joined = np.zeros(m, dtype=bool)
     wj = w
     if win.weight_joined is not None:
@@ -115,14 +117,11 @@ def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarr
         joined = ((inc_c | inc_p) & near[None, :]).sum(axis=1) >= 2
         # ... unless, with those weights, a leaf beside it explains the step better: a hand's slip shows
         # on the wrist, which the forearm shares; the leaf's own score then decides, as before.
-        fair = np.isin(np.arange(m), sensors) & ((inc_c | inc_p) & near[None, :]).any(axis=1)
-        leaf_best = np.min(np.where(fair & ~joined, cost_j, np.inf), initial=np.inf)
+        leaf_best = np.min(np.where(possible & ~joined, cost_j, np.inf), initial=np.inf)
         joined &= cost_j <= leaf_best
         slip_cost = np.where(joined, cost_j, slip_cost)
         steps = np.where(joined[:, None], steps_j, steps)
     size = np.linalg.norm(steps, axis=1)
-    # Only a sensor one of whose joints stepped can have slipped (its other joints may lag behind).
-    possible = np.isin(np.arange(m), sensors) & ((inc_c | inc_p) & near[None, :]).any(axis=1)
     slip_cost = np.where(possible, slip_cost, np.inf)
 
     # Swaps: only among sensors of the joints that fired. Exchanging their data from the onset on must
