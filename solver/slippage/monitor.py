@@ -504,8 +504,8 @@ class SlipMonitor:
         if w_joined is not weight:
             # (Only a leaf's joint needs them: a sensor of two joints counts none of the extrapolation anyway.)
             inc = (self.joints[:, :, None] == np.arange(self.m)).any(axis=1)  # (P, m) joint has sensor
-            suspects = np.isin(np.arange(self.m), self.joints[fired]) & ((inc & near[:, None]).sum(axis=0) == 1)
-            leafy = near & (inc & suspects[None, :]).any(axis=1)
+            leaves = np.isin(np.arange(self.m), self.joints[fired]) & ((inc & near[:, None]).sum(axis=0) == 1)
+            leafy = near & (inc & leaves[None, :]).any(axis=1)
             hist, h_use, seen = same_poses(self._history, float(times[0]), self.segment_start, buf.Q[post],
                                            buf.pv[post], leafy, self._nbrs)
             weight[onset_row:] = np.where(seen, w_joined[onset_row:], weight[onset_row:])
