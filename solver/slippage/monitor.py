@@ -20,7 +20,7 @@ from flockcal.solver.slippage.attribution import Attribution, Window, attribute
 from flockcal.solver.slippage.buffer import FrameBuffer
 from flockcal.solver.slippage.baseline import SmoothBaseline, neighbours, smooth_baseline
 from flockcal.solver.slippage.pending import PendingSuspicions, Suspicion
-from flockcal.solver.slippage.revisit import PoseHistory, came_back, same_poses
+from flockcal.solver.slippage.revisit import PoseHistory, came_back
 from flockcal.solver.slippage.stats import joint_geometry, local_variance, residual, window_glr
 
 
@@ -432,7 +432,7 @@ class SlipMonitor:
         # window; for a sensor seen through two or more joints, which a slip moves by one vector in its own
         # frame while skin in a new pose moves each joint its own way, it counts none of it by default.
         # A leaf's slip shows on one joint, as skin in a new pose does: counting less there raised false
-        # alarms (docs/slippage.md), so it does so only in poses of the last revisit_s (`_attribute`).
+        # alarms (docs/slippage.md), so a leaf's confirming test reads the step test's weights.
         extra = sigma2 * self.base.leverage(Q)
         live = buf.pv[sl] & ok
         step_share, joined_share = self.extrapolation_share[:2]
@@ -497,35 +497,12 @@ class SlipMonitor:
             cross = np.linalg.norm(p1[a] - p0[b]) + np.linalg.norm(p1[b] - p0[a])
             return bool(cross < stay)
 
-        # The frames of the last revisit_s in the poses the frames since the onset are in: with them the
-        # smooth fit knows those poses instead of extrapolating to them, so (as for a sensor seen through
-        # two joints) the baseline's extrapolation need not count as noise in frames whose pose they hold.
-        w_fit, H = weight, 0
-        if w_joined is not weight:
-            # (Only a leaf's joint needs them: a sensor of two joints counts none of the extrapolation anyway.)
-            inc = (self.joints[:, :, None] == np.arange(self.m)).any(axis=1)  # (P, m) joint has sensor
-            leaves = np.isin(np.arange(self.m), self.joints[fired]) & ((inc & near[:, None]).sum(axis=0) == 1)
-            leafy = near & (inc & leaves[None, :]).any(axis=1)
-            hist, h_use, seen = same_poses(self._history, float(times[0]), self.segment_start, buf.Q[post],
-                                           buf.pv[post], leafy, self._nbrs)
-            weight[onset_row:] = np.where(seen, w_joined[onset_row:], weight[onset_row:])
-            if len(hist):
-                H = len(hist)
-                typical = np.array([np.median(col[col > 0]) if (col > 0).any() else 0.0
-                                    for col in weight[head:onset_row].T])
-                hw = np.where(h_use, typical[None, :], 0.0)
-                times = np.r_[np.full(H, times[0]), times]
-                g = np.concatenate([self._history.g[hist], g])
-                Q = np.concatenate([self._history.Q[hist], Q])
-                use = np.concatenate([h_use, use])
-                w_fit = np.concatenate([hw, weight])
-                w_joined = np.concatenate([hw, w_joined])
-        win = Window(times, g, Q, use, w_fit, onset_row + H, c, l, swapped, swap_plausible,
+        win = Window(times, g, Q, use, weight, onset_row, c, l, swapped, swap_plausible,
                      None if w_joined is weight else w_joined)
         att = attribute(win, self.joints, self._nbrs, ready, fired, self.m, self.min_jump, self.min_evidence,
                         late_rows=self._pending.merge, min_tail=self.min_frames, more_looks=more_looks)
         if att.kind in ("slip", None) and att.later_row is not None:
-            return att, buf.index_of(int(rows[att.later_row - H]))
+            return att, buf.index_of(int(rows[att.later_row]))
         if att.kind == "slip":
             J = self.joints
             child, parent = J[:, 0] == att.sensor, J[:, 1] == att.sensor
