@@ -54,7 +54,9 @@ class Window:
     use (valid, in its current segment); weight (L, P) = 1/σ²; times (L,); onset_row: first row of the
     change; c, l (P, 3): the estimates; swapped(perm, joints) -> (g, Q) of the frames from the onset on
     with the sensors' data permuted, for those joints; swap_plausible(a, b): whether exchanging a's and
-    b's data at the onset makes their paths more continuous, not less (else the swap is not scored).
+    b's data at the onset makes their paths more continuous, not less (else the swap is not scored);
+    weight_joined (L, P): the weights "sensor s slipped" is scored with where s is seen through two or
+    more of the fitted joints (None: `weight`).
     """
 
     times: np.ndarray
@@ -67,6 +69,7 @@ class Window:
     l: np.ndarray
     swapped: Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]] | None = None
     swap_plausible: Callable[[int, int], bool] | None = None
+    weight_joined: np.ndarray | None = None
 
 
 def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarray,
@@ -100,6 +103,21 @@ def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarr
     inc_c = joints[:, 0][None, :] == np.arange(m)[:, None]  # (m, P) sensor is the joint's child
     inc_p = joints[:, 1][None, :] == np.arange(m)[:, None]
     slip_cost, steps, fx = _slip_costs(D, x, y, w, after, sel, inc_c, inc_p, min_jump)
+    joined = np.zeros(m, dtype=bool)
+    wj = w
+    if win.weight_joined is not None:
+        # A sensor seen through two or more joints: one step in its own frame must explain all of them,
+        # which skin in a new pose does not mimic, so its score counts no more noise than the frames show.
+        wj = np.where(win.use[:, sel], win.weight_joined[:, sel], 0.0)
+        cost_j, steps_j, _ = _slip_costs(D, x, y, wj, after, sel, inc_c, inc_p, min_jump)
+        joined = ((inc_c | inc_p) & near[None, :]).sum(axis=1) >= 2
+        # ... unless, with those weights, a leaf beside it explains the step better: a hand's slip shows
+        # on the wrist, which the forearm shares; the leaf's own score then decides, as before.
+        fair = np.isin(np.arange(m), sensors) & ((inc_c | inc_p) & near[None, :]).any(axis=1)
+        leaf_best = np.min(np.where(fair & ~joined, cost_j, np.inf), initial=np.inf)
+        joined &= cost_j <= leaf_best
+        slip_cost = np.where(joined, cost_j, slip_cost)
+        steps = np.where(joined[:, None], steps_j, steps)
     size = np.linalg.norm(steps, axis=1)
     # Only a sensor one of whose joints stepped can have slipped (its other joints may lag behind).
     possible = np.isin(np.arange(m), sensors) & ((inc_c | inc_p) & near[None, :]).any(axis=1)
@@ -133,7 +151,14 @@ def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarr
     best = int(np.argmin(costs))
     evidence = -float(costs[best])
     if not np.isfinite(evidence) or evidence < min_evidence:
-        return Attribution(None, evidence=evidence)
+        later = None
+        if late_rows > 0 and np.isfinite(slip_cost).any():
+            # Refuted at this onset: a slip that landed a moment after it (in a pose the baseline has not
+            # seen, where soft tissue raised the suspicion first) may still be a step from a later start.
+            s = int(np.argmin(slip_cost))
+            ws = wj if win.weight_joined is not None and joined[s] else w
+            later = _later_start(D, x, y, ws, sel, inc_c[s], inc_p[s], win.onset_row, late_rows, min_tail)
+        return Attribution(None, evidence=evidence, later_row=later)
     post = np.exp(-(costs - costs[best]))
     post /= post.sum()
     if best >= m:
@@ -148,7 +173,8 @@ def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarr
         return Attribution(None, evidence=evidence)
     order = np.argsort(-post[:m])
     cands = [(int(k), float(post[k])) for k in order if post[k] >= CANDIDATE_SHARE]
-    later = _later_start(D, x, y, w, sel, inc_c[s], inc_p[s], win.onset_row, late_rows, min_tail) if late_rows > 0 else None
+    ws = wj if joined[s] else w
+    later = _later_start(D, x, y, ws, sel, inc_c[s], inc_p[s], win.onset_row, late_rows, min_tail) if late_rows > 0 else None
     return Attribution("slip", s, -1, cands, float(post[s]), mine.tolist(), float(size[s]), evidence, steps[s], later)
 
 

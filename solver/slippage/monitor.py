@@ -20,7 +20,7 @@ from flockcal.solver.slippage.attribution import Attribution, Window, attribute
 from flockcal.solver.slippage.buffer import FrameBuffer
 from flockcal.solver.slippage.baseline import SmoothBaseline, neighbours, smooth_baseline
 from flockcal.solver.slippage.pending import PendingSuspicions, Suspicion
-from flockcal.solver.slippage.revisit import PoseHistory, came_back
+from flockcal.solver.slippage.revisit import PoseHistory, came_back, same_poses
 from flockcal.solver.slippage.stats import joint_geometry, local_variance, residual, window_glr
 
 
@@ -102,8 +102,9 @@ class SlipMonitor:
     watched. Frames are examined `step_s` at a time, whatever the batches they arrive in. Suspicions
     whose onsets are more than `merge_s` apart are kept and tested apart (`pending`).
     Where a joint moves into poses its lagged baseline has not seen, the step test and the confirming
-    test count `extrapolation_share` (step, confirming) of the baseline's own uncertainty as noise
-    (docs/slippage.md measures the confirming test's share).
+    test count `extrapolation_share` of the baseline's own uncertainty as noise: (step test, confirming
+    test of a sensor seen through two or more joints, of a sensor seen through one); two values give the
+    confirming test one share for both (docs/slippage.md measures them).
     """
 
     def __init__(self, joints, n_sensors: int, rate_hz: float, names=None, *,
@@ -112,7 +113,7 @@ class SlipMonitor:
                  threshold: float = 25.0, attribute_s: float = 0.15, confirm_s: float = 0.8,
                  step_s: float = 0.1, min_frames: int = 4, min_evidence: float = 20.0,
                  scale_floor_m: float = 2e-4, max_rms_m: float = 0.05, revisit_s: float = 40.0,
-                 merge_s: float = 0.05, extrapolation_share: tuple[float, float] = (1.0, 1.0)):
+                 merge_s: float = 0.05, extrapolation_share: tuple[float, ...] = (1.0, 0.0, 1.0)):
         J = _checked_joints(joints, n_sensors)
         if not rate_hz > 0:
             raise SlippageError(f"rate_hz must be positive, got {rate_hz!r}")
@@ -120,11 +121,13 @@ class SlipMonitor:
             raise SlippageError("lag_s must exceed window_s, so a step is never inside its own baseline")
         if not confirm_s >= attribute_s:
             raise SlippageError("confirm_s must be at least attribute_s: a suspicion is tested from attribute_s to confirm_s")
-        share = np.asarray(extrapolation_share, dtype=float)
-        if share.shape != (2,) or not ((share >= 0) & (share <= 1)).all():
-            raise SlippageError(f"extrapolation_share is (step test, confirming test), each within [0, 1]: "
-                                f"{extrapolation_share!r}")
-        self.extrapolation_share = (float(share[0]), float(share[1]))
+        share = np.asarray(extrapolation_share, dtype=float).ravel()
+        if share.shape == (2,):
+            share = share[[0, 1, 1]]
+        if share.shape != (3,) or not ((share >= 0) & (share <= 1)).all():
+            raise SlippageError("extrapolation_share is (step test, confirming test of a sensor with two or more "
+                                f"joints, of a sensor with one), each within [0, 1]: {extrapolation_share!r}")
+        self.extrapolation_share = tuple(float(x) for x in share)
         self.joints = J
         self.m = int(n_sensors)
         self.rate_hz = float(rate_hz)
@@ -425,14 +428,16 @@ class SlipMonitor:
         var = np.maximum(np.where(ok, var, 1.0), floor)
         # Where the configuration is new the baseline extrapolates: the step test, which measures against
         # it, counts its uncertainty as noise. The confirming test fits its own smooth function over the
-        # window, yet counting less of it there raised false alarms in new poses (docs/slippage.md), so
-        # by default it counts all of it too (`extrapolation_share`).
+        # window; for a sensor seen through two or more joints, which a slip moves by one vector in its own
+        # frame while skin in a new pose moves each joint its own way, it counts none of it by default.
+        # A leaf's slip shows on one joint, as skin in a new pose does: counting less there raised false
+        # alarms (docs/slippage.md), so it does so only in poses of the last revisit_s (`_attribute`).
         extra = sigma2 * self.base.leverage(Q)
         live = buf.pv[sl] & ok
-        step_share, confirm_share = self.extrapolation_share
+        step_share, joined_share = self.extrapolation_share[:2]
         buf.w[sl] = np.where(live, 1.0 / (var + step_share * extra), 0.0)
-        if confirm_share != step_share:  # (equal shares, the default: the confirming test reads buf.w)
-            buf.wc[sl] = np.where(live, 1.0 / (var + confirm_share * extra), 0.0)
+        if joined_share != step_share:
+            buf.wc[sl] = np.where(live, 1.0 / (var + joined_share * extra), 0.0)
         self._fresh = (min(first, new_from) if self._fresh is None else min(self._fresh[0], new_from), end)
 
     def _attribute(self, onset: int, fired: np.ndarray, ready: np.ndarray, c, l, last: int):
@@ -449,15 +454,25 @@ class SlipMonitor:
         rows = np.concatenate([np.arange(cut % stride, cut, stride), np.arange(cut, full.stop - full.start)]) + full.start
         times = buf.times[rows]
         use = buf.pv[rows] & (times[:, None] >= self.segment_start[None, :])
-        share = self.extrapolation_share
-        weight = np.where(use, (buf.wc if share[1] != share[0] else buf.w)[rows], 0.0)
-        weight[:int(np.searchsorted(rows, full.start + cut))] *= stride
+        step_share, joined_share, leaf_share = self.extrapolation_share
+        weight = np.where(use, buf.w[rows], 0.0)
+        w_joined = np.where(use, buf.wc[rows], 0.0) if joined_share != step_share else weight
+        if leaf_share != step_share:  # (a share other than the step test's for a leaf: its own weights)
+            var = 1.0 / np.where(weight > 0, weight, 1.0)
+            extra = np.nan_to_num(self.base.sigma, nan=0.0) ** 2 * self.base.leverage(buf.Q[rows])
+            weight = np.where(weight > 0, 1.0 / np.maximum(var + (leaf_share - step_share) * extra, 1e-300), 0.0)
+        head = int(np.searchsorted(rows, full.start + cut))
+        weight[:head] *= stride
+        if w_joined is not weight:
+            w_joined[:head] *= stride
         onset_row = int(np.searchsorted(rows, full.start + onset_row))
         post = slice(rows[onset_row], full.stop)
         g, Q = buf.g[rows], buf.Q[rows]
         near = np.isin(self.joints, self.joints[fired]).any(axis=1) & ready
         u_post = residual(buf.g[post][:, near], buf.Q[post][:, near], c[near], l[near])
         weight[onset_row:, near] = _with_own_noise(u_post, weight[onset_row:, near])
+        if w_joined is not weight:
+            w_joined[onset_row:, near] = _with_own_noise(u_post, w_joined[onset_row:, near])
 
         def swapped(perm, touched):
             return joint_geometry(buf.R[post][:, perm], buf.t[post][:, perm], self.joints[touched])
@@ -481,11 +496,31 @@ class SlipMonitor:
             cross = np.linalg.norm(p1[a] - p0[b]) + np.linalg.norm(p1[b] - p0[a])
             return bool(cross < stay)
 
-        win = Window(times, g, Q, use, weight, onset_row, c, l, swapped, swap_plausible)
+        # The frames of the last revisit_s in the poses the frames since the onset are in: with them the
+        # smooth fit knows those poses instead of extrapolating to them, so (as for a sensor seen through
+        # two joints) the baseline's extrapolation need not count as noise in frames whose pose they hold.
+        w_fit, H = weight, 0
+        if w_joined is not weight:
+            hist, h_use, seen = same_poses(self._history, float(times[0]), self.segment_start, buf.Q[post],
+                                           buf.pv[post], near, self._nbrs)
+            weight[onset_row:] = np.where(seen, w_joined[onset_row:], weight[onset_row:])
+            if len(hist):
+                H = len(hist)
+                typical = np.array([np.median(col[col > 0]) if (col > 0).any() else 0.0
+                                    for col in weight[head:onset_row].T])
+                hw = np.where(h_use, typical[None, :], 0.0)
+                times = np.r_[np.full(H, times[0]), times]
+                g = np.concatenate([self._history.g[hist], g])
+                Q = np.concatenate([self._history.Q[hist], Q])
+                use = np.concatenate([h_use, use])
+                w_fit = np.concatenate([hw, weight])
+                w_joined = np.concatenate([hw, w_joined])
+        win = Window(times, g, Q, use, w_fit, onset_row + H, c, l, swapped, swap_plausible,
+                     None if w_joined is weight else w_joined)
         att = attribute(win, self.joints, self._nbrs, ready, fired, self.m, self.min_jump, self.min_evidence,
                         late_rows=self._pending.merge, min_tail=self.min_frames)
-        if att.kind == "slip" and att.later_row is not None:
-            return att, buf.index_of(int(rows[att.later_row]))
+        if att.kind in ("slip", None) and att.later_row is not None:
+            return att, buf.index_of(int(rows[att.later_row - H]))
         if att.kind == "slip":
             J = self.joints
             child, parent = J[:, 0] == att.sensor, J[:, 1] == att.sensor

@@ -111,3 +111,39 @@ def came_back(history: PoseHistory, before: float, since: np.ndarray, times, g, 
     mean = (diff * w[..., None]).sum(axis=(0, 1)) / info
     favour_back = 0.5 * info * (((mean - step) ** 2).sum() - (mean**2).sum())
     return bool(favour_back > CAME_BACK_NATS)
+
+
+
+def same_poses(history: PoseHistory, before: float, since: np.ndarray, Q: np.ndarray, pv: np.ndarray,
+               joints: np.ndarray, nbrs: np.ndarray, cap: int = 400) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The history's frames in the poses of the frames Q (L, P, 3, 3), per selected joint (`joints` (P,)
+    bool): a frame of the history before `before` (in the joint's segment from `since` (P,) on) is in
+    joint j's pose when j and its neighbours (`nbrs` (P, width), padded with −1) are each within
+    SAME_POSE_RAD of where they are in one of the frames. Returns the history rows (H,), which joints
+    each serves (H, P), and which of the frames found their pose there (L, P); at most `cap` rows, the
+    closest kept."""
+    L, P = pv.shape
+    seen = np.zeros((L, P), dtype=bool)
+    n = history.count
+    h = np.arange(n)
+    h = h[history.times[h] < before] if n else h
+    # For rotations ‖Q − Q'‖² = 6 − 2 ⟨Q, Q'⟩: the worst joint's distance is the least inner product's.
+    least = 3.0 - 2.0 * (1 - np.cos(SAME_POSE_RAD))
+    best = np.full((len(h), P), -np.inf)
+    for j in np.flatnonzero(joints):
+        need = np.r_[j, nbrs[j][nbrs[j] >= 0]]
+        ok = history.pv[h][:, need].all(axis=1) & (history.times[h][:, None] >= since[None, need]).all(axis=1)
+        live = pv[:, need].all(axis=1)
+        if not ok.any() or not live.any():
+            continue
+        a = Q[live][:, need].reshape(int(live.sum()), len(need), 9)
+        b = history.Q[h[ok]][:, need].reshape(int(ok.sum()), len(need), 9)
+        dots = np.einsum("lkc,hkc->lhk", a, b).min(axis=-1)  # (live frames, usable history)
+        seen[np.flatnonzero(live), j] = dots.max(axis=1) >= least
+        best[np.flatnonzero(ok), j] = dots.max(axis=0)
+    use = best >= least
+    keep = np.flatnonzero(use.any(axis=1))
+    if len(keep) > cap:
+        keep = keep[np.argsort(-np.where(use[keep], best[keep], -np.inf).max(axis=1))[:cap]]
+        keep.sort()
+    return h[keep], use[keep], seen
