@@ -1,6 +1,6 @@
 """Cost of the pose message's `rig` (issue 34, item 2: under 1 % of a core at a 15 Hz client): the time
 to build and serialise it (server.pose.rig_pose) for a 16-sensor fitted performer, and the whole message's;
-and the rig file the pages fetch to draw it (`/gltf?rest=sensor&animation=false`, server.downloads.gltf_stream
+and the rig file the pages fetch to draw it (`/gltf?rest=sensor&animation=false`, flockcal.exports.gltf.glb_chunks
 from a frame log), which a page fetches at most every 2 s during a live session. Prints figures, asserts nothing.
 
     python benchmarks/bench_pose_rig.py [--calls 7000]
@@ -15,7 +15,8 @@ import time
 from pathlib import Path
 
 from flockcal.server import pose
-from flockcal.server.downloads import FrameFile, gltf_stream
+from flockcal.exports.gltf import glb_chunks
+from flockcal.server.downloads import FrameFile
 from flockcal.server.framelog import FrameLog
 from flockcal.simulator.take import simulate
 from flockcal.solver.accumulator import GramAccumulator
@@ -62,7 +63,7 @@ def main() -> None:
         log.write(take.times, take.rotations, take.positions, take.valid)
         log.close()
         frames, result = FrameFile(path), cal.to_dict()
-        rig_file = lambda: b"".join(gltf_stream(result, frames, rest="sensor", animation=False))  # noqa: E731
+        rig_file = lambda: b"".join(glb_chunks(result, frames, rest="sensor", animation=False))  # noqa: E731
         each = per_call(rig_file, 70)
         print(f"the pages' rig file (16 bodies): {len(rig_file()) / 1e3:.0f} kB built in {each * 1e3:.1f} ms; "
               f"one page fetching it every 2 s: {each / 2 * 100:.2f} % of a core")

@@ -2,6 +2,7 @@
 
 A take is n frames of m sensors: rotations (n, m, 3, 3) body→world, positions (n, m, 3) metres,
 valid (n, m), times (n,) seconds, names (m,), rate_hz. Every problem found gets a one-line `TakeError`.
+`ChunkedTake` is what reads a take a chunk of frames at a time (the exports); a `Take` is one.
 """
 
 from __future__ import annotations
@@ -10,11 +11,13 @@ import os
 import zipfile
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Iterator, Protocol, runtime_checkable
 
 import numpy as np
 
 from flockcal.atomic import replacing
 from flockcal.errors import FlockcalError
+from flockcal.frames import Frames
 
 
 class TakeError(FlockcalError, ValueError):
@@ -41,12 +44,37 @@ class Take:
     def n_sensors(self) -> int:
         return self.rotations.shape[1]
 
+    def chunks(self, size: int | None = None) -> Iterator[Frames]:
+        """The take's frames as `Frames` of `size` frames (views, not copies); None: all of them at once."""
+        n = self.n_frames
+        step = n if size is None else max(1, int(size))
+        for a in range(0, n, max(step, 1)):
+            b = a + step
+            yield Frames(self.times[a:b], self.rotations[a:b], self.positions[a:b], self.valid[a:b])
+
     def index(self, name: str) -> int:
         """Sensor index of `name`, or a TakeError listing the names the take has."""
         try:
             return self.names.index(name)
         except ValueError:
             raise TakeError(f"no sensor named {name!r} in this take (it has: {', '.join(self.names)})") from None
+
+
+@runtime_checkable
+class ChunkedTake(Protocol):
+    """A take read a chunk of frames at a time, as often as asked: a `Take` in memory, or the service's
+    frame log on disk (server/downloads.py `FrameFile`), whose memory stays a chunk whatever its length.
+    Chunks hold what a Take holds: times from the first frame, invalid sensor-frames zeroed."""
+
+    names: tuple[str, ...] | list[str]
+    rate_hz: float
+
+    @property
+    def n_frames(self) -> int: ...
+
+    def chunks(self, size: int | None = None) -> Iterator[Frames]:
+        """The frames in order, `size` at a time (None: the reader's own chunk)."""
+        ...
 
 
 def make_take(

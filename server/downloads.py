@@ -1,5 +1,6 @@
 """Session downloads built from the frame log a chunk at a time, so memory stays bounded by the chunk
-(a few MB) whatever the session's length: the .npz take, the BVH motion, the glTF rig and the skeleton file.
+(a few MB) whatever the session's length: the .npz take here; the BVH motion, the glTF rig and the skeleton
+file are flockcal.exports' own writers reading a `FrameFile` (a `flockcal.takes.ChunkedTake`).
 
 Each reads the frames the log held when the download began (a live session keeps growing). The
 outputs equal what flockcal.takes / flockcal.exports make of the whole take loaded at once.
@@ -8,7 +9,6 @@ outputs equal what flockcal.takes / flockcal.exports make of the whole take load
 from __future__ import annotations
 
 import asyncio
-import io
 import logging
 import os
 import threading
@@ -19,6 +19,7 @@ from typing import Iterator
 import numpy as np
 from starlette.responses import StreamingResponse
 
+from flockcal.frames import Frames
 from flockcal.server.wsgate import abort
 
 from flockcal.server.errors import Unavailable
@@ -31,7 +32,8 @@ OUT_BYTES = 256 * 1024  # bytes handed to the connection at a time
 
 
 class FrameFile:
-    """A session's frame log opened for reading in chunks: names, rate, n frames (fixed at open)."""
+    """A session's frame log opened for reading in chunks: names, rate, n frames (fixed at open). A
+    `flockcal.takes.ChunkedTake`: the exports read it as they read a Take."""
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
@@ -55,14 +57,24 @@ class FrameFile:
             rate = (self.n - 1) / span if span > 0 else 1.0
         self.rate_hz = float(rate)
 
+    @property
+    def n_frames(self) -> int:
+        return self.n
+
+    @property
+    def play_frames(self) -> int:
+        """Frames per step when played back: a quarter of a read chunk, as reconstruction and Euler angles
+        hold ~10 arrays of its size."""
+        return max(1, self.chunk // 4)
+
     def records(self, start: int, count: int) -> np.ndarray:
         with open(self.path, "rb") as fh:
             fh.seek(self.offset + start * self.dtype.itemsize)
             return np.fromfile(fh, dtype=self.dtype, count=count)
 
-    def chunks(self, size: int | None = None) -> Iterator[tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]]:
-        """(times from the first frame, rotations, positions, valid) per chunk of `size` frames (default
-        CHUNK_BYTES' worth), as a Take holds them: invalid sensor-frames zeroed (flockcal.takes.make_take)."""
+    def chunks(self, size: int | None = None) -> Iterator[Frames]:
+        """`Frames` (times from the first frame) per chunk of `size` frames (default CHUNK_BYTES' worth), as a
+        Take holds them: invalid sensor-frames zeroed (flockcal.takes.make_take)."""
         size = size or self.chunk
         last = -np.inf
         with open(self.path, "rb") as fh:
@@ -74,7 +86,7 @@ class FrameFile:
                     return
                 left -= len(rec)
                 times, R, t, valid, last = sanitize(rec, self.span, last)
-                yield times - self.t0, R, t, valid
+                yield Frames(times - self.t0, R, t, valid)
 
 
 DOWNLOAD_STALL_S = 30.0  # a download whose client takes no data for this long is cut off, its slot freed
@@ -207,10 +219,10 @@ def npz_stream(frames: FrameFile) -> Iterator[bytes]:
     n, m = frames.n, frames.m
     names = np.asarray(frames.names, dtype=str)
     entries = [
-        ("rotations", np.dtype("<f8"), (n, m, 3, 3), lambda c: c[1]),
-        ("positions", np.dtype("<f8"), (n, m, 3), lambda c: c[2]),
-        ("valid", np.dtype(bool), (n, m), lambda c: c[3]),
-        ("times", np.dtype("<f8"), (n,), lambda c: c[0]),
+        ("rotations", np.dtype("<f8"), (n, m, 3, 3), lambda c: c.rotations),
+        ("positions", np.dtype("<f8"), (n, m, 3), lambda c: c.positions),
+        ("valid", np.dtype(bool), (n, m), lambda c: c.valid),
+        ("times", np.dtype("<f8"), (n,), lambda c: c.times),
     ]
     # ZIP64 from the start: an hour of 16 birds is past 4 GB-unaware sizes only for the rotations, but
     # a size is unknown until the entry ends and the header must allow for it.
@@ -229,161 +241,6 @@ def npz_stream(frames: FrameFile) -> Iterator[bytes]:
             if sink.size:
                 yield sink.take()
     yield sink.take()
-
-
-# --- rigidly attached sensors, BVH ------------------------------------------------------------------
-def rigid_means(frames: FrameFile, art) -> dict[tuple[str, str], np.ndarray]:
-    """{(sensor, parent): mean of R_pᵀ (t_j − t_p) over frames where both are valid} for every body of
-    `art` that rides rigidly on its parent (Articulation.completed from the whole take, chunk by chunk)."""
-    todo = np.flatnonzero(art.incomplete)
-    if not len(todo):
-        return {}
-    index = [frames.names.index(art.names[i]) for i in range(art.n_bodies)]
-    j = np.array([index[i] for i in todo])
-    p = np.array([index[art.parent[i]] for i in todo])
-    total, count = np.zeros((len(todo), 3)), np.zeros(len(todo))
-    for _times, R, t, valid in frames.chunks():
-        rel = np.einsum("nkba,nkb->nka", R[:, p], t[:, j] - t[:, p])
-        ok = valid[:, j] & valid[:, p]
-        total += np.where(ok[..., None], rel, 0.0).sum(axis=0)
-        count += ok.sum(axis=0)
-    with np.errstate(invalid="ignore", divide="ignore"):
-        mean = total / count[:, None]
-    return {(art.names[i], art.names[art.parent[i]]): mean[k] for k, i in enumerate(todo)}
-
-
-class RigidPoints:
-    """What Articulation.completed(acc=…) asks an accumulator for, answered from `rigid_means`."""
-
-    def __init__(self, art, means: dict):
-        self.names = art.names
-        self.means = means
-
-    def pair_point(self, x, j, p) -> np.ndarray:
-        return np.array([self.means[(self.names[a], self.names[b])] for a, b in zip(np.atleast_1d(j), np.atleast_1d(p))])
-
-
-def completed(art, frames: FrameFile):
-    """`art` with its rigidly attached bodies placed from the whole log (as bvh_text does from a take)."""
-    from flockcal.solver.reconstruct import ArticulationError
-
-    if not art.incomplete.any():
-        return art
-    try:
-        return art.completed(acc=RigidPoints(art, rigid_means(frames, art)))
-    except KeyError:
-        raise ArticulationError("a rigidly attached sensor is not in the recording") from None
-
-
-def first_valid_pose(frames: FrameFile) -> tuple[np.ndarray, np.ndarray]:
-    """(m, 3, 3), (m, 3): each sensor's first valid pose (what a Take holds before a sensor's first record)."""
-    from flockcal.solver.reconstruct import ArticulationError
-
-    R0 = np.full((frames.m, 3, 3), np.nan)
-    t0 = np.full((frames.m, 3), np.nan)
-    todo = np.ones(frames.m, dtype=bool)
-    for _times, R, t, valid in frames.chunks():
-        found = todo & valid.any(axis=0)
-        if found.any():
-            k = valid.argmax(axis=0)
-            cols = np.flatnonzero(found)
-            R0[cols], t0[cols] = R[k[cols], cols], t[k[cols], cols]
-            todo &= ~found
-        if not todo.any():
-            break
-    if todo.any():
-        raise ArticulationError(f"sensor index(es) {np.flatnonzero(todo).tolist()} never gave a valid record; "
-                                "nothing to play back")
-    return R0, t0
-
-
-def played_chunks(frames: FrameFile, art, carry_R: np.ndarray, carry_t: np.ndarray):
-    """The log reconstructed through `art` (solver.reconstruct) a chunk at a time, as a whole Take would be.
-
-    A Take holds each sensor's last valid pose through its dropouts, its first before it starts
-    (`first_valid_pose`, passed in): carried from chunk to chunk as a leading frame every sensor is valid
-    in. A quarter of a read chunk per step: reconstruction and Euler angles hold ~10 arrays of its size."""
-    from flockcal.solver.reconstruct import held_poses, reconstruct
-
-    for _times, R, t, valid in frames.chunks(max(1, frames.chunk // 4)):
-        R = np.concatenate([carry_R[None], R])
-        t = np.concatenate([carry_t[None], t])
-        ok = np.concatenate([np.ones((1, frames.m), dtype=bool), valid])
-        R, t = held_poses(R, t, ok)
-        carry_R, carry_t = R[-1], t[-1]
-        yield reconstruct(R[1:], t[1:], art)
-
-
-def bvh_stream(calibration: dict, frames: FrameFile, units: str = "cm", up: str = "-z") -> Iterator[bytes]:
-    """flockcal.exports.bvh.bvh_text(calibration, take, units=, up=) for the frame log, chunk by chunk.
-
-    Errors in the calibration or the recording are raised by the first next(), before any byte."""
-    from flockcal.exports.bvh import BvhError, UNITS_PER_METRE, bvh_world, hierarchy_text, motion_channels
-    from flockcal.solver.reconstruct import articulation
-
-    if units not in UNITS_PER_METRE:
-        raise BvhError(f"units must be one of {', '.join(UNITS_PER_METRE)}, got {units!r}")
-    scale = UNITS_PER_METRE[units]
-    world = bvh_world(up)
-    art = articulation(calibration).reordered(frames.names)
-    art = completed(art, frames)
-    carry_R, carry_t = first_valid_pose(frames)  # what a Take holds before each sensor's first record
-    A = world @ carry_R  # rest_frames(rest="first"): the held rotations of frame 0
-    yield (hierarchy_text(art, scale, A) + f"MOTION\nFrames: {frames.n}\nFrame Time: {1.0 / frames.rate_hz:.8f}\n"
-           ).encode("ascii")
-    for rec in played_chunks(frames, art, carry_R, carry_t):
-        out = io.StringIO()
-        np.savetxt(out, motion_channels(rec, world, scale, A), fmt="%.6f")
-        yield out.getvalue().encode("ascii")
-
-
-def gltf_stream(calibration: dict, frames: FrameFile, up: str = "-z", name: str = "take",
-                rest: str = "first", animation: bool = True) -> Iterator[bytes]:
-    """flockcal.exports.gltf.gltf_bytes(calibration, take, up=, rest=) for the frame log (rest "first" or "sensor"): the .glb's head first,
-    then its buffer, whose animation blocks are filled chunk by chunk in a temporary file (glTF keeps
-    each joint's keyframes in one block, so a chunk's rows land in every block). Errors in the
-    calibration or the recording are raised by the first next(), before any byte. animation=False: the
-    rig alone (193 kB for 16 bodies, no pass over the frames but the first valid pose and any rigid sensor's mean)."""
-    import tempfile
-
-    from flockcal.exports.bvh import bvh_world
-    from flockcal.exports.gltf import animation_rows, build_rig, file_extras, glb_head, joint_notes, key_times, layout
-    from flockcal.solver.reconstruct import articulation
-
-    world = bvh_world(up)
-    art = completed(articulation(calibration).reordered(frames.names), frames)
-    carry_R, carry_t = first_valid_pose(frames)
-    # rest_frames: "first" as bvh_stream; "sensor" keeps the sensor axes (the live pose's `rig` frame).
-    A = np.broadcast_to(np.eye(3), carry_R.shape) if rest == "sensor" else world @ carry_R
-    root = art.root
-    rig = build_rig(art, A, world @ (carry_R[root] @ art.c[root] + carry_t[root]), joint_notes(calibration))
-    if not animation:
-        plan = layout(rig, None, name=name, extras=file_extras(up, rest, frames.rate_hz))
-        yield glb_head(plan.doc, plan.size) + b"".join(plan.parts)
-        return
-    times = np.concatenate([chunk[0] for chunk in frames.chunks()])  # 8 bytes a frame: an hour is 4 MB
-    plan = layout(rig, key_times(times, frames.rate_hz), name=name, extras=file_extras(up, rest, frames.rate_hz))
-    del times
-    yield glb_head(plan.doc, plan.size)
-    with tempfile.TemporaryFile() as buf:
-        for part in plan.parts:
-            if isinstance(part, bytes):
-                buf.write(part)
-            else:
-                buf.seek(part, os.SEEK_CUR)  # a reserved block: filled below
-        buf.truncate(plan.size)
-        k, last = 0, None
-        for rec in played_chunks(frames, art, carry_R, carry_t):
-            quats, root_rows = animation_rows(rec, world, A, rig, previous=last)
-            last = quats[-1]
-            for at, rows, width in [(plan.root_at, root_rows, 12)] + [
-                    (plan.rotation_at[j], quats[:, j], 16) for j in range(quats.shape[1])]:
-                buf.seek(at + k * width)
-                buf.write(np.ascontiguousarray(rows).tobytes())
-            k += len(quats)
-        buf.seek(0)
-        while piece := buf.read(OUT_BYTES):
-            yield piece
 
 
 def primed(stream: Iterator[bytes]) -> Iterator[bytes]:

@@ -173,7 +173,7 @@ def calibrate(acc, hierarchy=None, root=None, names=None, tolerance: float = TOL
     joints, how = placed_hinges(acc, cal.joints)
     cal = replace(cal, joints=joints, hinge_point=how)
     cal = replace(cal, placement=_placement(acc, cal))
-    return replace(cal, bones=_bones(acc, cal))
+    return replace(cal, bones=joint_bones(acc, cal))
 
 
 @dataclass(frozen=True)
@@ -229,8 +229,9 @@ def _placement(acc, cal: Calibration) -> np.ndarray:
     return place
 
 
-def _bones(acc, cal: Calibration) -> Bones:
-    """Inboard → each outboard joint per body, and between outboard joints at the root (docs/design.md §5)."""
+def joint_bones(acc, cal: Calibration) -> Bones:
+    """Inboard → each outboard joint per body, and between outboard joints at the root (docs/design.md §5),
+    measured between `cal.joints`' centres; `acc` places a joint hung from a rigidly attached sensor."""
     m = cal.n_sensors
     J = cal.joints
     jc, jp = J.pairs[:, 0], J.pairs[:, 1]

@@ -6,7 +6,7 @@ the raw data's joint separations (the residuals) are what this removes. Pure num
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from functools import cached_property
 
@@ -91,9 +91,10 @@ class Articulation:
             return np.zeros(self.n_bodies, dtype=bool)
         return self.rigid & ~np.isfinite(self.l).all(axis=1)
 
-    def completed(self, rotations=None, positions=None, valid=None, acc=None) -> "Articulation":
+    def completed(self, rotations=None, positions=None, valid=None, acc=None, frames=None) -> "Articulation":
         """Rigidly attached bodies given a joint at their own sensor: l = that sensor's mean position in
-        the parent's frame, from a take's frames or from a GramAccumulator (`acc.pair_point`)."""
+        the parent's frame, from a take's frames (arrays, or `frames`: an iterable of `flockcal.frames.Frames`
+        chunks, summed a chunk at a time) or from a GramAccumulator (`acc.pair_point`)."""
         todo = np.flatnonzero(self.incomplete)
         if not len(todo):
             return self
@@ -101,16 +102,10 @@ class Articulation:
         p = self.parent[todo]
         if acc is not None:
             l[todo] = acc.pair_point(np.zeros((len(todo), 3)), todo, p)
+        elif frames is not None:
+            l[todo] = _rigid_means(((f.rotations, f.positions, f.valid) for f in frames), todo, p)
         elif rotations is not None and positions is not None:
-            R = np.asarray(rotations, dtype=float)
-            t = np.asarray(positions, dtype=float)
-            rel = np.einsum("nkba,nkb->nka", R[:, p], t[:, todo] - t[:, p])  # R_pᵀ (t_j − t_p)
-            if valid is not None:
-                ok = np.asarray(valid, dtype=bool)
-                ok = ok[:, todo] & ok[:, p]
-                rel = np.where(ok[..., None], rel, np.nan)
-            with np.errstate(invalid="ignore"):
-                l[todo] = np.nanmean(rel, axis=0) if len(rel) else np.nan
+            l[todo] = _rigid_means([(rotations, positions, valid)], todo, p)
         else:
             raise ArticulationError("completing rigidly attached sensors needs the take's frames or its accumulator")
         if not np.isfinite(l[todo]).all():
@@ -120,6 +115,26 @@ class Articulation:
         if "levels" in self.__dict__:  # same tree: keep the cached walk (live poses complete every frame)
             done.__dict__["levels"] = self.levels
         return done
+
+
+def _rigid_means(chunks, j: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """(k, 3) mean of R_pᵀ (t_j − t_p) over the frames where both sensors are valid (and the value is a
+    number), summed chunk by chunk of (rotations, positions, valid|None): one chunk gives np.nanmean's bits."""
+    total = count = None
+    for R, t, valid in chunks:
+        R = np.asarray(R, dtype=float)
+        t = np.asarray(t, dtype=float)
+        rel = np.einsum("nkba,nkb->nka", R[:, p], t[:, j] - t[:, p])  # R_pᵀ (t_j − t_p)
+        ok = ~np.isnan(rel)
+        if valid is not None:
+            v = np.asarray(valid, dtype=bool)
+            ok &= (v[:, j] & v[:, p])[..., None]
+        part, n = np.where(ok, rel, 0.0).sum(axis=0), ok.sum(axis=0)
+        total, count = (part, n) if total is None else (total + part, count + n)
+    if total is None:
+        return np.full((len(j), 3), np.nan)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return total / count
 
 
 def tree_order(parent: np.ndarray) -> np.ndarray:
@@ -180,11 +195,13 @@ def articulation(calibration) -> Articulation:
     return Articulation(names, parent, c, l, order, rigid if rigid.any() else None)
 
 
-def held_poses(rotations: np.ndarray, positions: np.ndarray, valid: np.ndarray | None = None, missing: str = "raise"):
+def held_poses(rotations: np.ndarray, positions: np.ndarray, valid: np.ndarray | None = None, missing: str = "raise",
+               before: tuple[np.ndarray, np.ndarray] | None = None):
     """Rotations and positions with every invalid sensor-frame replaced by that sensor's last valid one.
 
-    Frames before a sensor's first valid record take its first valid one. A sensor that is never valid
-    has nothing to hold: ArticulationError, or NaN throughout with `missing="nan"` (a live single frame).
+    Frames before a sensor's first valid record take its first valid one, or with `before` ((m, 3, 3),
+    (m, 3): the pose each sensor held before these frames, a chunk's carry) that one. A sensor that is never
+    valid has nothing to hold: ArticulationError, or NaN throughout with `missing="nan"` (a live single frame).
     """
     R = np.asarray(rotations, dtype=float)
     t = np.asarray(positions, dtype=float)
@@ -194,19 +211,47 @@ def held_poses(rotations: np.ndarray, positions: np.ndarray, valid: np.ndarray |
     if valid.all():
         return R, t
     n, m = valid.shape
+    frame = np.arange(n)[:, None]
+    last = np.maximum.accumulate(np.where(valid, frame, -1), axis=0)
+    cols = np.broadcast_to(np.arange(m), (n, m))
+    if before is not None:
+        R, t = R[np.maximum(last, 0), cols], t[np.maximum(last, 0), cols]
+        lead = last < 0
+        R[lead] = np.broadcast_to(before[0], (n, m, 3, 3))[lead]
+        t[lead] = np.broadcast_to(before[1], (n, m, 3))[lead]
+        return R, t
     never = np.flatnonzero(~valid.any(axis=0))
     if len(never) and missing != "nan":
         raise ArticulationError(f"sensor index(es) {never.tolist()} never gave a valid record; nothing to play back")
-    frame = np.arange(n)[:, None]
-    last = np.maximum.accumulate(np.where(valid, frame, -1), axis=0)
     first = valid.argmax(axis=0)
     source = np.where(last < 0, first[None, :], last)  # (n, m) frame index to read from
-    cols = np.broadcast_to(np.arange(m), (n, m))
     R, t = R[source, cols], t[source, cols]
     if len(never):
         R[:, never] = np.nan
         t[:, never] = np.nan
     return R, t
+
+
+def first_valid(frames) -> tuple[np.ndarray, np.ndarray]:
+    """((m, 3, 3), (m, 3)): each sensor's first valid pose in `frames` (an iterable of `Frames` chunks, read
+    until every sensor has one): what a take holds before a sensor's first record."""
+    R0 = t0 = todo = None
+    for f in frames:
+        if R0 is None:
+            m = f.rotations.shape[1]
+            R0, t0, todo = np.full((m, 3, 3), np.nan), np.full((m, 3), np.nan), np.ones(m, dtype=bool)
+        found = todo & f.valid.any(axis=0)
+        if found.any():
+            k = f.valid.argmax(axis=0)
+            cols = np.flatnonzero(found)
+            R0[cols], t0[cols] = f.rotations[k[cols], cols], f.positions[k[cols], cols]
+            todo &= ~found
+        if not todo.any():
+            break
+    if todo is None or todo.any():
+        never = [] if todo is None else np.flatnonzero(todo).tolist()
+        raise ArticulationError(f"sensor index(es) {never} never gave a valid record; nothing to play back")
+    return R0, t0
 
 
 def tree_residuals(rotations, positions, art: Articulation, valid=None) -> np.ndarray:
@@ -269,3 +314,14 @@ def reconstruct(rotations, positions, art: Articulation, valid=None, missing: st
                             - np.einsum("nkab,kb->nka", R[:, level], art.c[level]))
     joints = np.einsum("nmab,mb->nma", R, art.c) + sensor
     return Reconstruction(R, sensor, joints, art)
+
+
+def reconstruct_chunks(frames, art: Articulation, before: tuple[np.ndarray, np.ndarray]) -> Iterator[Reconstruction]:
+    """`reconstruct` of a take a chunk at a time (`frames`: an iterable of `Frames`; `art` complete), each
+    invalid sensor-frame holding the sensor's last valid pose, carried from chunk to chunk from `before`
+    (`first_valid`: what a whole take holds before a sensor's first record)."""
+    for f in frames:
+        R, t = held_poses(f.rotations, f.positions, f.valid, before=before)
+        if len(R):
+            before = (R[-1], t[-1])
+        yield reconstruct(R, t, art)

@@ -14,6 +14,7 @@ import numpy as np
 
 from flockcal.solver.accumulator import GramAccumulator
 from flockcal.solver.calibration import Bones, Calibration, calibrate
+from flockcal.solver.calibration import joint_bones as _joint_bones
 from flockcal.solver.errors import SolverError
 from flockcal.solver.fits import TOLERANCE_M, JointEstimates, PairFits, joint_estimates, pair_fits
 
@@ -237,10 +238,9 @@ class SegmentedAccumulator:
             if hinge_rule is not None and part.hinge_point is not None:
                 hinge_rule[mine] = part.hinge_point.rule[theirs]
                 hinge_share[mine] = part.hinge_point.data_share[theirs]
-        bones = _bones_after(whole, done, self)
         hinge_point = None if hinge_rule is None else replace(whole.hinge_point, rule=hinge_rule, data_share=hinge_share)
-        return replace(whole, joints=joints, placement=placement, segment_start_s=start, bones=bones,
-                       hinge_point=hinge_point)
+        cal = replace(whole, joints=joints, placement=placement, segment_start_s=start, hinge_point=hinge_point)
+        return replace(cal, bones=_bones_after(cal, start, self))
 
     def tree_fits(self, tolerance: float = TOLERANCE_M) -> PairFits:
         """All pairs fitted on the whole take, for the tree search, with each pair that touches a slipped
@@ -273,27 +273,19 @@ def _rows_from(fits: PairFits, rows, other: PairFits, other_rows) -> PairFits:
     return PairFits(**out)
 
 
-def _bones_after(whole: Calibration, done: dict, seg: SegmentedAccumulator) -> Bones:
-    """Bones that use a joint refitted on a segment come from that segment's calibration (the latest
-    segment among the bone's two joints), matched by (body, from joint, to joint)."""
-    b = whole.bones
-    length, stderr, start = b.length.copy(), b.stderr.copy(), np.full(len(b), np.nan)
-    row_of = {int(c): k for k, c in enumerate(whole.joint_child)}
-    pairs = whole.joints.pairs
-    for k in range(len(b)):
-        used = [int(x) for x in (b.from_joint[k], b.to_joint[k]) if int(x) in row_of]
-        found = [s for s in seg.pair_segments(pairs[[row_of[x] for x in used]]) if s is not None]
-        if not found:
-            continue
-        s = max(found, key=lambda x: x.start_s)
-        src = done.get(id(s))
-        if src is None:
-            continue
-        o = src.bones
-        hit = np.flatnonzero((o.body == b.body[k]) & (o.from_joint == b.from_joint[k]) & (o.to_joint == b.to_joint[k]))
-        if len(hit):
-            length[k], stderr[k], start[k] = o.length[hit[0]], o.stderr[hit[0]], s.start_s
-    return replace(b, length=length, stderr=stderr, segment_start_s=start)
+def _bones_after(cal: Calibration, start: np.ndarray, seg: SegmentedAccumulator) -> Bones:
+    """The bones of `cal`'s joints as they stand (each from its own segment or the whole take), so a bone is
+    the distance between the joint centres the result reports; marked with the latest segment start among
+    its two joints (`start`, per joint row; NaN: the whole take).
+
+    Taken from the segment's own calibration instead, a bone mixed two fits: after a hand slipped, the
+    forearm bone held the segment's (or, its elbow undetermined there, the whole take's) length while the
+    elbow came from the whole take and the wrist from the segment, 0.2–2 mm apart, and the skeleton file
+    of such a fit was refused as hand-edited."""
+    b = _joint_bones(seg.pair_view(), cal)
+    row_of = np.full(cal.n_sensors, -1)
+    row_of[cal.joint_child] = np.arange(len(cal.joint_child))
+    return replace(b, segment_start_s=np.fmax(start[row_of[b.from_joint]], start[row_of[b.to_joint]]))
 
 
 class SegmentView:
@@ -339,6 +331,23 @@ class SegmentView:
 
     def block_moments(self, pairs):
         return self._grouped(pairs, "block_moments")
+
+    def pair_point(self, point, src, dst) -> np.ndarray:
+        """`GramAccumulator.pair_point` with each (src, dst) pair on its segment (a rigid member's bones)."""
+        x = np.asarray(point, dtype=float).reshape(-1, 3)
+        P = np.stack([np.asarray(src, dtype=int).reshape(-1), np.asarray(dst, dtype=int).reshape(-1)], axis=1)
+        out = np.full((len(P), 3), np.nan)
+        for acc, rows in self._seg._pair_groups(P):
+            out[rows] = acc.pair_point(x[rows], P[rows, 0], P[rows, 1])
+        return out
+
+    def relative_rotation(self, src, dst) -> np.ndarray:
+        """`GramAccumulator.relative_rotation` with each (src, dst) pair on its segment."""
+        P = np.stack([np.asarray(src, dtype=int).reshape(-1), np.asarray(dst, dtype=int).reshape(-1)], axis=1)
+        out = np.full((len(P), 3, 3), np.nan)
+        for acc, rows in self._seg._pair_groups(P):
+            out[rows] = acc.relative_rotation(P[rows, 0], P[rows, 1])
+        return out
 
 
 def segmented_from_take(take, events) -> SegmentedAccumulator:

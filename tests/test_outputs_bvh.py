@@ -241,3 +241,30 @@ def test_sensor_never_valid_is_refused_for_export_and_nan_for_a_live_frame():
     rec = reconstruct(take.rotations[:1], take.positions[:1], art, valid[:1], missing="nan")
     lost = np.isnan(rec.joint_positions[0]).any(axis=1)
     assert lost.tolist() == [False, False, False, True, True, False]  # "l arm" and its child "l fore"
+
+
+def test_bvh_written_a_few_frames_at_a_time_is_the_file_of_the_whole_take():
+    """bvh_chunks plays a take a chunk at a time, as the service plays a session's frame log: 7-frame chunks,
+    a rest frame inside a later chunk where one sensor has dropped out since the chunk before (its pose held
+    across the chunk edge), and a sensor whose first record comes after the first chunk."""
+    from flockcal.exports.bvh import bvh_chunks, bvh_text
+
+    take, _, cal = chain_take()
+    valid = take.valid.copy()
+    valid[:10, 2] = False  # "head" starts late: frames before its first record hold that record
+    take = make_take(take.rotations, take.positions, take.names, take.rate_hz, valid=valid)
+    assert not take.valid[42, 4] and take.valid[39, 4]  # the rest frame 42: "l fore" held from frame 39
+    for rest in ("first", 42, "sensor"):
+        whole = bvh_text(cal, take, rest=rest, units="mm")
+        parts = list(bvh_chunks(cal, take, rest=rest, units="mm", chunk_frames=7))
+        assert len(parts) == 1 + -(-take.n_frames // 7)  # the header, then one piece per chunk
+        got, want = "".join(parts).splitlines(), whole.splitlines()
+        head = want.index("MOTION") + 3
+        assert got[:head] == want[:head], rest  # offsets and rest frames: the same numbers
+        # Rows: the same to the file's 6 decimals, ± one last digit (a chunk's arrays are smaller).
+        np.testing.assert_allclose(np.loadtxt(got[head:]), np.loadtxt(want[head:]), atol=2e-6, rtol=0)
+    # Tried: a sensor that never gave a record; refused by the first piece, before any text.
+    valid[:, 3] = False
+    pieces = bvh_chunks(cal, make_take(take.rotations, take.positions, take.names, 120.0, valid=valid), chunk_frames=7)
+    with pytest.raises(ArticulationError, match="never gave a valid record"):
+        next(pieces)

@@ -11,7 +11,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from flockcal.cli import main
-from flockcal.exports.skeleton import FORMAT, VERSION, SkeletonError, load_skeleton, parse_skeleton, write_skeleton
+from flockcal.exports.skeleton import (FORMAT, VERSION, SkeletonError, load_skeleton, parse_skeleton, skeleton_dict,
+                                      write_skeleton)
 from flockcal.solver.known_skeleton import fit_saved
 from flockcal.simulator.body import human
 from flockcal.simulator.take import simulate
@@ -112,6 +113,21 @@ def test_skeleton_file_carries_version_source_placements_and_round_trips(perform
         i = skeleton.names.index(j["child"])
         np.testing.assert_allclose(skeleton.articulation.c[i], j["c"], rtol=0, atol=1e-15)
         np.testing.assert_allclose(skeleton.articulation.l[i], j["l"], rtol=0, atol=1e-15)
+
+
+def test_a_result_whose_bones_disagree_with_its_centres_still_gives_a_whole_file(performer):
+    """A session result stored before the slip refit measured bones between its own centres (solver/segments.py)
+    holds a forearm bone 2 mm off the elbow and wrist it lists: its file gives the centres' length and loads
+    back; the bones it leaves out (undetermined ends) stay out, and their standard errors stay."""
+    stored = json.loads(json.dumps(performer["cal1"]))
+    bone = next(b for b in stored["bones"] if b["body"] == "l_forearm")
+    true_length, bone["length_m"] = bone["length_m"], bone["length_m"] + 0.002
+    data = skeleton_dict(stored, take=performer["take1"])
+    assert [(b["body"], b["from_joint"], b["to_joint"], b["stderr_m"]) for b in data["bones"]] == \
+        [(b["body"], b["from_joint"], b["to_joint"], b["stderr_m"]) for b in performer["cal1"]["bones"]]
+    (got,) = [b["length_m"] for b in data["bones"] if b["body"] == "l_forearm"]
+    assert got == pytest.approx(true_length, abs=1e-12)
+    parse_skeleton(json.dumps(data))
 
 
 def test_skeleton_for_other_sensors_is_refused(performer):

@@ -17,7 +17,7 @@ import numpy as np
 import pytest
 
 from flockcal.server.settings import Settings
-from server_helpers import ServerThread, free_port, wait_connected
+from server_helpers import ServerProcess, ServerThread, free_port, wait_connected
 from flockcal.simulator.performer import Performer
 
 FIRST_S = 7.0  # the exercise routine compressed to an 8 s loop: the free fit finds the right tree by ~6 s
@@ -223,3 +223,70 @@ def test_after_a_slip_the_known_fit_places_the_slipped_sensor_from_the_frames_si
     assert np.linalg.norm(moved + d) < 0.004, moved
     assert joint["segment_start_s"] == 8.0
     assert all("segment_start_s" not in j for j in fit["joints"] if "l_forearm" not in (j["child"], j["parent"]))
+
+
+# The left hand slips 2 cm, scheduled on the simulated performer's clock (as tests/test_server_slip.py) at a
+# whole second of its 60 s exercise loop outside 15-20 s: `python benchmarks/bench_slippage.py --phases l_hand
+# --routine exercise --rate 144 --seed 4 --sta-mm 12 --between 20:79 --moments 60` (2026-12-04) finds 58 of
+# the 60 moments within 1 s, median 0.16 s, missing only 17 and 18 s into the loop.
+HAND_SLIP_AFTER_S, HAND_MISSED = 20.0, range(15, 21)
+AFTER_SLIP_S = 10.0  # frames recorded after it: the wrist is pinned again on them alone
+
+
+def test_a_skeleton_downloaded_after_a_slip_loads_back(tmp_path):
+    """The forearm's bone runs from the elbow (fitted on the whole session: the forearm never slipped) to the
+    wrist (refitted on the frames since the hand slipped). The download used to give that bone the whole
+    take's length (2.1 and 2.4 mm off the centres beside it in two runs), and the service refused its own
+    file: the upload as 'edited inconsistently' (400), `serve --skeleton` with exit 2."""
+    data = tmp_path / "data"
+    srv = ServerProcess(["--device", "sim://?birds=16&motion=exercise&rate=144&baud=921600&seed=4",
+                         "--data-dir", str(data), "--fast-init"], free_port(), log_path=tmp_path / "serve.log")
+    srv.start()
+    try:
+        wait_connected(srv.url)
+        r = httpx.post(srv.url + "/api/sessions", json={"performer": "Ann"}, timeout=30)
+        assert r.status_code == 201, r.text
+        sid = r.json()["id"]
+        session_s = 0.0
+        while session_s <= 0:  # the session's start on the performer's clock needs its first frames
+            time.sleep(0.05)
+            session_s = httpx.get(srv.url + "/api/status", timeout=30).json()["session"]["time_s"]
+        sim = httpx.get(srv.url + "/api/simulator", timeout=30).json()
+        at = int(np.ceil(sim["clock_s"] - session_s + HAND_SLIP_AFTER_S))
+        while at % int(sim["period_s"]) in HAND_MISSED:
+            at += 1
+        r = httpx.post(srv.url + "/api/simulator/slip", json={"sensor": "l_hand", "distance_m": 0.02,
+                                                              "at_routine_s": at}, timeout=30)
+        assert r.status_code == 200 and r.json()["session_id"] == sid, r.text
+        wait_session_time(srv.url, r.json()["at_s"] + AFTER_SLIP_S, timeout=60 + at - sim["clock_s"])
+        assert httpx.post(srv.url + f"/api/sessions/{sid}/stop", timeout=60).status_code == 200
+        result = httpx.get(srv.url + f"/api/sessions/{sid}/result", timeout=30).json()
+        download = httpx.get(srv.url + f"/api/sessions/{sid}/skeleton", timeout=60)
+        assert download.status_code == 200, download.text
+        upload = httpx.post(srv.url + "/api/skeletons", params={"name": "Ann after slip"}, content=download.content,
+                            timeout=30)
+    finally:
+        srv.stop()
+    assert [e["sensor"] for e in result["slip_events"]] == ["l_hand"], result["slip_events"]
+    file = download.json()
+    joint = {j["child"]: j for j in file["joints"]}
+    refit = {name for name, j in joint.items() if j.get("segment_start_s") is not None}
+    forearm = [b for b in file["bones"] if b["body"] == "l_forearm"]
+    # The case that went wrong is in this file: a bone from a whole-take joint to a refitted one.
+    assert refit == {"l_hand"} and [(b["from_joint"], b["to_joint"]) for b in forearm] == [("l_forearm", "l_hand")], \
+        (refit, forearm)
+    for b in file["bones"]:
+        a = joint[b["body"]]["c"] if b["from_joint"] == b["body"] else joint[b["from_joint"]]["l"]
+        assert abs(b["length_m"] - np.linalg.norm(np.subtract(a, joint[b["to_joint"]]["l"]))) < 1e-9, b
+    assert upload.status_code == 201, upload.text
+    # The file as `flockcal serve --skeleton` loads it at start, in a service of its own.
+    path = tmp_path / "ann.json"
+    path.write_bytes(download.content)
+    again = ServerProcess(["--device", "sim://sk?birds=16", "--birds", "16", "--data-dir", str(tmp_path / "data2"),
+                           "--fast-init", "--skeleton", str(path)], free_port(), log_path=tmp_path / "serve2.log")
+    again.start()
+    try:
+        listed = httpx.get(again.url + "/api/skeletons", timeout=30).json()["skeletons"]
+    finally:
+        again.stop()
+    assert [(s["name"], s["origin"]) for s in listed] == [("Ann", str(path))], listed

@@ -2,7 +2,8 @@
 
 Each body pivots at its inboard joint (the root at its sensor, with the position channels); its BVH
 axes are its sensor axes turned so the rest pose is the take's first frame. Centimetres and Y-up in
-the file, SI everywhere else.
+the file, SI everywhere else. The take is read a chunk of frames at a time (`bvh_chunks`), so the CLI's
+file and the service's streamed download of a session of any length come from the same writer.
 """
 
 from __future__ import annotations
@@ -11,13 +12,17 @@ import io
 import os
 import re
 import warnings
+from dataclasses import dataclass
+from typing import Iterator
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from flockcal.atomic import write_atomic
 from flockcal.errors import FlockcalError
-from flockcal.solver.reconstruct import Articulation, Reconstruction, articulation, reconstruct
+from flockcal.solver.reconstruct import (Articulation, Reconstruction, articulation, first_valid, held_poses,
+                                         reconstruct_chunks)
+from flockcal.takes import ChunkedTake
 
 class BvhError(FlockcalError, ValueError):
     """An export option that makes no sense (unknown units, up axis or rest frame)."""
@@ -81,23 +86,37 @@ def depth_first(art: Articulation) -> list[int]:
     return out
 
 
-def rest_frames(rec: Reconstruction, world: np.ndarray, rest: str | int) -> np.ndarray:
+def rest_frames(take: ChunkedTake, world: np.ndarray, rest: str | int,
+                first: tuple[np.ndarray, np.ndarray]) -> np.ndarray:
     """(m, 3, 3) A_j: each body's BVH frame in its sensor frame's terms, so BVH frame = R_j A_jᵀ.
 
     rest="sensor": A = I, every BVH frame is its sensor frame (the rest pose is all sensors aligned,
     which looks tangled). rest="first" (or a frame index): A_j = W R_j(k0), so the file's rest pose is
     the performer's pose at that frame, upright in the Y-up file, which is what animators expect.
+    `first`: each sensor's first valid pose (`first_valid`: what a take holds before a sensor's first record).
     """
-    m = rec.articulation.n_bodies
     if rest == "sensor":
-        return np.broadcast_to(np.eye(3), (m, 3, 3)).copy()
-    if rest == "first":
-        k0 = 0
-    elif isinstance(rest, (int, np.integer)) and 0 <= int(rest) < len(rec.rotations):
-        k0 = int(rest)
-    else:
-        raise BvhError(f"rest must be 'first', 'sensor' or a frame index in 0..{len(rec.rotations) - 1}, got {rest!r}")
-    return world @ rec.rotations[k0]  # held rotations: defined at every frame
+        return np.broadcast_to(np.eye(3), first[0].shape).copy()
+    return world @ rest_pose(take, rest, first)[0]  # held rotations: defined at every frame
+
+
+def rest_pose(take: ChunkedTake, rest: str | int,
+              first: tuple[np.ndarray, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+    """((m, 3, 3), (m, 3)): the held pose at the rest frame (0 for "first" and "sensor", else the frame
+    index `rest`), read up to that frame a chunk at a time; `first` = `first_valid` of the take."""
+    if isinstance(rest, str) and rest in ("first", "sensor"):
+        return first
+    n = take.n_frames
+    if not (isinstance(rest, (int, np.integer)) and 0 <= int(rest) < n):
+        raise BvhError(f"rest must be 'first', 'sensor' or a frame index in 0..{n - 1}, got {rest!r}")
+    k, held = int(rest), first
+    for f in take.chunks():
+        R, t = held_poses(f.rotations, f.positions, f.valid, before=held)
+        if k < len(R):
+            return R[k], t[k]
+        k -= len(R)
+        held = (R[-1], t[-1])
+    raise BvhError(f"the take ended before its frame {rest}")  # n_frames said otherwise
 
 
 def local_rotations(rec: Reconstruction, world: np.ndarray, A: np.ndarray) -> np.ndarray:
@@ -166,32 +185,58 @@ def hierarchy_text(art: Articulation, scale: float, A: np.ndarray | None = None,
     return "\n".join(lines) + "\n"
 
 
-def played(calibration, take, up: str, rest: str | int):
-    """(Reconstruction, world turn W, rest frames A) of `take` played through `calibration` (a Calibration,
-    its §5 dict or an Articulation): what the BVH and the glTF rig (exports/gltf.py) both write."""
+@dataclass(frozen=True)
+class Playback:
+    """What the BVH and the glTF rig (exports/gltf.py) both write a take through: the articulation in the
+    take's sensor order, rigidly attached sensors placed from its frames; the world turn W; the rest frames A;
+    and each sensor's first valid pose (held before its first record, carried into the first chunk)."""
+
+    articulation: Articulation
+    world: np.ndarray
+    A: np.ndarray
+    first: tuple[np.ndarray, np.ndarray]
+
+    def chunks(self, take: ChunkedTake, chunk_frames: int | None = None) -> Iterator[Reconstruction]:
+        """The take played through the articulation, `chunk_frames` frames at a time (None: the take's own)."""
+        return reconstruct_chunks(take.chunks(chunk_frames), self.articulation, self.first)
+
+
+def playback(calibration, take: ChunkedTake, up: str, rest: str | int) -> Playback:
+    """The `Playback` of `take` (a Take, or any ChunkedTake) through `calibration` (a Calibration, its §5
+    dict or an Articulation). Reads the take once to place rigid sensors (when there are any), then up to
+    each sensor's first valid record and to the rest frame; errors come before any output."""
     world = bvh_world(up)
     art = calibration if isinstance(calibration, Articulation) else articulation(calibration)
-    rec = reconstruct(take.rotations, take.positions, art.reordered(take.names), take.valid)
-    return rec, world, rest_frames(rec, world, rest)  # rec.articulation: rigid sensors have their offsets
+    art = art.reordered(take.names)
+    if art.incomplete.any():
+        art = art.completed(frames=take.chunks())
+    first = first_valid(take.chunks())
+    return Playback(art, world, rest_frames(take, world, rest, first), first)
 
 
-def bvh_text(calibration, take, *, units: str = "cm", up: str = "-z", rest: str | int = "first") -> str:
-    """The BVH file for `take` (a flockcal.takes.Take) played through `calibration` (a Calibration or its
-    §5 dict, or an Articulation). `up` names the tracker world's up axis; the file is Y-up. `rest`:
-    the file's rest pose, "first" (the take's first frame), a frame index, or "sensor" (see rest_frames)."""
+def bvh_chunks(calibration, take: ChunkedTake, *, units: str = "cm", up: str = "-z", rest: str | int = "first",
+               chunk_frames: int | None = None) -> Iterator[str]:
+    """The BVH file for `take` (a flockcal.takes.Take, or any ChunkedTake: the service's frame log) played
+    through `calibration` (a Calibration or its §5 dict, or an Articulation), as text: the HIERARCHY and
+    MOTION header, then the rows of `chunk_frames` frames at a time (None: the take's own chunks; a Take
+    gives all its frames at once). `up` names the tracker world's up axis; the file is Y-up. `rest`: the
+    file's rest pose, "first" (the take's first frame), a frame index, or "sensor" (see rest_frames).
+    Errors in the options, the calibration or the take are raised by the first next(), before any text."""
     if units not in UNITS_PER_METRE:
         raise BvhError(f"units must be one of {', '.join(UNITS_PER_METRE)}, got {units!r}")
     scale = UNITS_PER_METRE[units]
-    rec, world, A = played(calibration, take, up, rest)
-    art = rec.articulation
-    rows = motion_channels(rec, world, scale, A)
-    out = io.StringIO()
-    out.write(hierarchy_text(art, scale, A))
-    out.write("MOTION\n")
-    out.write(f"Frames: {len(rows)}\n")
-    out.write(f"Frame Time: {1.0 / take.rate_hz:.8f}\n")
-    np.savetxt(out, rows, fmt="%.6f")
-    return out.getvalue()
+    pb = playback(calibration, take, up, rest)
+    yield (hierarchy_text(pb.articulation, scale, pb.A)
+           + f"MOTION\nFrames: {take.n_frames}\nFrame Time: {1.0 / take.rate_hz:.8f}\n")
+    for rec in pb.chunks(take, chunk_frames):
+        out = io.StringIO()
+        np.savetxt(out, motion_channels(rec, pb.world, scale, pb.A), fmt="%.6f")
+        yield out.getvalue()
+
+
+def bvh_text(calibration, take, *, units: str = "cm", up: str = "-z", rest: str | int = "first") -> str:
+    """The whole BVH file as one string (`bvh_chunks` joined)."""
+    return "".join(bvh_chunks(calibration, take, units=units, up=up, rest=rest))
 
 
 def bvh_bytes(calibration, take, **options) -> bytes:

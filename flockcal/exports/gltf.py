@@ -4,6 +4,8 @@ as an animation through the skeleton with the residual removed (three.js, Babylo
 Same skeleton and rotations as the BVH export (exports/bvh.py): one node per body pivoting at its
 inboard joint, the BVH's names, offsets and rest pose; metres and Y-up. `.glb` (binary) or `.gltf`
 (JSON with the buffer embedded) by the file's extension. Written with numpy, json and struct only.
+The take is played a chunk of frames at a time into the buffer's blocks: in memory for a file
+(`gltf_bytes`), through a temporary file for the service's streamed download (`glb_chunks`).
 """
 
 from __future__ import annotations
@@ -12,16 +14,19 @@ import base64
 import json
 import os
 import struct
+import tempfile
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable, Iterator
 
 import numpy as np
 from scipy.spatial.transform import Rotation
 
 from flockcal.atomic import write_atomic
 from flockcal.errors import FlockcalError
-from flockcal.exports.bvh import bvh_names, depth_first, local_rotations, played
-from flockcal.solver.reconstruct import Articulation, Reconstruction
+from flockcal.exports.bvh import Playback, bvh_names, depth_first, local_rotations, playback, rest_pose
+from flockcal.solver.reconstruct import Articulation, Reconstruction, reconstruct
+from flockcal.takes import ChunkedTake
 
 GLB_MAGIC, GLB_JSON, GLB_BIN = 0x46546C67, 0x4E4F534A, 0x004E4942
 FLOAT, UBYTE, USHORT, UINT = 5126, 5121, 5123, 5125
@@ -240,16 +245,78 @@ class Layout:
     rotation_at: list[int]  # byte offset of body node k's (n, 4) float32 quaternions
 
 
-def gltf_document(calibration, take, *, up: str = "-z", rest: str | int = "first", name: str = "take"):
-    """(the glTF JSON as a dict, the binary buffer) for `take` played through `calibration` (a
-    Calibration, a KnownFit, a §5 dict or an Articulation), as `bvh_text` plays it."""
-    rec, world, A = played(calibration, take, up, rest)
-    art = rec.articulation
-    k0 = 0 if rest in ("first", "sensor") else int(rest)
-    rig = build_rig(art, A, world @ rec.joint_positions[k0, art.root], joint_notes(calibration))
-    quats, root = animation_rows(rec, world, A, rig)
-    plan = layout(rig, key_times(take.times, take.rate_hz), name=name, extras=file_extras(up, rest, take.rate_hz))
-    return plan.doc, filled(plan, quats, root)
+def gltf_plan(calibration, take: ChunkedTake, *, up: str = "-z", rest: str | int = "first", name: str = "take",
+              animation: bool = True) -> tuple[Layout, Playback, Rig]:
+    """The file of `take` played through `calibration` (a Calibration, a KnownFit, a §5 dict or an
+    Articulation), as `bvh_chunks` plays it, but for its animation values (`fill_animation`); animation=False:
+    the rig alone (no pass over the frames but the first valid pose and any rigid sensor's mean)."""
+    pb = playback(calibration, take, up, rest)
+    art = pb.articulation
+    R, t = rest_pose(take, rest, pb.first)
+    root = reconstruct(R[None], t[None], art).joint_positions[0, art.root]  # the root joint at the rest frame
+    rig = build_rig(art, pb.A, pb.world @ root, joint_notes(calibration))
+    times = np.concatenate([f.times for f in take.chunks()]) if animation else None  # 8 bytes a frame
+    plan = layout(rig, None if times is None else key_times(times, take.rate_hz), name=name,
+                  extras=file_extras(up, rest, take.rate_hz))
+    return plan, pb, rig
+
+
+def fill_animation(plan: Layout, pb: Playback, rig: Rig, take: ChunkedTake, write: Callable[[int, bytes], None],
+                   chunk_frames: int | None = None) -> None:
+    """Play `take` a chunk at a time and `write(offset, data)` each chunk's rows into the buffer's
+    reserved blocks (glTF keeps each joint's keyframes in one block, so a chunk's rows land in every block)."""
+    k, last = 0, None
+    for rec in pb.chunks(take, chunk_frames):
+        if not len(rec.rotations):
+            continue
+        quats, root = animation_rows(rec, pb.world, pb.A, rig, previous=last)
+        last = quats[-1]
+        for at, rows, width in [(plan.root_at, root, 12)] + [
+                (plan.rotation_at[j], quats[:, j], 16) for j in range(quats.shape[1])]:
+            write(at + k * width, np.ascontiguousarray(rows, dtype=np.float32).tobytes())
+        k += len(quats)
+
+
+def gltf_document(calibration, take: ChunkedTake, *, up: str = "-z", rest: str | int = "first", name: str = "take",
+                  chunk_frames: int | None = None):
+    """(the glTF JSON as a dict, the binary buffer) for `take` played through `calibration`, in memory."""
+    plan, pb, rig = gltf_plan(calibration, take, up=up, rest=rest, name=name)
+    out = bytearray(b"".join(p if isinstance(p, bytes) else bytes(p) for p in plan.parts))
+
+    def write(at: int, data: bytes) -> None:
+        out[at:at + len(data)] = data
+
+    fill_animation(plan, pb, rig, take, write, chunk_frames)
+    return plan.doc, bytes(out)
+
+
+def glb_chunks(calibration, take: ChunkedTake, *, up: str = "-z", rest: str | int = "first", name: str = "take",
+               animation: bool = True, chunk_frames: int | None = None, out_bytes: int = 256 * 1024) -> Iterator[bytes]:
+    """The .glb of `gltf_bytes` as pieces for a download whose memory must not grow with the take (the
+    service's frame log): the head first, then the buffer, its animation blocks filled chunk by chunk in a
+    temporary file and sent `out_bytes` at a time. Errors in the calibration or the take are raised by the
+    first next(), before any byte. animation=False: the rig alone (193 kB for 16 bodies)."""
+    plan, pb, rig = gltf_plan(calibration, take, up=up, rest=rest, name=name, animation=animation)
+    if not animation:
+        yield glb_head(plan.doc, plan.size) + b"".join(plan.parts)
+        return
+    yield glb_head(plan.doc, plan.size)
+    with tempfile.TemporaryFile() as buf:
+        for part in plan.parts:
+            if isinstance(part, bytes):
+                buf.write(part)
+            else:
+                buf.seek(part, os.SEEK_CUR)  # a reserved block: filled below
+        buf.truncate(plan.size)
+
+        def write(at: int, data: bytes) -> None:
+            buf.seek(at)
+            buf.write(data)
+
+        fill_animation(plan, pb, rig, take, write, chunk_frames)
+        buf.seek(0)
+        while piece := buf.read(out_bytes):
+            yield piece
 
 
 def file_extras(up: str, rest, rate_hz: float) -> dict:
@@ -323,15 +390,6 @@ def layout(rig: Rig, times: np.ndarray | None, name: str = "take", extras: dict 
         doc["extras"] = {"flockcal": extras}
     return Layout(doc, buf.parts, buf.size, buf.offset_of(a_root) if a_root is not None else -1,
                   [buf.offset_of(a) for a in a_rot])
-
-
-def filled(plan: Layout, quats: np.ndarray, root: np.ndarray) -> bytes:
-    """The whole buffer in memory, the animation rows (animation_rows) in their reserved blocks."""
-    out = bytearray(b"".join(p if isinstance(p, bytes) else bytes(p) for p in plan.parts))
-    for at, rows in [(plan.root_at, root)] + list(zip(plan.rotation_at, np.swapaxes(quats, 0, 1))):
-        data = np.ascontiguousarray(rows, dtype=np.float32).tobytes()
-        out[at:at + len(data)] = data
-    return bytes(out)
 
 
 def glb_head(doc: dict, bin_size: int) -> bytes:

@@ -24,13 +24,14 @@ def skeleton_dict(calibration, source: dict | None = None, take=None, acc=None) 
     (e.g. {"take": "walk.npz", "frames": n, "rate_hz": r}); sessions may add their own keys.
 
     A sensor rigidly attached to its parent (a calibration's `rigid_groups`) has no fitted joint; the
-    file then pins it at its own sensor, which needs the `take` (a Take) or its accumulator `acc`.
+    file then pins it at its own sensor, which needs the `take` (a Take, or any `flockcal.takes.ChunkedTake`:
+    the service's frame log, read a chunk at a time) or its accumulator `acc`.
     """
     d = calibration.to_dict() if hasattr(calibration, "to_dict") else dict(calibration)
     art = articulation(d)
     if art.incomplete.any():
         if take is not None:
-            art = art.reordered(take.names).completed(take.rotations, take.positions, take.valid).reordered(art.names)
+            art = art.reordered(take.names).completed(frames=take.chunks()).reordered(art.names)
         elif acc is not None:
             art = art.completed(acc=acc)
         else:
@@ -68,12 +69,26 @@ def skeleton_dict(calibration, source: dict | None = None, take=None, acc=None) 
         "root": names[art.root],
         "parent": {names[j]: names[art.parent[j]] for j in art.order[1:]},
         "joints": [joint_of[names[j]] for j in art.order[1:]],
-        # Only the bones the calibration measured: a bone ending at an undetermined joint was not.
-        "bones": d["bones"] if "bones" in d else bones_of(art),
+        "bones": _measured_bones(d, art),
         "rigid_groups": d.get("rigid_groups") or [],
         "placements": placements,
         "bodies": bodies,
     }
+
+
+def _measured_bones(d: dict, art) -> list[dict]:
+    """The calibration's bones (only the ones it measured: a bone ending at an undetermined joint was not),
+    each as long as the joint centres the file holds make it: what `parse_skeleton` checks. A result stored
+    before the slip refit measured its bones between those centres (solver/segments.py) could hold a
+    forearm 2 mm off them; its file is whole all the same."""
+    if "bones" not in d:
+        return bones_of(art)
+    between = {(b["body"], frozenset((b["from_joint"], b["to_joint"]))): b["length_m"] for b in bones_of(art)}
+    out = []
+    for b in d["bones"]:
+        key = (b.get("body"), frozenset((b.get("from_joint"), b.get("to_joint"))))
+        out.append(dict(b, length_m=between[key]) if key in between else dict(b))
+    return out
 
 
 def skeleton_bytes(calibration, source: dict | None = None, take=None, acc=None) -> bytes:

@@ -169,8 +169,6 @@ def get_take(request: Request, sid: str = Depends(session_id), service=Depends(g
             summary="the calibrated skeleton file (flockcal.exports.skeleton) of the session")
 def get_skeleton(sid: str = Depends(session_id), service=Depends(get_service), _role=Depends(require_read)):
     from flockcal.exports.skeleton import skeleton_bytes
-    from flockcal.server.downloads import RigidPoints, rigid_means
-    from flockcal.solver.reconstruct import articulation
 
     result, _live = service.sessions.result(sid)
     row = service.sessions.get(sid)
@@ -186,9 +184,7 @@ def get_skeleton(sid: str = Depends(session_id), service=Depends(get_service), _
         source = {"session": sid, "performer": row["performer"], "take": f"{sid}.npz",
                   "frames": int(frames.n), "rate_hz": float(frames.rate_hz)}
         # Sensors riding rigidly on their parent are placed from the recording, read a chunk at a time.
-        art = articulation(result)
-        rigid = RigidPoints(art, rigid_means(frames, art)) if art.incomplete.any() else None
-        return skeleton_bytes(result, source=source, acc=rigid)
+        return skeleton_bytes(result, source=source, take=frames)
 
     data = _export(make)
     return Response(data, media_type="application/json",
@@ -201,11 +197,14 @@ def get_bvh(request: Request, sid: str = Depends(session_id),
             units: str = Query("cm", pattern="^(m|cm|mm|in)$", description="m, cm, mm or in"),
             up: str = Query("-z", pattern="^[+-]?[xyz]$", description="the tracker world's up axis: +y, +z or -z"),
             service=Depends(get_service), _role=Depends(require_read)):
-    from flockcal.server.downloads import SlottedResponse, bvh_stream, primed
+    from flockcal.exports.bvh import bvh_chunks
+    from flockcal.server.downloads import SlottedResponse, primed
 
     result, _live = service.sessions.result(sid)
     frames = _frames(service, sid)
-    body = _slotted(request, lambda: _export(lambda: primed(bvh_stream(result, frames, units=units, up=up))))
+    # The exports' own writer, reading the frame log a chunk at a time (server/downloads.py FrameFile).
+    text = bvh_chunks(result, frames, units=units, up=up, chunk_frames=frames.play_frames)
+    body = _slotted(request, lambda: _export(lambda: primed(part.encode("ascii") for part in text)))
     return SlottedResponse(body, request.app.state.download_slots, media_type="text/plain",
                            headers={"Content-Disposition": f'attachment; filename="{sid}.bvh"'})
 
@@ -219,14 +218,16 @@ def get_gltf(request: Request, sid: str = Depends(session_id),
              animation: bool = Query(True, description="false: the rig alone, without the take as its animation "
                                                        "(what the pages load to drive from the live pose)"),
              service=Depends(get_service), _role=Depends(require_read)):
-    from flockcal.server.downloads import gltf_stream, primed
+    from flockcal.exports.gltf import glb_chunks
+    from flockcal.server.downloads import OUT_BYTES, primed
 
     # The fit's number travels in a header (the file stays the CLI's): a page matches it with the live
     # pose's `rig.fit_seq` to know the rig it loaded is the one the stream drives ("final": the stored fit).
     result, fit_seq = service.sessions.result_seq(sid)
     frames = _frames(service, sid)
     body = _slotted(request, lambda: _export(lambda: primed(
-        gltf_stream(result, frames, up=up, name=sid, rest=rest, animation=animation))))
+        glb_chunks(result, frames, up=up, name=sid, rest=rest, animation=animation, chunk_frames=frames.play_frames,
+                   out_bytes=OUT_BYTES))))
     return StreamingResponse(body, media_type="model/gltf-binary",
                              headers={"Content-Disposition": f'attachment; filename="{sid}.glb"',
                                       "X-Flockcal-Fit-Seq": "final" if fit_seq is None else str(fit_seq)})

@@ -74,7 +74,7 @@ class Window:
 
 def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarray,
               suspects: np.ndarray, n_sensors: int, min_jump: float, min_evidence: float,
-              late_rows: int = 0, min_tail: int = 4) -> Attribution:
+              late_rows: int = 0, min_tail: int = 4, more_looks: bool = False) -> Attribution:
     """Score slip and swap hypotheses around the change (see module docstring).
 
     joints (P, 2) (child, parent); nbrs (P, width): `baseline.neighbours(joints)`; ready (P,)
@@ -83,7 +83,9 @@ def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarr
     `late_rows` > 0: also look for the slipped sensor's step starting at every later row (up to
     `min_tail` rows before the end); one starting more than `late_rows` after the onset and likelier
     than the onset's by more than the search costs is reported as `later_row` (the suspicion's onset
-    belongs to something else, soft tissue before the slip, and the slip to that later start).
+    belongs to something else, soft tissue before the slip, and the slip to that later start). When
+    no hypothesis wins, the likeliest sensor's later starts are searched too, once the suspicion is to be
+    dropped (not while `more_looks` remains and a step is likelier than not).
     """
     P = len(joints)
     after = np.arange(len(win.times)) >= win.onset_row
@@ -152,12 +154,13 @@ def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarr
     evidence = -float(costs[best])
     if not np.isfinite(evidence) or evidence < min_evidence:
         later = None
-        if late_rows > 0 and np.isfinite(slip_cost).any():
+        if late_rows > 0 and np.isfinite(slip_cost).any() and not (more_looks and evidence > 0):
             # Refuted at this onset: a slip that landed a moment after it (in a pose the baseline has not
             # seen, where soft tissue raised the suspicion first) may still be a step from a later start.
             s = int(np.argmin(slip_cost))
             ws = wj if win.weight_joined is not None and joined[s] else w
-            later = _later_start(D, x, y, ws, sel, inc_c[s], inc_p[s], win.onset_row, late_rows, min_tail)
+            later = _later_start(D, x, y, ws, sel, inc_c[s], inc_p[s], win.onset_row, late_rows, min_tail,
+                                 min_jump=min_jump)
         return Attribution(None, evidence=evidence, later_row=later)
     post = np.exp(-(costs - costs[best]))
     post /= post.sum()
@@ -178,9 +181,12 @@ def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarr
     return Attribution("slip", s, -1, cands, float(post[s]), mine.tolist(), float(size[s]), evidence, steps[s], later)
 
 
-def _later_start(D, x, y, w, sel, child, parent, onset_row: int, late_rows: int, min_tail: int) -> int | None:
+def _later_start(D, x, y, w, sel, child, parent, onset_row: int, late_rows: int, min_tail: int,
+                 min_jump: float = 0.0) -> int | None:
     """The row a sensor's step most likely starts at, from the onset on, if more than `late_rows`
-    after the onset and likelier than a step from the onset by more than log(rows searched) nats.
+    after the onset and likelier than a step from the onset by more than log(rows searched) nats; with
+    `min_jump` > 0 (a suspicion nothing explained at its onset) only a step of at least that size, more
+    likely than none (nats, with `_slip_costs`' cost of its frames), is worth another test.
 
     A suspicion raised by soft tissue and kept for another look can have a slip land inside its window
     a moment later: a step from the suspicion's onset then explains part of it, on the joints that
@@ -199,9 +205,15 @@ def _later_start(D, x, y, w, sel, child, parent, onset_row: int, late_rows: int,
     with np.errstate(invalid="ignore", divide="ignore"):
         reduction = np.nan_to_num((G * G).sum(axis=1) / H)
     best = int(np.argmax(reduction))
-    if best > late_rows and 0.5 * (reduction[best] - reduction[0]) > np.log(len(starts)):
-        return int(starts[best])
-    return None
+    if not (best > late_rows and 0.5 * (reduction[best] - reduction[0]) > np.log(len(starts))):
+        return None
+    if min_jump > 0:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            size = float(np.linalg.norm(np.nan_to_num(G[best] / H[best])))
+        frames = max((L - starts[best]) * len(k), 1)
+        if size < min_jump or 0.5 * reduction[best] - 1.5 * np.log(frames) <= 0:
+            return None
+    return int(starts[best])
 
 
 def _slip_costs(D, x, y, w, after, sel, inc_c, inc_p, min_jump):

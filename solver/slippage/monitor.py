@@ -370,7 +370,8 @@ class SlipMonitor:
         if age < self.attribute_s or now < item.next_try:
             return False, []  # gather a little more evidence before naming the sensor
         self.confirmations += 1
-        att, later = self._attribute(onset, fired, ready, c, l, last)
+        more_looks = age + self.step_s <= self.confirm_s + 1e-9
+        att, later = self._attribute(onset, fired, ready, c, l, last, more_looks)
         if later is not None:
             # The step this suspicion would confirm starts well after its onset: a slip landed inside the
             # window of a suspicion kept for another look. Test it again at the step's own start.
@@ -380,7 +381,7 @@ class SlipMonitor:
             self.reseated += 1
             return False, []
         if att.kind is None:
-            if age + self.step_s <= self.confirm_s + 1e-9 and att.evidence > 0:
+            if more_looks and att.evidence > 0:
                 # A step is likelier than not, but not yet by the margin: look again one step later.
                 item.next_try = now + self.step_s - 0.5 / self.rate_hz
                 return False, []
@@ -440,7 +441,7 @@ class SlipMonitor:
             buf.wc[sl] = np.where(live, 1.0 / (var + joined_share * extra), 0.0)
         self._fresh = (min(first, new_from) if self._fresh is None else min(self._fresh[0], new_from), end)
 
-    def _attribute(self, onset: int, fired: np.ndarray, ready: np.ndarray, c, l, last: int):
+    def _attribute(self, onset: int, fired: np.ndarray, ready: np.ndarray, c, l, last: int, more_looks: bool = False):
         """Put the suspicion to the confirming test on the window from `baseline_s` before the onset
         to global frame `last`. Returns the attribution and, when the slip it names starts well after
         the onset, that start (global frame; else None)."""
@@ -501,8 +502,12 @@ class SlipMonitor:
         # two joints) the baseline's extrapolation need not count as noise in frames whose pose they hold.
         w_fit, H = weight, 0
         if w_joined is not weight:
+            # (Only a leaf's joint needs them: a sensor of two joints counts none of the extrapolation anyway.)
+            inc = (self.joints[:, :, None] == np.arange(self.m)).any(axis=1)  # (P, m) joint has sensor
+            suspects = np.isin(np.arange(self.m), self.joints[fired]) & ((inc & near[:, None]).sum(axis=0) == 1)
+            leafy = near & (inc & suspects[None, :]).any(axis=1)
             hist, h_use, seen = same_poses(self._history, float(times[0]), self.segment_start, buf.Q[post],
-                                           buf.pv[post], near, self._nbrs)
+                                           buf.pv[post], leafy, self._nbrs)
             weight[onset_row:] = np.where(seen, w_joined[onset_row:], weight[onset_row:])
             if len(hist):
                 H = len(hist)
@@ -518,7 +523,7 @@ class SlipMonitor:
         win = Window(times, g, Q, use, w_fit, onset_row + H, c, l, swapped, swap_plausible,
                      None if w_joined is weight else w_joined)
         att = attribute(win, self.joints, self._nbrs, ready, fired, self.m, self.min_jump, self.min_evidence,
-                        late_rows=self._pending.merge, min_tail=self.min_frames)
+                        late_rows=self._pending.merge, min_tail=self.min_frames, more_looks=more_looks)
         if att.kind in ("slip", None) and att.later_row is not None:
             return att, buf.index_of(int(rows[att.later_row - H]))
         if att.kind == "slip":

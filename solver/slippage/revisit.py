@@ -138,7 +138,9 @@ def same_poses(history: PoseHistory, before: float, since: np.ndarray, Q: np.nda
             continue
         a = Q[live][:, need].reshape(int(live.sum()), len(need), 9)
         b = history.Q[h[ok]][:, need].reshape(int(ok.sum()), len(need), 9)
-        dots = np.einsum("lkc,hkc->lhk", a, b).min(axis=-1)  # (live frames, usable history)
+        dots = a[:, 0] @ b[:, 0].T  # (live frames, usable history)
+        for k in range(1, len(need)):
+            np.minimum(dots, a[:, k] @ b[:, k].T, out=dots)
         seen[np.flatnonzero(live), j] = dots.max(axis=1) >= least
         best[np.flatnonzero(ok), j] = dots.max(axis=0)
     use = best >= least

@@ -1,0 +1,64 @@
+"""Slips that land as the limbs move into a new pose are found within a second and named right, and a
+fresh guest whose every pose is new raises no alarm (docs/slippage.md, "Slips at every moment").
+
+The three cases are the kiosk routine with the simulator's default soft tissue, fed through the live
+loop (`SlipWatch`) in the service's 1/30 s micro-batches. Both slips were missed within 1 s before the
+confirming test scored a sensor seen through two joints, and a leaf back in a pose of the last 40 s,
+without the baseline's extrapolation as noise; the guest is the one whose hand was wrongly reported
+when every sensor's test counted none of it."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from flockcal.simulator.performer import Performer
+from flockcal.solver.slippage.watch import SlipWatch
+from slip_scoring import attributes_slip_to
+
+RATE = 144.0
+# The issue's promise is 1 s; a slip at a moment the sweep covers is found in 0.40-0.54 s here.
+WITHIN_S = 1.0
+
+
+def _tree(model) -> np.ndarray:
+    return np.array([[i, int(p)] for i, p in enumerate(model.parent) if p >= 0])
+
+
+def _frames(perf: Performer, t0: float, t1: float):
+    times = np.arange(int(round(t0 * RATE)), int(round(t1 * RATE))) / RATE
+    return (times, *perf.poses(times))
+
+
+def _slipped(sensor: str, at: float):
+    # Seed 1 of the kiosk routine (30 s loop): at 48.84 s both arms have just begun their slot's first
+    # sweep of the second loop, the pose they held 30 s earlier and not in the 8 s baseline behind them.
+    perf = Performer("human", routine="kiosk", seed=1, noise="tracker", rate_hz=RATE)
+    watch = SlipWatch(_tree(perf.model), perf.n_sensors, RATE, perf.names)
+    assert watch.feed(*_frames(perf, 0.0, at)) == [], "a false alarm before the slip"
+    perf.inject_slip(sensor, 0.02, at_time=at)
+    found = watch.feed(*_frames(perf, at, at + WITHIN_S))
+    assert found, f"the {sensor} slip at {at} s was not found within {WITHIN_S} s"
+    first = found[0]
+    assert attributes_slip_to(first, sensor, perf.model.names, perf.model.parent), first.to_dict()
+    assert first.detected_s - at <= WITHIN_S and abs(first.time_s - at) <= 0.1, first.to_dict()
+    return watch
+
+
+def test_a_forearm_slip_as_the_arms_move_into_a_new_pose_is_found_within_a_second():
+    # A sensor with two joints (elbow, wrist): one step in its own frame must explain both.
+    _slipped("l_forearm", 48.842)
+
+
+def test_a_head_slip_back_in_a_pose_of_the_last_loop_is_found_within_a_second():
+    # A leaf (one joint): the frames of 30 s earlier in the same pose show the fit where the skin puts it.
+    _slipped("head", 48.842)
+
+
+def test_a_fresh_kiosk_guest_raises_no_alarm():
+    # Tried: a guest of 30 s from the start (every pose new), the case where counting none of the
+    # extrapolation for every sensor named the left hand at 22.9 s although nothing slipped.
+    perf = Performer("human", routine="kiosk", seed=1004, noise="tracker", rate_hz=RATE, seconds=30)
+    watch = SlipWatch(_tree(perf.model), perf.n_sensors, RATE, perf.names)
+    events = watch.feed(*_frames(perf, 0.0, 30.0))
+    assert events == [], [e.to_dict() for e in events]
+    assert watch.monitor.confirmations > 0  # the confirming test did run on this guest's soft tissue
