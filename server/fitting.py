@@ -1,6 +1,6 @@
-"""Fits for the live service: the fit worker thread, the session's accumulator, and the one place a fit
-is made. Each fit travels as its typed `Calibration` (what the service computes with: `fit_joints`)
-and its §5 dict (what clients and the store get).
+"""Fits for the live service: the fit worker thread and the one place a fit is made. Each fit travels as
+its typed `Calibration` (what the session's live calibration computes with, solver/live.py) and its §5
+dict (what clients and the store get), made here on the fit thread, off the pipeline's.
 """
 
 from __future__ import annotations
@@ -71,32 +71,6 @@ def accumulate(acc, times, rotations, positions, valid) -> None:
 
 
 @dataclass(frozen=True)
-class FitJoints:
-    """The joints of one fit as arrays over its p joints, in the fit's order."""
-
-    joints: tuple[tuple[str, str], ...]  # (child, parent) names
-    pairs: np.ndarray  # (p, 2) sensor indices
-    c: np.ndarray  # (p, 3) joint centre in the child's frame, metres
-    l: np.ndarray  # (p, 3) in the parent's frame
-
-
-def fit_joints(calibration: Calibration, names) -> FitJoints:
-    """The joints of a fit as arrays, in its order (the order of its §5 dict's joints); sensors by index
-    into `names` (the service's, which the fit was made with)."""
-    pairs, c, l = calibration.joint_arrays()
-    if tuple(calibration.names) != tuple(names):
-        index = {n: i for i, n in enumerate(names)}
-        pairs = np.array([[index[calibration.names[a]], index[calibration.names[b]]] for a, b in pairs.tolist()],
-                         dtype=int).reshape(-1, 2)
-    return FitJoints(
-        joints=tuple((names[a], names[b]) for a, b in pairs.tolist()),
-        pairs=np.asarray(pairs, dtype=int).reshape(-1, 2),
-        c=np.asarray(c, dtype=float).reshape(-1, 3),
-        l=np.asarray(l, dtype=float).reshape(-1, 3),
-    )
-
-
-@dataclass(frozen=True)
 class FitJob:
     session_id: str
     acc: object  # a copy the fit thread owns; the live accumulator keeps growing
@@ -138,6 +112,8 @@ class FitWorker:
         self._stop = False
         self._thread: threading.Thread | None = None
         self._known_prev = None  # (session id, KnownFit)
+        self.fits_done = 0  # results taken, and the seconds they took (pipeline thread: `take`)
+        self.fit_seconds = 0.0
 
     def start(self) -> None:
         self._thread = threading.Thread(target=self._run, name="flockcal-fit", daemon=True)
@@ -173,7 +149,10 @@ class FitWorker:
         """The newest finished fit, once."""
         with self._cond:
             done, self._done = self._done, None
-            return done
+        if done is not None:
+            self.fits_done += 1
+            self.fit_seconds += done.seconds
+        return done
 
     def _run(self) -> None:
         name_os_thread("fc-fit")

@@ -12,8 +12,8 @@ from flockcal.server.snapshot import Snapshot
 
 
 class SnapshotHub:
-    def __init__(self, first: Snapshot):
-        self.latest = first
+    def __init__(self, first: Snapshot | None = None):
+        self.latest = first  # the pipeline publishes its first snapshot as it is built
         self.loop: asyncio.AbstractEventLoop | None = None
         self._event: asyncio.Event | None = None
         self._scheduled = False

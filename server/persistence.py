@@ -15,8 +15,10 @@ from collections import deque
 from typing import Callable
 
 from flockcal.server.errors import InsufficientStorage, ServerError
+from flockcal.server.fitting import json_safe
 from flockcal.server.live_session import LiveSession
 from flockcal.server.store import Store
+from flockcal.solver.slippage.monitor import SlipEvent, SwapEvent
 
 log = logging.getLogger(__name__)
 
@@ -24,6 +26,14 @@ RECENT_EVENTS = 200
 DB_FLUSH_S = 1.0
 MAX_HELD_EVENTS = 10_000  # events kept in memory while the database cannot take them (oldest go first)
 MAX_HELD_RESIDUALS = 72_000  # residual rows likewise: an hour at 20 a second
+
+
+def slip_row(event: SlipEvent | SwapEvent) -> dict:
+    """A slip or swap event as the store and the websocket have it: its §5 `slip_events` entry with its
+    kind under "type" (the events table's column, the websocket message's field)."""
+    d = event.to_dict()
+    d["type"] = d.pop("kind", "slip")
+    return json_safe(d)
 
 
 class Persistence:
@@ -96,6 +106,10 @@ class Persistence:
         log.warning("could not store the live session's %s: %s", what, exc)
         if isinstance(exc, InsufficientStorage) and self.on_storage_failed is not None:
             self.on_storage_failed(exc)
+
+    def add_residuals(self, live: LiveSession, samples) -> None:
+        """Residual samples (server/snapshot.py's ResidualSample) for the store's next flush."""
+        live.residual_rows += [(s.time_s, s.rms_mm) for s in samples]
 
     def tick(self, live: LiveSession, now: float) -> None:
         """Flush what is due: the frame log every flush_s, the database once a second."""

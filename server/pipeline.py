@@ -1,9 +1,10 @@
-"""The live pipeline: frames from the reader thread → the session's accumulator → fits → snapshots.
+"""The live pipeline, a scheduler: frames from the reader thread → the session's live calibration
+(solver/live.py: accumulator, slip watch, residuals, progress) → refits on the fit thread → snapshots.
 
-One thread ("fc-pipeline") owns all mutable live state and runs the parts, each holding its own:
-`Ingest` (newest pose, frames into the session), `ResidualSampler` and the slip loop (server/sampling.py),
-`Persistence` (store, frame log), `SnapshotMaker`. `FitWorker` refits on its own thread. The reader only
-appends to a queue; the event loop only reads the newest immutable Snapshot. See docs/server.md.
+One thread ("fc-pipeline") runs it and owns the live state: `Ingest` (newest pose, frame count), the
+session's `LiveCalibration`, `Persistence` (store, frame log), `SnapshotMaker`. `FitWorker` refits on its
+own thread. The reader only appends to a queue; the event loop only reads the newest immutable Snapshot.
+What the calibration returns is typed; it becomes JSON at the store and the snapshots. See docs/server.md.
 """
 
 from __future__ import annotations
@@ -16,18 +17,15 @@ from typing import Callable
 
 from flockcal.errors import FlockcalError
 from flockcal.frames import Frames
-from flockcal.server.fitting import SLIP_FIELDS, FitJob, FitWorker, fit_calibration, new_accumulator
+from flockcal.server.fitting import SLIP_FIELDS, FitJob, FitWorker, fit_calibration
 from flockcal.server.ingest import Ingest
+from flockcal.server.limits import LimitStop, SessionLimits
 from flockcal.server.live_session import LiveSession
-from flockcal.server.persistence import Persistence
-from flockcal.server.sampling import ResidualSampler, watch_flush, watch_step
+from flockcal.server.persistence import Persistence, slip_row
 from flockcal.server.snapshot import Snapshot, SnapshotMaker
 from flockcal.server.store import Store
 from flockcal.solver.calibration import Calibration
-from flockcal.solver.progress import Profile, default_target, profile
-from flockcal.solver.progress_tracker import ProgressTracker
-from flockcal.solver.progress_words import done_change
-from flockcal.solver.slippage.watch import SlipWatch
+from flockcal.solver.live import LiveCalibration, LiveUpdate
 from flockcal.threads import name_os_thread
 
 __all__ = ["SLIP_FIELDS", "LiveSession", "Pipeline"]
@@ -49,11 +47,6 @@ CATCH_UP, FAR_BEHIND_S, FAR_CATCH_UP = 3, 1.0, 10
 # whole backlog in one step left every client without a message for 30 s (a benchmark's websocket timed
 # out at load 11 on 2 cores); the snapshots then show the lag instead of going silent.
 MAX_STEP_S = 1.0
-# A fitted tree (automatic topology) must stay the fits' tree this long, in session time, before the slip
-# loop watches it, the first one too: early fitted trees flicker, and a step on a wrong edge is no slip
-# (early trees raised false events in the first seconds). Nothing is lost by waiting: the monitor keeps
-# the joints both trees share and works new ones out from the frames it keeps (solver/slippage/watch.py).
-TREE_SETTLE_S = 3.0
 
 
 def _step_of(pending: list[Frames], frames: float) -> tuple[list[Frames], list[Frames]]:
@@ -66,7 +59,7 @@ def _step_of(pending: list[Frames], frames: float) -> tuple[list[Frames], list[F
 
 
 class Pipeline:
-    """Owns the live state; `feed`, `tracker_event`, `add_event` and `call` may be called from any thread.
+    """Schedules the live work; `feed`, `tracker_event`, `add_event` and `call` may be called from any thread.
 
     Threads: `_cond` guards the hand-over queue (`_pending`, `_pending_events`, `_commands`) and `_stop`,
     and nothing else; every other field, and every part but the fit worker, belongs to the pipeline
@@ -85,19 +78,16 @@ class Pipeline:
         detect_slips: bool = True,
         rate_hz: Callable[[], float] | None = None,
         tolerance: float = 0.005,
-        target: float | None = None,
+        target: float = 0.005 / 2 ** 0.5,
+        limits: SessionLimits | None = None,
     ):
         self.names = tuple(names)
-        self.tolerance = float(tolerance)
-        # The joint-centre error at which a joint counts as calibrated (progress, done): at most the tolerance.
-        self.target = default_target(self.tolerance) if target is None else float(target)
-        self.default_profile = "stage"  # a session that names none (`flockcal serve --profile`)
         self.m = len(self.names)
-        self.store = store
         self.min_publish_s = 1.0 / publish_hz
         self.min_fit_s = 1.0 / fit_hz
+        self.residual_s = 1.0 / residual_hz
         self.on_publish = on_publish
-        self.limits = None  # SessionLimits (server/limits.py), set by the service: session length, free disk
+        self.limits = limits  # session length, free disk (server/limits.py)
         self.detect_slips = detect_slips
         self.rate_hz = rate_hz or (lambda: 144.0)
         self._cond = threading.Condition()
@@ -106,29 +96,33 @@ class Pipeline:
         self._commands: list[tuple[Callable, Future]] = []
         self._stop = False
         self._thread: threading.Thread | None = None
+        # The session manager's side, given at `start`: stop a session for a limit, store held row updates.
+        self._stop_session: Callable[[LimitStop], None] = lambda stop: None
+        self._flush_held_rows: Callable[[], bool] = lambda: True
         # The parts, and the state below, belong to the pipeline thread.
         self.ingest = Ingest(self.m)
-        self.sampler = ResidualSampler(self.names, 1.0 / residual_hz)
         self.persistence = Persistence(store, on_storage_failed=self._storage_failed)
-        self.fitter = FitWorker(self.names, self.tolerance, on_done=self._wake)
-        self.snapshots = SnapshotMaker(self.names, source_status, self.target)
+        self.fitter = FitWorker(self.names, tolerance, on_done=self._wake)
+        self.snapshots = SnapshotMaker(self.names, source_status, target)
         self.live: LiveSession | None = None
         self.pose_fit: Calibration | None = None  # the fit the live skeleton is drawn with
         # Whose fit that is: (session id, fit_seq), fit_seq None for a stopped session's final (stored) fit;
         # the pose's `rig` carries it so a page knows which /gltf rig the stream drives.
         self.pose_fit_id: tuple[str, int | None] | None = None
-        self.fits_done = 0
-        self.fit_seconds = 0.0
         self._fit_seq = 0
         self._last_fit_time = 0.0
-        self._tree_candidate: tuple[frozenset, float] | None = None  # a fitted tree waiting to settle
-        self._watched: tuple | None = None  # (the slip loop's joints array, its (child, parent) set)
-        self._make_snapshot()
+        first = self._make_snapshot()
+        if self.on_publish is not None:
+            self.on_publish(first)
 
     # --- called from other threads -----------------------------------------------------------------
     @property
     def snapshot(self) -> Snapshot:
         return self.snapshots.current
+
+    @property
+    def fits_done(self) -> int:
+        return self.fitter.fits_done
 
     def feed(self, frames: Frames) -> None:
         """Reader callback: hand over a batch of frames; never blocks for long."""
@@ -156,7 +150,15 @@ class Pipeline:
             raise FlockcalError("the live pipeline is not running; restart the service")
         return fut.result(timeout)
 
-    def start(self) -> None:
+    def start(self, stop_session: Callable[[LimitStop], None] | None = None,
+              flush_held_rows: Callable[[], bool] | None = None) -> None:
+        """Start the pipeline and fit threads. A limit reached stops its session through `stop_session`
+        (SessionManager.stop_for_limit: on a thread of its own, as a client's stop); room again on the disk
+        stores the session rows held meanwhile with `flush_held_rows`."""
+        if stop_session is not None:
+            self._stop_session = stop_session
+        if flush_held_rows is not None:
+            self._flush_held_rows = flush_held_rows
         self._thread = threading.Thread(target=self._run, name="flockcal-pipeline", daemon=True)
         self._thread.start()
         self.fitter.start()
@@ -174,28 +176,16 @@ class Pipeline:
         with self._cond:
             self._cond.notify()
 
-    def profile(self, name: str | None = None) -> Profile:
-        """The named profile (default: the service's), the stage one with this service's tolerance and target."""
-        return profile(name or self.default_profile, self.tolerance, self.target)
-
     # --- session control (run on the pipeline thread through `call`) ----------------------------------
     def begin_session(self, live: LiveSession) -> None:
         def install():
             if self.live is not None:
                 raise FlockcalError(f"session {self.live.id} is still live")
-            live.acc = new_accumulator(self.m, segmented=self.detect_slips)
-            if self.detect_slips:
-                # The slip loop feeds the accumulator in its micro-batches (it refits between them).
-                live.watch = SlipWatch(None, self.m, self.rate_hz(), self.names, segments=live.acc, strict=False)
-            # A given tree (hierarchy or saved skeleton) cannot re-link, so its joints need not wait for it to settle.
-            if live.profile is None:
-                live.profile = self.profile()
-            live.tracker = ProgressTracker.for_profile(
-                live.profile, tree_fixed=live.hierarchy is not None or live.skeleton is not None)
+            live.cal = LiveCalibration(self.names, self.rate_hz(), live.profile, hierarchy=live.hierarchy,
+                                       root=live.root, skeleton=live.skeleton, performer=live.performer,
+                                       detect_slips=self.detect_slips, residual_period_s=self.residual_s)
             self.live = live
-            self._tree_candidate = None
-            self.sampler.reset()
-            self.sampler.recent.clear()
+            self.snapshots.residuals.clear()
             self._publish()
 
         self.call(install)
@@ -207,21 +197,19 @@ class Pipeline:
             live = self.live
             if live is None:
                 raise FlockcalError("no session is live")
-            if live.watch is not None:
-                self._slips(live, watch_flush(live))
-            self.sampler.drain(live)
-            self.sampler.flush(live)
+            cal = live.cal
+            self._record(live, cal.finish())
             self.persistence.flush_db(live)
             result, error = None, None
-            if live.acc.frames > 0:
+            if cal.frames > 0:
                 try:
-                    result, live.calibration = fit_calibration(live.acc, self.names, live.hierarchy, live.root,
-                                                               live.skeleton, live.profile.tolerance_m)
+                    result, final = fit_calibration(cal.acc, self.names, live.hierarchy, live.root,
+                                                    live.skeleton, live.profile.tolerance_m)
                     slips = self.persistence.slip_events(live, SLIP_FIELDS)
                     if slips:
                         result["slip_events"] = slips
                     # What the session had reached, as the stored result has it (done joints stay done).
-                    self._progress_step(live, live.calibration, self.ingest.session_time(live), live.slip_epoch)
+                    self._record(live, cal.add_final_fit(final))
                 except FlockcalError as exc:
                     error = str(exc)
             else:
@@ -229,7 +217,7 @@ class Pipeline:
             live.framelog.close()
             self.live = None
             if result:
-                self.pose_fit = live.calibration
+                self.pose_fit = cal.calibration
                 self.pose_fit_id = (live.id, None)
             self._publish()
             return live, result, error
@@ -279,53 +267,71 @@ class Pipeline:
                     self.live.framelog.flush()
                 return
 
+    def _session_time(self) -> float | None:
+        """The live session's time of its newest frame; None without a session or before its first frame."""
+        live = self.live
+        return live.cal.time_s if live is not None and live.cal.t0 is not None else None
+
     def _storage_failed(self, why) -> None:
         """A write failed for want of room (the database, the frame log, the raw recording): the disk is
         full, and the live session stops recording (server/limits.py)."""
         if self.limits is None:
             return
-        live = self.live
-        self.limits.storage_failed(str(why), live.id if live is not None else None,
-                                   self.ingest.session_time(live) if live is not None else None)
+        for ev in self.limits.storage_failed(str(why)):
+            self.add_event(ev)
+        if self.live is not None:
+            self._check_limits(self.live)
+
+    def _check_limits(self, live: LiveSession) -> None:
+        """Session length, free disk (server/limits.py): a limit reached is an event, and the session stops."""
+        stop = self.limits.check(live.id, live.cal.time_s)
+        if stop is not None:
+            self.add_event(stop.event())
+            self._stop_session(stop)
 
     def _process_frames(self, batches: list[Frames]) -> None:
+        frames = self.ingest.take(batches)
         live = self.live
-        frames = self.ingest.take(batches, live)
-        if frames is None:
+        if frames is None or live is None:
             return
+        live.framelog.write(frames.times, frames.rotations, frames.positions, frames.valid)
         if live.framelog.error is not None and not live.log_failed:
             live.log_failed = True  # the log ended at its last whole record; the live fit goes on
             self._storage_failed(f"{live.framelog.path.name}: {live.framelog.error.strerror or live.framelog.error}")
-        if self.limits is not None:  # session length, free disk (server/limits.py)
-            self.limits.check(live.id, float(frames[0][-1]))
-        if live.watch is not None:
-            # Behind the tracker, the slip loop refits less often until it has caught up; keeping up,
-            # it runs at the measured 1/30 s cadence.
-            lag = time.monotonic() - self.ingest.last_frame_time
-            catch_up = FAR_CATCH_UP if lag > FAR_BEHIND_S else CATCH_UP if lag > BEHIND_S else 1
-            self._slips(live, watch_step(live, *frames, catch_up))
-        self.sampler.add(live, *frames)
+        # Behind the tracker, the slip loop refits less often until it has caught up; keeping up, it runs
+        # at the measured 1/30 s cadence.
+        lag = time.monotonic() - self.ingest.last_frame_time
+        catch_up = FAR_CATCH_UP if lag > FAR_BEHIND_S else CATCH_UP if lag > BEHIND_S else 1
+        update = live.cal.add_frames(frames, catch_up)
+        if self.limits is not None:
+            self._check_limits(live)
+        self._record(live, update)
 
-    def _slips(self, live: LiveSession, events: list[dict]) -> None:
-        """Events of the slip loop (it has opened the slipped sensors' segments): the epoch moves on and
-        the progress hears of them before they are stored."""
-        if not events:
+    def _record(self, live: LiveSession, update: LiveUpdate) -> None:
+        """What the live calibration gave, to the store and the snapshots: becoming done or undone (before
+        the slips that undid it), the slip events, a slip watch that failed, the residual samples."""
+        if not update:
             return
-        slips = [d for d in events if d["type"] != "tracker"]
-        if slips:
-            live.slip_epoch += 1  # fits begun from here on see the new segments
-            was_done = live.progress is not None and live.progress.done
-            for d in slips:
-                live.tracker.slip(d, live.slip_epoch)
-            if live.calibration is not None:
-                self._progress_step(live, live.calibration, self.ingest.session_time(live), live.slip_epoch - 1,
-                                    was_done)
-        self._add_events(events)
+        events = []
+        if update.done is not None:
+            events.append({"type": "session", "session_id": live.id, "action": update.done.action,
+                           "time_s": update.done.time_s, "message": update.done.message})
+        events += [slip_row(ev) for ev in update.events]
+        exc = update.failure
+        if exc is not None:
+            log.error("slip monitor failed; slips are no longer watched in session %s", live.id,
+                      exc_info=(type(exc), exc, exc.__traceback__))
+            events.append({
+                "type": "tracker", "kind": "slip_watch_failed",
+                "message": f"slip detection stopped for this session ({type(exc).__name__}: {exc}); "
+                           f"recording and fitting go on; restart the session to watch for slips again"})
+        if events:
+            self._add_events(events)
+        if update.residuals:
+            self.persistence.add_residuals(live, self.snapshots.add_residuals(update.residuals))
 
     def _add_events(self, events: list[dict]) -> None:
-        live = self.live
-        time_s = self.ingest.session_time(live) if live is not None and live.t0 is not None else None
-        self.persistence.add_events(events, live, time_s)
+        self.persistence.add_events(events, self.live, self._session_time())
         for ev in events:  # the reader's raw recording ran out of room
             if ev.get("kind") == "recording_stopped" and (ev.get("data") or {}).get("disk_full"):
                 self._storage_failed(ev.get("message") or "the raw recording")
@@ -333,21 +339,22 @@ class Pipeline:
     def _publish(self) -> None:
         live = self.live
         now = time.monotonic()
-        if self.limits is not None:
-            self.limits.tick()  # the disk, once a second (full, or room again)
+        if self.limits is not None:  # the disk, once a second (full, or room again)
+            for ev in self.limits.tick(lambda: self.persistence.flush_held() and self._flush_held_rows()):
+                self.add_event(ev)
         if live is not None:
             self.persistence.tick(live, now)
             self._take_fit(live)
             since = now - self._last_fit_time
-            if (live.acc.frames > live.fit_frames and since >= self.min_fit_s
+            if (live.cal.fit_due and since >= self.min_fit_s
                     and not self.fitter.busy  # only this thread submits, so it stays free until then
                     and (since >= BEHIND_FIT_S or not self._behind(now))):
                 # Hand a copy of the Gram matrix to the fit thread; frames keep flowing meanwhile.
-                self.fitter.submit(FitJob(live.id, live.acc.copy(), live.hierarchy, live.root, live.skeleton,
-                                          (self.ingest.session_time(live), live.slip_epoch), live.profile.tolerance_m))
+                job = live.cal.fit_input()
+                self.fitter.submit(FitJob(live.id, job.acc, live.hierarchy, live.root, live.skeleton,
+                                          (job.time_s, job.epoch), live.profile.tolerance_m))
                 # Keep a fixed grid (not "period after the last start") so the rate holds at fit_hz.
                 self._last_fit_time = max(self._last_fit_time + self.min_fit_s, now - self.min_fit_s)
-                live.fit_frames = live.acc.frames
         snap = self._make_snapshot()
         if self.on_publish is not None:
             self.on_publish(snap)
@@ -362,67 +369,22 @@ class Pipeline:
 
     def _take_fit(self, live: LiveSession) -> None:
         done = self.fitter.take()
-        if done is None:
-            return
-        self.fits_done += 1
-        self.fit_seconds += done.seconds
-        if done.session_id != live.id:
+        if done is None or done.session_id != live.id:
             return
         if done.fit is None:
             live.fit_error = done.error
             return
-        live.fit, live.calibration = done.fit, done.calibration
+        live.fit = done.fit
         live.fit_error = None
         self.pose_fit = done.calibration
         self._fit_seq += 1
         self.pose_fit_id = (live.id, self._fit_seq)
-        time_s, epoch = done.stamp
-        if live.watch is not None and len(done.calibration.joints):
-            self._watch_tree(live, self.sampler.joints(done.calibration).pairs, time_s)
-        self._progress_step(live, done.calibration, time_s, epoch)
-
-    def _watch_tree(self, live: LiveSession, pairs, time_s: float) -> None:
-        """Hand the fit's tree to the slip loop: at once for a given tree, else once it has stayed the
-        fits' tree for TREE_SETTLE_S (a tree that flickers back is never handed on)."""
-        key = frozenset(map(tuple, pairs.tolist()))
-        watched = live.watch.joints
-        if watched is not None and (self._watched is None or self._watched[0] is not watched):
-            self._watched = (watched, frozenset(map(tuple, watched.tolist())))
-        if watched is not None and key == self._watched[1]:
-            # The tree watched already (nearly every refit): `watch` would find no change, at the cost of
-            # comparing the two lists in numpy 30 times a second.
-            self._tree_candidate = None
-            return
-        if live.hierarchy is not None or live.skeleton is not None:
-            self._tree_candidate = None
-            live.watch.watch(pairs)
-            return
-        if self._tree_candidate is None or self._tree_candidate[0] != key:
-            self._tree_candidate = (key, time_s)
-        elif time_s - self._tree_candidate[1] >= TREE_SETTLE_S:
-            self._tree_candidate = None
-            live.watch.watch(pairs)
-
-    def _progress_step(self, live: LiveSession, fit: Calibration, time_s: float, epoch: int,
-                       was_done: bool | None = None) -> None:
-        """Fold a fit into the session's progress; becoming done (or undone) is an event of its own."""
-        if was_done is None:
-            was_done = live.progress is not None and live.progress.done
-        try:
-            live.progress = live.tracker.add_fit(fit, time_s, epoch)
-        except (KeyError, TypeError, ValueError) as exc:  # a malformed fit must not stop the pipeline
-            log.warning("progress not updated: %s", exc)
-            return
-        change = done_change(live.progress, was_done, live.performer, live.profile, time_s)
-        if change is not None:
-            action, message = change
-            self._add_events([{"type": "session", "session_id": live.id, "action": action, "time_s": time_s,
-                               "message": message}])
+        self._record(live, live.cal.add_fit(done.calibration, *done.stamp))
 
     def _make_snapshot(self) -> Snapshot:
         live = self.live
         return self.snapshots.make(
-            live=live, session_time=self.ingest.session_time(live) if live is not None else 0.0,
-            ingest=self.ingest, sampler=self.sampler, persistence=self.persistence, fit_seq=self._fit_seq,
-            fits_done=self.fits_done, fit_seconds=self.fit_seconds, pose_fit=self.pose_fit,
+            live=live, session_time=live.cal.time_s if live is not None else 0.0,
+            ingest=self.ingest, persistence=self.persistence, fit_seq=self._fit_seq,
+            fits_done=self.fitter.fits_done, fit_seconds=self.fitter.fit_seconds, pose_fit=self.pose_fit,
             pose_fit_id=self.pose_fit_id)

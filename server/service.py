@@ -14,10 +14,9 @@ from pathlib import Path
 
 from flockcal.server.errors import ConfigError
 from flockcal.server.hub import SnapshotHub
-from flockcal.server.lease import SessionLeases
 from flockcal.server.limits import SessionLimits
 from flockcal.server.pipeline import Pipeline
-from flockcal.server.retention import Retention, policy_from
+from flockcal.server.retention import policy_from
 from flockcal.server.sessions import SessionManager
 from flockcal.server.settings import Settings
 from flockcal.server.skeletons import SkeletonLibrary
@@ -72,6 +71,11 @@ class Service:
         self.interrupted = self.store.mark_interrupted()
         if self.interrupted:
             log.warning("sessions %s were live when the service last stopped; marked interrupted", ", ".join(self.interrupted))
+        # Built in one pass, each part handed what it needs: nothing is wired in afterwards. The one way
+        # back, a limit the pipeline finds stopping its session through the session manager, is given to
+        # the pipeline when it starts (as the frame source gets the pipeline's feed).
+        self.hub = SnapshotHub()
+        self.limits = SessionLimits(data / "recordings", settings.max_session_s, settings.min_free_bytes)
         self.pipeline = Pipeline(
             self.source.names,
             self.store,
@@ -79,34 +83,20 @@ class Service:
             publish_hz=settings.publish_hz,
             fit_hz=settings.fit_hz,
             residual_hz=settings.residual_hz,
+            on_publish=self.hub.publish,
             rate_hz=self.tracker_rate,
             tolerance=settings.tolerance_m,
             target=settings.progress_target_m,
+            limits=self.limits,
         )
-        self.pipeline.default_profile = settings.profile
-        self.hub = SnapshotHub(self.pipeline.snapshot)
-        self.pipeline.on_publish = self.hub.publish
         # A session records the rate the tracker streams at when it starts (the flock's own unless --rate).
-        self.sessions = SessionManager(self.store, self.pipeline, data / "recordings", settings.device_url,
-                                       lambda: self.source.status().get("rate_hz") or settings.rate_hz)
-        self.sessions.raw_recorder = self.source
-        # The session length and free-disk limits the pipeline checks while recording.
-        self.limits = SessionLimits(data / "recordings", settings.max_session_s, settings.min_free_bytes,
-                                    stop=self.sessions.stop, add_event=self.pipeline.add_event,
-                                    set_note=lambda sid, note: self.sessions.update_row(sid, note=note),
-                                    # pipeline thread (limits.tick): what was held while the disk was full
-                                    flush_held=lambda: (self.pipeline.persistence.flush_held()
-                                                        and self.sessions.flush_held_rows()))
-        self.pipeline.limits = self.limits
-        # Sessions started with a lease end when their client (the kiosk page) stops renewing it.
-        self.leases = SessionLeases(stop=self.sessions.stop, add_event=self.pipeline.add_event,
-                                    set_note=lambda sid, note: self.store.update_session(sid, note=note))
-        self.sessions.leases = self.leases
-        # Retention: prunes old sessions' frames and raw recordings between sessions.
-        self.retention = Retention(self.store, self.sessions, data,
-                                   policy_from(settings.keep_days, settings.keep_disk_gb),
-                                   self.pipeline.add_event, interval_s=settings.retention_interval_s)
-        self.sessions.retention = self.retention
+        self.sessions = SessionManager(self.store, self.pipeline, data, settings.device_url,
+                                       lambda: self.source.status().get("rate_hz") or settings.rate_hz,
+                                       profiles=settings.session_profile, raw_recorder=self.source,
+                                       retention_policy=policy_from(settings.keep_days, settings.keep_disk_gb),
+                                       retention_interval_s=settings.retention_interval_s)
+        self.leases = self.sessions.leases  # sessions started with a lease end when their client stops renewing
+        self.retention = self.sessions.retention  # prunes old sessions' frames and raw recordings between sessions
         try:
             self.skeletons = SkeletonLibrary(data / "skeletons", self.pipeline.names)
             for path in settings.skeletons:
@@ -128,8 +118,7 @@ class Service:
         st.setdefault("birds", self.settings.birds)
         st["device"] = self.settings.device_url
         st["simulator"] = self.simulator is not None
-        limits = getattr(self, "limits", None)  # the pipeline's first snapshot comes before the limits exist
-        st["disk"] = limits.disk_status() if limits is not None else None
+        st["disk"] = self.limits.disk_status()
         return st
 
     @property
@@ -138,7 +127,7 @@ class Service:
         return getattr(self.source, "simulator", None)
 
     def start(self) -> None:
-        self.pipeline.start()
+        self.pipeline.start(stop_session=self.sessions.stop_for_limit, flush_held_rows=self.sessions.flush_held_rows)
         self.source.start(self.pipeline.feed, self.pipeline.tracker_event)
         self.retention.start()
         self.leases.start()

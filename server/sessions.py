@@ -17,12 +17,15 @@ from flockcal.errors import FlockcalError
 from flockcal.server.errors import BadRequest, Conflict, InsufficientStorage, NotFound, Unavailable
 from flockcal.server.framelog import FrameLog, read_frames
 from flockcal.server.fitting import SLIP_FIELDS, json_safe
+from flockcal.server.lease import SessionLeases
+from flockcal.server.limits import LimitStop
 from flockcal.server.live_session import LiveSession
 from flockcal.server.pipeline import Pipeline
+from flockcal.server.retention import Policy, Retention
 from flockcal.server.settings import PERFORMER_RE, PERFORMER_RULE
 from flockcal.server.store import Store
 from flockcal.solver.hierarchy import check_hierarchy
-from flockcal.solver.progress import progress_of, waiting
+from flockcal.solver.progress import Profile, progress_of, waiting
 
 log = logging.getLogger(__name__)
 
@@ -36,18 +39,27 @@ def new_session_id() -> str:
 
 
 class SessionManager:
-    def __init__(self, store: Store, pipeline: Pipeline, recordings: Path, device: str,
-                 rate_hz: float | None | Callable[[], float | None],
-                 raw_recorder=None):
+    """Starts, stops and reads sessions, recorded under `data_dir`/recordings. `profiles(name)` gives a
+    session's Profile (Settings.session_profile); `raw_recorder` is the frame source
+    (start_recording(path)/stop_recording()) for the .fobraw, or None. Its leases (server/lease.py: sessions
+    that end when their client stops renewing) and its retention (server/retention.py: pins, pruned files
+    answer 410, the pruner woken after a stop) are its own parts, built on it."""
+
+    def __init__(self, store: Store, pipeline: Pipeline, data_dir: Path, device: str,
+                 rate_hz: float | None | Callable[[], float | None], profiles: Callable[[str | None], Profile],
+                 raw_recorder=None, retention_policy: Policy | None = None, retention_interval_s: float = 60.0):
         self.store = store
         self.pipeline = pipeline
-        self.recordings = Path(recordings)
+        self.recordings = Path(data_dir) / "recordings"
         self.recordings.mkdir(parents=True, exist_ok=True)
         self.device = device
         self.rate_hz = rate_hz
-        self.raw_recorder = raw_recorder  # the frame source (start_recording(path)/stop_recording()) for the .fobraw, or None
-        self.retention = None  # server.retention.Retention: pins, pruned files (410) and the wake after a stop
-        self.leases = None  # server.lease.SessionLeases: sessions that end when their client stops renewing
+        self.profiles = profiles
+        self.raw_recorder = raw_recorder
+        self.leases = SessionLeases(stop=self.stop, add_event=pipeline.add_event,
+                                    set_note=lambda sid, note: store.update_session(sid, note=note))
+        self.retention = Retention(store, self, Path(data_dir), retention_policy or Policy(), pipeline.add_event,
+                                   interval_s=retention_interval_s)
         self._lock = threading.Lock()  # one start/stop at a time
         # Row updates the database could not take (a full disk): shown from memory, stored once it can.
         self._held_rows: dict[str, dict] = {}
@@ -56,6 +68,19 @@ class SessionManager:
     @property
     def names(self) -> tuple[str, ...]:
         return self.pipeline.names
+
+    def stop_for_limit(self, limit: LimitStop) -> None:
+        """Stop a session that reached a limit (server/limits.py) on a thread of its own, as a client's stop
+        would, and note why on its row (pipeline thread: the stop itself waits for that thread)."""
+
+        def stop():
+            try:
+                self.stop(limit.session_id)
+                self.update_row(limit.session_id, note=limit.message)
+            except Exception as exc:  # stopped meanwhile by a client: nothing left to do
+                log.info("limit stop of %s: %s", limit.session_id, exc)
+
+        threading.Thread(target=stop, name="fc-limit-stop", daemon=True).start()
 
     def frames_path(self, session_id: str) -> Path:
         return self.recordings / f"{session_id}{FRAMES_SUFFIX}"
@@ -97,7 +122,7 @@ class SessionManager:
         the service's) says how it decides it is calibrated (solver/progress.py). With `lease_s` the session
         ends that long after its client last renewed it (server/lease.py)."""
         try:
-            prof = self.pipeline.profile(profile)
+            prof = self.profiles(profile)
         except ValueError as exc:
             raise BadRequest(str(exc)) from None
         if not PERFORMER_RE.fullmatch(performer) or not performer.strip():
@@ -144,7 +169,7 @@ class SessionManager:
                     self.raw_recorder.start_recording(self.raw_path(sid))
                 except FlockcalError as exc:
                     log.warning("raw recording unavailable: %s", exc)
-            session = LiveSession(sid, performer, self.names, hierarchy, root, framelog, skeleton=skeleton, profile=prof)
+            session = LiveSession(sid, performer, self.names, hierarchy, root, framelog, prof, skeleton=skeleton)
             try:
                 self.pipeline.begin_session(session)
             except BaseException:
@@ -152,7 +177,7 @@ class SessionManager:
                 self.store.delete_session(sid)
                 self.skeleton_path(sid).unlink(missing_ok=True)
                 raise
-            if lease_s is not None and self.leases is not None:
+            if lease_s is not None:
                 self.leases.grant(sid, lease_s)
             self.pipeline.add_event({"type": "session", "session_id": sid, "time_s": 0.0, "action": "started",
                                      "message": f"session {sid} started for {performer}"})
@@ -163,7 +188,7 @@ class SessionManager:
         row = self._row(session_id)
         if row["state"] != "live" or self.live_id() != session_id:
             raise Conflict(f"session {session_id} is not live (it is {row['state']}); there is no lease to renew")
-        lease = self.leases.renew(session_id) if self.leases is not None else None
+        lease = self.leases.renew(session_id)
         if lease is None:
             raise Conflict(f"session {session_id} was started without a lease (POST /api/sessions with lease_s)")
         return {"session_id": session_id, "lease_s": lease, "expires_in_s": round(self.leases.remaining(session_id), 3)}
@@ -173,8 +198,7 @@ class SessionManager:
             row = self._row(session_id)
             if row["state"] != "live" or self.live_id() != session_id:
                 raise Conflict(f"session {session_id} is not live (it is {row['state']}); nothing to stop")
-            if self.leases is not None:
-                self.leases.release(session_id)
+            self.leases.release(session_id)
             if self.raw_recorder is not None:
                 try:
                     self.raw_recorder.stop_recording()
@@ -186,11 +210,10 @@ class SessionManager:
                 note = (f"recording stopped early ({live.framelog.error.strerror or live.framelog.error}): "
                         f"{live.framelog.path.name} holds the frames written until then" + (f"; {note}" if note else ""))
             self.update_row(session_id, state="stopped", stopped_at=time.time(), frames=live.frames, result=result,
-                            note=note, progress=live.progress.to_dict() if result and live.progress else None)
+                            note=note, progress=live.cal.progress.to_dict() if result and live.cal.progress else None)
             self.pipeline.add_event({"type": "session", "session_id": session_id, "action": "stopped",
                                      "time_s": None, "message": f"session {session_id} stopped after {live.frames} frames"})
-            if self.retention is not None:
-                self.retention.wake()
+            self.retention.wake()
             return self.get(session_id)
 
     def delete(self, session_id: str) -> None:
@@ -214,8 +237,7 @@ class SessionManager:
                 p.unlink(missing_ok=True)
             with self._held_lock:
                 self._held_rows.pop(session_id, None)
-            if self.retention is not None:
-                self.retention.forget(session_id)
+            self.retention.forget(session_id)
 
     # --- rows the database could not take ------------------------------------------------------------
     def update_row(self, session_id: str, **fields) -> None:
@@ -305,22 +327,20 @@ class SessionManager:
         row["has_recording"] = self.frames_path(session_id).exists()
         row["has_raw_recording"] = self.raw_path(session_id).exists()
         row["skeleton"] = self._skeleton_name(session_id)
-        if self.leases is not None and row["state"] == "live":
+        if row["state"] == "live":
             row["lease_s"] = self.leases.lease_s(session_id)
-        if self.retention is not None:
-            self.retention.annotate([row])
+        self.retention.annotate([row])
         return row
 
     def _profile(self, row: dict):
         """The profile a stored session was recorded under (sessions from before profiles: stage)."""
         try:
-            return self.pipeline.profile(row.get("profile") or "stage")
+            return self.profiles(row.get("profile") or "stage")
         except ValueError:
-            return self.pipeline.profile("stage")
+            return self.profiles("stage")
 
     def _check_pruned(self, session_id: str, what: str) -> None:
-        if self.retention is not None:
-            self.retention.check_files(session_id, what)
+        self.retention.check_files(session_id, what)
 
     def _skeleton_name(self, session_id: str) -> str | None:
         if not self.skeleton_path(session_id).exists():
@@ -343,8 +363,7 @@ class SessionManager:
                 row["frames"] = snap.session["frames"]
                 row["has_result"] = snap.fit is not None
                 row["progress"], row["done"] = snap.session["progress"], snap.session["done"]
-        if self.retention is not None:
-            self.retention.annotate(rows)
+        self.retention.annotate(rows)
         return rows
 
     def result(self, session_id: str) -> tuple[dict, bool]:

@@ -101,6 +101,13 @@ class Settings:
 
         return default_target(self.tolerance_m) if self.target_m is None else self.target_m
 
+    def session_profile(self, name: str | None = None):
+        """How a session decides it is calibrated: the named profile (default --profile), "stage" with this
+        service's tolerance and target (solver/progress.py). ValueError for an unknown name."""
+        from flockcal.solver.progress import profile
+
+        return profile(name or self.profile, self.tolerance_m, self.progress_target_m)
+
     @property
     def device_url(self) -> str:
         if self.device:

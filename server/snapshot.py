@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import time
+from collections import deque
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Callable
@@ -17,7 +18,10 @@ import numpy as np
 
 from flockcal.server.pose import live_pose
 from flockcal.solver.calibration import Calibration
+from flockcal.solver.live import JointResiduals
 from flockcal.solver.progress import Progress, waiting
+
+RECENT_RESIDUALS = 400
 
 
 @dataclass(frozen=True, eq=False)
@@ -25,6 +29,14 @@ class ResidualSample:
     seq: int
     time_s: float  # session clock
     rms_mm: dict  # {joint child name: rms over the sample interval, mm}
+
+    @staticmethod
+    def of(seq: int, sample: JointResiduals) -> "ResidualSample":
+        """A live calibration's sample as clients and the store get it: mm to 4 decimals, joints with no
+        valid frame left out."""
+        mm = sample.rms_m * 1000.0
+        return ResidualSample(seq, sample.time_s, {j[0]: round(float(v), 4) for j, v in zip(sample.joints, mm)
+                                                   if v == v})
 
 
 @dataclass(frozen=True, eq=False)
@@ -105,8 +117,20 @@ class SnapshotMaker:
         self.target = target
         self.seq = 0
         self.current: Snapshot | None = None
+        # The newest residual samples, numbered across sessions (a websocket sends those past its last).
+        self.residuals: deque[ResidualSample] = deque(maxlen=RECENT_RESIDUALS)
+        self._residual_seq = 0
 
-    def make(self, *, live, session_time: float, ingest, sampler, persistence, fit_seq: int,
+    def add_residuals(self, samples) -> list[ResidualSample]:
+        """Number the live calibration's samples and keep them for the snapshots; returns them numbered."""
+        out = []
+        for sample in samples:
+            self._residual_seq += 1
+            out.append(ResidualSample.of(self._residual_seq, sample))
+        self.residuals.extend(out)
+        return out
+
+    def make(self, *, live, session_time: float, ingest, persistence, fit_seq: int,
              fits_done: int, fit_seconds: float, pose_fit, pose_fit_id=None) -> Snapshot:
         self.seq += 1
         try:
@@ -119,7 +143,7 @@ class SnapshotMaker:
             session = live.summary()
             session["time_s"] = session_time
             session["fit_error"] = live.fit_error
-            progress = live.progress or waiting(self.names, self.target, live.fit_error or "no fit yet: keep moving")
+            progress = live.cal.progress or waiting(self.names, self.target, live.fit_error or "no fit yet: keep moving")
         status = dict(tracker)
         status.update(
             frames=ingest.frames,
@@ -138,7 +162,7 @@ class SnapshotMaker:
             names=self.names,
             fit=live.fit if live is not None else None,
             fit_seq=fit_seq,
-            residuals=tuple(sampler.recent),
+            residuals=tuple(self.residuals),
             events=tuple(persistence.recent),
             rotations=ingest.rotations.copy() if ingest.have_pose else None,
             positions=ingest.positions.copy() if ingest.have_pose else None,

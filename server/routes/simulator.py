@@ -66,13 +66,14 @@ def _session_time(live, reader_time: float | None) -> tuple[str | None, float | 
     """(live session id, the slip's sample time in its session time); Nones where there is none.
 
     Read off the pipeline thread without waiting for it (a loaded pipeline must not delay the slip's
-    reply): a session's id and t0 (the reader time of its first frame) are each written once, before
-    and on its first frame, and never change."""
+    reply): a session's id and its live calibration's t0 (the reader time of its first frame) are each
+    written once, before and on its first frame, and never change."""
     if live is None:
         return None, None
-    if live.t0 is None or reader_time is None:
+    t0 = live.cal.t0 if live.cal is not None else None
+    if t0 is None or reader_time is None:
         return live.id, None
-    return live.id, round(reader_time - live.t0, 4)
+    return live.id, round(reader_time - t0, 4)
 
 
 @router.post("/motion", response_model=SimulatorReply, responses=ERRORS, summary="change the performer's routine")
