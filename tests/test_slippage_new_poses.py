@@ -1,12 +1,11 @@
-"""Slips that land as the limbs move into a new pose are found within a second and named right, and a
-fresh guest whose every pose is new raises no alarm (docs/slippage.md, "New poses" and "Slips at every
-moment").
+"""The confirming test's new-pose rules (docs/slippage.md, "New poses"): slips that land as the limbs
+move into a new pose are found within a second and named right with them; they stay off by default,
+and the default raises no alarm on a fresh guest those rules report a slip for.
 
-The three cases are the kiosk routine with the simulator's default soft tissue, fed through the live
-loop (`SlipWatch`) in the service's 1/30 s micro-batches. Both slips were missed within 1 s before the
-confirming test scored a sensor seen through two joints without the baseline's extrapolation as noise
-and re-seated a refuted suspicion at the slip's own start; the guest is the one whose hand was
-wrongly reported once every sensor's test counted none of it."""
+The cases are the kiosk routine with the simulator's default soft tissue, fed through the live loop
+(`SlipWatch`) in the service's 1/30 s micro-batches. Both slips are missed within 1 s without the rules
+(a sensor seen through two joints scored without the baseline's extrapolation as noise, a refuted
+suspicion re-seated at the slip's own start)."""
 
 from __future__ import annotations
 
@@ -19,6 +18,9 @@ from slip_scoring import attributes_slip_to
 RATE = 144.0
 # The issue's promise is 1 s; these slips are found in 0.18-0.40 s here.
 WITHIN_S = 1.0
+# The options docs/slippage.md ("New poses") measures, off by default for the false alarms they raise
+# in fresh kiosk guests (the last test holds the default to none on such a guest).
+NEW_POSE_RULES = {"extrapolation_share": (1.0, 0.0, 1.0), "reseat_refuted": True}
 
 
 def _tree(model) -> np.ndarray:
@@ -34,7 +36,7 @@ def _slipped(sensor: str, at: float):
     # Seed 1 of the kiosk routine (30 s loop): at 48.84 s both arms have just begun their slot's first
     # sweep of the second loop, the pose they held 30 s earlier and not in the 8 s baseline behind them.
     perf = Performer("human", routine="kiosk", seed=1, noise="tracker", rate_hz=RATE)
-    watch = SlipWatch(_tree(perf.model), perf.n_sensors, RATE, perf.names)
+    watch = SlipWatch(_tree(perf.model), perf.n_sensors, RATE, perf.names, **NEW_POSE_RULES)
     assert watch.feed(*_frames(perf, 0.0, at)) == [], "a false alarm before the slip"
     perf.inject_slip(sensor, 0.02, at_time=at)
     found = watch.feed(*_frames(perf, at, at + WITHIN_S))
@@ -55,10 +57,10 @@ def test_an_upper_arm_slip_as_the_arms_move_into_a_new_pose_is_found_within_a_se
     _slipped("r_upper_arm", 48.842)
 
 
-def test_a_fresh_kiosk_guest_raises_no_alarm():
-    # Tried: a guest of 30 s from the start (every pose new), the case where counting none of the
-    # extrapolation for every sensor named the left hand at 22.9 s although nothing slipped.
-    perf = Performer("human", routine="kiosk", seed=1004, noise="tracker", rate_hz=RATE, seconds=30)
+def test_a_fresh_kiosk_guest_raises_no_alarm_by_default():
+    # Tried: a guest of 30 s from the start (every pose new), seed 1012, whose right forearm the new-pose
+    # rules report at 18.7 s although nothing slipped (9 of 120 such guests had one with them).
+    perf = Performer("human", routine="kiosk", seed=1012, noise="tracker", rate_hz=RATE, seconds=30)
     watch = SlipWatch(_tree(perf.model), perf.n_sensors, RATE, perf.names)
     events = watch.feed(*_frames(perf, 0.0, 30.0))
     assert events == [], [e.to_dict() for e in events]

@@ -74,7 +74,8 @@ class Window:
 
 def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarray,
               suspects: np.ndarray, n_sensors: int, min_jump: float, min_evidence: float,
-              late_rows: int = 0, min_tail: int = 4, more_looks: bool = False) -> Attribution:
+              late_rows: int = 0, min_tail: int = 4, more_looks: bool = False,
+              reseat_refuted: bool = False) -> Attribution:
     """Score slip and swap hypotheses around the change (see module docstring).
 
     joints (P, 2) (child, parent); nbrs (P, width): `baseline.neighbours(joints)`; ready (P,)
@@ -83,9 +84,9 @@ def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarr
     `late_rows` > 0: also look for the slipped sensor's step starting at every later row (up to
     `min_tail` rows before the end); one starting more than `late_rows` after the onset and likelier
     than the onset's by more than the search costs is reported as `later_row` (the suspicion's onset
-    belongs to something else, soft tissue before the slip, and the slip to that later start). When
-    no hypothesis wins, the likeliest sensor's later starts are searched too, once the suspicion is to be
-    dropped (not while `more_looks` remains and a step is likelier than not).
+    belongs to something else, soft tissue before the slip, and the slip to that later start). With
+    `reseat_refuted`, when no hypothesis wins, the likeliest sensor's later starts are searched too, once
+    the suspicion is to be dropped (not while `more_looks` remains and a step is likelier than not).
     """
     P = len(joints)
     after = np.arange(len(win.times)) >= win.onset_row
@@ -153,7 +154,7 @@ def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarr
     evidence = -float(costs[best])
     if not np.isfinite(evidence) or evidence < min_evidence:
         later = None
-        if late_rows > 0 and np.isfinite(slip_cost).any() and not (more_looks and evidence > 0):
+        if reseat_refuted and late_rows > 0 and np.isfinite(slip_cost).any() and not (more_looks and evidence > 0):
             # Refuted at this onset: a slip that landed a moment after it (in a pose the baseline has not
             # seen, where soft tissue raised the suspicion first) may still be a step from a later start.
             s = int(np.argmin(slip_cost))

@@ -104,7 +104,10 @@ class SlipMonitor:
     Where a joint moves into poses its lagged baseline has not seen, the step test and the confirming
     test count `extrapolation_share` of the baseline's own uncertainty as noise: (step test, confirming
     test of a sensor seen through two or more joints, of a sensor seen through one); two values give the
-    confirming test one share for both (docs/slippage.md measures them).
+    confirming test one share for both. `reseat_refuted` also moves a suspicion about to be refuted to a
+    later start of the likeliest sensor's step (>= `min_jump_m`, likelier than none). Both find more
+    slips as the limbs move into new poses and raise false alarms in fresh kiosk guests, so they are off
+    by default (docs/slippage.md, "New poses", measures them).
     """
 
     def __init__(self, joints, n_sensors: int, rate_hz: float, names=None, *,
@@ -113,7 +116,8 @@ class SlipMonitor:
                  threshold: float = 25.0, attribute_s: float = 0.15, confirm_s: float = 0.8,
                  step_s: float = 0.1, min_frames: int = 4, min_evidence: float = 20.0,
                  scale_floor_m: float = 2e-4, max_rms_m: float = 0.05, revisit_s: float = 40.0,
-                 merge_s: float = 0.05, extrapolation_share: tuple[float, ...] = (1.0, 0.0, 1.0)):
+                 merge_s: float = 0.05, extrapolation_share: tuple[float, ...] = (1.0, 1.0, 1.0),
+                 reseat_refuted: bool = False):
         J = _checked_joints(joints, n_sensors)
         if not rate_hz > 0:
             raise SlippageError(f"rate_hz must be positive, got {rate_hz!r}")
@@ -128,6 +132,7 @@ class SlipMonitor:
             raise SlippageError("extrapolation_share is (step test, confirming test of a sensor with two or more "
                                 f"joints, of a sensor with one), each within [0, 1]: {extrapolation_share!r}")
         self.extrapolation_share = tuple(float(x) for x in share)
+        self.reseat_refuted = bool(reseat_refuted)
         self.joints = J
         self.m = int(n_sensors)
         self.rate_hz = float(rate_hz)
@@ -430,9 +435,9 @@ class SlipMonitor:
         # Where the configuration is new the baseline extrapolates: the step test, which measures against
         # it, counts its uncertainty as noise. The confirming test fits its own smooth function over the
         # window; for a sensor seen through two or more joints, which a slip moves by one vector in its own
-        # frame while skin in a new pose moves each joint its own way, it counts none of it by default.
-        # A leaf's slip shows on one joint, as skin in a new pose does: counting less there raised false
-        # alarms (docs/slippage.md), so a leaf's confirming test reads the step test's weights.
+        # frame while skin in a new pose moves each joint its own way, it may count less of it
+        # (`extrapolation_share`). By default it counts all of it: counting none raised false alarms in
+        # fresh kiosk guests, for leaves and for sensors of two joints alike (docs/slippage.md).
         extra = sigma2 * self.base.leverage(Q)
         live = buf.pv[sl] & ok
         step_share, joined_share = self.extrapolation_share[:2]
@@ -500,7 +505,8 @@ class SlipMonitor:
         win = Window(times, g, Q, use, weight, onset_row, c, l, swapped, swap_plausible,
                      None if w_joined is weight else w_joined)
         att = attribute(win, self.joints, self._nbrs, ready, fired, self.m, self.min_jump, self.min_evidence,
-                        late_rows=self._pending.merge, min_tail=self.min_frames, more_looks=more_looks)
+                        late_rows=self._pending.merge, min_tail=self.min_frames, more_looks=more_looks,
+                        reseat_refuted=self.reseat_refuted)
         if att.kind in ("slip", None) and att.later_row is not None:
             return att, buf.index_of(int(rows[att.later_row]))
         if att.kind == "slip":
