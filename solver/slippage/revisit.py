@@ -111,5 +111,3 @@ def came_back(history: PoseHistory, before: float, since: np.ndarray, times, g, 
     mean = (diff * w[..., None]).sum(axis=(0, 1)) / info
     favour_back = 0.5 * info * (((mean - step) ** 2).sum() - (mean**2).sum())
     return bool(favour_back > CAME_BACK_NATS)
-
-
