@@ -54,6 +54,13 @@ def wait_connected(url: str, timeout: float = 30.0, token: str | None = None, fr
     raise TimeoutError(f"tracker did not stream within {timeout} s: {st}")
 
 
+def start_session(url: str, performer: str = "Ann", **body) -> str:
+    """POST /api/sessions as the dashboard does; the new session's id (a refusal fails the test)."""
+    r = httpx.post(url + "/api/sessions", json={"performer": performer, **body}, timeout=30)
+    assert r.status_code == 201, r.text
+    return r.json()["id"]
+
+
 class GuestSource:
     """A simulated performer as the pose source of a fake tracker, whose routine starts over at `begin()`
     (a kiosk guest starts moving when their session starts); `begin(other, lead_s)` swaps in the next

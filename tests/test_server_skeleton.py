@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 
 from flockcal.server.settings import Settings
-from server_helpers import ServerProcess, ServerThread, free_port, wait_connected
+from server_helpers import ServerProcess, ServerThread, free_port, start_session, wait_connected
+from service_process import wait_for
 from flockcal.simulator.performer import Performer
 
 FIRST_S = 7.0  # the exercise routine compressed to an 8 s loop: the free fit finds the right tree by ~6 s
@@ -47,9 +48,7 @@ def wait_session_time(url: str, seconds: float, timeout: float = 60.0) -> None:
 
 
 def record(url: str, seconds: float, **start) -> str:
-    r = httpx.post(url + "/api/sessions", json={"performer": "Ann", **start})
-    assert r.status_code == 201, r.text
-    sid = r.json()["id"]
+    sid = start_session(url, **start)
     wait_session_time(url, seconds)
     return sid
 
@@ -244,13 +243,10 @@ def test_a_skeleton_downloaded_after_a_slip_loads_back(tmp_path):
     srv.start()
     try:
         wait_connected(srv.url)
-        r = httpx.post(srv.url + "/api/sessions", json={"performer": "Ann"}, timeout=30)
-        assert r.status_code == 201, r.text
-        sid = r.json()["id"]
-        session_s = 0.0
-        while session_s <= 0:  # the session's start on the performer's clock needs its first frames
-            time.sleep(0.05)
-            session_s = httpx.get(srv.url + "/api/status", timeout=30).json()["session"]["time_s"]
+        sid = start_session(srv.url)
+        # The session's start on the performer's clock needs its first frames.
+        session_s = wait_for(lambda: httpx.get(srv.url + "/api/status", timeout=30).json()["session"]["time_s"],
+                             60.0, "the session's first frames")
         sim = httpx.get(srv.url + "/api/simulator", timeout=30).json()
         at = int(np.ceil(sim["clock_s"] - session_s + HAND_SLIP_AFTER_S))
         while at % int(sim["period_s"]) in HAND_MISSED:

@@ -16,7 +16,7 @@ import httpx
 import pytest
 
 from flockcal.drivers.recording import MAGIC, read_recording
-from server_helpers import ServerProcess, free_port, wait_connected
+from server_helpers import ServerProcess, free_port, start_session, wait_connected
 
 RATE_HZ = 144
 SLIPPED = "r_shin"  # found and named in every run of the service slip benchmark (tests/test_server_slip.py)
@@ -31,9 +31,7 @@ def live(tmp_path_factory):
     srv.start()
     try:
         wait_connected(srv.url)
-        r = httpx.post(srv.url + "/api/sessions", json={"performer": "Ann"}, timeout=30)
-        assert r.status_code == 201, r.text
-        sid = r.json()["id"]
+        sid = start_session(srv.url)
         yield srv, sid, data / "recordings" / f"{sid}.fobraw"
     finally:
         srv.stop()

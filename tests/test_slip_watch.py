@@ -18,12 +18,9 @@ from flockcal.solver.accumulator import GramAccumulator
 from flockcal.solver.slippage.watch import SlipWatch
 from flockcal.solver.slippage import SlipMonitor
 from server_helpers import ServerThread, free_port, wait_connected
+from slip_replay import tree
 
 RATE = 100.0
-
-
-def tree(model) -> np.ndarray:
-    return np.array([[i, int(p)] for i, p in enumerate(model.parent) if p >= 0])
 
 
 def walk(seconds: float, slip: str | None = None, at: float = 9.0):

@@ -16,20 +16,11 @@ from flockcal.solver.accumulator import GramAccumulator
 from flockcal.solver.fits import pair_fits
 from slip_scoring import attributes_slip_to
 from flockcal.solver.slippage.watch import SlipWatch
+from slip_replay import frames, tree
 
 RATE = 100.0
 SLIP_AT = 10.0
 SEEDS = (1, 2, 3)
-
-
-def tree(model) -> np.ndarray:
-    return np.array([[i, int(p)] for i, p in enumerate(model.parent) if p >= 0])
-
-
-def frames(perf: Performer, t0: float, t1: float):
-    times = np.arange(int(round(t0 * RATE)), int(round(t1 * RATE))) / RATE
-    R, t, v = perf.poses(times)
-    return times, R, t, v
 
 
 def warmed_up(seed: int, sta_mm: float | None = None):

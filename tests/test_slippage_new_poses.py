@@ -9,11 +9,10 @@ suspicion re-seated at the slip's own start)."""
 
 from __future__ import annotations
 
-import numpy as np
-
 from flockcal.simulator.performer import Performer
 from flockcal.solver.slippage.watch import SlipWatch
 from slip_scoring import attributes_slip_to
+from slip_replay import frames, tree
 
 RATE = 144.0
 # The issue's promise is 1 s; these slips are found in 0.18-0.40 s here.
@@ -23,23 +22,14 @@ WITHIN_S = 1.0
 NEW_POSE_RULES = {"extrapolation_share": (1.0, 0.0, 1.0), "reseat_refuted": True}
 
 
-def _tree(model) -> np.ndarray:
-    return np.array([[i, int(p)] for i, p in enumerate(model.parent) if p >= 0])
-
-
-def _frames(perf: Performer, t0: float, t1: float):
-    times = np.arange(int(round(t0 * RATE)), int(round(t1 * RATE))) / RATE
-    return (times, *perf.poses(times))
-
-
 def _slipped(sensor: str, at: float):
     # Seed 1 of the kiosk routine (30 s loop): at 48.84 s both arms have just begun their slot's first
     # sweep of the second loop, the pose they held 30 s earlier and not in the 8 s baseline behind them.
     perf = Performer("human", routine="kiosk", seed=1, noise="tracker", rate_hz=RATE)
-    watch = SlipWatch(_tree(perf.model), perf.n_sensors, RATE, perf.names, **NEW_POSE_RULES)
-    assert watch.feed(*_frames(perf, 0.0, at)) == [], "a false alarm before the slip"
+    watch = SlipWatch(tree(perf.model), perf.n_sensors, RATE, perf.names, **NEW_POSE_RULES)
+    assert watch.feed(*frames(perf, 0.0, at)) == [], "a false alarm before the slip"
     perf.inject_slip(sensor, 0.02, at_time=at)
-    found = watch.feed(*_frames(perf, at, at + WITHIN_S))
+    found = watch.feed(*frames(perf, at, at + WITHIN_S))
     assert found, f"the {sensor} slip at {at} s was not found within {WITHIN_S} s"
     first = found[0]
     assert attributes_slip_to(first, sensor, perf.model.names, perf.model.parent), first.to_dict()
@@ -61,7 +51,7 @@ def test_a_fresh_kiosk_guest_raises_no_alarm_by_default():
     # Tried: a guest of 30 s from the start (every pose new), seed 1012, whose right forearm the new-pose
     # rules report at 18.7 s although nothing slipped (9 of 120 such guests had one with them).
     perf = Performer("human", routine="kiosk", seed=1012, noise="tracker", rate_hz=RATE, seconds=30)
-    watch = SlipWatch(_tree(perf.model), perf.n_sensors, RATE, perf.names)
-    events = watch.feed(*_frames(perf, 0.0, 30.0))
+    watch = SlipWatch(tree(perf.model), perf.n_sensors, RATE, perf.names)
+    events = watch.feed(*frames(perf, 0.0, 30.0))
     assert events == [], [e.to_dict() for e in events]
     assert watch.monitor.confirmations > 0  # the confirming test did run on this guest's soft tissue

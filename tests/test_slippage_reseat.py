@@ -10,17 +10,9 @@ from flockcal.simulator.performer import Performer
 from flockcal.solver.slippage.watch import SlipWatch
 from flockcal.solver.slippage.baseline import step_fits, step_scan
 from slip_scoring import attributes_slip_to
+from slip_replay import frames, tree
 
 RATE = 144.0
-
-
-def _tree(model) -> np.ndarray:
-    return np.array([[i, int(p)] for i, p in enumerate(model.parent) if p >= 0])
-
-
-def _frames(perf: Performer, t0: float, t1: float):
-    times = np.arange(int(round(t0 * RATE)), int(round(t1 * RATE))) / RATE
-    return (times, *perf.poses(times))
 
 
 def test_a_step_scanned_from_many_starts_equals_the_step_fitted_from_each():
@@ -46,11 +38,11 @@ def test_a_forearm_slip_inside_a_wrist_suspicions_window_is_named_the_forearm():
     # 22.19 s is still being looked at again. Before the fix its confirming test took the slip's step for
     # its own and named the hand, 0.5 s before the step began.
     perf = Performer("human", "kiosk", seed=21, rate_hz=RATE, height=1.66, noise="tracker")
-    watch = SlipWatch(_tree(perf.model), perf.n_sensors, RATE, perf.names)
-    assert watch.feed(*_frames(perf, 0.0, 22.0), catch_up=10) == []
-    assert watch.feed(*_frames(perf, 22.0, 22.7), catch_up=10) == []
+    watch = SlipWatch(tree(perf.model), perf.n_sensors, RATE, perf.names)
+    assert watch.feed(*frames(perf, 0.0, 22.0), catch_up=10) == []
+    assert watch.feed(*frames(perf, 22.0, 22.7), catch_up=10) == []
     perf.inject_slip("l_forearm", 0.03, at_time=22.7)
-    found = watch.feed(*_frames(perf, 22.7, 23.7), catch_up=10)
+    found = watch.feed(*frames(perf, 22.7, 23.7), catch_up=10)
     assert found, "the slip was not found within 1 s"
     first = found[0]
     assert attributes_slip_to(first, "l_forearm", perf.model.names, perf.model.parent), first.to_dict()

@@ -17,12 +17,9 @@ from flockcal.solver.slippage import SlipMonitor, detect_slips
 from flockcal.solver.slippage.pending import PendingSuspicions
 from flockcal.solver.slippage.watch import SlipWatch
 from real_captures import KNEE, UPPER_LIMB, cluster_take, segment_map
+from slip_replay import tree
 
 RATE = 100.0
-
-
-def tree(model) -> np.ndarray:
-    return np.array([[i, int(p)] for i, p in enumerate(model.parent) if p >= 0])
 
 
 @pytest.mark.parametrize("routine, seconds", [("exercise", 90.0), ("kiosk", 60.0)])
