@@ -2,7 +2,8 @@
 much it moves as the take grows: simulated performers with the default soft tissue, fitted on growing
 prefixes of one take the way `flockcal fit` fits a whole take (all pairs, the tree searched). Targets
 (issue #36): along the axis max ≤ 12 mm, median ≤ 5 mm; once the routine has run once, the point moves
-≤ 3 mm as the take goes on. Also the bones that end at a hinge, against the truth. With --real, the real
+≤ 3 mm as the take goes on. Also the bones that end at a hinge, against the truth,
+and the same rule fed the true ball-joint centres (what the neighbours' skin-biased centres cost). With --real, the real
 knee capture's knee (its technical clusters as sensors) against the femoral epicondyles' midpoint.
 
     python benchmarks/bench_hinge_point.py                          # 10 seeds x exercise, kiosk, walk
