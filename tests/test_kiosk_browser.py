@@ -199,7 +199,9 @@ def test_the_ring_is_the_services_progress_at_every_step_and_never_100_before_ev
 
 
 def _wait_stopped(server, sid: str) -> dict:
-    deadline = time.monotonic() + 15
+    # A guard, not the promise (which is only that the kiosk stops it): a stop on a 2-core machine at a
+    # load of 8 once took over 15 s.
+    deadline = time.monotonic() + 45
     while time.monotonic() < deadline:
         doc = httpx.get(f"{server.url}/api/sessions/{sid}/progress", headers=admin()).json()
         if not doc["live"]:
@@ -261,9 +263,9 @@ def test_a_guest_who_never_finishes_is_handed_on_after_max_s(browser, server, gu
         assert first is not None
         started = time.monotonic()
         # The kiosk checks on each status message (about one a second): handed on within max_s + 2 s,
-        # plus 5 s for a loaded machine's session stop and start.
+        # plus 20 s for a loaded machine's session stop and start (a stop once took over 15 s at load 8).
         nxt, prompt = None, None
-        while time.monotonic() - started < 14 + 2 + 5:
+        while time.monotonic() - started < 14 + 2 + 20:
             nxt = httpx.get(f"{server.url}/api/sessions", headers=admin()).json()["live"]
             if nxt and nxt != first:
                 break
@@ -291,7 +293,7 @@ def test_a_guest_session_ends_after_its_lease_once_the_kiosk_page_goes_away(brow
     # Issue #30: a kiosk page closed just after it started the next guest left that session live, and
     # POST /api/sessions answered 409 until someone stopped it by hand. Tried: the page (lease_s=3) is
     # closed while its guest's session is live; the session must end within the lease plus the
-    # watcher's half second, plus 10 s for a loaded machine's stop, and the next session must start.
+    # watcher's half second, plus 20 s for a loaded machine's stop, and the next session must start.
     performer, tracker, stream = guest
     live = httpx.get(f"{server.url}/api/sessions", headers=admin()).json()["live"]
     if live:
@@ -312,7 +314,7 @@ def test_a_guest_session_ends_after_its_lease_once_the_kiosk_page_goes_away(brow
     # Stopped, with the reason stored on its row (the note is written just after the stop).
     while not ((row := httpx.get(f"{server.url}/api/sessions/{sid}", headers=admin()).json())["state"] == "stopped"
                and "lease" in (row.get("note") or "")):
-        assert time.monotonic() - closed < 3 + 0.5 + 10, f"the session outlived its page by more than its lease: {row}"
+        assert time.monotonic() - closed < 3 + 0.5 + 20, f"the session outlived its page by more than its lease: {row}"
         time.sleep(0.1)
     r = httpx.post(f"{server.url}/api/sessions", json={"performer": "Next guest"}, headers=admin())
     assert r.status_code == 201, r.text
