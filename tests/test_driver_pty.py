@@ -67,21 +67,33 @@ class OrbitSource:
 class Collector:
     def __init__(self):
         self.parts, self.events = [], []
+        self.stopping = False  # set just before the reader is stopped
+        self.live_parts = 0  # parts delivered while streaming, before the stop's flush
 
     def frames(self, frames):
         self.parts.append((frames.times.copy(), frames.rotations.copy(), frames.positions.copy(), frames.valid.copy()))
+        if not self.stopping:
+            self.live_parts = len(self.parts)
+
+    def count(self) -> int:
+        return sum(len(x[0]) for x in self.parts)
 
     def event(self, e):
         self.events.append(e)
 
-    def arrays(self):
-        return tuple(np.concatenate([x[i] for x in self.parts]) for i in range(4))
+    def arrays(self, live_only: bool = False):
+        """(times, R, p, valid) of every frame, or with `live_only` of those delivered before the stop: the
+        stop flushes the cycles still open, and one port per bird leaves the last few incomplete."""
+        parts = self.parts[: self.live_parts] if live_only else self.parts
+        return tuple(np.concatenate([x[i] for x in parts]) for i in range(4))
 
     def kinds(self):
         return [e.kind for e in self.events]
 
 
-def read_for(cfg: TrackerConfig, seconds: float, during=None) -> tuple[Collector, dict]:
+def read_for(cfg: TrackerConfig, seconds: float, during=None, min_frames: int = 0) -> tuple[Collector, dict]:
+    """Stream for `seconds`, and on until `min_frames` frames have come (a starved machine delivers fewer
+    in the same time; 60 s at most), then stop."""
     col = Collector()
     reader = TrackerReader(cfg, on_frames=col.frames, on_event=col.event)
     reader.start(wait=15)
@@ -89,7 +101,11 @@ def read_for(cfg: TrackerConfig, seconds: float, during=None) -> tuple[Collector
         if during:
             during()
         time.sleep(seconds)
+        deadline = time.monotonic() + 60
+        while col.count() < min_frames and time.monotonic() < deadline:
+            time.sleep(0.05)
     finally:
+        col.stopping = True
         reader.stop()
     return col, reader.status()
 
@@ -148,10 +164,13 @@ def test_group_mode_16_birds_decodes_the_simulated_poses_in_every_format(fmt):
 def test_one_port_per_bird_16_ports_decodes_the_simulated_poses_in_every_format(fmt):
     src = OrbitSource(16, seed=2)
     with PtyTracker(src, birds=16, ports=16, baud=115200) as trk:
-        col, status = read_for(fast_config(trk.devices, 16, rate_hz=40, record_format=fmt), 1.0)
+        col, status = read_for(fast_config(trk.devices, 16, rate_hz=40, record_format=fmt), 1.0, min_frames=30)
     times, R, p, valid = col.arrays()
     assert not status["group"] and status["record_format"] == fmt
-    assert valid.mean() > 0.85, "most records should be aligned into complete cycles"
+    # Judged on the frames delivered while streaming: the stop flushes the cycles still open, whose
+    # lagging ports' records have not been read (at a load of 8-10 that was up to 16 of 40 frames).
+    live_valid = col.arrays(live_only=True)[3]
+    assert len(live_valid) >= 20 and live_valid.mean() > 0.85, "most records should be aligned into complete cycles"
     rot_tol, pos_tol = tolerance(fmt, 36)
     rot_err, pos_err, _ = worst_match(src, R, p, valid)
     assert rot_err <= rot_tol + 1e-9 and pos_err <= pos_tol + 1e-9, "a bird's record landed in the wrong cycle"
