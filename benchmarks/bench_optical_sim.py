@@ -16,8 +16,8 @@ saved as a marker .npz, in a new interpreter, start-up included (issue 31: ≤ 3
 from the simulator's true joint centre (the child bone's origin): the constant offset (median over frames,
 in the true bone's frame) and the scatter about it; median and range over the true joints found. With
 `--per-joint`, one line a joint: its kind, the route that placed it, the offset and (a hinge) its part
-across the axis, and the residual rms of the pair fit over the two bodies' marker-only poses at the
-reported centre and at the true one (its mean in each body's pose frame).
+across the axis, and the residual rms of plain least squares over the two bodies' marker-only poses at
+its own centre and at the true one (the true centre's mean in each body's pose frame).
 
 `--floor` prints what the skin alone leaves (3 or more markers a body): each body's markers with their
 soft-tissue slide but no noise, gaps or swaps, fitted rigidly to their rest layout in the bone frame (the
@@ -151,8 +151,8 @@ def rms_at(Rc, tc, Rp, tp, ok, c, l) -> float:
 
 
 def per_joint(fit, truth: dict, routine: str, seed: int, seconds: float, rate_hz: float) -> list[str]:
-    """One line a found true joint: kind, route, offset (mm; a hinge: across its axis too) and the pair
-    fit's residual over the marker-only poses at the reported and at the true centre."""
+    """One line a found true joint: kind, route, offset (mm; a hinge: across its axis too) and the residual
+    of plain least squares over the marker-only poses at its own centre and at the true one."""
     from flockcal.simulator import motion as motion_lib
     from flockcal.simulator.optical import bone_poses, by_name
 
@@ -189,7 +189,7 @@ def per_joint(fit, truth: dict, routine: str, seed: int, seconds: float, rate_hz
             xp = np.einsum("nji,nj->ni", Rp[v], b[v, j] - tp[v]).mean(0)
             res = f"{1000 * rms_at(Rc, tc, Rp, tp, v, cc, ll):6.1f} {1000 * rms_at(Rc, tc, Rp, tp, v, xc, xp):6.1f}"
         lines.append(f"          {names[j]:<12} {model.joint_type[j]:<5} {route:<8} offset {1000 * np.linalg.norm(off):5.1f} "
-                     f"across {1000 * np.linalg.norm(across):5.1f} mm  residual at fit / truth {res} mm")
+                     f"across {1000 * np.linalg.norm(across):5.1f} mm  residual at least squares / truth {res} mm")
     return lines
 
 
