@@ -14,7 +14,17 @@ saved as a marker .npz, in a new interpreter, start-up included (issue 31: ≤ 3
 
 `--joint-bias` also prints, per case, how far each tree joint's reported centre (`fit.joint_points`) sits
 from the simulator's true joint centre (the child bone's origin): the constant offset (median over frames,
-in the true bone's frame) and the scatter about it; median and range over the true joints found.
+in the true bone's frame) and the scatter about it; median and range over the true joints found. With
+`--per-joint`, one line a joint: its kind, the route that placed it, the offset and (a hinge) its part
+across the axis, and the residual rms of plain least squares over the two bodies' marker-only poses at
+its own centre and at the true one (the true centre's mean in each body's pose frame).
+
+`--floor` prints what the skin alone leaves (3 or more markers a body): each body's markers with their
+soft-tissue slide but no noise, gaps or swaps, fitted rigidly to their rest layout in the bone frame (the
+pose the best possible marker fit gives), and every true joint placed by plain least squares over those
+poses (a hinge given its true point along the axis): centres' offsets from the truth, and the bones.
+
+    python benchmarks/bench_optical_sim.py --per-body 3 4 --seeds 0 1 2 --floor
 """
 
 from __future__ import annotations
@@ -128,6 +138,104 @@ def joint_bias(fit, truth: dict, routine: str, seed: int, seconds: float, rate_h
     return np.array(offset), np.array(scatter)
 
 
+def pair_ls(Rc, tc, Rp, tp, ok):
+    """Plain least squares of R_c c + t_c = R_p l + t_p over the frames `ok`: (c, l), minimum norm."""
+    A = np.concatenate([Rc[ok], -Rp[ok]], axis=2).reshape(-1, 6)
+    x, *_ = np.linalg.lstsq(A, (tp[ok] - tc[ok]).reshape(-1), rcond=None)
+    return x[:3], x[3:]
+
+
+def rms_at(Rc, tc, Rp, tp, ok, c, l) -> float:
+    e = np.einsum("nij,j->ni", Rc[ok], c) + tc[ok] - np.einsum("nij,j->ni", Rp[ok], l) - tp[ok]
+    return float(np.sqrt((e**2).sum(1).mean()))
+
+
+def per_joint(fit, truth: dict, routine: str, seed: int, seconds: float, rate_hz: float) -> list[str]:
+    """One line a found true joint: kind, route, offset (mm; a hinge: across its axis too) and the residual
+    of plain least squares over the marker-only poses at its own centre and at the true one."""
+    from flockcal.simulator import motion as motion_lib
+    from flockcal.simulator.optical import bone_poses, by_name
+
+    model = by_name("human", seed=seed)
+    mo = motion_lib.routine(model, routine, seconds, rate_hz, seed)
+    L, root_t, _ = mo.pose(mo.times)
+    B, b = bone_poses(model, L, root_t)
+    names, mb, ex = list(model.names), truth["marker_body"], fit.exercised
+    true_of = {}
+    for g, grp in enumerate(fit.groups):
+        bodies = [mb[fit.marker_names[i]] for i in grp]
+        true_of[g] = max(set(bodies), key=bodies.count)
+    lines = []
+    for c in np.flatnonzero(fit.tree.parent >= 0):
+        p = int(fit.tree.parent[c])
+        child, parent = (c, p) if truth["parent"].get(true_of[c]) == true_of[p] else (p, c)
+        if truth["parent"].get(true_of[child]) != true_of[parent] or int(c) not in fit.joint_points:
+            continue
+        j = names.index(true_of[child])
+        e = fit.joint_points[int(c)] - b[:, j]
+        ok = np.isfinite(e).all(1)
+        off = np.median(np.einsum("nji,nj->ni", B[ok, j], e[ok]), axis=0)
+        across = off
+        if model.joint_type[j] == "hinge":
+            ax = model.hinge_axis[j] / np.linalg.norm(model.hinge_axis[j])
+            across = off - (off @ ax) * ax
+        route = "pair fit" if c in fit.pair_route else "point" if c in fit.point_route else "Kirk"
+        res = "   -      -"
+        if ex.framed[child] and ex.framed[parent]:
+            Rc, tc, Rp, tp = ex.rotations[:, child], ex.positions[:, child], ex.rotations[:, parent], ex.positions[:, parent]
+            v = ex.valid[:, child] & ex.valid[:, parent]
+            cc, ll = pair_ls(Rc, tc, Rp, tp, v)
+            xc = np.einsum("nji,nj->ni", Rc[v], b[v, j] - tc[v]).mean(0)
+            xp = np.einsum("nji,nj->ni", Rp[v], b[v, j] - tp[v]).mean(0)
+            res = f"{1000 * rms_at(Rc, tc, Rp, tp, v, cc, ll):6.1f} {1000 * rms_at(Rc, tc, Rp, tp, v, xc, xp):6.1f}"
+        lines.append(f"          {names[j]:<12} {model.joint_type[j]:<5} {route:<8} offset {1000 * np.linalg.norm(off):5.1f} "
+                     f"across {1000 * np.linalg.norm(across):5.1f} mm  residual at least squares / truth {res} mm")
+    return lines
+
+
+def floor(routine: str, seed: int, sta_mm: float, seconds: float, rate_hz: float, per_body) -> tuple[np.ndarray, np.ndarray]:
+    """(centre offsets, bone errors) in metres from the skin alone (module docstring, `--floor`)."""
+    from flockcal.simulator import motion as motion_lib
+    from flockcal.simulator import optical as so
+    from flockcal.simulator.soft_tissue import SoftTissue
+    from flockcal.solver.optical.rigid import rigid_fit
+
+    model = so.by_name("human", seed=seed)
+    mo = motion_lib.routine(model, routine, seconds, rate_hz, seed)
+    L, root_t, q = mo.pose(mo.times)
+    B, b = so.bone_poses(model, L, root_t)
+    body, offsets, _ = so.place_markers(model, tuple(per_body), seed)
+    slid = offsets[None].repeat(len(q), 0)
+    if sta_mm > 0:
+        sta = SoftTissue.for_sites(model, body, so.skin_normals(model, body, offsets), sta_mm, seed, stream=0x0A57)
+        slid = slid + sta.slides(q)
+    R, t = {}, {}
+    for i in range(model.m):
+        k = np.flatnonzero(body == i)
+        E, e, _ = rigid_fit(offsets[k], slid[:, k])  # the markers' rest layout → where the skin put them
+        R[i], t[i] = B[:, i] @ E, np.einsum("nij,nj->ni", B[:, i], e) + b[:, i]
+    centre, offs = {}, []
+    every = np.ones(len(q), dtype=bool)
+    for j in range(model.m):
+        p = model.parent[j]
+        if p < 0:
+            continue
+        c, l = pair_ls(R[j], t[j], R[p], t[p], every)
+        l = l - model.joint_offset[j]
+        if model.joint_type[j] == "hinge":
+            ax = model.hinge_axis[j] / np.linalg.norm(model.hinge_axis[j])
+            c, l = c - (c @ ax) * ax, l - (l @ ax) * ax
+        centre[j] = (c, l + model.joint_offset[j])
+        offs.append(float(np.linalg.norm(c)))
+    errs = []
+    for bone in model.truth()["bones"]:
+        x = model.names.index(bone["body"])
+        a, z = (model.names.index(bone[key]) for key in ("from_joint", "to_joint"))
+        pa, pz = (centre[j][0] if j == x else centre[j][1] for j in (a, z))
+        errs.append(abs(float(np.linalg.norm(pa - pz)) - bone["length_m"]))
+    return np.array(offs), np.array(errs)
+
+
 def fresh_wall(take, tmp: Path) -> float:
     """Wall time of `flockcal fit-markers --json` on the take in a new interpreter."""
     from flockcal.markers import save_markers
@@ -155,6 +263,8 @@ def main() -> int:
     ap.add_argument("--fresh", action="store_true", help="also time a fresh `flockcal fit-markers` process")
     ap.add_argument("--verbose", action="store_true", help="print the swaps and the wrong edges")
     ap.add_argument("--joint-bias", action="store_true", help="print the joint centres' offset from the truth")
+    ap.add_argument("--per-joint", action="store_true", help="with --joint-bias: a line a joint")
+    ap.add_argument("--floor", action="store_true", help="print what the skin alone leaves (3+ markers a body)")
     args = ap.parse_args()
     from flockcal.solver.optical.pipeline import fit_markers
 
@@ -183,6 +293,13 @@ def main() -> int:
                         print(f"        joint centres: offset median {1000 * np.median(off):.1f} mm "
                               f"({1000 * off.min():.1f}-{1000 * off.max():.1f}) over {off.size} joints; "
                               f"scatter about it {1000 * sc.min():.1f}-{1000 * sc.max():.1f} mm")
+                    if args.per_joint:
+                        print("\n".join(per_joint(fit, truth, routine, seed, args.seconds, args.rate)))
+                if args.floor:
+                    off, err = floor(routine, seed, args.sta, args.seconds, args.rate, args.per_body)
+                    print(f"        skin alone: centres {1000 * np.median(off):.1f} mm median ({1000 * off.min():.1f}-"
+                          f"{1000 * off.max():.1f}); bones {1000 * np.median(err):.1f} median, {1000 * err.max():.1f} worst, "
+                          f"{int((err > 0.005).sum())}/{err.size} over 5 mm")
     print(f"load average after: {' '.join(f'{x:.1f}' for x in os.getloadavg())}")
     return 0
 

@@ -8,7 +8,6 @@ broadcasts over leading axes. Names follow scipy.spatial.transform: `from_x` bui
 from __future__ import annotations
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 # How the Flock's quaternion relates to R (sensor → transmitter): "fob" is the quaternion of M = Rᵀ, the
 # matrix the bird sends (protocol.md §5); "conjugate" is R's own, for a bird found to send that (the
@@ -78,6 +77,8 @@ def from_quat(q: np.ndarray) -> np.ndarray:
 
 def as_quat(rot: np.ndarray) -> np.ndarray:
     """(..., 4) unit scalar-first quaternions, w ≥ 0 (as Shepperd's method gives), of (..., 3, 3) rotations."""
+    from scipy.spatial.transform import Rotation  # here: scipy.spatial's import is ~60 ms of every CLI start
+
     rot = np.asarray(rot, dtype=float)
     q = Rotation.from_matrix(rot.reshape(-1, 3, 3)).as_quat()  # x y z w
     q = np.concatenate([q[:, 3:], q[:, :3]], axis=1)
@@ -149,6 +150,8 @@ def from_rotvec(q: np.ndarray) -> np.ndarray:
 
 def as_rotvec(rot: np.ndarray) -> np.ndarray:
     """Rotation vectors (..., 3) of rotation matrices (..., 3, 3) (angles in [0, π])."""
+    from scipy.spatial.transform import Rotation
+
     rot = np.asarray(rot, dtype=float)
     return Rotation.from_matrix(rot.reshape(-1, 3, 3)).as_rotvec().reshape(rot.shape[:-2] + (3,))
 

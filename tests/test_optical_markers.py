@@ -193,3 +193,22 @@ def test_the_knee_table_says_it_has_no_bones_instead_of_an_empty_heading(tmp_pat
     lines = run.stdout.splitlines()
     bones = [k for k, line in enumerate(lines) if line.startswith("bones:")]
     assert len(bones) == 1 and lines[bones[0]].startswith("bones: none"), run.stdout
+
+
+def test_fit_markers_into_a_pipe_imports_neither_scipy_spatial_nor_tqdm(tmp_path, rod_take):
+    # The CLI's start-up (docs/optical.md, issue 31 speed): `flockcal fit-markers --json` with its output
+    # piped, in a fresh interpreter, fits and prints without importing scipy.spatial (Rotation is imported
+    # by the functions that need it) or tqdm (no bar may be drawn into a pipe). What was tried: the whole
+    # command through the CLI's main, then the modules left in sys.modules.
+    path = tmp_path / "rods.npz"
+    save_markers(path, rod_take[0])
+    code = ("import io, json, sys, contextlib\n"
+            "from flockcal.cli import main\n"
+            "buf = io.StringIO()\n"
+            "with contextlib.redirect_stdout(buf):\n"
+            f"    rc = main(['fit-markers', {str(path)!r}, '--json'])\n"
+            "print(rc, len(json.loads(buf.getvalue())['bodies']),\n"
+            "      sorted(m for m in sys.modules if m in ('scipy.spatial', 'tqdm')))\n")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.strip() == "0 3 []", out.stdout
