@@ -80,6 +80,7 @@ def test_budget_prunes_between_sessions_keeps_results_and_pins_and_answers_410(t
         assert st["enabled"] and st["keep_disk_gb"] == pytest.approx(1e-9)
         # Calibrated (counted by /api/stats below): within 45 s, the kiosk's 30 s target plus 15 s of margin.
         pinned = session(url, 45.0, pin=True, until_done=True)
+        series = httpx.get(url + f"/api/sessions/{pinned}/residuals").json()["times"]
         pruned = session(url, 1.5)
         row = wait_pruned(url, pruned)
         assert row["has_recording"] is False and row["has_raw_recording"] is False and not row["pinned"]
@@ -95,8 +96,10 @@ def test_budget_prunes_between_sessions_keeps_results_and_pins_and_answers_410(t
         # (docs/kiosk.md: a season's database must not grow by the 20 Hz series of every guest).
         times = httpx.get(url + f"/api/sessions/{pruned}/residuals").json()["times"]
         assert 1 <= len(times) <= 3 and len({int(t) for t in times}) == len(times), times
+        # The pinned session's series is what it was when it stopped, not thinned. (How dense it is depends
+        # on how the pipeline's hand-overs fell: at a load of 10 it held fewer than 10 samples a second.)
         kept = httpx.get(url + f"/api/sessions/{pinned}/residuals").json()["times"]
-        assert len(kept) > 10 * (kept[-1] - kept[0]), "the pinned session keeps its whole series"
+        assert len(series) >= 10 and kept == series, "the pinned session keeps its whole series"
         result = httpx.get(url + f"/api/sessions/{pruned}/result")
         assert result.status_code == 200
         skel = httpx.get(url + f"/api/sessions/{pruned}/skeleton")
