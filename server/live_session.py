@@ -9,6 +9,7 @@ import time
 from dataclasses import dataclass, field
 
 from flockcal.server.framelog import FrameLog
+from flockcal.server.snapshot import FitView
 from flockcal.solver.live import LiveCalibration
 from flockcal.solver.progress import Profile
 
@@ -29,7 +30,7 @@ class LiveSession:
     skeleton: object = None  # a saved Skeleton: topology and bones fixed, only placements are fitted
     started_wall: float = field(default_factory=time.time)
     cal: LiveCalibration | None = None  # the live calibration: accumulator, slip watch, residuals, progress
-    fit: dict | None = None  # the newest fit's §5 dict (clients, the store); its typed one is `cal.calibration`
+    fit: FitView | None = None  # the newest fit (`cal.calibration`), with its §5 dict made on first use
     fit_error: str | None = None
     residual_rows: list = field(default_factory=list)  # (time_s, {joint: mm}) not yet in the store
     log_failed: bool = False  # the frame log's write failure was reported (the log ended there)

@@ -22,7 +22,7 @@ from flockcal.server.ingest import Ingest
 from flockcal.server.limits import LimitStop, SessionLimits
 from flockcal.server.live_session import LiveSession
 from flockcal.server.persistence import Persistence, slip_row
-from flockcal.server.snapshot import Snapshot, SnapshotMaker
+from flockcal.server.snapshot import FitView, Snapshot, SnapshotMaker
 from flockcal.server.store import Store
 from flockcal.solver.calibration import Calibration
 from flockcal.solver.live import LiveCalibration, LiveUpdate
@@ -371,10 +371,10 @@ class Pipeline:
         done = self.fitter.take()
         if done is None or done.session_id != live.id:
             return
-        if done.fit is None:
+        if done.calibration is None:
             live.fit_error = done.error
             return
-        live.fit = done.fit
+        live.fit = FitView(done.calibration)
         live.fit_error = None
         self.pose_fit = done.calibration
         self._fit_seq += 1

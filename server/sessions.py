@@ -322,7 +322,7 @@ class SessionManager:
         snap = self.pipeline.snapshot
         if snap.session and snap.session["id"] == session_id:
             row["frames"] = snap.session["frames"]
-            row["has_result"] = snap.fit is not None
+            row["has_result"] = snap.has_fit
             row["progress"], row["done"] = snap.session["progress"], snap.session["done"]
         row["has_recording"] = self.frames_path(session_id).exists()
         row["has_raw_recording"] = self.raw_path(session_id).exists()
@@ -361,7 +361,7 @@ class SessionManager:
             row["skeleton"] = self._skeleton_name(row["id"])
             if snap.session and snap.session["id"] == row["id"]:
                 row["frames"] = snap.session["frames"]
-                row["has_result"] = snap.fit is not None
+                row["has_result"] = snap.has_fit
                 row["progress"], row["done"] = snap.session["progress"], snap.session["done"]
         self.retention.annotate(rows)
         return rows
@@ -377,7 +377,7 @@ class SessionManager:
         row = self._row(session_id)
         snap = self.pipeline.snapshot
         if snap.session and snap.session["id"] == session_id:
-            if snap.fit is None:
+            if not snap.has_fit:
                 why = snap.session.get("fit_error") or "not enough frames yet"
                 raise Conflict(f"session {session_id} has no fit yet ({why}); keep the performer moving")
             # The slips reported so far, as the stored result lists them at the stop: the live fit is made
@@ -400,7 +400,7 @@ class SessionManager:
         snap = self.pipeline.snapshot
         head = {"session_id": session_id, "live": False, "time_s": None, "fit_seq": None, "frames": row["frames"]}
         if snap.session and snap.session["id"] == session_id and snap.progress is not None:
-            head.update(live=True, time_s=snap.session["time_s"], fit_seq=snap.fit_seq if snap.fit else None,
+            head.update(live=True, time_s=snap.session["time_s"], fit_seq=snap.fit_seq if snap.has_fit else None,
                         frames=snap.session["frames"])
             return {**head, **snap.progress_doc}
         doc = self._held(session_id).get("progress") or self.store.progress(session_id)

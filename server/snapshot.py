@@ -16,6 +16,7 @@ from typing import Callable
 
 import numpy as np
 
+from flockcal.server.fitting import fit_doc
 from flockcal.server.pose import live_pose
 from flockcal.solver.calibration import Calibration
 from flockcal.solver.live import JointResiduals
@@ -39,6 +40,19 @@ class ResidualSample:
                                                    if v == v})
 
 
+class FitView:
+    """A live fit as the snapshots carry it: the typed `Calibration`, and its §5 dict made on first use (by
+    a client's `fit` message or the REST result), once for every snapshot that shows this fit. The fit
+    thread makes ~30 fits a second; a dashboard takes at most 15 of them."""
+
+    def __init__(self, calibration: Calibration):
+        self.calibration = calibration
+
+    @cached_property
+    def doc(self) -> dict:
+        return fit_doc(self.calibration)
+
+
 @dataclass(frozen=True, eq=False)
 class Snapshot:
     seq: int  # increases with every publish
@@ -48,8 +62,8 @@ class Snapshot:
     status: dict  # tracker status + pipeline figures + live session summary
     session: dict | None  # live session summary, None when none is live
     names: tuple[str, ...]
-    fit: dict | None  # design.md §5 JSON of the live session's newest fit
-    fit_seq: int  # increases when `fit` changes
+    fit_view: FitView | None  # the live session's newest fit
+    fit_seq: int  # increases when the fit changes
     residuals: tuple[ResidualSample, ...]  # recent samples, oldest first
     events: tuple[dict, ...]  # recent events (each with its store id), oldest first
     rotations: np.ndarray | None  # newest pose of each sensor (m,3,3) (held where invalid)
@@ -58,6 +72,15 @@ class Snapshot:
     pose_fit: Calibration | None = None  # fit used to draw the skeleton (live or the last stopped session's)
     pose_fit_id: tuple | None = None  # (session id, fit_seq or None for its stored final fit) of pose_fit
     progress: Progress | None = None  # the live session's progress (solver/progress.py), None without one
+
+    @property
+    def has_fit(self) -> bool:
+        return self.fit_view is not None
+
+    @property
+    def fit(self) -> dict | None:
+        """design.md §5 JSON of the live session's newest fit (made once per fit, on first use)."""
+        return None if self.fit_view is None else self.fit_view.doc
 
     @cached_property
     def progress_doc(self) -> dict | None:
@@ -160,7 +183,7 @@ class SnapshotMaker:
             status=status,
             session=session,
             names=self.names,
-            fit=live.fit if live is not None else None,
+            fit_view=live.fit if live is not None else None,
             fit_seq=fit_seq,
             residuals=tuple(self.residuals),
             events=tuple(persistence.recent),

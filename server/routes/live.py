@@ -248,7 +248,7 @@ class Connection:
                 if key != status_key or time.monotonic() - status_at >= STATUS_PERIOD_S:
                     status_key, status_at = key, time.monotonic()
                     out.append(self.envelope("status", snap.status_json))
-            if "fit" in content and snap.fit is not None and snap.fit_seq != fit_seq:
+            if "fit" in content and snap.has_fit and snap.fit_seq != fit_seq:
                 fit_seq = snap.fit_seq
                 out.append(self.envelope("fit", snap.fit_json))
             if "residuals" in content:
