@@ -10,6 +10,7 @@ import math
 import threading
 import time
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Callable
 
 import numpy as np
@@ -64,6 +65,19 @@ def fit_calibration(acc, names, hierarchy=None, root=None, skeleton=None, tolera
     """(JSON-safe §5 dict, Calibration) of `solve_fit`: a session's final fit, which is stored."""
     cal = solve_fit(acc, names, hierarchy, root, skeleton, tolerance, previous)
     return fit_doc(cal), cal
+
+
+class FitView:
+    """A live fit as the snapshots carry it: the typed `Calibration`, and its §5 dict made on first use (by
+    a client's `fit` message or the REST result), once for every snapshot that shows this fit. The fit
+    thread makes ~30 fits a second; a dashboard takes at most 15 of them."""
+
+    def __init__(self, calibration: Calibration):
+        self.calibration = calibration
+
+    @cached_property
+    def doc(self) -> dict:
+        return fit_doc(self.calibration)
 
 
 @dataclass(frozen=True)

@@ -17,12 +17,12 @@ from typing import Callable
 
 from flockcal.errors import FlockcalError
 from flockcal.frames import Frames
-from flockcal.server.fitting import SLIP_FIELDS, FitJob, FitWorker, fit_calibration
+from flockcal.server.fitting import SLIP_FIELDS, FitJob, FitView, FitWorker, fit_calibration
 from flockcal.server.ingest import Ingest
 from flockcal.server.limits import LimitStop, SessionLimits
 from flockcal.server.live_session import LiveSession
 from flockcal.server.persistence import Persistence, slip_row
-from flockcal.server.snapshot import FitView, Snapshot, SnapshotMaker
+from flockcal.server.snapshot import Snapshot, SnapshotMaker
 from flockcal.server.store import Store
 from flockcal.solver.calibration import Calibration
 from flockcal.solver.live import LiveCalibration, LiveUpdate
@@ -384,7 +384,6 @@ class Pipeline:
     def _make_snapshot(self) -> Snapshot:
         live = self.live
         return self.snapshots.make(
-            live=live, session_time=live.cal.time_s if live is not None else 0.0,
-            ingest=self.ingest, persistence=self.persistence, fit_seq=self._fit_seq,
+            live=live, ingest=self.ingest, persistence=self.persistence, fit_seq=self._fit_seq,
             fits_done=self.fitter.fits_done, fit_seconds=self.fitter.fit_seconds, pose_fit=self.pose_fit,
             pose_fit_id=self.pose_fit_id)

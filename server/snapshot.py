@@ -16,7 +16,8 @@ from typing import Callable
 
 import numpy as np
 
-from flockcal.server.fitting import fit_doc
+from flockcal.server.fitting import FitView
+from flockcal.server.live_session import SessionSummary
 from flockcal.server.pose import live_pose
 from flockcal.solver.calibration import Calibration
 from flockcal.solver.live import JointResiduals
@@ -40,19 +41,6 @@ class ResidualSample:
                                                    if v == v})
 
 
-class FitView:
-    """A live fit as the snapshots carry it: the typed `Calibration`, and its §5 dict made on first use (by
-    a client's `fit` message or the REST result), once for every snapshot that shows this fit. The fit
-    thread makes ~30 fits a second; a dashboard takes at most 15 of them."""
-
-    def __init__(self, calibration: Calibration):
-        self.calibration = calibration
-
-    @cached_property
-    def doc(self) -> dict:
-        return fit_doc(self.calibration)
-
-
 @dataclass(frozen=True, eq=False)
 class Snapshot:
     seq: int  # increases with every publish
@@ -60,7 +48,7 @@ class Snapshot:
     frames: int  # frames received since the service started
     last_frame_time: float | None  # reader clock of the newest frame
     status: dict  # tracker status + pipeline figures + live session summary
-    session: dict | None  # live session summary, None when none is live
+    session: SessionSummary | None  # the live session, None when none is live
     names: tuple[str, ...]
     fit_view: FitView | None  # the live session's newest fit
     fit_seq: int  # increases when the fit changes
@@ -109,7 +97,7 @@ class Snapshot:
         # it always was, now the service's one definition (docs/service.md#progress-one-figure-for-the-kiosk-the-dashboard-and-the-api).
         return json.dumps({
             "result": self.fit, **(self.progress_doc or {}), "hints": self.hints,
-            "session": self.session, "fit_seq": self.fit_seq, "snapshot": self.seq, "frames": self.frames,
+            "session": self.status["session"], "fit_seq": self.fit_seq, "snapshot": self.seq, "frames": self.frames,
         })
 
     @cached_property
@@ -153,7 +141,7 @@ class SnapshotMaker:
         self.residuals.extend(out)
         return out
 
-    def make(self, *, live, session_time: float, ingest, persistence, fit_seq: int,
+    def make(self, *, live, ingest, persistence, fit_seq: int,
              fits_done: int, fit_seconds: float, pose_fit, pose_fit_id=None) -> Snapshot:
         self.seq += 1
         try:
@@ -164,13 +152,11 @@ class SnapshotMaker:
         progress = None
         if live is not None:
             session = live.summary()
-            session["time_s"] = session_time
-            session["fit_error"] = live.fit_error
             progress = live.cal.progress or waiting(self.names, self.target, live.fit_error or "no fit yet: keep moving")
         status = dict(tracker)
         status.update(
             frames=ingest.frames,
-            session=session,
+            session=None if session is None else session.to_dict(),
             sensors=list(self.names),
             fits=fits_done,
             fit_ms=round(1000 * fit_seconds / fits_done, 3) if fits_done else None,
