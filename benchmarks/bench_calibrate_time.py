@@ -128,12 +128,13 @@ def bone_errors(fit: dict, truth: dict) -> dict:
 
 def reference_fit(perf: Performer, tolerance_m: float, seconds: float = REFERENCE_S) -> dict:
     """The guest's fit after `seconds` of the routine (the same per-fit code as the service, one fit)."""
-    from flockcal.server.fitting import accumulate, fit_calibration, new_accumulator
+    from flockcal.server.fitting import fit_calibration
+    from flockcal.solver.segments import SegmentedAccumulator
 
-    acc = new_accumulator(perf.n_sensors, segmented=True)
+    acc = SegmentedAccumulator(perf.n_sensors)
     for k in range(int(seconds)):
         times = np.arange(int(k * RATE), int((k + 1) * RATE)) / RATE
-        accumulate(acc, times, *perf.poses(times))
+        acc.ingest(times, *perf.poses(times))
     return fit_calibration(acc, perf.names, tolerance=tolerance_m)[0]
 
 
@@ -148,17 +149,18 @@ def bones_moved(fit: dict, later: dict) -> float:
 
 
 def run_pipeline(perf: Performer, max_s: float, prof: Profile, fit_hz: float = 30.0) -> dict:
-    from flockcal.server.fitting import accumulate, fit_calibration, new_accumulator
+    from flockcal.server.fitting import fit_calibration
+    from flockcal.solver.segments import SegmentedAccumulator
     from flockcal.solver.progress_tracker import ProgressTracker
 
-    acc = new_accumulator(perf.n_sensors, segmented=True)
+    acc = SegmentedAccumulator(perf.n_sensors)
     tracker = ProgressTracker.for_profile(prof)
     frames = int(round(RATE / fit_hz))
     docs = []
     for k in range(int(max_s * fit_hz)):
         times = np.arange(k * frames, (k + 1) * frames) / RATE
         R, t, valid = perf.poses(times)
-        accumulate(acc, times, R, t, valid)
+        acc.ingest(times, R, t, valid)
         fit, cal = fit_calibration(acc, perf.names, tolerance=prof.tolerance_m)
         doc = tracker.add_fit(cal, float(times[-1])).to_dict()  # the typed fit, as the service passes it
         docs.append((float(times[-1]), doc))
@@ -272,18 +274,20 @@ def real_knee(prof: Profile, fit_hz: float = 30.0) -> None:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "tests"))
     from real_captures import KNEE, cluster_take  # noqa: E402
 
-    from flockcal.server.fitting import accumulate, fit_calibration, new_accumulator
+    from flockcal.server.fitting import fit_calibration
+
+    from flockcal.solver.segments import SegmentedAccumulator
     from flockcal.solver.progress_tracker import ProgressTracker
 
     take = cluster_take(KNEE)
-    acc = new_accumulator(take.n_sensors, segmented=True)
+    acc = SegmentedAccumulator(take.n_sensors)
     tracker = ProgressTracker.for_profile(prof)
     rate = 1.0 / float(np.median(np.diff(take.times)))
     step = max(1, int(round(rate / fit_hz)))
     knee_at, doc, knee = None, None, None
     for k in range(0, len(take.times), step):
         sl = slice(k, k + step)
-        accumulate(acc, take.times[sl], take.rotations[sl], take.positions[sl], take.valid[sl])
+        acc.ingest(take.times[sl], take.rotations[sl], take.positions[sl], take.valid[sl])
         cal = fit_calibration(acc, list(take.names), tolerance=prof.tolerance_m)[1]
         doc = tracker.add_fit(cal, float(take.times[sl][-1] - take.times[0])).to_dict()
         knee = next((j for j in doc["joint_progress"] if {j["joint"], j["parent"]} == {"r_thigh", "r_shank"}), None)

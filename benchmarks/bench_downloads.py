@@ -24,7 +24,8 @@ import httpx
 import numpy as np
 
 from flockcal.server.framelog import FrameLog
-from flockcal.server.fitting import fit_calibration, new_accumulator
+from flockcal.server.fitting import fit_calibration
+from flockcal.solver.accumulator import GramAccumulator
 from flockcal.server.store import Store
 from flockcal.simulator.performer import Performer
 
@@ -47,7 +48,7 @@ def make_session(data: Path, minutes: float) -> dict:
     performer = Performer("human", "exercise", seed=1, rate_hz=RATE, period=8.0)
     t = np.arange(int(60 * RATE)) / RATE
     R, p, valid = performer.poses(t)
-    acc = new_accumulator(performer.n_sensors)
+    acc = GramAccumulator(performer.n_sensors)
     acc.add_poses(R, p, valid)
     result = fit_calibration(acc, performer.names)[0]
     rec = data / "recordings"

@@ -1,6 +1,6 @@
-"""Fits for the live service: the fit worker thread and the one place a fit is made. Each fit travels as
-its typed `Calibration` (what the session's live calibration computes with, solver/live.py) and its §5
-dict (what clients and the store get), made here on the fit thread, off the pipeline's.
+"""Fits for the live service: the fit worker thread and the one place a fit is made. A live fit travels as
+its typed `Calibration` (what the session's live calibration computes with, solver/live.py); its §5 dict
+is made at the edge, when a client or the store asks for it (`fit_doc`; server/snapshot.py's `FitView`).
 """
 
 from __future__ import annotations
@@ -10,14 +10,13 @@ import math
 import threading
 import time
 from dataclasses import dataclass
+from functools import cached_property
 from typing import Callable
 
 import numpy as np
 
 from flockcal.errors import FlockcalError
-from flockcal.solver.accumulator import GramAccumulator
 from flockcal.solver.calibration import Calibration
-from flockcal.solver.segments import SegmentedAccumulator
 from flockcal.solver.solve import solve
 from flockcal.threads import name_os_thread
 
@@ -46,28 +45,39 @@ def json_safe(obj):
     return obj
 
 
+def solve_fit(acc, names, hierarchy=None, root=None, skeleton=None, tolerance: float = 0.005,
+              previous: Calibration | None = None) -> Calibration:
+    """A fit of `acc`: the solver's `solve` picks plain, slip-segmented or saved-skeleton fitting; `previous`
+    (the last Calibration of a saved-skeleton fit) warm-starts one. SolverError etc. propagate."""
+    if skeleton is not None:
+        return solve(acc, names, skeleton=skeleton, previous=previous)
+    return solve(acc, names, hierarchy, root, tolerance=tolerance)
+
+
+def fit_doc(cal: Calibration) -> dict:
+    """The JSON-safe §5 dict of a fit. The solver builds a fitted tree's dict JSON-safe (Python scalars,
+    None for NaN; the tests hold it to that), so only a saved skeleton's is walked again."""
+    return json_safe(cal.to_dict()) if cal.known_skeleton else cal.to_dict()
+
+
 def fit_calibration(acc, names, hierarchy=None, root=None, skeleton=None, tolerance: float = 0.005,
                     previous: Calibration | None = None) -> tuple[dict, Calibration]:
-    """(JSON-safe §5 dict, Calibration) of a fit of `acc` — the solver's `solve` picks plain, slip-segmented
-    or saved-skeleton fitting; `previous` (the last Calibration of a saved-skeleton fit) warm-starts one.
-    SolverError etc. propagate."""
-    if skeleton is not None:
-        cal = solve(acc, names, skeleton=skeleton, previous=previous)
-        return json_safe(cal.to_dict()), cal
-    cal = solve(acc, names, hierarchy, root, tolerance=tolerance)
-    # The solver builds these dicts JSON-safe (Python scalars, None for NaN; the tests hold it to that), so
-    # they are not walked again: this runs ~30×/s, and the walk cost as much as the MST.
-    return cal.to_dict(), cal
+    """(JSON-safe §5 dict, Calibration) of `solve_fit`: a session's final fit, which is stored."""
+    cal = solve_fit(acc, names, hierarchy, root, skeleton, tolerance, previous)
+    return fit_doc(cal), cal
 
 
-def new_accumulator(m: int, segmented: bool = False) -> GramAccumulator | SegmentedAccumulator:
-    """The session's accumulator; segmented ones can restart a slipped sensor's joints (docs/slippage.md)."""
-    return SegmentedAccumulator(m) if segmented else GramAccumulator(m)
+class FitView:
+    """A live fit as the snapshots carry it: the typed `Calibration`, and its §5 dict made on first use (by
+    a client's `fit` message or the REST result), once for every snapshot that shows this fit. The fit
+    thread makes ~30 fits a second; a dashboard takes at most 15 of them."""
 
+    def __init__(self, calibration: Calibration):
+        self.calibration = calibration
 
-def accumulate(acc, times, rotations, positions, valid) -> None:
-    """Frames into the session's accumulator, whichever kind (the accumulator protocol's `ingest`)."""
-    acc.ingest(times, rotations, positions, valid)
+    @cached_property
+    def doc(self) -> dict:
+        return fit_doc(self.calibration)
 
 
 @dataclass(frozen=True)
@@ -84,8 +94,7 @@ class FitJob:
 @dataclass(frozen=True)
 class FitDone:
     session_id: str
-    fit: dict | None
-    calibration: Calibration | None  # the same fit, typed
+    calibration: Calibration | None  # None when the fit failed (`error` says why)
     error: str | None
     seconds: float
     stamp: tuple[float, int]
@@ -164,25 +173,25 @@ class FitWorker:
                     return
                 job, self._job = self._job, None
             start = time.perf_counter()
-            fit, cal, error = None, None, None
+            cal, error = None, None
             try:
-                fit, cal = self._fit(job)
+                cal = self._fit(job)
             except FlockcalError as exc:
                 error = str(exc)
             except Exception as exc:  # a numerical failure must not stop the service
                 log.exception("fit failed")
                 error = f"fit failed: {exc}"
             with self._cond:
-                self._done = FitDone(job.session_id, fit, cal, error, time.perf_counter() - start, job.stamp)
+                self._done = FitDone(job.session_id, cal, error, time.perf_counter() - start, job.stamp)
                 self._busy = False
             self.on_done()
 
-    def _fit(self, job: FitJob) -> tuple[dict, Calibration]:
+    def _fit(self, job: FitJob) -> Calibration:
         if job.skeleton is None:
             tolerance = self.tolerance if job.tolerance is None else job.tolerance
-            return fit_calibration(job.acc, self.names, job.hierarchy, job.root, tolerance=tolerance)
+            return solve_fit(job.acc, self.names, job.hierarchy, job.root, tolerance=tolerance)
         # Start from this session's last known-skeleton fit: one or two Gauss–Newton steps.
         prev = self._known_prev[1] if self._known_prev and self._known_prev[0] == job.session_id else None
-        fit, known = fit_calibration(job.acc, self.names, skeleton=job.skeleton, previous=prev)
+        known = solve_fit(job.acc, self.names, skeleton=job.skeleton, previous=prev)
         self._known_prev = (job.session_id, known)
-        return fit, known
+        return known

@@ -17,7 +17,7 @@ from typing import Callable
 
 from flockcal.errors import FlockcalError
 from flockcal.frames import Frames
-from flockcal.server.fitting import SLIP_FIELDS, FitJob, FitWorker, fit_calibration
+from flockcal.server.fitting import SLIP_FIELDS, FitJob, FitView, FitWorker, fit_calibration
 from flockcal.server.ingest import Ingest
 from flockcal.server.limits import LimitStop, SessionLimits
 from flockcal.server.live_session import LiveSession
@@ -371,10 +371,10 @@ class Pipeline:
         done = self.fitter.take()
         if done is None or done.session_id != live.id:
             return
-        if done.fit is None:
+        if done.calibration is None:
             live.fit_error = done.error
             return
-        live.fit = done.fit
+        live.fit = FitView(done.calibration)
         live.fit_error = None
         self.pose_fit = done.calibration
         self._fit_seq += 1
@@ -384,7 +384,6 @@ class Pipeline:
     def _make_snapshot(self) -> Snapshot:
         live = self.live
         return self.snapshots.make(
-            live=live, session_time=live.cal.time_s if live is not None else 0.0,
-            ingest=self.ingest, persistence=self.persistence, fit_seq=self._fit_seq,
+            live=live, ingest=self.ingest, persistence=self.persistence, fit_seq=self._fit_seq,
             fits_done=self.fitter.fits_done, fit_seconds=self.fitter.fit_seconds, pose_fit=self.pose_fit,
             pose_fit_id=self.pose_fit_id)

@@ -105,7 +105,7 @@ class SessionManager:
 
     def live_id(self) -> str | None:
         s = self.pipeline.snapshot.session
-        return s["id"] if s else None
+        return s.id if s else None
 
     # --- checks ------------------------------------------------------------------------------------
     def check_hierarchy(self, hierarchy: dict | None, root: str | None) -> None:
@@ -320,10 +320,10 @@ class SessionManager:
     def get(self, session_id: str) -> dict:
         row = self._row(session_id)
         snap = self.pipeline.snapshot
-        if snap.session and snap.session["id"] == session_id:
-            row["frames"] = snap.session["frames"]
-            row["has_result"] = snap.fit is not None
-            row["progress"], row["done"] = snap.session["progress"], snap.session["done"]
+        if snap.session and snap.session.id == session_id:
+            row["frames"] = snap.session.frames
+            row["has_result"] = snap.has_fit
+            row["progress"], row["done"] = snap.session.progress, snap.session.done
         row["has_recording"] = self.frames_path(session_id).exists()
         row["has_raw_recording"] = self.raw_path(session_id).exists()
         row["skeleton"] = self._skeleton_name(session_id)
@@ -359,10 +359,10 @@ class SessionManager:
             row["has_recording"] = self.frames_path(row["id"]).exists()
             row["has_raw_recording"] = self.raw_path(row["id"]).exists()
             row["skeleton"] = self._skeleton_name(row["id"])
-            if snap.session and snap.session["id"] == row["id"]:
-                row["frames"] = snap.session["frames"]
-                row["has_result"] = snap.fit is not None
-                row["progress"], row["done"] = snap.session["progress"], snap.session["done"]
+            if snap.session and snap.session.id == row["id"]:
+                row["frames"] = snap.session.frames
+                row["has_result"] = snap.has_fit
+                row["progress"], row["done"] = snap.session.progress, snap.session.done
         self.retention.annotate(rows)
         return rows
 
@@ -376,9 +376,9 @@ class SessionManager:
         two agree), or the stored result with None — the pair a pose's `rig` names (server/pose.py)."""
         row = self._row(session_id)
         snap = self.pipeline.snapshot
-        if snap.session and snap.session["id"] == session_id:
-            if snap.fit is None:
-                why = snap.session.get("fit_error") or "not enough frames yet"
+        if snap.session and snap.session.id == session_id:
+            if not snap.has_fit:
+                why = snap.session.fit_error or "not enough frames yet"
                 raise Conflict(f"session {session_id} has no fit yet ({why}); keep the performer moving")
             # The slips reported so far, as the stored result lists them at the stop: the live fit is made
             # ~30 times a second and carries only its joints; the events are the session's.
@@ -399,9 +399,9 @@ class SessionManager:
         row = self._row(session_id)
         snap = self.pipeline.snapshot
         head = {"session_id": session_id, "live": False, "time_s": None, "fit_seq": None, "frames": row["frames"]}
-        if snap.session and snap.session["id"] == session_id and snap.progress is not None:
-            head.update(live=True, time_s=snap.session["time_s"], fit_seq=snap.fit_seq if snap.fit else None,
-                        frames=snap.session["frames"])
+        if snap.session and snap.session.id == session_id and snap.progress is not None:
+            head.update(live=True, time_s=snap.session.time_s, fit_seq=snap.fit_seq if snap.has_fit else None,
+                        frames=snap.session.frames)
             return {**head, **snap.progress_doc}
         doc = self._held(session_id).get("progress") or self.store.progress(session_id)
         if doc is None:
@@ -425,7 +425,7 @@ class SessionManager:
         more = len(rows) > limit
         rows = rows[:limit]
         snap = self.pipeline.snapshot
-        if snap.session and snap.session["id"] == session_id and not more:
+        if snap.session and snap.session.id == session_id and not more:
             # Samples not yet flushed to the store (at most a second's worth) come from the snapshot.
             last = rows[-1][0] if rows else since
             fresh = [(s.time_s, s.rms_mm) for s in snap.residuals if s.time_s > last]

@@ -16,6 +16,8 @@ from typing import Callable
 
 import numpy as np
 
+from flockcal.server.fitting import FitView
+from flockcal.server.live_session import SessionSummary
 from flockcal.server.pose import live_pose
 from flockcal.solver.calibration import Calibration
 from flockcal.solver.live import JointResiduals
@@ -46,10 +48,10 @@ class Snapshot:
     frames: int  # frames received since the service started
     last_frame_time: float | None  # reader clock of the newest frame
     status: dict  # tracker status + pipeline figures + live session summary
-    session: dict | None  # live session summary, None when none is live
+    session: SessionSummary | None  # the live session, None when none is live
     names: tuple[str, ...]
-    fit: dict | None  # design.md §5 JSON of the live session's newest fit
-    fit_seq: int  # increases when `fit` changes
+    fit_view: FitView | None  # the live session's newest fit
+    fit_seq: int  # increases when the fit changes
     residuals: tuple[ResidualSample, ...]  # recent samples, oldest first
     events: tuple[dict, ...]  # recent events (each with its store id), oldest first
     rotations: np.ndarray | None  # newest pose of each sensor (m,3,3) (held where invalid)
@@ -58,6 +60,15 @@ class Snapshot:
     pose_fit: Calibration | None = None  # fit used to draw the skeleton (live or the last stopped session's)
     pose_fit_id: tuple | None = None  # (session id, fit_seq or None for its stored final fit) of pose_fit
     progress: Progress | None = None  # the live session's progress (solver/progress.py), None without one
+
+    @property
+    def has_fit(self) -> bool:
+        return self.fit_view is not None
+
+    @property
+    def fit(self) -> dict | None:
+        """design.md §5 JSON of the live session's newest fit (made once per fit, on first use)."""
+        return None if self.fit_view is None else self.fit_view.doc
 
     @cached_property
     def progress_doc(self) -> dict | None:
@@ -86,7 +97,7 @@ class Snapshot:
         # it always was, now the service's one definition (docs/service.md#progress-one-figure-for-the-kiosk-the-dashboard-and-the-api).
         return json.dumps({
             "result": self.fit, **(self.progress_doc or {}), "hints": self.hints,
-            "session": self.session, "fit_seq": self.fit_seq, "snapshot": self.seq, "frames": self.frames,
+            "session": self.status["session"], "fit_seq": self.fit_seq, "snapshot": self.seq, "frames": self.frames,
         })
 
     @cached_property
@@ -130,7 +141,7 @@ class SnapshotMaker:
         self.residuals.extend(out)
         return out
 
-    def make(self, *, live, session_time: float, ingest, persistence, fit_seq: int,
+    def make(self, *, live, ingest, persistence, fit_seq: int,
              fits_done: int, fit_seconds: float, pose_fit, pose_fit_id=None) -> Snapshot:
         self.seq += 1
         try:
@@ -141,13 +152,11 @@ class SnapshotMaker:
         progress = None
         if live is not None:
             session = live.summary()
-            session["time_s"] = session_time
-            session["fit_error"] = live.fit_error
             progress = live.cal.progress or waiting(self.names, self.target, live.fit_error or "no fit yet: keep moving")
         status = dict(tracker)
         status.update(
             frames=ingest.frames,
-            session=session,
+            session=None if session is None else session.to_dict(),
             sensors=list(self.names),
             fits=fits_done,
             fit_ms=round(1000 * fit_seconds / fits_done, 3) if fits_done else None,
@@ -160,7 +169,7 @@ class SnapshotMaker:
             status=status,
             session=session,
             names=self.names,
-            fit=live.fit if live is not None else None,
+            fit_view=live.fit if live is not None else None,
             fit_seq=fit_seq,
             residuals=tuple(self.residuals),
             events=tuple(persistence.recent),

@@ -95,6 +95,9 @@ class GramAccumulator:
         self._waiting_windows: list[tuple[np.ndarray, np.ndarray]] = []  # jitter windows not yet histogrammed
         # Rotation jitter: per-sensor histogram of third differences, and the last frames to difference with.
         self._jitter = np.zeros((m, _JIT_BINS))
+        # `rotation_noise()` of the histogram as it stands (None: worked out again on the next call). The
+        # histogram changes a few times a second, the live service reads the noise ~90 times.
+        self._noise: np.ndarray | None = None
         self._tail_R = np.zeros((0, m, 3, 3))  # the first frames of a jitter window the next block completes
         self._tail_w = np.zeros((0, m), dtype=bool)
 
@@ -173,6 +176,7 @@ class GramAccumulator:
         self._moments = self._moments * f * f
         self._moment_frames = self._moment_frames * f
         self._jitter *= f
+        self._noise = None
         return self.forgetting ** np.arange(n - 1, -1, -1, dtype=float)
 
     def _block(self, R: np.ndarray, t: np.ndarray, w: np.ndarray) -> None:
@@ -350,6 +354,7 @@ class GramAccumulator:
         bins = np.clip(((lg - _JIT_LO) * (_JIT_BINS / (_JIT_HI - _JIT_LO))).astype(np.intp), 0, _JIT_BINS - 1)
         sensor = np.nonzero(sel)[1]
         self._jitter += np.bincount(sensor * _JIT_BINS + bins, minlength=m * _JIT_BINS).reshape(m, _JIT_BINS)
+        self._noise = None
 
     def ingest(self, times, rotations, positions, valid=None) -> "GramAccumulator":
         """`add_poses` in the `Accumulator` protocol's form: the frames' `times` do not matter here."""
@@ -447,6 +452,8 @@ class GramAccumulator:
         white noise. What rotation noise alone adds to a pair's μ_k is about the sum of its two sensors'."""
         self._flush()
         self._histogram()
+        if self._noise is not None:
+            return self._noise
         h = self._jitter
         total = h.sum(axis=1)
         cum = np.cumsum(h, axis=1)
@@ -455,7 +462,10 @@ class GramAccumulator:
         inside = h[np.arange(len(k)), k]
         frac = np.where(inside > 0, (0.5 * total - below) / np.where(inside > 0, inside, 1.0), 0.5)
         lg = _JIT_LO + (k + frac) * ((_JIT_HI - _JIT_LO) / _JIT_BINS)
-        return np.where(total >= 8, 10.0 ** lg / _JIT_SCALE, np.nan)
+        noise = np.where(total >= 8, 10.0 ** lg / _JIT_SCALE, np.nan)
+        noise.setflags(write=False)
+        self._noise = noise
+        return noise
 
     def block_moments(self, pairs) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """For pairs (p, 2) of (i, j): the moments Σ_b w_b w_bᵀ (p, 16, 16) of each finished score block's
@@ -516,6 +526,7 @@ class GramAccumulator:
         self._histogram()
         new._moments, new._moment_frames = self._moments, self._moment_frames.copy()
         new._moment_blocks, new._jitter = self._moment_blocks.copy(), self._jitter.copy()
+        new._noise = self._noise  # read-only, and of the same histogram
         new._open_gram, new._open_self = self._open_gram.copy(), self._open_self.copy()
         new._open_pf, new._open_n = self._open_pf.copy(), self._open_n
         new._tail_R, new._tail_w = self._tail_R.copy(), self._tail_w.copy()
@@ -532,6 +543,7 @@ class GramAccumulator:
         self._moment_frames = self._moment_frames + sign * other._moment_frames
         self._moment_blocks = self._moment_blocks + sign * other._moment_blocks
         self._jitter = np.maximum(self._jitter + sign * other._jitter, 0.0)
+        self._noise = None
 
     snapshot = copy
 

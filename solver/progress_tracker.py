@@ -8,15 +8,18 @@ from __future__ import annotations
 
 import math
 from collections import deque
-from collections.abc import Iterable, Mapping
 from dataclasses import dataclass, replace
 from itertools import count
+from typing import TYPE_CHECKING
 
 from flockcal.solver.progress import (
     CONFIRM_S, NOT_DONE_CAP, SETTLING_SHARE, FitFacts, JointState, Profile, Progress, Standing, Steadiness, Undone,
     lost, percent, standing, summarise,
 )
 from flockcal.solver.progress_words import stall_prompt
+
+if TYPE_CHECKING:
+    from flockcal.solver.slippage.monitor import SlipEvent, SwapEvent
 
 # A patient prompt once the ring has gained less than STALL_GAIN over STALL_S of session time: a guest who
 # stopped moving (standing still with skin-mounted sensors, the ring still creeps up by 0.5 % a second as
@@ -95,14 +98,10 @@ class StallClock:
 
 
 def slip_sensors(event) -> tuple[set, float]:
-    """(the sensors a slip event moved, its time): a SlipEvent, a SwapEvent (both sensors) or its §5 dict."""
-    if isinstance(event, Mapping):
-        sensors: Iterable = event.get("sensors") or [event.get("sensor")]
-        when = event.get("time_s")
-    else:
-        sensors = (event.a, event.b) if event.kind == "swap" else (event.sensor,)
-        when = event.time_s
-    return {s for s in sensors if s}, float(when or 0.0)
+    """(the sensors a slip event moved, its time): a `SlipEvent`, or a `SwapEvent` (both sensors). A stored
+    §5 entry is read into one first (`calibration_json.event_from_json`)."""
+    sensors = (event.a, event.b) if event.kind == "swap" else (event.sensor,)
+    return {s for s in sensors if s}, float(event.time_s)
 
 
 class ProgressTracker:
@@ -161,7 +160,7 @@ class ProgressTracker:
         """The done joints, in the order they were latched."""
         return sorted(((p, t) for p, t in self.joints.items() if t.latch is not None), key=lambda pt: pt[1].latch.seq)
 
-    def slip(self, event, epoch: int) -> list[str]:
+    def slip(self, event: SlipEvent | SwapEvent, epoch: int) -> list[str]:
         """Undo every done joint of the slipped sensor(s) (a swap: both); returns the joints undone."""
         sensors, when = slip_sensors(event)
         for s in sensors:

@@ -13,9 +13,11 @@ import math
 import numpy as np
 import pytest
 
-from flockcal.server.fitting import accumulate, fit_calibration, new_accumulator
+from flockcal.server.fitting import fit_calibration
 from flockcal.solver.progress import Undone, default_target, progress_of
 from flockcal.solver.progress_tracker import ProgressTracker
+from flockcal.solver.segments import SegmentedAccumulator
+from flockcal.solver.slippage import SlipEvent
 from flockcal.server.settings import Settings
 from flockcal.simulator.performer import Performer
 
@@ -29,6 +31,11 @@ def joint(child, parent, err_mm=(1.0, 1.0, 1.0), determined=True, hinge=False):
     err = [None if e is None else e * MM for e in err_mm]
     return {"child": child, "parent": parent, "c": [0.0, 0.0, 0.1], "l": [0.0, 0.1, 0.0], "hinge": hinge,
             "determined": determined, "direction_error_m": err}
+
+
+def slip(sensor, time_s, joints=None):
+    """A slip of `sensor` at `time_s`, as the slip monitor reports it."""
+    return SlipEvent(time_s, sensor, (sensor,), 1.0, tuple(joints or (sensor,)), 20.0)
 
 
 def fit(joints, rigid_members=(), rigid_groups=(), root="pelvis", ambiguous=()):
@@ -120,7 +127,7 @@ def test_every_joint_done_again_while_one_wobbles_stays_below_100_until_one_clea
     tr = ProgressTracker(TARGET)
     both = fit([joint("l_thigh", "pelvis"), joint("r_thigh", "pelvis")])
     track(tr, [both] * 12)
-    tr.slip({"type": "slip", "sensor": "r_thigh", "time_s": 1.15}, 1)
+    tr.slip(slip("r_thigh", 1.15), 1)
     # The right hip is re-pinned from fresh frames while the left one wobbles just above the target.
     wobble = fit([joint("l_thigh", "pelvis", err_mm=(5.6, 2.0, 1.0), determined=False), joint("r_thigh", "pelvis")])
     doc = track(tr, [wobble] * 12, t0=1.2, epoch=1)
@@ -139,7 +146,7 @@ def test_a_slip_undoes_its_sensors_joints_and_a_fit_begun_before_it_cannot_redo_
                joint("l_hand", "l_forearm")])
     track(tr, [arm] * 12)
     assert tr.latest.done
-    undone = tr.slip({"type": "slip", "sensor": "l_forearm", "time_s": 12.3, "joints": ["l_forearm", "l_hand"]}, 1)
+    undone = tr.slip(slip("l_forearm", 12.3, ("l_forearm", "l_hand")), 1)
     assert undone == ["l_forearm", "l_hand"]  # its inboard and outboard joints
     # The fit in flight was computed from the accumulator before the slip (epoch 0): it still reads pinned.
     doc = track(tr, [arm] * 15, t0=1.3, epoch=0)
@@ -165,7 +172,7 @@ def test_a_fit_lost_to_a_slip_before_the_monitor_confirmed_it_gives_the_slip_as_
     assert doc["missing"][0]["undone"]["reason"] == "loss"
     # An earlier loss (before the slip's onset) is not the slip's: an unrelated shoulder lost at 1.5 s.
     tr.joint("l_upper_arm", "pelvis").undone = Undone("loss", 1.5, "l_upper_arm")
-    assert tr.slip({"type": "slip", "sensor": "l_forearm", "time_s": 1.8}, 1) == ["l_forearm"]
+    assert tr.slip(slip("l_forearm", 1.8), 1) == ["l_forearm"]
     doc = tr.add_fit(lost, 2.1, epoch=0).to_dict()
     missing = {m["joint"]: m["undone"] for m in doc["missing"]}
     assert missing["l_hand"] == {"reason": "slip", "time_s": 1.8, "sensor": "l_forearm"}
@@ -221,14 +228,14 @@ def kiosk_guest():
     # Rigid sensors: the guest must be done within the 28 s this fixture runs (docs/service.md measures the
     # kiosk's timing on rigid sensors; soft tissue slows it, see "Time to calibrate").
     perf = Performer("human", "kiosk", seed=7, rate_hz=100.0, height=1.68, sta_mm=0)
-    acc = new_accumulator(perf.n_sensors, segmented=True)
+    acc = SegmentedAccumulator(perf.n_sensors)
     tracker = ProgressTracker(TARGET)
     out = []
     step = 1 / 30
     for k in range(int(28 / step)):
         times = np.arange(int(round(k * step * 100)), int(round((k + 1) * step * 100))) / 100.0
         R, t, valid = perf.poses(times)
-        accumulate(acc, times, R, t, valid)
+        acc.ingest(times, R, t, valid)
         f, cal = fit_calibration(acc, perf.names)
         out.append((f, tracker.add_fit(cal, float(times[-1])).to_dict()))  # the typed fit, as the service
         if out[-1][1]["done"]:
@@ -254,10 +261,10 @@ def test_on_the_solver_100_percent_means_every_sensors_joint_is_determined(kiosk
 
 def test_a_performer_standing_still_is_never_calibrated():
     perf = Performer("human", "idle", seed=2, rate_hz=100.0)
-    acc = new_accumulator(perf.n_sensors, segmented=True)
+    acc = SegmentedAccumulator(perf.n_sensors)
     times = np.arange(0, 1500) / 100.0
     R, t, valid = perf.poses(times)
-    accumulate(acc, times, R, t, valid)
+    acc.ingest(times, R, t, valid)
     doc = progress_of(fit_calibration(acc, perf.names)[0], TARGET).to_dict()
     # design.md §3a: standing still determines no joint, so nothing is calibrated and every joint is named.
     assert doc["progress"] == 0.0 and not doc["done"] and len(doc["missing"]) == perf.n_sensors - 1

@@ -11,7 +11,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from flockcal.server.fitting import accumulate, fit_calibration, new_accumulator
+from flockcal.server.fitting import fit_calibration
+
+from flockcal.solver.segments import SegmentedAccumulator
 from flockcal.solver.progress import profile
 from flockcal.solver.progress_tracker import ProgressTracker
 from flockcal.simulator.performer import Performer
@@ -109,12 +111,12 @@ STA_DONE_S, RIGID_DONE_S, BONES_M = 35.0 + 5.0, 22.4 + 5.0, 0.005 + 0.001
 def guest_run(perf: Performer, max_s: float):
     """The service's per-fit steps (server/fitting.py, solver/progress_tracker.py) at 30 fits a second, session
     clock, until done: (done_at_s, the fit at done)."""
-    acc = new_accumulator(perf.n_sensors, segmented=True)
+    acc = SegmentedAccumulator(perf.n_sensors)
     tracker = ProgressTracker.for_profile(profile("kiosk", 5 * MM))
     step = int(round(RATE / 30))
     for k in range(int(max_s * 30)):
         times = np.arange(k * step, (k + 1) * step) / RATE
-        accumulate(acc, times, *perf.poses(times))
+        acc.ingest(times, *perf.poses(times))
         fit, cal = fit_calibration(acc, perf.names, tolerance=tracker.tolerance_m)
         doc = tracker.add_fit(cal, float(times[-1])).to_dict()  # the typed fit, as the service passes it
         if doc["done"]:
@@ -131,10 +133,10 @@ def bone_lengths(fit: dict) -> dict:
 
 
 def later_fit(perf: Performer, seconds: float) -> dict:
-    acc = new_accumulator(perf.n_sensors, segmented=True)
+    acc = SegmentedAccumulator(perf.n_sensors)
     for k in range(int(seconds)):
         times = np.arange(int(k * RATE), int((k + 1) * RATE)) / RATE
-        accumulate(acc, times, *perf.poses(times))
+        acc.ingest(times, *perf.poses(times))
     return fit_calibration(acc, perf.names, tolerance=0.010)[0]
 
 

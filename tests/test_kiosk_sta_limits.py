@@ -8,7 +8,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from flockcal.server.fitting import accumulate, fit_calibration, new_accumulator
+from flockcal.server.fitting import fit_calibration
+
+from flockcal.solver.accumulator import GramAccumulator
 from flockcal.solver.progress import FitFacts
 from flockcal.simulator.motion import routine
 from flockcal.simulator.performer import Performer
@@ -21,11 +23,11 @@ HINGES = {"l_forearm", "r_forearm", "l_shin", "r_shin"}  # a bone ending there i
 
 
 def _whole_loop(perf: Performer) -> dict:
-    acc = new_accumulator(perf.n_sensors)
+    acc = GramAccumulator(perf.n_sensors)
     times = np.arange(int(LOOP_S * RATE)) / RATE
     for k in range(0, len(times), 2000):
         t = times[k:k + 2000]
-        accumulate(acc, t, *perf.poses(t))
+        acc.ingest(t, *perf.poses(t))
     return fit_calibration(acc, perf.names, hierarchy=perf.truth()["parent"], tolerance=TOLERANCE_M)[0]
 
 

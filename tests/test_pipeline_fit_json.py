@@ -8,7 +8,11 @@ import math
 import numpy as np
 import pytest
 
-from flockcal.server.fitting import accumulate, fit_calibration, json_safe, new_accumulator
+from flockcal.server.fitting import fit_calibration, json_safe
+
+from flockcal.solver.segments import SegmentedAccumulator
+
+from flockcal.solver.accumulator import GramAccumulator
 from flockcal.solver.calibration import calibrate
 from synthetic import articulated
 
@@ -23,10 +27,10 @@ def take():
 
 
 def _fed(d, segmented: bool):
-    acc = new_accumulator(d.n_sensors, segmented=segmented)
+    acc = (SegmentedAccumulator(d.n_sensors) if segmented else GramAccumulator(d.n_sensors))
     times = np.arange(len(d.rotations)) / d.rate_hz
     for a in range(0, len(times), 7):  # micro-batches, as the live stream gives
-        accumulate(acc, times[a:a + 7], d.rotations[a:a + 7], d.positions[a:a + 7], d.valid[a:a + 7])
+        acc.ingest(times[a:a + 7], d.rotations[a:a + 7], d.positions[a:a + 7], d.valid[a:a + 7])
     return acc, times
 
 

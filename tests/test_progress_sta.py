@@ -12,7 +12,9 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from flockcal.server.fitting import accumulate, fit_calibration, new_accumulator
+from flockcal.server.fitting import fit_calibration
+
+from flockcal.solver.segments import SegmentedAccumulator
 from flockcal.solver.progress import default_target
 from flockcal.solver.progress_tracker import ProgressTracker
 from flockcal.simulator.performer import Performer
@@ -25,14 +27,14 @@ STATED = {"slip", "loss", "tree"}
 
 def published(seed: int, height: float, seconds: float) -> list[tuple[float, dict]]:
     perf = Performer("human", "kiosk", seed=seed, rate_hz=RATE, height=height, sta_mm=12)
-    acc = new_accumulator(perf.n_sensors, segmented=True)
+    acc = SegmentedAccumulator(perf.n_sensors)
     tracker = ProgressTracker(default_target(TOLERANCE_M), TOLERANCE_M)
     step = int(round(RATE / FIT_HZ))
     docs = []
     for k in range(int(seconds * FIT_HZ)):
         times = np.arange(k * step, (k + 1) * step) / RATE
         R, t, valid = perf.poses(times)
-        accumulate(acc, times, R, t, valid)
+        acc.ingest(times, R, t, valid)
         docs.append((float(times[-1]), tracker.add_fit(fit_calibration(acc, perf.names, tolerance=TOLERANCE_M)[1],
                                                        float(times[-1])).to_dict()))
     return docs

@@ -11,11 +11,13 @@ import json
 import numpy as np
 import pytest
 
-from flockcal.server.fitting import accumulate, fit_calibration, new_accumulator
+from flockcal.server.fitting import fit_calibration
 from flockcal.simulator.performer import Performer
+from flockcal.solver.calibration_json import event_from_json
 from flockcal.solver.progress import JointProgress, JointState, Progress, profile, progress_of, waiting
 from flockcal.solver.progress_tracker import ProgressTracker
 from flockcal.solver.progress_words import done_change
+from flockcal.solver.segments import SegmentedAccumulator
 from flockcal.solver.slippage import SlipEvent, SwapEvent
 
 RATE, FIT_HZ = 144.0, 30.0
@@ -25,12 +27,12 @@ RATE, FIT_HZ = 144.0, 30.0
 def guest_fits():
     """A soft-tissue kiosk guest's fits, 30 a second for 14 s of session time: (time_s, §5 dict, Calibration)."""
     perf = Performer("human", "kiosk", seed=104, rate_hz=RATE, height=1.94, sta_mm=12)
-    acc = new_accumulator(perf.n_sensors, segmented=True)
+    acc = SegmentedAccumulator(perf.n_sensors)
     step = int(round(RATE / FIT_HZ))
     out = []
     for k in range(int(14 * FIT_HZ)):
         times = np.arange(k * step, (k + 1) * step) / RATE
-        accumulate(acc, times, *perf.poses(times))
+        acc.ingest(times, *perf.poses(times))
         d, cal = fit_calibration(acc, perf.names, tolerance=0.005)
         out.append((float(times[-1]), d, cal))
     return perf, out
@@ -49,7 +51,7 @@ def test_a_calibration_and_its_dict_give_the_same_documents_and_each_reads_back(
         epoch = sum(1 for at in slips if at <= k)
         if k in slips:
             typed.slip(slips[k], epoch)
-            stored.slip(json.loads(json.dumps(slips[k].to_dict())), epoch)
+            stored.slip(event_from_json(json.loads(json.dumps(slips[k].to_dict())), perf.names), epoch)
         a, b = typed.add_fit(cal, t, epoch), stored.add_fit(d, t, epoch)
         doc = a.to_dict()
         assert json.loads(json.dumps(doc)) == doc == b.to_dict(), (name, t)
@@ -95,7 +97,7 @@ def test_becoming_done_and_undone_is_worded_beside_the_rule():
            "joints": [{"child": c, "parent": p, "hinge": False, "determined": True, "direction_error_m": [0.001] * 3}
                       for c, p in (("l_forearm", "pelvis"), ("l_hand", "l_forearm"))]}
     assert tr.add_fit(arm, 1.0).done
-    tr.slip({"sensor": "l_forearm", "time_s": 1.04}, 1)
+    tr.slip(SlipEvent(1.04, "l_forearm", ("l_forearm",), 1.0, ("l_forearm",), 20.0), 1)
     after = tr.add_fit(arm, 1.1, epoch=0)  # begun before the slip: cannot redo the forearm's joints
     assert done_change(after, True, "Ada", stage, 1.1) == (
         "calibration_undone", "Ada is no longer calibrated: the left forearm sensor slipped at 1.0 s: measured afresh since")

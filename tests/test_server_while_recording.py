@@ -9,7 +9,6 @@ from __future__ import annotations
 import socket
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import httpx
@@ -17,6 +16,7 @@ import pytest
 
 from flockcal.drivers.recording import MAGIC, read_recording
 from server_helpers import ServerProcess, free_port, start_session, wait_connected
+from service_process import wait_for
 
 RATE_HZ = 144
 SLIPPED = "r_shin"  # found and named in every run of the service slip benchmark (tests/test_server_slip.py)
@@ -35,14 +35,6 @@ def live(tmp_path_factory):
         yield srv, sid, data / "recordings" / f"{sid}.fobraw"
     finally:
         srv.stop()
-
-
-def wait_until(predicate, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while not (value := predicate()):
-        assert time.monotonic() < deadline, f"{what} did not happen within {timeout:g} s"
-        time.sleep(0.05)
-    return value
 
 
 def session_time(srv) -> float:
@@ -95,14 +87,14 @@ def test_a_slow_reader_gets_the_live_raw_recording_whole_with_its_declared_lengt
     1,835,008 of the 1,850,061 bytes its Content-Length declared (the file grew while it was sent).
     Here the client reads nothing until the recording has grown 256 kB past what was declared."""
     srv, sid, raw = live
-    wait_until(lambda: raw.exists() and raw.stat().st_size > 1_000_000, 120, "a 1 MB raw recording")
+    wait_for(lambda: raw.exists() and raw.stat().st_size > 1_000_000, 120, "a 1 MB raw recording")
     before = raw.stat().st_size
     sock, headers, body = slow_get(srv.url, f"/api/sessions/{sid}/raw")
     try:
         assert headers[":status"] == "200", headers
         declared = int(headers["content-length"])
         assert "chunked" not in headers.get("transfer-encoding", "")
-        wait_until(lambda: raw.stat().st_size > declared + 256 * 1024, 60, "the recording growing 256 kB")
+        wait_for(lambda: raw.stat().st_size > declared + 256 * 1024, 60, "the recording growing 256 kB")
         while len(body) < declared:
             part = sock.recv(65536)
             if not part:
@@ -138,7 +130,7 @@ def test_the_live_result_lists_the_slips_reported_as_the_stored_one_does(live):
     """Tried: a slip the service reported (event, alert, re-fit), then GET …/result while live: it had
     `slip_events: []`, and only the stored result after the stop listed the slip."""
     srv, sid, _ = live
-    wait_until(lambda: session_time(srv) >= SLIP_AFTER_S, 120, f"{SLIP_AFTER_S} s of session")
+    wait_for(lambda: session_time(srv) >= SLIP_AFTER_S, 120, f"{SLIP_AFTER_S} s of session")
     r = httpx.post(srv.url + "/api/simulator/slip", json={"sensor": SLIPPED, "distance_m": 0.03}, timeout=30)
     assert r.status_code == 200, r.text
 
@@ -146,7 +138,7 @@ def test_the_live_result_lists_the_slips_reported_as_the_stored_one_does(live):
         events = httpx.get(srv.url + f"/api/sessions/{sid}/events", timeout=30).json()["events"]
         return [e for e in events if e["type"] == "slip"]
 
-    events = wait_until(reported, 30, f"the service reporting the {SLIPPED} slip")
+    events = wait_for(reported, 30, f"the service reporting the {SLIPPED} slip")
     result = httpx.get(srv.url + f"/api/sessions/{sid}/result", timeout=30).json()
     listed = result["slip_events"]
     assert len(listed) >= len(events) >= 1

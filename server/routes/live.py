@@ -243,12 +243,12 @@ class Connection:
             out = []
             content = sub.content
             if "status" in content:
-                key = (snap.status.get("connected"), (snap.session or {}).get("id"),
+                key = (snap.status.get("connected"), snap.session and snap.session.id,
                        (snap.status.get("disk") or {}).get("full"))
                 if key != status_key or time.monotonic() - status_at >= STATUS_PERIOD_S:
                     status_key, status_at = key, time.monotonic()
                     out.append(self.envelope("status", snap.status_json))
-            if "fit" in content and snap.fit is not None and snap.fit_seq != fit_seq:
+            if "fit" in content and snap.has_fit and snap.fit_seq != fit_seq:
                 fit_seq = snap.fit_seq
                 out.append(self.envelope("fit", snap.fit_json))
             if "residuals" in content:
@@ -270,7 +270,7 @@ class Connection:
         # Replay the live session's last few events so a reconnecting page shows them again.
         if snap.session is None:
             return snap.events[-1]["id"] if snap.events else 0
-        mine = [e["id"] for e in snap.events if e.get("session_id") == snap.session["id"]]
+        mine = [e["id"] for e in snap.events if e.get("session_id") == snap.session.id]
         if len(mine) > REPLAY_EVENTS:
             return mine[-REPLAY_EVENTS - 1]
         return (mine[0] - 1) if mine else (snap.events[-1]["id"] if snap.events else 0)
