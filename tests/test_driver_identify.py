@@ -137,7 +137,14 @@ def test_record_on_a_line_slower_than_baud_says_reports_the_rate_it_got_and_the_
     assert 40 <= float(wrote[3]) <= 60  # 50 by the line model above, ±10 for the pty's timing
     warning = next(line for line in err.splitlines() if "frames/s arrive" in line)
     assert "slower than --baud says" in warning and "--baud matching the unit's DIP switches" in warning
-    assert "--format position_quaternion" in warning and "--per-port" in warning
+    assert "--per-port" in warning and "or lower" in warning
+    # The compact format is a fix only if the line, as measured, carries it (6 x 15 B at 100 Hz = 9,000 B/s).
+    # An idle pty delivers ~50 frames/s of 6 x 25 B: 7,500 B/s, more than 57600 baud's 5,760, so the line is
+    # a 115200 one and the format fits. On a machine at a load of 8-10 the rate window once saw 34.7
+    # frames/s: a 57600 line as far as the driver can tell, and then only --rate fits.
+    delivered = float(re.search(r"delivers only (\d+) B/s", warning)[1])
+    if delivered > 57600 / 10:
+        assert "--format position_quaternion" in warning, warning
 
 
 def test_record_that_fits_its_line_gets_the_asked_rate_and_no_warning(tmp_path, capsys):
