@@ -19,10 +19,12 @@ from __future__ import annotations
 import os
 from pathlib import Path
 
+import httpx
 import numpy as np
 import pytest
 
 from server_helpers import ServerProcess, free_port, wait_connected
+from service_process import wait_for
 from flockcal.simulator.performer import Performer
 from flockcal.simulator.pty_tracker import PtyTracker
 from browser_helpers import NEEDS_CHROMIUM, launch
@@ -138,6 +140,12 @@ def test_pages_draw_the_rig_and_three_js_puts_its_joints_on_the_pose(server, bro
         # Every sensor but the root with a fitted joint, then stop: the pose is drawn with the final fit.
         page.wait_for_function("document.querySelectorAll('#coverage .cov:not([data-state=rigid])').length >= 15",
                                timeout=WAIT_MS)
+        # And one loop of the routine (8 s of session time): a take stopped at 2.4 s once left the abdomen
+        # and chest rigid in the final fit though no chip said so live, and the page's rig (from the stored
+        # result) and the pose (from the fit) place a rigid body differently.
+        wait_for(lambda: (httpx.get(f"{server.url}/api/sessions/{sid}/progress",
+                                    headers={"Authorization": f"Bearer {ADMIN}"}).json().get("time_s") or 0) >= 8.0,
+                 WAIT_MS / 1000, "8 s of session time")
         page.click("#stop")
         page.wait_for_selector("#session-state[data-state=stopped]", timeout=WAIT_MS)
 
