@@ -65,7 +65,10 @@ class FrameAssembler:
         self.patience = max(3, int(np.ceil(0.25 / self.period)))
         self.last_frame_time = -np.inf
         self.phase: float | None = None  # arrival time of cycle 0, once anchored
-        self.anchor_records = 8
+        # Records per port to read the flock's phase from: each port's least-delayed record decides, and a
+        # busy host can deliver a port's first 8 (0.2 s at 40 Hz) in late bursts, which put that port a
+        # cycle off for the whole stream; half a second of records makes a prompt one near certain.
+        self.anchor_records = max(8, int(np.ceil(0.5 / self.period)))
         self.startup = [self.none for _ in self.ports]
         self.now = -np.inf
         self.last_seen = np.full(self.m, -np.inf)  # arrival of the last record of any kind, per bird
