@@ -31,8 +31,9 @@ class FrameBuffer:
         self.dy = np.zeros((size, p, 3))  # the same in the parent frame
         self.w = np.zeros((size, p))  # the step test's 1/σ²: local noise + the baseline's extrapolation (0: unused)
         self.wc = np.zeros((size, p))  # the confirming test's 1/σ²: its own fit extrapolates no baseline
+        self.nv = np.zeros((size, p))  # the frame's noise variance per axis alone (no extrapolation), m²
         self._arrays = (self.times, self.R, self.t, self.valid, self.g, self.Q, self.pv, self.dx, self.dy, self.w,
-                        self.wc)
+                        self.wc, self.nv)
         self.lo = self.hi = 0
         self.first_index = 0  # global index of slot lo
 
@@ -51,7 +52,7 @@ class FrameBuffer:
         J = self.joints
         self.g[sl], self.Q[sl] = joint_geometry(R, t, J)
         self.pv[sl] = valid[:, J[:, 0]] & valid[:, J[:, 1]]
-        self.dx[sl], self.dy[sl], self.w[sl], self.wc[sl] = 0.0, 0.0, 0.0, 0.0
+        self.dx[sl], self.dy[sl], self.w[sl], self.wc[sl], self.nv[sl] = 0.0, 0.0, 0.0, 0.0, 0.0
         self.hi += n
         if self.hi - self.lo > self.capacity:
             drop = self.hi - self.lo - self.capacity

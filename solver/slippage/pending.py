@@ -15,6 +15,7 @@ class Suspicion:
     onset: int  # global frame index: the step's first frame
     fired: np.ndarray  # (p,) bool: joints whose step test fired with a start near the onset
     next_try: float = -np.inf  # no confirming test before this time (a likely step gets another look)
+    verify: bool = False  # re-seated by the second look: a slip needs the same pose before to show it stayed
 
 
 class PendingSuspicions:
