@@ -140,23 +140,10 @@ class StallWatch:
 
 def worst_bird_match(src: OrbitSource, R, p, valid) -> tuple[float, float]:
     """Each decoded record against the nearest pose its own bird was given (any cycle): (worst rotation
-    error rad, worst position error m) — the decoding, apart from which cycle a record went to."""
-    TR, Tp = src.produced()
-    rot_err = pos_err = 0.0
-    for b in range(valid.shape[1]):
-        for f in np.flatnonzero(valid[:, b]):
-            cost = np.zeros(len(TR))
-            if np.isfinite(p[f, b]).all():
-                cost += np.abs(Tp[:, b] - p[f, b]).max(axis=1)
-            if np.isfinite(R[f, b]).all():
-                cost += np.abs(TR[:, b] - R[f, b]).max(axis=(1, 2))
-            k = int(np.argmin(cost))
-            if np.isfinite(p[f, b]).all():
-                pos_err = max(pos_err, float(np.linalg.norm(Tp[k, b] - p[f, b])))
-            if np.isfinite(R[f, b]).all():
-                cos = (np.trace(TR[k, b].T @ R[f, b]) - 1) / 2
-                rot_err = max(rot_err, float(np.arccos(np.clip(cos, -1, 1))))
-    return rot_err, pos_err
+    error rad, worst position error m) — the decoding, apart from which cycle a record went to.
+    `worst_match` run on one bird at a time."""
+    errs = [worst_match(src, R, p, valid & (np.arange(valid.shape[1]) == b))[:2] for b in range(valid.shape[1])]
+    return max(e[0] for e in errs), max(e[1] for e in errs)
 
 
 def worst_match(src: OrbitSource, R, p, valid) -> tuple[float, float, np.ndarray]:
