@@ -11,6 +11,10 @@ import threading
 from typing import Callable, Protocol
 
 import numpy as np
+# Quaternion records are encoded on the streaming thread, through scipy's Rotation, which flockcal.rotations
+# imports on first use (for the CLI's start-up): imported here, so a fake tracker's first quaternion cycles
+# do not wait ~0.2 s for it (they were lost, and the rest came in a burst).
+import scipy.spatial.transform  # noqa: F401
 
 from flockcal.drivers.hemispheres import fold_to_hemisphere
 from flockcal.drivers.records import DEFAULT_FORMAT, data_words, record_length
