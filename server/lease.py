@@ -21,14 +21,13 @@ WATCH_S = 0.5
 class SessionLeases:
     """Leases by session id on the monotonic wall clock (a page's absence is wall time, not session time).
 
-    `stop(session_id)` stops a session (SessionManager.stop); `add_event` queues an event and `set_note`
-    records why on the session's row."""
+    `stop(session_id, note=...)` stops a session (SessionManager.stop) and records why on its row in the
+    same update; `add_event` queues an event."""
 
-    def __init__(self, stop: Callable[[str], object], add_event: Callable[[dict], None],
-                 set_note: Callable[[str, str], None] | None = None, clock: Callable[[], float] = time.monotonic):
+    def __init__(self, stop: Callable[..., object], add_event: Callable[[dict], None],
+                 clock: Callable[[], float] = time.monotonic):
         self._stop = stop
         self._add_event = add_event
-        self._set_note = set_note
         self._clock = clock
         self._lock = threading.Lock()
         self._leases: dict[str, tuple[float, float]] = {}  # id → (lease_s, expires at)
@@ -93,8 +92,6 @@ class SessionLeases:
         try:
             self._add_event({"type": "session", "session_id": session_id, "action": "limit",
                              "reason": "lease_expired", "message": message})
-            self._stop(session_id)
-            if self._set_note is not None:
-                self._set_note(session_id, message)
+            self._stop(session_id, note=message)
         except Exception as exc:  # stopped meanwhile by a client or a limit: nothing left to do
             log.info("lease stop of %s: %s", session_id, exc)

@@ -56,8 +56,7 @@ class SessionManager:
         self.rate_hz = rate_hz
         self.profiles = profiles
         self.raw_recorder = raw_recorder
-        self.leases = SessionLeases(stop=self.stop, add_event=pipeline.add_event,
-                                    set_note=lambda sid, note: store.update_session(sid, note=note))
+        self.leases = SessionLeases(stop=self.stop, add_event=pipeline.add_event)
         self.retention = Retention(store, self, Path(data_dir), retention_policy or Policy(), pipeline.add_event,
                                    interval_s=retention_interval_s)
         self._lock = threading.Lock()  # one start/stop at a time
@@ -75,8 +74,7 @@ class SessionManager:
 
         def stop():
             try:
-                self.stop(limit.session_id)
-                self.update_row(limit.session_id, note=limit.message)
+                self.stop(limit.session_id, note=limit.message)
             except Exception as exc:  # stopped meanwhile by a client: nothing left to do
                 log.info("limit stop of %s: %s", limit.session_id, exc)
 
@@ -193,7 +191,9 @@ class SessionManager:
             raise Conflict(f"session {session_id} was started without a lease (POST /api/sessions with lease_s)")
         return {"session_id": session_id, "lease_s": lease, "expires_in_s": round(self.leases.remaining(session_id), 3)}
 
-    def stop(self, session_id: str) -> dict:
+    def stop(self, session_id: str, note: str | None = None) -> dict:
+        """Stop the live session; `note` says why when the service stopped it (a limit, a lapsed lease). It
+        lands in the same row update as the stopped state, so no reader sees one without the other."""
         with self._lock:
             row = self._row(session_id)
             if row["state"] != "live" or self.live_id() != session_id:
@@ -205,10 +205,13 @@ class SessionManager:
                 except FlockcalError as exc:
                     log.warning("raw recording did not close cleanly: %s", exc)
             live, result, error = self.pipeline.end_session()
-            note = None if result else f"no result: {error}"
+            notes = [note] if note else []
             if live.framelog.error is not None:
-                note = (f"recording stopped early ({live.framelog.error.strerror or live.framelog.error}): "
-                        f"{live.framelog.path.name} holds the frames written until then" + (f"; {note}" if note else ""))
+                notes.append(f"recording stopped early ({live.framelog.error.strerror or live.framelog.error}): "
+                             f"{live.framelog.path.name} holds the frames written until then")
+            if not result:
+                notes.append(f"no result: {error}")
+            note = "; ".join(notes) or None
             self.update_row(session_id, state="stopped", stopped_at=time.time(), frames=live.frames, result=result,
                             note=note, progress=live.cal.progress.to_dict() if result and live.cal.progress else None)
             self.pipeline.add_event({"type": "session", "session_id": session_id, "action": "stopped",
