@@ -20,8 +20,9 @@ import pytest
 
 from flockcal.drivers.assembly import FrameAssembler
 from flockcal.drivers.link import FlockSetup
-from flockcal.drivers.records import encode_records, quantisation_tolerance, record_length
+from flockcal.drivers.records import encode_records, record_length
 from flockcal.rotations import from_euler
+from quantisation import position_norm_m
 from real_captures import SHARED_DATA
 
 FAULTS = SHARED_DATA / "faults"
@@ -124,7 +125,7 @@ def test_forged_records_are_dropped_while_fast_motion_and_a_slip_are_kept(seed):
     near = np.clip(np.round(times * rate).astype(int)[:, None] + np.arange(-3, 4), 0, n - 1)
     cost = np.where(valid[:, None, :], np.linalg.norm(pos[:, None] - p[near], axis=-1), np.nan)
     k = near[np.arange(len(times)), np.argmin(np.nan_to_num(np.nanmedian(cost, axis=-1), nan=np.inf), axis=1)]
-    tol = quantisation_tolerance("position_quaternion", 72.0)[1] + 1e-9
+    tol = position_norm_m(72.0)  # the words' own rounding (tests/quantisation.py, not the driver's figure)
     # A damaged cycle boundary may put a bird's record from the cycle before or after into a frame (a
     # genuine pose, a frame early or late): a pose is off the truth when no neighbouring true frame has it.
     around = np.clip(k[:, None] + np.arange(-1, 2), 0, n - 1)
