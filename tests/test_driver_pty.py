@@ -91,9 +91,11 @@ class Collector:
         return [e.kind for e in self.events]
 
 
-def read_for(cfg: TrackerConfig, seconds: float, during=None, min_frames: int = 0) -> tuple[Collector, dict]:
-    """Stream for `seconds`, and on until `min_frames` frames have come (a starved machine delivers fewer
-    in the same time; 60 s at most), then stop."""
+def read_for(cfg: TrackerConfig, seconds: float, during=None, min_frames: int = 0,
+             until=None) -> tuple[Collector, dict]:
+    """Stream for `seconds`, and on until `min_frames` frames have come and `until(collector)` holds (a
+    starved machine delivers fewer in the same time, and re-initialises a flock slower; 60 s at most), then
+    stop."""
     col = Collector()
     reader = TrackerReader(cfg, on_frames=col.frames, on_event=col.event)
     watch = StallWatch().start()
@@ -103,7 +105,7 @@ def read_for(cfg: TrackerConfig, seconds: float, during=None, min_frames: int = 
             during()
         time.sleep(seconds)
         deadline = time.monotonic() + 60
-        while col.count() < min_frames and time.monotonic() < deadline:
+        while (col.count() < min_frames or (until and not until(col))) and time.monotonic() < deadline:
             time.sleep(0.05)
     finally:
         col.stopping = True
@@ -175,6 +177,22 @@ def worst_match(src: OrbitSource, R, p, valid) -> tuple[float, float, np.ndarray
     return rot_err, pos_err, np.array(idx)
 
 
+def answers_in_order(src: OrbitSource, R, p, rot_tol: float, pos_tol: float) -> bool:
+    """Whether every decoded frame (all birds valid) can be matched to a produced pose within the tolerances,
+    each to a later one than the frame before it: no frame repeats an answer and none comes out of order."""
+    TR, Tp = src.produced()
+    prev = -1
+    for f in range(len(p)):
+        pos = np.linalg.norm(Tp - p[f], axis=-1).max(axis=1)
+        cos = (np.einsum("kbji,bji->kb", TR, R[f]) - 1) / 2  # trace(TRᵀ R) per produced pose and bird
+        rot = np.arccos(np.clip(cos, -1, 1)).max(axis=1)
+        later = np.flatnonzero((pos <= pos_tol) & (rot <= rot_tol) & (np.arange(len(Tp)) > prev))
+        if not len(later):
+            return False
+        prev = int(later[0])
+    return True
+
+
 def fast_config(urls, birds, **kw) -> TrackerConfig:
     return TrackerConfig(urls=urls, birds=birds, timing=Timing.fast(), **kw)
 
@@ -243,9 +261,12 @@ def test_point_mode_polls_one_frame_per_poll():
     # 13 polls where 24 were due at load 11), and each frame a set of its own, none answered twice.
     assert 5 <= len(times) <= 1.2 * 20 * (times[-1] - times[0]) + 2, np.diff(times)
     rot_tol, pos_tol = tolerance("position_matrix")
-    rot_err, pos_err, idx = worst_match(src, R, p, valid)
+    rot_err, pos_err, _ = worst_match(src, R, p, valid)
     assert rot_err <= rot_tol + 1e-9 and pos_err <= pos_tol + 1e-9
-    assert len(set(np.asarray(idx).tolist())) == len(times)
+    # None answered twice: the answers come in poll order, so the frames must match produced poses in
+    # strictly increasing order. (Not "each its own nearest pose": two polls answered within a millisecond
+    # on a loaded machine give poses equal to the words' rounding, and the nearest of a tie is arbitrary.)
+    assert answers_in_order(src, R, p, rot_tol + 1e-9, pos_tol + 1e-9)
 
 
 def test_garbage_and_dropped_bytes_lose_only_damaged_records_and_never_a_corrupt_pose():
@@ -270,11 +291,21 @@ def test_garbage_and_dropped_bytes_lose_only_damaged_records_and_never_a_corrupt
     assert times[-1] - times[0] > 1.2, "the reader stopped after the faults"
 
 
+def streaming_again(col: Collector) -> bool:
+    """Connected a second time, with more than ten frames 2.4 s after the first (past the stall)."""
+    if col.kinds().count("connected") < 2 or not col.parts:
+        return False
+    times = np.concatenate([x[0] for x in col.parts])
+    return (times > times[0] + 2.4).sum() > 10
+
+
 def test_a_2s_stall_is_reported_and_the_flock_is_reinitialised():
     src = OrbitSource(4, seed=5)
     with PtyTracker(src, birds=4, baud=115200) as trk:
+        # Until the flock is back and streaming: at a load of 17 its re-initialisation took three attempts
+        # and was still going 0.9 s after the stall ended.
         col, status = read_for(fast_config([trk.device], 4, rate_hz=50, backoff=(0.1, 0.5)), 3.2,
-                               during=lambda: (time.sleep(0.3), trk.stall(2.0)))
+                               during=lambda: (time.sleep(0.3), trk.stall(2.0)), until=streaming_again)
     kinds = col.kinds()
     assert "stalled" in kinds and "reconnecting" in kinds
     assert kinds.count("connected") >= 2

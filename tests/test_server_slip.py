@@ -6,6 +6,8 @@ session's events and the result.
 
 from __future__ import annotations
 
+import io
+
 import httpx
 import numpy as np
 
@@ -27,11 +29,25 @@ SPACING_S = 10.0
 WARMUP_S = 20.0
 
 # Issue #20's promise for 2 cm slips 20 s or more into a session: found, the right sensor named, median
-# delay ≤ 0.5 s, worst ≤ 1.0 s. Held here on the event's own detected_s (session time, counted in frames,
-# so machine load does not enter), with a margin of 0.05 s: the sample time is known to a record's
-# transfer time and the detector steps in 0.1 s. Arrival at the client (wall time) depends on the load and
-# is a benchmark figure (benchmarks/bench_slippage_service.py), not held here.
+# delay ≤ 0.5 s, worst ≤ 1.0 s. Held here on the event's own detected_s, on the performer's clock: a frame's
+# session time is its arrival, which a starved host delays (at a load of 10-16 a pelvis slip's detection
+# frame was stamped late enough to read 1.083 s), so the delay is counted to the detection frame's place
+# on the tracker's 144 Hz grid (`on_time`), with a margin of 0.05 s: the sample time is known to a
+# record's transfer time and the detector steps in 0.1 s. Arrival at the client (wall time) depends on
+# the load and is a benchmark figure (benchmarks/bench_slippage_service.py), not held here.
 PROMISE_MEDIAN_S, PROMISE_WORST_S, DETECTED_MARGIN_S = 0.5, 1.0, 0.05
+RATE_HZ = 144.0  # the tracker's rate in the device URL below
+
+
+def on_time(times: np.ndarray, t: float, since: float) -> float:
+    """Session time `t` of a frame of the take (`times`, session seconds) less the host's delay in stamping
+    it: frames come at the tracker's rate, and a host only ever adds delay, so the earliest-stamped frames
+    since `since` place the grid, and a frame's lateness is how far it sits behind that grid."""
+    k = int(np.argmin(np.abs(times - t)))  # events give times to 0.1 ms; frames are 7 ms apart
+    assert abs(times[k] - t) <= 1e-4, f"no frame of the take at {t} s"
+    j = np.arange(int(np.searchsorted(times, since)), k + 1)
+    grid = np.min(times[j] - j / RATE_HZ)
+    return t - (times[k] - (grid + k / RATE_HZ))
 
 
 def test_slips_are_found_in_time_through_the_service(tmp_path):
@@ -58,6 +74,9 @@ def test_slips_are_found_in_time_through_the_service(tmp_path):
         r = httpx.post(srv.url + f"/api/sessions/{sid}/stop", timeout=60)
         assert r.status_code == 200, r.text
         result = httpx.get(srv.url + f"/api/sessions/{sid}/result", timeout=30).json()
+        take = httpx.get(srv.url + f"/api/sessions/{sid}/take", timeout=60)
+        assert take.status_code == 200, take.text
+        times = np.load(io.BytesIO(take.content))["times"]
     finally:
         srv.stop()
 
@@ -77,7 +96,9 @@ def test_slips_are_found_in_time_through_the_service(tmp_path):
     later = [e for e in events if e["time_s"] >= slips[0].at_s - 0.5]
     assert len(later) == len(found), f"slip events outside the slips' windows: {later}"
 
-    detected = np.array([s.detected_s for s in found])
+    # On the performer's clock: each detection frame less its stamping delay, from 5 s before the slip on.
+    detected = np.array([on_time(times, s.event["detected_s"], s.at_s - 5.0) - s.at_s for s in found])
+    report["stamped late by"] = [round(s.detected_s - d, 3) for s, d in zip(found, detected)]
     assert np.all(detected > 0), report
     assert np.median(detected) <= PROMISE_MEDIAN_S + DETECTED_MARGIN_S, report
     assert detected.max() <= PROMISE_WORST_S + DETECTED_MARGIN_S, report
