@@ -25,6 +25,12 @@ pose the best possible marker fit gives), and every true joint placed by plain l
 poses (a hinge given its true point along the axis): centres' offsets from the truth, and the bones.
 
     python benchmarks/bench_optical_sim.py --per-body 3 4 --seeds 0 1 2 --floor
+
+`--segmentation` runs the segmentation alone (a fraction of a second a take): the bodies and markers
+columns, and each found body that mixes true bodies or misses some of its own, marker by marker; what the
+segmentation rules are tried on first.
+
+    python benchmarks/bench_optical_sim.py --segmentation
 """
 
 from __future__ import annotations
@@ -236,6 +242,30 @@ def floor(routine: str, seed: int, sta_mm: float, seconds: float, rate_hz: float
     return np.array(offs), np.array(errs)
 
 
+def segmentation_lines(take, truth: dict) -> tuple[str, list[str]]:
+    """`segment_markers` alone on the take (the markers `fit_markers` keeps: seen in 20 % of the frames or
+    more): the figures of the table's "bodies" and "markers" columns, its time, and one line for each found
+    body that holds markers of more than one true body or not all of its own (each marker with its true body)."""
+    from flockcal.solver.optical.segmentation import segment_markers
+
+    keep = np.flatnonzero(np.isfinite(take.markers).all(-1).mean(0) >= 0.2)
+    names = [take.marker_names[i] for i in keep]
+    t0 = time.perf_counter()
+    seg = segment_markers(take.markers[:, keep])
+    wall = time.perf_counter() - t0
+    mb = truth["marker_body"]
+    found = {f"body{g}": [names[i] for i in grp] for g, grp in enumerate(seg.groups)}
+    to_true = matched(found, mb)
+    right = sum(to_true.get(f) == mb[m] for f, ms in found.items() for m in ms)
+    head = f"{len(found):>3}/{len(set(mb.values())):<3} {right / len(names):7.3f} {wall:6.2f}"
+    lines = []
+    for f, ms in found.items():
+        own = to_true.get(f)
+        if any(mb[m] != own for m in ms) or sum(mb[m] == own for m in names) != len(ms):
+            lines.append(f"        {f} ({own or 'no true body'}): " + ", ".join(f"{m} ({mb[m]})" for m in ms))
+    return head, lines
+
+
 def fresh_wall(take, tmp: Path) -> float:
     """Wall time of `flockcal fit-markers --json` on the take in a new interpreter."""
     from flockcal.markers import save_markers
@@ -265,8 +295,20 @@ def main() -> int:
     ap.add_argument("--joint-bias", action="store_true", help="print the joint centres' offset from the truth")
     ap.add_argument("--per-joint", action="store_true", help="with --joint-bias: a line a joint")
     ap.add_argument("--floor", action="store_true", help="print what the skin alone leaves (3+ markers a body)")
+    ap.add_argument("--segmentation", action="store_true",
+                    help="run the segmentation alone: bodies, markers right, its time, and the bodies it got wrong")
     args = ap.parse_args()
     from flockcal.solver.optical.pipeline import fit_markers
+
+    if args.segmentation:
+        print(f"{'routine':<7} {'seed':>4} {'k':>3} {'bodies':>7} {'markers':>7} {'seg s':>6}")
+        for routine in args.routines:
+            for seed in args.seeds:
+                take, truth = simulate(routine, seed, args.sta, args.seconds, args.rate, args.per_body)
+                head, lines = segmentation_lines(take, truth)
+                print(f"{routine:<7} {seed:>4} {take.markers.shape[1]:>3} {head}")
+                print("\n".join(lines)) if lines else None
+        return 0
 
     print(f"load average before: {' '.join(f'{x:.1f}' for x in os.getloadavg())}  (cores: {os.cpu_count()})")
     print(f"{'routine':<7} {'seed':>4} {'k':>3} {'bodies':>7} {'markers':>7} {'ARI':>6} {'edges':>6} {'wrong':>5} "

@@ -90,3 +90,34 @@ def test_two_marker_bodies_are_found_and_joined_by_their_point_joints(two_marker
     assert len(found - true) <= 2
     two = {b for b, ms in out["bodies"].items() if len(ms) == 2}
     assert out["point_joints"] and all(set(j) & two for j in out["point_joints"])
+
+
+def segmented(routine, seed):
+    """Bodies (sets of true body names, one per found body) and the truth of a 2-4-marker take of the
+    issue's conditions, from the segmentation alone."""
+    from flockcal.solver.optical.segmentation import segment_markers
+
+    take, truth = so.simulate_markers("human", routine, seconds=30, rate_hz=144, seed=seed, per_body=(2, 4),
+                                      noise_m=0.001, occlusion=0.036, n_swaps=1, sta_mm=8.0)
+    seg = segment_markers(take.markers)
+    names = take.marker_names
+    return [[truth["marker_body"][names[i]] for i in g] for g in seg.groups], truth
+
+
+def test_a_trunk_segment_of_two_markers_stays_off_the_body_beyond_its_joint():
+    # docs/optical.md, issue 31 ("a joint elsewhere"): the kiosk seed 8's pelvis of two markers moved within
+    # the 15 mm tolerance of the head, so the size put it there (15/16 bodies before); the abdomen pins the
+    # pelvis pair's joint within 5 mm (1.9 mm rms) and the head's markers' distances to that point vary by
+    # 11.3 mm rms, over the 10 mm. Now every body and every marker on its own.
+    bodies, truth = segmented("kiosk", 8)
+    assert len(bodies) == len(set(truth["marker_body"].values()))
+    assert all(len(set(b)) == 1 for b in bodies), [b for b in bodies if len(set(b)) > 1]
+
+
+def test_two_markers_of_one_segment_slid_apart_are_one_body_by_their_joint():
+    # docs/optical.md, issue 31 ("a lone pair"): the walk seed 3's right upper arm, its two markers'
+    # distance ranging over 15.1 mm (over the tolerance) so each was left a body of its own before; the
+    # chest pins the shoulder to them as a unit (2.0 mm, 3.5 mm rms). Now one body of exactly those two.
+    bodies, truth = segmented("walk", 3)
+    arm = [b for b in bodies if "r_upper_arm" in b]
+    assert arm == [["r_upper_arm", "r_upper_arm"]]

@@ -9,8 +9,11 @@ two groups with a pose of their own (three or more markers) is judged by `articu
 - "joint" (a joint pins the centre, design.md §3a): two bodies, at any size;
 - "moved" (turned beyond noise, no joint pinned) or unjudged (a group of one or two markers): the size
   decides, one body within the soft-tissue tolerance (`RIGID_TOLERANCE_M`).
-A second pass looks at each group from the others' frames (small rotations a distance hardly shows) with
-the same verdicts, and each marker finally goes to the body it is stillest in.
+Two markers the size would put with a framed group stay apart when a third framed group pins a joint to
+them that the group does not turn about (`Judge.joint_elsewhere`). A second pass looks at each group from
+the others' frames (small rotations a distance hardly shows) with the same verdicts, and each marker
+finally goes to the body it is stillest in; two markers left alone are one body when a framed body pins a
+joint to them as a unit (`pair_lone_markers`).
 """
 
 from __future__ import annotations
@@ -21,7 +24,7 @@ import numpy as np
 
 from flockcal.errors import FlockcalError
 from flockcal.solver.optical.articulation import (
-    JOINT_TOLERANCE_M, UNJUDGED, GroupPose, Verdict, group_pose, judge, point_joint, relative_motion,
+    JOINT_TOLERANCE_M, UNJUDGED, GroupPose, Verdict, group_pose, judge, point_joint, point_joints, relative_motion,
 )
 from flockcal.solver.optical.rigid import procrustes_mean, rigid_fit, to_body
 
@@ -257,8 +260,53 @@ class Judge:
                                    point_joint(pose, self.all[:, np.array(kb)], tolerance=tolerance))
         return self._verdicts[key]
 
-    def decide(self, a, b, motion: float, tolerance: float) -> tuple[Verdict, bool]:
-        """(verdict, whether a and b are one body by `joins`), read thoroughly where it matters."""
+    def pair_joint(self, framed, pair):
+        """The joint between the framed group `framed` and two markers `pair` when it is one a tree edge to
+        two markers asks (`two_marker.determined`: a point fixed in `framed`'s frame at constant distances
+        from both, "joint", pinned within PAIR_JOINT_M, their distances to it constant within
+        JOINT_TOLERANCE_M rms), read on every frame: (verdict, centre in `framed`'s frame); else None."""
+        key = ("pair_joint", tuple(sorted(int(i) for i in framed)), tuple(sorted(int(i) for i in pair)))
+        if key not in self._verdicts:
+            pose = self.pose(key[1], thorough=True)
+            self._verdicts[key] = None
+            if pose is not None:
+                pj = point_joints(pose, self.all[:, list(key[2])][:, None], PAIR_JOINT_M)
+                v = pj.verdicts[0]
+                if v.kind == "joint" and v.joint_error_m <= PAIR_JOINT_M and pj.rms_m[0] <= JOINT_TOLERANCE_M:
+                    self._verdicts[key] = (v, pj.centre[0])
+        return self._verdicts[key]
+
+    def joint_elsewhere(self, framed, pair, others) -> Verdict | None:
+        """Two markers `pair` are not of the framed group `framed` when a third framed group h (among
+        `others`) pins a joint to them (`pair_joint`) that `framed` does not turn about: `framed`'s markers
+        (up to JUDGED_MARKERS, spread) keep their distances to that point of h's frame no better than
+        JOINT_TOLERANCE_M rms, the pair's own bound. One rigid body turns about one point of a neighbour
+        (issue 31: a trunk segment of two markers that the size put with the body beyond its neighbour).
+        Returns the pair's joint verdict then, else None."""
+        mine = set(int(i) for i in framed) | set(int(i) for i in pair)
+        for h in others:
+            if mine & set(int(i) for i in h):
+                continue
+            joint = self.pair_joint(h, pair)
+            if joint is not None and self.radius_rms(h, framed, joint[1]) > JOINT_TOLERANCE_M:
+                return joint[0]
+        return None
+
+    def radius_rms(self, framed, group, centre: np.ndarray) -> float:
+        """Rms over up to JUDGED_MARKERS spread markers of `group` of their distance, in the frame of the
+        framed group `framed`, to the point `centre` of that frame about its mean (every frame)."""
+        from flockcal.solver.optical.two_marker import spread
+
+        pose = self.pose(framed, thorough=True)
+        pick = spread(self.all, np.asarray(sorted(int(i) for i in group)))
+        y = to_body(np.where(pose.ok[:, None, None], pose.R, np.eye(3)), pose.t, self.all[:, pick])[pose.ok]
+        d = np.linalg.norm(y - centre, axis=-1)
+        dev = d - np.nanmean(d, axis=0)[None]
+        return float(np.sqrt(np.nanmean(dev**2)))
+
+    def decide(self, a, b, motion: float, tolerance: float, others=()) -> tuple[Verdict, bool]:
+        """(verdict, whether a and b are one body by `joins`), read thoroughly where it matters. `others`:
+        the framed groups that may pin a joint to two markers elsewhere (`joint_elsewhere`)."""
         framed, few = (a, b) if len(a) >= len(b) else (b, a)
         if len(few) < FRAMED:
             verdict = UNJUDGED
@@ -270,6 +318,8 @@ class Judge:
                 # real knee trial's RTHI2+RTHI3 against the epicondyles and RTHI1: 8.9 mm). Read only
                 # where the size alone would merge them: beyond the tolerance it refuses anyway.
                 verdict = self.small(framed, few, PAIR_JOINT_M)
+                if verdict.kind != "joint":
+                    verdict = self.joint_elsewhere(framed, few, others) or verdict
             if motion <= tolerance and len(few) >= 2:
                 # Two markers with no pose of their own join a group only if they stay within the tolerance
                 # also where they moved most (5–95 %, not 10–90 %); a framed group's swaps left out. A lone
@@ -328,6 +378,10 @@ class Grouping:
     def members(self, g: int) -> np.ndarray:
         return np.flatnonzero(self.labels == g)
 
+    def framed(self) -> list[np.ndarray]:
+        """The members of every body with a frame of its own (FRAMED markers or more)."""
+        return [m for m in (self.members(g) for g in np.unique(self.labels)) if len(m) >= FRAMED]
+
     def merge(self, a: int, b: int, verdict: Verdict, motion: float, ranges: np.ndarray, in_frames: bool) -> None:
         """Body b into body a. Skin, a twist or an unjudged small group joins the part of the other body
         nearest to it (one part each side: the parts become one); groups that turned beyond noise ("moved",
@@ -368,7 +422,7 @@ def judged_linkage(ranges: np.ndarray, tolerance: float, judge_pair: Judge, grou
         d = float(open_[a, b])
         if not d <= reach:
             return
-        verdict, ok = judge_pair.decide(grouping.members(a), grouping.members(b), d, tolerance)
+        verdict, ok = judge_pair.decide(grouping.members(a), grouping.members(b), d, tolerance, grouping.framed())
         if not ok:
             refused[a, b] = refused[b, a] = True
             continue
@@ -417,7 +471,7 @@ def merge_still_bodies(markers: np.ndarray, grouping: Grouping, tolerance: float
                 key = (tuple(np.flatnonzero(labels == a)), tuple(np.flatnonzero(labels == b)))
                 if key in refused:
                     continue
-                verdict, ok = judge_pair.decide(*key, d, tolerance)
+                verdict, ok = judge_pair.decide(*key, d, tolerance, grouping.framed())
                 if not ok:
                     refused.add(key)
             if ok:
@@ -479,10 +533,34 @@ def adopt_small_pieces(grouping: Grouping, tolerance: float, ranges: np.ndarray,
         d, g, h = best
         if len(grouping.members(g)) == 2:
             verdict = judge_pair.small(grouping.members(h), grouping.members(g))
+            if verdict.kind != "joint":
+                verdict = judge_pair.joint_elsewhere(grouping.members(h), grouping.members(g), grouping.framed()) or verdict
             if not joins(verdict, d, tolerance):
                 refused.add((g, h))
                 continue
         grouping.merge(h, g, Verdict("unjudged", float("nan"), float("nan")), d, ranges, in_frames=False)
+
+
+def pair_lone_markers(grouping: Grouping, tolerance: float, ranges: np.ndarray, judge_pair: Judge) -> None:
+    """Two markers left alone (no framed body within the skin's reach adopted them) whose distance varies
+    beyond the tolerance but within the skin's reach (SKIN_REACH × tolerance: one segment's two markers,
+    each slid by a joint at either end) are one body when a framed body pins a joint to them as a unit
+    (`Judge.pair_joint`: a point of its frame at constant distances from both). Markers of two segments
+    with a joint between them do not both turn about one point of a third body. Closest pairs first
+    (issue 31: the simulated walk seed 3's right upper arm, 15.1 mm of distance range, its shoulder pinned
+    to 2.0 mm from the chest)."""
+    ids = np.unique(grouping.labels)
+    lone = [int(grouping.members(g)[0]) for g in ids if len(grouping.members(g)) == 1]
+    pairs = sorted((float(ranges[i, j]), i, j) for n, i in enumerate(lone) for j in lone[n + 1:]
+                   if ranges[i, j] <= SKIN_REACH * tolerance)
+    used: set = set()
+    for d, i, j in pairs:
+        if used & {i, j}:
+            continue
+        if any(judge_pair.pair_joint(f, [i, j]) is not None for f in grouping.framed()):
+            # One part: the two are one segment's markers, like a small piece adopted by a body.
+            grouping.merge(int(grouping.labels[i]), int(grouping.labels[j]), UNJUDGED, d, ranges, in_frames=False)
+            used |= {i, j}
 
 
 def judging_frames(n: int, runs: int = RUNS, run: int = RUN_FRAMES) -> np.ndarray:
@@ -524,6 +602,7 @@ def segment_markers(
     merge_still_bodies(M, grouping, tolerance, judge_pair, ranges, n_groups)
     if n_groups is None:
         adopt_small_pieces(grouping, tolerance, ranges, judge_pair)
+        pair_lone_markers(grouping, tolerance, ranges, judge_pair)
     labels = canonical(grouping.labels)
     G = int(labels.max()) + 1
     internal = np.zeros(G)
