@@ -1,0 +1,191 @@
+"""The service's threads' work measured in process, where the load of a shared machine moves the figures far
+less than it moves a whole service's (issue 33): CPU time of the thread doing it (`time.thread_time`).
+
+- replay: 40 s of 16 birds at 144 Hz (the exercise bench_server.py's fake tracker plays) into a session's
+  `LiveCalibration` as the pipeline thread drives it — reader hand-overs of `--chunk` frames, a refit of
+  `fit_input` every 1/30 s of session time folded in with `add_fit` — split into the pipeline's side
+  (`add_frames`: accumulator, slip loop, residuals; `add_fit`: progress) and the fit's (`solve_fit`).
+  A digest of everything it returned (slip events, residual samples, progress) says whether two codes
+  decide the same.
+- reader: the tracker reader (`TrackerReader`, the service's 5 ms hand-over) on a pty fake tracker at
+  921600 baud for `--reader-seconds`: its thread's CPU and wake-ups a second.
+
+    python benchmarks/bench_service_parts.py [--seconds 40] [--reader-seconds 15] [--chunk 1]
+    python benchmarks/bench_service_parts.py --ab main --rounds 3
+
+`--ab REV` runs REV's code (exported as bench_server.py does) and this tree's in turn, each in a fresh
+process, the order swapped every round, and prints each pair's ratio B/A. Asserts nothing.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import os
+import shutil
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as `flockcal serve` runs BLAS (set before numpy loads)
+
+import numpy as np  # noqa: E402
+
+RATE = 144.0
+FIT_HZ = 30.0
+
+
+def replay(seconds: float, chunk: int) -> dict:
+    from flockcal.frames import Frames
+    from flockcal.server.fitting import solve_fit
+    from flockcal.simulator.performer import Performer
+    from flockcal.solver.live import LiveCalibration
+    from flockcal.solver.progress import profile
+
+    perf = Performer("human", "exercise", seed=1, rate_hz=RATE)
+    n = int(seconds * RATE)
+    times = np.arange(n) / RATE
+    R, t, v = perf.poses(times)
+    live = LiveCalibration(perf.names, RATE, profile("stage", 0.005), detect_slips=True, residual_period_s=1 / 20)
+    digest = hashlib.sha256()
+    cpu = {"add_frames": 0.0, "add_fit": 0.0, "fit": 0.0}
+    counts = {"events": 0, "fits": 0}
+
+    def keep(update) -> None:
+        counts["events"] += len(update.events)
+        digest.update(repr([(type(e).__name__, e.time_s, getattr(e, "sensor", None)) for e in update.events]).encode())
+        digest.update(repr([(r.time_s, r.rms_m.tobytes()) for r in update.residuals]).encode())
+        if update.progress is not None:
+            digest.update(repr(update.progress.to_dict()).encode())
+
+    next_fit = 0.0
+    for a in range(0, n, chunk):
+        sl = slice(a, a + chunk)
+        frames = Frames(5000.0 + times[sl], R[sl], t[sl], v[sl])
+        c0 = time.thread_time()
+        update = live.add_frames(frames)
+        cpu["add_frames"] += time.thread_time() - c0
+        keep(update)
+        if live.time_s >= next_fit and live.fit_due:
+            c0 = time.thread_time()
+            job = live.fit_input()
+            cal = solve_fit(job.acc, perf.names, None, None, None, 0.005)
+            c1 = time.thread_time()
+            update = live.add_fit(cal, job.time_s, job.epoch)
+            cpu["add_fit"] += time.thread_time() - c1
+            cpu["fit"] += c1 - c0
+            counts["fits"] += 1
+            keep(update)
+            next_fit += 1 / FIT_HZ
+    keep(live.finish())
+    pct = {k: 100.0 * s / seconds for k, s in cpu.items()}
+    return {"pipeline": pct["add_frames"] + pct["add_fit"], "progress": pct["add_fit"], "fit": pct["fit"],
+            "fits": counts["fits"], "events": counts["events"], "digest": digest.hexdigest()[:16]}
+
+
+def _thread_stats(name: str) -> tuple[float, int]:
+    for tid in os.listdir("/proc/self/task"):
+        try:
+            if Path(f"/proc/self/task/{tid}/comm").read_text().strip() != name:
+                continue
+            fields = Path(f"/proc/self/task/{tid}/stat").read_text().rsplit(")", 1)[1].split()
+            status = Path(f"/proc/self/task/{tid}/status").read_text().splitlines()
+        except OSError:
+            continue
+        wakes = next(int(line.split()[1]) for line in status if line.startswith("voluntary_ctxt_switches"))
+        return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK"), wakes
+    raise SystemExit(f"bench_service_parts: no thread named {name}")
+
+
+def reader(seconds: float) -> dict:
+    from flockcal.drivers.link import Timing
+    from flockcal.drivers.reader import TrackerConfig, TrackerReader
+    from flockcal.simulator.performer import Performer
+    from flockcal.simulator.pty_tracker import PtyTracker
+
+    pty = PtyTracker(Performer("human", "exercise", seed=1, rate_hz=RATE), birds=16, baud=921600, rate_hz=RATE).start()
+    got = [0]
+    rd = TrackerReader(TrackerConfig(urls=[pty.device], birds=16, rate_hz=RATE, baud=921600, scale_inches=72,
+                                     timing=Timing.fast(), batch_interval=0.005),
+                       on_frames=lambda f: got.__setitem__(0, got[0] + len(f)))
+    try:
+        rd.start(wait=30)
+        time.sleep(2.0)  # past the set-up and the assembler's anchoring
+        c0, w0, n0, t0 = *_thread_stats("fc-tracker"), got[0], time.monotonic()
+        time.sleep(seconds)
+        c1, w1, n1, t1 = *_thread_stats("fc-tracker"), got[0], time.monotonic()
+    finally:
+        rd.stop()
+        pty.stop()
+    span = t1 - t0
+    return {"reader": 100.0 * (c1 - c0) / span, "wakeups": (w1 - w0) / span, "frames_hz": (n1 - n0) / span}
+
+
+def run_side(pythonpath: str | None, args) -> dict:
+    env = dict(os.environ)
+    if pythonpath:
+        env["PYTHONPATH"] = pythonpath + os.pathsep + env.get("PYTHONPATH", "")
+    cmd = [sys.executable, __file__, "--one", "--seconds", str(args.seconds), "--reader-seconds",
+           str(args.reader_seconds), "--chunk", str(args.chunk)]
+    out = subprocess.run(cmd, env=env, capture_output=True, text=True, timeout=1800)
+    if out.returncode != 0:
+        raise SystemExit(f"bench_service_parts: a side failed:\n{out.stderr[-2000:]}")
+    return json.loads(out.stdout.strip().splitlines()[-1])
+
+
+def show(label: str, r: dict) -> str:
+    return (f"{label}pipeline side {r['pipeline']:5.2f} % (progress {r['progress']:4.2f}), fit {r['fit']:5.2f} % "
+            f"({r['fits']} fits), {r['events']} slip events, digest {r['digest']}; reader {r['reader']:4.2f} %, "
+            f"{r['wakeups']:.0f} wake-ups/s, {r['frames_hz']:.1f} frames/s; load {r['load']:.1f}")
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--seconds", type=float, default=40.0, help="length of the replay")
+    ap.add_argument("--reader-seconds", type=float, default=15.0, help="window of the reader's measurement (0: none)")
+    ap.add_argument("--chunk", type=int, default=1, help="frames per reader hand-over in the replay")
+    ap.add_argument("--ab", metavar="REV", help="A/B mode: git revision REV's code against this tree's, in turn")
+    ap.add_argument("--rounds", type=int, default=3, help="A/B mode: runs of each side (default 3)")
+    ap.add_argument("--one", action="store_true", help=argparse.SUPPRESS)  # one side, as JSON (A/B's child)
+    args = ap.parse_args(argv)
+    if args.one or not args.ab:
+        r = replay(args.seconds, args.chunk)
+        r.update(reader(args.reader_seconds) if args.reader_seconds > 0 else
+                 {"reader": float("nan"), "wakeups": float("nan"), "frames_hz": float("nan")})
+        r["load"] = os.getloadavg()[0]
+        print(json.dumps(r) if args.one else show("", r))
+        return 0
+
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from bench_server import export_revision  # noqa: E402
+
+    tmp = tempfile.mkdtemp(prefix="flockcal-ab-")
+    try:
+        sides = {"A": export_revision(args.ab, tmp), "B": None}
+        print(f"A/B: A = {args.ab}, B = this tree; replay {args.seconds:g} s in {args.chunk}-frame hand-overs, "
+              f"reader {args.reader_seconds:g} s, {args.rounds} rounds", flush=True)
+        runs = []
+        for k in range(args.rounds):
+            for side in ("AB" if k % 2 == 0 else "BA"):
+                r = run_side(sides[side], args)
+                runs.append((side, r))
+                print(show(f"  round {k + 1} {side}: ", r), flush=True)
+        for key in ("pipeline", "progress", "fit", "reader", "wakeups"):
+            ratios = []
+            for k in range(0, len(runs) - 1, 2):
+                (s0, r0), (s1, r1) = runs[k], runs[k + 1]
+                a, b = (r0, r1) if s0 == "A" else (r1, r0)
+                ratios.append(b[key] / a[key] if a[key] else float("nan"))
+            print(f"  {key:9s} B/A per round: {' '.join(f'{x:.2f}' for x in ratios)}; median {np.median(ratios):.2f}")
+        same = len({r["digest"] for _, r in runs}) == 1
+        print(f"  the same slip events, residuals and progress on both sides: {'yes' if same else 'NO'}")
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
