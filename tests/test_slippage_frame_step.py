@@ -20,8 +20,7 @@ from slip_scoring import attributes_slip_to
 from slip_replay import frames, tree
 
 RATE = 144.0
-# Issue 32's promise is 1 s; the frame test needs 0.3 s of frames after the step, so these are found in
-# 0.35-0.6 s here.
+# Issue 32's promise is 1 s (the frame test needs 0.3 s of frames after the step before it can see it).
 WITHIN_S = 1.0
 # At 19.69 s of kiosk seed 1 both arms start a slot's first sweep: every upper-body slip there is missed
 # within 1 s by the confirming test alone (bench_slip_sweep.py --routines kiosk --seeds 1 --list).
