@@ -11,6 +11,7 @@ pose seen before overrule it. Only then is an event reported.
 
 from __future__ import annotations
 
+from collections import deque
 from dataclasses import dataclass
 
 import numpy as np
@@ -18,6 +19,7 @@ import numpy as np
 from flockcal.errors import FlockcalError
 from flockcal.solver.slippage.attribution import Attribution, Window, attribute
 from flockcal.solver.slippage.buffer import FrameBuffer
+from flockcal.solver.slippage.framestep import frame_steps, step_contrast
 from flockcal.solver.slippage.baseline import SmoothBaseline, neighbours, smooth_baseline
 from flockcal.solver.slippage.pending import PendingSuspicions, Suspicion
 from flockcal.solver.slippage.revisit import CAME_BACK_NATS, PoseHistory, came_back
@@ -111,7 +113,10 @@ class SlipMonitor:
     or more joints, for a leaf) scores a suspicion the default does not confirm again with those shares,
     and reports its slip only where the same pose before the onset shows the step stayed; it raised no
     false alarm in fresh kiosk guests but finds too few more slips to reach issue 32's target, so it is
-    off too (same page).
+    off too (same page). `frame_step` (nats; None: off) puts a suspicion the confirming test does not
+    confirm to a test that needs no pose model: a step at one frame, shared by every joint of a sensor in
+    its own frame, against a cubic in time and each joint's own rotation over ±`frame_step_s`
+    (`framestep`); the suspicion is kept until that test has seen `frame_step_s` past its onset.
     """
 
     def __init__(self, joints, n_sensors: int, rate_hz: float, names=None, *,
@@ -121,7 +126,8 @@ class SlipMonitor:
                  step_s: float = 0.1, min_frames: int = 4, min_evidence: float = 20.0,
                  scale_floor_m: float = 2e-4, max_rms_m: float = 0.05, revisit_s: float = 40.0,
                  merge_s: float = 0.05, extrapolation_share: tuple[float, ...] = (1.0, 1.0, 1.0),
-                 reseat_refuted: bool = False, second_look: tuple[float, float] | None = None):
+                 reseat_refuted: bool = False, second_look: tuple[float, float] | None = None,
+                 frame_step: float | None = None, frame_step_s: float = 0.3):
         J = _checked_joints(joints, n_sensors)
         if not rate_hz > 0:
             raise SlippageError(f"rate_hz must be positive, got {rate_hz!r}")
@@ -136,6 +142,14 @@ class SlipMonitor:
             raise SlippageError("extrapolation_share is (step test, confirming test of a sensor with two or more "
                                 f"joints, of a sensor with one), each within [0, 1]: {extrapolation_share!r}")
         self.extrapolation_share = tuple(float(x) for x in share)
+        self.frame_step = None if frame_step is None or not frame_step > 0 else float(frame_step)
+        self._half = max(4, int(round(frame_step_s * rate_hz)))
+        self._contrast = step_contrast(self._half)
+        self._search_back = int(round(0.1 * rate_hz))
+        self._search_ahead = int(round(0.3 * rate_hz))
+        self.frame_steps = 0  # slips confirmed by the frame-rate step test where the default did not
+        # The latest frame tests' best steps: (onset time, sensor, score, evidence, disagreement, jump m).
+        self.frame_log: deque = deque(maxlen=2000)
         self.reseat_refuted = bool(reseat_refuted)
         if second_look is None or len(second_look) == 0:
             self.second_look = None
@@ -391,9 +405,12 @@ class SlipMonitor:
         look = self.second_look is not None
         # With the second look, what the first round's test decides stays as it was, except that a suspicion
         # re-seated from a refuted onset (below) must show the same verdict as the second look's slips.
-        att, later = self._attribute(onset, fired, ready, c, l, last, more_looks,
-                                     reseat=False if look else None, verify=item.verify)
-        if att.kind is None and later is None and look:
+        if item.frame_only:  # (the confirming test refuted it already: it would only refute it again)
+            att, later = Attribution(None), None
+        else:
+            att, later = self._attribute(onset, fired, ready, c, l, last, more_looks,
+                                         reseat=False if look else None, verify=item.verify)
+        if att.kind is None and later is None and look and not item.frame_only:
             # The second look: scored counting `second_look` of the lagged baseline's extrapolation as noise
             # (none, as the limbs move into a new pose, where it is most of it); a slip it names stands only
             # where the same pose before the onset shows the step stayed (`_attribute`).
@@ -405,6 +422,10 @@ class SlipMonitor:
                 att = second
             else:
                 att = Attribution(None, evidence=max(att.evidence, second.evidence))
+        wait = False
+        if att.kind is None and later is None and self.frame_step is not None:
+            att, onset, wait = self._frame_step(item, fired, ready, c, l, last, att)
+            t_onset = float(buf.times[buf.slot(onset)])
         if later is not None:
             # The step this suspicion would confirm starts well after its onset: a slip landed inside the
             # window of a suspicion kept for another look. Test it again at the step's own start.
@@ -414,9 +435,11 @@ class SlipMonitor:
             self.reseated += 1
             return False, []
         if att.kind is None:
-            if more_looks and att.evidence > 0:
-                # A step is likelier than not, but not yet by the margin: look again one step later.
+            if more_looks and (att.evidence > 0 or wait):
+                # A step is likelier than not, but not yet by the margin: look again one step later. (Or the
+                # frame-rate step test cannot see far enough past the onset yet: only it looks again.)
                 item.next_try = now + self.step_s - 0.5 / self.rate_hz
+                item.frame_only = item.frame_only or not att.evidence > 0
                 return False, []
             self._pending.judged(item, last, self._quiet)
             return True, []
@@ -438,6 +461,38 @@ class SlipMonitor:
         gone[affected] = True
         self._pending.forget(gone)
         return True, [ev]
+
+    def _frame_step(self, item: Suspicion, fired, ready, c, l, last: int, att: Attribution):
+        """A suspicion the confirming test did not confirm, put to the frame-rate step test: every sensor at
+        either end of its joints, onsets from a little before its own to the latest the test can see (those
+        an earlier look tested are not tested again: their windows have not changed)."""
+        buf = self._buf
+        h = self._half
+        onset = item.onset
+        lo_g = max(onset - self._search_back, item.frame_tested)
+        hi_g = min(last - h + 2, onset + self._search_ahead)
+        more = hi_g < onset + self._search_ahead
+        if hi_g <= lo_g:  # nothing new the test can see yet: ask for another look while there is more to see
+            return att, onset, more
+        item.frame_tested = hi_g
+        rows = slice(buf.slot(max(lo_g - h, buf.first_index)), buf.slot(last) + 1)
+        base = buf.index_of(rows.start)
+        sensors = np.unique(self.joints[fired])
+        found = frame_steps(buf.g[rows], buf.Q[rows], buf.pv[rows], c, l, self.joints, sensors, ready,
+                            lo_g - base, hi_g - base, h, self.scale_floor, self._contrast)
+        for f in found:
+            self.frame_log.append((float(buf.times[rows.start + f.onset]), self.names[f.sensor], f.score, f.evidence,
+                                   f.disagreement, float(np.linalg.norm(f.step))))
+        good = [f for f in found if f.score >= self.frame_step and np.linalg.norm(f.step) >= self.min_jump]
+        if not good:
+            return att, onset, more
+        best = max(good, key=lambda f: f.score)
+        J = self.joints
+        mine = np.flatnonzero((J[:, 0] == best.sensor) | (J[:, 1] == best.sensor))
+        cands = [(best.sensor, 1.0)] + [(f.sensor, 0.0) for f in good if f is not best]
+        self.frame_steps += 1
+        return Attribution("slip", best.sensor, -1, cands, 1.0, mine.tolist(), float(np.linalg.norm(best.step)),
+                           best.score, best.step), base + best.onset, False
 
     def _deviations(self, first: int, c, l) -> None:
         """Bring the buffer's deviations and noise weights up to date from global frame `first` on.
