@@ -14,6 +14,7 @@ import struct
 import time
 
 import httpx
+import numpy as np
 import pytest
 import websockets
 
@@ -349,11 +350,23 @@ def test_the_documented_token_examples_are_accepted():
 def test_residuals_and_events_come_in_pages_that_say_there_is_more(open_server):
     srv = open_server
     sid = httpx.post(srv.url + "/api/sessions", json={"performer": "Pages"}).json()["id"]
-    time.sleep(2.5)
-    httpx.post(srv.url + f"/api/sessions/{sid}/stop", timeout=30)
     base = srv.url + f"/api/sessions/{sid}"
+    # The series starts with the first fit: wait (by the session's clock, not the wall's) until it holds a
+    # second of samples after its first, and the session 2.5 s.
+    deadline = time.monotonic() + 60
+    while not ((series := httpx.get(base + "/residuals").json()["times"]) and series[-1] - series[0] >= 1.0
+               and httpx.get(srv.url + "/api/status").json()["session"]["time_s"] >= 2.5):
+        assert time.monotonic() < deadline, f"no second of residual samples within 60 s: {series}"
+        time.sleep(0.05)
+    httpx.post(srv.url + f"/api/sessions/{sid}/stop", timeout=30)
     whole = httpx.get(base + "/residuals").json()
-    assert not whole["more"] and len(whole["times"]) >= 20  # 20 samples a second
+    times = whole["times"]
+    assert not whole["more"] and len(times) >= 20
+    # 20 samples a second of session time (docs/server.md), however the service's hand-overs fell: one per
+    # 50 ms boundary the frames crossed, the last at the session's end. Margin: 1 in 20 lost to a gap in the
+    # frames. (One sample per hand-over gave 19 in 2.1 s with 0.58 s gaps at a load of 15.)
+    assert len(times) >= 0.95 * 20 * (times[-1] - times[0]), (len(times), times[0], times[-1])
+    assert max(np.diff(times)) < 0.2, times
     # Pages of 7, followed by next_since, give every sample exactly once, the newest included.
     times, since = [], None
     while True:
