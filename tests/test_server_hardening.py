@@ -251,25 +251,55 @@ def test_huge_numbers_and_deep_nesting_get_a_4xx_and_the_connection_lives_on(ope
 
 # --- 8. failed tokens back off ----------------------------------------------------------------------------
 def test_repeated_wrong_tokens_make_the_address_wait(tmp_path):
+    # docs/service.md: after 10 unrecognised tokens an address waits 1 s, doubling with each further failure.
+    # The checks below must land inside the wait, which runs on the wall clock from the failure: on a loaded
+    # machine (load 10-17) the websocket connected after a 1 s wait had run out and was let in. So an
+    # answer that lets the address in counts only once the wait has run out by the test's clock; then the
+    # address fails once more (the wait doubles) and the checks run again, at most 5 times (a 16 s wait).
     settings = Settings(device=sim("backoff"), birds=4, http_port=free_port(), data_dir=tmp_path, token=ADMIN)
     with ServerThread(settings) as srv:
         wait_connected(srv.url, token=ADMIN)
         url = srv.url + "/api/status"
-        codes = [httpx.get(url, headers={"Authorization": f"Bearer guess-{k:06d}"}).status_code for k in range(11)]
-        assert codes == [401] * 11  # the first guesses are merely refused
-        # Now the address waits: a guess, and even the right token, get 429 with the time to wait.
-        r = httpx.get(url, headers={"Authorization": "Bearer guess-again"})
-        assert r.status_code == 429 and int(r.headers["retry-after"]) >= 1 and "wait" in r.json()["detail"]
-        assert httpx.get(url, headers={"Authorization": f"Bearer {ADMIN}"}).status_code == 429
-        # The websocket answers the same way (a token in the URL is checked through the same back-off).
+
+        def status(token: str) -> httpx.Response:
+            return httpx.get(url, headers={"Authorization": f"Bearer {token}"})
 
         async def socket_attempt():
             async with websockets.connect(srv.url.replace("http://", "ws://") + f"/ws/live?token={ADMIN}") as ws:
                 return json.loads(await ws.recv())
 
-        assert "wait" in asyncio.run(socket_attempt())["message"]
-        time.sleep(int(r.headers["retry-after"]) + 0.2)
-        assert httpx.get(url, headers={"Authorization": f"Bearer {ADMIN}"}).status_code == 200
+        codes = [status(f"guess-{k:06d}").status_code for k in range(10)]
+        assert codes == [401] * 10  # the first guesses are merely refused
+        failures = 10
+        for attempt in range(5):
+            failed_at = time.monotonic()  # the wait runs from the service's failure, after this
+            assert status(f"guess-x{attempt}").status_code == 401
+            failures += 1
+            wait_s = 2.0 ** (failures - 11)
+            # Now the address waits: a guess, and even the right token, get 429 with the time to wait, and
+            # the websocket answers the same way (a token in the URL is checked through the same back-off).
+            guess = status("guess-again")
+            guessed = time.monotonic()
+            failures += guess.status_code == 401
+            right = status(ADMIN)
+            righted = time.monotonic()
+            first = asyncio.run(socket_attempt())
+            answered = time.monotonic()
+            if guess.status_code == right.status_code == 429 and first["type"] == "error":
+                break
+            # Let in: only once the wait had run out (each answer came after the service's check).
+            for code, late, what in ((guess.status_code == 429, guessed, "a guess"),
+                                     (right.status_code == 429, righted, "the right token"),
+                                     (first["type"] == "error", answered, f"the websocket ({first})")):
+                assert code or late - failed_at >= wait_s, f"{what} let in {late - failed_at:.2f} s into a {wait_s:g} s wait"
+            while status(ADMIN).status_code == 429:  # the wait ran out part way: let it run out whole
+                time.sleep(0.1)
+        else:
+            raise AssertionError("5 waits of up to 16 s ran out before the checks inside them were done")
+        assert int(guess.headers["retry-after"]) >= 1 and "wait" in guess.json()["detail"]
+        assert "wait" in first["message"], first
+        time.sleep(int(right.headers["retry-after"]) + 0.2)
+        assert status(ADMIN).status_code == 200
 
 
 # --- 9. names, messages, documented figures ---------------------------------------------------------------
