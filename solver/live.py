@@ -81,6 +81,7 @@ class ResidualSampler:
         self._joints: tuple = ()
         self._sumsq = self._count = None
         self._cell: int | None = None  # floor(time / period) of the newest frame gathered
+        self._emitted = -np.inf  # time of the newest sample
         self._time = 0.0
         self._joint_cache: tuple[Calibration, FitJoints] | None = None
 
@@ -132,6 +133,7 @@ class ResidualSampler:
             if c[k].any():
                 rms = np.sqrt(np.maximum(s[k], 0.0) / np.maximum(c[k], 1))  # (a difference: never below 0)
                 out.append(JointResiduals(float(ts[end - 1]), self._joints, np.where(c[k] > 0, rms, np.nan)))
+                self._emitted = float(ts[end - 1])
         self._sumsq = sumsq[-1] - sumsq[rows[-1]]
         self._count = count[-1] - count[rows[-1]]
         self._time = float(ts[-1])
@@ -145,6 +147,12 @@ class ResidualSampler:
         sample = JointResiduals(self._time, self._joints, np.where(self._count > 0, rms, np.nan))
         self._sumsq[:] = 0
         self._count[:] = 0
+        if self._time <= self._emitted:
+            # Frames at the newest sample's instant (a loaded reader clamps late, back-dated frames to the
+            # time before them) give no sample of their own: two at one time would make a page boundary
+            # (`since`, exclusive) skip one.
+            return []
+        self._emitted = self._time
         return [sample]
 
 

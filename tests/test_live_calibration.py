@@ -152,6 +152,25 @@ def test_residual_samples_match_the_poses(chunk):
     assert lo == pytest.approx(every[-1], abs=1e-6)  # the last sample ends on the last frame
 
 
+def test_frames_at_the_last_samples_instant_give_no_second_sample_at_that_time():
+    # A loaded reader clamps late, back-dated frames to the time of the frame before them (drivers/assembly.py):
+    # frames after a sample's closing frame at its very time. The session's end (and a new tree) flushed them
+    # as a sample of their own at that time; two samples at one time made a page of /residuals (since=,
+    # exclusive) skip one. What was tried: a second of frames, then three at the last frame's time, finish.
+    perf = performer()
+    live = live_for(perf, given_tree(perf), detect_slips=False)
+    drive(live, perf, 6.0, fit=False)
+    live.add_fit(solve(live.fit_input().acc, perf.names, given_tree(perf), "pelvis"), live.time_s, 0)
+    every = live.time_s + 0.0125 + np.arange(100) / RATE
+    every[-1] = every[-2] + 0.0375  # the last frame just past a boundary: it closes a sample
+    samples = live.add_frames(Frames(T0 + every, *perf.poses(every))).residuals
+    again = np.full(3, every[-1])
+    samples += live.add_frames(Frames(T0 + again, *perf.poses(again))).residuals
+    samples += live.finish().residuals
+    times = np.array([s.time_s for s in samples])
+    assert times[-1] == pytest.approx(every[-1]) and np.all(np.diff(times) > 0), times
+
+
 def test_a_failing_slip_watch_is_reported_once_and_loses_no_frame():
     # A monitor that raises (what was tried: its add_frames replaced by one that raises) stops the watch for
     # good: the update of that step carries the exception once, later ones none, and every frame still

@@ -8,6 +8,7 @@ A real uvicorn on a free loopback port reading the built-in sim:// tracker; webs
 from __future__ import annotations
 
 import asyncio
+import io
 import json
 import socket
 import struct
@@ -393,10 +394,14 @@ def test_residuals_and_events_come_in_pages_that_say_there_is_more(open_server):
     times = whole["times"]
     assert not whole["more"] and len(times) >= 20
     # 20 samples a second of session time (docs/server.md), however the service's hand-overs fell: one per
-    # 50 ms boundary the frames crossed, the last at the session's end. Margin: 1 in 20 lost to a gap in the
-    # frames. (One sample per hand-over gave 19 in 2.1 s with 0.58 s gaps at a load of 15.)
-    assert len(times) >= 0.95 * 20 * (times[-1] - times[0]), (len(times), times[0], times[-1])
-    assert max(np.diff(times)) < 0.2, times
+    # 50 ms boundary the recorded frames crossed (a starved reader leaves gaps in their times), counted here
+    # from the take's frame times; 2 spare for where the two clocks start. (One sample per hand-over gave 19
+    # in 2.1 s with 0.58 s gaps at a load of 15, ~16 a second on a quiet machine.)
+    with np.load(io.BytesIO(httpx.get(base + "/take", timeout=60).content)) as take:
+        frame_times = take["times"]
+    reached = np.floor(frame_times[(frame_times > times[0]) & (frame_times <= times[-1])] / 0.05)
+    assert len(times) >= len(np.unique(reached)) - 2, (len(times), len(np.unique(reached)), times)
+    assert np.all(np.diff(times) > 0), times  # one sample per instant: paging by time needs it
     # Pages of 7, followed by next_since, give every sample exactly once, the newest included.
     times, since = [], None
     while True:
