@@ -118,6 +118,12 @@ class DownloadSlots:
         with self._lock:
             self.running -= 1
 
+    def status(self) -> dict:
+        """For /api/status: the slots (`limit`), those held now (`running`), the stall time and how many
+        downloads it has cut off (`stalled`)."""
+        with self._lock:
+            return {"limit": self.limit, "running": self.running, "stall_s": self.stall_s, "stalled": self.stalled}
+
     def guard(self, stream: Iterator[bytes]) -> "Slotted":
         return Slotted(stream, self.release)
 

@@ -225,6 +225,9 @@ class Status(Open):
                                                "since, message (server/limits.py)")
     connections: dict | None = Field(None, description="cap, request_deadline_s, http_open and the connections "
                                                        "timed_out, evicted and shed (server/connections.py)")
+    downloads: dict | None = Field(None, description="download slots: limit, running (held now), stall_s and "
+                                                     "stalled (downloads cut off for a client that took no data; "
+                                                     "server/downloads.py)")
 
 
 class ResidualSeries(BaseModel):

@@ -176,10 +176,14 @@ class Retention:
                 else:
                     # Oldest first: every later session is younger, and the budget is met.
                     break
+                # What the prune writes counts too: the kept skeleton file (~27 kB for 16 sensors) and the
+                # database's rows (its thinned residuals, the event: ~40 kB of WAL pages). Counted as freed
+                # bytes alone, a pass left the directory that much over the room it meant to keep.
+                before = self._touched_bytes(row["id"])
                 done = self._prune(row["id"], reason)
                 if done is None:  # a session went live meanwhile: stop, the next gap resumes
                     break
-                used -= done["freed_bytes"]
+                used += self._touched_bytes(row["id"]) - before
                 pruned.append(done)
             self.over_budget = self.policy.keep_bytes is not None and used > self.policy.keep_bytes
             if pruned:
@@ -194,6 +198,20 @@ class Retention:
         sizes = [sum(p.stat().st_size for p in (mgr.frames_path(r["id"]), mgr.raw_path(r["id"])) if p.exists())
                  for r in rows[-ROOM_SESSIONS:]]
         return min(max(sizes, default=0), int(ROOM_SHARE * (self.policy.keep_bytes or 0)))
+
+    def _touched_bytes(self, sid: str) -> int:
+        """Bytes of the files a prune of `sid` removes or writes: its recordings, its kept skeleton, the
+        database with its WAL (two stats each, not a walk of the directory)."""
+        mgr, db = self.sessions, self.store.path
+        paths = (mgr.frames_path(sid), mgr.raw_path(sid), self.kept_skeleton_path(sid),
+                 db, db.with_name(db.name + "-wal"), db.with_name(db.name + "-shm"))
+        total = 0
+        for path in paths:
+            try:
+                total += path.stat().st_size
+            except FileNotFoundError:
+                pass
+        return total
 
     def _prune(self, sid: str, reason: str) -> dict | None:
         mgr = self.sessions

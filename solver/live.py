@@ -67,8 +67,12 @@ class JointResiduals:
 class ResidualSampler:
     """Residual rms per joint of the newest fit, one sample per `period` s of session time.
 
-    Frames wait until a sample's worth has arrived: the cost of these small array steps is per call, and
-    the reader hands frames over ~100 times a second."""
+    A sample closes at the first frame at or after each boundary k·period of the session clock, and holds
+    the frames since the previous one: every boundary the frames cross gives its sample, however the reader
+    happened to hand them over (a loaded machine hands over fewer, larger batches; one sample per hand-over
+    thinned the 20 Hz series to a few a second). Only a gap without frames gives none. Frames wait until a
+    sample's worth has arrived: the cost of these small array steps is per call, and the reader hands
+    frames over ~100 times a second."""
 
     def __init__(self, names, period: float):
         self.names = tuple(names)
@@ -76,7 +80,8 @@ class ResidualSampler:
         self._pending: list = []  # session frames (times, R, t, valid) not yet in a sample
         self._joints: tuple = ()
         self._sumsq = self._count = None
-        self._last_emit: float | None = None
+        self._cell: int | None = None  # floor(time / period) of the newest frame gathered
+        self._emitted = -np.inf  # time of the newest sample
         self._time = 0.0
         self._joint_cache: tuple[Calibration, FitJoints] | None = None
 
@@ -93,7 +98,8 @@ class ResidualSampler:
         return []
 
     def drain(self, calibration: Calibration | None) -> list[JointResiduals]:
-        """The frames waiting, against `calibration` (the newest fit)."""
+        """The frames waiting, against `calibration` (the newest fit): a sample for each period boundary
+        they cross, the rest gathered towards the next."""
         pending, self._pending = self._pending, []
         if not pending or calibration is None or not len(calibration.joints):
             return []
@@ -111,24 +117,42 @@ class ResidualSampler:
         sq = np.einsum("npa,npa->np", e, e)
         ok = valid[:, ci] & valid[:, pj] & np.isfinite(sq)
         sq = np.where(ok, sq, 0.0)
-        self._sumsq += sq.sum(axis=0)
-        self._count += ok.sum(axis=0)
+        # A frame closes a sample when it is the first past a boundary (a running max: a time that steps
+        # back does not cross the same boundary twice).
+        cells = np.floor(ts / self.period).astype(np.int64)
+        reached = np.maximum.accumulate(np.concatenate([[cells[0] if self._cell is None else self._cell], cells]))
+        ends = np.flatnonzero(reached[1:] > reached[:-1]) + 1  # each sample's frames end at its closing frame
+        self._cell = int(reached[-1])
+        # Running sums over the gathered sample (carried in as row 0) and the frames: a sample is the
+        # difference of two.
+        sumsq = np.cumsum(np.concatenate([np.zeros((1, len(sq[0]))), self._sumsq[None], sq]), axis=0)
+        count = np.cumsum(np.concatenate([np.zeros((1, len(sq[0]))), self._count[None], ok]), axis=0)
+        rows = np.concatenate([[0], ends + 1])
+        s, c = sumsq[rows[1:]] - sumsq[rows[:-1]], count[rows[1:]] - count[rows[:-1]]
+        for k, end in enumerate(ends.tolist()):  # per sample, not per frame: a few per call
+            if c[k].any():
+                rms = np.sqrt(np.maximum(s[k], 0.0) / np.maximum(c[k], 1))  # (a difference: never below 0)
+                out.append(JointResiduals(float(ts[end - 1]), self._joints, np.where(c[k] > 0, rms, np.nan)))
+                self._emitted = float(ts[end - 1])
+        self._sumsq = sumsq[-1] - sumsq[rows[-1]]
+        self._count = count[-1] - count[rows[-1]]
         self._time = float(ts[-1])
-        if self._last_emit is None:
-            self._last_emit = float(ts[0])
-        if self._time - self._last_emit >= self.period:
-            out += self.flush()
         return out
 
     def flush(self) -> list[JointResiduals]:
-        """The sample being gathered (at its period, on a new tree, and at the session's end)."""
+        """The sample being gathered (on a new tree, and at the session's end)."""
         if self._count is None or not self._count.any():
             return []
         rms = np.sqrt(self._sumsq / np.maximum(self._count, 1))
         sample = JointResiduals(self._time, self._joints, np.where(self._count > 0, rms, np.nan))
         self._sumsq[:] = 0
         self._count[:] = 0
-        self._last_emit = self._time
+        if self._time <= self._emitted:
+            # Frames at the newest sample's instant (a loaded reader clamps late, back-dated frames to the
+            # time before them) give no sample of their own: two at one time would make a page boundary
+            # (`since`, exclusive) skip one.
+            return []
+        self._emitted = self._time
         return [sample]
 
 
