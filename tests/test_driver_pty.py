@@ -418,6 +418,14 @@ def test_a_hemisphere_crossing_is_detected_and_corrected():
     assert pos_err <= tolerance("position_matrix")[1] + 1e-9
 
 
+def wait_frames(col: Collector, n: int, timeout: float = 60.0) -> None:
+    """Until `col` has `n` frames (AssertionError after `timeout` s)."""
+    deadline = time.monotonic() + timeout
+    while col.count() < n:
+        assert time.monotonic() < deadline, f"{col.count()} of {n} frames after {timeout:g} s"
+        time.sleep(0.01)
+
+
 def test_per_session_recordings_each_replay_alone_to_the_poses_streamed_meanwhile(tmp_path):
     # What was tried: two recordings started while the reader streams (the second replacing the first),
     # then stopped, as the service does per session. Each must decode on its own (it starts with the
@@ -432,10 +440,12 @@ def test_per_session_recordings_each_replay_alone_to_the_poses_streamed_meanwhil
         reader.start(wait=15)
         try:
             time.sleep(0.3)
+            # Each recording is held open for 30 frames read (0.6 s at 50 Hz), counted, not slept: a starved
+            # reader read 0.31 s of frames in 0.6 s of wall time at a load of 17.
             reader.start_recording(first, {"session_file": True})
-            time.sleep(0.6)
+            wait_frames(col, col.count() + 30)
             reader.start_recording(second)
-            time.sleep(0.6)
+            wait_frames(col, col.count() + 30)
             reader.stop_recording()
             size = second.stat().st_size
             time.sleep(0.3)
@@ -457,7 +467,8 @@ def test_per_session_recordings_each_replay_alone_to_the_poses_streamed_meanwhil
         read_meanwhile = np.count_nonzero((live_t > out.times[0] + 0.05) & (live_t < out.times[-1] - 0.05))
         inside = np.count_nonzero((out.times > out.times[0] + 0.05) & (out.times < out.times[-1] - 0.05))
         assert abs(inside - read_meanwhile) <= 2, f"{path.name}: {inside} frames replayed, {read_meanwhile} read"
-        assert out.times[-1] - out.times[0] > 0.4, f"{path.name} covers {out.times[-1] - out.times[0]:.2f} s of 0.6 s"
+        # (Frames read just before a start can be handed over after it: up to a hand-over of them.)
+        assert len(out.times) >= 20, f"{path.name} holds {len(out.times)} frames of the 30 read while it was open"
     assert read_recording(first).settings["session_file"] is True
     assert "session_file" not in read_recording(second).settings
     assert replayed[0].times[-1] < replayed[1].times[0], "the second recording overlaps the first"
