@@ -254,6 +254,17 @@ def window(svc: Service, seconds: float, dashboards: int, probe_hz: float) -> No
     print(f"  load average        {w['load']:8.2f}   (on {os.cpu_count()} cores; other work inflates the latency)")
 
 
+def round_ratios(runs: list[tuple[str, dict]], key: str) -> list[float]:
+    """B/A of `key` for each round: neighbouring runs (one A, one B, in the order they ran), so drift in
+    the machine's load moves both sides of a ratio."""
+    ratios = []
+    for k in range(0, len(runs) - 1, 2):
+        (s0, w0), (_, w1) = runs[k], runs[k + 1]
+        a, b = (w0, w1) if s0 == "A" else (w1, w0)
+        ratios.append(b[key] / a[key] if a[key] else float("nan"))
+    return ratios
+
+
 def export_revision(rev: str, into: str) -> str:
     """REV's tree as an importable `flockcal` package under `into`; returns the folder for PYTHONPATH."""
     repo = Path(__file__).resolve().parents[1]
@@ -304,12 +315,7 @@ def ab(rev: str, rounds: int, seconds: float, dashboards: int, probe_hz: float) 
             a = np.median([w[key] for s, w in runs if s == "A"])
             b = np.median([w[key] for s, w in runs if s == "B"])
             print(f"  {what:27s} A {a:6.1f}   B {b:6.1f}")
-        # Ratios of neighbouring runs (one A, one B, in the order they ran): drift moves both.
-        ratios = []
-        for k in range(0, len(runs) - 1, 2):
-            (s0, w0), (s1, w1) = runs[k], runs[k + 1]
-            a, b = (w0, w1) if s0 == "A" else (w1, w0)
-            ratios.append(b["cpu"] / a["cpu"])
+        ratios = round_ratios(runs, "cpu")
         print(f"  service CPU B/A per round: {' '.join(f'{x:.2f}' for x in ratios)}; median {np.median(ratios):.2f}")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)

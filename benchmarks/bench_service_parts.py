@@ -160,7 +160,7 @@ def main(argv=None) -> int:
         return 0
 
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from bench_server import export_revision  # noqa: E402
+    from bench_server import export_revision, round_ratios  # noqa: E402
 
     tmp = tempfile.mkdtemp(prefix="flockcal-ab-")
     try:
@@ -174,11 +174,7 @@ def main(argv=None) -> int:
                 runs.append((side, r))
                 print(show(f"  round {k + 1} {side}: ", r), flush=True)
         for key in ("pipeline", "progress", "fit", "reader", "wakeups"):
-            ratios = []
-            for k in range(0, len(runs) - 1, 2):
-                (s0, r0), (s1, r1) = runs[k], runs[k + 1]
-                a, b = (r0, r1) if s0 == "A" else (r1, r0)
-                ratios.append(b[key] / a[key] if a[key] else float("nan"))
+            ratios = round_ratios(runs, key)
             print(f"  {key:9s} B/A per round: {' '.join(f'{x:.2f}' for x in ratios)}; median {np.median(ratios):.2f}")
         same = len({r["digest"] for _, r in runs}) == 1
         print(f"  the same slip events, residuals and progress on both sides: {'yes' if same else 'NO'}")
