@@ -14,7 +14,6 @@ import numpy as np
 from flockcal.solver.slippage.stats import residual
 
 
-
 # Nats of disagreement with one shared step allowed per joint beyond the first (a χ² with 3 degrees of
 # freedom exceeds 12 in 0.7 % of cases).
 DISAGREE_PER_JOINT = 6.0
