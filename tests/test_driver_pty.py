@@ -12,6 +12,7 @@ import pytest
 
 from flockcal.drivers.records import FORMATS
 from quantisation import tolerance
+from service_process import wait_for
 from flockcal.rotations import from_euler
 from flockcal.drivers.link import Timing, TrackerError
 from flockcal.drivers.reader import TrackerConfig, TrackerReader
@@ -418,14 +419,6 @@ def test_a_hemisphere_crossing_is_detected_and_corrected():
     assert pos_err <= tolerance("position_matrix")[1] + 1e-9
 
 
-def wait_frames(col: Collector, n: int, timeout: float = 60.0) -> None:
-    """Until `col` has `n` frames (AssertionError after `timeout` s)."""
-    deadline = time.monotonic() + timeout
-    while col.count() < n:
-        assert time.monotonic() < deadline, f"{col.count()} of {n} frames after {timeout:g} s"
-        time.sleep(0.01)
-
-
 def test_per_session_recordings_each_replay_alone_to_the_poses_streamed_meanwhile(tmp_path):
     # What was tried: two recordings started while the reader streams (the second replacing the first),
     # then stopped, as the service does per session. Each must decode on its own (it starts with the
@@ -443,9 +436,11 @@ def test_per_session_recordings_each_replay_alone_to_the_poses_streamed_meanwhil
             # Each recording is held open for 30 frames read (0.6 s at 50 Hz), counted, not slept: a starved
             # reader read 0.31 s of frames in 0.6 s of wall time at a load of 17.
             reader.start_recording(first, {"session_file": True})
-            wait_frames(col, col.count() + 30)
+            n = col.count() + 30
+            wait_for(lambda: col.count() >= n, 60.0, "30 frames read into the first recording", every=0.01)
             reader.start_recording(second)
-            wait_frames(col, col.count() + 30)
+            n = col.count() + 30
+            wait_for(lambda: col.count() >= n, 60.0, "30 frames read into the second recording", every=0.01)
             reader.stop_recording()
             size = second.stat().st_size
             time.sleep(0.3)

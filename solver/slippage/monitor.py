@@ -617,7 +617,7 @@ class SlipMonitor:
                 pose = np.isin(J, ends).any(axis=1)
             back = came_back(self._history, float(buf.times[post.start]), self.segment_start, buf.times[post],
                              buf.g[post], buf.Q[post], buf.pv[post], weight[onset_row:], child, parent, pose, c, l,
-                             att.step, score=True)
+                             att.step)
             if back is not None and back > CAME_BACK_NATS:  # (None: poses not seen before, no verdict; the slip stands)
                 self.came_back += 1
                 return Attribution(None, evidence=att.evidence), None
