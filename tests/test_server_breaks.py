@@ -333,9 +333,10 @@ def test_a_skeleton_metres_away_from_its_sensor_is_refused_everywhere_and_skippe
 
 
 # --- downloads -----------------------------------------------------------------------------------------
-def big_session(data: Path, frames: int = 100_000) -> str:
+def big_session(data: Path, frames: int = 100_000, moving: bool = False) -> str:
     """A stopped session of 4 sensors whose frame log is 40 MB, put in the data directory before the service
-    starts (as retention's benchmark does): big enough that a client that stops reading stalls its download."""
+    starts (as retention's benchmark does): big enough that a client that stops reading stalls its download.
+    `moving`: a chain a-b-c-d turning about ball joints (so a re-solve finds joints), else all at rest."""
     from flockcal.server.framelog import FrameLog
     from flockcal.server.store import Store
 
@@ -343,14 +344,36 @@ def big_session(data: Path, frames: int = 100_000) -> str:
     names = ["a", "b", "c", "d"]
     (data / "recordings").mkdir(parents=True)
     log = FrameLog(data / "recordings" / f"{sid}.frames", names, 60.0)
-    rot = np.broadcast_to(np.eye(3), (frames, 4, 3, 3))
-    log.write(np.arange(frames) / 60.0, rot, np.zeros((frames, 4, 3)), np.ones((frames, 4), bool))
+    times = np.arange(frames) / 60.0
+    if moving:
+        rot, pos = turning_chain(times, 4)
+    else:
+        rot, pos = np.broadcast_to(np.eye(3), (frames, 4, 3, 3)), np.zeros((frames, 4, 3))
+    log.write(times, rot, pos, np.ones((frames, 4), bool))
     log.close()
     store = Store(data / "flockcal.sqlite3")
     store.insert_session({"id": sid, "performer": "Big", "state": "stopped", "names": names, "device": "test",
                           "created_at": time.time(), "frames": frames})
     store.close()
     return sid
+
+
+def turning_chain(times: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """Rotations and positions of `m` bodies in a chain, each turning on its own sinusoids, each body's
+    sensor 0.2 m from its joint with the next: the joint points agree in the world at every frame."""
+    from scipy.spatial.transform import Rotation
+
+    rng = np.random.default_rng(7)
+    n = len(times)
+    freq = rng.uniform(0.1, 0.6, (m, 3))
+    phase = rng.uniform(0, 2 * np.pi, (m, 3))
+    rotvec = 0.9 * np.sin(2 * np.pi * freq[None] * times[:, None, None] + phase[None])
+    rot = Rotation.from_rotvec(rotvec.reshape(-1, 3)).as_matrix().reshape(n, m, 3, 3)
+    pos = np.zeros((n, m, 3))
+    c, l = np.array([0.2, 0.0, 0.0]), np.array([-0.2, 0.0, 0.0])  # the joint in the parent's and child's frames
+    for i in range(1, m):  # R_p c + t_p = R_i l + t_i
+        pos[:, i] = rot[:, i - 1] @ c + pos[:, i - 1] - rot[:, i] @ l
+    return rot, pos
 
 
 def stalled_download(port: int, path: str) -> socket.socket:
@@ -417,6 +440,35 @@ def test_downloads_whose_clients_stopped_reading_give_their_slots_back(tmp_path)
         finally:
             for s in opened:
                 s.close()
+
+
+def test_a_stalled_gltf_download_is_cut_off_and_its_slot_freed(tmp_path):
+    """What was tried: a client asks for a long session's /gltf (the rig with 100,000 frames of animation) and
+    reads nothing after the status line. The download held its slot for good (it streamed without the stall
+    clock /take and /bvh have). Now it is cut off after `--download-stall-s 3` (allowed: 3 s + 40 s of
+    margin): /api/status counts it stalled, its slot comes back, the connection is closed, and the next
+    client has the whole .glb."""
+    data = tmp_path / "data"
+    sid = big_session(data, moving=True)
+    with Serve(sim6("gltf-stall") + ["--data-dir", data, "--download-stall-s", "3"], free_port(),
+               tmp_path / "serve.log") as srv:
+        path = f"/api/sessions/{sid}/gltf"
+        solved = httpx.post(srv.url + f"/api/sessions/{sid}/resolve", timeout=300)
+        assert solved.status_code == 200, solved.text
+
+        def downloads() -> dict:
+            return httpx.get(srv.url + "/api/status", timeout=30).json()["downloads"]
+
+        s = stalled_download(srv.port, path)
+        try:
+            wait_for(lambda: downloads()["stalled"] == 1, 43, "the stalled /gltf download was never cut off")
+            wait_for(lambda: downloads()["running"] == 0, 30, "the cut-off download kept its slot")
+            wait_for(lambda: closed_by_peer(s), 30, "the stalled client's connection is still open")
+        finally:
+            s.close()
+        whole = httpx.get(srv.url + path, timeout=120)
+        assert whole.status_code == 200, whole.text[:200]
+        assert whole.content[:4] == b"glTF" and int.from_bytes(whole.content[8:12], "little") == len(whole.content)
 
 
 def test_a_request_sent_while_a_download_goes_out_is_answered_whole_after_the_deadline(tmp_path):

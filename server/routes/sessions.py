@@ -219,7 +219,7 @@ def get_gltf(request: Request, sid: str = Depends(session_id),
                                                        "(what the pages load to drive from the live pose)"),
              service=Depends(get_service), _role=Depends(require_read)):
     from flockcal.exports.gltf import glb_chunks
-    from flockcal.server.downloads import OUT_BYTES, primed
+    from flockcal.server.downloads import OUT_BYTES, SlottedResponse, primed
 
     # The fit's number travels in a header (the file stays the CLI's): a page matches it with the live
     # pose's `rig.fit_seq` to know the rig it loaded is the one the stream drives ("final": the stored fit).
@@ -228,9 +228,10 @@ def get_gltf(request: Request, sid: str = Depends(session_id),
     body = _slotted(request, lambda: _export(lambda: primed(
         glb_chunks(result, frames, up=up, name=sid, rest=rest, animation=animation, chunk_frames=frames.play_frames,
                    out_bytes=OUT_BYTES))))
-    return StreamingResponse(body, media_type="model/gltf-binary",
-                             headers={"Content-Disposition": f'attachment; filename="{sid}.glb"',
-                                      "X-Flockcal-Fit-Seq": "final" if fit_seq is None else str(fit_seq)})
+    # In a slot like /take and /bvh: a client that stops reading a long animation is cut off after the stall time.
+    return SlottedResponse(body, request.app.state.download_slots, media_type="model/gltf-binary",
+                           headers={"Content-Disposition": f'attachment; filename="{sid}.glb"',
+                                    "X-Flockcal-Fit-Seq": "final" if fit_seq is None else str(fit_seq)})
 
 
 def _slotted(request: Request, make):
