@@ -78,3 +78,37 @@ def test_a_fresh_kiosk_guest_raises_no_alarm_with_it(seed):
     events = watch.feed(*frames(perf, 0.0, 30.0))
     assert events == [], [e.to_dict() for e in events]
     assert watch.monitor.frame_log, "the frame test did run on this guest's soft tissue"
+
+
+# Issue 32, fifth round (docs/slippage.md): the frame test scores each sensor from where its own last look
+# stopped. A kiosk slip as both arms sweep: the arms' soft tissue raises a suspicion a little before or after
+# the slip, the frame test looks at that suspicion's sensors onset by onset, and the slipped sensor's own
+# joint crosses the threshold 0.1–0.3 s later and joins it. When a look's onsets counted for the whole
+# suspicion, the newcomer was never tested at the onsets already passed, which held the slip's own (the head
+# scored 46 nats at its true onset in a one-off replay, the chest 76, against the 20 needed: both missed).
+@lru_cache(maxsize=2)
+def _kiosk(seed: int, at: float) -> tuple[Performer, SlipWatch]:
+    perf = Performer("human", routine="kiosk", seed=seed, noise="tracker", rate_hz=RATE)
+    watch = SlipWatch(tree(perf.model), perf.n_sensors, RATE, perf.names, **dict(FRAME_STEP))
+    assert watch.feed(*frames(perf, 0.0, at)) == [], "a false alarm before the slip"
+    return perf, watch
+
+
+@pytest.mark.parametrize("seed, at, sensor", [(2, 19.692, "head"), (3, 50.462, "chest")])
+def test_a_sensor_whose_joint_joins_a_suspicion_late_is_tested_at_the_slips_own_onset(seed, at, sensor):
+    # The head (a leaf: one joint) at the arms' first sweep, and the chest (a hub of four joints, two of them
+    # the shoulders, which are sweeping) in the second loop: both missed within 1 s before this change
+    # (bench_slip_sweep.py --routines kiosk --seeds 2 3 --list --monitor frame_step=20, 2026-12-05).
+    perf, fed = _kiosk(seed, at)
+    watch = copy.deepcopy(fed)
+    perf.clear_faults()
+    perf.inject_slip(sensor, 0.02, at_time=at)
+    try:
+        found = watch.feed(*frames(perf, at, at + WITHIN_S))
+    finally:
+        perf.clear_faults()
+    assert found, f"the {sensor} slip at {at} s of kiosk seed {seed} was not found within {WITHIN_S} s"
+    first = found[0]
+    assert attributes_slip_to(first, sensor, perf.model.names, perf.model.parent), first.to_dict()
+    # The step is at one frame: the onset the test names is within a few frames of it (0.05 s: 7 frames).
+    assert first.detected_s - at <= WITHIN_S and abs(first.time_s - at) <= 0.05, first.to_dict()

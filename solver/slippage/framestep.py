@@ -113,6 +113,10 @@ def frame_steps(g, Q, pv, c, l, joints: np.ndarray, sensors, ready: np.ndarray, 
             d = (inv[..., None] * dj).sum(axis=1) / S[:, None]
             shared = 0.5 * (d * d).sum(axis=-1) / (a + 1.0 / S)
             disagree = 0.5 * (inv * ((dj - d[:, None]) ** 2).sum(axis=-1)).sum(axis=1)
+        if nj == 1:
+            # One joint is its own shared step: its disagreement is nil, not the round-off of d_j − d (times
+            # a weight of 1e6/σ²), which came out above the gate's 0 at about half the onsets and lost them.
+            disagree = np.zeros_like(shared)
         # A step only some of the sensor's joints show is a neighbour's slip, or skin: beyond the χ² scatter of
         # one shared vector (3 degrees of freedom per further joint), the sensor is not the one that moved.
         score = np.where(full & (disagree <= DISAGREE_PER_JOINT * (nj - 1)), shared - disagree, -np.inf)

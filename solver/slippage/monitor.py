@@ -12,7 +12,7 @@ pose seen before overrule it. Only then is an event reported.
 from __future__ import annotations
 
 from collections import deque
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -465,24 +465,34 @@ class SlipMonitor:
     def _frame_step(self, item: Suspicion, fired, ready, c, l, last: int, att: Attribution):
         """A suspicion the confirming test did not confirm, put to the frame-rate step test: every sensor at
         either end of its joints, onsets from a little before its own to the latest the test can see (those
-        an earlier look tested are not tested again: their windows have not changed)."""
+        an earlier look tested for that sensor are not tested again: their windows have not changed)."""
         buf = self._buf
         h = self._half
         onset = item.onset
-        lo_g = max(onset - self._search_back, item.frame_tested)
         hi_g = min(last - h + 2, onset + self._search_ahead)
         more = hi_g < onset + self._search_ahead
-        if hi_g <= lo_g:  # nothing new the test can see yet: ask for another look while there is more to see
+        # Each sensor from where its own last look stopped: a sensor whose joint joined the suspicion after a
+        # look (the slipped one's joints often cross the threshold 0.1-0.3 s after the soft tissue's) has not
+        # had the onsets that look tested, and the slip's own onset is usually among them.
+        start = onset - self._search_back
+        los: dict[int, list[int]] = {}
+        for s in np.unique(self.joints[fired]).tolist():
+            lo_s = max(start, item.frame_tested.get(s, start))
+            if lo_s < hi_g:
+                los.setdefault(lo_s, []).append(s)
+        if not los:  # nothing new the test can see yet: ask for another look while there is more to see
             return att, onset, more
-        item.frame_tested = hi_g
-        rows = slice(buf.slot(max(lo_g - h, buf.first_index)), buf.slot(last) + 1)
-        base = buf.index_of(rows.start)
-        sensors = np.unique(self.joints[fired])
-        found = frame_steps(buf.g[rows], buf.Q[rows], buf.pv[rows], c, l, self.joints, sensors, ready,
-                            lo_g - base, hi_g - base, h, self.scale_floor, self._contrast)
-        for f in found:
-            self.frame_log.append((float(buf.times[rows.start + f.onset]), self.names[f.sensor], f.score, f.evidence,
-                                   f.disagreement, float(np.linalg.norm(f.step))))
+        found = []
+        for lo_g, sensors in sorted(los.items()):
+            rows = slice(buf.slot(max(lo_g - h, buf.first_index)), buf.slot(last) + 1)
+            base = buf.index_of(rows.start)
+            for f in frame_steps(buf.g[rows], buf.Q[rows], buf.pv[rows], c, l, self.joints, sensors, ready,
+                                 lo_g - base, hi_g - base, h, self.scale_floor, self._contrast):
+                found.append(replace(f, onset=base + f.onset))  # onsets as global indices
+                self.frame_log.append((float(buf.times[rows.start + f.onset]), self.names[f.sensor], f.score,
+                                       f.evidence, f.disagreement, float(np.linalg.norm(f.step))))
+            for s in sensors:
+                item.frame_tested[s] = hi_g
         good = [f for f in found if f.score >= self.frame_step and np.linalg.norm(f.step) >= self.min_jump]
         if not good:
             return att, onset, more
@@ -492,7 +502,7 @@ class SlipMonitor:
         cands = [(best.sensor, 1.0)] + [(f.sensor, 0.0) for f in good if f is not best]
         self.frame_steps += 1
         return Attribution("slip", best.sensor, -1, cands, 1.0, mine.tolist(), float(np.linalg.norm(best.step)),
-                           best.score, best.step), base + best.onset, False
+                           best.score, best.step), best.onset, False
 
     def _deviations(self, first: int, c, l) -> None:
         """Bring the buffer's deviations and noise weights up to date from global frame `first` on.

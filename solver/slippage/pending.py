@@ -5,7 +5,7 @@ its own onset, and a refuted one quiets only its own joints, never past a later 
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -17,7 +17,9 @@ class Suspicion:
     next_try: float = -np.inf  # no confirming test before this time (a likely step gets another look)
     verify: bool = False  # re-seated by the second look: a slip needs the same pose before to show it stayed
     frame_only: bool = False  # refuted by the confirming test, kept only until the frame-rate step test can see it
-    frame_tested: int = -1  # global frame: onsets before it have had the frame-rate step test
+    # Per sensor, the global frame before which its onsets have had the frame-rate step test. Per sensor, not
+    # per suspicion: a joint that joins later brings sensors whose earlier onsets no look has tested yet.
+    frame_tested: dict = field(default_factory=dict)
 
 
 class PendingSuspicions:
