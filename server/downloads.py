@@ -17,7 +17,7 @@ from pathlib import Path
 from typing import Iterator
 
 import numpy as np
-from starlette.responses import StreamingResponse
+from starlette.responses import FileResponse, StreamingResponse
 
 from flockcal.frames import Frames
 from flockcal.server.wsgate import abort
@@ -188,6 +188,33 @@ class SlottedResponse(StreamingResponse):
                 abort(self._scope or {})
                 return
         await send({"type": "http.response.body", "body": b"", "more_body": False})
+
+
+class StallClockFileResponse(FileResponse):
+    """A file sent as it is (a stopped session's raw recording), with the download slots' stall clock but
+    no slot (a file costs the service no build): a client that takes no piece within `stall_s` is cut off.
+    Without it a client that stopped reading held its connection, and the open file, for good."""
+
+    def __init__(self, path, slots: DownloadSlots, **kw):
+        super().__init__(path, **kw)
+        self.slots = slots
+
+    async def __call__(self, scope, receive, send) -> None:
+        stall_s = self.slots.stall_s
+
+        async def timed(message) -> None:
+            if message["type"] != "http.response.body":
+                await send(message)
+                return
+            async with asyncio.timeout(stall_s):
+                await send(message)
+
+        try:
+            await super().__call__(scope, receive, timed)
+        except TimeoutError:
+            self.slots.stalled += 1
+            log.warning("a download's client took no data for %g s: connection reset", stall_s)
+            abort(scope)
 
 
 # --- .npz take ------------------------------------------------------------------------------------------

@@ -471,6 +471,34 @@ def test_a_stalled_gltf_download_is_cut_off_and_its_slot_freed(tmp_path):
         assert whole.content[:4] == b"glTF" and int.from_bytes(whole.content[8:12], "little") == len(whole.content)
 
 
+def test_a_stalled_raw_download_is_cut_off(tmp_path):
+    """What was tried: a client asks for a stopped session's raw recording (40 MB, sent as the file it is)
+    and reads nothing after the status line. It held its connection and the open file for good (a file takes
+    no download slot, and had no stall clock). Now it is cut off after `--download-stall-s 3` (allowed: 3 s +
+    40 s of margin): /api/status counts it stalled, no slot was taken, the connection is closed, and the
+    next client has the whole file, byte for byte."""
+    data = tmp_path / "data"
+    sid = big_session(data, frames=1000)
+    raw = np.random.default_rng(3).integers(0, 256, 40_000_000, dtype=np.uint8).tobytes()
+    (data / "recordings" / f"{sid}.fobraw").write_bytes(raw)
+    with Serve(sim6("raw-stall") + ["--data-dir", data, "--download-stall-s", "3"], free_port(),
+               tmp_path / "serve.log") as srv:
+        path = f"/api/sessions/{sid}/raw"
+
+        def downloads() -> dict:
+            return httpx.get(srv.url + "/api/status", timeout=30).json()["downloads"]
+
+        s = stalled_download(srv.port, path)
+        try:
+            assert downloads()["running"] == 0, "a raw download took a download slot"
+            wait_for(lambda: downloads()["stalled"] == 1, 43, "the stalled raw download was never cut off")
+            wait_for(lambda: closed_by_peer(s), 30, "the stalled client's connection is still open")
+        finally:
+            s.close()
+        whole = httpx.get(srv.url + path, timeout=120)
+        assert whole.status_code == 200 and whole.content == raw
+
+
 def test_a_request_sent_while_a_download_goes_out_is_answered_whole_after_the_deadline(tmp_path):
     """What was tried: a client that sends its next request (a second take) while the first take is still
     going out, reads the first whole, pauses past the request deadline (1 s here), then reads the second.

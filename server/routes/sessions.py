@@ -8,7 +8,7 @@ from __future__ import annotations
 import os
 
 from fastapi import APIRouter, Depends, Query, Request
-from fastapi.responses import Response, StreamingResponse
+from fastapi.responses import Response
 
 from flockcal.server.auth import require_admin, require_read, require_session_control
 from flockcal.server.errors import BadRequest, Conflict, NotFound
@@ -278,11 +278,12 @@ def _export(make):
 
 @router.get("/{id}/raw", responses={200: {"content": {"application/octet-stream": {}}}, **ERRORS},
             summary="the raw tracker bytes (.fobraw) of the session, when the driver recorded them")
-def get_raw(sid: str = Depends(session_id), service=Depends(get_service), _role=Depends(require_read)):
+def get_raw(request: Request, sid: str = Depends(session_id), service=Depends(get_service),
+            _role=Depends(require_read)):
     """A live session's recording grows while it is sent: the download is the recording as it stood when
     asked, cut after its last whole chunk, with that exact Content-Length (a whole .fobraw that `flockcal
     convert` reads without --salvage). A stopped session's is its file."""
-    from fastapi.responses import FileResponse
+    from flockcal.server.downloads import Slotted, SlottedResponse, StallClockFileResponse
 
     service.sessions.get(sid)
     path = service.sessions.raw_path(sid)
@@ -290,8 +291,10 @@ def get_raw(sid: str = Depends(session_id), service=Depends(get_service), _role=
         service.retention.check_files(sid, "raw recording")
         raise NotFound(f"session {sid} has no raw recording")
     name = f"{sid}.fobraw"
+    slots = request.app.state.download_slots
+    # No slot (a file costs no build), but the slots' stall clock: a client that stops reading is cut off.
     if service.sessions.live_id() != sid:
-        return FileResponse(path, media_type="application/octet-stream", filename=name)
+        return StallClockFileResponse(path, slots, media_type="application/octet-stream", filename=name)
     # FileResponse declares the size it saw, then sends to the end of the file: a live recording had grown
     # meanwhile, h11 refused the surplus and the client got a body cut short of what was declared.
     from flockcal.drivers.recording import intact_length
@@ -302,9 +305,9 @@ def get_raw(sid: str = Depends(session_id), service=Depends(get_service), _role=
     except BaseException:
         fh.close()
         raise
-    return StreamingResponse(_file_prefix(fh, length), media_type="application/octet-stream",
-                             headers={"Content-Length": str(length),
-                                      "Content-Disposition": f'attachment; filename="{name}"'})
+    return SlottedResponse(Slotted(_file_prefix(fh, length), lambda: None), slots,
+                           media_type="application/octet-stream",
+                           headers={"Content-Length": str(length), "Content-Disposition": f'attachment; filename="{name}"'})
 
 
 def _file_prefix(fh, length: int, piece: int = 256 * 1024):
