@@ -497,6 +497,8 @@ def test_a_stalled_raw_download_is_cut_off(tmp_path):
             s.close()
         whole = httpx.get(srv.url + path, timeout=120)
         assert whole.status_code == 200 and whole.content == raw
+        part = httpx.get(srv.url + path, headers={"Range": "bytes=1000-1999"}, timeout=30)  # resuming still works
+        assert part.status_code == 206 and part.content == raw[1000:2000]
 
 
 def test_a_request_sent_while_a_download_goes_out_is_answered_whole_after_the_deadline(tmp_path):
