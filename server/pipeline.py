@@ -93,7 +93,7 @@ class Pipeline:
         self._cond = threading.Condition()
         self._pending: list[Frames] = []
         self._pending_events: list[dict] = []
-        self._commands: list[tuple[Callable, Future]] = []
+        self._commands: list[tuple[Callable, Future, int]] = []  # (fn, its future, frames before it)
         self._stop = False
         self._thread: threading.Thread | None = None
         # The session manager's side, given at `start`: stop a session for a limit, store held row updates.
@@ -141,10 +141,12 @@ class Pipeline:
         self.tracker_event(event)
 
     def call(self, fn: Callable[[], object], timeout: float = 30.0):
-        """Run `fn` on the pipeline thread after the frames already received, and return its result."""
+        """Run `fn` on the pipeline thread after the frames handed over until now (not those after), and return its result."""
         fut: Future = Future()
         with self._cond:
-            self._commands.append((fn, fut))
+            # The frames handed over until now come before it, any after it (a session's frames end where
+            # its raw recording was closed, not where this thread, behind, got to its stop).
+            self._commands.append((fn, fut, len(self._pending)))
             self._cond.notify()
         if self._thread is None or not self._thread.is_alive():
             raise FlockcalError("the live pipeline is not running; restart the service")
@@ -240,13 +242,19 @@ class Pipeline:
                         break
                     self._cond.wait(due - now)
                 stopping = self._stop
-                if stopping or self._commands:  # a session starts and stops after every frame received
+                if stopping:
                     batches, self._pending = self._pending, []
+                    commands, self._commands = [(fn, fut) for fn, fut, _ in self._commands], []
+                elif self._commands:  # a session starts and stops at the frames received when it was asked
+                    (fn, fut, cut), *rest = self._commands
+                    batches, self._pending = self._pending[:cut], self._pending[cut:]
+                    self._commands = [(f, u, c - len(batches)) for f, u, c in rest]
+                    commands = [(fn, fut)]
                 else:
                     batches, self._pending = _step_of(self._pending, MAX_STEP_S * self.rate_hz())
+                    commands = []
                 backlog = bool(self._pending)
                 events, self._pending_events = self._pending_events, []
-                commands, self._commands = self._commands, []
             try:
                 if batches:
                     self._process_frames(batches)
