@@ -141,7 +141,8 @@ class Pipeline:
         self.tracker_event(event)
 
     def call(self, fn: Callable[[], object], timeout: float = 30.0):
-        """Run `fn` on the pipeline thread after the frames handed over until now (not those after), and return its result."""
+        """Run `fn` on the pipeline thread after the frames handed over until now (not those after them), and
+        return its result."""
         fut: Future = Future()
         with self._cond:
             # The frames handed over until now come before it, any after it (a session's frames end where
