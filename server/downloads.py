@@ -159,45 +159,15 @@ class Slotted:
         self.close()
 
 
-class SlottedResponse(StreamingResponse):
-    """A download in a slot: each piece must be taken by the client within the slots' `stall_s`, or the
-    connection is reset and the slot freed (a client that requested a take and stopped reading held its
-    slot for good, and eight such held every slot)."""
+class StallClock:
+    """For a Starlette response: each piece of the body must be taken by the client within the download slots'
+    `stall_s`, or the connection is reset (`on_stall` first frees what the download holds) and the slots count
+    it stalled. A client that requested a download and stopped reading held it for good."""
 
-    def __init__(self, content: Slotted, slots: DownloadSlots, **kw):
-        super().__init__(content, **kw)
-        self.slotted = content
-        self.slots = slots
-        self._scope = None
+    slots: DownloadSlots
 
-    async def __call__(self, scope, receive, send) -> None:
-        self._scope = scope
-        await super().__call__(scope, receive, send)
-
-    async def stream_response(self, send) -> None:
-        await send({"type": "http.response.start", "status": self.status_code, "headers": self.raw_headers})
-        async for chunk in self.body_iterator:
-            try:
-                async with asyncio.timeout(self.slots.stall_s):
-                    await send({"type": "http.response.body", "body": chunk, "more_body": True})
-            except TimeoutError:
-                self.slots.stalled += 1
-                log.warning("a download's client took no data for %g s: connection reset, slot freed",
-                            self.slots.stall_s)
-                self.slotted.close()  # frees the slot now (the stream is idle: this task holds it)
-                abort(self._scope or {})
-                return
-        await send({"type": "http.response.body", "body": b"", "more_body": False})
-
-
-class StallClockFileResponse(FileResponse):
-    """A file sent as it is (a stopped session's raw recording), with the download slots' stall clock but
-    no slot (a file costs the service no build): a client that takes no piece within `stall_s` is cut off.
-    Without it a client that stopped reading held its connection, and the open file, for good."""
-
-    def __init__(self, path, slots: DownloadSlots, **kw):
-        super().__init__(path, **kw)
-        self.slots = slots
+    def on_stall(self) -> None:
+        pass
 
     async def __call__(self, scope, receive, send) -> None:
         stall_s = self.slots.stall_s
@@ -214,7 +184,29 @@ class StallClockFileResponse(FileResponse):
         except TimeoutError:
             self.slots.stalled += 1
             log.warning("a download's client took no data for %g s: connection reset", stall_s)
+            self.on_stall()
             abort(scope)
+
+
+class SlottedResponse(StallClock, StreamingResponse):
+    """A download in a slot, on the stall clock: a stalled client's slot is freed (eight such held every slot)."""
+
+    def __init__(self, content: Slotted, slots: DownloadSlots, **kw):
+        super().__init__(content, **kw)
+        self.slotted = content
+        self.slots = slots
+
+    def on_stall(self) -> None:
+        self.slotted.close()  # frees the slot now (the stream is idle: the stalled send holds this task)
+
+
+class StallClockFileResponse(StallClock, FileResponse):
+    """A file sent as it is (a stopped session's raw recording), on the stall clock but in no slot (a file
+    costs the service no build); Range requests as FileResponse answers them."""
+
+    def __init__(self, path, slots: DownloadSlots, **kw):
+        super().__init__(path, **kw)
+        self.slots = slots
 
 
 # --- .npz take ------------------------------------------------------------------------------------------
