@@ -254,6 +254,18 @@ def window(svc: Service, seconds: float, dashboards: int, probe_hz: float) -> No
     print(f"  load average        {w['load']:8.2f}   (on {os.cpu_count()} cores; other work inflates the latency)")
 
 
+def ab_order(rounds: int):
+    """(round, side) in the order an A/B run takes them: AB, BA, AB, ... so each round's two runs neighbour
+    each other and the first side alternates (what `round_ratios` pairs)."""
+    for k in range(rounds):
+        for side in ("AB" if k % 2 == 0 else "BA"):
+            yield k, side
+
+
+def ratio_line(what: str, ratios: list[float]) -> str:
+    return f"{what} B/A per round: {' '.join(f'{x:.2f}' for x in ratios)}; median {np.median(ratios):.2f}"
+
+
 def round_ratios(runs: list[tuple[str, dict]], key: str) -> list[float]:
     """B/A of `key` for each round: neighbouring runs (one A, one B, in the order they ran), so drift in
     the machine's load moves both sides of a ratio."""
@@ -300,23 +312,21 @@ def ab(rev: str, rounds: int, seconds: float, dashboards: int, probe_hz: float) 
         print(f"A/B: A = {label['A']}, B = {label['B']}; 16 birds at {RATE:g} Hz, {seconds:g} s windows, "
               f"probe at {probe_hz:g} Hz, {dashboards} extra dashboards, {rounds} rounds")
         runs: list[tuple[str, dict]] = []
-        for r in range(rounds):
-            for side in ("AB" if r % 2 == 0 else "BA"):
-                with Service(sides[side]) as svc:
-                    w = measure_window(svc, seconds, dashboards, probe_hz)
-                runs.append((side, w))
-                top = ", ".join(f"{k} {v:.1f}" for k, v in sorted(w["threads"].items(), key=lambda kv: -kv[1]) if v >= 0.5)
-                print(f"  round {r + 1} {side}: service {w['cpu']:5.1f} % ({top}); tracker {w['tracker_cpu']:5.1f} %; "
-                      f"p99 {w['p99']:5.1f} ms; refits {w['fits_hz']:4.1f}/s ({w['fit_ms']} ms); slip alarms {w['slips']}; "
-                      f"load {w['load']:.1f}", flush=True)
+        for r, side in ab_order(rounds):
+            with Service(sides[side]) as svc:
+                w = measure_window(svc, seconds, dashboards, probe_hz)
+            runs.append((side, w))
+            top = ", ".join(f"{k} {v:.1f}" for k, v in sorted(w["threads"].items(), key=lambda kv: -kv[1]) if v >= 0.5)
+            print(f"  round {r + 1} {side}: service {w['cpu']:5.1f} % ({top}); tracker {w['tracker_cpu']:5.1f} %; "
+                  f"p99 {w['p99']:5.1f} ms; refits {w['fits_hz']:4.1f}/s ({w['fit_ms']} ms); slip alarms {w['slips']}; "
+                  f"load {w['load']:.1f}", flush=True)
         print("medians (A, B):")
         for key, what in (("cpu", "service CPU % of one core"), ("tracker_cpu", "fake tracker CPU %"),
                           ("p99", "latency p99 ms"), ("fits_hz", "refits /s"), ("slips", "slip alarms")):
             a = np.median([w[key] for s, w in runs if s == "A"])
             b = np.median([w[key] for s, w in runs if s == "B"])
             print(f"  {what:27s} A {a:6.1f}   B {b:6.1f}")
-        ratios = round_ratios(runs, "cpu")
-        print(f"  service CPU B/A per round: {' '.join(f'{x:.2f}' for x in ratios)}; median {np.median(ratios):.2f}")
+        print("  " + ratio_line("service CPU", round_ratios(runs, "cpu")))
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return 0

@@ -160,7 +160,7 @@ def main(argv=None) -> int:
         return 0
 
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from bench_server import export_revision, round_ratios  # noqa: E402
+    from bench_server import ab_order, export_revision, ratio_line, round_ratios  # noqa: E402
 
     tmp = tempfile.mkdtemp(prefix="flockcal-ab-")
     try:
@@ -168,14 +168,12 @@ def main(argv=None) -> int:
         print(f"A/B: A = {args.ab}, B = this tree; replay {args.seconds:g} s in {args.chunk}-frame hand-overs, "
               f"reader {args.reader_seconds:g} s, {args.rounds} rounds", flush=True)
         runs = []
-        for k in range(args.rounds):
-            for side in ("AB" if k % 2 == 0 else "BA"):
-                r = run_side(sides[side], args)
-                runs.append((side, r))
-                print(show(f"  round {k + 1} {side}: ", r), flush=True)
+        for k, side in ab_order(args.rounds):
+            r = run_side(sides[side], args)
+            runs.append((side, r))
+            print(show(f"  round {k + 1} {side}: ", r), flush=True)
         for key in ("pipeline", "progress", "fit", "reader", "wakeups"):
-            ratios = round_ratios(runs, key)
-            print(f"  {key:9s} B/A per round: {' '.join(f'{x:.2f}' for x in ratios)}; median {np.median(ratios):.2f}")
+            print("  " + ratio_line(f"{key:9s}", round_ratios(runs, key)))
         same = len({r["digest"] for _, r in runs}) == 1
         print(f"  the same slip events, residuals and progress on both sides: {'yes' if same else 'NO'}")
     finally:
