@@ -39,11 +39,42 @@ def step_contrast(half: int, degree: int = 3) -> np.ndarray:
     return h - B @ np.linalg.lstsq(B, h, rcond=None)[0]
 
 
+def speed_proxy(t: np.ndarray, joints: np.ndarray) -> np.ndarray:
+    """Each joint's speed term per frame (n, P): the squared displacement of its two sensors over 4 frames,
+    summed (m² per 4 frames; central, held at the ends), from positions t (n, m, 3)."""
+    d = np.zeros_like(t)
+    if len(t) > 4:
+        d[2:-2] = t[4:] - t[:-4]
+        d[:2], d[-2:] = d[2], d[-3]
+    s = (d * d).sum(axis=-1)
+    return s[:, joints[:, 0]] + s[:, joints[:, 1]]
+
+
+def noise_law(g, Q, t, pv, c, l, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Each joint's noise as its speed makes it, var = a + b·s per axis (s: `speed_proxy`), fitted by least
+    squares to the squared second differences of its residual over the frames given (a, b ≥ 0; (P,) each).
+    A tracker whose error does not grow with speed gets b ≈ 0 and its plain level in a."""
+    u = residual(g, Q, c, l)
+    dd = u[2:] - 2 * u[1:-1] + u[:-2]
+    e = (dd * dd).sum(axis=-1) / 18.0  # per axis: E‖Δ²x‖² = 18σ² for white noise
+    w = (pv[2:] & pv[1:-1] & pv[:-2]).astype(float)
+    s = speed_proxy(t, joints)[1:-1]
+    S1, Ss, Sss = w.sum(axis=0), (w * s).sum(axis=0), (w * s * s).sum(axis=0)
+    Se, Ses = (w * e).sum(axis=0), (w * e * s).sum(axis=0)
+    den = Sss * S1 - Ss * Ss
+    b = np.maximum(np.where(den > 0, (Ses * S1 - Ss * Se) / np.where(den > 0, den, 1.0), 0.0), 0.0)
+    a = np.maximum((Se - b * Ss) / np.maximum(S1, 1.0), 0.0)
+    return a, b
+
+
 def frame_steps(g, Q, pv, c, l, joints: np.ndarray, sensors, ready: np.ndarray, lo: int, hi: int, half: int,
-                floor_m: float, contrast: np.ndarray) -> list[FrameStep]:
+                floor_m: float, contrast: np.ndarray, t: np.ndarray | None = None,
+                law: tuple[np.ndarray, np.ndarray] | None = None) -> list[FrameStep]:
     """Best frame step of each sensor in `sensors`, onsets from row lo to row hi (exclusive) of the frames
     g (L, P, 3), Q (L, P, 3, 3), pv (L, P) (rows, not global indices); its joints are the ready ones it is
-    child or parent of. Returns one FrameStep per sensor with at least one such joint (onset as a row)."""
+    child or parent of. Returns one FrameStep per sensor with at least one such joint (onset as a row).
+    With positions t (L, m, 3) and each joint's `noise_law` (a, b), a window's noise is at least what the law
+    gives for the frames the step estimate leans on."""
     out = []
     L = len(g)
     lo, hi = max(lo, half), min(hi, L - half + 1)
@@ -99,6 +130,16 @@ def frame_steps(g, Q, pv, c, l, joints: np.ndarray, sensors, ready: np.ndarray, 
         # Means, not medians, and the two second differences the step itself shows in left out.
         level = np.maximum(bw[..., : half - 2].mean(axis=-1), bw[..., half:].mean(axis=-1)) / 18.0  # per axis
         var = np.maximum(level[:, :nj], floor_m**2)  # (k, j) each joint's whole noise
+        if law is not None:
+            # The step estimate leans on the frames around its onset, where a limb is often fastest and the
+            # tracker noisiest; a window's second differences see too few of those frames to measure it (the
+            # walk hour's false alarm, docs/slippage.md): the noise the whole buffer's law gives for the frames
+            # the estimate weighs, when that is more.
+            wt = contrast - (coef[..., None] * qp).sum(axis=-2)  # (k, j, 2h): what b takes of each frame
+            wt *= wt
+            sw = np.lib.stride_tricks.sliding_window_view(speed_proxy(t[rows], joints[js]), 2 * half, axis=0)
+            at = law[0][js] + law[1][js] * (wt * sw[: len(b)]).sum(axis=-1) / wt.sum(axis=-1)
+            var = np.maximum(var, at)
         common = var.min(axis=1) if nj == 1 else np.clip(level[:, nj], 0.0, 0.95 * var.min(axis=1))  # (k,)
         other = np.maximum(var - common[:, None], 1e-6 * var)  # (k, j) the other sensors' share
         # Each joint's own step estimate d_j = b_j / hh_j has covariance σ_s²/hh̄ + δ_jk σ_oj²/hh_j between

@@ -19,7 +19,7 @@ import numpy as np
 from flockcal.errors import FlockcalError
 from flockcal.solver.slippage.attribution import Attribution, Window, attribute
 from flockcal.solver.slippage.buffer import FrameBuffer
-from flockcal.solver.slippage.framestep import frame_steps, step_contrast
+from flockcal.solver.slippage.framestep import frame_steps, noise_law, step_contrast
 from flockcal.solver.slippage.baseline import SmoothBaseline, neighbours, smooth_baseline
 from flockcal.solver.slippage.pending import PendingSuspicions, Suspicion
 from flockcal.solver.slippage.revisit import CAME_BACK_NATS, PoseHistory, came_back
@@ -150,6 +150,7 @@ class SlipMonitor:
         self.frame_steps = 0  # slips confirmed by the frame-rate step test where the default did not
         # The latest frame tests' best steps: (onset time, sensor, score, evidence, disagreement, jump m).
         self.frame_log: deque = deque(maxlen=2000)
+        self._law: tuple | None = None  # (frame index, joints, (a, b)): the frame test's noise law, see _noise_law
         self.reseat_refuted = bool(reseat_refuted)
         if second_look is None or len(second_look) == 0:
             self.second_look = None
@@ -483,11 +484,12 @@ class SlipMonitor:
         if not los:  # nothing new the test can see yet: ask for another look while there is more to see
             return att, onset, more
         found = []
+        law = self._noise_law(c, l)
         for lo_g, sensors in sorted(los.items()):
             rows = slice(buf.slot(max(lo_g - h, buf.first_index)), buf.slot(last) + 1)
             base = buf.index_of(rows.start)
             for f in frame_steps(buf.g[rows], buf.Q[rows], buf.pv[rows], c, l, self.joints, sensors, ready,
-                                 lo_g - base, hi_g - base, h, self.scale_floor, self._contrast):
+                                 lo_g - base, hi_g - base, h, self.scale_floor, self._contrast, buf.t[rows], law):
                 found.append(replace(f, onset=base + f.onset))  # onsets as global indices
                 self.frame_log.append((float(buf.times[rows.start + f.onset]), self.names[f.sensor], f.score,
                                        f.evidence, f.disagreement, float(np.linalg.norm(f.step))))
@@ -503,6 +505,17 @@ class SlipMonitor:
         self.frame_steps += 1
         return Attribution("slip", best.sensor, -1, cands, 1.0, mine.tolist(), float(np.linalg.norm(best.step)),
                            best.score, best.step), best.onset, False
+
+    def _noise_law(self, c, l) -> tuple[np.ndarray, np.ndarray]:
+        """Each joint's noise against its speed over the stored frames (`framestep.noise_law`, ten seconds or
+        so: enough fast and slow frames to tell the two apart), worked out again once a second of new frames
+        has come or the joints changed: a tracker's noise law changes slowly."""
+        buf = self._buf
+        end = buf.index_of(buf.hi)
+        if self._law is None or self._law[1] is not self.joints or end - self._law[0] >= self.rate_hz:
+            sl = slice(buf.lo, buf.hi)
+            self._law = (end, self.joints, noise_law(buf.g[sl], buf.Q[sl], buf.t[sl], buf.pv[sl], c, l, self.joints))
+        return self._law[2]
 
     def _deviations(self, first: int, c, l) -> None:
         """Bring the buffer's deviations and noise weights up to date from global frame `first` on.
