@@ -197,6 +197,10 @@ class SlipMonitor:
         self._fresh: tuple[int, int] | None = None  # global frames whose buf.dx/dy/w follow the current baseline
         self._quiet = np.full(p, -1, dtype=np.int64)  # global frame index: no step may start before it
         self._pending = PendingSuspicions(p, int(round(merge_s * rate_hz)))
+        # Suspicions the confirming test refuted that the frame-rate step test cannot see far enough past yet:
+        # kept apart, so that what the confirming test is given (its pending list, its limit, its quiet
+        # times) is the same with the frame test on as off.
+        self._frame_pending = PendingSuspicions(p, int(round(merge_s * rate_hz)))
         self.score = np.zeros(p)  # latest GLR score per joint (nats), for display
         self.confirmations = 0  # suspicions put to the confirming test (for benchmarks)
         self.events: list[SlipEvent | SwapEvent] = []
@@ -264,6 +268,7 @@ class SlipMonitor:
         self.rms = np.where(kept, self.rms[k], np.nan)
         self.ready = np.zeros(p, dtype=bool)  # the next block refreshes every baseline on the new list
         self._pending.rejoint(keep, kept)
+        self._frame_pending.rejoint(keep, kept)
         self.joints = J
         self._nbrs = neighbours(J)
         self._buf = self._buf.rejoint(J)
@@ -347,14 +352,14 @@ class SlipMonitor:
         out: list = []
         j = 0
         while j < len(ends):
-            if not self._pending and not ready.any():
+            if not self._pending and not self._frame_pending and not ready.any():
                 break
             score, start, first_row = self._scan(first, step_last[j:], ready)
             hit = score >= self.threshold  # (steps j…, p)
             for k in range(j, len(ends)):
                 self.score = score[k - j]
                 self._pending.add(hit[k - j], first_row + start[k - j])
-                if not self._pending:
+                if not self._pending and not self._frame_pending:
                     continue
                 changed, ev = self._suspicions(float(ts[ends[k] - 1]), step_last[k], ready, c, l)
                 out += ev
@@ -392,6 +397,10 @@ class SlipMonitor:
             if item in self._pending.items:  # (an event before it may have taken all its joints)
                 moved, ev = self._suspicion(item, now, last, ready & self.ready, c, l)
                 changed, out = changed or moved, out + ev
+        for item in list(self._frame_pending.items):
+            if item in self._frame_pending.items:
+                moved, ev = self._frame_look(item, now, last, ready & self.ready, c, l)
+                changed, out = changed or moved, out + ev
         return changed, out
 
     def _suspicion(self, item: Suspicion, now: float, last: int, ready, c, l) -> tuple[bool, list]:
@@ -406,12 +415,9 @@ class SlipMonitor:
         look = self.second_look is not None
         # With the second look, what the first round's test decides stays as it was, except that a suspicion
         # re-seated from a refuted onset (below) must show the same verdict as the second look's slips.
-        if item.frame_only:  # (the confirming test refuted it already: it would only refute it again)
-            att, later = Attribution(None), None
-        else:
-            att, later = self._attribute(onset, fired, ready, c, l, last, more_looks,
-                                         reseat=False if look else None, verify=item.verify)
-        if att.kind is None and later is None and look and not item.frame_only:
+        att, later = self._attribute(onset, fired, ready, c, l, last, more_looks,
+                                     reseat=False if look else None, verify=item.verify)
+        if att.kind is None and later is None and look:
             # The second look: scored counting `second_look` of the lagged baseline's extrapolation as noise
             # (none, as the limbs move into a new pose, where it is most of it); a slip it names stands only
             # where the same pose before the onset shows the step stayed (`_attribute`).
@@ -436,14 +442,34 @@ class SlipMonitor:
             self.reseated += 1
             return False, []
         if att.kind is None:
-            if more_looks and (att.evidence > 0 or wait):
-                # A step is likelier than not, but not yet by the margin: look again one step later. (Or the
-                # frame-rate step test cannot see far enough past the onset yet: only it looks again.)
+            if more_looks and att.evidence > 0:
+                # A step is likelier than not, but not yet by the margin: look again one step later.
                 item.next_try = now + self.step_s - 0.5 / self.rate_hz
-                item.frame_only = item.frame_only or not att.evidence > 0
                 return False, []
             self._pending.judged(item, last, self._quiet)
+            if wait:  # the frame-rate step test cannot see far enough past the onset yet: it alone looks again
+                item.next_try = now + self.step_s - 0.5 / self.rate_hz
+                self._frame_pending.items.append(item)
             return True, []
+        self._pending.judged(item, last, self._quiet)
+        return True, [self._report(att, onset, t_onset, now)]
+
+    def _frame_look(self, item: Suspicion, now: float, last: int, ready, c, l) -> tuple[bool, list]:
+        """Another look by the frame-rate step test alone at a suspicion the confirming test refuted."""
+        if now < item.next_try:
+            return False, []
+        att, onset, wait = self._frame_step(item, item.fired, ready, c, l, last, Attribution(None))
+        if att.kind is None:
+            if wait:
+                item.next_try = now + self.step_s - 0.5 / self.rate_hz
+            else:
+                self._frame_pending.items.remove(item)
+            return False, []
+        self._frame_pending.items.remove(item)
+        return True, [self._report(att, onset, float(self._buf.times[self._buf.slot(onset)]), now)]
+
+    def _report(self, att: Attribution, onset: int, t_onset: float, now: float):
+        """The event of a confirmed attribution: its joints start a new segment from the onset."""
         affected = np.asarray(att.joints, dtype=int)
         names = tuple(self.names[int(self.joints[j, 0])] for j in affected)
         if att.kind == "slip":
@@ -455,13 +481,14 @@ class SlipMonitor:
         self.segment_start[affected] = t_onset
         self.ready[affected] = False
         # Its joints the event does not re-baseline (soft tissue that fired with it) are quieted as a
-        # refutation's are; other suspicions on the re-baselined joints are void: their baseline is gone.
-        self._pending.judged(item, last, self._quiet)
+        # refutation's are (by the caller); other suspicions on the re-baselined joints are void: their
+        # baseline is gone.
         self._quiet[affected] = onset
         gone = np.zeros(len(self.joints), dtype=bool)
         gone[affected] = True
         self._pending.forget(gone)
-        return True, [ev]
+        self._frame_pending.forget(gone)
+        return ev
 
     def _frame_step(self, item: Suspicion, fired, ready, c, l, last: int, att: Attribution):
         """A suspicion the confirming test did not confirm, put to the frame-rate step test: every sensor at

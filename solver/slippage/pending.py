@@ -16,7 +16,6 @@ class Suspicion:
     fired: np.ndarray  # (p,) bool: joints whose step test fired with a start near the onset
     next_try: float = -np.inf  # no confirming test before this time (a likely step gets another look)
     verify: bool = False  # re-seated by the second look: a slip needs the same pose before to show it stayed
-    frame_only: bool = False  # refuted by the confirming test, kept only until the frame-rate step test can see it
     # Per sensor, the global frame before which its onsets have had the frame-rate step test. Per sensor, not
     # per suspicion: a joint that joins later brings sensors whose earlier onsets no look has tested yet.
     frame_tested: dict = field(default_factory=dict)
