@@ -17,6 +17,8 @@ from flockcal.solver.slippage.stats import residual
 # Nats of disagreement with one shared step allowed per joint beyond the first (a χ² with 3 degrees of
 # freedom exceeds 12 in 0.7 % of cases).
 DISAGREE_PER_JOINT = 6.0
+# Below any tracker's noise (0.1 mm per axis): where the noise law's weights stop growing.
+VAR_FLOOR_M2 = 1e-8
 
 
 @dataclass
@@ -57,13 +59,19 @@ def noise_law(g, Q, t, pv, c, l, joints: np.ndarray) -> tuple[np.ndarray, np.nda
     u = residual(g, Q, c, l)
     dd = u[2:] - 2 * u[1:-1] + u[:-2]
     e = (dd * dd).sum(axis=-1) / 18.0  # per axis: E‖Δ²x‖² = 18σ² for white noise
-    w = (pv[2:] & pv[1:-1] & pv[:-2]).astype(float)
+    ok = (pv[2:] & pv[1:-1] & pv[:-2]).astype(float)
     s = speed_proxy(t, joints)[1:-1]
-    S1, Ss, Sss = w.sum(axis=0), (w * s).sum(axis=0), (w * s * s).sum(axis=0)
-    Se, Ses = (w * e).sum(axis=0), (w * e * s).sum(axis=0)
-    den = Sss * S1 - Ss * Ss
-    b = np.maximum(np.where(den > 0, (Ses * S1 - Ss * Se) / np.where(den > 0, den, 1.0), 0.0), 0.0)
-    a = np.maximum((Se - b * Ss) / np.maximum(S1, 1.0), 0.0)
+    w = ok
+    for _ in range(3):
+        S1, Ss, Sss = w.sum(axis=0), (w * s).sum(axis=0), (w * s * s).sum(axis=0)
+        Se, Ses = (w * e).sum(axis=0), (w * e * s).sum(axis=0)
+        den = Sss * S1 - Ss * Ss
+        b = np.maximum(np.where(den > 0, (Ses * S1 - Ss * Se) / np.where(den > 0, den, 1.0), 0.0), 0.0)
+        a = np.maximum((Se - b * Ss) / np.where(S1 > 0, S1, 1.0), 0.0)
+        # A squared difference scatters as its mean squared: weigh each frame by the fit's variance² so that
+        # the fast frames' scatter does not decide the slow frames' level (two reweightings suffice).
+        w = ok / np.maximum(a + b * s, VAR_FLOOR_M2) ** 2
+        w /= np.maximum(w.max(axis=0), 1e-300)
     return a, b
 
 
