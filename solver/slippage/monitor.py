@@ -113,10 +113,11 @@ class SlipMonitor:
     or more joints, for a leaf) scores a suspicion the default does not confirm again with those shares,
     and reports its slip only where the same pose before the onset shows the step stayed; it raised no
     false alarm in fresh kiosk guests but finds too few more slips to reach issue 32's target, so it is
-    off too (same page). `frame_step` (nats; None: off) puts a suspicion the confirming test does not
-    confirm to a test that needs no pose model: a step at one frame, shared by every joint of a sensor in
-    its own frame, against a cubic in time and each joint's own rotation over ±`frame_step_s`
-    (`framestep`); the suspicion is kept until that test has seen `frame_step_s` past its onset.
+    off too (same page). `frame_step` (nats, 20 by default; None: off) puts a suspicion the confirming
+    test does not confirm to a test that needs no pose model: a step at one frame, shared by every joint of
+    a sensor in its own frame, against a cubic in time and each joint's own rotation over ±`frame_step_s`
+    (`framestep`), its noise at least what each joint's speed makes it; a refuted suspicion waits, apart
+    from those the confirming test holds, until that test has seen `frame_step_s` past its onset.
     """
 
     def __init__(self, joints, n_sensors: int, rate_hz: float, names=None, *,
@@ -127,7 +128,7 @@ class SlipMonitor:
                  scale_floor_m: float = 2e-4, max_rms_m: float = 0.05, revisit_s: float = 40.0,
                  merge_s: float = 0.05, extrapolation_share: tuple[float, ...] = (1.0, 1.0, 1.0),
                  reseat_refuted: bool = False, second_look: tuple[float, float] | None = None,
-                 frame_step: float | None = None, frame_step_s: float = 0.3):
+                 frame_step: float | None = 20.0, frame_step_s: float = 0.3):
         J = _checked_joints(joints, n_sensors)
         if not rate_hz > 0:
             raise SlippageError(f"rate_hz must be positive, got {rate_hz!r}")
