@@ -722,9 +722,13 @@ def _with_own_noise(x: np.ndarray, weight: np.ndarray) -> np.ndarray:
 
 
 def detect_slips(take, calibration=None, *, joints=None, c=None, l=None, batch_s: float = 10.0,
-                 **options) -> list:
+                 frame_step: float | None = None, **options) -> list:
     """Slip and swap events in a recorded take, replayed through a `SlipMonitor` (which examines the
     frames `step_s` at a time, as live, whatever the `batch_s` pieces they are handed over in).
+
+    The frame-rate step test is off here unless `frame_step` is given (the live monitor's 20 nats finds
+    its events): it would triple the scan's CPU, and `flockcal fit` has 1 s for a 30 s take, scan
+    included (docs/slippage.md, sixth round).
 
     take: a `flockcal.takes.Take` (or anything with rotations, positions, rate_hz and optionally valid,
     times, names). Joint estimates come from `calibration` (a `Calibration` or its docs/design.md §5 dict)
@@ -743,7 +747,7 @@ def detect_slips(take, calibration=None, *, joints=None, c=None, l=None, batch_s
         joints, c, l = joints_from_calibration(calibration, names)
     if joints is None or c is None or l is None:
         raise SlippageError("detect_slips needs a calibration or joints with c and l (fit the take first)")
-    mon = SlipMonitor(joints, m, rate, names, **options)
+    mon = SlipMonitor(joints, m, rate, names, frame_step=frame_step, **options)
     step = max(1, int(round(batch_s * rate)))
     for a in range(0, n, step):
         b = min(n, a + step)
