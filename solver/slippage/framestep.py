@@ -53,9 +53,9 @@ def speed_proxy(t: np.ndarray, joints: np.ndarray) -> np.ndarray:
 
 
 def noise_law(g, Q, t, pv, c, l, joints: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Each joint's noise as its speed makes it, var = a + b·s per axis (s: `speed_proxy`), fitted by least
-    squares to the squared second differences of its residual over the frames given (a, b ≥ 0; (P,) each).
-    A tracker whose error does not grow with speed gets b ≈ 0 and its plain level in a."""
+    """Each joint's noise as its speed makes it, var = a + b·s per axis (s: `speed_proxy`), fitted by
+    weighted least squares to the squared second differences of its residual over the frames given (a, b ≥ 0;
+    (P,) each). A tracker whose error does not grow with speed gets b ≈ 0 and its plain level in a."""
     u = residual(g, Q, c, l)
     dd = u[2:] - 2 * u[1:-1] + u[:-2]
     e = (dd * dd).sum(axis=-1) / 18.0  # per axis: E‖Δ²x‖² = 18σ² for white noise
