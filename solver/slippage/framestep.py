@@ -94,6 +94,7 @@ def frame_steps(g, Q, pv, c, l, joints: np.ndarray, sensors, ready: np.ndarray, 
     basis, _ = np.linalg.qr(np.vander(tau, 4, increasing=True))  # (2h, 4) orthonormal
     basis_t = basis.T
     ridge = 1e-6 * 2 * half  # per rotation entry, in its own units (1 = a right angle's swing)
+    speed = None if law is None else speed_proxy(t[rows], joints)  # (n, P), once for every sensor's joints
     for s in sensors:
         child = (joints[:, 0] == s) & ready
         parent = (joints[:, 1] == s) & ready
@@ -145,7 +146,7 @@ def frame_steps(g, Q, pv, c, l, joints: np.ndarray, sensors, ready: np.ndarray, 
             # the estimate weighs, when that is more.
             wt = contrast - (coef[..., None] * qp).sum(axis=-2)  # (k, j, 2h): what b takes of each frame
             wt *= wt
-            sw = np.lib.stride_tricks.sliding_window_view(speed_proxy(t[rows], joints[js]), 2 * half, axis=0)
+            sw = np.lib.stride_tricks.sliding_window_view(speed[:, js], 2 * half, axis=0)
             at = law[0][js] + law[1][js] * (wt * sw[: len(b)]).sum(axis=-1) / wt.sum(axis=-1)
             var = np.maximum(var, at)
         common = var.min(axis=1) if nj == 1 else np.clip(level[:, nj], 0.0, 0.95 * var.min(axis=1))  # (k,)
