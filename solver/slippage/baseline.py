@@ -264,7 +264,6 @@ def step_scan(D: np.ndarray, series: list[np.ndarray], weight: np.ndarray, start
     """`step_fits`' g and h for a step from each row in `starts` (n,) instead of one onset: g (n, q,
     len(series), 3), h (n, q). The smooth part's normal matrix does not depend on where the step
     starts, so one factorisation serves every start; the step column's cross products are suffix sums."""
-    K = D.shape[-1]
     q = D.shape[1]
     X = np.concatenate(series, axis=-1)  # (L, q, 3·ns)
     wD = D * weight[..., None]

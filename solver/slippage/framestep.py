@@ -8,6 +8,7 @@ never seen before is no harder than any other. Pure numpy over (onsets, joints, 
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -75,6 +76,47 @@ def noise_law(g, Q, t, pv, c, l, joints: np.ndarray) -> tuple[np.ndarray, np.nda
     return a, b
 
 
+def incidence(joints: np.ndarray, m: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each sensor's joints, padded: (m, D) joint indices (-1: none) and (m, D) roles (0: the sensor is the
+    joint's child, 1: its parent), D the most joints any sensor has."""
+    J = np.asarray(joints, dtype=int).reshape(-1, 2)
+    return _incidence(J.tobytes(), len(J), int(m))
+
+
+@lru_cache(maxsize=16)
+def _incidence(key: bytes, p: int, m: int) -> tuple[np.ndarray, np.ndarray]:
+    J = np.frombuffer(key, dtype=int).reshape(p, 2)
+    D = max(1, int(np.bincount(J.ravel(), minlength=m).max())) if len(J) else 1
+    idx = np.full((m, D), -1)
+    role = np.zeros((m, D), dtype=int)
+    fill = np.zeros(m, dtype=int)
+    for j, pair in enumerate(J.tolist()):
+        for r, s in enumerate(pair):
+            idx[s, fill[s]], role[s, fill[s]] = j, r
+            fill[s] += 1
+    idx.flags.writeable = role.flags.writeable = False  # shared by every call with these joints
+    return idx, role
+
+
+@lru_cache(maxsize=4)
+def _cubic_basis(half: int) -> np.ndarray:
+    """An orthonormal basis (2·half, 4) of the cubics in time over a window of 2·half frames."""
+    tau = (np.arange(2 * half) - half + 0.5) / half
+    basis = np.linalg.qr(np.vander(tau, 4, increasing=True))[0]
+    basis.flags.writeable = False
+    return basis
+
+
+def _halves(e: np.ndarray, half: int, k: int) -> np.ndarray:
+    """Of the k windows of 2·half − 2 second differences e (n−2, …), the larger of the two halves' means
+    (each half − 2 long, the two in the middle that a step itself shows left out), per axis (÷ 18)."""
+    C = np.concatenate([np.zeros((1,) + e.shape[1:]), np.cumsum(e, axis=0)])
+    m = half - 2
+    first = C[m:m + k] - C[:k]
+    second = C[half + m:half + m + k] - C[half:half + k]
+    return np.maximum(first, second) / (m * 18.0)
+
+
 def frame_steps(g, Q, pv, c, l, joints: np.ndarray, sensors, ready: np.ndarray, lo: int, hi: int, half: int,
                 floor_m: float, contrast: np.ndarray, t: np.ndarray | None = None,
                 law: tuple[np.ndarray, np.ndarray] | None = None) -> list[FrameStep]:
@@ -82,97 +124,94 @@ def frame_steps(g, Q, pv, c, l, joints: np.ndarray, sensors, ready: np.ndarray, 
     g (L, P, 3), Q (L, P, 3, 3), pv (L, P) (rows, not global indices); its joints are the ready ones it is
     child or parent of. Returns one FrameStep per sensor with at least one such joint (onset as a row).
     With positions t (L, m, 3) and each joint's `noise_law` (a, b), a window's noise is at least what the law
-    gives for the frames the step estimate leans on."""
-    out = []
-    L = len(g)
+    gives for the frames the step estimate leans on. Every joint's windows are worked out once, in both its
+    child's and its parent's frame, and each sensor gathers its own."""
+    joints = np.asarray(joints)
+    L, P = len(g), len(joints)
     lo, hi = max(lo, half), min(hi, L - half + 1)
-    if hi <= lo:
-        return out
+    sensors = np.asarray(list(sensors), dtype=int)
+    if hi <= lo or not len(sensors) or not P:
+        return []
+    m = int(max(joints.max(), sensors.max())) + 1
+    idx, role = incidence(joints, m)
+    idx, role = idx[sensors], role[sensors]
+    use = (idx >= 0) & ready[np.maximum(idx, 0)]  # (s, D): the ready joints of each sensor
+    nj = use.sum(axis=1)
+    if not nj.any():
+        return []
     rows = slice(lo - half, hi + half - 1)
+    k, n2 = hi - lo, 2 * half
     hh0 = float(contrast @ contrast)
-    tau = (np.arange(2 * half) - half + 0.5) / half
-    basis, _ = np.linalg.qr(np.vander(tau, 4, increasing=True))  # (2h, 4) orthonormal
-    basis_t = basis.T
-    ridge = 1e-6 * 2 * half  # per rotation entry, in its own units (1 = a right angle's swing)
-    speed = None if law is None else speed_proxy(t[rows], joints)  # (n, P), once for every sensor's joints
-    for s in sensors:
-        child = (joints[:, 0] == s) & ready
-        parent = (joints[:, 1] == s) & ready
-        js = np.flatnonzero(child | parent)
-        if not len(js):
-            continue
-        u = residual(g[rows][:, js], Q[rows][:, js], c[js], l[js])  # (n, j, 3) child frame
-        # In the parent's frame the residual is Qᵀu, and a slip of the parent moves it by −d.
-        up = -(Q[rows][:, js].swapaxes(-1, -2) @ u[..., None])[..., 0]
-        x = np.where(child[js][None, :, None], u, up)
-        ok = pv[rows][:, js]
-        win = np.lib.stride_tricks.sliding_window_view(x, 2 * half, axis=0)  # (k, j, 3, 2h)
-        okw = np.lib.stride_tricks.sliding_window_view(ok, 2 * half, axis=0).all(axis=-1)  # (k, j)
-        # Each window's step contrast also has the joint's own relative rotation projected out: a joint
-        # centre a little off, or skin that slides with the joint's angle, is linear in its nine entries
-        # and turns fast with a fast limb, where a cubic in time over a few tenths of a second is not enough.
-        q = Q[rows][:, js].reshape(-1, len(js), 9)
-        qw = np.lib.stride_tricks.sliding_window_view(q, 2 * half, axis=0)  # (k, j, 9, 2h)
-        qw = qw - qw.mean(axis=-1, keepdims=True)
-        hq = qw @ contrast  # (k, j, 9): the poly-free step against each rotation entry (contrast ⟂ constants)
-        # Project the rotation columns off the polynomial as well, then the contrast off them (ridge: entries
-        # that hardly change in a window carry no information and must not blow up).
-        qp = qw - (qw @ basis) @ basis_t  # (k, j, 9, 2h) with basis orthonormal over the window
-        G = qp @ qp.swapaxes(-1, -2) + ridge * np.eye(9)
-        coef = np.linalg.solve(G, hq[..., None])[..., 0]  # (k, j, 9)
-        b_poly = win @ contrast  # (k, j, 3)
-        xq = win @ qp.swapaxes(-1, -2)  # (k, j, 3, 9)
-        b = b_poly - (xq @ coef[..., None])[..., 0]
-        hh = hh0 - (hq * coef).sum(axis=-1)  # (k, j)
-        hh = np.maximum(hh, 1e-3 * hh0)
-        dd = x[2:] - 2 * x[1:-1] + x[:-2]  # (n-2, j, 3) second differences
-        d2 = (dd * dd).sum(axis=-1)  # (n-2, j)
-        # The sensor's own noise is common to all its joints (in its frame): the products of two joints'
-        # second differences measure it, E[Δ²x_j · Δ²x_k] = 18 σ_s² per axis.
-        nj = len(js)
-        sumd = dd.sum(axis=1)
-        cross = ((sumd * sumd).sum(axis=-1) - d2.sum(axis=1)) / max(nj * (nj - 1), 1)  # (n-2,)
-        both = np.concatenate([d2, cross[:, None]], axis=1)
-        bw = np.lib.stride_tricks.sliding_window_view(both, 2 * half - 2, axis=0)[: len(b)]  # (k, j+1, 2h-2)
-        # Tracker noise grows with speed, and a limb can speed up several-fold inside one window: each half's
-        # own level, the larger counted for the whole (a step seen against the quieter half alone is noise).
-        # Means, not medians, and the two second differences the step itself shows in left out.
-        level = np.maximum(bw[..., : half - 2].mean(axis=-1), bw[..., half:].mean(axis=-1)) / 18.0  # per axis
-        var = np.maximum(level[:, :nj], floor_m**2)  # (k, j) each joint's whole noise
-        if law is not None:
-            # The step estimate leans on the frames around its onset, where a limb is often fastest and the
-            # tracker noisiest; a window's second differences see too few of those frames to measure it (the
-            # walk hour's false alarm, docs/slippage.md): the noise the whole buffer's law gives for the frames
-            # the estimate weighs, when that is more.
-            wt = contrast - (coef[..., None] * qp).sum(axis=-2)  # (k, j, 2h): what b takes of each frame
-            wt *= wt
-            sw = np.lib.stride_tricks.sliding_window_view(speed[:, js], 2 * half, axis=0)
-            at = law[0][js] + law[1][js] * (wt * sw[: len(b)]).sum(axis=-1) / wt.sum(axis=-1)
-            var = np.maximum(var, at)
-        common = var.min(axis=1) if nj == 1 else np.clip(level[:, nj], 0.0, 0.95 * var.min(axis=1))  # (k,)
-        other = np.maximum(var - common[:, None], 1e-6 * var)  # (k, j) the other sensors' share
-        # Each joint's own step estimate d_j = b_j / hh_j has covariance σ_s²/hh̄ + δ_jk σ_oj²/hh_j between
-        # joints; the shared step is their generalised least-squares mean (Sherman-Morrison).
-        dj = b / hh[..., None]
-        Dj = np.where(okw, other / hh, np.inf)
-        a = common / hh.mean(axis=1)
-        inv = 1.0 / Dj
-        S = inv.sum(axis=1)
-        full = okw.all(axis=1)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            d = (inv[..., None] * dj).sum(axis=1) / S[:, None]
-            shared = 0.5 * (d * d).sum(axis=-1) / (a + 1.0 / S)
-            disagree = 0.5 * (inv * ((dj - d[:, None]) ** 2).sum(axis=-1)).sum(axis=1)
-        if nj == 1:
-            # One joint is its own shared step: its disagreement is nil, not the round-off of d_j − d (times
-            # a weight of 1e6/σ²), which came out above the gate's 0 at about half the onsets and lost them.
-            disagree = np.zeros_like(shared)
-        # A step only some of the sensor's joints show is a neighbour's slip, or skin: beyond the χ² scatter of
-        # one shared vector (3 degrees of freedom per further joint), the sensor is not the one that moved.
-        score = np.where(full & (disagree <= DISAGREE_PER_JOINT * (nj - 1)), shared - disagree, -np.inf)
-        k = int(np.argmax(score))
-        if not np.isfinite(score[k]):
-            continue
-        out.append(FrameStep(int(s), lo + k, float(score[k]), float(shared[k]), float(disagree[k]), d[k].copy(),
-                             js))
+    basis = _cubic_basis(half)  # (2h, 4) orthonormal
+    ridge = 1e-6 * n2  # per rotation entry, in its own units (1 = a right angle's swing)
+    gr, Qr = g[rows], Q[rows]
+    n = len(gr)
+    u = residual(gr, Qr, c, l)  # (n, P, 3) child frame
+    # In the parent's frame the residual is Qᵀu, and a slip of the parent moves it by −d.
+    x = np.stack([u, -(Qr.swapaxes(-1, -2) @ u[..., None])[..., 0]], axis=2)  # (n, P, 2, 3)
+    # Each window's step contrast also has the joint's own relative rotation projected out: a joint centre a
+    # little off, or skin that slides with the joint's angle, is linear in its nine entries and turns fast
+    # with a fast limb, where a cubic in time over a few tenths of a second is not enough. (The rotation
+    # columns are not centred: the cubic's constant column projects that out of everything below anyway.)
+    qw = np.lib.stride_tricks.sliding_window_view(Qr.reshape(n, P, 9), n2, axis=0)  # (k, P, 9, 2h)
+    hq = qw @ contrast  # (k, P, 9): the poly-free step against each rotation entry (contrast ⟂ the cubic)
+    A = qw @ basis  # (k, P, 9, 4)
+    # The rotation columns projected off the cubic, qp = qw − (qw B) Bᵀ, enter only through qp qpᵀ and
+    # coefᵀ qp (ridge: entries that hardly change in a window carry no information and must not blow up).
+    G = qw @ qw.swapaxes(-1, -2) - A @ A.swapaxes(-1, -2) + ridge * np.eye(9)
+    coef = np.linalg.solve(G, hq[..., None])  # (k, P, 9, 1)
+    ct = coef.swapaxes(-1, -2)
+    wt = contrast - (ct @ qw)[..., 0, :] + (ct @ A)[..., 0, :] @ basis.T  # (k, P, 2h): what b takes of each frame
+    win = np.lib.stride_tricks.sliding_window_view(x.reshape(n, P, 6), n2, axis=0)  # (k, P, 6, 2h)
+    b = (win @ wt[..., None])[..., 0].reshape(k, P, 2, 3)
+    hh = np.maximum(hh0 - (hq * coef[..., 0]).sum(axis=-1), 1e-3 * hh0)  # (k, P)
+    dd = x[2:] - 2 * x[1:-1] + x[:-2]  # (n-2, P, 2, 3) second differences
+    # Tracker noise grows with speed, and a limb can speed up several-fold inside one window: each half's
+    # own level, the larger counted for the whole (a step seen against the quieter half alone is noise).
+    # Means, not medians, and the two second differences the step itself shows in left out.
+    var = np.maximum(_halves((dd * dd).sum(axis=-1), half, k), floor_m**2)  # (k, P, 2) each joint's whole noise
+    if law is not None:
+        # The step estimate leans on the frames around its onset, where a limb is often fastest and the
+        # tracker noisiest; a window's second differences see too few of those frames to measure it (the
+        # walk hour's false alarm, docs/slippage.md): the noise the whole buffer's law gives for the frames
+        # the estimate weighs, when that is more.
+        w2 = wt * wt
+        sw = np.lib.stride_tricks.sliding_window_view(speed_proxy(t[rows], joints), n2, axis=0)  # (k, P, 2h)
+        var = np.maximum(var, (law[0] + law[1] * (w2 * sw).sum(axis=-1) / w2.sum(axis=-1))[..., None])
+    okw = np.lib.stride_tricks.sliding_window_view(pv[rows], n2, axis=0).all(axis=-1)  # (k, P)
+    # Each sensor's joints, in its own frame: (k, s, D, …), padded slots masked by `use`.
+    ji = np.maximum(idx, 0)
+    bs, vs, hs = b[:, ji, role], var[:, ji, role], hh[:, ji]
+    oks = okw[:, ji] | ~use
+    # The sensor's own noise is common to all its joints (in its frame): the products of two joints' second
+    # differences measure it, E[Δ²x_j · Δ²x_k] = 18 σ_s² per axis.
+    dds = dd[:, ji, role] * use[..., None]  # (n-2, s, D, 3)
+    sumd = dds.sum(axis=2)
+    cross = ((sumd * sumd).sum(axis=-1) - (dds * dds).sum(axis=(2, 3))) / np.maximum(nj * (nj - 1), 1)
+    vmin = np.where(use, vs, np.inf).min(axis=2)  # (k, s)
+    common = np.where(nj == 1, vmin, np.clip(_halves(cross, half, k), 0.0, 0.95 * vmin))
+    other = np.maximum(vs - common[..., None], 1e-6 * vs)  # (k, s, D) the other sensors' share
+    # Each joint's own step estimate d_j = b_j / hh_j has covariance σ_s²/hh̄ + δ_jk σ_oj²/hh_j between
+    # joints; the shared step is their generalised least-squares mean (Sherman-Morrison).
+    dj = bs / hs[..., None]
+    inv = np.where(use & oks, hs / other, 0.0)
+    a = common / (np.where(use, hs, 0.0).sum(axis=2) / np.maximum(nj, 1))
+    S = inv.sum(axis=2)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        d = (inv[..., None] * dj).sum(axis=2) / S[..., None]  # (k, s, 3)
+        shared = 0.5 * (d * d).sum(axis=-1) / (a + 1.0 / S)
+        disagree = 0.5 * (inv * ((dj - d[:, :, None]) ** 2).sum(axis=-1)).sum(axis=2)
+    # One joint is its own shared step: its disagreement is nil, not the round-off of d_j − d (times a weight
+    # of 1e6/σ²), which came out above the gate's 0 at about half the onsets and lost them.
+    disagree = np.where(nj == 1, 0.0, disagree)
+    # A step only some of the sensor's joints show is a neighbour's slip, or skin: beyond the χ² scatter of
+    # one shared vector (3 degrees of freedom per further joint), the sensor is not the one that moved.
+    ok = oks.all(axis=2) & (nj > 0) & (disagree <= DISAGREE_PER_JOINT * (nj - 1))
+    score = np.where(ok, shared - disagree, -np.inf)
+    best = np.argmax(score, axis=0)  # (s,)
+    out = []
+    for i in np.flatnonzero(np.isfinite(score[best, np.arange(len(sensors))])):
+        kb = int(best[i])
+        out.append(FrameStep(int(sensors[i]), lo + kb, float(score[kb, i]), float(shared[kb, i]),
+                             float(disagree[kb, i]), d[kb, i].copy(), idx[i][use[i]]))
     return out
