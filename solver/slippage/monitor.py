@@ -19,7 +19,7 @@ import numpy as np
 from flockcal.errors import FlockcalError
 from flockcal.solver.slippage.attribution import Attribution, Window, attribute
 from flockcal.solver.slippage.buffer import FrameBuffer
-from flockcal.solver.slippage.framestep import frame_steps, noise_law, step_contrast
+from flockcal.solver.slippage.framestep import FrameStep, frame_steps, noise_law, step_contrast
 from flockcal.solver.slippage.baseline import SmoothBaseline, neighbours, smooth_baseline
 from flockcal.solver.slippage.pending import PendingSuspicions, Suspicion
 from flockcal.solver.slippage.revisit import CAME_BACK_NATS, PoseHistory, came_back
@@ -113,11 +113,13 @@ class SlipMonitor:
     or more joints, for a leaf) scores a suspicion the default does not confirm again with those shares,
     and reports its slip only where the same pose before the onset shows the step stayed; it raised no
     false alarm in fresh kiosk guests but finds too few more slips to reach issue 32's target, so it is
-    off too (same page). `frame_step` (nats, 20 by default; None: off) puts a suspicion the confirming
-    test does not confirm to a test that needs no pose model: a step at one frame, shared by every joint of
-    a sensor in its own frame, against a cubic in time and each joint's own rotation over ±`frame_step_s`
-    (`framestep`), its noise at least what each joint's speed makes it; a refuted suspicion waits, apart
-    from those the confirming test holds, until that test has seen `frame_step_s` past its onset.
+    off too (same page). `frame_step` (nats, 20 by default; None: off) adds a test that needs no pose model:
+    every sensor with a ready joint, at every onset once `frame_step_s` of frames after it have come, is
+    scored for a step at that frame, shared by every joint of the sensor in its own frame, against a cubic
+    in time and each joint's own rotation over ±`frame_step_s` (`framestep`), its noise at least what each
+    joint's speed makes it. A step needs `frame_step` where the step test fired on one of the sensor's
+    joints with a start near the onset, and `frame_step_alone` (25; None: never) where it did not. It
+    leaves the confirming test's suspicions, quiet times and limits as they are with it off.
     """
 
     def __init__(self, joints, n_sensors: int, rate_hz: float, names=None, *,
@@ -128,7 +130,7 @@ class SlipMonitor:
                  scale_floor_m: float = 2e-4, max_rms_m: float = 0.05, revisit_s: float = 40.0,
                  merge_s: float = 0.05, extrapolation_share: tuple[float, ...] = (1.0, 1.0, 1.0),
                  reseat_refuted: bool = False, second_look: tuple[float, float] | None = None,
-                 frame_step: float | None = 20.0, frame_step_s: float = 0.3):
+                 frame_step: float | None = 20.0, frame_step_s: float = 0.3, frame_step_alone: float | None = 25.0):
         J = _checked_joints(joints, n_sensors)
         if not rate_hz > 0:
             raise SlippageError(f"rate_hz must be positive, got {rate_hz!r}")
@@ -146,10 +148,26 @@ class SlipMonitor:
         self.frame_step = None if frame_step is None or not frame_step > 0 else float(frame_step)
         self._half = max(4, int(round(frame_step_s * rate_hz)))
         self._contrast = step_contrast(self._half)
-        self._search_back = int(round(0.1 * rate_hz))
-        self._search_ahead = int(round(0.3 * rate_hz))
+        # A step the scan finds this close to the newest onset it can test waits for the onsets just after it:
+        # a neighbour's best may lie there.
+        self._scan_hold = max(1, int(round(merge_s * rate_hz)))
+        # The scan looks every other step (0.2 s of onsets at once): its cost is mostly per look, and a slip
+        # it finds is then reported 0.3-0.5 s after its onset rather than 0.3-0.4 s.
+        self._scan_every = 2 * max(1, int(round(step_s * rate_hz)))
+        self._scanned = -1  # global frame index: the frame scan has tested every onset before it
+        # Where the step test raised nothing near an onset, a frame step needs this much (None: none there).
+        self.frame_step_alone = (np.inf if self.frame_step is None or frame_step_alone is None
+                                 else max(float(frame_step_alone), self.frame_step))
+        # The step test's hits, (global start frame, joint), while the frame scan may still test onsets near them.
+        self._hits: deque = deque()
+        # An onset is near a hit whose start is up to 0.3 s before it or 0.1 s after: the frames the frame test
+        # looked at around a suspicion before the scan (a slip's own joints often cross the threshold 0.1-0.3 s
+        # after its neighbours' soft tissue has).
+        self._near = (int(round(0.3 * rate_hz)), int(round(0.1 * rate_hz)))
+        self._event_frame = np.full(len(J), -1, dtype=np.int64)  # each joint's latest event onset (global)
         self.frame_steps = 0  # slips confirmed by the frame-rate step test where the default did not
-        # The latest frame tests' best steps: (onset time, sensor, score, evidence, disagreement, jump m).
+        # The frame scan's best step of each sensor per look: (onset time, sensor, score, evidence,
+        # disagreement, jump m).
         self.frame_log: deque = deque(maxlen=2000)
         self._law: tuple | None = None  # (frame index, joints, (a, b)): the frame test's noise law, see _noise_law
         self.reseat_refuted = bool(reseat_refuted)
@@ -198,10 +216,6 @@ class SlipMonitor:
         self._fresh: tuple[int, int] | None = None  # global frames whose buf.dx/dy/w follow the current baseline
         self._quiet = np.full(p, -1, dtype=np.int64)  # global frame index: no step may start before it
         self._pending = PendingSuspicions(p, int(round(merge_s * rate_hz)))
-        # Suspicions the confirming test refuted that the frame-rate step test cannot see far enough past yet:
-        # kept apart, so that what the confirming test is given (its pending list, its limit, its quiet
-        # times) is the same with the frame test on as off.
-        self._frame_pending = PendingSuspicions(p, int(round(merge_s * rate_hz)))
         self.score = np.zeros(p)  # latest GLR score per joint (nats), for display
         self.confirmations = 0  # suspicions put to the confirming test (for benchmarks)
         self.events: list[SlipEvent | SwapEvent] = []
@@ -269,7 +283,9 @@ class SlipMonitor:
         self.rms = np.where(kept, self.rms[k], np.nan)
         self.ready = np.zeros(p, dtype=bool)  # the next block refreshes every baseline on the new list
         self._pending.rejoint(keep, kept)
-        self._frame_pending.rejoint(keep, kept)
+        self._event_frame = np.where(kept, self._event_frame[k], -1)
+        renum = {int(old): new for new, old in enumerate(keep.tolist()) if old >= 0}
+        self._hits = deque((st, renum[q]) for st, q in self._hits if q in renum)
         self.joints = J
         self._nbrs = neighbours(J)
         self._buf = self._buf.rejoint(J)
@@ -353,16 +369,20 @@ class SlipMonitor:
         out: list = []
         j = 0
         while j < len(ends):
-            if not self._pending and not self._frame_pending and not ready.any():
+            if not self._pending and not ready.any():
                 break
             score, start, first_row = self._scan(first, step_last[j:], ready)
             hit = score >= self.threshold  # (steps j…, p)
             for k in range(j, len(ends)):
                 self.score = score[k - j]
                 self._pending.add(hit[k - j], first_row + start[k - j])
-                if not self._pending and not self._frame_pending:
-                    continue
-                changed, ev = self._suspicions(float(ts[ends[k] - 1]), step_last[k], ready, c, l)
+                if self.frame_step is not None:
+                    self._hits.extend((int(first_row + start[k - j, q]), q) for q in np.flatnonzero(hit[k - j]))
+                now = float(ts[ends[k] - 1])
+                changed, ev = self._suspicions(now, step_last[k], ready, c, l) if self._pending else (False, [])
+                if self.frame_step is not None:
+                    found = self._frame_scan(now, step_last[k], self.ready & finite, c, l)
+                    changed, ev = changed or bool(found), ev + found
                 out += ev
                 if changed:  # the quiet times or the joints' state moved: test the rest afresh
                     break
@@ -398,10 +418,6 @@ class SlipMonitor:
             if item in self._pending.items:  # (an event before it may have taken all its joints)
                 moved, ev = self._suspicion(item, now, last, ready & self.ready, c, l)
                 changed, out = changed or moved, out + ev
-        for item in list(self._frame_pending.items):
-            if item in self._frame_pending.items:
-                moved, ev = self._frame_look(item, now, last, ready & self.ready, c, l)
-                changed, out = changed or moved, out + ev
         return changed, out
 
     def _suspicion(self, item: Suspicion, now: float, last: int, ready, c, l) -> tuple[bool, list]:
@@ -430,10 +446,6 @@ class SlipMonitor:
                 att = second
             else:
                 att = Attribution(None, evidence=max(att.evidence, second.evidence))
-        wait = False
-        if att.kind is None and later is None and self.frame_step is not None:
-            att, onset, wait = self._frame_step(item, fired, ready, c, l, last, att)
-            t_onset = float(buf.times[buf.slot(onset)])
         if later is not None:
             # The step this suspicion would confirm starts well after its onset: a slip landed inside the
             # window of a suspicion kept for another look. Test it again at the step's own start.
@@ -448,26 +460,9 @@ class SlipMonitor:
                 item.next_try = now + self.step_s - 0.5 / self.rate_hz
                 return False, []
             self._pending.judged(item, last, self._quiet)
-            if wait:  # the frame-rate step test cannot see far enough past the onset yet: it alone looks again
-                item.next_try = now + self.step_s - 0.5 / self.rate_hz
-                self._frame_pending.items.append(item)
             return True, []
         self._pending.judged(item, last, self._quiet)
         return True, [self._report(att, onset, t_onset, now)]
-
-    def _frame_look(self, item: Suspicion, now: float, last: int, ready, c, l) -> tuple[bool, list]:
-        """Another look by the frame-rate step test alone at a suspicion the confirming test refuted."""
-        if now < item.next_try:
-            return False, []
-        att, onset, wait = self._frame_step(item, item.fired, ready, c, l, last, Attribution(None))
-        if att.kind is None:
-            if wait:
-                item.next_try = now + self.step_s - 0.5 / self.rate_hz
-            else:
-                self._frame_pending.items.remove(item)
-            return False, []
-        self._frame_pending.items.remove(item)
-        return True, [self._report(att, onset, float(self._buf.times[self._buf.slot(onset)]), now)]
 
     def _report(self, att: Attribution, onset: int, t_onset: float, now: float):
         """The event of a confirmed attribution: its joints start a new segment from the onset."""
@@ -485,54 +480,111 @@ class SlipMonitor:
         # refutation's are (by the caller); other suspicions on the re-baselined joints are void: their
         # baseline is gone.
         self._quiet[affected] = onset
+        self._event_frame[affected] = onset
         gone = np.zeros(len(self.joints), dtype=bool)
         gone[affected] = True
         self._pending.forget(gone)
-        self._frame_pending.forget(gone)
         return ev
 
-    def _frame_step(self, item: Suspicion, fired, ready, c, l, last: int, att: Attribution):
-        """A suspicion the confirming test did not confirm, put to the frame-rate step test: every sensor at
-        either end of its joints, onsets from a little before its own to the latest the test can see (those
-        an earlier look tested for that sensor are not tested again: their windows have not changed)."""
+    def _frame_scan(self, now: float, last: int, ready, c, l) -> list:
+        """The frame-rate step test, every other step, at every onset it can now see (up to `frame_step_s`
+        before global frame `last`) and every sensor with a ready joint: a slip it finds there is reported at
+        once, whatever the other tests made of it. Its windows never reach back past a joint's latest event."""
         buf = self._buf
         h = self._half
-        onset = item.onset
-        hi_g = min(last - h + 2, onset + self._search_ahead)
-        more = hi_g < onset + self._search_ahead
-        # Each sensor from where its own last look stopped: a sensor whose joint joined the suspicion after a
-        # look (the slipped one's joints often cross the threshold 0.1-0.3 s after the soft tissue's) has not
-        # had the onsets that look tested, and the slip's own onset is usually among them.
-        start = onset - self._search_back
-        los: dict[int, list[int]] = {}
-        for s in np.unique(self.joints[fired]).tolist():
-            lo_s = max(start, item.frame_tested.get(s, start))
-            if lo_s < hi_g:
-                los.setdefault(lo_s, []).append(s)
-        if not los:  # nothing new the test can see yet: ask for another look while there is more to see
-            return att, onset, more
-        found = []
+        hi_g = last - h + 2
+        # Onsets older than a look or so are not gone back to (the joints were not ready then, or the frames
+        # went by while nothing was watched).
+        lo_g = max(self._scanned, buf.first_index + h, hi_g - self._scan_every - self._chunk - self._scan_hold)
+        out: list = []
+        if not ready.any():
+            self._scanned = max(self._scanned, hi_g)
+            return out
+        if hi_g - lo_g < self._scan_every:
+            return out
+        rows = slice(buf.slot(lo_g - h), buf.slot(last) + 1)
+        base = buf.index_of(rows.start)
+        pv = buf.pv[rows] & (np.arange(base, base + rows.stop - rows.start)[:, None] >= self._event_frame[None, :])
         law = self._noise_law(c, l)
-        for lo_g, sensors in sorted(los.items()):
-            rows = slice(buf.slot(max(lo_g - h, buf.first_index)), buf.slot(last) + 1)
-            base = buf.index_of(rows.start)
-            for f in frame_steps(buf.g[rows], buf.Q[rows], buf.pv[rows], c, l, self.joints, sensors, ready,
-                                 lo_g - base, hi_g - base, h, self.scale_floor, self._contrast, buf.t[rows], law):
-                found.append(replace(f, onset=base + f.onset))  # onsets as global indices
-                self.frame_log.append((float(buf.times[rows.start + f.onset]), self.names[f.sensor], f.score,
-                                       f.evidence, f.disagreement, float(np.linalg.norm(f.step))))
-            for s in sensors:
-                item.frame_tested[s] = hi_g
-        good = [f for f in found if f.score >= self.frame_step and np.linalg.norm(f.step) >= self.min_jump]
-        if not good:
-            return att, onset, more
-        best = max(good, key=lambda f: f.score)
+        sensors = np.unique(self.joints[ready])
+        while self._hits and self._hits[0][0] < lo_g - self._near[0]:
+            self._hits.popleft()  # (hits come in order of the steps that found them, near enough in start)
+        while True:
+            found = frame_steps(buf.g[rows], buf.Q[rows], pv, c, l, self.joints, sensors, ready, lo_g - base,
+                                hi_g - base, h, self.scale_floor, self._contrast, buf.t[rows], law)
+            if not out:
+                for f in found:
+                    self.frame_log.append((float(buf.times[rows.start + f.onset]), self.names[f.sensor], f.score,
+                                           f.evidence, f.disagreement, float(np.linalg.norm(f.step))))
+            # A sensor seen through one joint cannot tell its own step from its neighbour's across that joint when
+            # the joint hardly turns (and a fast-turning joint's skin blurs the difference): where the neighbour's
+            # other joints show a step of their own at the same onset, it is the neighbour's. Two such tests
+            # passing the frame test at one onset are evidence enough where no step-test hit is near.
+            neighbour: dict[int, FrameStep | None] = {}
+            good = []
+            for f in found:
+                if np.linalg.norm(f.step) < self.min_jump or f.score < self.frame_step:
+                    continue
+                if len(f.joints) == 1:
+                    neighbour[id(f)] = self._neighbour_step(f, rows, pv, c, l, ready, law)
+                if f.score >= self._needed(f.sensor, base + f.onset) or neighbour.get(id(f)) is not None:
+                    good.append(f)
+            if not good:
+                break
+            best = max(good, key=lambda f: f.score)
+            if base + best.onset >= hi_g - self._scan_hold and not out:
+                # A neighbour's step at the frames just after may explain it better: decide next look.
+                self._scanned = max(lo_g, base + best.onset - self._scan_hold)
+                return out
+            J = self.joints
+            cands = [(best.sensor, 1.0)] + [(f.sensor, 0.0) for f in good if f is not best]
+            other = neighbour.get(id(best))
+            if other is not None:
+                cands = [(other.sensor, 1.0), (best.sensor, 0.0)] + cands[1:]
+                best = replace(best, sensor=other.sensor, step=other.step, score=other.score)
+            mine = np.flatnonzero((J[:, 0] == best.sensor) | (J[:, 1] == best.sensor))
+            self.frame_steps += 1
+            att = Attribution("slip", best.sensor, -1, cands, 1.0, mine.tolist(), float(np.linalg.norm(best.step)),
+                              best.score, best.step)
+            onset = base + best.onset
+            out.append(self._report(att, onset, float(buf.times[buf.slot(onset)]), now))
+            ready = ready & self.ready
+            sensors = np.unique(self.joints[ready])
+            if not len(sensors):
+                break
+        self._scanned = hi_g
+        return out
+
+    def _needed(self, sensor: int, onset: int) -> float:
+        """The evidence a frame step needs: `frame_step` where the step test has fired on one of the sensor's
+        joints with a start near its onset (the step test's suspicion, as before the scan), else
+        `frame_step_alone`: every sensor at every onset is many more tries, and the hour soaks' highest scores
+        where nothing slipped came from those."""
+        if self.frame_step_alone <= self.frame_step:
+            return self.frame_step
+        back, ahead = self._near
         J = self.joints
-        mine = np.flatnonzero((J[:, 0] == best.sensor) | (J[:, 1] == best.sensor))
-        cands = [(best.sensor, 1.0)] + [(f.sensor, 0.0) for f in good if f is not best]
-        self.frame_steps += 1
-        return Attribution("slip", best.sensor, -1, cands, 1.0, mine.tolist(), float(np.linalg.norm(best.step)),
-                           best.score, best.step), best.onset, False
+        for start, q in self._hits:
+            if onset - back <= start <= onset + ahead and (J[q, 0] == sensor or J[q, 1] == sensor):
+                return self.frame_step
+        return self.frame_step_alone
+
+    def _neighbour_step(self, leaf, rows: slice, pv, c, l, ready, law):
+        """The frame step of the sensor across a one-joint sensor's joint, on its other ready joints alone,
+        within `merge_s` of the leaf's onset: returned when it passes the frame test itself, else None."""
+        j = int(leaf.joints[0])
+        nb = int(self.joints[j, 1] if self.joints[j, 0] == leaf.sensor else self.joints[j, 0])
+        own = ready & ((self.joints[:, 0] == nb) | (self.joints[:, 1] == nb))
+        own[j] = False
+        if not own.any():
+            return None
+        buf = self._buf
+        h = self._scan_hold
+        found = frame_steps(buf.g[rows], buf.Q[rows], pv, c, l, self.joints, [nb], own, leaf.onset - h,
+                            leaf.onset + h + 1, self._half, self.scale_floor, self._contrast, buf.t[rows], law)
+        if found and found[0].score >= self.frame_step and np.linalg.norm(found[0].step) >= self.min_jump:
+            return found[0]
+        return None
 
     def _noise_law(self, c, l) -> tuple[np.ndarray, np.ndarray]:
         """Each joint's noise against its speed over the stored frames (`framestep.noise_law`, ten seconds or

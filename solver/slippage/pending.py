@@ -5,7 +5,7 @@ its own onset, and a refuted one quiets only its own joints, never past a later 
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -16,9 +16,6 @@ class Suspicion:
     fired: np.ndarray  # (p,) bool: joints whose step test fired with a start near the onset
     next_try: float = -np.inf  # no confirming test before this time (a likely step gets another look)
     verify: bool = False  # re-seated by the second look: a slip needs the same pose before to show it stayed
-    # Per sensor, the global frame before which its onsets have had the frame-rate step test. Per sensor, not
-    # per suspicion: a joint that joins later brings sensors whose earlier onsets no look has tested yet.
-    frame_tested: dict = field(default_factory=dict)
 
 
 class PendingSuspicions:
