@@ -164,7 +164,6 @@ class SlipMonitor:
         # looked at around a suspicion before the scan (a slip's own joints often cross the threshold 0.1-0.3 s
         # after its neighbours' soft tissue has).
         self._near = (int(round(0.3 * rate_hz)), int(round(0.1 * rate_hz)))
-        self._event_frame = np.full(len(J), -1, dtype=np.int64)  # each joint's latest event onset (global)
         self.frame_steps = 0  # slips confirmed by the frame-rate step test where the default did not
         # The frame scan's best step of each sensor per look: (onset time, sensor, score, evidence,
         # disagreement, jump m).
@@ -283,7 +282,6 @@ class SlipMonitor:
         self.rms = np.where(kept, self.rms[k], np.nan)
         self.ready = np.zeros(p, dtype=bool)  # the next block refreshes every baseline on the new list
         self._pending.rejoint(keep, kept)
-        self._event_frame = np.where(kept, self._event_frame[k], -1)
         renum = {int(old): new for new, old in enumerate(keep.tolist()) if old >= 0}
         self._hits = deque((st, renum[q]) for st, q in self._hits if q in renum)
         self.joints = J
@@ -480,7 +478,6 @@ class SlipMonitor:
         # refutation's are (by the caller); other suspicions on the re-baselined joints are void: their
         # baseline is gone.
         self._quiet[affected] = onset
-        self._event_frame[affected] = onset
         gone = np.zeros(len(self.joints), dtype=bool)
         gone[affected] = True
         self._pending.forget(gone)
@@ -504,7 +501,7 @@ class SlipMonitor:
             return out
         rows = slice(buf.slot(lo_g - h), buf.slot(last) + 1)
         base = buf.index_of(rows.start)
-        pv = buf.pv[rows] & (np.arange(base, base + rows.stop - rows.start)[:, None] >= self._event_frame[None, :])
+        pv = buf.pv[rows] & (buf.times[rows][:, None] >= self.segment_start[None, :])  # as the other tests mask
         law = self._noise_law(c, l)
         sensors = np.unique(self.joints[ready])
         while self._hits and self._hits[0][0] < lo_g - self._near[0]:
