@@ -36,10 +36,9 @@ class FrameStep:
 def step_contrast(half: int, degree: int = 3) -> np.ndarray:
     """The step indicator over 2·half frames (0 before frame `half`, 1 from it), with the polynomial of
     `degree` in time projected out: its inner product with a window is that window's step evidence."""
-    tau = (np.arange(2 * half) - half + 0.5) / half
-    B = np.vander(tau, degree + 1, increasing=True)
-    h = (tau > 0).astype(float)
-    return h - B @ np.linalg.lstsq(B, h, rcond=None)[0]
+    h = (np.arange(2 * half) >= half).astype(float)
+    B = _poly_basis(half, degree)
+    return h - B @ (B.T @ h)
 
 
 def speed_proxy(t: np.ndarray, joints: np.ndarray) -> np.ndarray:
@@ -99,10 +98,10 @@ def _incidence(key: bytes, p: int, m: int) -> tuple[np.ndarray, np.ndarray]:
 
 
 @lru_cache(maxsize=4)
-def _cubic_basis(half: int) -> np.ndarray:
-    """An orthonormal basis (2·half, 4) of the cubics in time over a window of 2·half frames."""
+def _poly_basis(half: int, degree: int = 3) -> np.ndarray:
+    """An orthonormal basis (2·half, degree + 1) of the polynomials in time over a window of 2·half frames."""
     tau = (np.arange(2 * half) - half + 0.5) / half
-    basis = np.linalg.qr(np.vander(tau, 4, increasing=True))[0]
+    basis = np.linalg.qr(np.vander(tau, degree + 1, increasing=True))[0]
     basis.flags.writeable = False
     return basis
 
@@ -142,7 +141,7 @@ def frame_steps(g, Q, pv, c, l, joints: np.ndarray, sensors, ready: np.ndarray, 
     rows = slice(lo - half, hi + half - 1)
     k, n2 = hi - lo, 2 * half
     hh0 = float(contrast @ contrast)
-    basis = _cubic_basis(half)  # (2h, 4) orthonormal
+    basis = _poly_basis(half)  # (2h, 4) orthonormal: the cubics
     ridge = 1e-6 * n2  # per rotation entry, in its own units (1 = a right angle's swing)
     gr, Qr = g[rows], Q[rows]
     n = len(gr)
