@@ -22,7 +22,7 @@ from flockcal.solver.slippage.framestep import frame_steps, noise_law
 from flockcal.solver.slippage.stats import joint_geometry
 from flockcal.solver.slippage.watch import SlipWatch
 from slip_scoring import attributes_slip_to
-from slip_replay import frames, tree
+from slip_replay import first_slip_event, frames, tree
 
 RATE = 144.0
 # Issue 32's promise is 1 s (the frame test needs 0.3 s of frames after the step before it can see it).
@@ -197,14 +197,7 @@ def _first_event(routine: str, seed: int, at: float, sensor: str):
     and its first event, which must name `sensor` within `WITHIN_S` at an onset within 0.05 s."""
     perf = Performer("human", routine=routine, seed=seed, noise="tracker", rate_hz=RATE)
     watch = SlipWatch(tree(perf.model), perf.n_sensors, RATE, perf.names, **dict(FRAME_STEP))
-    assert watch.feed(*frames(perf, 0.0, at)) == [], "a false alarm before the slip"
-    perf.inject_slip(sensor, 0.02, at_time=at)
-    found = watch.feed(*frames(perf, at, at + WITHIN_S))
-    assert found, f"the {sensor} slip at {at} s of {routine} seed {seed} was not found within {WITHIN_S} s"
-    first = found[0]
-    assert attributes_slip_to(first, sensor, perf.model.names, perf.model.parent), first.to_dict()
-    assert first.detected_s - at <= WITHIN_S and abs(first.time_s - at) <= 0.05, first.to_dict()
-    return watch, first
+    return watch, first_slip_event(perf, watch, sensor, at, WITHIN_S, 0.05)
 
 
 def test_where_the_step_test_raised_nothing_a_frame_step_needs_more():

@@ -13,8 +13,7 @@ from __future__ import annotations
 
 from flockcal.simulator.performer import Performer
 from flockcal.solver.slippage.watch import SlipWatch
-from slip_scoring import attributes_slip_to
-from slip_replay import frames, tree
+from slip_replay import first_slip_event, frames, tree
 
 RATE = 144.0
 # The promise is 1 s; these slips are found in 0.18-0.40 s here.
@@ -32,13 +31,7 @@ def _slipped(sensor: str, at: float, rules: dict = NEW_POSE_RULES):
     # sweep of the second loop, the pose they held 30 s earlier and not in the 8 s baseline behind them.
     perf = Performer("human", routine="kiosk", seed=1, noise="tracker", rate_hz=RATE)
     watch = SlipWatch(tree(perf.model), perf.n_sensors, RATE, perf.names, **rules)
-    assert watch.feed(*frames(perf, 0.0, at)) == [], "a false alarm before the slip"
-    perf.inject_slip(sensor, 0.02, at_time=at)
-    found = watch.feed(*frames(perf, at, at + WITHIN_S))
-    assert found, f"the {sensor} slip at {at} s was not found within {WITHIN_S} s"
-    first = found[0]
-    assert attributes_slip_to(first, sensor, perf.model.names, perf.model.parent), first.to_dict()
-    assert first.detected_s - at <= WITHIN_S and abs(first.time_s - at) <= 0.1, first.to_dict()
+    first_slip_event(perf, watch, sensor, at, WITHIN_S, 0.1)
     return watch
 
 
