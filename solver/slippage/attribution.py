@@ -44,6 +44,7 @@ class Attribution:
     evidence: float = 0.0  # nats by which the best hypothesis beats "nothing"
     step: np.ndarray | None = None  # slip: the fitted step (3,) in the sensor's own frame, metres
     later_row: int | None = None  # a later window row the (likeliest) sensor's step starts at, much likelier than the onset
+    steps: np.ndarray | None = None  # slip: every sensor's fitted step (m, 3) in its own frame, metres
 
 
 @dataclass
@@ -178,7 +179,8 @@ def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarr
     cands = [(int(k), float(post[k])) for k in order if post[k] >= CANDIDATE_SHARE]
     ws = wj if joined[s] else w
     later = _later_start(D, x, y, ws, sel, inc_c[s], inc_p[s], win.onset_row, late_rows, min_tail) if late_rows > 0 else None
-    return Attribution("slip", s, -1, cands, float(post[s]), mine.tolist(), float(size[s]), evidence, steps[s], later)
+    return Attribution("slip", s, -1, cands, float(post[s]), mine.tolist(), float(size[s]), evidence, steps[s], later,
+                       steps)
 
 
 def _later_start(D, x, y, w, sel, child, parent, onset_row: int, late_rows: int, min_tail: int,

@@ -17,7 +17,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from flockcal.errors import FlockcalError
-from flockcal.solver.slippage.attribution import Attribution, Window, attribute
+from flockcal.solver.slippage.attribution import CANDIDATE_SHARE, Attribution, Window, attribute
 from flockcal.solver.slippage.buffer import FrameBuffer
 from flockcal.solver.slippage.framestep import FrameStep, frame_steps, noise_law, step_contrast
 from flockcal.solver.slippage.baseline import SmoothBaseline, neighbours, smooth_baseline
@@ -97,7 +97,9 @@ class SlipMonitor:
     A suspicion (the step test of a joint passing `threshold`) is put to the confirming test from
     `attribute_s` after its onset, again at every step while it is younger than `confirm_s` and not
     clearly refuted, and dropped after that; a confirmed slip is still dropped when the sensor's joints,
-    back in a pose of the last `revisit_s`, show the residual they had then (soft tissue comes back). The tests are in units of each joint's own noise,
+    back in a pose of the last `revisit_s`, show the residual they had then (soft tissue comes back), and a
+    slip named on a sensor of two or more joints is its leaf neighbour's (a hand's, not the forearm's) where
+    its other joints (the elbow) show the residual they had in the same pose. The tests are in units of each joint's own noise,
     measured from the data: `threshold` and `min_evidence` are nats (log-likelihood ratios),
     `min_jump_m` is the smallest step worth reporting and `scale_floor_m` stops exact, noise-free data
     from dividing by zero. A pair whose residual rms exceeds `max_rms_m` is not a joint and is not
@@ -201,6 +203,7 @@ class SlipMonitor:
         # Poses of the last revisit_s at about 50 Hz, to see whether the residual came back with the pose.
         self._history = PoseHistory(J, self.m, rate_hz, revisit_s, every=int(round(rate_hz / 50.0)))
         self.came_back = 0  # suspected slips that the same pose before showed to be soft tissue
+        self.renamed = 0  # slips the same pose before moved from a leaf to its neighbour or back
         self.reseated = 0  # suspicions moved to a slip's later start before being confirmed
         self._chunk = max(1, int(round(step_s * rate_hz)))
         self.segment_start = np.full(p, np.nan)  # time each joint's current segment began
@@ -725,7 +728,49 @@ class SlipMonitor:
                 # The second look counts none of the extrapolation: skin in a new pose can pass it too. Its slip
                 # stands only where the same pose before the onset shows the step stayed, by the same odds.
                 return Attribution(None, evidence=att.evidence), None
+            att = self._leaf_or_body(att, float(buf.times[post.start]), buf.times[post], buf.g[post], buf.Q[post],
+                                     buf.pv[post], weight[onset_row:], c, l)
         return att, None
+
+    def _leaf_or_body(self, att: Attribution, before: float, times, g, Q, pv, weight, c, l) -> Attribution:
+        """A leaf's slip (a hand) and its neighbour's (the forearm) step the joint they share alike; only the
+        neighbour's other joints (the elbow) tell them apart, and soft tissue in a new pose can mimic the
+        neighbour's step there. A slip named on the neighbour is the leaf's where those joints sit, since
+        the onset, where they sat in the same pose before it."""
+        J = self.joints
+        s = att.sensor
+        count = np.bincount(J.ravel(), minlength=self.m)
+        if count[s] < 2:
+            # The other way round (a leaf's slip that is its neighbour's) is not decided here: a step at the
+            # elbow is what skin under a shoulder the pose match leaves out also makes (a sweep renamed nine
+            # hands, feet and a head wrongly that way, against three forearms rightly).
+            return att
+        for j in np.flatnonzero((J == s).any(axis=1)):
+            leaf = int(J[j, 1] if J[j, 0] == s else J[j, 0])
+            if count[leaf] != 1 or np.linalg.norm(att.steps[leaf]) < self.min_jump:
+                continue
+            rest = (J == s).any(axis=1)
+            rest[j] = False
+            # The same pose: first every joint of the sensor (its skin moves with them all), then, where a
+            # fast limb has not been there before, the joints that tell the two apart alone. Back means
+            # nearer where they sat than half the step either way: a shift half a step along it or against
+            # it is neither (the knee after a shin's slip, sweep seeds 5 and 6).
+            for pose in ((J == s).any(axis=1), rest):
+                backs = [came_back(self._history, before, self.segment_start, times, g, Q, pv, weight,
+                                   rest & (J[:, 0] == s), rest & (J[:, 1] == s), pose, c, l, half)
+                         for half in (0.5 * att.steps[s], -0.5 * att.steps[s])]
+                if backs[0] is not None:
+                    break
+            back = None if backs[0] is None else min(backs)
+            if back is None or back <= CAME_BACK_NATS:
+                continue
+            share = float(1.0 / (1.0 + np.exp(-back)))
+            cands = [(leaf, share)] + ([(s, 1.0 - share)] if 1.0 - share >= CANDIDATE_SHARE else [])
+            step = att.steps[leaf]
+            self.renamed += 1
+            return replace(att, sensor=leaf, candidates=cands, confidence=share, joints=[int(j)],
+                           jump_m=float(np.linalg.norm(step)), step=step)
+        return att
 
     def _refresh(self, now: float, c, l) -> None:
         """Recompute every joint's baseline with the current estimates from the lagged window."""
