@@ -203,7 +203,7 @@ class SlipMonitor:
         # Poses of the last revisit_s at about 50 Hz, to see whether the residual came back with the pose.
         self._history = PoseHistory(J, self.m, rate_hz, revisit_s, every=int(round(rate_hz / 50.0)))
         self.came_back = 0  # suspected slips that the same pose before showed to be soft tissue
-        self.renamed = 0  # slips the same pose before moved from a leaf to its neighbour or back
+        self.renamed = 0  # slips named on a leaf's neighbour that the same pose before gave to the leaf
         self.reseated = 0  # suspicions moved to a slip's later start before being confirmed
         self._chunk = max(1, int(round(step_s * rate_hz)))
         self.segment_start = np.full(p, np.nan)  # time each joint's current segment began
@@ -742,8 +742,8 @@ class SlipMonitor:
         count = np.bincount(J.ravel(), minlength=self.m)
         if count[s] < 2:
             # The other way round (a leaf's slip that is its neighbour's) is not decided here: a step at the
-            # elbow is what skin under a shoulder the pose match leaves out also makes (a sweep renamed nine
-            # hands, feet and a head wrongly that way, against three forearms rightly).
+            # elbow is also what skin moving with a joint the pose match leaves out (the shoulder) makes (the
+            # sweep renamed ten hands and feet wrongly that way, against two forearms rightly).
             return att
         for j in np.flatnonzero((J == s).any(axis=1)):
             leaf = int(J[j, 1] if J[j, 0] == s else J[j, 0])
