@@ -573,7 +573,7 @@ class SlipMonitor:
         """The frame step of the sensor across a one-joint sensor's joint, on its other ready joints alone,
         within `merge_s` of the leaf's onset: returned when it passes the frame test itself, else None."""
         j = int(leaf.joints[0])
-        nb = int(self.joints[j, 1] if self.joints[j, 0] == leaf.sensor else self.joints[j, 0])
+        nb = self._across(j, leaf.sensor)
         own = ready & ((self.joints[:, 0] == nb) | (self.joints[:, 1] == nb))
         own[j] = False
         if not own.any():
@@ -585,6 +585,10 @@ class SlipMonitor:
         if found and found[0].score >= self.frame_step and np.linalg.norm(found[0].step) >= self.min_jump:
             return found[0]
         return None
+
+    def _across(self, j: int, s: int) -> int:
+        """The sensor at the other end of joint j from sensor s."""
+        return int(self.joints[j, 1] if self.joints[j, 0] == s else self.joints[j, 0])
 
     def _noise_law(self, c, l) -> tuple[np.ndarray, np.ndarray]:
         """Each joint's noise against its speed over the stored frames (`framestep.noise_law`, ten seconds or
@@ -745,25 +749,26 @@ class SlipMonitor:
             # elbow is also what skin moving with a joint the pose match leaves out (the shoulder) makes (the
             # sweep renamed ten hands and feet wrongly that way, against two forearms rightly).
             return att
-        for j in np.flatnonzero((J == s).any(axis=1)):
-            leaf = int(J[j, 1] if J[j, 0] == s else J[j, 0])
+        mine = (J == s).any(axis=1)
+        half = 0.5 * att.steps[s]
+        for j in np.flatnonzero(mine):
+            leaf = self._across(j, s)
             if count[leaf] != 1 or np.linalg.norm(att.steps[leaf]) < self.min_jump:
                 continue
-            rest = (J == s).any(axis=1)
+            rest = mine.copy()
             rest[j] = False
             # The same pose: first every joint of the sensor (its skin moves with them all), then, where a
             # fast limb has not been there before, the joints that tell the two apart alone. Back means
             # nearer where they sat than half the step either way: a shift half a step along it or against
             # it is neither (the knee after a shin's slip, sweep seeds 5 and 6).
-            for pose in ((J == s).any(axis=1), rest):
-                backs = [came_back(self._history, before, self.segment_start, times, g, Q, pv, weight,
-                                   rest & (J[:, 0] == s), rest & (J[:, 1] == s), pose, c, l, half)
-                         for half in (0.5 * att.steps[s], -0.5 * att.steps[s])]
-                if backs[0] is not None:
+            for pose in (mine, rest):
+                backs = came_back(self._history, before, self.segment_start, times, g, Q, pv, weight,
+                                  rest & (J[:, 0] == s), rest & (J[:, 1] == s), pose, c, l, np.stack([half, -half]))
+                if backs is not None:
                     break
-            back = None if backs[0] is None else min(backs)
-            if back is None or back <= CAME_BACK_NATS:
+            if backs is None or backs.min() <= CAME_BACK_NATS:
                 continue
+            back = float(backs.min())
             share = float(1.0 / (1.0 + np.exp(-back)))
             cands = [(leaf, share)] + ([(s, 1.0 - share)] if 1.0 - share >= CANDIDATE_SHARE else [])
             step = att.steps[leaf]

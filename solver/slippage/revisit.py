@@ -62,11 +62,13 @@ class PoseHistory:
 
 
 def came_back(history: PoseHistory, before: float, since: np.ndarray, times, g, Q, pv, weight,
-              child: np.ndarray, parent: np.ndarray, pose: np.ndarray, c, l, step: np.ndarray) -> float | None:
+              child: np.ndarray, parent: np.ndarray, pose: np.ndarray, c, l,
+              step: np.ndarray) -> float | np.ndarray | None:
     """How much likelier (nats) the frames since a suspected slip of a sensor (the child of joints `child`,
     the parent of joints `parent`, boolean over all joints) sit where the same joints sat in the same pose
     before it than a `step` (3,) away in the sensor's own frame (over CAME_BACK_NATS: they came back);
-    None while the frames since are all in poses not seen before.
+    None while the frames since are all in poses not seen before. Several steps (k, 3) against one pose
+    match give (k,).
 
     history: poses up to time `before` (the onset) are looked up, from `since` (P,) on for each joint
     (its current segment); times, g, Q, pv, weight: the frames since the onset; pose (P,) bool: the
@@ -109,5 +111,6 @@ def came_back(history: PoseHistory, before: float, since: np.ndarray, times, g, 
     if not info > 0:
         return None
     mean = (diff * w[..., None]).sum(axis=(0, 1)) / info
-    favour_back = 0.5 * info * (((mean - step) ** 2).sum() - (mean**2).sum())
-    return float(favour_back)
+    step = np.asarray(step, dtype=float)
+    favour_back = 0.5 * info * (((mean - step) ** 2).sum(axis=-1) - (mean**2).sum())
+    return float(favour_back) if step.ndim == 1 else favour_back
