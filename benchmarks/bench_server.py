@@ -14,8 +14,14 @@ turn, each on a fresh fake tracker and a fresh service, same settings, `--rounds
 swaps every round, so a machine that speeds up or slows down during the call favours neither), one
 window each at the first `--probe-hz`. REV is exported with `git archive` into a temporary folder
 (nothing in the repository or its worktrees changes) and laid out as an importable `flockcal` package
-(symlinks mirroring pyproject's package-dir), which goes first on the service's PYTHONPATH; the same
-interpreter and dependencies run both, and this tree's fake tracker and probe serve both. Printed per
+(symlinks mirroring pyproject's package-dir), which goes first on the service's PYTHONPATH; this working
+tree is laid out the same way (symlinks into it) for B. Each service runs from its data folder, not the
+caller's: `python -m` puts the working folder first on the import path, and from the repository's root
+that was this tree's `flockcal/` (with the editable install's parts) on both sides, so every A/B run
+before 2026-12-05 compared this tree with itself. Before a side is measured, a child started the same way
+prints where it imports `flockcal.server` and `flockcal.solver` from; a side that would run other code
+than its own stops the run. The same interpreter and dependencies run both, and this tree's fake
+tracker and probe serve both. Printed per
 run and as medians: service CPU (% of one core, the service process only), the fake tracker's thread
 CPU (in this process) separately, p99 latency, refits/s and slip alarms; then the ratio this tree / REV
 of each pair of neighbouring runs, and its median.
@@ -176,11 +182,12 @@ class Service:
         self.data = tempfile.mkdtemp(prefix="flockcal-bench-")
         self.proc = ServerProcess(["--device", self.pty.device, "--birds", "16", "--fast-init", "--scale", "72",
                                    "--baud", "921600", "--data-dir", self.data, "--names", ",".join(performer.names)],
-                                  free_port(), log_path=os.path.join(self.data, "serve.log"))
+                                  free_port(), log_path=os.path.join(self.data, "serve.log"), cwd=self.data)
         saved = os.environ.get("PYTHONPATH")
         try:
             if self.pythonpath:  # the child copies this process's environment when it starts
                 os.environ["PYTHONPATH"] = os.pathsep.join(x for x in (self.pythonpath, saved) if x)
+                check_imports(self.pythonpath, self.data)
             self.proc.start()
             wait_connected(self.proc.url, frames=int(RATE))
             httpx.post(self.proc.url + "/api/sessions", json={"performer": "bench"}).raise_for_status()
@@ -277,23 +284,46 @@ def round_ratios(runs: list[tuple[str, dict]], key: str) -> list[float]:
     return ratios
 
 
-def export_revision(rev: str, into: str) -> str:
-    """REV's tree as an importable `flockcal` package under `into`; returns the folder for PYTHONPATH."""
-    repo = Path(__file__).resolve().parents[1]
-    src, site = Path(into, "src"), Path(into, "site")
-    src.mkdir()
-    archive = subprocess.run(["git", "-C", str(repo), "archive", rev], capture_output=True, check=False)
-    if archive.returncode != 0:
-        raise SystemExit(f"bench_server: git archive {rev}: {archive.stderr.decode().strip()}")
-    subprocess.run(["tar", "-x", "-C", str(src)], input=archive.stdout, check=True)
+def check_imports(site: str, cwd: str) -> None:
+    """Stop unless a child started like the service (this environment, from `cwd`) imports the service's
+    and the solver's code from `site` (symlinks resolved to where they point)."""
+    probe = "import flockcal.server, flockcal.solver; print(flockcal.server.__file__); print(flockcal.solver.__file__)"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join(x for x in (site, os.environ.get("PYTHONPATH")) if x))
+    out = subprocess.run([sys.executable, "-c", probe], cwd=cwd, env=env, capture_output=True, text=True, check=False)
+    want = {str(Path(site, "flockcal", part, "__init__.py").resolve()) for part in ("server", "solver")}
+    got = {str(Path(line).resolve()) for line in out.stdout.split()}
+    if out.returncode != 0 or got != want:
+        raise SystemExit(f"bench_server: the service would not run the code asked for: it imports {sorted(got)} "
+                         f"(wanted {sorted(want)}){' — ' + out.stderr.strip()[-500:] if out.returncode else ''}")
+
+
+def tree_site(into: str) -> str:
+    """This working tree as an importable `flockcal` package under `into` (symlinks into it), as
+    `export_revision` lays out a revision: B runs what is here, whatever the editable install points at."""
+    return _site(Path(__file__).resolve().parents[1], Path(into))
+
+
+def _site(src: Path, into: Path) -> str:
     # pyproject's package-dir: flockcal.<part> lives in the top-level folder <part>.
-    pkg = site / "flockcal"
+    pkg = into / "site" / "flockcal"
     pkg.mkdir(parents=True)
     for entry in (src / "flockcal").iterdir():
         (pkg / entry.name).symlink_to(entry)
     for part in ("drivers", "simulator", "solver", "server"):
         (pkg / part).symlink_to(src / part)
-    return str(site)
+    return str(into / "site")
+
+
+def export_revision(rev: str, into: str) -> str:
+    """REV's tree as an importable `flockcal` package under `into`; returns the folder for PYTHONPATH."""
+    repo = Path(__file__).resolve().parents[1]
+    src = Path(into, "src")
+    src.mkdir(parents=True)
+    archive = subprocess.run(["git", "-C", str(repo), "archive", rev], capture_output=True, check=False)
+    if archive.returncode != 0:
+        raise SystemExit(f"bench_server: git archive {rev}: {archive.stderr.decode().strip()}")
+    subprocess.run(["tar", "-x", "-C", str(src)], input=archive.stdout, check=True)
+    return _site(src, Path(into))
 
 
 def ab(rev: str, rounds: int, seconds: float, dashboards: int, probe_hz: float) -> int:
@@ -307,7 +337,7 @@ def ab(rev: str, rounds: int, seconds: float, dashboards: int, probe_hz: float) 
                            capture_output=True, text=True).stdout.strip()
     tmp = tempfile.mkdtemp(prefix="flockcal-ab-")
     try:
-        sides = {"A": export_revision(rev, tmp), "B": None}
+        sides = {"A": export_revision(rev, os.path.join(tmp, "a")), "B": tree_site(os.path.join(tmp, "b"))}
         label = {"A": f"{rev} ({commit.stdout.strip()})", "B": f"this tree ({head}{' + changes' if dirty else ''})"}
         print(f"A/B: A = {label['A']}, B = {label['B']}; 16 birds at {RATE:g} Hz, {seconds:g} s windows, "
               f"probe at {probe_hz:g} Hz, {dashboards} extra dashboards, {rounds} rounds")

@@ -160,11 +160,13 @@ def main(argv=None) -> int:
         return 0
 
     sys.path.insert(0, str(Path(__file__).resolve().parent))
-    from bench_server import ab_order, export_revision, ratio_line, round_ratios  # noqa: E402
+    from bench_server import ab_order, check_imports, export_revision, ratio_line, round_ratios, tree_site  # noqa: E402
 
     tmp = tempfile.mkdtemp(prefix="flockcal-ab-")
     try:
-        sides = {"A": export_revision(args.ab, tmp), "B": None}
+        sides = {"A": export_revision(args.ab, os.path.join(tmp, "a")), "B": tree_site(os.path.join(tmp, "b"))}
+        for site in sides.values():  # each side's code, not the editable install's (bench_server.py)
+            check_imports(site, tmp)
         print(f"A/B: A = {args.ab}, B = this tree; replay {args.seconds:g} s in {args.chunk}-frame hand-overs, "
               f"reader {args.reader_seconds:g} s, {args.rounds} rounds", flush=True)
         runs = []

@@ -139,8 +139,10 @@ class ServerThread:
 class ServerProcess:
     """`python -m flockcal serve …` as a child process (so it can be restarted or killed with -9)."""
 
-    def __init__(self, args: list[str], port: int, log_path: str | Path | None = None):
+    def __init__(self, args: list[str], port: int, log_path: str | Path | None = None,
+                 cwd: str | Path | None = None):
         self.port = port
+        self.cwd = cwd  # `-m` puts the child's working folder first on its import path
         self.url = f"http://127.0.0.1:{port}"
         self.args = [sys.executable, "-m", "flockcal", "serve", "--http-port", str(port), *args]
         self.log_path = log_path
@@ -150,7 +152,7 @@ class ServerProcess:
         out = open(self.log_path, "ab") if self.log_path else subprocess.DEVNULL
         env = dict(os.environ, FLOCKCAL_FAST_INIT="1")
         try:
-            self.proc = subprocess.Popen(self.args, stdout=out, stderr=subprocess.STDOUT, env=env)
+            self.proc = subprocess.Popen(self.args, stdout=out, stderr=subprocess.STDOUT, env=env, cwd=self.cwd)
         finally:
             if out is not subprocess.DEVNULL:
                 out.close()  # the child has its own copy
