@@ -162,9 +162,13 @@ def main(argv=None) -> int:
     if args.ab:
         return ab(args.ab, args.rounds, args.seconds, args.dashboards, args.probe_hz[0])
 
-    with Service() as svc:
-        for probe_hz in args.probe_hz:
-            window(svc, args.seconds, args.dashboards, probe_hz)
+    tmp = tempfile.mkdtemp(prefix="flockcal-bench-site-")
+    try:  # this tree's code, as B runs it in A/B mode, not whatever the editable install points at
+        with Service(tree_site(tmp)) as svc:
+            for probe_hz in args.probe_hz:
+                window(svc, args.seconds, args.dashboards, probe_hz)
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
     return 0
 
 
