@@ -174,10 +174,11 @@ def main(argv=None) -> int:
 
 class Service:
     """A fake tracker on a pty (a thread of this process) and a `flockcal serve` reading it, with a live
-    session settled into its steady state. `pythonpath` goes first on the service's PYTHONPATH."""
+    session settled into its steady state, serving the code of `site` (`tree_site`, `export_revision`), which
+    goes first on the service's PYTHONPATH."""
 
-    def __init__(self, pythonpath: str | None = None):
-        self.pythonpath = pythonpath
+    def __init__(self, site: str):
+        self.site = site
 
     def __enter__(self) -> "Service":
         performer = Performer("human", "exercise", seed=1, rate_hz=RATE)
@@ -189,9 +190,9 @@ class Service:
                                   free_port(), log_path=os.path.join(self.data, "serve.log"), cwd=self.data)
         saved = os.environ.get("PYTHONPATH")
         try:
-            if self.pythonpath:  # the child copies this process's environment when it starts
-                os.environ["PYTHONPATH"] = os.pathsep.join(x for x in (self.pythonpath, saved) if x)
-                check_imports(self.pythonpath, self.data)
+            check_imports(self.site, self.data)  # with the environment the child gets below
+            # The child copies this process's environment when it starts.
+            os.environ["PYTHONPATH"] = os.pathsep.join(x for x in (self.site, saved) if x)
             self.proc.start()
             wait_connected(self.proc.url, frames=int(RATE))
             httpx.post(self.proc.url + "/api/sessions", json={"performer": "bench"}).raise_for_status()
