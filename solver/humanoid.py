@@ -83,3 +83,35 @@ def find_humanoid(cal, rotations: np.ndarray, positions: np.ndarray, valid: np.n
     world = np.array([[0.0, -1.0, 0.0], [0.0, 0.0, -1.0], [1.0, 0.0, 0.0]])
     frames = np.repeat(np.eye(3)[None], m, axis=0)
     return Humanoid(bones, world, frames, reason)
+
+
+def proximal_points(cal, hum: Humanoid) -> np.ndarray:
+    """(m, 3) where each body's bone starts, in its own sensor frame: its inboard joint's centre (`c`), and
+    for the root the mean of its outboard joints' centres (`l`: the midpoint of the hips on a human tree)."""
+    m = len(cal.names)
+    pts = np.full((m, 3), np.nan)
+    pairs, c, l = cal.joint_arrays()
+    pts[pairs[:, 0]] = c
+    at_root = pairs[:, 1] == cal.root
+    if at_root.any():
+        pts[cal.root] = l[at_root].mean(axis=0)
+    return pts
+
+
+def tpose_offsets(cal, hum: Humanoid) -> np.ndarray:
+    """(m, 3) each body's bone start relative to its parent's, in the T-pose, on the humanoid's world axes
+    (+X the performer's left, +Y up, +Z forward; metres). Zero at the root."""
+    pairs, c, l = cal.joint_arrays()
+    start = proximal_points(cal, hum)
+    out = np.zeros((len(cal.names), 3))
+    child, parent = pairs[:, 0], pairs[:, 1]
+    v = l - start[parent]  # in the parent's sensor frame
+    # In the T-pose, world @ R_p @ frames[p] = I, so the parent's sensor axes read on the world's are frames[p]ᵀ.
+    out[child] = np.einsum("kji,kj->ki", hum.frames[parent], v)
+    return out
+
+
+def segment_rotations(hum: Humanoid, rotations: np.ndarray) -> np.ndarray:
+    """(n, m, 3, 3) every body's segment orientation on the humanoid's world axes (the identity in the
+    T-pose facing +Z), from sensor rotations (n, m, 3, 3) body → tracker world."""
+    return hum.world @ np.asarray(rotations) @ hum.frames
