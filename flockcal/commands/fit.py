@@ -109,6 +109,9 @@ def run(args: argparse.Namespace) -> int:
         from flockcal.commands.outputs import scale_factor
 
         take = dataclasses.replace(take, positions=take.positions * scale_factor(args.scale))
+    from flockcal.commands.outputs import unfolded
+
+    take = unfolded(take, "fit", args.file)
     hierarchy = load_hierarchy(args.hierarchy) if args.hierarchy else None
     # Fitted first, so bad input (names, hierarchy) is reported as such before the take is judged.
     tol = tolerance_m(args)
