@@ -94,7 +94,6 @@ def run(args: argparse.Namespace) -> int:
 
     single_threaded_blas()  # before numpy loads
     from flockcal.atomic import check_output
-    from flockcal.exports.bvh import write_bvh
     from flockcal.takes import load_take
 
     if args.bvh:
@@ -121,6 +120,8 @@ def run(args: argparse.Namespace) -> int:
     with Stages("fit", ["searching for slips", "re-fitting after slips", "writing BVH", "writing glTF"]) as stages:
         slips, result = fit_result(take, cal, tolerance=tol, find_slips=not args.no_slips, step=stages.step)
         if args.bvh:
+            from flockcal.exports.bvh import write_bvh  # here: scipy.spatial costs every fit ~0.3 s to import
+
             stages.step("writing BVH")
             write_bvh(args.bvh, cal, take)
         if args.gltf:

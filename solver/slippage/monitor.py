@@ -23,7 +23,7 @@ from flockcal.solver.slippage.framestep import FrameStep, frame_steps, noise_law
 from flockcal.solver.slippage.baseline import SmoothBaseline, neighbours, smooth_baseline
 from flockcal.solver.slippage.pending import PendingSuspicions, Suspicion
 from flockcal.solver.slippage.revisit import CAME_BACK_NATS, PoseHistory, came_back
-from flockcal.solver.slippage.stats import joint_geometry, local_variance, residual, window_glr
+from flockcal.solver.slippage.stats import joint_geometry, local_variance, present, residual, touching, window_glr
 
 
 class SlippageError(FlockcalError, ValueError):
@@ -277,7 +277,7 @@ class SlipMonitor:
         p = len(J)
         start = np.full(p, self._t0)
         for ev in self.events:
-            touched = np.isin(J, [ev.sensor_index] if ev.kind == "slip" else list(ev.sensor_indices)).any(axis=1)
+            touched = touching(J, [ev.sensor_index] if ev.kind == "slip" else list(ev.sensor_indices))
             start = np.where(touched, np.fmax(start, ev.time_s), start)
         self.segment_start = np.where(kept, self.segment_start[k], start)
         self._quiet = np.where(kept, self._quiet[k], -1)
@@ -506,7 +506,7 @@ class SlipMonitor:
         base = buf.index_of(rows.start)
         pv = buf.pv[rows] & (buf.times[rows][:, None] >= self.segment_start[None, :])  # as the other tests mask
         law = self._noise_law(c, l)
-        sensors = np.unique(self.joints[ready])
+        sensors = present(self.joints[ready])
         while self._hits and self._hits[0][0] < lo_g - self._near[0]:
             self._hits.popleft()  # (hits come in order of the steps that found them, near enough in start)
         while True:
@@ -549,7 +549,7 @@ class SlipMonitor:
             onset = base + best.onset
             out.append(self._report(att, onset, float(buf.times[buf.slot(onset)]), now))
             ready = ready & self.ready
-            sensors = np.unique(self.joints[ready])
+            sensors = present(self.joints[ready])
             if not len(sensors):
                 break
         self._scanned = hi_g
@@ -677,7 +677,7 @@ class SlipMonitor:
         onset_row = int(np.searchsorted(rows, full.start + onset_row))
         post = slice(rows[onset_row], full.stop)
         g, Q = buf.g[rows], buf.Q[rows]
-        near = np.isin(self.joints, self.joints[fired]).any(axis=1) & ready
+        near = touching(self.joints, self.joints[fired]) & ready
         u_post = residual(buf.g[post][:, near], buf.Q[post][:, near], c[near], l[near])
         weight[onset_row:, near] = _with_own_noise(u_post, weight[onset_row:, near])
         if w_joined is not weight:
@@ -720,8 +720,8 @@ class SlipMonitor:
             if verify:
                 # Each of its joints' residuals also carries the skin of the sensor at the joint's other end,
                 # which moves with that sensor's joints: all of them must be back in the same pose.
-                ends = np.unique(J[pose])
-                pose = np.isin(J, ends).any(axis=1)
+                ends = present(J[pose])
+                pose = touching(J, ends)
             back = came_back(self._history, float(buf.times[post.start]), self.segment_start, buf.times[post],
                              buf.g[post], buf.Q[post], buf.pv[post], weight[onset_row:], child, parent, pose, c, l,
                              att.step)
