@@ -123,8 +123,17 @@ def window_glr(x: np.ndarray, weight: np.ndarray, ends, window: int, margin: flo
     (k − window < τ ≤ k, τ ≥ earliest[j]), the weighted mean step μ over τ..k scores
     ½ Σw · max(|μ| − margin, 0)²: nats of evidence for a step larger than `margin`, which slow drifts
     of a few mm (a fit still settling) do not reach. Returns the best score (e, p) and its start index
-    (e, p), indices into x's first axis.
+    (e, p), indices into x's first axis. (`glr_candidates`, then `best_step`: a caller testing later
+    ends of the same series again, with other `earliest`, keeps the first and runs only the second.)
     """
+    return best_step(*glr_candidates(x, weight, ends, window, margin, min_frames), earliest)
+
+
+def glr_candidates(x: np.ndarray, weight: np.ndarray, ends, window: int, margin: float,
+                   min_frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`window_glr`'s evidence for every end and candidate start, before the starts each series may not
+    use yet are left out: (g (e, W, p), usable (e, W, p): a start in the series with enough frames,
+    tau (e, W): the start's index). Each end's values depend on that end alone."""
     L, p = weight.shape
     A = np.concatenate([np.zeros((1, p)), np.cumsum(weight, axis=0)])
     B = np.concatenate([np.zeros((1, p, 3)), np.cumsum(weight[..., None] * x, axis=0)])
@@ -153,9 +162,15 @@ def window_glr(x: np.ndarray, weight: np.ndarray, ends, window: int, margin: flo
         trailing = SN / SA
         factor = np.where(SND >= 2, np.minimum(1.0, trailing / own), 1.0)
     g = 0.5 * SA * np.maximum(size - margin, 0.0) ** 2 * np.nan_to_num(factor, nan=1.0)
-    allowed = ok[..., None] & (SN >= min_frames) & (tau_c[..., None] >= earliest[None, None, :]) & (SA > 0)
-    g = np.where(allowed, np.nan_to_num(g), 0.0)
+    usable = ok[..., None] & (SN >= min_frames) & (SA > 0)
+    return np.nan_to_num(g), usable, tau_c
+
+
+def best_step(g: np.ndarray, usable: np.ndarray, tau: np.ndarray, earliest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The best score (e, p) and its start (e, p) of `glr_candidates`' output, starts before `earliest`
+    (p,) left out."""
+    g = np.where(usable & (tau[..., None] >= earliest[None, None, :]), g, 0.0)
     best = g.argmax(axis=1)  # (e, p)
     score = np.take_along_axis(g, best[:, None, :], axis=1)[:, 0, :]
-    start = np.take_along_axis(np.broadcast_to(tau_c[..., None], g.shape), best[:, None, :], axis=1)[:, 0, :]
+    start = np.take_along_axis(np.broadcast_to(tau[..., None], g.shape), best[:, None, :], axis=1)[:, 0, :]
     return score, start
