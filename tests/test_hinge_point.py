@@ -78,7 +78,7 @@ def test_a_knee_above_a_hinged_ankle_is_placed_from_the_hip_and_the_ankles_axis_
     # by the knee (the foot is a leaf: no bone). Oracle: the simulator's body, whose legs are straight at
     # rest and whose ankle axes are square to the shank: the true knee centre, then the foot of it on the
     # true ankle axis (shank frame), which is the true ankle. Exact data: 1 mm. The hip alone (the rule
-    # before) left these knees 2.4 and 3.6 mm off: the knee axis's own tilt times the thigh's length.
+    # before) left these knees 24.4 and 6.3 mm off: the knee axis's own tilt times the thigh's length.
     perf = Performer(bodies.with_hinges(bodies.human(seed=3), ("foot",)), routine="exercise", seed=3, noise=None,
                      sta_mm=0, rate_hz=RATE, seconds=60)
     cal, _ = _fit(perf, 60.0)
@@ -95,10 +95,11 @@ def test_a_knee_above_a_hinged_ankle_is_placed_from_the_hip_and_the_ankles_axis_
 @pytest.mark.parametrize("seed", [1, 2])
 def test_elbows_and_knees_beside_hinged_wrists_and_ankles_sit_at_their_centres(seed):
     # Issue #50: where wrists and ankles are hinges too, an elbow's forearm and a knee's shank end at a
-    # centre the data leave anywhere on an axis; the hip or shoulder alone left elbows 14–36 mm off (the
-    # carrying angle times the upper arm). Rigid sensors with the tracker's noise, 20 s of the kiosk
-    # routine: docs/solver.md claims every elbow and knee within 3 mm of its true centre along the axis
-    # (benchmarks/bench_hinge_point.py --hinged measured at most 2.2 mm); held at 3 mm + 1 mm of margin.
+    # centre the data leave anywhere on an axis; the shoulder or hip alone left these bodies' elbows
+    # 10.7–31.3 mm and knees 3.7–9.6 mm off (the axis's tilt along the limb times the upper arm or thigh).
+    # Rigid sensors with the tracker's noise, 20 s of the kiosk routine: docs/solver.md claims every elbow
+    # and knee within 3.7 mm of its true centre along the axis from 20 s on (bench_hinge_point.py
+    # --hinged); held at 5 mm, 1.3 mm for bodies the benchmark did not see.
     perf = Performer(bodies.with_hinges(bodies.human(seed=seed)), routine="kiosk", seed=seed, sta_mm=0,
                      rate_hz=RATE, seconds=60)
     cal, _ = _fit(perf, 20.0)
@@ -108,7 +109,7 @@ def test_elbows_and_knees_beside_hinged_wrists_and_ankles_sit_at_their_centres(s
     for child in limbs:
         along, rule = got[child]
         assert rule == "bone_and_axis", (child, got)
-        assert abs(along) <= 0.004, (seed, child, along)
+        assert abs(along) <= 0.005, (seed, child, along)
 
 
 @pytest.mark.parametrize("seed", [20, 21, 23])
