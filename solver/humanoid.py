@@ -357,14 +357,21 @@ class _Points:
 
     def relative(self, a: int, b: int) -> np.ndarray:
         """Body b's mean rotation in body a's frame over the frames both are seen (the identity if never)."""
-        if (a, b) in self._relative:
-            return self._relative[a, b]
-        if (b, a) in self._relative:
-            return self._relative[b, a].T
-        ok = self.valid[:, a] & self.valid[:, b]
-        rel = nearest_rotation(np.einsum("nji,njk->ik", self.R[ok, a], self.R[ok, b]) / ok.sum()) if ok.any() else np.eye(3)
-        self._relative[a, b] = rel
-        return rel
+        if (a, b) not in self._relative and (b, a) not in self._relative:
+            self.prefetch([(a, b)])
+        return self._relative[a, b] if (a, b) in self._relative else self._relative[b, a].T
+
+    def prefetch(self, pairs) -> None:
+        """Work out `relative` for many pairs (a, b) at once: one product over the frames, one projection."""
+        pairs = np.asarray(pairs, dtype=int).reshape(-1, 2)
+        a, b = pairs[:, 0], pairs[:, 1]
+        w = (self.valid[:, a] & self.valid[:, b]).astype(float)  # (n, k)
+        count = w.sum(axis=0)
+        mean = np.einsum("nk,nkji,nkjl->kil", w, self.R[:, a], self.R[:, b]) / np.maximum(count, 1.0)[:, None, None]
+        rel = np.where((count > 0)[:, None, None], nearest_rotation(np.where((count > 0)[:, None, None], mean, np.eye(3))),
+                       np.eye(3))
+        for k, (x, y) in enumerate(pairs.tolist()):
+            self._relative[x, y] = rel[k]
 
 
 @dataclass(frozen=True)
@@ -395,12 +402,13 @@ class _Bend:
 
 
 def _unit(v: np.ndarray) -> np.ndarray:
-    n = np.linalg.norm(v, axis=-1, keepdims=True)
+    """Unit vectors along the last axis (zero stays zero)."""
+    n = np.sqrt(np.einsum("...i,...i->...", v, v))[..., None]
     return np.where(n > 0, v / np.where(n > 0, n, 1.0), 0.0)
 
 
 def _frame(primary: np.ndarray, secondary: np.ndarray, order: str) -> np.ndarray:
-    """Columns (X, Y, Z) of a right-handed frame: `primary` exactly along the axis order[0] names ("x" or
+    """Columns (X, Y, Z) of a right-handed frame: `primary` exactly along the axis `order` names ("x" or
     "y"), `secondary` made orthogonal to it along the other."""
     p = _unit(primary)
     s = _unit(secondary - (secondary @ p) * p)
@@ -448,6 +456,9 @@ def find_humanoid(cal, rotations: np.ndarray, positions: np.ndarray, valid: np.n
     pts = _Points(cal, R, t, valid)
     h, ch = shape.hips, shape.chest
     up = _up(shape, t, valid)
+    # The mean relative rotations the frames below read, in one pass: trunk, and each leaf to its parent.
+    pts.prefetch([(h, ch)] + ([(shape.spine, h), (shape.spine, ch)] if shape.spine >= 0 else [])
+                 + [(ch, shape.head)] + [(c[1], c[2]) for c in shape.arms + shape.legs])
 
     legs = [_Bend.of(pts, c) for c in shape.legs]
     arms = [_Bend.of(pts, c) for c in shape.arms]
@@ -537,16 +548,17 @@ def _tpose_frames(shape: _Shape, pts: _Points, up, left_h, left_c, legs_lr, arms
         return pts.sum_in(body, b - a, oka & okb)
 
     def lateral(chain, body, trunk_axis):
-        """The limb's bending axis in `body`'s frame, pointing as its bending cross product does (right for
-        a leg, left for an arm): a determined hinge's axis at its middle joint, else the bending summed over
-        the frames where the limb moved, else the trunk's lateral axis carried over by the mean pose."""
+        """(the limb's bending axis in `body`'s frame, pointing as its bending cross product does: right for
+        a leg, left for an arm; whether it is a hinge's). A determined hinge's axis at its middle joint, else
+        the bending summed over the frames where the limb moved, else the trunk's lateral axis carried over
+        by the mean pose."""
         bend = bends[chain]
         moved = bend.moved >= MOVED_RAD
         summed = pts.sum_in(body, bend.s, bend.ok) if moved else trunk_axis(body)
         axis = pts.hinges.get(frozenset(chain[:2]), {}).get(body)
         if axis is None:
-            return summed
-        return axis if axis @ summed >= 0 else -axis
+            return summed, False
+        return (axis if axis @ summed >= 0 else -axis), True
 
     def from_hips(body):
         return -(pts.relative(body, h) @ left_h)  # right, as a leg's bending points
@@ -554,15 +566,21 @@ def _tpose_frames(shape: _Shape, pts: _Points, up, left_h, left_c, legs_lr, arms
     def from_chest(body):
         return pts.relative(body, ch) @ left_c
 
+    # A hinge's axis is the segment's surest axis: the far joint's place along it is what soft tissue moves
+    # most (an ankle's centre along the knee's axis, docs/design.md §3c), so it leads where there is one.
     for leg in legs_lr:
         for body, distal in ((leg[0], leg[1]), (leg[1], leg[2])):
             # Hip → knee → ankle: down in the T-pose; the bending points right.
-            frames[body] = _frame(-long_axis(body, distal), -lateral(leg, body, from_hips), "y")
+            side, hinge = lateral(leg, body, from_hips)
+            down = long_axis(body, distal)
+            frames[body] = _frame(-side, -down, "x") if hinge else _frame(-down, -side, "y")
     for sign, arm in zip((1.0, -1.0), arms_lr):
         for body, distal in ((arm[0], arm[1]), (arm[1], arm[2])):
             # Shoulder → elbow → wrist: +X for the left arm in the T-pose, −X for the right; the bending
             # points left while the arm hangs, up once it is raised to the T-pose.
-            frames[body] = _frame(sign * long_axis(body, distal), sign * lateral(arm, body, from_chest), "x")
+            side, hinge = lateral(arm, body, from_chest)
+            out = long_axis(body, distal)
+            frames[body] = _frame(sign * side, sign * out, "y") if hinge else _frame(sign * out, sign * side, "x")
     for leaf, par in [(shape.head, ch)] + [(c[2], c[1]) for c in shape.arms + shape.legs]:
         frames[leaf] = pts.relative(par, leaf).T @ frames[par]
     return frames
