@@ -260,6 +260,7 @@ function showTopology(result) {
       const found = document.createElement('span');
       found.className = `found${conflicted[name] ? ' conflict' : ''}`;
       found.dataset.bone = human[name];
+      found.dataset.sensor = name;
       found.textContent = `on the ${foundOn(result, name)}`;
       if (conflicted[name]) found.title = conflicted[name].message;
       li.appendChild(found);
