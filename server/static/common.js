@@ -238,6 +238,7 @@ export class SkeletonView {
       get pose() { return view.rigShown ? view.rigShown.pose : null; },
       get error() { return view.rigError || null; },
       joints() { return view.rigShown ? view.rigShown.rig.jointPositions() : null; },
+      sensors() { return view.rigShown ? view.rigShown.rig.sensorOf : null; },
     };
   }
 
