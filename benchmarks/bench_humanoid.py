@@ -36,30 +36,14 @@ from flockcal.simulator.take import simulate  # noqa: E402
 from flockcal.solver.accumulator import GramAccumulator  # noqa: E402
 from flockcal.solver.humanoid import find_humanoid, humanoid_for, take_sample  # noqa: E402
 from flockcal.solver.solve import solve  # noqa: E402
-from flockcal.takes import make_take  # noqa: E402
+from humanoid_cases import KNEE_BONE, SIM_BONE as TRUE_BONE, shuffled  # noqa: E402
 
-# The simulator's bodies by bone: what a right finding says (its names are never shown to the finding).
-TRUE_BONE = {"pelvis": "hips", "abdomen": "spine", "chest": "chest", "head": "head",
-             "l_upper_arm": "leftUpperArm", "l_forearm": "leftLowerArm", "l_hand": "leftHand",
-             "r_upper_arm": "rightUpperArm", "r_forearm": "rightLowerArm", "r_hand": "rightHand",
-             "l_thigh": "leftUpperLeg", "l_shin": "leftLowerLeg", "l_foot": "leftFoot",
-             "r_thigh": "rightUpperLeg", "r_shin": "rightLowerLeg", "r_foot": "rightFoot"}
 # The simulator's bone frame (+X forward, +Y right, +Z down while standing, arms hanging) → the T-pose
 # frame's axes (X left, Y up, Z forward) in bone coordinates; an arm is raised to the side first.
 TPOSE = {"trunk": np.array([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]]),
          "left": np.column_stack([[0.0, 0, 1], [0, -1, 0], [1, 0, 0]]),
          "right": np.column_stack([[0.0, 0, -1], [0, 1, 0], [1, 0, 0]])}
 LIMBS = ("UpperArm", "LowerArm", "UpperLeg", "LowerLeg")
-
-
-def shuffled(take, seed: int):
-    """The take with its sensors in another port order and called s0…s(m−1); (take, true bone per port)."""
-    rng = np.random.default_rng([seed, 47])
-    perm = rng.permutation(take.n_sensors)
-    names = [f"s{k}" for k in rng.permutation(take.n_sensors)]
-    out = make_take(take.rotations[:, perm], take.positions[:, perm], names, take.rate_hz,
-                    valid=take.valid[:, perm], times=take.times)
-    return out, perm
 
 
 def accumulated(take):
@@ -79,7 +63,7 @@ def best(fn, repeats: int) -> float:
 
 def cost(repeats: int) -> None:
     take, _ = simulate(motion="kiosk", seconds=30, rate_hz=144, seed=3)
-    take, _ = shuffled(take, 3)
+    take, _ = shuffled(take, 3, "s")
     acc = accumulated(take)
     names = list(take.names)
     t0 = time.perf_counter()
@@ -114,10 +98,10 @@ def accuracy(seeds: int, seconds: float, rate: float) -> None:
         for k in range(seeds):
             seed, height, birds = 100 + k, heights[k % len(heights)], 15 if k % 3 == 2 else 16
             take, _ = simulate(motion=motion, seconds=seconds, rate_hz=rate, seed=seed, height=height, birds=birds)
-            shuffled_take, perm = shuffled(take, seed)
+            shuffled_take, bodies = shuffled(take, seed, "s")
             cal = solve(accumulated(shuffled_take), list(shuffled_take.names), sample=take_sample(shuffled_take).snapshot())
             hum = cal.humanoid
-            truth = [TRUE_BONE[take.names[p]] for p in perm]
+            truth = [TRUE_BONE[b] for b in bodies]
             right = sum(a == b for a, b in zip(hum.bones, truth))
             model = human(height, seed=seed)
             up_err = limb = facing = np.nan
@@ -130,7 +114,7 @@ def accuracy(seeds: int, seconds: float, rate: float) -> None:
                     if bone.removeprefix("left").removeprefix("right") not in LIMBS:
                         continue
                     kind = ("left" if bone.startswith("left") else "right") if "Arm" in bone else "trunk"
-                    S = model.sensor_rotation[model.index(take.names[perm[port]])]
+                    S = model.sensor_rotation[model.index(bodies[port])]
                     errs.append(_angle_deg(TPOSE[kind], S @ hum.frames[port]))
                 limb = max(errs)
             rows.append((motion, seed, height, birds, right, len(truth), hum.reason, up_err, limb, facing))
@@ -152,20 +136,16 @@ def real() -> None:
     except BaseException as exc:  # pytest.skip in the helper when the captures are absent
         print(f"real captures: not run ({exc})")
         return
-    right_of = {"pelvis": "hips", "thorax": "chest", "head": "head"}
-    for seg in ("thigh", "shank", "foot", "upper_arm", "forearm", "hand"):
-        bone = {"thigh": "UpperLeg", "shank": "LowerLeg", "foot": "Foot", "upper_arm": "UpperArm",
-                "forearm": "LowerArm", "hand": "Hand"}[seg]
-        right_of[f"l_{seg}"], right_of[f"r_{seg}"] = "left" + bone, "right" + bone
+    right_of = KNEE_BONE
     hierarchy = segment_map(KNEE)["anatomical_parent"]
     for label, hier in (("searched tree", None), ("anatomical hierarchy", hierarchy)):
         for shuffle in (False, True):
-            take, perm = (shuffled(knee, 9) if shuffle else (knee, np.arange(knee.n_sensors)))
-            h = None if hier is None else {take.names[list(perm).index(knee.names.index(c))]: take.names[list(perm).index(knee.names.index(p))]
-                                           for c, p in hier.items()} if shuffle else hier
+            take, bodies = shuffled(knee, 9, "s") if shuffle else (knee, list(knee.names))
+            renamed = dict(zip(bodies, take.names))
+            h = None if hier is None else {renamed[c]: renamed[p] for c, p in hier.items()}
             cal = solve(accumulated(take), list(take.names), hierarchy=h, sample=take_sample(take).snapshot())
             hum = cal.humanoid
-            truth = [right_of[knee.names[p]] for p in perm]
+            truth = [right_of[b] for b in bodies]
             right = sum(a == b for a, b in zip(hum.bones, truth))
             print(f"real knee trial, {label}{', names and ports shuffled' if shuffle else ''}: {right}/{len(truth)} "
                   f"bodies right{'' if hum.human else ' — ' + hum.reason}; root {cal.names[cal.root]} "

@@ -26,19 +26,9 @@ from flockcal.solver.humanoid import (HumanoidSample, find_humanoid, humanoid_fo
                                       take_sample, tpose_offsets)
 from flockcal.solver.solve import hung_from, solve
 from flockcal.takes import make_take, save_take
+from humanoid_cases import KNEE_BONE, SIM_BONE, shuffled
 from real_captures import KNEE, UPPER_LIMB, cluster_take, segment_map
 
-# The simulator's bodies and what each is, written out (not read from the solver).
-SIM_BONE = {"pelvis": "hips", "abdomen": "spine", "chest": "chest", "head": "head",
-            "l_upper_arm": "leftUpperArm", "l_forearm": "leftLowerArm", "l_hand": "leftHand",
-            "r_upper_arm": "rightUpperArm", "r_forearm": "rightLowerArm", "r_hand": "rightHand",
-            "l_thigh": "leftUpperLeg", "l_shin": "leftLowerLeg", "l_foot": "leftFoot",
-            "r_thigh": "rightUpperLeg", "r_shin": "rightLowerLeg", "r_foot": "rightFoot"}
-KNEE_BONE = {"pelvis": "hips", "thorax": "chest", "head": "head",
-             "l_thigh": "leftUpperLeg", "l_shank": "leftLowerLeg", "l_foot": "leftFoot",
-             "r_thigh": "rightUpperLeg", "r_shank": "rightLowerLeg", "r_foot": "rightFoot",
-             "l_upper_arm": "leftUpperArm", "l_forearm": "leftLowerArm", "l_hand": "leftHand",
-             "r_upper_arm": "rightUpperArm", "r_forearm": "rightLowerArm", "r_hand": "rightHand"}
 # The simulator's up (its transmitter frame is +Z down) and the way its performer faces (+X) in place.
 SIM_UP, SIM_FACING = np.array([0.0, 0.0, -1.0]), np.array([1.0, 0.0, 0.0])
 # The T-pose frame's axes (X the performer's left, Y up, Z forward) in a simulator bone frame (+X forward,
@@ -52,16 +42,6 @@ TPOSE_IN_BONE = {"trunk": np.array([[0.0, 0, 1], [-1, 0, 0], [0, -1, 0]]),
 UP_DEG, FACING_DEG, LIMB_FRAME_DEG = 4.0 + 1.0, 8.0 + 2.0, 10.0 + 2.0
 
 RATE = 30.0  # enough for the tree and the finding (docs/solver.md measures 30 and 60 Hz alike)
-
-
-def shuffled(take, seed: int):
-    """The take on other ports under meaningless names: (take, the simulator body at each new port)."""
-    rng = np.random.default_rng([seed, 4747])
-    perm = rng.permutation(take.n_sensors)
-    names = [f"bird{k}" for k in rng.permutation(take.n_sensors)]
-    out = make_take(take.rotations[:, perm], take.positions[:, perm], names, take.rate_hz,
-                    valid=take.valid[:, perm], times=take.times)
-    return out, [take.names[p] for p in perm]
 
 
 def fitted(take, **options):

@@ -12,21 +12,14 @@ import pytest
 
 from browser_helpers import NEEDS_CHROMIUM
 from flockcal.server.settings import Settings
-from flockcal.simulator.body import HUMAN_NAMES
+from humanoid_cases import swapped_hands
 from server_helpers import ServerThread, free_port, wait_connected
 
 pytestmark = [pytest.mark.browser, NEEDS_CHROMIUM]
 
 ADMIN, READ = "admin-secret-47", "read-secret-47"
-SIM_BONE = {"pelvis": "hips", "abdomen": "spine", "chest": "chest", "head": "head",
-            "l_upper_arm": "leftUpperArm", "l_forearm": "leftLowerArm", "l_hand": "leftHand",
-            "r_upper_arm": "rightUpperArm", "r_forearm": "rightLowerArm", "r_hand": "rightHand",
-            "l_thigh": "leftUpperLeg", "l_shin": "leftLowerLeg", "l_foot": "leftFoot",
-            "r_thigh": "rightUpperLeg", "r_shin": "rightLowerLeg", "r_foot": "rightFoot"}
-NAMES = list(HUMAN_NAMES)
-L, R = NAMES.index("l_hand"), NAMES.index("r_hand")
-NAMES[L], NAMES[R] = NAMES[R], NAMES[L]
-TRUE = {NAMES[k]: SIM_BONE[body] for k, body in enumerate(HUMAN_NAMES)}
+# The operator typed the names in cable order with the two hands swapped.
+NAMES, TRUE = swapped_hands()
 
 
 @pytest.fixture(scope="module")

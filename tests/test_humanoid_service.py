@@ -15,21 +15,13 @@ import httpx
 import pytest
 import websockets
 
+from flockcal.names import joint_name
 from flockcal.server.settings import Settings
-from flockcal.simulator.body import HUMAN_NAMES
+from humanoid_cases import swapped_hands
 from server_helpers import ServerThread, free_port, wait_connected
 
-# The simulator's bodies in port order and what each is, written out (not read from the solver).
-SIM_BONE = {"pelvis": "hips", "abdomen": "spine", "chest": "chest", "head": "head",
-            "l_upper_arm": "leftUpperArm", "l_forearm": "leftLowerArm", "l_hand": "leftHand",
-            "r_upper_arm": "rightUpperArm", "r_forearm": "rightLowerArm", "r_hand": "rightHand",
-            "l_thigh": "leftUpperLeg", "l_shin": "leftLowerLeg", "l_foot": "leftFoot",
-            "r_thigh": "rightUpperLeg", "r_shin": "rightLowerLeg", "r_foot": "rightFoot"}
 # The operator typed the names in cable order with the two hands swapped.
-NAMES = list(HUMAN_NAMES)
-L, R = NAMES.index("l_hand"), NAMES.index("r_hand")
-NAMES[L], NAMES[R] = NAMES[R], NAMES[L]
-TRUE = {NAMES[k]: SIM_BONE[body] for k, body in enumerate(HUMAN_NAMES)}
+NAMES, TRUE = swapped_hands()
 
 
 @pytest.fixture(scope="module")
@@ -113,8 +105,10 @@ def test_a_session_whose_tree_is_no_human_says_so_and_keeps_the_sensor_names(tmp
 
         def fitted():
             d = httpx.get(srv.url + f"/api/sessions/{sid}/result", timeout=10).json()
-            return d if d.get("joints") and d.get("humanoid_note") else None
+            return d if len(d.get("joints") or []) == 5 and d.get("humanoid_note") else None
 
-        d = wait_for(fitted, 30, "a fit of the six sensors")
+        d = wait_for(fitted, 30, "a fit of the six sensors' five joints")
         assert d["humanoid"] is None and "6 bodies" in d["humanoid_note"] and d["humanoid_conflicts"] == []
-        assert {j["name"] for j in d["joints"]} >= {"left elbow"}  # named from the sensors' names, as before
+        # Named from the sensors' names, as before the humanoid: "left elbow", "neck", …
+        assert all(j["name"] == joint_name(j["child"], j["parent"]) for j in d["joints"])
+        assert "left elbow" in {j["name"] for j in d["joints"]}
