@@ -76,7 +76,8 @@ class Humanoid:
 
     Besides: `tree`, the undirected joints (body pairs) and rigid groups it was found on, and `sample_frames`,
     how many frames the sample had taken in by then (what `humanoid_for` decides a reuse by); `evidence`,
-    the figures the left/right decision rests on (docs/solver.md).
+    the figures the left/right decision rests on (docs/solver.md); `body[i]`, the sensor that stands for
+    sensor i's body (itself, or for a rigid group's riding member the member with the bone).
     """
 
     bones: tuple
@@ -87,6 +88,7 @@ class Humanoid:
     tree: frozenset = frozenset()
     sample_frames: int = 0
     evidence: dict = field(default_factory=dict)
+    body: tuple = ()
 
     @property
     def human(self) -> bool:
@@ -106,7 +108,9 @@ class Humanoid:
     def joint_name(self, child: int, parent: int) -> str | None:
         """The anatomical name of the joint between sensors `child` and `parent` ("left knee"), whichever way
         the tree is rooted; None unless both are bodies of a human tree. A rigid member (no bone of its own)
-        is named by its body's."""
+        counts as its body."""
+        if self.body:
+            child, parent = self.body[child], self.body[parent]
         a, b = self.bones[child], self.bones[parent]
         if a is None or b is None:
             return None
@@ -502,7 +506,8 @@ def find_humanoid(cal, rotations: np.ndarray, positions: np.ndarray, valid: np.n
     world = _world(pts, h, frames[h], up)
     conflicts = tuple(NameConflict(i, named, bones[i]) for i in range(m) if bones[i] is not None
                       for named in [_named(names[i], bones[i])] if named is not None)
-    return Humanoid(tuple(bones), world, frames, "", conflicts, key, seen, evidence)
+    return Humanoid(tuple(bones), world, frames, "", conflicts, key, seen, evidence,
+                    tuple(int(x) for x in _body_of(cal)))
 
 
 def _cos(a: np.ndarray, b: np.ndarray) -> float | None:
