@@ -50,7 +50,8 @@ SAMPLE_CAP = 512
 
 # A limb shows the plane it bends in when the angle at its middle joint varied by at least this over the
 # sample (radians rms, about 6°); a limb held stiller takes the trunk's lateral axis, carried onto it by
-# their mean relative rotation, for its T-pose frame.
+# their mean relative rotation, for its T-pose frame; with no limb past it, left and right are not told
+# apart at all (a performer standing still: the bends are then sensor geometry and noise).
 MOVED_RAD = 0.1
 
 
@@ -470,8 +471,9 @@ def find_humanoid(cal, rotations: np.ndarray, positions: np.ndarray, valid: np.n
     arms_left = sum(b.evidence(pts, ch) for b in arms)  # an arm's points left
     Q = pts.relative(h, ch)  # the chest's mean rotation in the hips' frame
     left_h = Q @ arms_left - right_h
-    if not np.linalg.norm(left_h) > 0:
-        return _empty(m, "the knees and elbows never bent in the sample: left and right cannot be told apart", key, seen)
+    if max(b.moved for b in legs + arms) < MOVED_RAD or not np.linalg.norm(left_h) > 0:
+        return _empty(m, f"no knee or elbow bent by {np.degrees(MOVED_RAD):.0f}° rms yet, which is what tells left "
+                         "from right: bend the knees and elbows", key, seen)
     left_h = _unit(left_h)
     left_c = Q.T @ left_h
 

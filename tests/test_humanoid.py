@@ -310,3 +310,15 @@ def test_a_calibration_with_its_humanoid_is_stored_and_rebuilt_whole():
     # The §5 dict carries the map and the conflicts (its frames are not in the JSON).
     parsed = calibration_from_json(cal.to_dict()).humanoid
     assert parsed.bones == hum.bones and parsed.conflicts == hum.conflicts and len(hum.conflicts) == 1
+
+
+def test_a_performer_standing_still_gets_no_left_and_right_guessed():
+    # Tried: 20 s of the idle routine (standing, a slow sway): whatever tree the fit finds, no knee or elbow
+    # bends, and a side would be a coin flip.
+    take, _ = simulate(motion="idle", seconds=20, rate_hz=RATE, seed=4)
+    acc = GramAccumulator(take.n_sensors)
+    acc.add_poses(take.rotations, take.positions, take.valid)
+    truth_tree = calibrate(acc, names=take.names, hierarchy=human().truth()["parent"])
+    s = take_sample(take).frames()
+    hum = find_humanoid(truth_tree, s.rotations, s.positions, s.valid)
+    assert not hum.human and "bend the knees and elbows" in hum.reason and hum.bones == (None,) * 16
