@@ -647,6 +647,11 @@ def proximal_points(cal, hum: Humanoid) -> np.ndarray:
     pairs, c, l = cal.joint_arrays()
     pts[pairs[:, 0]] = c
     at_root = pairs[:, 1] == cal.root
+    if hum.human and hum.bones[cal.root] == "hips":
+        # The hips' bone starts between the two hip joints, not at the mean with the lower back's.
+        legs = np.array([hum.bones[i] in ("leftUpperLeg", "rightUpperLeg") for i in pairs[:, 0]], dtype=bool)
+        if (at_root & legs).sum() == 2:
+            at_root = at_root & legs
     if at_root.any():
         pts[cal.root] = l[at_root].mean(axis=0)
     return pts

@@ -322,3 +322,14 @@ def test_a_performer_standing_still_gets_no_left_and_right_guessed():
     s = take_sample(take).frames()
     hum = find_humanoid(truth_tree, s.rotations, s.positions, s.valid)
     assert not hum.human and "bend the knees and elbows" in hum.reason and hum.bones == (None,) * 16
+
+
+def test_the_hips_bone_starts_between_the_hip_joints():
+    from flockcal.solver.humanoid import proximal_points
+
+    take, _ = simulate(motion="walk", seconds=20, rate_hz=RATE, seed=13)
+    cal = fitted(take)
+    pairs, _, l = cal.joint_arrays()
+    hips = [l[k] for k, (c, p) in enumerate(pairs.tolist()) if p == cal.root and take.names[c] in ("l_thigh", "r_thigh")]
+    assert take.names[cal.root] == "pelvis" and len(hips) == 2
+    np.testing.assert_allclose(proximal_points(cal, cal.humanoid)[cal.root], (hips[0] + hips[1]) / 2, atol=1e-12)
