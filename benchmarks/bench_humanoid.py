@@ -37,6 +37,7 @@ from flockcal.solver.accumulator import GramAccumulator  # noqa: E402
 from flockcal.solver.humanoid import find_humanoid, humanoid_for, take_sample  # noqa: E402
 from flockcal.solver.solve import solve  # noqa: E402
 from humanoid_cases import KNEE_BONE, SIM_BONE as TRUE_BONE, shuffled  # noqa: E402
+from simulator_speed import best_of  # noqa: E402  (the best of n timings, as that benchmark takes it)
 
 # The simulator's bone frame (+X forward, +Y right, +Z down while standing, arms hanging) → the T-pose
 # frame's axes (X left, Y up, Z forward) in bone coordinates; an arm is raised to the side first.
@@ -52,15 +53,6 @@ def accumulated(take):
     return acc
 
 
-def best(fn, repeats: int) -> float:
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return min(times)
-
-
 def cost(repeats: int) -> None:
     take, _ = simulate(motion="kiosk", seconds=30, rate_hz=144, seed=3)
     take, _ = shuffled(take, 3, "s")
@@ -72,11 +64,11 @@ def cost(repeats: int) -> None:
     first = solve(acc, names, sample=sample)
     assert first.humanoid is not None and first.humanoid.human, first.humanoid and first.humanoid.reason
     f = sample.frames
-    plain = best(lambda: solve(acc, names), repeats)
-    fresh = best(lambda: solve(acc, names, sample=sample), repeats)  # as `flockcal fit`: found, then hung from the hips
-    alone = best(lambda: find_humanoid(first, f.rotations, f.positions, f.valid), repeats)
-    live = best(lambda: solve(acc, names, previous=first, sample=sample), repeats)  # the service: last finding kept
-    refind = best(lambda: humanoid_for(first, sample), repeats)
+    plain = best_of(lambda: solve(acc, names), repeats)
+    fresh = best_of(lambda: solve(acc, names, sample=sample), repeats)  # as `flockcal fit`: found, then hung from the hips
+    alone = best_of(lambda: find_humanoid(first, f.rotations, f.positions, f.valid), repeats)
+    live = best_of(lambda: solve(acc, names, previous=first, sample=sample), repeats)  # the service: last finding kept
+    refind = best_of(lambda: humanoid_for(first, sample), repeats)
     print(f"cost: 16 sensors, 30 s kiosk at 144 Hz; sample {len(f)} frames (built in {1000 * sampled:.1f} ms "
           f"from {take.n_frames} frames); best of {repeats}")
     print(f"  fit without the finding (solve)         {1000 * plain:7.2f} ms   1.00")
