@@ -41,10 +41,16 @@ PLACEHOLDER = """<!doctype html><meta charset="utf-8"><title>flockcal</title>
 
 def names_module() -> str:
     """flockcal.names' joint-name table as the ES module the pages import (/static/names.js): one table
-    names the joints for the progress hints and the pages' labels alike."""
+    names the joints for the progress hints and the pages' labels alike; and the humanoid bones in words
+    (solver/humanoid.py's `bone_words`: "leftLowerArm" → "left forearm"), which body each sensor was found on."""
+    from flockcal.solver.humanoid import BONES, bone_words
+
     rows = ",\n".join(f"  [new RegExp({json.dumps(p)}), {json.dumps(j)}, {r}]" for p, j, r in BODY_JOINTS)
     head = "// Made by the service from flockcal/names.py: body keyword, its joint, how far out it sits."
-    return f"{head}\nexport const BODY_JOINTS = [\n{rows},\n];\n"
+    words = json.dumps({b: bone_words(b) for b in BONES}, indent=1)
+    return (f"{head}\nexport const BODY_JOINTS = [\n{rows},\n];\n"
+            f"// Made from solver/humanoid.py: each humanoid bone (VRM 1.0 name) in words.\n"
+            f"export const BONE_WORDS = {words};\n")
 
 
 def _error(status: int, message: str, code: str, headers: dict | None = None) -> JSONResponse:

@@ -41,6 +41,15 @@ class Joint(Open):
     coverage: list[float | None] = []
     c_stderr_m: float | None = None
     l_stderr_m: float | None = None
+    name: str | None = Field(None, description="the joint as people name it: the humanoid's on a human tree "
+                                               "('left knee', 'lower back'), else read from the sensor names")
+
+
+class NameConflict(Open):
+    sensor: str
+    named: str = Field(description="the humanoid bone (VRM 1.0 name) the sensor's name implies")
+    found: str = Field(description="the bone the data found the sensor on (the outputs follow this)")
+    message: str
 
 
 class Bone(Open):
@@ -76,6 +85,11 @@ class CalibrationResult(Open):
     bones: list[Bone] = []
     loop_candidates: list[LoopCandidate] = []
     slip_events: list[SlipEvent] = []
+    humanoid: dict[str, str] | None = Field(
+        None, description="{sensor: VRM 1.0 bone} found from the tree and the motion; null when the tree is not "
+                          "human-shaped (`humanoid_note` says why) or no humanoid was looked for")
+    humanoid_conflicts: list[NameConflict] = Field(
+        [], description="sensors whose names say another bone than the one found (docs/solver.md)")
 
 
 # --- sessions ------------------------------------------------------------------------------------

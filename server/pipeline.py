@@ -206,8 +206,11 @@ class Pipeline:
             result, error = None, None
             if cal.frames > 0:
                 try:
+                    last = cal.calibration
                     result, final = fit_calibration(cal.acc, self.names, live.hierarchy, live.root,
-                                                    live.skeleton, live.profile.tolerance_m)
+                                                    live.skeleton, live.profile.tolerance_m,
+                                                    sample=cal.sample.snapshot(),
+                                                    humanoid=last.humanoid if last is not None else None)
                     slips = self.persistence.slip_events(live, SLIP_FIELDS)
                     if slips:
                         result["slip_events"] = slips
@@ -361,7 +364,8 @@ class Pipeline:
                 # Hand a copy of the Gram matrix to the fit thread; frames keep flowing meanwhile.
                 job = live.cal.fit_input()
                 self.fitter.submit(FitJob(live.id, job.acc, live.hierarchy, live.root, live.skeleton,
-                                          (job.time_s, job.epoch), live.profile.tolerance_m))
+                                          (job.time_s, job.epoch), live.profile.tolerance_m, job.sample,
+                                          job.previous))
                 # Keep a fixed grid (not "period after the last start") so the rate holds at fit_hz.
                 self._last_fit_time = max(self._last_fit_time + self.min_fit_s, now - self.min_fit_s)
         snap = self._make_snapshot()

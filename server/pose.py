@@ -41,11 +41,11 @@ RIG_UP = "-z"
 class _Layout:
     """What a fit fixes about the drawing: the articulation, point names and kinds, bones, leaves."""
 
-    def __init__(self, art, names: tuple[str, ...], determined: set[str] | None = None):
-        from flockcal.exports.bvh import bvh_names
+    def __init__(self, art, names: tuple[str, ...], determined: set[str] | None = None, fit=None):
+        from flockcal.exports.bvh import node_names
 
         self.art = art
-        self.rig_names = bvh_names(names)  # the rig's node names (the BVH's)
+        self.rig_names = node_names(fit if fit is not None else art, names)  # the rig's node names (the glTF's)
         art.levels  # worked out once here; the per-frame completed copies of `art` inherit it
         m = len(names)
         root = art.root
@@ -82,7 +82,7 @@ def _layout(fit: Calibration | dict, names: tuple[str, ...]) -> _Layout | None:
     if _cache[0] is fit and _cache[1] == names:
         return _cache[2]
     try:
-        layout = _Layout(articulation(fit).reordered(names), names, _determined(fit))
+        layout = _Layout(articulation(fit).reordered(names), names, _determined(fit), fit)
     except (ArticulationError, KeyError, ValueError, TypeError):
         layout = None
     _cache[:] = [fit, names, layout]

@@ -297,11 +297,13 @@ class SessionManager:
             try:
                 _name, skeleton = self.session_skeleton(session_id)
                 from flockcal.solver.calibration_json import event_from_json
+                from flockcal.solver.humanoid import take_sample
                 from flockcal.solver.solve import solve_take
 
                 events = [event_from_json(e, take.names) for e in slips]
                 prof = self._profile(row)
-                cal = solve_take(take, events, row["hierarchy"], row["root"], skeleton, tolerance=prof.tolerance_m)
+                cal = solve_take(take, events, row["hierarchy"], row["root"], skeleton, tolerance=prof.tolerance_m,
+                                 sample=take_sample(take).snapshot())
                 result = json_safe(cal.to_dict())
                 result["slip_events"] = [{k: e[k] for k in SLIP_FIELDS if k in e} for e in slips]
             except (FlockcalError, ValueError, ArithmeticError) as exc:  # LinAlgError is a ValueError

@@ -128,6 +128,7 @@ def run(args: argparse.Namespace) -> int:
     for path in (args.bvh, args.gltf):
         if path:
             print(f"wrote {path}", file=sys.stderr)
+    warn_conflicts(result)
     if args.json:
         sys.stdout.write(json_text(result))
     else:
@@ -141,11 +142,14 @@ def run(args: argparse.Namespace) -> int:
 # batch result is byte for byte what `fit --json` prints.
 def calibrate_take(take, hierarchy: dict | None = None, root: str | None = None, tolerance: float = 0.005,
                    progress: bool = True):
-    """The whole-take `Calibration` of `take` (accumulated in chunks, bar on a terminal), by `solve`."""
+    """The whole-take `Calibration` of `take` (accumulated in chunks, bar on a terminal), by `solve`, with
+    its humanoid found from a sample of the take (a human tree hung from its hips unless `root` is given)."""
+    from flockcal.solver.humanoid import take_sample
     from flockcal.solver.solve import solve
 
     acc = accumulate(take, progress)
-    return solve(acc, take.names, hierarchy=hierarchy, root=root, tolerance=tolerance)
+    return solve(acc, take.names, hierarchy=hierarchy, root=root, tolerance=tolerance,
+                 sample=take_sample(take).snapshot())
 
 
 def fit_result(take, cal, tolerance: float = 0.005, find_slips: bool = True, step=None) -> tuple[list, object]:
@@ -164,9 +168,21 @@ def fit_result(take, cal, tolerance: float = 0.005, find_slips: bool = True, ste
         step("searching for slips")
         slips = detect_slips(take, cal)
         if slips:
+            from flockcal.solver.humanoid import take_sample
+
             step("re-fitting after slips")
-            result = solve_take(take, slips, hierarchy=cal.parent_map(), root=cal.names[cal.root], tolerance=tolerance)
+            result = solve_take(take, slips, hierarchy=cal.parent_map(), root=cal.names[cal.root], tolerance=tolerance,
+                                sample=take_sample(take).snapshot(), humanoid=cal.humanoid)
     return slips, result
+
+
+def warn_conflicts(cal) -> None:
+    """One warning line on stderr for each sensor whose name says another bone than the data found."""
+    from flockcal.solver.humanoid import conflict_message
+
+    hum = cal.humanoid
+    for x in (hum.conflicts if hum is not None else ()):
+        print(f"warning: {conflict_message(cal.names, x)}", file=sys.stderr)
 
 
 def json_text(result) -> str:
@@ -203,11 +219,20 @@ def table(cal, source: str = "") -> str:
     """The readable report: topology as an indented tree, joints, bones in cm, loops and warnings."""
     import numpy as np
 
+    from flockcal.names import names_joint
+
     nm = cal.names
     J = cal.joints
+    jname = cal.joint_names()
+    hum = cal.humanoid
+    bone = {i: f" [{b}]" for i, b in enumerate(hum.bones) if b is not None} if hum is not None else {}
     row = {int(c): k for k, c in enumerate(J.pairs[:, 0])}
     how = "given hierarchy" if cal.hierarchy_given else "searched (minimum spanning tree)"
-    out = [f"{source}: {cal.frames} frames, {cal.n_sensors} sensors; topology {how}, root {nm[cal.root]}", "", "Topology"]
+    out = [f"{source}: {cal.frames} frames, {cal.n_sensors} sensors; topology {how}, root {nm[cal.root]}", ""]
+    if hum is not None:
+        out += ["Humanoid: " + ("every body's bone found from the tree and the take's motion [in brackets]"
+                                if hum.human else hum.reason), ""]
+    out.append("Topology")
     depth = np.zeros(cal.n_sensors, dtype=int)
     for x in cal.order:
         depth[x] = 0 if cal.parent[x] < 0 else depth[cal.parent[x]] + 1
@@ -224,16 +249,20 @@ def table(cal, source: str = "") -> str:
             k = row[x]
             kind = "hinge" if J.hinge[k] else "ball" if J.determined[k] else "undetermined"
             note = f"{kind}, rms {_mm(J.rms[k])} mm"
+            if (hum is not None and hum.human) or names_joint(nm[x], nm[p]):
+                note = f"{jname[k]}: {note}"
         else:
             note = f"rigid with {nm[p]}"
-        out.append(f"  {'  ' * depth[x]}{nm[x]}  ({note})")
+        out.append(f"  {'  ' * depth[x]}{nm[x]}{bone.get(x, '')}  ({note})")
+    width = max([5] + [len(x) for x in jname])
     out += ["", "Joints (c in the child's frame, l in the parent's; cm)"]
-    out.append(f"  {'child':<12} {'parent':<12} {'c':<26} {'l':<26} {'rms mm':>7} {'±c mm':>6} {'coverage (least first)':<24} axis (child frame)")
+    out.append(f"  {'joint':<{width}} {'child':<12} {'parent':<12} {'c':<26} {'l':<26} {'rms mm':>7} {'±c mm':>6} "
+               f"{'coverage (least first)':<24} axis (child frame)")
     for k in range(len(J)):
         cov = " ".join(f"{x:.3f}" for x in J.coverage[k])
         axis = " ".join(f"{x:+.3f}" for x in J.axis_i[k]) if J.hinge[k] else ""
         out.append(
-            f"  {nm[J.pairs[k, 0]]:<12} {nm[J.pairs[k, 1]]:<12} {_cm(J.c[k]):<26} {_cm(J.l[k]):<26} "
+            f"  {jname[k]:<{width}} {nm[J.pairs[k, 0]]:<12} {nm[J.pairs[k, 1]]:<12} {_cm(J.c[k]):<26} {_cm(J.l[k]):<26} "
             f"{_mm(J.rms[k]):>7} {_mm(J.c_stderr[k]):>6} {cov:<24} {axis}"
         )
     b = cal.bones
@@ -258,9 +287,7 @@ def table(cal, source: str = "") -> str:
         out += [f"  {nm[c]}: {', '.join(nm[p] for p in ps)} — {note}" for c, ps, note in cal.ambiguous]
     under = [k for k in range(len(J)) if not J.determined[k]]
     if under:
-        from flockcal.names import joint_label
-
-        names = ", ".join(joint_label(nm[J.pairs[k, 0]], nm[J.pairs[k, 1]]).removeprefix("the ") for k in under)
+        names = ", ".join(jname[k] for k in under)
         out += ["", f"Move more: {names} — not determined yet (the data do not pin the centre to the tolerance); "
                 "no bone ends there"]
     return "\n".join(out)

@@ -62,24 +62,32 @@ def fit_take(take, hierarchy: str | None = None, root: str | None = None, skelet
              with_free: bool = False):
     """Fit `take` for an output: with a saved skeleton file, a `{child: parent}` file, or a full search.
 
-    Returns a Calibration or a KnownFit; both give the docs/design.md §5 dict through `.to_dict()`. With
+    Returns a Calibration (a saved skeleton's carries its `KnownFit` as `state`), its humanoid found from a
+    sample of the take; `.to_dict()` gives the docs/design.md §5 dict. With
     `with_free`, returns (fit, free calibration of the same take), the free one judging whether the
     take moved enough (it is the fit itself unless a skeleton file was given).
     """
+    from dataclasses import replace
+
     from flockcal.solver.accumulator import GramAccumulator
     from flockcal.solver.calibration import calibrate
+    from flockcal.solver.humanoid import humanoid_for, take_sample
+    from flockcal.solver.solve import solve
 
     acc = GramAccumulator(take.n_sensors)
     acc.add_poses(take.rotations, take.positions, take.valid)
+    sample = take_sample(take).snapshot()
     if skeleton is not None:
         if hierarchy is not None or root is not None:
             raise UserError("--skeleton fixes the tree; leave out --hierarchy and --root")
         from flockcal.exports.skeleton import load_skeleton
         from flockcal.solver.known_skeleton import fit_saved
 
-        fit = fit_saved(load_skeleton(skeleton), acc, take.names)
+        known = fit_saved(load_skeleton(skeleton), acc, take.names)
+        fit = replace(known.calibration(), state=known)
+        fit = replace(fit, humanoid=humanoid_for(fit, sample))
         return (fit, calibrate(acc, names=list(take.names))) if with_free else fit
-    fit = calibrate(acc, hierarchy=_hierarchy(hierarchy), root=root, names=list(take.names))
+    fit = solve(acc, list(take.names), hierarchy=_hierarchy(hierarchy), root=root, sample=sample)
     return (fit, fit) if with_free else fit
 
 

@@ -70,13 +70,16 @@ def joint_notes(calibration) -> dict[str, dict]:
     return {str(j["child"]): j for j in data.get("joints", []) if isinstance(j, dict) and "child" in j}
 
 
-def build_rig(art: Articulation, A: np.ndarray, root_rest: np.ndarray, notes: dict[str, dict]) -> Rig:
-    """The rig of a completed articulation with file axes A (rest_frames) and the root's rest position."""
+def build_rig(art: Articulation, A: np.ndarray, root_rest: np.ndarray, notes: dict[str, dict],
+              names: list[str] | None = None) -> Rig:
+    """The rig of a completed articulation with file axes A (rest_frames) and the root's rest position;
+    `names`: each body's node name (`bvh.node_names`: humanoid bones on a human tree; default its sensor's)."""
     bodies = depth_first(art)
     node_of = {b: k for k, b in enumerate(bodies)}
     origin = art.origin()
     leaves = [b for b in bodies if not art.children(b)]
-    safe = bvh_names(list(art.names) + [f"{art.names[b]}_end" for b in leaves])
+    base = list(names) if names is not None else list(art.names)
+    safe = bvh_names(base + [f"{base[b]}_end" for b in leaves])
     names = [safe[b] for b in bodies] + safe[art.n_bodies:]
     parent = [-1 if art.parent[b] < 0 else node_of[int(art.parent[b])] for b in bodies]
     offset = [root_rest if b == art.root else A[art.parent[b]] @ (art.l[b] - origin[art.parent[b]]) for b in bodies]
@@ -254,7 +257,7 @@ def gltf_plan(calibration, take: ChunkedTake, *, up: str = "-z", rest: str | int
     art = pb.articulation
     R, t = rest_pose(take, rest, pb.first)
     root = reconstruct(R[None], t[None], art).joint_positions[0, art.root]  # the root joint at the rest frame
-    rig = build_rig(art, pb.A, pb.world @ root, joint_notes(calibration))
+    rig = build_rig(art, pb.A, pb.world @ root, joint_notes(calibration), pb.names)
     times = np.concatenate([f.times for f in take.chunks()]) if animation else None  # 8 bytes a frame
     plan = layout(rig, None if times is None else key_times(times, take.rate_hz), name=name,
                   extras=file_extras(up, rest, take.rate_hz))

@@ -4,9 +4,11 @@
 // URL options: ?token=… (a kiosk token starts and stops sessions; a read-only token follows the
 // sessions a host starts), reset_s=10 (how long "done" stays up), max_s=300 (a guest who walks away:
 // start afresh), mirror=0 (show the avatar as others see the guest, not as a mirror), lease_s=30 (a guest's
-// session ends this long after this page stops renewing it: closed, crashed or unplugged).
+// session ends this long after this page stops renewing it: closed, crashed or unplugged), operator=1 (the
+// attendant's strip along the bottom: which limb each sensor was found on, and any sensor whose name says
+// another limb; guests see neither).
 
-import { api, ApiError, connectLive, readable, SkeletonView } from './common.js';
+import { api, ApiError, connectLive, foundOn, readable, SkeletonView } from './common.js';
 
 const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.search);
@@ -17,6 +19,7 @@ const num = (key, fallback) => {
 const RESET_S = num('reset_s', 10);
 const MAX_S = num('max_s', 300);
 const LEASE_S = num('lease_s', 30);
+const OPERATOR = params.get('operator') === '1';
 
 const avatar = new SkeletonView($('avatar'), { colour: 0x7ee787, follow: true, mirror: params.get('mirror') !== '0' });
 const ring = $('ring-fill');
@@ -86,6 +89,11 @@ function actionFor(body) {
   return `Move your ${name}!`;
 }
 
+// The body part a sensor is on, in a guest's words: the limb the data found it on (whatever the sensor is
+// called), else its name read as words.
+let shownFit = null;
+const part = (sensor) => foundOn(shownFit, sensor);
+
 // One chip per sensor but the root, ticked when the service counts its joint as calibrated.
 function showChips(joints, next) {
   const el = $('chips');
@@ -95,7 +103,7 @@ function showChips(joints, next) {
     chip.className = `chip${j.done ? ' done' : ''}${j.joint === next ? ' next' : ''}`;
     chip.dataset.body = j.joint;
     chip.dataset.state = j.state;
-    chip.textContent = `${j.done ? '✓ ' : ''}${readable(j.joint)}`;
+    chip.textContent = `${j.done ? '✓ ' : ''}${part(j.joint)}`;
     el.appendChild(chip);
   }
 }
@@ -103,11 +111,41 @@ function showChips(joints, next) {
 // The next thing to do, for the joint the service lists first; if a calibrated joint was undone
 // (a sensor slipped), say so, so the guest knows why the ring went back.
 function instructionFor(m) {
-  const act = actionFor(m.joint);
-  if (m.undone && m.undone.reason === 'slip') return `Your ${readable(m.undone.sensor)} sensor moved — once more: ${act}`;
-  if (m.undone && m.undone.reason === 'tree') return `Once more, so your ${readable(m.joint)} is placed right: ${act}`;
-  if (m.undone) return `Your ${readable(m.joint)} needs a little more: ${act}`;
+  const act = actionFor(part(m.joint));
+  if (m.undone && m.undone.reason === 'slip') return `Your ${part(m.undone.sensor)} sensor moved — once more: ${act}`;
+  if (m.undone && m.undone.reason === 'tree') return `Once more, so your ${part(m.joint)} is placed right: ${act}`;
+  if (m.undone) return `Your ${part(m.joint)} needs a little more: ${act}`;
   return act;
+}
+
+// The attendant's strip (operator=1): the limb each sensor was found on, and the names that disagree.
+function showOperator(result) {
+  const el = $('operator');
+  if (!OPERATOR || !result) return;
+  el.classList.remove('hidden');
+  el.innerHTML = '';
+  const conflicts = result.humanoid_conflicts || [];
+  el.dataset.conflicts = String(conflicts.length);
+  for (const c of conflicts) {
+    const line = document.createElement('div');
+    line.className = 'conflict';
+    line.textContent = `⚠ ${c.message}`;
+    el.appendChild(line);
+  }
+  const line = document.createElement('div');
+  if (result.humanoid) {
+    for (const [sensor, bone] of Object.entries(result.humanoid)) {
+      const s = document.createElement('span');
+      s.className = 'found';
+      s.dataset.sensor = sensor;
+      s.dataset.bone = bone;
+      s.textContent = `${sensor} → ${foundOn(result, sensor)}`;
+      line.appendChild(s);
+    }
+  } else {
+    line.textContent = result.humanoid_note || 'no humanoid yet';
+  }
+  el.appendChild(line);
 }
 
 function onFit(msg) {
@@ -119,6 +157,8 @@ function onFit(msg) {
   }
   if (kiosk.state !== 'live' || !result || !kiosk.session) return;
   if (msg.session && msg.session.id !== kiosk.session.id) return;
+  shownFit = result;
+  showOperator(result);
   avatar.setFit(result);
   if (msg.rule) $('rule').textContent = msg.rule;
   const joints = msg.joint_progress || [];
