@@ -21,7 +21,8 @@ from test_outputs_gltf import flockcal
 
 # docs/outputs.md: positions are written to 0.001 mm; the check allows that rounding (0.0005) twice over.
 CLAIM_MM = 1e-3
-TRACKER_TO_FILE = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # Flock world (Z down) → Y up: (x, y, z) → (x, −z, y)
+# The Flock's world (Z down) turned Y-up as docs/outputs.md says: (x, y, z) → (x, −z, y).
+TRACKER_TO_FILE = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])
 
 
 def parse_trc(text: str) -> dict:

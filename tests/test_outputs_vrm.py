@@ -44,7 +44,8 @@ SPEC_PARENT = {
     "rightHand": "rightLowerArm", "leftUpperLeg": "hips", "leftLowerLeg": "leftUpperLeg", "leftFoot": "leftLowerLeg",
     "rightUpperLeg": "hips", "rightLowerLeg": "rightUpperLeg", "rightFoot": "rightLowerLeg",
 }
-TRACKER_TO_FILE = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # Flock world (Z down) → Y up: (x, y, z) → (x, −z, y)
+# The Flock's world (Z down) turned Y-up as docs/outputs.md says: (x, y, z) → (x, −z, y).
+TRACKER_TO_FILE = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])
 
 
 @pytest.fixture(scope="module")

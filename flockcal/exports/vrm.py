@@ -69,7 +69,7 @@ class VrmPlan:
     def extension(self, rig: Rig) -> dict:
         """The document's `extensions.VRMC_vrm`: humanBones → the rig's node indices, and the meta."""
         node_of = {b: k for k, b in enumerate(rig.bodies)}
-        bones = {bone: {"node": node_of[body]} for bone, body in sorted(self.bones.items(), key=lambda x: BONES.index(x[0]))}
+        bones = {bone: {"node": node_of[self.bones[bone]]} for bone in BONES if bone in self.bones}
         return {"specVersion": SPEC_VERSION, "humanoid": {"humanBones": bones}, "meta": self.meta}
 
 
@@ -145,7 +145,8 @@ def vrm_plan(calibration, take: ChunkedTake, up: str = "-z", *, meta: dict | Non
     hung = dataclasses.replace(hung, c=c)
     pb = Playback(hung, pb.world, rest_axes(hung, frames, pb.first[0]), pb.first)
     notes = turned_notes(joint_notes(calibration), art, hung)
-    return VrmPlan("", pb, {b: int(i) for b, i in body.items()}, meta if meta is not None else vrm_meta("flockcal"), notes)
+    meta = meta if meta is not None else vrm_meta("flockcal")
+    return VrmPlan("", pb, {b: int(i) for b, i in body.items()}, meta, notes)
 
 
 def misplaced(art: Articulation, body: dict[str, int]) -> str:
