@@ -136,6 +136,15 @@ def test_live_websocket_streams_fit_and_pose(fresh_serve):
     assert "No supported WebSocket library" not in fresh_serve.log.read_text()
 
 
+def test_the_wheel_serves_the_vendored_vrm_loader(fresh_serve):
+    """three-vrm (what reads the rig as a VRM humanoid, tests/test_vrm_browser.py) ships in the wheel with
+    its licence, importing the vendored three.js beside it."""
+    js = httpx.get(fresh_serve.url + "/static/vendor/three-vrm/three-vrm.module.min.js", timeout=30)
+    assert js.status_code == 200 and 'from"../three/three.module.js"' in js.text and 'from"three"' not in js.text
+    licence = httpx.get(fresh_serve.url + "/static/vendor/three-vrm/LICENSE", timeout=30)
+    assert licence.status_code == 200 and "MIT License" in licence.text
+
+
 @pytest.mark.parametrize("page", ["/docs", "/redoc"])
 def test_api_docs_name_no_external_host_and_their_assets_load(fresh_serve, page):
     html = httpx.get(fresh_serve.url + page, timeout=10)

@@ -30,7 +30,9 @@ def register(subparsers) -> None:
     p.add_argument("--json", action="store_true", help="print the JSON object of docs/design.md §5 instead of a table")
     p.add_argument("--bvh", metavar="OUT.bvh", help="also write the take as BVH through the fitted skeleton")
     p.add_argument("--gltf", metavar="OUT.glb", help="also write the fitted skeleton as a glTF 2.0 rig (skin, figure "
-                   "and the take as its animation; .glb or .gltf)")
+                   "and the take as its animation; .glb or .gltf), a VRM 1.0 humanoid when the tree is human-shaped")
+    p.add_argument("--trc", metavar="OUT.trc", help="also write the joint centres over the take as TRC virtual markers "
+                   "(millimetres; OpenSim reads it)")
     p.add_argument("--scale", metavar="FACTOR", help="multiply positions by FACTOR before fitting (unit scale, paper §4): "
                    "a number or the JSON file `flockcal scale --json` wrote")
     p.add_argument("--no-slips", action="store_true", help="skip the sensor-slip search (faster on long takes)")
@@ -104,6 +106,8 @@ def run(args: argparse.Namespace) -> int:
 
         check_output(args.gltf, "--gltf")
         binary_for(args.gltf, "--gltf")
+    if args.trc:
+        check_output(args.trc, "--trc")
     take = load_take(args.file)
     if args.scale is not None:
         from flockcal.commands.outputs import scale_factor
@@ -115,7 +119,9 @@ def run(args: argparse.Namespace) -> int:
     cal = calibrate_take(take, hierarchy=hierarchy, root=args.root, tolerance=tol)
     if stop_for("fit", args.file, too_short(take) or too_still(cal), args.allow_partial):
         return PARTIAL_EXIT
-    with Stages("fit", ["searching for slips", "re-fitting after slips", "writing BVH", "writing glTF"]) as stages:
+    plain = ""  # why the glTF rig is no VRM humanoid, when it is not
+    with Stages("fit", ["searching for slips", "re-fitting after slips", "writing BVH", "writing glTF",
+                        "writing TRC"]) as stages:
         slips, result = fit_result(take, cal, tolerance=tol, find_slips=not args.no_slips, step=stages.step)
         if args.bvh:
             stages.step("writing BVH")
@@ -124,11 +130,20 @@ def run(args: argparse.Namespace) -> int:
             from flockcal.exports.gltf import write_gltf
 
             stages.step("writing glTF")
-            write_gltf(args.gltf, cal, take)  # the skeleton the BVH plays, so the two files agree
-    for path in (args.bvh, args.gltf):
+            plain = write_gltf(args.gltf, cal, take)  # the skeleton the BVH plays, so the two files agree
+        if args.trc:
+            from flockcal.exports.trc import write_trc
+
+            stages.step("writing TRC")
+            write_trc(args.trc, cal, take)
+    for path in (args.bvh, args.gltf, args.trc):
         if path:
             print(f"wrote {path}", file=sys.stderr)
     warn_conflicts(result)
+    if plain:
+        from flockcal.exports.vrm import plain_rig_note
+
+        print(plain_rig_note(args.gltf, plain), file=sys.stderr)
     if args.json:
         sys.stdout.write(json_text(result))
     else:

@@ -228,10 +228,16 @@ def cmd_export_gltf(args) -> int:
     from flockcal.atomic import check_output
     from flockcal.exports.gltf import binary_for, write_gltf
 
+    from flockcal.exports.vrm import plain_rig_note
+
     check_output(args.output)
     binary_for(args.output, "-o")  # a wrong extension is told before the fit
-    return _export(args, "export-gltf",
-                   lambda path, cal, take, rest: write_gltf(path, cal, take, up=args.up, rest=rest))
+    why = []
+    code = _export(args, "export-gltf",
+                   lambda path, cal, take, rest: why.append(write_gltf(path, cal, take, up=args.up, rest=rest)))
+    if why and why[0]:
+        print(plain_rig_note(args.output, why[0]), file=sys.stderr)
+    return code
 
 
 def cmd_skeleton(args) -> int:
@@ -288,8 +294,9 @@ def register(subparsers) -> None:
     _add_fit_options(p)
     p.add_argument("-o", "--output", required=True, metavar="OUT.glb", help=".glb (binary) or .gltf (JSON)")
     p.add_argument("--up", default="-z", choices=["-z", "+z", "+y"], help="tracker world's up axis (default -z, the Flock's)")
-    p.add_argument("--rest", default="first", metavar="first|sensor|FRAME",
-                   help="the rig's rest (bind) pose: the take's first frame (default), a frame number, or raw sensor axes")
+    p.add_argument("--rest", default="tpose", metavar="tpose|first|sensor|FRAME",
+                   help="the rig's rest (bind) pose: a VRM 1.0 humanoid's T-pose (default; the take's first frame when "
+                        "the tree is not human-shaped), the take's first frame, a frame number, or raw sensor axes")
     p.set_defaults(func=cmd_export_gltf)
 
     p = subparsers.add_parser("skeleton", help="save the performer's calibrated skeleton for their next take")

@@ -210,28 +210,60 @@ def get_bvh(request: Request, sid: str = Depends(session_id),
 
 
 @router.get("/{id}/gltf", responses={200: {"content": {"model/gltf-binary": {}}}, **ERRORS},
-            summary="the calibrated skeleton as a glTF 2.0 rig (.glb), the session's motion as its animation")
+            summary="the calibrated skeleton as a glTF 2.0 rig (.glb; a VRM 1.0 humanoid when the tree is "
+                    "human-shaped), the session's motion as its animation")
 def get_gltf(request: Request, sid: str = Depends(session_id),
              up: str = Query("-z", pattern="^[+-]?[xyz]$", description="the tracker world's up axis: +y, +z or -z"),
-             rest: str = Query("first", pattern="^(first|sensor)$",
-                               description="bind pose: the take's first frame, or the sensor axes (the live pose's `rig`)"),
+             rest: str = Query("tpose", pattern="^(tpose|first|sensor)$",
+                               description="bind pose: a VRM 1.0 humanoid's T-pose (the take's first frame when the "
+                                           "tree is not human-shaped), the take's first frame, or the sensor axes "
+                                           "(the live pose's `rig`)"),
              animation: bool = Query(True, description="false: the rig alone, without the take as its animation "
                                                        "(what the pages load to drive from the live pose)"),
              service=Depends(get_service), _role=Depends(require_read)):
+    """A human-shaped tree's rig is a VRM 1.0 humanoid (rest=tpose, the default): `X-Flockcal-Vrm` says
+    `1.0`, or `none: <why>` when the file is the plain rig instead."""
     from flockcal.exports.gltf import glb_chunks
+    from flockcal.exports.vrm import vrm_meta, vrm_plan
     from flockcal.server.downloads import OUT_BYTES, SlottedResponse, primed
 
     # The fit's number travels in a header (the file stays the CLI's): a page matches it with the live
     # pose's `rig.fit_seq` to know the rig it loaded is the one the stream drives ("final": the stored fit).
     result, fit_seq = service.sessions.result_seq(sid)
     frames = _frames(service, sid)
-    body = _slotted(request, lambda: _export(lambda: primed(
-        glb_chunks(result, frames, up=up, name=sid, rest=rest, animation=animation, chunk_frames=frames.play_frames,
-                   out_bytes=OUT_BYTES))))
+    performer = service.sessions.get(sid).get("performer") or sid
+    vrm = []  # the VRM plan, made in the download's slot before the first byte (its reason goes in a header)
+
+    def stream():
+        if rest == "tpose":
+            vrm.append(vrm_plan(result, frames, up, meta=vrm_meta(performer)))
+        return primed(glb_chunks(result, frames, up=up, name=sid, rest=rest, animation=animation,
+                                 chunk_frames=frames.play_frames, out_bytes=OUT_BYTES, vrm=vrm[0] if vrm else None))
+
+    body = _slotted(request, lambda: _export(stream))
+    headers = {"Content-Disposition": f'attachment; filename="{sid}.glb"',
+               "X-Flockcal-Fit-Seq": "final" if fit_seq is None else str(fit_seq)}
+    if vrm:
+        headers["X-Flockcal-Vrm"] = vrm[0].spec or f"none: {vrm[0].reason}".encode("ascii", "replace").decode()
     # In a slot like /take and /bvh: a client that stops reading a long animation is cut off after the stall time.
-    return SlottedResponse(body, request.app.state.download_slots, media_type="model/gltf-binary",
-                           headers={"Content-Disposition": f'attachment; filename="{sid}.glb"',
-                                    "X-Flockcal-Fit-Seq": "final" if fit_seq is None else str(fit_seq)})
+    return SlottedResponse(body, request.app.state.download_slots, media_type="model/gltf-binary", headers=headers)
+
+
+@router.get("/{id}/trc", responses={200: {"content": {"text/plain": {}}}, **ERRORS},
+            summary="the session's joint centres as TRC virtual markers (millimetres), for OpenSim")
+def get_trc(request: Request, sid: str = Depends(session_id),
+            up: str = Query("-z", pattern="^[+-]?[xyz]$", description="the tracker world's up axis: +y, +z or -z"),
+            service=Depends(get_service), _role=Depends(require_read)):
+    from flockcal.exports.trc import trc_chunks
+    from flockcal.server.downloads import SlottedResponse, primed
+
+    result, _live = service.sessions.result(sid)
+    frames = _frames(service, sid)
+    # The exports' own writer, reading the frame log a chunk at a time (server/downloads.py FrameFile).
+    text = trc_chunks(result, frames, up=up, file_name=f"{sid}.trc", chunk_frames=frames.play_frames)
+    body = _slotted(request, lambda: _export(lambda: primed(part.encode("utf-8") for part in text)))
+    return SlottedResponse(body, request.app.state.download_slots, media_type="text/plain",
+                           headers={"Content-Disposition": f'attachment; filename="{sid}.trc"'})
 
 
 def _slotted(request: Request, make):

@@ -111,6 +111,7 @@ function setSession(session) {
   $('dl-take').disabled = !state.lastSessionId;
   $('dl-bvh').disabled = !state.lastSessionId;
   $('dl-gltf').disabled = !state.lastSessionId;
+  $('dl-trc').disabled = !state.lastSessionId;
 }
 
 // A page opened (or a session found) mid-session: the websocket replays only its last few seconds of
@@ -192,6 +193,7 @@ async function downloadFile(kind) {
     if (kind === 'skeleton') await download(`${base}/skeleton`, `${who}-${id}-skeleton.json`);
     else if (kind === 'bvh') await download(`${base}/bvh`, `${who}-${id}.bvh`);
     else if (kind === 'glTF') await download(`${base}/gltf`, `${who}-${id}.glb`);
+    else if (kind === 'TRC') await download(`${base}/trc`, `${who}-${id}.trc`);
     else await download(`${base}/take`, `${who}-${id}.npz`);
   } catch (err) {
     const why = err instanceof ApiError && err.status === 409 ? 'no fit yet — move a little first' : err.message;
@@ -202,6 +204,7 @@ $('dl-skeleton').addEventListener('click', () => downloadFile('skeleton'));
 $('dl-take').addEventListener('click', () => downloadFile('take'));
 $('dl-bvh').addEventListener('click', () => downloadFile('bvh'));
 $('dl-gltf').addEventListener('click', () => downloadFile('glTF'));
+$('dl-trc').addEventListener('click', () => downloadFile('TRC'));
 
 // ---------------------------------------------------------------------------------- the fit
 
