@@ -108,12 +108,12 @@ LOAD_JS = """async ({sid, bones}) => {
 def tpose_layout(result: dict, frames: np.ndarray, names: list[str]) -> tuple[dict[str, np.ndarray], np.ndarray]:
     """The fitted joint centres laid out in the T-pose, hips at the origin: every body turned by its T-pose
     frame (a vector v in body i's sensor frame lies along frames[i]ᵀ v in the T-pose), the hips' bone
-    starting at the middle of their joints. Returns ({body: its joint toward the hips (the hips: that
+    starting between the two hip joints. Returns ({body: its joint toward the hips (the hips: that
     middle)}, the lowest y of the skeleton, joints and leaf sensors)."""
     points = joint_points(result)
     F = {s: frames[names.index(s)] for s in names}
     hips = [s for s, b in TRUTH.items() if b == "hips"][0]
-    start = np.mean(list(points[hips].values()), axis=0)
+    start = np.mean([x for o, x in points[hips].items() if TRUTH[o].endswith("UpperLeg")], axis=0)
     joint = {(hips, o): F[hips].T @ (x - start) for o, x in points[hips].items()}
     where, low = {hips: np.zeros(3)}, 0.0
     for body, up in hung_from(points, hips)[1:]:
