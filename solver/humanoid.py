@@ -87,14 +87,19 @@ def find_humanoid(cal, rotations: np.ndarray, positions: np.ndarray, valid: np.n
 
 def proximal_points(cal, hum: Humanoid) -> np.ndarray:
     """(m, 3) where each body's bone starts, in its own sensor frame: its inboard joint's centre (`c`), and
-    for the root the mean of its outboard joints' centres (`l`: the midpoint of the hips on a human tree)."""
+    for the root the midpoint of its two hip joints when both upper legs hang from it (the hips' centre on a
+    human tree rooted at the hips), else the mean of its outboard joints' centres (`l`)."""
     m = len(cal.names)
     pts = np.full((m, 3), np.nan)
     pairs, c, l = cal.joint_arrays()
     pts[pairs[:, 0]] = c
     at_root = pairs[:, 1] == cal.root
-    if at_root.any():
-        pts[cal.root] = l[at_root].mean(axis=0)
+    # The spine's joint hangs from the hips too: the mean of all three sat a third of the way up the back.
+    legs = at_root & np.isin(pairs[:, 0], [i for i in (hum.sensor("leftUpperLeg"), hum.sensor("rightUpperLeg"))
+                                           if i is not None])
+    use = legs if legs.sum() == 2 else at_root
+    if use.any():
+        pts[cal.root] = l[use].mean(axis=0)
     return pts
 
 
