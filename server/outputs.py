@@ -70,6 +70,9 @@ class Outputs:
         self._wake_r.setblocking(False)
         self._wake_w.setblocking(False)
         self._woken = False
+        # Wake the thread for each batch only while a VRPN client takes every frame; VMC's ticks take the
+        # newest (waking per batch cost as much again as VMC's own work).
+        self._eager = False
         self._stop = False
         self._thread: threading.Thread | None = None
         # Below: the thread's own.
@@ -81,6 +84,8 @@ class Outputs:
         self._sampled, self._sample_t = 0, -np.inf
         self._fit = None
         self._rig: HumanoidRig | None = None
+        self._packer: vrpn.ReportPacker | None = None  # the rig's VRPN messages, laid out once
+        self._layout: vmc.BoneLayout | None = None  # the rig's VMC bones, laid out once
         self._rig_at = -np.inf
         self._rig_stale = False
         self._humanoid: tuple | None = None  # (the tree it was found on, when, the Humanoid)
@@ -110,9 +115,9 @@ class Outputs:
 
     # -- any thread ---------------------------------------------------------------------------------------
     def feed(self, frames: Frames) -> None:
-        """A batch from the reader: queued, the thread woken. Never blocks."""
+        """A batch from the reader: queued, the thread woken if a VRPN client waits for it. Never blocks."""
         self._queue.append(frames)
-        if not self._woken:
+        if self._eager and not self._woken:
             self._woken = True
             try:
                 self._wake_w.send(b"\0")
@@ -163,6 +168,7 @@ class Outputs:
                 except Exception:  # one client's fault is not the stream's: log it, go on
                     log.exception("outputs: a socket event failed")
             now = time.monotonic()
+            self._eager = self.vrpn is not None and self.vrpn.streaming
             try:
                 if self._queue:
                     self._frames()
@@ -212,10 +218,8 @@ class Outputs:
         self._segments = (self._newest[0], pos[-1], rot[-1])
         n, k = pos.shape[:2]
         quats = quaternions(rot.reshape(-1, 3, 3)).reshape(n, k, 4)
-        ok = np.isfinite(pos).all(axis=2) & np.isfinite(quats).all(axis=2)
         wall = f.times + (time.time() - time.monotonic())
-        records = vrpn.report_records(rig.present, wall, pos, quats)
-        self.vrpn.send_reports([records[i][ok[i]].tobytes() for i in range(n) if ok[i].any()])
+        self.vrpn.send_reports(self._packer.frames(wall, pos, quats))
 
     def _follow_fit(self) -> None:
         """The rig of the newest fit: the live session's own (not the last session's until it has one), or
@@ -252,6 +256,9 @@ class Outputs:
         elif rig is not None and self._rig is None:
             log.info("VRPN and VMC stream the humanoid: %s", ", ".join(BONES[k] for k in rig.present))
         self._rig, self.reason = rig, reason
+        if rig is not None:
+            self._packer = vrpn.ReportPacker(rig.present)
+            self._layout = vmc.BoneLayout(rig)
 
     def _send_vmc(self, now: float) -> None:
         """One bundle: the newest frame's bones once there is a rig, else /VMC/Ext/OK "not loaded" and the time."""
@@ -268,7 +275,7 @@ class Outputs:
             else:
                 pos, rot = (a[0] for a in rig.segments(self._held[0][None], self._held[1][None]))
                 self._segments = (newest[0], pos, rot)
-            numbers = vmc.vmc_bones(rig, pos, rot)
+            numbers = self._layout.numbers(pos, rot)
             if not np.isfinite(numbers).all():  # a sensor with no pose yet: the bones wait for one
                 numbers = None
         if numbers is None:
@@ -276,8 +283,7 @@ class Outputs:
             self.vmc.send(self._bundle(()).fill((0, state, 0, tracking), t))
             return
         state = vmc.CALIBRATING if session is not None and not session.done else vmc.CALIBRATED
-        names = tuple(vmc.UNITY_BONES[BONES[k]] for k in rig.present)
-        self.vmc.send(self._bundle(names).fill((1, state, 0, tracking), t, numbers))
+        self.vmc.send(self._bundle(self._layout.names).fill((1, state, 0, tracking), t, numbers))
 
     def _bundle(self, names: tuple) -> vmc.Bundle:
         if names not in self._bundles:

@@ -102,24 +102,40 @@ def split_target(spec: str) -> tuple[str, int]:
 
 
 def vmc_bones(rig, positions: np.ndarray, rotations: np.ndarray) -> np.ndarray:
-    """(K, 7) /VMC/Ext/Bone/Pos numbers (position x y z, quaternion x y z w; Unity's frame) of the rig's K
-    present bones in one frame, from their segments' (K, 3) positions and (K, 3, 3) rotations on the
-    humanoid's world axes (`HumanoidRig.segments`). Each bone is local to its parent bone with the T-pose as
-    rest (every bone's rest rotation the identity, VRM's normalized rest): its rotation R_parentᵀ R, its
-    position the T-pose offset from its parent bone's start (a limb's: the fitted bone's length). The hips
-    are local to the root, which VMC's /VMC/Ext/Root/Pos puts at the origin unturned: world position and
-    rotation."""
-    present = rig.present
-    slot = np.full(len(rig.sensor), -1)
-    slot[present] = np.arange(len(present))
-    parent = rig.parent_bone[present]
-    has = parent >= 0
-    up = slot[parent[has]]
-    local = rotations.copy()
-    local[has] = np.swapaxes(rotations[up], -1, -2) @ rotations[has]
-    pos = rig.local_offset[present].copy()
-    pos[~has] = positions[~has]
-    return np.concatenate([pos * UNITY_POSITION, quaternions(local) * UNITY_QUATERNION], axis=1)
+    """(K, 7) /VMC/Ext/Bone/Pos numbers of the rig's K present bones in one frame: `BoneLayout(rig).numbers`."""
+    return BoneLayout(rig).numbers(positions, rotations)
+
+
+class BoneLayout:
+    """What a frame's /VMC/Ext/Bone/Pos numbers take from a rig (solver/humanoid_pose.py), worked out once per
+    rig: the present bones' Unity names, each one's parent bone (its slot among them) and T-pose offset.
+
+    `numbers` gives position x y z and quaternion x y z w per bone, in Unity's frame, each bone local to its
+    parent bone with the T-pose as rest (every bone's rest rotation the identity, VRM's normalized rest): its
+    rotation R_parentᵀ R, its position the T-pose offset from its parent bone's start (a limb's: the fitted
+    bone's length). The hips are local to the root, which /VMC/Ext/Root/Pos puts at the origin unturned:
+    their world position and rotation."""
+
+    def __init__(self, rig):
+        from flockcal.solver.humanoid import BONES
+
+        present = rig.present
+        self.names = tuple(UNITY_BONES[BONES[k]] for k in present)
+        slot = np.full(len(rig.sensor), -1)
+        slot[present] = np.arange(len(present))
+        parent = rig.parent_bone[present]
+        self.has = parent >= 0
+        self.up = slot[parent[self.has]]
+        self.offsets = rig.local_offset[present] * UNITY_POSITION
+
+    def numbers(self, positions: np.ndarray, rotations: np.ndarray) -> np.ndarray:
+        """From the bones' segments in one frame: (K, 3) positions, (K, 3, 3) rotations on the humanoid's world
+        axes (`HumanoidRig.segments`)."""
+        local = rotations.copy()
+        local[self.has] = np.swapaxes(rotations[self.up], -1, -2) @ rotations[self.has]
+        pos = self.offsets.copy()
+        pos[~self.has] = positions[~self.has] * UNITY_POSITION
+        return np.concatenate([pos, quaternions(local) * UNITY_QUATERNION], axis=1)
 
 
 class Bundle:

@@ -85,20 +85,36 @@ def description(kind: int, number: int, name: str, when: float | None = None) ->
     return message(kind, number, len(raw).to_bytes(4, "big") + raw, when)
 
 
-def report_records(sensors: np.ndarray, wall_times: np.ndarray, positions: np.ndarray, quats: np.ndarray,
-                   sender: int = 0, type_id: int = 0) -> np.ndarray:
-    """(n, K) Pos_Quat messages of K sensors over n frames: `positions` (n, K, 3) metres, `quats` (n, K, 4)
-    x y z w, `wall_times` (n,) unix seconds; a frame's messages are `records[i].tobytes()`."""
-    n, k = positions.shape[:2]
-    out = np.zeros((n, k), dtype=REPORT)
-    sec = np.floor(wall_times)
-    out["length"] = HEADER + 64
-    out["sec"] = sec[:, None]
-    out["usec"] = ((wall_times - sec) * 1e6).astype(np.int64)[:, None]
-    out["sender"], out["type"] = sender, type_id
-    out["sensor"] = out["sensor_pad"] = sensors
-    out["pos"], out["quat"] = positions, quats
-    return out
+class ReportPacker:
+    """Pos_Quat messages of a fixed set of sensors, one frame's at a time into a buffer kept between calls
+    (the header's constant fields written once): `frames` returns each frame's messages as one bytes."""
+
+    def __init__(self, sensors, sender: int = 0, type_id: int = 0, frames: int = 64):
+        self.sensors = np.asarray(sensors)
+        self._buf = np.zeros((frames, len(self.sensors)), dtype=REPORT)
+        self._buf["length"] = HEADER + 64
+        self._buf["sender"], self._buf["type"] = sender, type_id
+        self._buf["sensor"] = self._buf["sensor_pad"] = self.sensors
+
+    def frames(self, wall_times: np.ndarray, positions: np.ndarray, quats: np.ndarray) -> list[bytes]:
+        """`positions` (n, K, 3) metres, `quats` (n, K, 4) x y z w, `wall_times` (n,) unix seconds: per frame
+        the messages of its sensors with a position (a sensor with NaN, no pose yet, is left out)."""
+        out = []
+        for at in range(0, len(wall_times), len(self._buf)):
+            n = min(len(self._buf), len(wall_times) - at)
+            buf = self._buf[:n]
+            when = wall_times[at:at + n]
+            sec = np.floor(when)
+            buf["sec"] = sec[:, None]
+            buf["usec"] = ((when - sec) * 1e6).astype(np.int64)[:, None]
+            buf["pos"], buf["quat"] = positions[at:at + n], quats[at:at + n]
+            # A sensor with no pose has NaN in its position (its rotation too makes the position NaN).
+            if np.isfinite(buf["pos"]).all():
+                out += [row.tobytes() for row in buf]
+            else:
+                ok = np.isfinite(buf["pos"]).all(axis=2)
+                out += [row[keep].tobytes() for row, keep in zip(buf, ok) if keep.any()]
+        return out
 
 
 def to_room_payload() -> bytes:
@@ -341,7 +357,7 @@ class VrpnServer:
         del c.outbox[:sent]
 
     def send_reports(self, frames: list[bytes]) -> None:
-        """One frame's Pos_Quat messages per item (`report_records(...)[i].tobytes()`, at most UDP_MAX bytes),
+        """One frame's Pos_Quat messages per item (`ReportPacker.frames`, at most UDP_MAX bytes),
         to every connected client: a datagram each over UDP, else on its TCP stream."""
         for c in list(self.clients):
             if c.state != "connected":

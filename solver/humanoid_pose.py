@@ -30,7 +30,7 @@ class HumanoidRig:
     parent_bone: np.ndarray  # (16,) int
     local_offset: np.ndarray  # (16, 3)
 
-    @property
+    @cached_property
     def present(self) -> np.ndarray:
         """Indices k of the BONES that have a body, in BONES order."""
         return np.flatnonzero(self.sensor >= 0)
@@ -44,35 +44,43 @@ class HumanoidRig:
         in the subtree of a sensor with no pose yet."""
         R = np.asarray(rotations, dtype=float)
         t = np.asarray(positions, dtype=float)
-        art, s, hum = self.art, self.sensor[self.present], self.humanoid
+        s, path, start, frames, up, l, c = self._plan
         # reconstruct's walk down the tree, as one sum along each body's path from the root: t'_j = t_root +
-        # Σ (R_p l − R_a c_a) over the bodies a on the way. Per frame the level-by-level walk cost 150 µs of
+        # Σ (R_p l_a − R_a c_a) over the bodies a on the way. Per frame the level-by-level walk cost 150 µs of
         # numpy calls, a point of a core at 144 Hz on its own; this is a fifth of it.
-        step = (R[:, self._up] @ art.l[:, :, None] - R @ art.c[:, :, None])[..., 0]
-        start = (t[:, art.root, None] + self._path[s] @ step
-                 + (R[:, s] @ self.start[s][:, :, None])[..., 0])
-        return start @ hum.world.T, hum.world @ R[:, s] @ hum.frames[s]
+        step = (R[:, up] @ l - R @ c)[..., 0]
+        lost = None
+        if not np.isfinite(step).all():  # a sensor with no pose yet: NaN in its subtree, not in every bone
+            lost = (path @ ~np.isfinite(step).all(axis=2)[..., None])[..., 0] > 0
+            step = np.nan_to_num(step, nan=0.0, posinf=0.0, neginf=0.0)
+        Rs = R[:, s]
+        at = t[:, self.art.root, None] + path @ step + (Rs @ start)[..., 0]
+        if lost is not None:
+            at[lost] = np.nan
+        world = self.humanoid.world
+        return at @ world.T, world @ Rs @ frames
 
     @cached_property
-    def _up(self) -> np.ndarray:
-        """(m,) each body's parent, the root its own (its step is zeroed in `_path`)."""
-        return np.where(self.art.parent < 0, np.arange(self.art.n_bodies), self.art.parent)
-
-    @cached_property
-    def _path(self) -> np.ndarray:
-        """(m, m) 1 where body a (column) lies on the way from the root to body j (row), the root left out."""
+    def _plan(self) -> tuple:
+        """What `segments` reads, indexed once per rig: the present bones' bodies, their paths from the root
+        ((K, m): 1 where body a lies on the way to the bone's body, the root left out), starts and T-pose
+        frames; each body's parent (the root its own, its step unused) and joint points as columns."""
         art = self.art
         path = np.zeros((art.n_bodies, art.n_bodies))
         for j in art.order[1:]:
             path[j] = path[art.parent[j]]
             path[j, j] = 1.0
-        return path
+        s = self.sensor[self.present]
+        up = np.where(art.parent < 0, np.arange(art.n_bodies), art.parent)
+        return (s, path[s], self.start[s][:, :, None], self.humanoid.frames[s], up, art.l[:, :, None],
+                art.c[:, :, None])
 
 
 def humanoid_rig(cal, hum: Humanoid, frames=None) -> HumanoidRig:
-    """The rig of `cal` (a Calibration or §5 dict) read through `hum`. `frames` ((R, t, valid) arrays or a
-    GramAccumulator's `acc=`-style source, see `Articulation.completed`) places sensors that ride rigidly on
-    their parent. Raises ArticulationError for a fit that cannot drive a humanoid (no hips, not human)."""
+    """The rig of `cal` (a Calibration or §5 dict) read through `hum`. `frames` (rotations, positions, valid
+    arrays over some frames of the take) place sensors that ride rigidly on their parent
+    (`Articulation.completed`). Raises ArticulationError for a fit that cannot drive a humanoid (no hips, not
+    human-shaped)."""
     if not hum.human:
         raise ArticulationError(f"the tree is not human-shaped ({hum.reason}); no humanoid to stream")
     hips = hum.sensor("hips")

@@ -172,3 +172,20 @@ def test_vmc_bones_chained_from_the_hips_in_unitys_frame_land_on_the_segments_mi
             np.testing.assert_allclose(world_R[k], mirror @ rot[0, k] @ mirror, atol=1e-9, err_msg=BODY_OF[k])
         # A limb's local position is its parent's fitted bone.
         assert np.linalg.norm(numbers[5, :3]) == pytest.approx(np.linalg.norm(pos[0, 5] - pos[0, 4]), abs=1e-12)
+
+
+def test_a_sensor_with_no_pose_yet_loses_only_its_own_subtree(take):
+    """Held poses are NaN for a sensor that never sent a valid record: its bone and those below it have no
+    segment; every other bone keeps its own."""
+    names, R, x, _ = take
+    cal, hum = fit(take, "pelvis")
+    rig = humanoid_rig(cal, hum)
+    R2, x2 = R[:3].copy(), x[:3].copy()
+    R2[:, names.index("l_forearm")] = np.nan
+    x2[:, names.index("l_forearm")] = np.nan
+    pos, rot = rig.segments(R2, x2)
+    whole, _ = rig.segments(R[:3], x[:3])
+    lost = [BODY_OF.index(b) for b in ("l_forearm", "l_hand")]
+    assert np.isnan(pos[:, lost]).all()
+    kept = [k for k in range(16) if k not in lost]
+    np.testing.assert_array_equal(pos[:, kept], whole[:, kept])
