@@ -119,9 +119,13 @@ def wait_for(what, condition, timeout: float = 60.0):
 @pytest.fixture(scope="module")
 def streams(tmp_path_factory):
     receiver = Receiver()
+    nobody = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)  # a port no receiver listens on
+    nobody.bind(("127.0.0.1", 0))
+    absent = nobody.getsockname()[1]
+    nobody.close()
     settings = Settings(device=f"sim://streams?birds=16&motion=exercise&rate={RATE_HZ}&baud=921600", birds=16,
                         http_port=free_port(), data_dir=tmp_path_factory.mktemp("streams"), vrpn_port=0,
-                        osc_targets=(f"127.0.0.1:{receiver.port}",))
+                        osc_targets=(f"127.0.0.1:{receiver.port}", f"127.0.0.1:{absent}"))
     try:
         with ServerThread(settings) as srv:
             wait_connected(srv.url)
@@ -138,7 +142,7 @@ def streams(tmp_path_factory):
             stopped = time.monotonic()
             receiver.wait(lambda b: len(b) >= 3 and b[-1]["/VMC/Ext/OK"][1] == 3, since=stopped)
             yield {"srv": srv, "port": port, "result": result, "receiver": receiver, "before": before, "live": live,
-                   "stopped": stopped}
+                   "stopped": stopped, "absent": absent}
     finally:
         receiver.close()
 
@@ -348,7 +352,8 @@ def test_vmc_every_bone_arrives_with_its_fitted_bone_as_local_position(streams):
 def test_vmc_says_the_calibration_state_and_its_time_at_the_stated_rate(streams):
     """Before any session: not loaded, uncalibrated, no bones. While the session calibrates: loaded,
     calibrating (2) or already calibrated (3). After the stop: calibrated. /VMC/Ext/T is the sender's
-    clock: its steps are 1/60 s (the default rate) at the median."""
+    clock: its steps are 1/60 s (the default rate) at the median, with a second receiver named that is not
+    there."""
     assert all(b["/VMC/Ext/OK"][:2] == (0, 0) and "Hips" not in b for b in streams["before"])
     live = [b for b in streams["live"] if "Hips" in b]
     assert live and all(b["/VMC/Ext/OK"][:2] in ((1, 2), (1, 3)) for b in live)
@@ -356,6 +361,10 @@ def test_vmc_says_the_calibration_state_and_its_time_at_the_stated_rate(streams)
     times = np.array([b["/VMC/Ext/T"][0] for b in got])
     assert np.all(np.diff(times) > 0)
     assert np.median(np.diff(times)) == pytest.approx(1 / 60, rel=0.1)
+    # The second receiver named was never there: fire-and-forget, it costs the first one nothing.
+    vmc = outputs(streams["srv"].url)["vmc"]
+    assert vmc["targets"] == [f"127.0.0.1:{streams['receiver'].port}", f"127.0.0.1:{streams['absent']}"]
+    assert vmc["failed"] == 0 and vmc["bundles_sent"] >= 2 * len(got)
 
 
 # -- bad outputs ------------------------------------------------------------------------------------------
