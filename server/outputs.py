@@ -30,6 +30,7 @@ RIG_REFRESH_S = 0.2  # a new fit reaches the streams' rig at most this often (fi
 HUMANOID_REFRESH_S = 5.0  # the humanoid is found again this often, and whenever the tree changes
 SAMPLE_S, SAMPLE_FRAMES = 0.1, 600  # the frames the humanoid is found from: one every 0.1 s, the last minute
 TRACKING_S = 0.25  # newer frames than this, every bone's sensor valid: VMC's tracking status is OK
+OSC_GRACE_S = 0.02  # how long a due VMC bundle waits for a frame's wake-up to ride on
 QUEUE_BATCHES = 256  # batches waiting for the thread at most (the oldest go first: live streams want the newest)
 
 
@@ -161,7 +162,11 @@ class Outputs:
         next_tick = 0.0
         while not self._stop:
             now = time.monotonic()
-            timeout = max(0.0, min(next_osc - now if self.vmc is not None else 0.5, next_tick - now))
+            # While frames wake the thread (a VRPN client), a VMC bundle rides on the next frame's wake-up
+            # (frames come 144 times a second): a wake-up of its own cost as much again on a busy machine,
+            # whose caches hold none of this between wake-ups. A tracker gone quiet still gets its bundles.
+            osc_due = next_osc + (OSC_GRACE_S if self._eager else 0.0) if self.vmc is not None else now + 0.5
+            timeout = max(0.0, min(osc_due, next_tick) - now)
             for key, mask in sel.select(timeout):
                 try:
                     key.data(mask)
@@ -197,6 +202,9 @@ class Outputs:
         batches = []
         while self._queue:
             batches.append(self._queue.popleft())
+        streaming = self.vrpn is not None and self.vrpn.streaming
+        if not streaming and batches and len(batches[-1]) and batches[-1].valid[-1].all():
+            batches = [batches[-1][-1:]]  # VMC takes the newest frame: held poses need nothing before it
         f = Frames.concat(batches, self.m)
         if not len(f):
             return
@@ -212,7 +220,7 @@ class Outputs:
             self._sample_t = f.times[-1]
         self._follow_fit()
         rig = self._rig
-        if rig is None or self.vrpn is None or not self.vrpn.streaming:
+        if rig is None or not streaming:
             return
         pos, rot = rig.segments(R, t)
         self._segments = (self._newest[0], pos[-1], rot[-1])
