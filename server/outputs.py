@@ -16,12 +16,13 @@ from typing import Callable
 
 import numpy as np
 
+from flockcal.errors import FlockcalError
 from flockcal.frames import Frames
 from flockcal.server import vmc, vrpn
 from flockcal.server.pose import quaternions
 from flockcal.solver.humanoid import BONES, Humanoid
 from flockcal.solver.humanoid_pose import HumanoidRig, humanoid_rig
-from flockcal.solver.reconstruct import ArticulationError, held_poses
+from flockcal.solver.reconstruct import held_poses
 from flockcal.threads import name_os_thread
 
 log = logging.getLogger(__name__)
@@ -257,7 +258,7 @@ class Outputs:
             if self._humanoid is None or self._humanoid[0] != tree or now - self._humanoid[1] >= HUMANOID_REFRESH_S:
                 self._humanoid = (tree, now, humanoid_of(fit, sample))
             rig, reason = humanoid_rig(fit, self._humanoid[2], frames=sample), None
-        except ArticulationError as exc:
+        except (FlockcalError, ValueError, np.linalg.LinAlgError) as exc:  # ArticulationError among them
             rig, reason = None, str(exc)
         if reason is not None and reason != self.reason:
             log.warning("VRPN and VMC send no bones: %s", reason)  # one line a change, not one a fit
