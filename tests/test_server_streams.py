@@ -369,22 +369,27 @@ def test_vmc_says_the_calibration_state_and_its_time_at_the_stated_rate(streams)
 
 # -- bad outputs ------------------------------------------------------------------------------------------
 def test_bad_outputs_are_one_line_each_and_the_service_runs_without_them(tmp_path):
-    """Tried: a VRPN port another program holds, a VMC host that does not resolve, a VMC port out of range.
-    Each is one line from `flockcal serve`; the service serves, and the good VMC receiver still gets its
-    bundles."""
+    """Tried: a VRPN port another program holds, a VMC host that does not resolve, a VMC port out of range,
+    and a performer whose tree is not human-shaped (the simulator's six-link chain). Each is one line from
+    `flockcal serve`; the service serves and fits, and the good VMC receiver still gets its bundles, saying
+    no bones are loaded."""
     holder = socket.socket()
     holder.bind(("127.0.0.1", 0))
     holder.listen(1)
     busy = holder.getsockname()[1]
     receiver = Receiver()
     log = tmp_path / "serve.log"
-    proc = ServerProcess(["--device", "sim://bad?birds=4&rate=30", "--birds", "4", "--data-dir", str(tmp_path / "d"),
+    proc = ServerProcess(["--device", "sim://bad?birds=6&model=linkage&motion=exercise&rate=60", "--birds", "6",
+                          "--data-dir", str(tmp_path / "d"),
                           "--vrpn", str(busy), "--osc", "nohost.invalid,127.0.0.1:70000",
                           "--osc", f"127.0.0.1:{receiver.port}"], free_port(), log_path=log)
     try:
         proc.start()
-        receiver.wait(lambda b: len(b) >= 5)
-        st = outputs(proc.url)
+        wait_connected(proc.url)
+        assert httpx.post(proc.url + "/api/sessions", json={"performer": "Chain"}).status_code == 201
+        wait_for(lambda: httpx.get(proc.url + "/api/status").json()["fits"], lambda n: n >= 10)
+        st = wait_for(lambda: outputs(proc.url), lambda o: "human" in (o["humanoid"]["reason"] or ""))
+        got = receiver.wait(lambda b: len(b) >= 5, since=time.monotonic())
         text = log.read_text()
     finally:
         proc.stop()
@@ -397,3 +402,6 @@ def test_bad_outputs_are_one_line_each_and_the_service_runs_without_them(tmp_pat
     assert any("70000" in x and "1 to 65535" in x for x in lines)
     assert st["vrpn"] is None and st["vmc"]["targets"] == [f"127.0.0.1:{receiver.port}"]
     assert len(st["problems"]) == 3
+    assert not st["humanoid"]["streaming"] and "not human-shaped" in st["humanoid"]["reason"]
+    assert len([x for x in text.splitlines() if "send no bones" in x]) == 1  # once, not once a fit
+    assert all(b["/VMC/Ext/OK"][0] == 0 and "Hips" not in b for b in got)
