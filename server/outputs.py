@@ -180,8 +180,10 @@ class Outputs:
                     self._frames()
                 if self.vmc is not None and now >= next_osc:
                     self._send_vmc(now)
-                    # A fixed grid, so the rate holds; a thread held up skips the ticks it missed.
-                    next_osc = max(next_osc + self.osc_period, now - self.osc_period)
+                    # A fixed grid, so the rate holds; a thread held up skips the ticks it missed (no burst).
+                    next_osc += self.osc_period
+                    if next_osc <= now:
+                        next_osc = now + self.osc_period
                 if now >= next_tick:
                     if self.vrpn is not None:
                         self.vrpn.tick(now)
