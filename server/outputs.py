@@ -90,6 +90,8 @@ class Outputs:
         self._layout: vmc.BoneLayout | None = None  # the rig's VMC bones, laid out once
         self._rig_at = -np.inf
         self._rig_stale = False
+        self._rig_key: tuple = (None, None)  # whose fit the rig is: snapshot's pose_fit_id
+        self._session = None  # the live session as the snapshot the rig was followed in showed it
         self._humanoid: tuple | None = None  # (the tree it was found on, when, the Humanoid)
         self.reason: str | None = "no fit yet"
         self._bundles: dict[tuple, vmc.Bundle] = {}
@@ -159,7 +161,7 @@ class Outputs:
         sel.register(self._wake_r, selectors.EVENT_READ, self._drain_wake)
         if self.vrpn is not None:
             self.vrpn.register(sel)
-        next_osc = time.monotonic()
+        next_osc = self._t0
         next_tick = 0.0
         while not self._stop:
             now = time.monotonic()
@@ -179,11 +181,10 @@ class Outputs:
                 if self._queue:
                     self._frames()
                 if self.vmc is not None and now >= next_osc:
-                    self._send_vmc(now)
-                    # A fixed grid, so the rate holds; a thread held up skips the ticks it missed (no burst).
-                    next_osc += self.osc_period
-                    if next_osc <= now:
-                        next_osc = now + self.osc_period
+                    self._send_vmc(now, next_osc)
+                    # A fixed grid, so the rate holds; a thread held up skips the ticks it missed rather than
+                    # sending them in a burst (each would carry the same newest pose).
+                    next_osc += self.osc_period * max(1, np.ceil((now - next_osc) / self.osc_period))
                 if now >= next_tick:
                     if self.vrpn is not None:
                         self.vrpn.tick(now)
@@ -237,17 +238,22 @@ class Outputs:
         with no session live the last stopped session's final fit; rebuilt at most every RIG_REFRESH_S."""
         snap = self.snapshot()
         fit = getattr(snap, "pose_fit", None)
-        session = getattr(snap, "session", None)
-        if session is not None and (snap.pose_fit_id is None or snap.pose_fit_id[0] != session.id):
+        key = getattr(snap, "pose_fit_id", None)  # (session id, fit number; None for its stored final fit)
+        session = self._session = getattr(snap, "session", None)
+        if session is not None and (key is None or key[0] != session.id):
             fit = None
         if fit is not self._fit:
             self._fit, self._rig_stale = fit, True
         now = time.monotonic()
-        if not self._rig_stale or now - self._rig_at < RIG_REFRESH_S:
+        # Another session's fit, a session's final fit or none at all: at once (what VMC's calibration
+        # state says must be what its bones are); the same session's next live fit: at the refresh rate.
+        urgent = fit is None or key is None or key[1] is None or key[0] != self._rig_key[0]
+        if not self._rig_stale or (not urgent and now - self._rig_at < RIG_REFRESH_S):
             return
         self._rig_at = now
+        self._segments = None
         if fit is None:
-            self._rig, self.reason, self._rig_stale = None, "no fit yet", False
+            self._rig, self.reason, self._rig_stale, self._rig_key = None, "no fit yet", False, (None, None)
             return
         if not self._sampled:
             return  # no frame yet to find the humanoid from: the next frames try again
@@ -266,19 +272,19 @@ class Outputs:
             log.warning("VRPN and VMC send no bones: %s", reason)  # one line a change, not one a fit
         elif rig is not None and self._rig is None:
             log.info("VRPN and VMC stream the humanoid: %s", ", ".join(BONES[k] for k in rig.present))
-        self._rig, self.reason = rig, reason
+        self._rig, self.reason, self._rig_key = rig, reason, key
         if rig is not None:
             self._packer = vrpn.ReportPacker(rig.present)
             self._layout = vmc.BoneLayout(rig)
 
-    def _send_vmc(self, now: float) -> None:
-        """One bundle: the newest frame's bones once there is a rig, else /VMC/Ext/OK "not loaded" and the time."""
+    def _send_vmc(self, now: float, tick: float) -> None:
+        """One bundle: the newest frame's bones once there is a rig, else /VMC/Ext/OK "not loaded"; its
+        /VMC/Ext/T is the tick's time on the sender's grid (seconds since the streams started)."""
         self._follow_fit()
-        rig, newest = self._rig, self._newest
-        session = getattr(self.snapshot(), "session", None)
+        rig, newest, session = self._rig, self._newest, self._session
         tracking = int(newest is not None and now - newest[0] <= TRACKING_S
                        and (rig is None or bool(newest[1][rig.sensor[rig.present]].all())))
-        t = now - self._t0
+        t = tick - self._t0
         numbers = None
         if rig is not None and newest is not None:
             if self._segments is not None and self._segments[0] == newest[0]:

@@ -352,15 +352,17 @@ def test_vmc_every_bone_arrives_with_its_fitted_bone_as_local_position(streams):
 def test_vmc_says_the_calibration_state_and_its_time_at_the_stated_rate(streams):
     """Before any session: not loaded, uncalibrated, no bones. While the session calibrates: loaded,
     calibrating (2) or already calibrated (3). After the stop: calibrated. /VMC/Ext/T is the sender's
-    clock: its steps are 1/60 s (the default rate) at the median, with a second receiver named that is not
+    clock: its steps are ticks of 1/60 s (the default rate), with a second receiver named that is not
     there."""
     assert all(b["/VMC/Ext/OK"][:2] == (0, 0) and "Hips" not in b for b in streams["before"])
     live = [b for b in streams["live"] if "Hips" in b]
     assert live and all(b["/VMC/Ext/OK"][:2] in ((1, 2), (1, 3)) for b in live)
     got = streams["receiver"].wait(lambda b: len(b) >= 60, since=streams["stopped"])
-    times = np.array([b["/VMC/Ext/T"][0] for b in got])
-    assert np.all(np.diff(times) > 0)
-    assert np.median(np.diff(times)) == pytest.approx(1 / 60, rel=0.1)
+    # /VMC/Ext/T is the bundle's tick on the sender's 1/60 s grid: a sender held up by a loaded machine skips
+    # ticks (never sends two at once), so every step is a whole number of ticks, and most are one.
+    ticks = np.diff([b["/VMC/Ext/T"][0] for b in got]) * 60
+    assert np.all(ticks >= 1 - 1e-3) and np.abs(ticks - np.round(ticks)).max() < 1e-2, ticks
+    assert np.median(np.round(ticks)) == 1, ticks
     # The second receiver named was never there: fire-and-forget, it costs the first one nothing.
     vmc = outputs(streams["srv"].url)["vmc"]
     assert vmc["targets"] == [f"127.0.0.1:{streams['receiver'].port}", f"127.0.0.1:{streams['absent']}"]
