@@ -10,7 +10,7 @@ from functools import cached_property
 
 import numpy as np
 
-from flockcal.solver.humanoid import BONES, Humanoid, proximal_points, tpose_offsets
+from flockcal.solver.humanoid import BONES, Humanoid, proximal_points, segment_rotations, tpose_offsets
 from flockcal.solver.reconstruct import Articulation, ArticulationError, articulation, reconstruct
 
 
@@ -44,7 +44,7 @@ class HumanoidRig:
         in the subtree of a sensor with no pose yet."""
         R = np.asarray(rotations, dtype=float)
         t = np.asarray(positions, dtype=float)
-        s, path, start, frames, up, l, c = self._plan
+        s, path, start, up, l, c = self._plan
         # reconstruct's walk down the tree, as one sum along each body's path from the root: t'_j = t_root +
         # Σ (R_p l_a − R_a c_a) over the bodies a on the way. Per frame the level-by-level walk cost 150 µs of
         # numpy calls, a point of a core at 144 Hz on its own; this is a fifth of it.
@@ -57,14 +57,13 @@ class HumanoidRig:
         at = t[:, self.art.root, None] + path @ step + (Rs @ start)[..., 0]
         if lost is not None:
             at[lost] = np.nan
-        world = self.humanoid.world
-        return at @ world.T, world @ Rs @ frames
+        return at @ self.humanoid.world.T, segment_rotations(self.humanoid, R)[:, s]
 
     @cached_property
     def _plan(self) -> tuple:
         """What `segments` reads, indexed once per rig: the present bones' bodies, their paths from the root
-        ((K, m): 1 where body a lies on the way to the bone's body, the root left out), starts and T-pose
-        frames; each body's parent (the root its own, its step unused) and joint points as columns."""
+        ((K, m): 1 where body a lies on the way to the bone's body, the root left out) and starts; each
+        body's parent (the root its own, its step unused) and joint points as columns."""
         art = self.art
         path = np.zeros((art.n_bodies, art.n_bodies))
         for j in art.order[1:]:
@@ -72,8 +71,7 @@ class HumanoidRig:
             path[j, j] = 1.0
         s = self.sensor[self.present]
         up = np.where(art.parent < 0, np.arange(art.n_bodies), art.parent)
-        return (s, path[s], self.start[s][:, :, None], self.humanoid.frames[s], up, art.l[:, :, None],
-                art.c[:, :, None])
+        return s, path[s], self.start[s][:, :, None], up, art.l[:, :, None], art.c[:, :, None]
 
 
 def humanoid_rig(cal, hum: Humanoid, frames=None) -> HumanoidRig:
