@@ -6,7 +6,9 @@ fit of them; the same for VMC alone (60 Hz), VMC with VRPN's own client over UDP
 
     python benchmarks/bench_streams.py [--seconds 20]
 
-Needs VRPN's client at ../shared/tools/vrpn/vrpn_print_devices (beside the repository). Asserts nothing.
+Needs VRPN's client at ../shared/tools/vrpn/vrpn_print_devices (beside the repository). Asserts nothing. The
+figures run higher than the service's (bench_server.py): the feeding thread here shares the interpreter with
+the streams' thread.
 """
 
 from __future__ import annotations
@@ -45,9 +47,10 @@ class Snapshot:
 
 
 def thread_cpu(native_id: int) -> float:
-    with open(f"/proc/self/task/{native_id}/stat") as fh:
-        fields = fh.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+    """CPU seconds of a thread of this process from the scheduler's own count (schedstat: nanoseconds run),
+    not /proc's stat, whose clock-tick samples over-count a thread that wakes on timers."""
+    with open(f"/proc/self/task/{native_id}/schedstat") as fh:
+        return int(fh.read().split()[0]) / 1e9
 
 
 def run(mode: str, seconds: float, fit, names, R, x, v, t) -> dict:
