@@ -1,9 +1,6 @@
-"""VMC protocol out: the live humanoid as OSC bundles over UDP to VMC receivers (EVMC4U in Unity, VMC4UE in
-Unreal, VMC4B in Blender, Godot's, VSeeFace and Warudo as receivers), the messages as the VMC protocol's
-specification lays them out (docs/outputs.md#vmc-the-live-humanoid-over-the-vmc-protocol).
-
-One bundle a frame, built with python-osc once per set of bones and refilled in place (the numbers only), sent
-fire-and-forget from a non-blocking socket: an absent or slow receiver costs nothing.
+"""VMC protocol out: the live humanoid as OSC bundles over UDP to VMC receivers (EVMC4U, VMC4UE, VMC4B, Godot's),
+laid out by python-osc once per set of bones and refilled in place each frame, sent fire-and-forget
+(docs/outputs.md#vmc-the-live-humanoid-over-the-vmc-protocol).
 """
 
 from __future__ import annotations

@@ -1,11 +1,6 @@
-"""A VRPN tracker server: the live humanoid as `vrpn_Tracker` reports to any VRPN client (Unity's and Unreal's
-VRPN plugins, VR toolkits, `vrpn_print_devices`), written from VRPN's protocol description and sources
-(Format_Of_Protocol.txt, vrpn_Connection.C, vrpn_Tracker.C; docs/outputs.md#vrpn-the-live-humanoid-as-a-vrpn-tracker).
-
-Non-blocking sockets on the caller's selector, one thread (server/outputs.py): the TCP port takes clients that
-connect themselves (`NAME@tcp://host:port`), the UDP port of the same number the connection requests a client
-lobs (`NAME@host:port`), which the server answers by connecting back. Reports go over UDP once the client has
-described its UDP port, over TCP until then and for TCP-only clients.
+"""A VRPN tracker server, the live humanoid as `vrpn_Tracker` reports to any VRPN client, written from VRPN's
+protocol description and sources (Format_Of_Protocol.txt, vrpn_Connection.C, vrpn_Tracker.C): TCP and UDP on
+one port, non-blocking sockets on the caller's selector (docs/outputs.md#vrpn-the-live-humanoid-as-a-vrpn-tracker).
 """
 
 from __future__ import annotations
