@@ -242,6 +242,11 @@ class Status(Open):
     downloads: dict | None = Field(None, description="download slots: limit, running (held now), stall_s and "
                                                      "stalled (downloads cut off for a client that took no data; "
                                                      "server/downloads.py)")
+    outputs: dict | None = Field(None, description="the live humanoid streams, null when none was asked for: vrpn "
+                                                   "(port, clients with address, state and channel, reports, "
+                                                   "dropped), vmc (targets, rate_hz, bundles_sent, failed, "
+                                                   "last_error), humanoid (streaming, reason, bones) and problems "
+                                                   "(outputs that could not start; server/outputs.py)")
 
 
 class ResidualSeries(BaseModel):

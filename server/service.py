@@ -15,6 +15,7 @@ from pathlib import Path
 from flockcal.server.errors import ConfigError
 from flockcal.server.hub import SnapshotHub
 from flockcal.server.limits import SessionLimits
+from flockcal.server.outputs import Outputs
 from flockcal.server.pipeline import Pipeline
 from flockcal.server.retention import policy_from
 from flockcal.server.sessions import SessionManager
@@ -106,6 +107,9 @@ class Service:
             self.store.close()
             os.close(self._lock_fd)
             raise
+        # The live humanoid streams (VRPN, VMC), when asked for: bound now, so a port in use is said at start.
+        self.outputs = (Outputs(settings, self.pipeline.names, lambda: self.pipeline.snapshot)
+                        if settings.vrpn_port is not None or settings.osc_targets else None)
         self.started = False
         self.stopped_session: dict | None = None  # the session stop() closed, for `serve` to report
 
@@ -128,10 +132,19 @@ class Service:
 
     def start(self) -> None:
         self.pipeline.start(stop_session=self.sessions.stop_for_limit, flush_held_rows=self.sessions.flush_held_rows)
-        self.source.start(self.pipeline.feed, self.pipeline.tracker_event)
+        feed = self.pipeline.feed
+        if self.outputs is not None and self.outputs.active:
+            self.outputs.start()
+            feed = self._feed_all
+        self.source.start(feed, self.pipeline.tracker_event)
         self.retention.start()
         self.leases.start()
         self.started = True
+
+    def _feed_all(self, frames) -> None:
+        """The reader's batch to the pipeline and, queued for their own thread, to the live streams."""
+        self.pipeline.feed(frames)
+        self.outputs.feed(frames)
 
     def stop(self) -> None:
         live = self.sessions.live_id()
@@ -145,6 +158,8 @@ class Service:
         try:
             self.source.stop()
         finally:
+            if self.outputs is not None:
+                self.outputs.stop()
             self.pipeline.stop()
             # What a full disk kept in memory, if there is room now; else the live session comes back
             # interrupted at the next start, its recording kept.

@@ -95,6 +95,12 @@ class Humanoid:
     def human(self) -> bool:
         return not self.reason
 
+    @property
+    def posable(self) -> bool:
+        """Whether it carries what poses a rig (`world`, `frames`): a human finding made from frames, or a
+        tree found not human. A humanoid read back from the §5 JSON keeps the bones only."""
+        return not self.human or bool(np.isfinite(self.world).all())
+
     def sensor(self, bone: str) -> int | None:
         """The sensor index of `bone`, or None when no body is that bone."""
         try:
@@ -329,11 +335,13 @@ class _Points:
     nothing turned about the joint beyond noise its child's sensor (the fit's point is then the minimum-norm
     point of a pair that never moved)."""
 
-    def __init__(self, cal, R: np.ndarray, t: np.ndarray, valid: np.ndarray):
+    def __init__(self, cal, R: np.ndarray, t: np.ndarray, valid: np.ndarray, toward: dict):
         self.R, self.t, self.valid = R, t, valid
         self._relative: dict = {}
+        self.toward = toward  # body → its neighbour toward the trunk (the tree may hang from any body)
         pairs, c, l = cal.joint_arrays()
-        self.row = {int(ch): k for k, ch in enumerate(pairs[:, 0].tolist())}
+        rep = _body_of(cal)
+        self.row = {frozenset((int(rep[a]), int(rep[b]))): k for k, (a, b) in enumerate(pairs.tolist())}
         ci, pi = pairs[:, 0], pairs[:, 1]
         # A centre counts where the joint turned beyond noise about some direction (rank > 3): the fit solved
         # it along those and holds its minimum-norm point along the rest, which stays nearer the joint than
@@ -346,14 +354,18 @@ class _Points:
                        if J.hinge[k] and np.isfinite(J.axis_i[k]).all() and np.isfinite(J.axis_j[k]).all()}
         c0, l0 = np.where(fitted[:, None], c, 0.0), np.where(fitted[:, None], l, 0.0)
         # Halfway between the two bodies' own places for the centre: the residual split between them.
-        both = 0.5 * (np.einsum("njab,jb->nja", R[:, ci], c0) + t[:, ci] + np.einsum("njab,jb->nja", R[:, pi], l0) + t[:, pi])
-        self.x = np.where(fitted[None, :, None], both, t[:, ci])  # (n, J, 3)
-        self.ok = np.where(fitted[None], valid[:, ci] & valid[:, pi], valid[:, ci])  # (n, J)
+        self.both = 0.5 * (np.einsum("njab,jb->nja", R[:, ci], c0) + t[:, ci]
+                           + np.einsum("njab,jb->nja", R[:, pi], l0) + t[:, pi])  # (n, J, 3)
+        self.both_ok = valid[:, ci] & valid[:, pi]  # (n, J)
+        self.fitted = fitted
 
-    def joint(self, child: int) -> tuple[np.ndarray, np.ndarray]:
-        """(n, 3) the world place of `child`'s inboard joint at every frame, (n,) where it is seen."""
-        k = self.row[child]
-        return self.x[:, k], self.ok[:, k]
+    def joint(self, body: int) -> tuple[np.ndarray, np.ndarray]:
+        """(n, 3) the world place of `body`'s joint toward the trunk at every frame, (n,) where it is seen:
+        the fitted centre, or the body's own sensor where nothing turned about the joint."""
+        k = self.row[frozenset((int(body), int(self.toward[body])))]
+        if self.fitted[k]:
+            return self.both[:, k], self.both_ok[:, k]
+        return self.t[:, body], self.valid[:, body]
 
     def sum_in(self, body: int, v: np.ndarray, ok: np.ndarray) -> np.ndarray:
         """Σ over the frames `ok` (where `body` is seen too) of world vectors v (n, 3), in `body`'s frame."""
@@ -458,8 +470,14 @@ def find_humanoid(cal, rotations: np.ndarray, positions: np.ndarray, valid: np.n
         return _empty(m, why, key, seen)
     if n < 2 or valid.sum(axis=0).min(initial=n) < 2:
         return _empty(m, "no frames of the take to find the humanoid from yet", key, seen)
-    pts = _Points(cal, R, t, valid)
     h, ch = shape.hips, shape.chest
+    toward = {ch: shape.spine if shape.spine >= 0 else h, shape.head: ch}
+    if shape.spine >= 0:
+        toward[shape.spine] = h
+    for trunk, chains in ((ch, shape.arms), (h, shape.legs)):
+        for chain in chains:
+            toward.update(zip(chain, (trunk,) + tuple(chain[:-1])))
+    pts = _Points(cal, R, t, valid, toward)
     up = _up(shape, t, valid)
     # The mean relative rotations the frames below read, in one pass: trunk, and each leaf to its parent.
     pts.prefetch([(h, ch)] + ([(shape.spine, h), (shape.spine, ch)] if shape.spine >= 0 else [])
@@ -641,7 +659,8 @@ def humanoid_for(cal, sample: Sample | None, previous: Humanoid | None = None, r
 
 def proximal_points(cal, hum: Humanoid) -> np.ndarray:
     """(m, 3) where each body's bone starts, in its own sensor frame: its inboard joint's centre (`c`), and
-    for the root the mean of its outboard joints' centres (`l`: the midpoint of the hips on a human tree)."""
+    for the root the midpoint of its two hip joints when both upper legs hang from it (the hips' centre on a
+    human tree rooted at the hips), else the mean of its outboard joints' centres (`l`)."""
     m = len(cal.names)
     pts = np.full((m, 3), np.nan)
     pairs, c, l = cal.joint_arrays()

@@ -106,11 +106,11 @@ def fresh_serve(fresh_venv, tmp_path_factory):
 
 def test_fresh_install_has_a_websocket_library_and_no_test_extras(fresh_venv):
     # What a user gets from `pip install .`: the runtime dependencies only.
-    code = ("import importlib.util as u; print(*(n for n in ('websockets','fastapi_offline','tqdm','pytest',"
-            "'httpx','playwright') if u.find_spec(n)))")
+    code = ("import importlib.util as u; print(*(n for n in ('websockets','fastapi_offline','tqdm','pythonosc',"
+            "'pytest','httpx','playwright') if u.find_spec(n)))")
     found = subprocess.run([str(fresh_venv / "bin" / "python"), "-c", code], capture_output=True, text=True,
                            check=True).stdout.split()
-    assert {"websockets", "fastapi_offline", "tqdm"} <= set(found)
+    assert {"websockets", "fastapi_offline", "tqdm", "pythonosc"} <= set(found)  # pythonosc: `serve --osc`
     assert not {"pytest", "playwright"} & set(found)  # the install really had no test extra
 
 

@@ -88,7 +88,7 @@ def take_humanoid(cal, take: ChunkedTake) -> Humanoid:
     and the service publish it), else `find_humanoid` on the take's sample (`solver.humanoid.take_sample`),
     as for a calibration read back from its §5 dict, which keeps the bones but not the T-pose frames."""
     hum = getattr(cal, "humanoid", None)
-    if hum is not None and (not hum.human or np.isfinite(hum.world).all()):
+    if hum is not None and hum.posable:
         return hum
     f = take_sample(take).frames()
     order = [list(take.names).index(n) for n in cal.names]
