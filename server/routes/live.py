@@ -129,7 +129,8 @@ class Connection:
 
     def envelope(self, type_: str, body_json: str | None = None, **fields) -> str:
         self.seq += 1
-        head = json.dumps({"type": type_, "seq": self.seq, "time": round(time.time(), 6), **fields})
+        # `time`: the service clock's stamp (unix s), which never steps back (docs/service.md#clock).
+        head = json.dumps({"type": type_, "seq": self.seq, "time": round(self.service.clock.stamp(), 6), **fields})
         if body_json is None or body_json == "{}":
             return head
         return head[:-1] + ", " + body_json[1:]

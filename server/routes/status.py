@@ -20,7 +20,7 @@ def get_status(request: Request, service=Depends(get_service), _role=Depends(req
     slots = getattr(request.app.state, "download_slots", None)
     return {**service.pipeline.snapshot.status, "retention": service.retention.status(), "process": process_memory(),
             "connections": guard.status() if guard is not None else None,
-            "downloads": slots.status() if slots is not None else None}
+            "downloads": slots.status() if slots is not None else None, "clock": service.clock.status()}
 
 
 @router.get("/events", response_model=list[Event], summary="events of the whole service (tracker, sessions, slips)")
