@@ -88,6 +88,10 @@ def tree_bytes(path: Path) -> int:
     return total
 
 
+class _Downloading(Exception):
+    """The session's files are held by a download in progress (server/holds.py)."""
+
+
 class Retention:
     """The pruner of one service. `wake()` after a session stops; it also looks every `interval_s`.
 
@@ -195,7 +199,10 @@ class Retention:
                 # database's rows (its thinned residuals, the event: ~40 kB of WAL pages). Counted as freed
                 # bytes alone, a pass left the directory that much over the room it meant to keep.
                 before = self._touched_bytes(row["id"])
-                done = self._prune(row["id"], reason)
+                try:
+                    done = self._prune(row["id"], reason)
+                except _Downloading:  # its files are being sent: the pass after the download takes them
+                    continue
                 if done is None:  # a session went live meanwhile: stop, the next gap resumes
                     break
                 used += self._touched_bytes(row["id"]) - before
@@ -233,23 +240,34 @@ class Retention:
         with mgr._lock:  # no session starts while its predecessor's files go
             if mgr.live_id() is not None:
                 return None
-            self._keep_skeleton(sid)
-            freed = 0
-            for path in (mgr.frames_path(sid), mgr.raw_path(sid)):
-                try:
-                    size = path.stat().st_size
-                    path.unlink()
-                    freed += size
-                except FileNotFoundError:
-                    pass
-            # The 20 Hz residual series is the one bulky row set a pruned session keeps: thinned to 1 Hz
-            # (a season of guests would otherwise grow the database by ~0.2 MB each, for good).
-            self.store.thin_residuals(sid, PRUNED_RESIDUAL_S)
-            now = self.clock.stamp()
-            self.store.query(
-                "INSERT INTO retention (session_id, pruned_at, freed_bytes, reason) VALUES (?, ?, ?, ?) "
-                "ON CONFLICT(session_id) DO UPDATE SET pruned_at = excluded.pruned_at, "
-                "freed_bytes = excluded.freed_bytes, reason = excluded.reason", (sid, now, freed, reason))
+            if mgr.holds.claim(sid, lambda: Gone(f"session {sid}'s frames and raw recording were pruned just now "
+                                                 f"({reason}); its result, skeleton and events are kept")):
+                raise _Downloading(sid)
+            try:
+                return self._prune_files(sid, reason)
+            finally:
+                mgr.holds.unclaim(sid)
+
+    def _prune_files(self, sid: str, reason: str) -> dict:
+        """Remove the session's frames and raw recording (under the manager's lock, its files claimed)."""
+        mgr = self.sessions
+        self._keep_skeleton(sid)
+        freed = 0
+        for path in (mgr.frames_path(sid), mgr.raw_path(sid)):
+            try:
+                size = path.stat().st_size
+                path.unlink()
+                freed += size
+            except FileNotFoundError:
+                pass
+        # The 20 Hz residual series is the one bulky row set a pruned session keeps: thinned to 1 Hz
+        # (a season of guests would otherwise grow the database by ~0.2 MB each, for good).
+        self.store.thin_residuals(sid, PRUNED_RESIDUAL_S)
+        now = self.clock.stamp()
+        self.store.query(
+            "INSERT INTO retention (session_id, pruned_at, freed_bytes, reason) VALUES (?, ?, ?, ?) "
+            "ON CONFLICT(session_id) DO UPDATE SET pruned_at = excluded.pruned_at, "
+            "freed_bytes = excluded.freed_bytes, reason = excluded.reason", (sid, now, freed, reason))
         self.add_event({"type": "session", "session_id": sid, "time_s": None, "action": "pruned",
                         "freed_bytes": freed, "reason": reason,
                         "message": f"session {sid}'s frames and raw recording were pruned ({freed / 1e6:.1f} MB, "

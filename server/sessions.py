@@ -17,6 +17,7 @@ from flockcal.errors import FlockcalError
 from flockcal.server.clock import ServiceClock
 from flockcal.server.errors import BadRequest, Conflict, InsufficientStorage, NotFound, Unavailable
 from flockcal.server.framelog import FrameLog, read_frames
+from flockcal.server.holds import RETRY_AFTER_S, FileHolds
 from flockcal.server.fitting import SLIP_FIELDS, json_safe
 from flockcal.server.lease import SessionLeases
 from flockcal.server.limits import LimitStop
@@ -60,6 +61,7 @@ class SessionManager:
         self.rate_hz = rate_hz
         self.profiles = profiles
         self.raw_recorder = raw_recorder
+        self.holds = FileHolds()  # downloads in progress hold a session's files (server/holds.py)
         self.leases = SessionLeases(stop=self.stop, add_event=pipeline.add_event, clock=self.clock.monotonic)
         self.retention = Retention(store, self, Path(data_dir), retention_policy or Policy(), pipeline.add_event,
                                    interval_s=retention_interval_s, clock=self.clock)
@@ -236,23 +238,37 @@ class SessionManager:
             row = self._row(session_id)
             if row["state"] == "live" and self.live_id() == session_id:
                 raise Conflict(f"session {session_id} is live; stop it before deleting it")
-            files = (self.frames_path(session_id), self.raw_path(session_id), self.skeleton_path(session_id))
+            downloads = self.holds.claim(session_id, lambda: NotFound(f"session {session_id} was deleted"))
+            if downloads:
+                exc = Conflict(f"session {session_id} is being downloaded ({downloads} download"
+                               f"{'s' if downloads > 1 else ''} in progress, each sent whole); DELETE it again once "
+                               f"{'they have' if downloads > 1 else 'it has'} finished")
+                exc.retry_after = RETRY_AFTER_S
+                raise exc
             try:
-                self.store.delete_session(session_id)
-            except InsufficientStorage:
-                # The database needs room to delete rows too: the session's files are what makes it.
-                for p in files:
-                    p.unlink(missing_ok=True)
-                try:
-                    self.store.delete_session(session_id)
-                except InsufficientStorage as exc:
-                    raise InsufficientStorage(f"session {session_id}'s recordings were removed, but its rows could "
-                                              f"not be: {exc}; DELETE it again once there is room") from None
+                self._delete(session_id)
+            finally:
+                self.holds.unclaim(session_id)
+
+    def _delete(self, session_id: str) -> None:
+        """Remove the session's rows and files (under the lock, its files claimed from downloads)."""
+        files = (self.frames_path(session_id), self.raw_path(session_id), self.skeleton_path(session_id))
+        try:
+            self.store.delete_session(session_id)
+        except InsufficientStorage:
+            # The database needs room to delete rows too: the session's files are what makes it.
             for p in files:
                 p.unlink(missing_ok=True)
-            with self._held_lock:
-                self._held_rows.pop(session_id, None)
-            self.retention.forget(session_id)
+            try:
+                self.store.delete_session(session_id)
+            except InsufficientStorage as exc:
+                raise InsufficientStorage(f"session {session_id}'s recordings were removed, but its rows could "
+                                          f"not be: {exc}; DELETE it again once there is room") from None
+        for p in files:
+            p.unlink(missing_ok=True)
+        with self._held_lock:
+            self._held_rows.pop(session_id, None)
+        self.retention.forget(session_id)
 
     # --- rows the database could not take ------------------------------------------------------------
     def update_row(self, session_id: str, **fields) -> None:
