@@ -15,7 +15,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from flockcal.server.clock import Reading, ServiceClock
-from flockcal.server.errors import Conflict, Gone
+from flockcal.server.errors import Conflict, Gone, ServerError
 from flockcal.malloc import release_free_heap
 
 log = logging.getLogger(__name__)
@@ -141,7 +141,7 @@ class Retention:
     def _loop(self) -> None:
         while not self._stop.is_set():
             try:
-                self.clock.save()  # woken at once when the wall clock steps (Service._clock_stepped)
+                self._save_clock()
                 self.prune_once()
                 self.last_error = None
                 if self.sessions.live_id() is None:  # the gap between guests: no session's I/O to delay
@@ -151,6 +151,14 @@ class Retention:
                 log.exception("retention pass failed")
             self._wake.wait(self.interval_s)
             self._wake.clear()
+
+    def _save_clock(self) -> None:
+        """Keep the service clock (woken at once when the wall clock steps: Service._clock_stepped). A full or
+        failing disk keeps it in memory until a later pass can write it."""
+        try:
+            self.clock.save()
+        except ServerError as exc:
+            log.warning("the service clock could not be saved yet: %s", exc)
 
     # --- pruning ----------------------------------------------------------------------------------
     def recorded(self, sid: str, reading: Reading) -> None:

@@ -161,7 +161,11 @@ class SessionManager:
 
                     self.skeleton_path(sid).write_text(json.dumps(dict(skeleton.data, preset=skeleton_name)))
                 self.store.insert_session(row)
-                self.retention.recorded(sid, now)
+                try:
+                    self.retention.recorded(sid, now)
+                except BaseException:
+                    self.store.delete_session(sid)
+                    raise
             except BaseException as exc:  # a full disk: nothing of the session is left behind
                 framelog.close()
                 self.frames_path(sid).unlink(missing_ok=True)
