@@ -3,7 +3,8 @@ the monotonic clock, stamps that never step back, each step an event.
 
 Three ways in: the service clock alone on a `ManualClock` a test steps; the whole service in this process on
 an injected stepping clock (uvicorn on loopback, the built-in simulator); and `flockcal serve` as a child
-under libfaketime, its clock stepped an hour forward mid-session and back again (tests/test_server_faketime.py).
+under libfaketime (Debian's `faketime`; skipped, saying so, where it is missing), its wall clock stepped an
+hour forward mid-session and back again.
 """
 
 from __future__ import annotations
