@@ -271,6 +271,7 @@ function onStatus(s) {
     // The session ended without us (service restarted, host stopped it): next guest.
     kiosk.session = null;
     if (live && !kiosk.canControl) follow(live, false);
+    else if (live && !isGuestSession(live)) stageInUse();  // an operator took the stage meanwhile
     else { clearTimer(); kiosk.timer = setTimeout(startGuest, 500); setState('starting', 'getting ready…'); }
   } else if (kiosk.state === 'waiting' && live) {
     follow(live, false);
