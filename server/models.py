@@ -134,8 +134,11 @@ class Session(Open):
     names: list[str]
     device: str
     rate_hz: float | None = None
-    created_at: float
-    stopped_at: float | None = None
+    created_at: float = Field(description="unix s when it started: the service clock's stamp, which never steps "
+                                          "back (docs/service.md#clock)")
+    stopped_at: float | None = Field(None, description="created_at + duration_s: never before created_at")
+    duration_s: float | None = Field(None, description="how long it recorded (so far, while live), measured on the "
+                                                       "monotonic clock: a step of the wall clock does not move it")
     frames: int = 0
     recording: str | None = None
     note: str | None = None
@@ -247,6 +250,10 @@ class Status(Open):
                                                    "dropped), vmc (targets, rate_hz, bundles_sent, failed, "
                                                    "last_error), humanoid (streaming, reason, bones) and problems "
                                                    "(outputs that could not start; server/outputs.py)")
+    clock: dict | None = Field(None, description="the service clock: service_s (the time retention ages count "
+                                                 "in), offset_s (the wall clock's steps, summed), stamp_ahead_s "
+                                                 "(stamps ahead of a wall clock that stepped back), steps and "
+                                                 "last_step (server/clock.py)")
 
 
 class ResidualSeries(BaseModel):

@@ -12,6 +12,8 @@ import logging
 import os
 from pathlib import Path
 
+from flockcal.clock import SYSTEM, Clock
+from flockcal.server.clock import ServiceClock
 from flockcal.server.errors import ConfigError
 from flockcal.server.hub import SnapshotHub
 from flockcal.server.limits import SessionLimits
@@ -57,7 +59,7 @@ def _room_hint(exc: OSError, data: Path) -> str:
 
 
 class Service:
-    def __init__(self, settings: Settings, source: FrameSource | None = None):
+    def __init__(self, settings: Settings, source: FrameSource | None = None, clock: Clock = SYSTEM):
         self.settings = settings.check()
         data = Path(settings.data_dir)
         data.mkdir(parents=True, exist_ok=True)
@@ -68,6 +70,13 @@ class Service:
         except BaseException:
             os.close(self._lock_fd)
             raise
+        try:
+            # Stamps, durations, leases and retention ages all read this one clock (server/clock.py).
+            self.clock = ServiceClock(clock, self.store)
+        except BaseException:
+            self.store.close()
+            os.close(self._lock_fd)
+            raise
         self.source = source if source is not None else TrackerSource(settings)
         self.interrupted = self.store.mark_interrupted()
         if self.interrupted:
@@ -76,7 +85,8 @@ class Service:
         # back, a limit the pipeline finds stopping its session through the session manager, is given to
         # the pipeline when it starts (as the frame source gets the pipeline's feed).
         self.hub = SnapshotHub()
-        self.limits = SessionLimits(data / "recordings", settings.max_session_s, settings.min_free_bytes)
+        self.limits = SessionLimits(data / "recordings", settings.max_session_s, settings.min_free_bytes,
+                                    stamp=self.clock.stamp)
         self.pipeline = Pipeline(
             self.source.names,
             self.store,
@@ -89,13 +99,14 @@ class Service:
             tolerance=settings.tolerance_m,
             target=settings.progress_target_m,
             limits=self.limits,
+            clock=self.clock,
         )
         # A session records the rate the tracker streams at when it starts (the flock's own unless --rate).
         self.sessions = SessionManager(self.store, self.pipeline, data, settings.device_url,
                                        lambda: self.source.status().get("rate_hz") or settings.rate_hz,
                                        profiles=settings.session_profile, raw_recorder=self.source,
                                        retention_policy=policy_from(settings.keep_days, settings.keep_disk_gb),
-                                       retention_interval_s=settings.retention_interval_s)
+                                       retention_interval_s=settings.retention_interval_s, clock=self.clock)
         self.leases = self.sessions.leases  # sessions started with a lease end when their client stops renewing
         self.retention = self.sessions.retention  # prunes old sessions' frames and raw recordings between sessions
         try:
@@ -131,6 +142,8 @@ class Service:
         return getattr(self.source, "simulator", None)
 
     def start(self) -> None:
+        # A step of the wall clock is an event, and kept at once (the housekeeping pass saves the clock).
+        self.clock.bind(self._clock_stepped)
         self.pipeline.start(stop_session=self.sessions.stop_for_limit, flush_held_rows=self.sessions.flush_held_rows)
         feed = self.pipeline.feed
         if self.outputs is not None and self.outputs.active:
@@ -145,6 +158,9 @@ class Service:
         """The reader's batch to the pipeline and, queued for their own thread, to the live streams."""
         self.pipeline.feed(frames)
         self.outputs.feed(frames)
+    def _clock_stepped(self, event: dict) -> None:
+        self.pipeline.add_event(event)
+        self.retention.wake()
 
     def stop(self) -> None:
         live = self.sessions.live_id()
@@ -165,5 +181,9 @@ class Service:
             # interrupted at the next start, its recording kept.
             if not (self.pipeline.persistence.flush_held() and self.sessions.flush_held_rows()):
                 log.warning("the database could not take what was held in memory while the disk was full")
+            try:
+                self.clock.save()
+            except Exception as exc:  # a full or damaged disk: the next start counts from the last save
+                log.warning("the service clock could not be saved: %s", exc)
             self.store.close()
             os.close(self._lock_fd)

@@ -224,17 +224,15 @@ def test_dashboard_and_kiosk_load_their_scripts_and_go_live_in_chromium(fresh_se
 
     kiosk = open_offline(browser, fresh_serve.url + "/kiosk", width=1280, height=800)
     kiosk.wait_for_function("!document.body.innerText.includes('Reconnecting')", timeout=20000)
-    kiosk.wait_for_selector("#avatar[data-rig=shown]", timeout=40000)
+    # "Fresh" is an operator's session (the fixture's): the kiosk shows no one and waits for the stage,
+    # trying nothing that fails (docs/dashboard.md). The dashboard above drew the rig with the GLTFLoader.
+    kiosk.wait_for_selector("#kiosk-state[data-state=busy]", timeout=20000)
     kiosk.wait_for_timeout(2500)
     kiosk.screenshot(path=str(artifacts() / "fresh-kiosk.png"))
     assert any(u.endswith("kiosk.js") for u, _ in kiosk.scripts)
     assert kiosk.scripts and all(status == 200 for _, status in kiosk.scripts), kiosk.scripts
-    # With no tokens the kiosk tries to start a guest's session; one is live, so it gets 409 and follows
-    # that one (what kiosk.js does by design). Chromium logs the 409 itself; nothing else may fail.
-    expected = {f"HTTP 409 {fresh_serve.url}/api/sessions",
-                "console error Failed to load resource: the server responded with a status of 409 (Conflict)"}
-    assert not set(kiosk.problems) - expected, kiosk.problems
-    assert "calibrating Fresh" in kiosk.inner_text("#kiosk-state")
+    assert not kiosk.problems, kiosk.problems
+    assert "in use" in kiosk.inner_text("#kiosk-state") and "Fresh" not in kiosk.inner_text("body")
     kiosk.close()
 
 

@@ -23,7 +23,7 @@ from flockcal.exports.skeleton import skeleton_dict
 from flockcal.exports.trc import trc_chunks, trc_text
 from flockcal.server.framelog import FrameLog, read_frames
 from flockcal.server.settings import Settings
-from server_helpers import ServerThread, free_port, wait_connected
+from server_helpers import ServerThread, SlowDownload, free_port, wait_connected
 from flockcal.takes import make_take
 
 
@@ -187,22 +187,10 @@ def test_chunked_exports_hold_dropouts_and_rigid_sensors_like_the_whole_take(ses
 
 
 def held_download(base_url: str, path: str) -> tuple[socket.socket, int]:
-    """A GET whose client reads the status line and then nothing more, with a 64 KB receive buffer: the
-    rest of a 40 MB body stays with the server. (A plain client's buffer grows with the kernel's
-    autotuning, up to 32 MB on the CI machines, and nearly a whole take fits in it: the server then
-    finishes the download and frees its slot, which is not what this test is about.)"""
-    url = httpx.URL(base_url)
-    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 65536)
-    sock.settimeout(30)
-    sock.connect((url.host, url.port))
-    sock.sendall(f"GET {path} HTTP/1.1\r\nHost: {url.host}\r\n\r\n".encode())
-    head = b""
-    while b"\r\n" not in head:
-        part = sock.recv(1024)
-        assert part, "the server closed the connection before a status line"
-        head += part
-    return sock, int(head.split(b" ", 2)[1])
+    """A GET whose client reads the status line and then nothing more (server_helpers.SlowDownload): the rest
+    of a 40 MB body stays with the server."""
+    download = SlowDownload(base_url, path)
+    return download.sock, download.status
 
 
 def test_downloads_beyond_the_limit_get_503_until_one_ends(tmp_path):

@@ -21,7 +21,7 @@ def get_status(request: Request, service=Depends(get_service), _role=Depends(req
     return {**service.pipeline.snapshot.status, "retention": service.retention.status(), "process": process_memory(),
             "connections": guard.status() if guard is not None else None,
             "downloads": slots.status() if slots is not None else None,
-            "outputs": service.outputs.status() if service.outputs is not None else None}
+            "outputs": service.outputs.status() if service.outputs is not None else None, "clock": service.clock.status()}
 
 
 @router.get("/events", response_model=list[Event], summary="events of the whole service (tracker, sessions, slips)")

@@ -94,6 +94,7 @@ function setSession(session) {
     backfill(session);
   }
   state.session = session;
+  if (prev && !session) showStopped(prev);
   $('start').disabled = !!session;
   $('stop').disabled = !session;
   $('performer').disabled = !!session;
@@ -223,6 +224,8 @@ function jointColour(j) {
 function showFit(msg) {
   const result = msg.result;
   if (!result) return;
+  // A fit of the session just stopped, sent before its stop: its hints are over (showStopped).
+  if (!state.session && msg.session && msg.session.id === state.stoppedId) return;
   state.fit = result;
   state.progress = msg;
   view.setFit(result);
@@ -346,6 +349,19 @@ function showBones(result) {
     tbody.appendChild(tr);
   }
   if (!tbody.children.length) tbody.innerHTML = '<tr class="placeholder"><td colspan="4" class="muted">No joints fitted yet: move the performer.</td></tr>';
+}
+
+// The session stopped (here, from the kiosk, a lease or a limit): its "move next" hints no longer apply. Say
+// where it ended instead; the bars stay as it left them.
+function showStopped(session) {
+  state.stoppedId = session.id;
+  const todo = $('next-moves');
+  if (!todo) return;
+  const p = state.progress && state.progress.session && state.progress.session.id === session.id ? state.progress : null;
+  todo.className = 'next-moves stopped';
+  todo.dataset.state = 'stopped';
+  const reached = p ? (p.done ? ': every joint was calibrated' : `: ${p.joints_done ?? 0} of ${p.joints_needed ?? '?'} joints calibrated`) : '';
+  todo.textContent = `Session ${session.id} stopped${reached}. Start a session to calibrate again.`;
 }
 
 // One bar per sensor but the root, as the service counts it, furthest from calibrated first, under the

@@ -28,7 +28,7 @@ ring.style.strokeDasharray = `${CIRC}`;
 ring.style.strokeDashoffset = `${CIRC}`;
 
 const kiosk = {
-  state: 'starting',       // starting | live | done | waiting | error
+  state: 'starting',       // starting | live | done | waiting | busy | error
   session: null,           // the session being shown {id, performer}
   owned: false,            // started by a kiosk, so the kiosk stops it when the guest is done
   canControl: true,        // false with a read-only token: follow the host's sessions instead
@@ -50,7 +50,7 @@ function keepLease(session) {
   }, Math.max(1000, (LEASE_S * 1000) / 5));
 }
 
-const TITLES = { done: 'Calibrated!', waiting: 'Welcome!', error: 'One moment…' };
+const TITLES = { done: 'Calibrated!', waiting: 'Welcome!', busy: 'One moment…', error: 'One moment…' };
 
 function setState(s, text) {
   kiosk.state = s;
@@ -59,6 +59,33 @@ function setState(s, text) {
   el.dataset.state = s;
   el.textContent = text;
   document.body.classList.toggle('done', s === 'done');
+  // Busy: someone else's session is on the stage; the avatar (their body) is not shown to the guest.
+  document.body.classList.toggle('busy', s === 'busy');
+}
+
+// A session this kiosk (or another kiosk page) started for a guest: its profile and its performer's name
+// say so. Any other live session is an operator's, which a guest never sees as theirs.
+const isGuestSession = (s) => s.profile === 'kiosk' && /^guest /.test(s.performer || '');
+
+// The stage is in use by an operator's session: a clear screen that says so, until it ends (onStatus).
+function stageInUse() {
+  clearTimer();
+  kiosk.session = null;
+  keepLease(null);
+  setState('busy', 'the stage is in use — your calibration starts as soon as it is free');
+  setProgress(0, 0, null);
+  $('chips').innerHTML = '';
+  $('instruction').textContent = 'The stage is in use right now. Please wait a moment — we start as soon as it is free.';
+}
+
+// What to do when the page opens (or the stage frees): start a guest, take back this kiosk's own guest
+// after a reload, follow a host's session with a read-only token, or wait while an operator records.
+function startOrWait() {
+  const live = kiosk.lastStatus && kiosk.lastStatus.session;
+  if (!live) { startGuest(); return; }
+  if (!kiosk.canControl) { follow(live, false); return; }
+  if (isGuestSession(live)) { follow(live, true); return; }
+  stageInUse();
 }
 
 // The service's figure as it sends it: `percent` is its whole percent (100 only when done).
@@ -216,9 +243,11 @@ async function startGuest() {
       return;
     }
     const live = kiosk.lastStatus && kiosk.lastStatus.session;
-    if (err instanceof ApiError && err.status === 409 && live) {
-      // Someone else's session is live (an operator, or a reload of this page): show it.
-      follow(live, /^guest /.test(live.performer));
+    if (err instanceof ApiError && err.status === 409) {
+      // A session started between the last status and this request: a guest's is taken over, an
+      // operator's waited out on a clear screen (never shown as this guest's).
+      if (live && isGuestSession(live)) follow(live, true);
+      else stageInUse();
       return;
     }
     setState('error', `waiting for the calibration service (${err.message})`);
@@ -282,9 +311,12 @@ function onStatus(s) {
     // The session ended without us (service restarted, host stopped it): next guest.
     kiosk.session = null;
     if (live && !kiosk.canControl) follow(live, false);
+    else if (live && !isGuestSession(live)) stageInUse();  // an operator took the stage meanwhile
     else { clearTimer(); kiosk.timer = setTimeout(startGuest, 500); setState('starting', 'getting ready…'); }
   } else if (kiosk.state === 'waiting' && live) {
     follow(live, false);
+  } else if (kiosk.state === 'busy' && !live) {
+    startGuest();  // the operator's session ended: the stage is the guests' again
   } else if (kiosk.state === 'done' && kiosk.doneSession && (!live || live.id !== kiosk.doneSession)) {
     kiosk.doneSession = null;
     kiosk.session = null;
@@ -313,10 +345,13 @@ connectLive({
   rateHz: 20,
   onState: (st) => { linkState = st; showBanner(); },
   onMessage: (msg) => {
-    if (msg.type === 'status') {
+    if (msg.type === 'hello' || msg.type === 'subscribed') {
+      // The token's role, before anything is tried: a read-only kiosk follows a host's sessions.
+      if (msg.role) kiosk.canControl = msg.role !== 'read';
+    } else if (msg.type === 'status') {
       onStatus(msg.status);
-      if (!started) { started = true; startGuest(); }
+      if (!started) { started = true; startOrWait(); }
     } else if (msg.type === 'fit') onFit(msg);
-    else if (msg.type === 'pose' && msg.pose) avatar.update(msg.pose);
+    else if (msg.type === 'pose' && msg.pose && kiosk.state !== 'busy') avatar.update(msg.pose);
   },
 });
