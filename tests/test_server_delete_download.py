@@ -4,7 +4,7 @@ the session by, and once the download has ended the DELETE goes through; a downl
 answers 404, never a 500 or a cut-off body.
 
 A real uvicorn on loopback and the built-in simulator; each download kind (the .npz take, BVH, glTF, raw
-recording, skeleton file) is read by a slow client (64 KB receive buffer: a 20 MB body stays with the server)
+recording, skeleton file, TRC) is read by a slow client (64 KB receive buffer: a 20 MB body stays with the server)
 that has its response's head before the DELETE is sent.
 """
 
@@ -73,14 +73,17 @@ def whole(kind: str, body: bytes, srv, sid: str, frames: int, raw: bytes) -> Non
         assert body[:4] == b"glTF" and int.from_bytes(body[8:12], "little") == len(body)
     elif kind == "raw":
         assert body == raw
+    elif kind == "trc":  # the header's NumFrames, and the last row numbered as the last frame
+        lines = body.decode().splitlines()
+        assert lines[2].split("\t")[2] == str(frames) and lines[-1].split("\t")[0] == str(frames)
     else:
         assert json.loads(body)["source"]["frames"] == frames
 
 
-@pytest.mark.parametrize("kind", ["take", "bvh", "gltf", "raw", "skeleton"])
+@pytest.mark.parametrize("kind", ["take", "bvh", "gltf", "trc", "raw", "skeleton"])
 def test_a_download_started_before_the_delete_is_sent_whole_and_the_delete_waits_its_turn(server, kind):
     srv, recorded = server
-    sid = big_session(srv, recorded, ["take", "bvh", "gltf", "raw", "skeleton"].index(kind))
+    sid = big_session(srv, recorded, ["take", "bvh", "gltf", "trc", "raw", "skeleton"].index(kind))
     frames = httpx.get(srv.url + f"/api/sessions/{sid}").json()["frames"]
     raw = srv.service.sessions.raw_path(sid).read_bytes()
     # Tried: a slow client has the head of its download; then the session is deleted, and a retention pass
@@ -106,7 +109,7 @@ def test_a_download_started_before_the_delete_is_sent_whole_and_the_delete_waits
     wait_for(lambda: httpx.delete(srv.url + f"/api/sessions/{sid}").status_code in (204, 404), 30,
              "the DELETE after the download")
     assert not srv.service.sessions.frames_path(sid).exists()
-    for other in ("take", "bvh", "gltf", "raw", "skeleton", "result"):
+    for other in ("take", "bvh", "gltf", "trc", "raw", "skeleton", "result"):
         r = httpx.get(srv.url + f"/api/sessions/{sid}/{other}")
         assert r.status_code == 404 and r.json()["error"] == "not_found", (other, r.text)
 
@@ -136,7 +139,7 @@ def test_downloads_racing_a_delete_are_whole_or_404_never_500(server):
             got.append((kind, r.status_code, r.text[:200] if r.status_code != 200 else ""))
 
     # Tried: eight downloads (two of each streamed kind) and a DELETE sent at the same moment.
-    kinds = ["take", "bvh", "gltf", "skeleton"] * 2
+    kinds = ["take", "bvh", "gltf", "trc", "skeleton"] * 2
     threads = [threading.Thread(target=fetch, args=(k,)) for k in kinds]
     for t in threads:
         t.start()
