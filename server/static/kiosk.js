@@ -268,7 +268,7 @@ async function finishGuest() {
   setState('done', 'done!');
   $('instruction').textContent = "You're all set — enjoy the show!";
   avatar.setJointState(Object.fromEntries(Object.keys(avatar.jointState).map((k) => [k, 'done'])));
-  $('chips').querySelectorAll('.chip').forEach((c) => { c.className = 'chip done'; c.textContent = `✓ ${readable(c.dataset.body)}`; });
+  $('chips').querySelectorAll('.chip').forEach((c) => { c.className = 'chip done'; c.textContent = `✓ ${part(c.dataset.body)}`; });
   clearTimer();
   if (session && !kiosk.owned) {
     // A host's session: it is theirs to stop. Stay "done" until it ends, then wait for the next.
