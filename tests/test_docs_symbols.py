@@ -473,7 +473,7 @@ def test_every_name_and_path_a_page_gives_in_code_exists(page):
 def test_the_checker_reports_each_kind_of_reference_that_is_gone(tmp_path):
     # Tried: each form of reference naming something that does not exist (the drift issue 33 found, among
     # them), beside the same form naming something that does; and spans that are no references.
-    page = tmp_path / "page.md"
+    page = tmp_path / f"{tmp_path.name}.page"  # a temporary name, none of the repository's documents
     page.write_text(
         "`flockcal.solver.fits.pair_fits` `flockcal.solver.fits.no_such` `fits.PairFits.rms` "
         "`PairFits.noise_floor` `sources.TrackerSource` `sources.frames_to_pipeline(feed)` "
