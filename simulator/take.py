@@ -26,16 +26,68 @@ def simulate(
     period: float | None = None,
     sta_mm: float | None = None,
 ) -> tuple[Take, dict]:
-    """Simulate `seconds` of `motion` at `rate_hz` and return (take, truth).
+    """Simulate a performer wearing tracker sensors: a recorded take and the truth to judge a fit by.
 
-    model: "human" (birds 2..16), "linkage" (6 links) or "pair" (two sensors 0.565 m apart), or a
-    BodyModel; birds=None keeps every body. noise: "tracker" or None. faults (all optional):
-    {"dropout": p, "dropout_burst_s": s, "slips": [{"sensor", "at_time", "distance_m", "direction",
-    "angle_deg"}] (or one as "slip"), "unit_scale": f, "hemisphere": "forward"|…, "quantise": 36|72|144,
-    "orientation": "matrix"|"angles"|"quaternion", "noise_scale": f}. sta_mm: soft-tissue artefact
-    (default 12 mm for the human, 0 turns it off; see `Performer`).
-    truth: the fit-shaped ground truth at the start of the take, with `slip_events` listing each slip
-    and `after_slips` the truth once every slip has happened.
+    The same simulated performer as ``flockcal simulate`` and the fake tracker (docs/simulator.md):
+    a body model moving through a routine, seen by sensors on the skin, with tracker noise and any
+    faults asked for.
+
+    Parameters
+    ----------
+    model : {"human", "linkage", "pair"} or BodyModel, default "human"
+        "human" (2 to 16 sensors), "linkage" (the paper's 6-link chain), "pair" (two sensors 0.565 m
+        apart, for the tracker's unit scale), or a body of your own.
+    motion : {"walk", "exercise", "kiosk", "idle"}, default "walk"
+        The routine (docs/simulator.md, "Motion"); "exercise" moves every joint in turn.
+    seconds : float, default 45.0
+        Length of the take.
+    rate_hz : float, default 100.0
+        Frames per second.
+    birds : int or None, default 16
+        Sensors to keep (the human's first `birds` of its connected order; see docs/simulator.md);
+        None keeps every body of the model.
+    seed : int, default 1
+        Seeds the subject's proportions, the motion and the noise: the same seed gives the same take.
+    noise : {"tracker", None}, default "tracker"
+        The Flock's measurement noise, or exact poses.
+    faults : dict, optional
+        Any of ``{"dropout": p, "dropout_burst_s": s, "slips": [{"sensor", "at_time", "distance_m",
+        "direction", "angle_deg"}]`` (or one as ``"slip"``), ``"unit_scale": f, "hemisphere": "forward"|…,
+        "quantise": 36|72|144, "orientation": "matrix"|"angles"|"quaternion", "noise_scale": f}``.
+    height : float, default 1.75
+        The human's height, metres.
+    period : float, optional
+        Seconds one loop of the routine takes (each routine has its own default).
+    sta_mm : float, optional
+        Soft-tissue artefact: how far a sensor slides over its bone as a joint reaches the end of its
+        range. Default 12 mm for the human; 0 turns it off (the linkage and the pair have none).
+
+    Returns
+    -------
+    take : flockcal.Take
+        The recorded frames.
+    truth : dict
+        The ground truth in the shape of ``flockcal fit --json``: ``root``, ``parent``, ``joints`` (``c``,
+        ``l`` in the sensor frames at the take's start), ``bones``; ``slip_events`` lists each slip and
+        ``after_slips`` the truth once every slip has happened; ``simulation`` the settings used.
+
+    Raises
+    ------
+    flockcal.simulator.SimulatorError
+        An unknown model, routine or fault, a sensor count the model does not have, or a take of no frames.
+
+    Examples
+    --------
+    >>> import flockcal
+    >>> take, truth = flockcal.simulate(motion="kiosk", seconds=3, birds=6, seed=2)
+    >>> take.n_frames, take.names[:3]
+    (300, ('pelvis', 'chest', 'head'))
+    >>> truth["parent"]["l_forearm"]
+    'l_upper_arm'
+    >>> slipped, truth = flockcal.simulate(motion="exercise", seconds=3, birds=6,
+    ...     faults={"slip": {"sensor": "l_forearm", "at_time": 2.0, "distance_m": 0.02}})
+    >>> [e["sensor"] for e in truth["slip_events"]]
+    ['l_forearm']
     """
     faults = dict(faults or {})
     unknown = set(faults) - FAULT_KEYS
