@@ -4,6 +4,8 @@ returned as a `flockcal.takes.Take` plus the ground truth to compare a fit again
 
 from __future__ import annotations
 
+from collections.abc import Iterator
+
 import numpy as np
 
 from flockcal.simulator.body import BodyModel, SimulatorError
@@ -90,6 +92,38 @@ def simulate(
     ['l_forearm']
     """
     faults = dict(faults or {})
+    perf = performer(model, motion, seconds, rate_hz, birds, seed, noise, faults, height, period, sta_mm)
+    return record(perf, 0.0, seconds, motion, noise, faults)
+
+
+def simulate_session(n_takes: int, model: str | BodyModel = "human", motion: str = "exercise", seconds: float = 45.0,
+                     rate_hz: float = 100.0, birds: int | None = 16, seed: int = 1, noise: str | None = "tracker",
+                     faults: dict | None = None, height: float = 1.75, period: float | None = None,
+                     sta_mm: float | None = None) -> Iterator[tuple[Take, dict]]:
+    """One performer's session recorded as `n_takes` takes of `seconds` each, back to back: (take, truth)
+    for each in turn, made as asked for (a session is many takes, none of them kept).
+
+    The same performer throughout (the subject, the sensors and their straps from `seed`), moving through
+    one performance of `motion` that the takes cut into pieces: take k holds seconds k·`seconds` to
+    (k+1)·`seconds` of it, its times from 0. The exercise routine is planned to loop once over the whole
+    session, so each take turns its own share of the joints. Faults are the performance's: a slip at
+    `at_time` (seconds into the session) moves its sensor for that take and every later one. Each truth is
+    `simulate`'s, at its take's start, with `simulation["take"]` (1-based), `["takes"]` and `["start_s"]`.
+    """
+    if n_takes < 1:
+        raise SimulatorError(f"a session needs at least one take, not {n_takes}")
+    faults = dict(faults or {})
+    total = n_takes * float(seconds)
+    perf = performer(model, motion, total, rate_hz, birds, seed, noise, faults, height, period, sta_mm)
+    for k in range(n_takes):
+        take, truth = record(perf, k * float(seconds), seconds, motion, noise, faults)
+        truth["simulation"].update(take=k + 1, takes=n_takes, start_s=k * float(seconds))
+        yield take, truth
+
+
+def performer(model, motion: str, seconds: float, rate_hz: float, birds, seed: int, noise, faults: dict,
+              height: float, period, sta_mm) -> Performer:
+    """The `Performer` `simulate` records: `seconds` is what the routine is planned for, `faults` as there."""
     unknown = set(faults) - FAULT_KEYS
     if unknown:
         raise SimulatorError(f"unknown fault(s) {', '.join(sorted(unknown))}; known: {', '.join(sorted(FAULT_KEYS))}")
@@ -119,19 +153,25 @@ def simulate(
             s["sensor"], float(s["distance_m"]), at_time=float(s.get("at_time", seconds / 2)),
             direction=s.get("direction"), angle_deg=float(s.get("angle_deg", 0.0)),
         )  # fmt: skip
+    return perf
 
+
+def record(perf: Performer, start_s: float, seconds: float, motion: str, noise, faults: dict) -> tuple[Take, dict]:
+    """(take, truth) of `perf` from `start_s` for `seconds`, the take's times from 0 (`motion`, `noise`,
+    `faults`: what it was made with, for the truth)."""
+    rate_hz = perf.rate_hz
     n = int(round(seconds * rate_hz))
     if n < 1:
-        raise SimulatorError(f"{seconds} s at {rate_hz} Hz gives no frames")
+        raise SimulatorError(f"{seconds} s at {rate_hz:g} Hz gives no frames")
     times = np.arange(n) / float(rate_hz)
-    R, p, valid = perf.poses(times)
+    R, p, valid = perf.poses(start_s + times)
     take = make_take(R, p, perf.names, rate_hz, valid=valid, times=times, source="simulated take")
 
-    truth = perf.truth(at_time=float(times[0]))
+    truth = perf.truth(at_time=float(start_s))
     if perf.sta is not None:
         # How far the skin actually carried each sensor in this take: the figure to judge a fit by.
         # Every 8th frame is plenty for the rms and the peak of a motion this smooth, at an eighth of the cost.
-        moved = perf.soft_tissue(times[::8])
+        moved = perf.soft_tissue(start_s + times[::8])
         truth["soft_tissue"]["rms_mm"] = {nm: round(float(x), 3) for nm, x in zip(perf.names, 1000 * np.sqrt((moved**2).mean(axis=0)))}
         truth["soft_tissue"]["max_mm"] = {nm: round(float(x), 3) for nm, x in zip(perf.names, 1000 * moved.max(axis=0))}
     if truth["slip_events"]:
@@ -143,7 +183,7 @@ def simulate(
         "seconds": float(seconds),
         "rate_hz": float(rate_hz),
         "frames": n,
-        "seed": int(seed),
+        "seed": perf.seed,
         "noise": noise,
         "sta_mm": perf.sta_mm,
         "faults": {k: v for k, v in faults.items() if k not in ("slip", "slips")},
