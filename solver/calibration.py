@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -17,6 +18,9 @@ from flockcal.solver.fits import TOLERANCE_M, PairFits, pair_fits
 from flockcal.solver.hierarchy import parse_hierarchy, sensor_index
 from flockcal.solver.hinge_point import hinge_offsets
 from flockcal.solver.topology import orient, rigid_bodies, spanning_tree
+
+if TYPE_CHECKING:
+    from flockcal.solver.humanoid import Humanoid
 
 
 @dataclass(frozen=True)
@@ -56,7 +60,8 @@ class Calibration:
 
     Joint arrays are in tree order (`order[1:]`); `segment_start_s` marks joints refitted after a slip,
     `rms_free` the free fit of each joint under a saved skeleton (`known_skeleton`), `optical` what a
-    marker fit adds. Build variants with `dataclasses.replace`; nothing here is changed in place.
+    marker fit adds, `humanoid` which humanoid bone each body is (found from a sample of the take's frames,
+    `solve(..., sample=)`). Build variants with `dataclasses.replace`; nothing here is changed in place.
 
     Made by `flockcal.fit` (a take) and `calibrate` / `solve` (an accumulator), never by hand. m sensors,
     J tree joints; a joint is a (child, parent) pair of sensor indices, `c` in the child's frame and `l` in
@@ -95,6 +100,9 @@ class Calibration:
         segmented at.
     segment_start_s : ndarray, shape (J,), or None
         Seconds: a joint re-fitted on the frames since a slip; NaN where it holds the whole take.
+    humanoid : flockcal.solver.Humanoid or None
+        Which humanoid bone each body is (`joint_names()` names the joints by it); None where it was not
+        looked for.
 
     See Also
     --------
@@ -133,6 +141,7 @@ class Calibration:
     optical: OpticalExtras | None = None
     state: object = None  # what the next refresh starts from (a saved-skeleton fit's KnownFit); not in the JSON
     hinge_point: "HingePoints | None" = None  # how each hinge's centre was placed on its axis
+    humanoid: "Humanoid | None" = None  # which humanoid bone each body is (solver/humanoid.py); None: not looked for
 
     # Joint arrays, named as the JSON names them.
     @property
@@ -163,6 +172,18 @@ class Calibration:
     def parent_map(self) -> dict:
         """{child name: parent name} for every sensor but the root."""
         return {self.names[i]: self.names[p] for i, p in enumerate(self.parent) if p >= 0}
+
+    def joint_names(self) -> list[str]:
+        """Each tree joint's name as people say it, in joint order: the humanoid's ("left knee", "lower
+        back") on a human tree, else the sensor names' reading (flockcal/names.py: "left elbow", "bird 1–bird 2")."""
+        from flockcal.names import joint_name
+
+        nm, hum = self.names, self.humanoid
+        out = []
+        for c, p in self.joints.pairs.tolist():
+            name = hum.joint_name(c, p) if hum is not None and hum.human else None
+            out.append(name or joint_name(nm[c], nm[p]))
+        return out
 
     def joint_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(child→parent index pairs (J, 2), c (J, 3), l (J, 3)): what pose and slip code read."""

@@ -30,8 +30,13 @@ def accumulate_take(take, on_frames: Callable[[int], object] | None = None) -> G
 
 def fit_whole_take(take, *, hierarchy: Mapping | None = None, root: str | None = None,
                    tolerance: float = TOLERANCE_M, on_frames: Callable[[int], object] | None = None) -> Calibration:
-    """The `Calibration` of every frame of `take` together, by `solve`: the first half of `fit`."""
-    return solve(accumulate_take(take, on_frames), take.names, hierarchy=hierarchy, root=root, tolerance=tolerance)
+    """The `Calibration` of every frame of `take` together, by `solve`: the first half of `fit`. Its humanoid
+    is found from a sample of the take (a human tree hung from its hips unless `root` is given)."""
+    from flockcal.solver.humanoid import take_sample
+
+    acc = accumulate_take(take, on_frames)
+    return solve(acc, take.names, hierarchy=hierarchy, root=root, tolerance=tolerance,
+                 sample=take_sample(take).snapshot())
 
 
 def refit_after_slips(take, calibration: Calibration, *, tolerance: float = TOLERANCE_M,
@@ -45,6 +50,7 @@ def refit_after_slips(take, calibration: Calibration, *, tolerance: float = TOLE
     """
     if not len(calibration.joints.pairs):
         return [], calibration
+    from flockcal.solver.humanoid import take_sample
     from flockcal.solver.slippage import detect_slips
     from flockcal.solver.solve import solve_take
 
@@ -55,7 +61,7 @@ def refit_after_slips(take, calibration: Calibration, *, tolerance: float = TOLE
         return slips, calibration
     step("re-fitting after slips")
     result = solve_take(take, slips, hierarchy=calibration.parent_map(), root=calibration.names[calibration.root],
-                        tolerance=tolerance)
+                        tolerance=tolerance, sample=take_sample(take).snapshot(), humanoid=calibration.humanoid)
     return slips, result
 
 

@@ -1,4 +1,5 @@
-"""Files made from a calibration and its take: BVH, the glTF 2.0 rig, the HTML report, the skeleton file."""
+"""Files made from a calibration and its take: BVH, the glTF 2.0 (VRM) rig, TRC joint centres, the HTML report,
+the skeleton file."""
 
 from flockcal.lazy import public_api
 
@@ -10,6 +11,8 @@ __getattr__, __dir__, __all__ = public_api(__name__, {
     "write_gltf": "flockcal.exports.gltf",
     "gltf_bytes": "flockcal.exports.gltf",
     "glb_chunks": "flockcal.exports.gltf",
+    "write_trc": "flockcal.exports.trc",
+    "trc_text": "flockcal.exports.trc",
     "write_report": "flockcal.exports.report",
     "report_html": "flockcal.exports.report",
     "write_skeleton": "flockcal.exports.skeleton",
