@@ -298,11 +298,14 @@ def save_take(path: str | os.PathLike, take: Take) -> None:
     Examples
     --------
     >>> import pathlib, tempfile, flockcal
+    >>> folder = pathlib.Path(tempfile.mkdtemp())
     >>> take, _ = flockcal.simulate(motion="walk", seconds=1, birds=2, seed=1)
-    >>> path = pathlib.Path(tempfile.mkdtemp()) / "walk.npz"
-    >>> flockcal.save_take(path, take)
-    >>> flockcal.load_take(path).n_frames
-    100
+    >>> flockcal.save_take(folder / "walk.npz", take)
+    >>> sorted(p.name for p in folder.iterdir())          # the file, and no temporary one beside it
+    ['walk.npz']
+    >>> flockcal.save_take(folder / "no-such-folder" / "walk.npz", take)  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    flockcal.atomic.OutputError: cannot write .../no-such-folder/walk.npz: No such file or directory; ...
     """
     write_npz(
         path,
