@@ -62,6 +62,63 @@ class Calibration:
     `rms_free` the free fit of each joint under a saved skeleton (`known_skeleton`), `optical` what a
     marker fit adds, `humanoid` which humanoid bone each body is (found from a sample of the take's frames,
     `solve(..., sample=)`). Build variants with `dataclasses.replace`; nothing here is changed in place.
+
+    Made by `flockcal.fit` (a take) and `calibrate` / `solve` (an accumulator), never by hand. m sensors,
+    J tree joints; a joint is a (child, parent) pair of sensor indices, `c` in the child's frame and `l` in
+    the parent's, metres.
+
+    Attributes
+    ----------
+    names : tuple of str
+        The m sensor names, in the take's order.
+    root : int
+        The sensor the tree hangs from.
+    parent : ndarray of int, shape (m,)
+        Each sensor's parent in the tree, -1 at the root.
+    order : ndarray of int, shape (m,)
+        The sensors root first, every parent before its children.
+    frames : int
+        Frames the fit summed.
+    joints : flockcal.solver.fits.PairFits
+        The tree's joints, in `order` (``order[1:]``): ``pairs`` (J, 2), centres ``c`` and ``l`` (J, 3),
+        ``rms`` (J,) residual, ``hinge`` and its axes, ``coverage``, standard errors, ``determined``
+        (J,) bool: the data pin the centre to the tolerance (docs/design.md §3a). Shortcuts on the
+        calibration itself: `c`, `l`, `rms`, `hinge`, `determined`, … .
+    bones : Bones
+        Joint-to-joint distances within each body, metres, with their standard errors.
+    placement : ndarray, shape (m, 3)
+        Each sensor's offset from its inboard joint in its own frame (NaN at the root).
+    loop_candidates, rigid_groups, ambiguous : list
+        Pairs outside the tree that fit like joints; groups of sensors that never turned against each
+        other; children whose parent the data cannot tell.
+    fits : flockcal.solver.fits.PairFits or None
+        Every pair's fit, when the tree was searched.
+    hierarchy_given : bool
+        The tree was given, not searched.
+    slip_events : tuple
+        The slips and swaps (`flockcal.solver.SlipEvent`, `flockcal.solver.SwapEvent`) the fit was
+        segmented at.
+    segment_start_s : ndarray, shape (J,), or None
+        Seconds: a joint re-fitted on the frames since a slip; NaN where it holds the whole take.
+    humanoid : flockcal.solver.Humanoid or None
+        Which humanoid bone each body is (`joint_names()` names the joints by it); None where it was not
+        looked for.
+
+    See Also
+    --------
+    flockcal.fit : fit a take.
+
+    Examples
+    --------
+    >>> import flockcal
+    >>> take, _ = flockcal.simulate(motion="exercise", seconds=20, birds=4, seed=1)
+    >>> cal = flockcal.fit(take, root="pelvis")
+    >>> cal.names[cal.root], cal.parent_map()
+    ('pelvis', {'chest': 'pelvis', 'head': 'chest', 'l_upper_arm': 'chest'})
+    >>> cal.c.shape, bool(cal.determined.all())
+    ((3, 3), True)
+    >>> cal.to_dict()["root"]          # the object `flockcal fit --json` prints
+    'pelvis'
     """
 
     names: tuple

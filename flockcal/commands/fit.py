@@ -9,13 +9,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from contextlib import contextmanager
 from pathlib import Path
 
 from flockcal.commands.takecheck import PARTIAL_EXIT, add_option, stop_for, too_short, too_still
 from flockcal.errors import UserError
 from flockcal.bars import Stages
-
-CHUNK = 65536  # frames per accumulator update; also the progress bar's step
 
 
 def register(subparsers) -> None:
@@ -73,20 +72,22 @@ def load_hierarchy(path: str) -> dict:
     return data
 
 
+@contextmanager
+def accumulating(take, progress: bool = True):
+    """The bar over a take's frames as they are summed, on a terminal once it takes a while: yields its update."""
+    from flockcal.bars import bar
+
+    with bar(take.n_frames, "accumulating", unit="frame", unit_scale=True) as shown:
+        shown.disable = shown.disable or not progress
+        yield shown.update
+
+
 def accumulate(take, progress: bool = True):
     """A GramAccumulator over the whole take, with a progress bar on a terminal once it takes a while."""
-    from flockcal.bars import bar
-    from flockcal.solver.accumulator import GramAccumulator
+    from flockcal.solver.take_fit import accumulate_take
 
-    acc = GramAccumulator(take.n_sensors)
-    n = take.n_frames
-    with bar(n, "accumulating", unit="frame", unit_scale=True) as shown:
-        shown.disable = shown.disable or not progress
-        for s in range(0, n, CHUNK):
-            e = min(n, s + CHUNK)
-            acc.add_poses(take.rotations[s:e], take.positions[s:e], take.valid[s:e])
-            shown.update(e - s)
-    return acc
+    with accumulating(take, progress) as update:
+        return accumulate_take(take, on_frames=update)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -153,42 +154,23 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-# The fit path in parts, shared with `flockcal batch` (flockcal/commands/batch_tasks.py) so that a take's
-# batch result is byte for byte what `fit --json` prints.
+# The fit path in parts (the solver's `take_fit`, which `flockcal.fit` runs whole), shared with `flockcal
+# batch` (flockcal/commands/batch_tasks.py) so that a take's batch result is byte for byte what `fit --json` prints.
 def calibrate_take(take, hierarchy: dict | None = None, root: str | None = None, tolerance: float = 0.005,
                    progress: bool = True):
-    """The whole-take `Calibration` of `take` (accumulated in chunks, bar on a terminal), by `solve`, with
-    its humanoid found from a sample of the take (a human tree hung from its hips unless `root` is given)."""
-    from flockcal.solver.humanoid import take_sample
-    from flockcal.solver.solve import solve
+    """The whole-take `Calibration` of `take` (accumulated in chunks, bar on a terminal), by `solve`."""
+    from flockcal.solver.take_fit import fit_whole_take
 
-    acc = accumulate(take, progress)
-    return solve(acc, take.names, hierarchy=hierarchy, root=root, tolerance=tolerance,
-                 sample=take_sample(take).snapshot())
+    with accumulating(take, progress) as update:
+        return fit_whole_take(take, hierarchy=hierarchy, root=root, tolerance=tolerance, on_frames=update)
 
 
 def fit_result(take, cal, tolerance: float = 0.005, find_slips: bool = True, step=None) -> tuple[list, object]:
     """(slip events, the `Calibration` whose §5 JSON `fit --json` prints) for a take and its whole-take
-    calibration.
+    calibration: the solver's `refit_after_slips`, or no search at all (--no-slips)."""
+    from flockcal.solver.take_fit import refit_after_slips
 
-    The slipped sensors' joints and bones are re-fitted on the frames since their slip (docs/design.md
-    §4); everything else keeps the whole take. `step(name)` reports the stages ("searching for slips", …).
-    """
-    step = step or (lambda name: None)
-    slips, result = [], cal
-    if find_slips and len(cal.joints.pairs):
-        from flockcal.solver.slippage import detect_slips
-        from flockcal.solver.solve import solve_take
-
-        step("searching for slips")
-        slips = detect_slips(take, cal)
-        if slips:
-            from flockcal.solver.humanoid import take_sample
-
-            step("re-fitting after slips")
-            result = solve_take(take, slips, hierarchy=cal.parent_map(), root=cal.names[cal.root], tolerance=tolerance,
-                                sample=take_sample(take).snapshot(), humanoid=cal.humanoid)
-    return slips, result
+    return refit_after_slips(take, cal, tolerance=tolerance, step=step) if find_slips else ([], cal)
 
 
 def warn_conflicts(cal) -> None:
