@@ -118,3 +118,14 @@ def test_convert_and_replay_unfold_sensors_the_reader_took_to_be_inside(tmp_path
     take = load_take(npz)
     x = take.positions[..., 0][take.valid]
     assert len(x) > 0 and (x > 0.2).all(), x.min()
+
+
+def test_the_python_api_unfolds_as_the_command_does(walk):
+    # flockcal.fit(take) is `flockcal fit`'s path: the same unfolding, said as a warning.
+    import flockcal
+
+    _, take = walk
+    flipped = dataclasses.replace(take, positions=as_the_flock_reports(take.positions, "lower"))
+    with pytest.warns(UserWarning, match="unfolded hemisphere flips in"):
+        got = flockcal.fit(flipped, slips=False).to_dict()
+    assert got == flockcal.fit(take, slips=False).to_dict()
