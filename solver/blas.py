@@ -14,10 +14,10 @@ def _fblas():
     """scipy's Fortran BLAS wrappers (scipy/linalg/_fblas), loaded from their extension file alone; the
     module scipy.linalg.blas re-exports (`scipy.linalg.blas.dsyrk is scipy.linalg._fblas.dsyrk`). Falls back
     to the ordinary import where the file is not where scipy keeps it."""
-    import scipy
-
-    folder = os.path.join(os.path.dirname(scipy.__file__), "linalg")
-    for suffix in importlib.machinery.EXTENSION_SUFFIXES:
+    spec = importlib.util.find_spec("scipy")  # where scipy is, without running its __init__ (0.01–0.02 s)
+    roots = list(spec.submodule_search_locations or []) if spec is not None else []
+    folder = os.path.join(roots[0], "linalg") if roots else ""
+    for suffix in importlib.machinery.EXTENSION_SUFFIXES if folder else ():
         path = os.path.join(folder, "_fblas" + suffix)
         if os.path.exists(path):
             loader = importlib.machinery.ExtensionFileLoader("scipy.linalg._fblas", path)
