@@ -245,7 +245,7 @@ def calibrate(acc, hierarchy=None, root=None, names=None, tolerance: float = TOL
         cal = Calibration(names, topo.root, topo.parent, topo.order, acc.frames, joints, _no_bones(),
                           np.full((m, 3), np.nan), topo.loop_candidates, topo.rigid_groups, topo.ambiguous,
                           fits)
-    joints, how = placed_hinges(acc, cal.joints)
+    joints, how = placed_hinges(acc, cal.joints, tolerance)
     cal = replace(cal, joints=joints, hinge_point=how)
     cal = replace(cal, placement=_placement(acc, cal))
     return replace(cal, bones=joint_bones(acc, cal))
@@ -255,18 +255,21 @@ def calibrate(acc, hierarchy=None, root=None, names=None, tolerance: float = TOL
 class HingePoints:
     """How each tree joint's centre was placed on its hinge axis (solver/hinge_point.py)."""
 
-    rule: np.ndarray  # (J,) 2 or 1: where the limb's bones meet the axis (bones used); 0: min-norm; −1: not a hinge
+    rule: np.ndarray  # (J,) 2 or 1: where the limb's bones meet the axis (bones used); 3: a bone and the next
+    # hinge's axis; 0: min-norm; −1: not a hinge
     data_share: np.ndarray  # (J,) the share of the least-squares point in it (0: none)
 
     def take(self, index) -> "HingePoints":
         return HingePoints(self.rule[index], self.data_share[index])
 
 
-def placed_hinges(acc, joints: PairFits) -> tuple[PairFits, HingePoints]:
+def placed_hinges(acc, joints: PairFits, tolerance: float = TOLERANCE_M) -> tuple[PairFits, HingePoints]:
     """The tree's `joints` with each hinge's centre slid along its axis to the rule's point
-    (solver/hinge_point.py), its residual recomputed there; and how each was placed."""
+    (solver/hinge_point.py; `tolerance`: the fit's, which says which neighbours' centres count), its
+    residual recomputed there; and how each was placed."""
     s, how, share = hinge_offsets(joints.pairs, joints.c, joints.l, joints.axis_i, joints.axis_j, joints.hinge,
-                                  joints.determined, joints.axis_offset, joints.direction_error[:, 0])
+                                  joints.determined, joints.axis_offset, joints.direction_error[:, 0],
+                                  joints.direction_error.max(axis=1), tolerance)
     moved = np.flatnonzero((how >= 0) & (s != 0))
     how = HingePoints(how, share)
     if not len(moved):

@@ -23,7 +23,7 @@ if TYPE_CHECKING:
 
 
 # How a hinge's centre was placed on its axis (solver/hinge_point.py), by the number of limb bones used.
-HINGE_POINT_RULES = {2: "two_bones", 1: "one_bone", 0: "min_norm"}
+HINGE_POINT_RULES = {3: "bone_and_axis", 2: "two_bones", 1: "one_bone", 0: "min_norm"}
 
 
 def calibration_json(cal) -> dict:

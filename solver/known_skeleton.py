@@ -10,7 +10,6 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from flockcal.rotations import skew
 from flockcal.skeleton import SkeletonError
@@ -175,6 +174,8 @@ def fit_known_skeleton(
     a handful of 6m×6m solves whatever the take's length. A live refresh passes the `previous` result
     (same skeleton, same names) to start from it: usually one or two Gauss–Newton steps then.
     """
+    from scipy.spatial.transform import Rotation  # here: scipy.spatial costs every `flockcal fit` ~0.3 s to import
+
     from flockcal.solver.calibration import placed_hinges
     from flockcal.solver.fits import pair_fits
 

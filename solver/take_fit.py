@@ -91,6 +91,12 @@ def fit(take, *, hierarchy: Mapping[str, str] | None = None, root: str | None = 
         Search for sensor slips and re-fit after them. False fits every frame together, as if no sensor
         had moved on the skin (faster on a long take).
 
+    A take recorded without tracking the hemisphere (positions read −p while a sensor is outside it) is
+    unfolded first, as ``flockcal fit`` unfolds it, with a `UserWarning` saying how many frames were.
+
+    A take recorded without tracking the hemisphere (positions read −p while a sensor is outside it) is
+    unfolded first, as ``flockcal fit`` unfolds it, with a `UserWarning` saying how many frames were.
+
     Returns
     -------
     Calibration
@@ -123,9 +129,19 @@ def fit(take, *, hierarchy: Mapping[str, str] | None = None, root: str | None = 
     >>> cal.to_dict()["root"]   # the object `flockcal fit --json` prints
     'pelvis'
     """
-    from flockcal.takes import ChunkedTake
+    from flockcal.takes import ChunkedTake, Take
 
     if not isinstance(take, ChunkedTake):
         raise TypeError(f"fit takes a Take (flockcal.load_take(path)) or a ChunkedTake, not {type(take).__name__}")
+    if isinstance(take, Take):
+        # As `flockcal fit` reads a file: a take recorded without tracking the hemisphere unfolded first,
+        # said as a warning (the command says it on stderr).
+        from flockcal.hemisphere_unfold import unfold_take
+
+        take, how = unfold_take(take)
+        if how.frames_unfolded:
+            import warnings
+
+            warnings.warn(how.summary(take.names), UserWarning, stacklevel=2)
     calibration = fit_whole_take(take, hierarchy=hierarchy, root=root, tolerance=tolerance)
     return refit_after_slips(take, calibration, tolerance=tolerance)[1] if slips else calibration

@@ -97,7 +97,6 @@ def run(args: argparse.Namespace) -> int:
 
     single_threaded_blas()  # before numpy loads
     from flockcal.atomic import check_output
-    from flockcal.exports.bvh import write_bvh
     from flockcal.takes import load_take
 
     if args.bvh:
@@ -114,6 +113,9 @@ def run(args: argparse.Namespace) -> int:
         from flockcal.commands.outputs import scale_factor
 
         take = dataclasses.replace(take, positions=take.positions * scale_factor(args.scale))
+    from flockcal.commands.outputs import unfolded
+
+    take = unfolded(take, "fit", args.file)
     hierarchy = load_hierarchy(args.hierarchy) if args.hierarchy else None
     # Fitted first, so bad input (names, hierarchy) is reported as such before the take is judged.
     tol = tolerance_m(args)
@@ -125,6 +127,8 @@ def run(args: argparse.Namespace) -> int:
                         "writing TRC"]) as stages:
         slips, result = fit_result(take, cal, tolerance=tol, find_slips=not args.no_slips, step=stages.step)
         if args.bvh:
+            from flockcal.exports.bvh import write_bvh  # here: scipy.spatial costs every fit ~0.3 s to import
+
             stages.step("writing BVH")
             write_bvh(args.bvh, cal, take)
         if args.gltf:

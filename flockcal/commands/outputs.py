@@ -31,8 +31,9 @@ def scale_factor(text: str) -> float:
     return value
 
 
-def load_scaled_take(path: str, scale: str | None):
-    """The take at `path`, its positions multiplied by the `--scale` factor if one was given."""
+def load_scaled_take(path: str, scale: str | None, command: str):
+    """The take at `path`, its positions multiplied by the `--scale` factor if one was given, its hemisphere
+    flips undone (`unfolded`)."""
     from dataclasses import replace
 
     from flockcal.solver.scale import apply_scale
@@ -41,6 +42,19 @@ def load_scaled_take(path: str, scale: str | None):
     take = load_take(path)
     if scale is not None:
         take = replace(take, positions=apply_scale(take.positions, scale_factor(scale)))
+    return unfolded(take, command, path)
+
+
+def unfolded(take, command: str, path: str, hemisphere: str | None = None):
+    """`take` with the hemisphere flips of a recording that did not track the hemisphere undone
+    (flockcal/hemisphere_unfold.py), saying on stderr how many frames it unfolded; the take itself when
+    there were none."""
+    from flockcal.hemisphere_unfold import unfold_take
+
+    take, how = unfold_take(take, hemisphere)
+    note = how.summary(take.names)
+    if note:
+        print(f"flockcal {command}: {path}: {note}", file=sys.stderr)
     return take
 
 
@@ -99,7 +113,7 @@ def fitted_take(args, command: str):
     from flockcal.atomic import check_output
 
     check_output(args.output)  # before the fit, which can take minutes
-    take = load_scaled_take(args.take, args.scale)
+    take = load_scaled_take(args.take, args.scale, command)
     # Fitted first, so bad input (names, hierarchy, skeleton file) is reported as such before the take is judged.
     cal, free = fit_take(take, args.hierarchy, args.root, args.skeleton, with_free=True)
     if stop_for(command, args.take, too_short(take) or too_still(free), args.allow_partial):

@@ -207,6 +207,11 @@ def _replay(args) -> int:
     for e in out.events:
         if e.get("event") not in ("resync", "hemisphere_flip"):
             print(f"  {e['event']}: {e.get('message', '')}")
+    if len(f):
+        from flockcal.hemisphere_unfold import unfold_positions
+
+        _, how = unfold_positions(f.times, f.positions, f.valid, setup.get("hemisphere"))
+        print(how.summary(names or default_names(f.valid.shape[1])) or "no hemisphere flips left to unfold")
     return 0
 
 
@@ -215,15 +220,18 @@ def _convert(args) -> int:
     from flockcal.takes import save_take
 
     check_output(args.output)
-    take = recording_take(args.recording, names=args.names, salvage=args.salvage)
+    take = recording_take(args.recording, names=args.names, salvage=args.salvage, command="convert")
     save_take(args.output, take)
     print(f"wrote {args.output}: {take.n_frames} frames of {take.n_sensors} sensors ({', '.join(take.names)}), "
           f"{take.valid.mean():.1%} valid", file=sys.stderr)
     return 0
 
 
-def recording_take(path: str, names: str | None = None, salvage: bool = False):
-    """The `Take` `flockcal convert` writes for a .fobraw recording (`flockcal batch` fits it the same way)."""
+def recording_take(path: str, names: str | None = None, salvage: bool = False, command: str | None = None):
+    """The `Take` `flockcal convert` writes for a .fobraw recording (`flockcal batch` fits it the same way):
+    decoded as the live reader decodes it, then the hemisphere flips the reader could not undo (sensors
+    outside the hemisphere from the start, or a recording made without tracking it) undone as `fit` undoes
+    them; `command`, when given, says on stderr how many frames that unfolded."""
     import numpy as np
 
     from flockcal.drivers.recording import RecordingError
@@ -244,5 +252,11 @@ def recording_take(path: str, names: str | None = None, salvage: bool = False):
     if (f.valid & ~carried).any():
         raise RecordingError(f"{path}: its record format {setup['record_format']} lacks position or "
                              f"orientation; a take needs both (record with position_matrix or position_quaternion)")
-    return make_take(f.rotations, f.positions, names, setup["rate_hz"], valid=f.valid, times=f.times - f.times[0],
+    from flockcal.commands.outputs import unfolded
+    from flockcal.hemisphere_unfold import unfold_take
+
+    take = make_take(f.rotations, f.positions, names, setup["rate_hz"], valid=f.valid, times=f.times - f.times[0],
                      source=path)
+    if command is None:
+        return unfold_take(take, setup.get("hemisphere"))[0]
+    return unfolded(take, command, path, setup.get("hemisphere"))
