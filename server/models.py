@@ -1,6 +1,8 @@
 """Pydantic models of the REST API: requests are strict, responses mirror design.md §5.
 
-Only this module and the routes use pydantic; everything below them passes plain dicts and arrays.
+Only this module and the routes use pydantic; everything below them passes typed objects (a `Calibration`,
+a `store.SessionRow`, an `events.Event`, a `Progress`), which a route answers with: FastAPI validates it into
+the route's model once (a dataclass by its attributes; a fit by its §5 object, solver/calibration_json.py).
 Result models allow extra fields so the §5 contract can grow without breaking the API.
 """
 
@@ -72,6 +74,8 @@ class SlipEvent(Open):
     candidates: list[str] = []
     joints: list[str] = []
     jump_mm: float | None = None
+    # A session's result lists its slips (swaps are events of their own): the §5 entry's kind goes unsaid.
+    kind: Literal["slip", "swap"] = Field("slip", exclude=True)
 
 
 class CalibrationResult(Open):

@@ -13,12 +13,13 @@ import logging
 import threading
 import time
 from concurrent.futures import Future
+from dataclasses import replace
 from typing import Callable
 
 from flockcal.errors import FlockcalError
 from flockcal.frames import Frames
 from flockcal.server.clock import ServiceClock
-from flockcal.server.fitting import SLIP_FIELDS, FitJob, FitView, FitWorker, fit_calibration
+from flockcal.server.fitting import FitJob, FitView, FitWorker, solve_fit
 from flockcal.server.ingest import Ingest
 from flockcal.server.limits import LimitStop, SessionLimits
 from flockcal.server.live_session import LiveSession
@@ -29,7 +30,7 @@ from flockcal.solver.calibration import Calibration
 from flockcal.solver.live import LiveCalibration, LiveUpdate
 from flockcal.threads import name_os_thread
 
-__all__ = ["SLIP_FIELDS", "LiveSession", "Pipeline"]
+__all__ = ["LiveSession", "Pipeline"]
 
 log = logging.getLogger(__name__)
 
@@ -197,8 +198,9 @@ class Pipeline:
 
         self.call(install)
 
-    def end_session(self) -> tuple[LiveSession, dict | None, str | None]:
-        """Stop recording; returns (session, final fit dict or None, why there is no fit)."""
+    def end_session(self) -> tuple[LiveSession, Calibration | None, str | None]:
+        """Stop recording; returns (session, its final fit with the session's slips, or None; why there is
+        no fit)."""
 
         def finish():
             live = self.live
@@ -211,13 +213,11 @@ class Pipeline:
             if cal.frames > 0:
                 try:
                     last = cal.calibration
-                    result, final = fit_calibration(cal.acc, self.names, live.hierarchy, live.root,
-                                                    live.skeleton, live.profile.tolerance_m,
-                                                    sample=cal.sample.snapshot(),
-                                                    humanoid=last.humanoid if last is not None else None)
-                    slips = self.persistence.slip_events(live, SLIP_FIELDS)
-                    if slips:
-                        result["slip_events"] = slips
+                    final = solve_fit(cal.acc, self.names, live.hierarchy, live.root, live.skeleton,
+                                      live.profile.tolerance_m, sample=cal.sample.snapshot(),
+                                      humanoid=last.humanoid if last is not None else None)
+                    # The stored result lists the slips the session reported (its live fits list none).
+                    result = replace(final, slip_events=tuple(live.slips)) if live.slips else final
                     # What the session had reached, as the stored result has it (done joints stay done).
                     self._record(live, cal.add_final_fit(final))
                 except FlockcalError as exc:
@@ -226,7 +226,7 @@ class Pipeline:
                 error = "no frames arrived during the session"
             live.framelog.close()
             self.live = None
-            if result:
+            if result is not None:
                 self.pose_fit = cal.calibration
                 self.pose_fit_id = (live.id, None)
             self._publish()
@@ -333,6 +333,7 @@ class Pipeline:
             events.append({"type": "session", "session_id": live.id, "action": update.done.action,
                            "time_s": update.done.time_s, "message": update.done.message})
         events += [slip_row(ev) for ev in update.events]
+        live.slips += [ev for ev in update.events if ev.kind == "slip"]  # what its result lists (not swaps)
         exc = update.failure
         if exc is not None:
             log.error("slip monitor failed; slips are no longer watched in session %s", live.id,

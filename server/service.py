@@ -24,7 +24,7 @@ from flockcal.server.sessions import SessionManager
 from flockcal.server.settings import Settings
 from flockcal.server.skeletons import SkeletonLibrary
 from flockcal.server.sources import FrameSource, TrackerSource
-from flockcal.server.store import Store
+from flockcal.server.store import SessionRow, Store
 
 log = logging.getLogger(__name__)
 
@@ -122,7 +122,7 @@ class Service:
         self.outputs = (Outputs(settings, self.pipeline.names, lambda: self.pipeline.snapshot)
                         if settings.vrpn_port is not None or settings.osc_targets else None)
         self.started = False
-        self.stopped_session: dict | None = None  # the session stop() closed, for `serve` to report
+        self.stopped_session: SessionRow | None = None  # the session stop() closed, for `serve` to report
 
     def tracker_rate(self) -> float:
         rate = self.source.status().get("rate_hz") or self.settings.rate_hz

@@ -16,6 +16,7 @@ from typing import Callable
 
 import numpy as np
 
+from flockcal.server.events import Event
 from flockcal.server.fitting import FitView
 from flockcal.server.live_session import SessionSummary
 from flockcal.server.pose import live_pose
@@ -53,7 +54,7 @@ class Snapshot:
     fit_view: FitView | None  # the live session's newest fit
     fit_seq: int  # increases when the fit changes
     residuals: tuple[ResidualSample, ...]  # recent samples, oldest first
-    events: tuple[dict, ...]  # recent events (each with its store id), oldest first
+    events: tuple[Event, ...]  # recent events (each with its store id), oldest first
     rotations: np.ndarray | None  # newest pose of each sensor (m,3,3) (held where invalid)
     positions: np.ndarray | None  # (m,3)
     valid: np.ndarray | None  # (m,) whether the newest frame held a valid record for each sensor

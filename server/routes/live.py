@@ -262,9 +262,9 @@ class Connection:
                     out.append(self.envelope("residuals", json.dumps(residual_message(new))))
             if "events" in content:
                 for ev in snap.events:
-                    if ev["id"] > event_id:
-                        event_id = ev["id"]
-                        out.append(self.envelope("event", json.dumps({"event": ev})))
+                    if ev.id > event_id:
+                        event_id = ev.id
+                        out.append(self.envelope("event", ev.message()))
             if "pose" in content and snap.pose is not None:
                 out.append(self.envelope("pose", snap.pose_json))
             for text in out:
@@ -273,11 +273,11 @@ class Connection:
     def _initial_event_id(self, snap: Snapshot) -> int:
         # Replay the live session's last few events so a reconnecting page shows them again.
         if snap.session is None:
-            return snap.events[-1]["id"] if snap.events else 0
-        mine = [e["id"] for e in snap.events if e.get("session_id") == snap.session.id]
+            return snap.events[-1].id if snap.events else 0
+        mine = [e.id for e in snap.events if e.session_id == snap.session.id]
         if len(mine) > REPLAY_EVENTS:
             return mine[-REPLAY_EVENTS - 1]
-        return (mine[0] - 1) if mine else (snap.events[-1]["id"] if snap.events else 0)
+        return (mine[0] - 1) if mine else (snap.events[-1].id if snap.events else 0)
 
 
 def _residual_start(snap: Snapshot) -> int:
