@@ -8,7 +8,7 @@ Result models allow extra fields so the §5 contract can grow without breaking t
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
@@ -326,6 +326,19 @@ class SimulatorState(Open):
     sta_mm: float = Field(description="soft-tissue artefact: the largest slide of a skin sensor, mm (0: rigid)")
     slips: list[dict] = Field(description="slips injected so far, on the performer's clock: {time_s, sensor, jump_mm, "
                                           "angle_deg, displacement_bone_m}")
+
+
+class ClientMessage(BaseModel):
+    """A websocket client's message (docs/service.md#websocket-wslive) read off its JSON object once: the
+    fields the service acts on, each as sent (a missing one as its default). What each must be, and the
+    message that says so, is the route's (server/routes/live.py)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    type: Any = None  # "subscribe" | "ping"
+    token: Any = None
+    rate_hz: Any = 10  # messages a second; null: the publish rate
+    content: Any = ["status"]
 
 
 class ErrorReply(BaseModel):

@@ -112,20 +112,15 @@ def live_pose(names, rotations, positions, valid, fit: Calibration | dict | None
         return base
     # Pivots (inboard joint of each body, root sensor at the root), then the leaves' sensors.
     at = _round(np.concatenate([rec.joint_positions[0], rec.sensor_positions[0, layout.leaves]]))
-    base["joints"] = [{"name": n, "kind": k, "p": p, "determined": d} for (n, k, d), p in zip(layout.heads, at)]
-    base["bones"] = layout.bones
-    base["root"] = layout.root
-    base["rig"] = rig_pose(rec, layout)
-    if fit_id is not None:
-        base["rig"]["session"], base["rig"]["fit_seq"] = fit_id
-    return base
+    joints = [{"name": n, "kind": k, "p": p, "determined": d} for (n, k, d), p in zip(layout.heads, at)]
+    return {**base, "joints": joints, "bones": layout.bones, "root": layout.root, "rig": rig_pose(rec, layout, fit_id)}
 
 
-def rig_pose(rec, layout: _Layout) -> dict:
+def rig_pose(rec, layout: _Layout, fit_id: tuple[str, int | None] | None = None) -> dict:
     """The frame as the glTF rig plays it with rest "sensor" (node axes = sensor axes, so no rest frame
     to carry): node name → local rotation [x, y, z, w] (child: R_pᵀ R_j; root: W R_root, as
     exports/bvh.local_rotations with A = I), and the root node's translation W t_root, metres, Y-up
-    (the same numbers `/gltf?rest=sensor` keys its animation with)."""
+    (the same numbers `/gltf?rest=sensor` keys its animation with); with `fit_id`, whose fit it is."""
     from flockcal.exports.bvh import bvh_world
 
     art = layout.art
@@ -135,4 +130,8 @@ def rig_pose(rec, layout: _Layout) -> dict:
     local[art.root] = world @ R[art.root]
     q = np.round(as_quat(local, scalar_first=False), 7).tolist()
     root = _round(world @ rec.joint_positions[0, art.root], 6)
-    return {"up": RIG_UP, "rest": "sensor", "root": root, "rotations": dict(zip(layout.rig_names, q))}
+    rig = {"up": RIG_UP, "rest": "sensor", "root": root, "rotations": dict(zip(layout.rig_names, q))}
+    if fit_id is None:
+        return rig
+    session, fit_seq = fit_id
+    return {**rig, "session": session, "fit_seq": fit_seq}

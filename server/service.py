@@ -102,8 +102,7 @@ class Service:
             clock=self.clock,
         )
         # A session records the rate the tracker streams at when it starts (the flock's own unless --rate).
-        self.sessions = SessionManager(self.store, self.pipeline, data, settings.device_url,
-                                       lambda: self.source.status().get("rate_hz") or settings.rate_hz,
+        self.sessions = SessionManager(self.store, self.pipeline, data, settings.device_url, self.source_rate,
                                        profiles=settings.session_profile, raw_recorder=self.source,
                                        retention_policy=policy_from(settings.keep_days, settings.keep_disk_gb),
                                        retention_interval_s=settings.retention_interval_s, clock=self.clock)
@@ -124,17 +123,19 @@ class Service:
         self.started = False
         self.stopped_session: SessionRow | None = None  # the session stop() closed, for `serve` to report
 
+    def source_rate(self) -> float | None:
+        """The rate the tracker streams at (its status's), else --rate's; None when neither is known."""
+        return self.source.status().get("rate_hz") or self.settings.rate_hz
+
     def tracker_rate(self) -> float:
-        rate = self.source.status().get("rate_hz") or self.settings.rate_hz
+        rate = self.source_rate()
         return float(rate) if rate else 100.0
 
     def status_of_source(self) -> dict:
-        st = dict(self.source.status())
-        st.setdefault("birds", self.settings.birds)
-        st["device"] = self.settings.device_url
-        st["simulator"] = self.simulator is not None
-        st["disk"] = self.limits.disk_status()
-        return st
+        st = self.source.status()
+        birds = {} if "birds" in st else {"birds": self.settings.birds}
+        return {**st, **birds, "device": self.settings.device_url, "simulator": self.simulator is not None,
+                "disk": self.limits.disk_status()}
 
     @property
     def simulator(self):

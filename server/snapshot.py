@@ -76,10 +76,6 @@ class Snapshot:
         """The progress as the service publishes it (docs/service.md), None without a live session."""
         return None if self.progress is None else self.progress.to_dict()
 
-    @property
-    def hints(self) -> list[dict]:
-        return self.progress_doc["hints"] if self.progress is not None else []
-
     @cached_property
     def pose(self) -> dict | None:
         if self.rotations is None:
@@ -97,8 +93,9 @@ class Snapshot:
         # The progress document's fields ride at the top level next to the fit: "progress" stays the number
         # it always was, now the service's one definition (docs/service.md#progress-one-figure-for-the-kiosk-the-dashboard-and-the-api).
         return json.dumps({
-            "result": self.fit, **(self.progress_doc or {}), "hints": self.hints,
-            "session": self.status["session"], "fit_seq": self.fit_seq, "snapshot": self.seq, "frames": self.frames,
+            "result": self.fit, **(self.progress_doc or {"hints": []}),
+            "session": None if self.session is None else self.session.to_dict(), "fit_seq": self.fit_seq,
+            "snapshot": self.seq, "frames": self.frames,
         })
 
     @cached_property
