@@ -7,6 +7,7 @@ loose arrays to hand it on.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -52,3 +53,22 @@ class Frames:
             return parts[0]
         return Frames(*(np.concatenate([getattr(p, k) for p in parts])
                         for k in ("times", "rotations", "positions", "valid")))
+
+
+def frames_of(take, size: int) -> Iterator[Frames]:
+    """A take's frames in order, `size` at a time: its own `chunks(size)` when it has them (a Take, a
+    flockcal.take_files.TakeFile, the service's frame log), else slices of its arrays (rotations,
+    positions, and valid and times when it has them; times default to frame / rate_hz)."""
+    if hasattr(take, "chunks"):
+        yield from take.chunks(size)
+        return
+    R = np.asarray(take.rotations, dtype=float)
+    t = np.asarray(take.positions, dtype=float)
+    n, m = R.shape[:2]
+    valid = getattr(take, "valid", None)
+    valid = np.ones((n, m), bool) if valid is None else np.asarray(valid, dtype=bool)
+    times = getattr(take, "times", None)
+    times = np.arange(n) / float(take.rate_hz) if times is None else np.asarray(times, dtype=float)
+    for a in range(0, n, max(1, int(size))):
+        b = min(n, a + max(1, int(size)))
+        yield Frames(times[a:b], R[a:b], t[a:b], valid[a:b])

@@ -15,8 +15,6 @@ from flockcal.commands.takecheck import PARTIAL_EXIT, add_option, stop_for, too_
 from flockcal.errors import UserError
 from flockcal.bars import Stages
 
-CHUNK = 65536  # frames per accumulator update; also the progress bar's step
-
 
 def register(subparsers) -> None:
     p = subparsers.add_parser(
@@ -34,6 +32,9 @@ def register(subparsers) -> None:
     p.add_argument("--scale", metavar="FACTOR", help="multiply positions by FACTOR before fitting (unit scale, paper §4): "
                    "a number or the JSON file `flockcal scale --json` wrote")
     p.add_argument("--no-slips", action="store_true", help="skip the sensor-slip search (faster on long takes)")
+    p.add_argument("--max-take-gb", type=float, metavar="GB",
+                   help="refuse a take whose arrays unpack to more than GB gigabytes (default: $FLOCKCAL_MAX_TAKE_GB, "
+                        "else 4; the take is read a chunk at a time whatever its size)")
     add_option(p)
     add_tolerance(p)
     p.set_defaults(func=run)
@@ -72,30 +73,31 @@ def load_hierarchy(path: str) -> dict:
 
 
 def accumulate(take, progress: bool = True):
-    """A GramAccumulator over the whole take, with a progress bar on a terminal once it takes a while."""
+    """A GramAccumulator over the whole take (a Take, or a take file read a chunk at a time), with a
+    progress bar on a terminal once it takes a while."""
     from flockcal.bars import bar
+    from flockcal.frames import frames_of
     from flockcal.solver.accumulator import GramAccumulator
+    from flockcal.take_files import chunk_frames
 
-    acc = GramAccumulator(take.n_sensors)
-    n = take.n_frames
-    with bar(n, "accumulating", unit="frame", unit_scale=True) as shown:
+    m = len(take.names)
+    acc = GramAccumulator(m)
+    with bar(take.n_frames, "accumulating", unit="frame", unit_scale=True) as shown:
         shown.disable = shown.disable or not progress
-        for s in range(0, n, CHUNK):
-            e = min(n, s + CHUNK)
-            acc.add_poses(take.rotations[s:e], take.positions[s:e], take.valid[s:e])
-            shown.update(e - s)
+        # Chunks are a multiple of the accumulator's block: the sums are those of one pass over the take.
+        for f in frames_of(take, chunk_frames(m)):
+            acc.add_poses(f.rotations, f.positions, f.valid)
+            shown.update(len(f))
     return acc
 
 
 def run(args: argparse.Namespace) -> int:
-    import dataclasses
-
     from flockcal.threads import single_threaded_blas
 
     single_threaded_blas()  # before numpy loads
     from flockcal.atomic import check_output
     from flockcal.exports.bvh import write_bvh
-    from flockcal.takes import load_take
+    from flockcal.take_files import ScaledTake, TakeFile
 
     if args.bvh:
         check_output(args.bvh, "--bvh")  # before the fit, which can take minutes
@@ -104,11 +106,12 @@ def run(args: argparse.Namespace) -> int:
 
         check_output(args.gltf, "--gltf")
         binary_for(args.gltf, "--gltf")
-    take = load_take(args.file)
+    # Read a chunk at a time, as often as the fit needs (memory stays a chunk: docs/cli.md#memory).
+    take = TakeFile(args.file, args.max_take_gb)
     if args.scale is not None:
         from flockcal.commands.outputs import scale_factor
 
-        take = dataclasses.replace(take, positions=take.positions * scale_factor(args.scale))
+        take = ScaledTake(take, scale_factor(args.scale))
     hierarchy = load_hierarchy(args.hierarchy) if args.hierarchy else None
     # Fitted first, so bad input (names, hierarchy) is reported as such before the take is judged.
     tol = tolerance_m(args)

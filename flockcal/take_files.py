@@ -1,0 +1,196 @@
+"""Takes on disk a chunk of frames at a time, for takes of any length: `TakeFile` reads an .npz take as a
+`ChunkedTake` (its shapes and size checked from the headers before any data, each chunk checked as
+`make_take` checks a whole take), `TakeWriter` writes one from `Frames` as they come (a recording's decode).
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Iterator
+from pathlib import Path
+
+import numpy as np
+
+from flockcal import npz
+from flockcal.frames import Frames
+from flockcal.takes import (TakeError, check_finite, check_names, check_rate, check_shapes, check_times,
+                            describe_arrays)
+
+CHUNK_BYTES = 16 * 2**20  # frames per chunk: about this much of float64 arrays
+# Chunks hold a multiple of the accumulator's 256-frame block: its sums come out bit for bit the same
+# whatever the chunk size, so `fit --json` of a file read in chunks is what it was for the whole take.
+ROW_ALIGN = 256
+
+
+def chunk_frames(m: int, budget: int = CHUNK_BYTES) -> int:
+    """Frames of `m` sensors per chunk: about `budget` bytes of arrays, a multiple of ROW_ALIGN."""
+    per_frame = m * (9 + 3) * 8 + m + 8
+    return max(ROW_ALIGN, budget // per_frame // ROW_ALIGN * ROW_ALIGN)
+
+
+class TakeFile:
+    """A take .npz read a chunk of frames at a time, as often as asked: memory stays a chunk (and the
+    names) whatever the take's length. Opening it reads the headers only: a file that is not a take, arrays
+    whose shapes do not make one, or arrays that would unpack to more than the limit (`limit_gb`, else
+    $FLOCKCAL_MAX_TAKE_GB, else 4 GB) are a TakeError before any frame is read. Bad values (NaN in a valid
+    sensor-frame, times going backwards) are a TakeError when the chunk holding them is read."""
+
+    def __init__(self, path: str | os.PathLike, limit_gb: float | None = None):
+        self.path = Path(path)
+        source = str(self.path)
+        if not self.path.exists():
+            raise TakeError(f"{source}: no such file")
+        try:
+            arrays = npz.members(self.path)
+        except npz.NpzError:
+            raise TakeError(f"{source}: not a .npz take (no complete zip archive of arrays: truncated, or not a "
+                            f"take; takes come from np.savez, flockcal simulate or flockcal convert)") from None
+        missing = [k for k in ("rotations", "positions", "names", "rate_hz") if k not in arrays]
+        if missing:
+            raise TakeError(f"{source}: missing array(s) {', '.join(missing)} (docs/design.md §5 lists what a take "
+                            f"holds)")
+        names = arrays["names"]
+        self.n, self.m = check_shapes(source, arrays["rotations"].shape, arrays["positions"].shape,
+                                      int(np.prod(names.shape, dtype=np.int64)),
+                                      arrays["valid"].shape if "valid" in arrays else None,
+                                      arrays["times"].shape if "times" in arrays else None)
+        try:
+            self.declared_bytes = npz.check_size(arrays, describe_arrays(arrays), limit_gb)
+            with npz.Reader(self.path) as reader:
+                self.names = tuple(str(x) for x in np.atleast_1d(reader.whole("names")).tolist())
+                rate = reader.whole("rate_hz")
+        except npz.NpzError as exc:
+            raise TakeError(f"{source}: {exc}") from None
+        check_names(source, self.names)
+        self.rate_hz = check_rate(source, rate)
+        self.has = {k for k in ("valid", "times") if k in arrays}
+        self.chunk = chunk_frames(self.m)
+
+    @property
+    def n_frames(self) -> int:
+        return self.n
+
+    @property
+    def n_sensors(self) -> int:
+        return self.m
+
+    def chunks(self, size: int | None = None) -> Iterator[Frames]:
+        """The frames in order, `size` at a time (None: about 16 MB of arrays at a time)."""
+        step = self.chunk if size is None else max(1, int(size))
+        source = str(self.path)
+        try:
+            with npz.Reader(self.path) as reader:
+                streams = {k: reader.rows(k) for k in ("rotations", "positions", *sorted(self.has))}
+                last = -np.inf
+                for a in range(0, self.n, step):
+                    k = min(step, self.n - a)
+                    R = streams["rotations"].read(k).astype(float)
+                    t = streams["positions"].read(k).astype(float)
+                    v = streams["valid"].read(k).astype(bool) if "valid" in streams else np.ones((k, self.m), bool)
+                    if "times" in streams:
+                        ts = streams["times"].read(k).astype(float)
+                        check_times(source, ts, before=last)
+                        last = ts[-1]
+                    else:
+                        ts = np.arange(a, a + k, dtype=float) / self.rate_hz
+                    check_finite(source, R, t, v, self.names, first=a)
+                    if not v.all():  # as make_take: invalid sensor-frames hold zeros
+                        R[~v] = 0.0
+                        t[~v] = 0.0
+                    yield Frames(ts, R, t, v)
+        except npz.NpzError as exc:
+            raise TakeError(f"{source}: not a readable .npz take ({exc})") from None
+
+    def index(self, name: str) -> int:
+        try:
+            return self.names.index(name)
+        except ValueError:
+            raise TakeError(f"no sensor named {name!r} in this take (it has: {', '.join(self.names)})") from None
+
+
+class TakeWriter:
+    """A take .npz written from `Frames` as they come: each batch checked as `make_take` checks a whole
+    take (its sensors, NaN in valid sensor-frames, times going backwards), times counted from the first
+    frame, invalid sensor-frames zeroed; `commit()` writes the file atomically (nothing is left at `path`
+    before, or after a failure). Memory holds one batch; the arrays wait on disk beside `path`."""
+
+    def __init__(self, path: str | os.PathLike, names, rate_hz: float, source: str = "take",
+                 extra: dict | None = None):
+        self.source = source
+        self.names = tuple(str(x) for x in names)
+        check_names(source, self.names)
+        self.rate_hz = check_rate(source, rate_hz)
+        self.extra = dict(extra or {})
+        self._npz = npz.Writer(path)
+        self._t0: float | None = None
+        self._last = -np.inf
+        self.n_frames = 0
+        self.valid_count = 0
+
+    def append(self, frames: Frames) -> None:
+        n = len(frames)
+        if n == 0:
+            return
+        m = len(self.names)
+        if frames.n_sensors != m:
+            raise TakeError(f"{self.source}: frames of {frames.n_sensors} sensors after {m} names; a take keeps its "
+                            f"sensors")
+        R = np.asarray(frames.rotations, dtype=float)
+        t = np.asarray(frames.positions, dtype=float)
+        v = np.asarray(frames.valid, dtype=bool)
+        check_finite(self.source, R, t, v, self.names, first=self.n_frames)
+        if self._t0 is None:
+            self._t0 = float(frames.times[0])
+        ts = np.asarray(frames.times, dtype=float) - self._t0
+        check_times(self.source, ts, before=self._last)
+        self._last = float(ts[-1])
+        if not v.all():
+            R = np.where(v[..., None, None], R, 0.0)
+            t = np.where(v[..., None], t, 0.0)
+        for name, rows in (("rotations", R), ("positions", t), ("valid", v), ("times", ts)):
+            self._npz.append(name, rows)
+        self.n_frames += n
+        self.valid_count += int(v.sum())
+
+    @property
+    def valid_fraction(self) -> float:
+        return self.valid_count / max(1, self.n_frames * len(self.names))
+
+    def commit(self) -> None:
+        if self.n_frames == 0:
+            self.discard()
+            raise TakeError(f"{self.source}: the take has no frames")
+        self._npz.put("names", np.asarray(self.names, dtype=str))
+        self._npz.put("rate_hz", np.float64(self.rate_hz))
+        for name, array in self.extra.items():
+            self._npz.put(name, array)
+        self._npz.commit()
+
+    def discard(self) -> None:
+        self._npz.discard()
+
+    def __enter__(self) -> "TakeWriter":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.discard()
+
+
+class ScaledTake:
+    """A ChunkedTake whose positions are multiplied by `factor` as they are read (`fit --scale`)."""
+
+    def __init__(self, take, factor: float):
+        self.take, self.factor = take, float(factor)
+        self.names, self.rate_hz = take.names, take.rate_hz
+
+    @property
+    def n_frames(self) -> int:
+        return self.take.n_frames
+
+    @property
+    def n_sensors(self) -> int:
+        return len(self.names)
+
+    def chunks(self, size: int | None = None) -> Iterator[Frames]:
+        for f in self.take.chunks(size):
+            yield Frames(f.times, f.rotations, f.positions * self.factor, f.valid)
