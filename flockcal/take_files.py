@@ -16,7 +16,7 @@ from flockcal.frames import Frames
 from flockcal.takes import (TakeError, check_finite, check_names, check_rate, check_shapes, check_times,
                             describe_arrays)
 
-CHUNK_BYTES = 16 * 2**20  # frames per chunk: about this much of float64 arrays
+CHUNK_BYTES = 8 * 2**20  # frames per chunk: about this much of float64 arrays (a pass holds a few times that)
 # Chunks hold a multiple of the accumulator's 256-frame block: its sums come out bit for bit the same
 # whatever the chunk size, so `fit --json` of a file read in chunks is what it was for the whole take.
 ROW_ALIGN = 256
