@@ -144,8 +144,13 @@ class Reader:
         except (zipfile.BadZipFile, OSError, EOFError, ValueError) as exc:
             raise NpzError(f"{name}: {exc}") from None
 
-    def rows(self, name: str) -> "RowStream":
-        return RowStream(self._zip, self.members[name])
+    def rows(self, name: str) -> "RowStream | LoadedRows":
+        """Member `name` a number of rows at a time: streamed from the zip, or (stored in Fortran order,
+        which has no rows to stream) loaded whole first."""
+        member = self.members[name]
+        if member.fortran_order and len(member.shape) > 1:
+            return LoadedRows(self.whole(name))
+        return RowStream(self._zip, member)
 
     def close(self) -> None:
         self._zip.close()
@@ -161,8 +166,6 @@ class RowStream:
     """One C-ordered member read along its first axis: `read(k)` gives the next k rows (fewer at the end)."""
 
     def __init__(self, zf: zipfile.ZipFile, member: Member):
-        if member.fortran_order and len(member.shape) > 1:
-            raise NpzError(f"{member.name}: stored in Fortran order, which cannot be read a row at a time")
         if member.dtype.hasobject:
             raise NpzError(f"{member.name}: holds Python objects, which a take never does")
         self.member = member
@@ -245,3 +248,18 @@ class Writer:
     def __exit__(self, *exc) -> None:
         self.discard()
 
+
+
+class LoadedRows:
+    """An array already in memory, handed out as RowStream hands out rows."""
+
+    def __init__(self, array: np.ndarray):
+        self.array, self.at = array, 0
+
+    def read(self, k: int) -> np.ndarray:
+        out = self.array[self.at:self.at + max(0, int(k))]
+        self.at += len(out)
+        return out
+
+    def close(self) -> None:
+        self.array = None
