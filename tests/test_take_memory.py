@@ -1,14 +1,11 @@
 """Memory bounded by input: a take's declared size is checked from its .npy headers before any data is read,
-and `convert` and `fit` read a chunk at a time (docs/cli.md#memory). Every command runs as a child process
-(`python -m flockcal`, what the installed `flockcal` runs) whose peak resident memory the kernel reports when
-it is reaped (os.wait4's ru_maxrss); the bound is the documented one, 3 × the input file + 150 MB."""
+and `convert` and `fit` read a chunk at a time (docs/cli.md#memory). Every command runs as a child process,
+flockcal's command line as the installed `flockcal` runs it, and reports its own peak resident memory
+(tests/peak_memory.py). The bound is the documented one, 3 × the input file + 150 MB."""
 
 from __future__ import annotations
 
-import os
 import struct
-import subprocess
-import sys
 import zipfile
 import zlib
 from pathlib import Path
@@ -22,6 +19,7 @@ from flockcal.drivers.recording import read_recording
 from flockcal.simulator.fast_recording import write_recording
 from flockcal.simulator.smooth_source import SmoothSource
 from flockcal.takes import TakeError, load_take, make_take, save_take
+from peak_memory import run_flockcal
 
 MB = 1e6
 
@@ -32,15 +30,9 @@ def bound(path: Path) -> float:
 
 
 def flockcal(*argv, env=None) -> tuple[int, str, float]:
-    """(exit status, stderr, peak resident bytes) of `python -m flockcal ARGV` in a child process."""
-    proc = subprocess.Popen([sys.executable, "-m", "flockcal", *map(str, argv)], stdout=subprocess.DEVNULL,
-                            stderr=subprocess.PIPE, text=True, env=dict(os.environ, **(env or {})))
-    try:
-        err = proc.stderr.read()
-    finally:
-        _, status, usage = os.wait4(proc.pid, 0)
-        proc.returncode = os.waitstatus_to_exitcode(status)
-    return proc.returncode, err, usage.ru_maxrss * 1024.0  # Linux reports kilobytes
+    """(exit status, stderr, peak resident bytes) of `flockcal ARGV` in a child process."""
+    rc, err, peak, _ = run_flockcal(*argv, env=env, timeout=600)
+    return rc, err, peak
 
 
 def zip_bomb(path: Path, frames: int, sensors: int) -> None:
@@ -108,8 +100,8 @@ def test_a_take_loaded_whole_must_fit_in_the_memory_available(tmp_path, monkeypa
 def test_convert_memory_does_not_grow_with_the_recording(tmp_path):
     # Tried: `convert` of a 1-minute and a 6-minute recording of 4 sensors at 100 Hz (0.4 and 2.6 MB).
     # Each peak is held to the documented bound; the longer one's to the shorter one's plus the growth of
-    # the file itself, with 8 MB for the allocator's noise. Before chunked decoding, convert's peak grew by
-    # 12.5 to 15.7 times the file's growth (471 MB for a 30 MB recording; benchmarks/bench_memory.py).
+    # the file itself, with 8 MB for the allocator's noise. Before chunked decoding, convert's peak grew 21
+    # times as much as the file here (44 → 88 MB for these two; benchmarks/bench_memory.py: 706 MB for 45 MB).
     peaks, sizes = [], []
     for minutes in (1, 6):
         raw = tmp_path / f"{minutes}.fobraw"
