@@ -13,6 +13,7 @@ from dataclasses import dataclass, field, fields, replace
 import numpy as np
 
 from flockcal.frames import Frames, frames_of
+from flockcal.take_files import chunk_frames
 from flockcal.solver.accumulator import BLOCK, GramAccumulator
 from flockcal.solver.calibration import Bones, Calibration, calibrate
 from flockcal.solver.calibration import joint_bones as _joint_bones
@@ -351,11 +352,12 @@ class SegmentView:
         return out
 
 
-def segmented_from_take(take, events, piece: int = 8192) -> SegmentedAccumulator:
+def segmented_from_take(take, events, piece: int | None = None) -> SegmentedAccumulator:
     """A SegmentedAccumulator over a whole recorded take, with a segment opened at each slip event
-    (`take` as for `detect_slips`: a take file is read `piece` frames at a time; `events` from it, or
-    stored events with time_s and sensor_index)."""
+    (`take` as for `detect_slips`: a take file is read `piece` frames at a time, by default about 8 MB of
+    arrays; `events` from it, or stored events with time_s and sensor_index)."""
     m = len(take.names) if getattr(take, "names", None) is not None else np.shape(take.rotations)[1]
+    piece = piece or chunk_frames(m)
     seg = SegmentedAccumulator(m)
     seg._snaps = deque()  # offline: keep a snapshot at every event time, however far apart
     cuts = sorted({float(e.time_s) for e in events})
@@ -399,11 +401,15 @@ class _SegmentFeed:
             return
         self.held.append(frames)
         self.count += len(frames)
-        while self.count > self.piece + BLOCK:
-            whole = Frames.concat(self.held, frames.n_sensors)
-            self._put(whole[: self.piece])
-            rest = whole[self.piece:]
-            self.held, self.count = [rest], len(rest)
+        if self.count <= self.piece + BLOCK:
+            return
+        whole, a = Frames.concat(self.held, frames.n_sensors), 0
+        while self.count - a > self.piece + BLOCK:
+            self._put(whole[a:a + self.piece])
+            a += self.piece
+        rest = whole[a:]  # copied, so the concatenation is not kept alive by a view of its tail
+        self.held = [Frames(*(np.array(getattr(rest, k)) for k in ("times", "rotations", "positions", "valid")))]
+        self.count = len(rest)
 
     def end(self) -> None:
         if self.held:
