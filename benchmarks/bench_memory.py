@@ -39,7 +39,7 @@ def report(label: str, path: Path, result, reference=None) -> None:
             f"bound {bound / MB:8.1f} MB  peak/bound {peak / bound:5.2f}  {secs:6.1f} s  exit {rc}")
     if reference is not None:
         line += f"  | reference peak {reference[1] / MB:8.1f} MB ({reference[1] / size:5.2f} × the file), " \
-                f"this/reference {peak / reference[1]:5.2f}"
+                f"{reference[2]:6.1f} s; this/reference: peak {peak / reference[1]:5.2f}, time {secs / reference[2]:5.2f}"
     print(line, flush=True)
     if rc not in (0, 3):
         print(f"         {last}")

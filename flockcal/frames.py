@@ -12,6 +12,11 @@ from dataclasses import dataclass
 
 import numpy as np
 
+CHUNK_BYTES = 8 * 2**20  # frames per chunk of a take read piece by piece: about this much of float64 arrays
+# Chunks hold a multiple of the accumulator's 256-frame block: its sums come out bit for bit the same
+# whatever the chunk size, so `fit --json` of a file read in chunks is what it was for the whole take.
+ROW_ALIGN = 256
+
 
 @dataclass(frozen=True)
 class Frames:
@@ -72,3 +77,9 @@ def frames_of(take, size: int) -> Iterator[Frames]:
     for a in range(0, n, max(1, int(size))):
         b = min(n, a + max(1, int(size)))
         yield Frames(times[a:b], R[a:b], t[a:b], valid[a:b])
+
+
+def chunk_frames(m: int, budget: int = CHUNK_BYTES) -> int:
+    """Frames of `m` sensors per chunk: about `budget` bytes of arrays, a multiple of ROW_ALIGN."""
+    per_frame = m * (9 + 3) * 8 + m + 8
+    return max(ROW_ALIGN, budget // per_frame // ROW_ALIGN * ROW_ALIGN)

@@ -12,21 +12,9 @@ from pathlib import Path
 import numpy as np
 
 from flockcal import npz
-from flockcal.frames import Frames
+from flockcal.frames import Frames, chunk_frames
 from flockcal.takes import (TakeError, check_finite, check_names, check_rate, check_shapes, check_times,
                             describe_arrays)
-
-CHUNK_BYTES = 8 * 2**20  # frames per chunk: about this much of float64 arrays (a pass holds a few times that)
-# Chunks hold a multiple of the accumulator's 256-frame block: its sums come out bit for bit the same
-# whatever the chunk size, so `fit --json` of a file read in chunks is what it was for the whole take.
-ROW_ALIGN = 256
-
-
-def chunk_frames(m: int, budget: int = CHUNK_BYTES) -> int:
-    """Frames of `m` sensors per chunk: about `budget` bytes of arrays, a multiple of ROW_ALIGN."""
-    per_frame = m * (9 + 3) * 8 + m + 8
-    return max(ROW_ALIGN, budget // per_frame // ROW_ALIGN * ROW_ALIGN)
-
 
 class TakeFile:
     """A take .npz read a chunk of frames at a time, as often as asked: memory stays a chunk (and the

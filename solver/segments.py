@@ -12,8 +12,7 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
-from flockcal.frames import Frames, frames_of
-from flockcal.take_files import chunk_frames
+from flockcal.frames import Frames, chunk_frames, frames_of
 from flockcal.solver.accumulator import BLOCK, GramAccumulator
 from flockcal.solver.calibration import Bones, Calibration, calibrate
 from flockcal.solver.calibration import joint_bones as _joint_bones

@@ -76,9 +76,8 @@ def accumulate(take, progress: bool = True):
     """A GramAccumulator over the whole take (a Take, or a take file read a chunk at a time), with a
     progress bar on a terminal once it takes a while."""
     from flockcal.bars import bar
-    from flockcal.frames import frames_of
+    from flockcal.frames import chunk_frames, frames_of
     from flockcal.solver.accumulator import GramAccumulator
-    from flockcal.take_files import chunk_frames
 
     m = len(take.names)
     acc = GramAccumulator(m)

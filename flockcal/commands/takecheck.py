@@ -30,8 +30,7 @@ def determined_joints(cal) -> np.ndarray:
 
 def too_short(take) -> str | None:
     """Why `take` (a Take, or a take file read a chunk at a time) is too short to fit, or None."""
-    from flockcal.frames import frames_of
-    from flockcal.take_files import chunk_frames
+    from flockcal.frames import chunk_frames, frames_of
 
     both, first, last = 0, 0.0, 0.0
     for k, f in enumerate(frames_of(take, chunk_frames(len(take.names)))):
