@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from flockcal import npz
-from flockcal.frames import Frames, chunk_frames
+from flockcal.frames import CHUNK_BYTES, Frames, chunk_frames
 from flockcal.takes import (TakeError, check_finite, check_names, check_rate, check_shapes, check_times,
                             describe_arrays)
 
@@ -52,7 +52,9 @@ class TakeFile:
         check_names(source, self.names)
         self.rate_hz = check_rate(source, rate)
         self.has = {k for k in ("valid", "times") if k in arrays}
-        self.chunk = chunk_frames(self.m)
+        # Its own chunks (size=None: what the exports play) are a quarter of a read chunk: reconstruction and
+        # Euler angles hold ~10 arrays of a chunk's size (as the service's FrameFile.play_frames).
+        self.chunk = chunk_frames(self.m, CHUNK_BYTES // 4)
 
     @property
     def n_frames(self) -> int:
@@ -63,7 +65,7 @@ class TakeFile:
         return self.m
 
     def chunks(self, size: int | None = None) -> Iterator[Frames]:
-        """The frames in order, `size` at a time (None: about 16 MB of arrays at a time)."""
+        """The frames in order, `size` at a time (None: about 2 MB of arrays at a time)."""
         step = self.chunk if size is None else max(1, int(size))
         source = str(self.path)
         try:
