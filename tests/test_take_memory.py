@@ -5,7 +5,9 @@ flockcal's command line as the installed `flockcal` runs it, and reports its own
 
 from __future__ import annotations
 
+import gc
 import struct
+import tempfile
 import zipfile
 import zlib
 from pathlib import Path
@@ -18,6 +20,7 @@ from flockcal import npz
 from flockcal.drivers.recording import read_recording
 from flockcal.simulator.fast_recording import write_recording
 from flockcal.simulator.smooth_source import SmoothSource
+from flockcal.take_files import TakeFile
 from flockcal.takes import TakeError, load_take, make_take, save_take
 from peak_memory import run_flockcal
 
@@ -171,3 +174,30 @@ def test_junk_chunks_with_valid_checksums_are_counted_located_and_skipped(tmp_pa
     assert rc == 2 and err.count("\n") == 1, err
     assert "never reached streaming" in err and "200 junk chunks (200,000 bytes)" in err, err
     assert not (tmp_path / "alone.npz").exists()
+
+
+def test_a_take_file_read_again_gives_the_same_frames_and_leaves_no_spool(tmp_path, monkeypatch):
+    # Tried: a take file read in chunks of 1,000 frames, first a pass stopped after one chunk (as a rest-pose
+    # search stops), then two whole passes (the second from the spooled arrays), each frame compared with
+    # load_take's; then the TakeFile dropped. Its temporary folder must be gone after each of these.
+    monkeypatch.setenv("TMPDIR", str(tmp_path / "tmp"))
+    (tmp_path / "tmp").mkdir()
+    monkeypatch.setattr(tempfile, "tempdir", None)  # TMPDIR is read again
+    src = SmoothSource(4)
+    t = np.arange(5_500) / 100
+    R, p, v = src.poses(t)
+    v[::7, 2] = False
+    save_take(tmp_path / "t.npz", make_take(R, p, src.names, 100.0, valid=v, times=t))
+    whole = load_take(tmp_path / "t.npz")
+    take = TakeFile(tmp_path / "t.npz")
+    next(iter(take.chunks(1000)))
+    assert list((tmp_path / "tmp").iterdir()) == []
+    for _ in range(2):
+        got = list(take.chunks(1000))
+        assert [len(f) for f in got] == [1000] * 5 + [500]
+        for name in ("times", "rotations", "positions", "valid"):
+            assert np.array_equal(np.concatenate([getattr(f, name) for f in got]), getattr(whole, name)), name
+    assert len(list((tmp_path / "tmp").iterdir())) == 1
+    del take, got
+    gc.collect()
+    assert list((tmp_path / "tmp").iterdir()) == []
