@@ -177,7 +177,7 @@ class TakeWriter:
     """A take .npz written from `Frames` as they come: each batch checked as `make_take` checks a whole
     take (its sensors, NaN in valid sensor-frames, times going backwards), times counted from the first
     frame, invalid sensor-frames zeroed; `commit()` writes the file atomically (nothing is left at `path`
-    before, or after a failure). Memory holds one batch; the arrays wait on disk beside `path`."""
+    before, or after a failure). Memory holds about a quarter chunk; the arrays wait on disk beside `path`."""
 
     def __init__(self, path: str | os.PathLike, names, rate_hz: float, source: str = "take",
                  extra: dict | None = None):
@@ -189,17 +189,32 @@ class TakeWriter:
         self._npz = npz.Writer(path)
         self._t0: float | None = None
         self._last = -np.inf
-        self.n_frames = 0
+        self.n_frames = 0  # frames written (all appended ones after commit)
         self.valid_count = 0
+        # Batches are gathered to about a quarter chunk before they are checked and written: a recording's
+        # decode hands over a few frames at a time, and each write has its cost.
+        self._pending: list[Frames] = []
+        self._pending_n = 0
+        self._batch = chunk_frames(len(self.names), CHUNK_BYTES // 4)
 
     def append(self, frames: Frames) -> None:
-        n = len(frames)
-        if n == 0:
+        if len(frames) == 0:
             return
         m = len(self.names)
         if frames.n_sensors != m:
             raise TakeError(f"{self.source}: frames of {frames.n_sensors} sensors after {m} names; a take keeps its "
                             f"sensors")
+        self._pending.append(frames)
+        self._pending_n += len(frames)
+        if self._pending_n >= self._batch:
+            self._write()
+
+    def _write(self) -> None:
+        if not self._pending:
+            return
+        frames = Frames.concat(self._pending, len(self.names))
+        self._pending, self._pending_n = [], 0
+        n = len(frames)
         R = np.asarray(frames.rotations, dtype=float)
         t = np.asarray(frames.positions, dtype=float)
         v = np.asarray(frames.valid, dtype=bool)
@@ -222,6 +237,7 @@ class TakeWriter:
         return self.valid_count / max(1, self.n_frames * len(self.names))
 
     def commit(self) -> None:
+        self._write()
         if self.n_frames == 0:
             self.discard()
             raise TakeError(f"{self.source}: the take has no frames")
