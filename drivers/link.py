@@ -29,6 +29,7 @@ from flockcal.drivers.parameters import (
 from flockcal.drivers.records import FORMATS, record_length
 from flockcal.drivers.status import ERROR_CODES, BirdStatus, decode_flock_status, decode_status_word, error_is_fatal
 from flockcal.drivers.words import pack_words, unpack_words
+from flockcal.clock import SYSTEM
 from flockcal.drivers.errors import TrackerError
 
 log = logging.getLogger(__name__)
@@ -221,14 +222,14 @@ class FlockLink:
         """
         try:
             self.port.rts = True
-            time.sleep(self.timing.reset_hold)
+            SYSTEM.sleep(self.timing.reset_hold)
             self.port.rts = False
             self.modem_lines = True
         except (OSError, serial.SerialException, ValueError):
             self.modem_lines = False
             log.debug("%s: no modem lines (RTS reset skipped)", self.url)
             return False
-        time.sleep(self.timing.reset_settle)
+        SYSTEM.sleep(self.timing.reset_settle)
         return True
 
     def command(self, data: bytes, address: int = 0, addressing: str = "normal") -> None:
@@ -501,9 +502,9 @@ def configure_flock(links: list[FlockLink], *, birds: int, rate_hz: float | None
 
     addresses = list(range(1, birds + 1))
     if birds > 1:
-        time.sleep(timing.autoconfig)
+        SYSTEM.sleep(timing.autoconfig)
         master.change(50, birds)
-        time.sleep(timing.autoconfig)
+        SYSTEM.sleep(timing.autoconfig)
         status = decode_flock_status(_examine(master, 36, 0, addressing))
         for i, a in enumerate(addresses):
             if not status.accessible[a - 1]:

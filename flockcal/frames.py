@@ -83,3 +83,24 @@ def chunk_frames(m: int, budget: int = CHUNK_BYTES) -> int:
     """Frames of `m` sensors per chunk: about `budget` bytes of arrays, a multiple of ROW_ALIGN."""
     per_frame = m * (9 + 3) * 8 + m + 8
     return max(ROW_ALIGN, budget // per_frame // ROW_ALIGN * ROW_ALIGN)
+
+
+def rechunked(parts: Iterator[Frames], size: int, m: int) -> Iterator[Frames]:
+    """The frames of `parts` (batches of any lengths, in order) again, exactly `size` at a time (the last
+    batch shorter)."""
+    held: list[Frames] = []
+    count = 0
+    for part in parts:
+        if not len(part):
+            continue
+        held.append(part)
+        count += len(part)
+        if count < size:
+            continue
+        whole, a = Frames.concat(held, m), 0
+        while count - a >= size:
+            yield whole[a:a + size]
+            a += size
+        held, count = ([whole[a:]], count - a) if count > a else ([], 0)
+    if count:
+        yield Frames.concat(held, m)

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from flockcal import npz
-from flockcal.frames import CHUNK_BYTES, Frames, chunk_frames
+from flockcal.frames import CHUNK_BYTES, Frames, chunk_frames, rechunked
 from flockcal.takes import (TakeError, check_finite, check_names, check_rate, check_shapes, check_times,
                             describe_arrays)
 
@@ -176,26 +176,29 @@ class _Spool:
 class TakeWriter:
     """A take .npz written from `Frames` as they come: each batch checked as `make_take` checks a whole
     take (its sensors, NaN in valid sensor-frames, times going backwards), times counted from the first
-    frame, invalid sensor-frames zeroed; `commit()` writes the file atomically (nothing is left at `path`
-    before, or after a failure). Memory holds about a quarter chunk; the arrays wait on disk beside `path`."""
+    frame, invalid sensor-frames zeroed, and with `unfold` (a `HemisphereUnfold`) the hemisphere flips undone
+    `unfold.CHUNK` frames at a time from the first, as unfolding the whole take does; `commit()` writes the
+    file atomically (nothing is left at `path` before, or after a failure). Memory holds about a quarter
+    chunk; the arrays wait on disk beside `path`."""
 
     def __init__(self, path: str | os.PathLike, names, rate_hz: float, source: str = "take",
-                 extra: dict | None = None):
+                 extra: dict | None = None, unfold=None):
         self.source = source
         self.names = tuple(str(x) for x in names)
         check_names(source, self.names)
         self.rate_hz = check_rate(source, rate_hz)
         self.extra = dict(extra or {})
+        self.unfold = unfold
         self._npz = npz.Writer(path)
         self._t0: float | None = None
         self._last = -np.inf
         self.n_frames = 0  # frames written (all appended ones after commit)
         self.valid_count = 0
-        # Batches are gathered to about a quarter chunk before they are checked and written: a recording's
-        # decode hands over a few frames at a time, and each write has its cost.
+        # Batches are gathered to whole blocks before they are checked and written: a recording's decode
+        # hands over a few frames at a time, each write has its cost, and the unfolding decides per block.
         self._pending: list[Frames] = []
         self._pending_n = 0
-        self._batch = chunk_frames(len(self.names), CHUNK_BYTES // 4)
+        self._batch = unfold.CHUNK if unfold is not None else chunk_frames(len(self.names), CHUNK_BYTES // 4)
 
     def append(self, frames: Frames) -> None:
         if len(frames) == 0:
@@ -209,11 +212,18 @@ class TakeWriter:
         if self._pending_n >= self._batch:
             self._write()
 
-    def _write(self) -> None:
+    def _write(self, final: bool = False) -> None:
+        """Check and write the whole blocks gathered (and with `final` the rest too)."""
         if not self._pending:
             return
-        frames = Frames.concat(self._pending, len(self.names))
-        self._pending, self._pending_n = [], 0
+        whole = Frames.concat(self._pending, len(self.names))
+        cut = len(whole) if final else len(whole) // self._batch * self._batch
+        rest = whole[cut:]
+        self._pending, self._pending_n = ([rest], len(rest)) if len(rest) else ([], 0)
+        for a in range(0, cut, self._batch):
+            self._block(whole[a:a + self._batch])
+
+    def _block(self, frames: Frames) -> None:
         n = len(frames)
         R = np.asarray(frames.rotations, dtype=float)
         t = np.asarray(frames.positions, dtype=float)
@@ -227,6 +237,8 @@ class TakeWriter:
         if not v.all():
             R = np.where(v[..., None, None], R, 0.0)
             t = np.where(v[..., None], t, 0.0)
+        if self.unfold is not None:
+            t = self.unfold.feed(ts, t, v)
         for name, rows in (("rotations", R), ("positions", t), ("valid", v), ("times", ts)):
             self._npz.append(name, rows)
         self.n_frames += n
@@ -237,7 +249,7 @@ class TakeWriter:
         return self.valid_count / max(1, self.n_frames * len(self.names))
 
     def commit(self) -> None:
-        self._write()
+        self._write(final=True)
         if self.n_frames == 0:
             self.discard()
             raise TakeError(f"{self.source}: the take has no frames")
@@ -275,3 +287,30 @@ class ScaledTake:
     def chunks(self, size: int | None = None) -> Iterator[Frames]:
         for f in self.take.chunks(size):
             yield Frames(f.times, f.rotations, f.positions * self.factor, f.valid)
+
+
+class UnfoldedTake:
+    """A ChunkedTake with its hemisphere flips undone as it is read (flockcal/hemisphere_unfold.py): each
+    pass feeds a fresh `HemisphereUnfold` the frames `HemisphereUnfold.CHUNK` at a time from the first, whose
+    decisions rest on those chunks, so every pass gives the positions unfolding the whole take gives."""
+
+    def __init__(self, take, hemisphere: str | None = None):
+        self.take, self.hemisphere = take, hemisphere
+        self.names, self.rate_hz = take.names, take.rate_hz
+
+    @property
+    def n_frames(self) -> int:
+        return self.take.n_frames
+
+    @property
+    def n_sensors(self) -> int:
+        return len(self.names)
+
+    def chunks(self, size: int | None = None) -> Iterator[Frames]:
+        from flockcal.hemisphere_unfold import HemisphereUnfold
+
+        unfold = HemisphereUnfold(len(self.names), self.hemisphere)
+        step = HemisphereUnfold.CHUNK
+        parts = (Frames(f.times, f.rotations, unfold.feed(f.times, f.positions, f.valid), f.valid)
+                 for f in self.take.chunks(step))
+        yield from rechunked(parts, step if size is None else max(1, int(size)), len(self.names))

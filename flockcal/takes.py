@@ -27,7 +27,44 @@ class TakeError(FlockcalError, ValueError):
 
 @dataclass(frozen=True)
 class Take:
-    """Frames of one recording, in SI units, validated on construction."""
+    """Frames of one recording, in SI units, validated on construction.
+
+    Build one with `make_take` (which checks the arrays) or read one with `load_take`; a `Take` is
+    frozen: derive another with `dataclasses.replace`. n frames of m sensors:
+
+    Attributes
+    ----------
+    rotations : ndarray, shape (n, m, 3, 3)
+        Each sensor's orientation, body to world (the transmitter's frame).
+    positions : ndarray, shape (n, m, 3)
+        Each sensor's position, metres.
+    names : tuple of str
+        The m sensor names, unique.
+    rate_hz : float
+        The nominal frame rate.
+    valid : ndarray of bool, shape (n, m)
+        False where a sensor-frame was not measured; its rotation and position hold zeros.
+    times : ndarray, shape (n,)
+        Seconds since the first frame, never going backwards.
+    extra : dict
+        Any further arrays the file carried, kept as they were.
+
+    See Also
+    --------
+    flockcal.fit : fit a take.
+    ChunkedTake : what reads a take a chunk of frames at a time; a Take is one.
+
+    Examples
+    --------
+    >>> import flockcal
+    >>> take, _ = flockcal.simulate(motion="exercise", seconds=2, birds=3, seed=1)
+    >>> take.names, take.n_frames, take.rate_hz
+    (('pelvis', 'chest', 'head'), 200, 100.0)
+    >>> take.rotations.shape, take.positions.shape
+    ((200, 3, 3, 3), (200, 3, 3))
+    >>> take.index("head")
+    2
+    """
 
     rotations: np.ndarray  # (n, m, 3, 3) float64
     positions: np.ndarray  # (n, m, 3) float64, metres
@@ -88,7 +125,52 @@ def make_take(
     extra: dict | None = None,
     source: str = "take",
 ) -> Take:
-    """Build a validated Take from arrays; raises TakeError naming the first problem found."""
+    """Build a validated `Take` from arrays.
+
+    Parameters
+    ----------
+    rotations : array_like, shape (n, m, 3, 3)
+        Each sensor's orientation as a rotation matrix, body to world.
+    positions : array_like, shape (n, m, 3)
+        Each sensor's position in metres.
+    names : sequence of str
+        The m sensor names: unique, none blank.
+    rate_hz : float
+        The frame rate, positive.
+    valid : array_like of bool, shape (n, m), optional
+        False where a sensor-frame was not measured (what it holds is then ignored and stored as
+        zeros). By default every sensor-frame is valid.
+    times : array_like, shape (n,), optional
+        Seconds, never going backwards. By default ``arange(n) / rate_hz``.
+    extra : dict, optional
+        Further arrays to keep with the take (`save_take` writes them too).
+    source : str, default "take"
+        What the arrays came from, to begin each error message.
+
+    Returns
+    -------
+    Take
+
+    Raises
+    ------
+    flockcal.takes.TakeError
+        Naming the first problem found: shapes that disagree, fewer than two sensors, repeated or blank
+        names, a rate that is not a positive number, NaN or inf in a valid sensor-frame, times that go
+        backwards.
+
+    Examples
+    --------
+    >>> import numpy as np, flockcal
+    >>> n = 100
+    >>> rotations = np.broadcast_to(np.eye(3), (n, 2, 3, 3))
+    >>> positions = np.zeros((n, 2, 3)); positions[:, 1, 0] = 0.3   # the second sensor 30 cm along x
+    >>> take = flockcal.make_take(rotations, positions, ["upper_arm", "forearm"], rate_hz=100.0)
+    >>> take.n_frames, take.n_sensors, float(take.times[-1])
+    (100, 2, 0.99)
+    >>> flockcal.make_take(rotations, positions, ["arm", "arm"], rate_hz=100.0)
+    Traceback (most recent call last):
+    flockcal.takes.TakeError: take: sensor names must be unique; repeated: arm
+    """
     R = np.asarray(rotations, dtype=float)
     t = np.asarray(positions, dtype=float)
     names = tuple(str(x) for x in np.atleast_1d(np.asarray(names)).tolist())
@@ -173,7 +255,38 @@ def check_times(source: str, ts: np.ndarray, before: float = -np.inf) -> None:
 
 
 def load_take(path: str | os.PathLike) -> Take:
-    """Read a take .npz; raises TakeError for a missing, corrupt or inconsistent file."""
+    """Read a take: the .npz interchange of docs/design.md §5.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        A .npz file holding `rotations`, `positions`, `names` and `rate_hz`, and optionally `valid` and
+        `times` (what ``flockcal simulate``, ``flockcal convert`` and `save_take` write).
+
+    Returns
+    -------
+    Take
+        Its frames, checked as `make_take` checks them; arrays the file holds besides are in ``.extra``.
+
+    Raises
+    ------
+    flockcal.takes.TakeError
+        The file is missing, truncated, not an .npz, lacks an array or holds inconsistent ones. The
+        message names the file and the fix.
+
+    Examples
+    --------
+    >>> import pathlib, tempfile, flockcal
+    >>> take, _ = flockcal.simulate(motion="exercise", seconds=2, birds=3, seed=1)
+    >>> path = pathlib.Path(tempfile.mkdtemp()) / "take.npz"
+    >>> flockcal.save_take(path, take)
+    >>> back = flockcal.load_take(path)
+    >>> back.names == take.names and bool((back.positions == take.positions).all())
+    True
+    >>> flockcal.load_take(path.with_name("absent.npz"))  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    flockcal.takes.TakeError: .../absent.npz: no such file
+    """
     path = Path(path)
     if not path.exists():
         raise TakeError(f"{path}: no such file")
@@ -195,7 +308,35 @@ def load_take(path: str | os.PathLike) -> Take:
 
 
 def save_take(path: str | os.PathLike, take: Take) -> None:
-    """Write a take .npz (atomically: a crash never leaves a half-written file under `path`)."""
+    """Write a take as the .npz interchange of docs/design.md §5, atomically.
+
+    The file is written beside `path` and renamed into place: a crash or a full disk never leaves a
+    half-written file under `path`, and an old file there stays as it was until the new one is whole.
+
+    Parameters
+    ----------
+    path : str or os.PathLike
+        Where to write (conventionally ending in .npz). Its folder must exist.
+    take : Take
+        The take; its ``extra`` arrays are written too.
+
+    Raises
+    ------
+    flockcal.atomic.OutputError
+        The file could not be written (a folder that does not exist, a full disk); nothing is left behind.
+
+    Examples
+    --------
+    >>> import pathlib, tempfile, flockcal
+    >>> folder = pathlib.Path(tempfile.mkdtemp())
+    >>> take, _ = flockcal.simulate(motion="walk", seconds=1, birds=2, seed=1)
+    >>> flockcal.save_take(folder / "walk.npz", take)
+    >>> sorted(p.name for p in folder.iterdir())          # the file, and no temporary one beside it
+    ['walk.npz']
+    >>> flockcal.save_take(folder / "no-such-folder" / "walk.npz", take)  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    flockcal.atomic.OutputError: cannot write .../no-such-folder/walk.npz: No such file or directory; ...
+    """
     write_npz(
         path,
         rotations=take.rotations,

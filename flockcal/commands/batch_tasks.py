@@ -102,14 +102,16 @@ def take_kind(path: str) -> str:
 
 
 def load_sensor_take(path: str):
-    """The `Take` `fit` reads: an .npz as it is, a .fobraw as `flockcal convert` turns it into one."""
+    """The `Take` `fit` reads: an .npz with its hemisphere flips undone as `fit` undoes them, a .fobraw as
+    `flockcal convert` turns it into one."""
     if Path(path).suffix.lower() == ".fobraw":
         from flockcal.commands.record import recording_take
 
         return recording_take(path)
+    from flockcal.hemisphere_unfold import unfold_take
     from flockcal.takes import load_take
 
-    return load_take(path)
+    return unfold_take(load_take(path))[0]
 
 
 def shared_origin(paths: list[str]) -> np.ndarray | None:

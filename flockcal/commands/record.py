@@ -213,6 +213,11 @@ def _replay(args) -> int:
     for e in out.events:
         if e.get("event") not in ("resync", "hemisphere_flip"):
             print(f"  {e['event']}: {e.get('message', '')}")
+    if len(f):
+        from flockcal.hemisphere_unfold import unfold_positions
+
+        _, how = unfold_positions(f.times, f.positions, f.valid, setup.get("hemisphere"))
+        print(how.summary(names or default_names(f.valid.shape[1])) or "no hemisphere flips left to unfold")
     return 0
 
 
@@ -221,7 +226,8 @@ def _convert(args) -> int:
     from flockcal.commands.takecheck import PARTIAL_EXIT
 
     check_output(args.output)
-    take, out = convert_recording(args.recording, args.output, names=args.names, salvage=args.salvage)
+    take, out = convert_recording(args.recording, args.output, names=args.names, salvage=args.salvage,
+                                  command="convert")
     print(f"wrote {args.output}: {take.n_frames} frames of {len(take.names)} sensors ({', '.join(take.names)}), "
           f"{take.valid_fraction:.1%} valid", file=sys.stderr)
     if out.junk:
@@ -231,12 +237,16 @@ def _convert(args) -> int:
     return 0
 
 
-def convert_recording(path: str, output: str, names: str | None = None, salvage: bool = False):
+def convert_recording(path: str, output: str, names: str | None = None, salvage: bool = False,
+                      command: str | None = None):
     """Decode the .fobraw at `path` into the take `output` a chunk at a time (what `flockcal convert` does):
-    memory stays a read block and a batch of frames whatever the recording's length, and nothing is left
-    at `output` when it fails. (the TakeWriter, for its counts; the Replay, without frames, for its junk)."""
+    decoded as the live reader decodes it, the hemisphere flips the reader could not undo undone as `fit`
+    undoes them (`command`, when given, says on stderr how many frames that unfolded), written as it comes.
+    Memory stays a read block and a batch of frames whatever the recording's length, and nothing is left at
+    `output` when it fails. (the TakeWriter, for its counts; the Replay, without frames, for its junk)."""
     from flockcal.bars import bar
     from flockcal.drivers.recording import ChunkReader, Decoder, RecordingError, decode_recording
+    from flockcal.hemisphere_unfold import HemisphereUnfold
     from flockcal.take_files import TakeWriter
 
     reader = ChunkReader(path, salvage)
@@ -246,7 +256,8 @@ def convert_recording(path: str, output: str, names: str | None = None, salvage:
         setup = dec.setups[-1]
         if not made:
             given = take_names(path, names, reader.settings, f.n_sensors)
-            made.append(TakeWriter(output, given, setup["rate_hz"], source=path))
+            unfold = HemisphereUnfold(len(given), setup.get("hemisphere"))
+            made.append(TakeWriter(output, given, setup["rate_hz"], source=path, unfold=unfold))
         check_carried(path, f, setup)
         made[0].append(f)
 
@@ -269,19 +280,27 @@ def convert_recording(path: str, output: str, names: str | None = None, salvage:
                             f"nothing to decode")
         if not made:
             raise RecordingError(f"{path}: no complete frame could be decoded")
-        made[0].rate_hz = out.setups[-1]["rate_hz"]
-        made[0].commit()
-        return made[0], out
+        writer = made[0]
+        writer.rate_hz = out.setups[-1]["rate_hz"]
+        writer.commit()
+        note = writer.unfold.summary(writer.names)
+        if note and command is not None:
+            print(f"flockcal {command}: {path}: {note}", file=sys.stderr)
+        return writer, out
     except BaseException:
         if made:
             made[0].discard()
         raise
 
 
-def recording_take(path: str, names: str | None = None, salvage: bool = False):
+def recording_take(path: str, names: str | None = None, salvage: bool = False, command: str | None = None):
     """The `Take` `flockcal convert` writes for a .fobraw recording, in memory (`flockcal batch` fits it the
-    same way)."""
+    same way): decoded as the live reader decodes it, then the hemisphere flips the reader could not undo
+    (sensors outside the hemisphere from the start, or a recording made without tracking it) undone as `fit`
+    undoes them; `command`, when given, says on stderr how many frames that unfolded."""
+    from flockcal.commands.outputs import unfolded
     from flockcal.drivers.recording import RecordingError
+    from flockcal.hemisphere_unfold import unfold_take
     from flockcal.takes import make_take
 
     rec, replay = _load(path, salvage)
@@ -292,8 +311,11 @@ def recording_take(path: str, names: str | None = None, salvage: bool = False):
     setup = out.setups[-1]
     names = take_names(path, names, rec.settings, f.valid.shape[1])
     check_carried(path, f, setup)
-    return make_take(f.rotations, f.positions, names, setup["rate_hz"], valid=f.valid, times=f.times - f.times[0],
+    take = make_take(f.rotations, f.positions, names, setup["rate_hz"], valid=f.valid, times=f.times - f.times[0],
                      source=path)
+    if command is None:
+        return unfold_take(take, setup.get("hemisphere"))[0]
+    return unfolded(take, command, path, setup.get("hemisphere"))
 
 
 def take_names(path: str, names: str | None, settings: dict, m: int) -> list[str]:

@@ -24,7 +24,8 @@ from flockcal.solver.slippage.framestep import FrameStep, frame_steps, noise_law
 from flockcal.solver.slippage.baseline import SmoothBaseline, neighbours, smooth_baseline
 from flockcal.solver.slippage.pending import PendingSuspicions, Suspicion
 from flockcal.solver.slippage.revisit import CAME_BACK_NATS, PoseHistory, came_back
-from flockcal.solver.slippage.stats import joint_geometry, local_variance, residual, window_glr
+from flockcal.solver.slippage.stats import (best_step, glr_candidates, joint_geometry, local_variance, present, residual,
+                                            touching)
 
 
 class SlippageError(FlockcalError, ValueError):
@@ -278,7 +279,7 @@ class SlipMonitor:
         p = len(J)
         start = np.full(p, self._t0)
         for ev in self.events:
-            touched = np.isin(J, [ev.sensor_index] if ev.kind == "slip" else list(ev.sensor_indices)).any(axis=1)
+            touched = touching(J, [ev.sensor_index] if ev.kind == "slip" else list(ev.sensor_indices))
             start = np.where(touched, np.fmax(start, ev.time_s), start)
         self.segment_start = np.where(kept, self.segment_start[k], start)
         self._quiet = np.where(kept, self._quiet[k], -1)
@@ -370,10 +371,12 @@ class SlipMonitor:
         ready = self.ready & finite
         out: list = []
         j = 0
+        candidates = None
         while j < len(ends):
             if not self._pending and not ready.any():
                 break
-            score, start, first_row = self._scan(first, step_last[j:], ready)
+            candidates = candidates or self._candidates(first, step_last)
+            score, start, first_row = self._scan(candidates, j, ready)
             hit = score >= self.threshold  # (steps j…, p)
             for k in range(j, len(ends)):
                 self.score = score[k - j]
@@ -394,18 +397,26 @@ class SlipMonitor:
             j = k + 1
         return out
 
-    def _scan(self, first: int, lasts: list[int], ready):
-        """The step test at the last frames `lasts` of some steps: scores and starts (steps, p)."""
+    def _candidates(self, first: int, lasts: list[int]):
+        """The step test's evidence at the last frames `lasts` of a block's steps, for every candidate start
+        (`glr_candidates`): the block's deviations stay as they are while its steps are tested, so one
+        computation serves every round of them; `_scan` picks each round's best."""
         buf = self._buf
         sl = slice(buf.slot(first), buf.slot(lasts[-1]) + 1)
         first_row = buf.index_of(sl.start)
-        earliest = np.maximum(self._quiet, 0) - first_row
         xs = np.concatenate([buf.dx[sl], buf.dy[sl]], axis=1)  # child-frame and parent-frame series side by side
         w = buf.w[sl]
         ws = np.concatenate([w, w], axis=1)
         # One end per step, its last frame: a step that stays only gains evidence with time.
-        score, start = window_glr(xs, ws, np.asarray(lasts) - first_row, self.window, 0.5 * self.min_jump,
-                                  self.min_frames, np.concatenate([earliest, earliest]))
+        g, usable, tau = glr_candidates(xs, ws, np.asarray(lasts) - first_row, self.window, 0.5 * self.min_jump,
+                                        self.min_frames)
+        return g, usable, tau, first_row
+
+    def _scan(self, candidates, j: int, ready):
+        """The step test at the block's steps from the j-th on: scores and starts (steps, p)."""
+        g, usable, tau, first_row = candidates
+        earliest = np.maximum(self._quiet, 0) - first_row
+        score, start = best_step(g[j:], usable[j:], tau[j:], np.concatenate([earliest, earliest]))
         p = len(self.joints)
         which = score[:, p:] > score[:, :p]
         score = np.where(which, score[:, p:], score[:, :p])
@@ -507,7 +518,7 @@ class SlipMonitor:
         base = buf.index_of(rows.start)
         pv = buf.pv[rows] & (buf.times[rows][:, None] >= self.segment_start[None, :])  # as the other tests mask
         law = self._noise_law(c, l)
-        sensors = np.unique(self.joints[ready])
+        sensors = present(self.joints[ready])
         while self._hits and self._hits[0][0] < lo_g - self._near[0]:
             self._hits.popleft()  # (hits come in order of the steps that found them, near enough in start)
         while True:
@@ -550,7 +561,7 @@ class SlipMonitor:
             onset = base + best.onset
             out.append(self._report(att, onset, float(buf.times[buf.slot(onset)]), now))
             ready = ready & self.ready
-            sensors = np.unique(self.joints[ready])
+            sensors = present(self.joints[ready])
             if not len(sensors):
                 break
         self._scanned = hi_g
@@ -678,7 +689,7 @@ class SlipMonitor:
         onset_row = int(np.searchsorted(rows, full.start + onset_row))
         post = slice(rows[onset_row], full.stop)
         g, Q = buf.g[rows], buf.Q[rows]
-        near = np.isin(self.joints, self.joints[fired]).any(axis=1) & ready
+        near = touching(self.joints, self.joints[fired]) & ready
         u_post = residual(buf.g[post][:, near], buf.Q[post][:, near], c[near], l[near])
         weight[onset_row:, near] = _with_own_noise(u_post, weight[onset_row:, near])
         if w_joined is not weight:
@@ -721,8 +732,8 @@ class SlipMonitor:
             if verify:
                 # Each of its joints' residuals also carries the skin of the sensor at the joint's other end,
                 # which moves with that sensor's joints: all of them must be back in the same pose.
-                ends = np.unique(J[pose])
-                pose = np.isin(J, ends).any(axis=1)
+                ends = present(J[pose])
+                pose = touching(J, ends)
             back = came_back(self._history, float(buf.times[post.start]), self.segment_start, buf.times[post],
                              buf.g[post], buf.Q[post], buf.pv[post], weight[onset_row:], child, parent, pose, c, l,
                              att.step)
