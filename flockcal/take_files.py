@@ -269,12 +269,11 @@ class TakeWriter:
         self.discard()
 
 
-class ScaledTake:
-    """A ChunkedTake whose positions are multiplied by `factor` as they are read (`fit --scale`)."""
+class _Derived:
+    """A ChunkedTake made from another as it is read: the same sensors, rate and frames."""
 
-    def __init__(self, take, factor: float):
-        self.take, self.factor = take, float(factor)
-        self.names, self.rate_hz = take.names, take.rate_hz
+    def __init__(self, take):
+        self.take, self.names, self.rate_hz = take, take.names, take.rate_hz
 
     @property
     def n_frames(self) -> int:
@@ -283,28 +282,28 @@ class ScaledTake:
     @property
     def n_sensors(self) -> int:
         return len(self.names)
+
+
+class ScaledTake(_Derived):
+    """A ChunkedTake whose positions are multiplied by `factor` as they are read (`fit --scale`)."""
+
+    def __init__(self, take, factor: float):
+        super().__init__(take)
+        self.factor = float(factor)
 
     def chunks(self, size: int | None = None) -> Iterator[Frames]:
         for f in self.take.chunks(size):
             yield Frames(f.times, f.rotations, f.positions * self.factor, f.valid)
 
 
-class UnfoldedTake:
+class UnfoldedTake(_Derived):
     """A ChunkedTake with its hemisphere flips undone as it is read (flockcal/hemisphere_unfold.py): each
     pass feeds a fresh `HemisphereUnfold` the frames `HemisphereUnfold.CHUNK` at a time from the first, whose
     decisions rest on those chunks, so every pass gives the positions unfolding the whole take gives."""
 
     def __init__(self, take, hemisphere: str | None = None):
-        self.take, self.hemisphere = take, hemisphere
-        self.names, self.rate_hz = take.names, take.rate_hz
-
-    @property
-    def n_frames(self) -> int:
-        return self.take.n_frames
-
-    @property
-    def n_sensors(self) -> int:
-        return len(self.names)
+        super().__init__(take)
+        self.hemisphere = hemisphere
 
     def chunks(self, size: int | None = None) -> Iterator[Frames]:
         from flockcal.hemisphere_unfold import HemisphereUnfold
