@@ -48,11 +48,9 @@ class LimitStop:
     time_s: float | None
 
     def event(self) -> dict:
-        event = {"type": "session", "session_id": self.session_id, "action": "limit", "reason": self.reason,
-                 "message": self.message}
-        if self.time_s is not None:
-            event["time_s"] = self.time_s
-        return event
+        when = {} if self.time_s is None else {"time_s": self.time_s}
+        return {"type": "session", "session_id": self.session_id, "action": "limit", "reason": self.reason,
+                "message": self.message, **when}
 
 
 class SessionLimits:

@@ -16,6 +16,7 @@ from concurrent.futures import Future
 from dataclasses import replace
 from typing import Callable
 
+from flockcal.drivers.reader import TrackerEvent
 from flockcal.errors import FlockcalError
 from flockcal.frames import Frames
 from flockcal.server.clock import ServiceClock
@@ -25,6 +26,7 @@ from flockcal.server.limits import LimitStop, SessionLimits
 from flockcal.server.live_session import LiveSession
 from flockcal.server.persistence import Persistence, slip_row
 from flockcal.server.snapshot import Snapshot, SnapshotMaker
+from flockcal.server.sources import event_dict
 from flockcal.server.store import Store
 from flockcal.solver.calibration import Calibration
 from flockcal.solver.live import LiveCalibration, LiveUpdate
@@ -97,7 +99,7 @@ class Pipeline:
         self.rate_hz = rate_hz or (lambda: 144.0)
         self._cond = threading.Condition()
         self._pending: list[Frames] = []
-        self._pending_events: list[dict] = []
+        self._pending_events: list[TrackerEvent | dict] = []
         self._commands: list[tuple[Callable, Future, int]] = []  # (fn, its future, frames before it)
         self._stop = False
         self._thread: threading.Thread | None = None
@@ -136,14 +138,18 @@ class Pipeline:
             if len(self._pending) == 1:  # later batches find the pipeline already counting down to publish
                 self._cond.notify()
 
-    def tracker_event(self, event: dict) -> None:
+    def tracker_event(self, event: TrackerEvent) -> None:
+        """The source's callback for tracker news (its own thread): queued as it came, typed."""
+        self._queue_event(event)
+
+    def add_event(self, event: dict) -> None:
+        """Queue an event (slip, session, tracker) for the store and the websocket: its JSON object."""
+        self._queue_event(event)
+
+    def _queue_event(self, event: TrackerEvent | dict) -> None:
         with self._cond:
             self._pending_events.append(event)
             self._cond.notify()
-
-    def add_event(self, event: dict) -> None:
-        """Queue an event (slip, session, tracker) for the store and the websocket."""
-        self.tracker_event(event)
 
     def call(self, fn: Callable[[], object], timeout: float = 30.0):
         """Run `fn` on the pipeline thread after the frames handed over until now (not those after them), and
@@ -347,11 +353,13 @@ class Pipeline:
         if update.residuals:
             self.persistence.add_residuals(live, self.snapshots.add_residuals(update.residuals))
 
-    def _add_events(self, events: list[dict]) -> None:
-        self.persistence.add_events(events, self.live, self._session_time())
-        for ev in events:  # the reader's raw recording ran out of room
-            if ev.get("kind") == "recording_stopped" and (ev.get("data") or {}).get("disk_full"):
-                self._storage_failed(ev.get("message") or "the raw recording")
+    def _add_events(self, events: list[TrackerEvent | dict]) -> None:
+        tracker = [ev for ev in events if isinstance(ev, TrackerEvent)]
+        self.persistence.add_events([event_dict(ev) if isinstance(ev, TrackerEvent) else ev for ev in events],
+                                    self.live, self._session_time())
+        for ev in tracker:  # the reader's raw recording ran out of room
+            if ev.kind == "recording_stopped" and ev.disk_full:
+                self._storage_failed(ev.message or "the raw recording")
 
     def _publish(self) -> None:
         live = self.live

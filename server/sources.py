@@ -1,6 +1,7 @@
 """Frame sources the pipeline can listen to: the tracker reader (any pyserial URL, sim:// included).
 
-A source calls `on_frames(frames)` with a `Frames` batch and `on_event(dict)` for tracker news, from its own thread; `status()` reports the link; `start_recording`
+A source calls `on_frames(frames)` with a `Frames` batch and `on_event(event)` for tracker news (a
+`drivers.reader.TrackerEvent`), from its own thread; `status()` reports the link; `start_recording`
 / `stop_recording` write the raw bytes of one session. The pipeline does not care which source it has;
 only a sim:// device gives a `simulator` (the performer, reached through the port the source opened).
 """
@@ -10,7 +11,7 @@ from __future__ import annotations
 import dataclasses
 import time
 import urllib.parse
-from typing import Callable, Protocol
+from typing import TYPE_CHECKING, Callable, Protocol
 
 from flockcal.drivers.port_guard import check_port
 from flockcal.errors import FlockcalError
@@ -18,8 +19,11 @@ from flockcal.frames import Frames
 from flockcal.server.errors import ConfigError
 from flockcal.server.settings import Settings
 
+if TYPE_CHECKING:
+    from flockcal.drivers.reader import TrackerEvent
+
 OnFrames = Callable[[Frames], None]
-OnEvent = Callable[[dict], None]
+OnEvent = Callable[["TrackerEvent"], None]
 
 
 class FrameSource(Protocol):
@@ -78,22 +82,20 @@ def open_simulation(url: str):
 
 
 def event_dict(event) -> dict:
-    """A TrackerEvent (dataclass or object) as a JSON-able dict with type 'tracker'."""
+    """A TrackerEvent (dataclass or object) as a JSON-able dict with type 'tracker': the event as the store and
+    the websocket have it."""
     if isinstance(event, dict):
         d = dict(event)
     elif dataclasses.is_dataclass(event):
         d = dataclasses.asdict(event)
     else:
         d = {k: v for k, v in vars(event).items() if not k.startswith("_")}
-    if "type" in d and d["type"] != "tracker":
-        d["kind"] = d.pop("type")
-    d["type"] = "tracker"
-    for k, v in list(d.items()):
-        if not isinstance(v, (str, int, float, bool, type(None), list, dict)):
-            d[k] = str(v)
-    if "wall_time" in d and not isinstance(d["wall_time"], (int, float)):
-        d.pop("wall_time")
-    return d
+    if d.get("type", "tracker") != "tracker":  # a dict's own type is its kind of tracker news
+        kind = d.pop("type")
+        d = {**d, "kind": kind}
+    d = {k: v if isinstance(v, (str, int, float, bool, type(None), list, dict)) else str(v)
+         for k, v in {**d, "type": "tracker"}.items()}
+    return {k: v for k, v in d.items() if k != "wall_time" or isinstance(v, (int, float))}
 
 
 class TrackerSource:
@@ -139,7 +141,7 @@ class TrackerSource:
         )
         try:
             self.reader = TrackerReader(cfg, on_frames=on_frames,
-                                        on_event=lambda ev: on_event(event_dict(ev)),
+                                        on_event=on_event,
                                         recording_header={"names": list(self.names)})
         except FlockcalError as exc:
             raise ConfigError(f"--device {self.url}: {exc}") from None

@@ -28,17 +28,21 @@ MAX_EVENTS = 5000
 def presets(service) -> dict[str, dict | None]:
     """Named hierarchies a session can start with: 'auto', 'human' when the sensors are the simulator's,
     and every saved skeleton (GET /api/skeletons)."""
-    out: dict[str, dict | None] = {"auto": None}
+    human = _human_tree(service.pipeline.names)
+    return {"auto": None, **({"human": human} if human is not None else {}), **service.skeletons.hierarchies()}
+
+
+def _human_tree(names) -> dict[str, str] | None:
+    """The simulator's body's {child: parent} when `names` are its sensors, else None."""
     try:
         from flockcal.simulator.body import human
 
-        truth = human(n_bodies=len(service.pipeline.names)).truth()
-        if list(truth["sensors"]) == list(service.pipeline.names):
-            out["human"] = dict(truth["parent"])
+        body = human(n_bodies=len(names))
     except Exception:  # no simulator body for this sensor set: only automatic topology
-        pass
-    out.update(service.skeletons.hierarchies())
-    return out
+        return None
+    if list(body.names) != list(names):
+        return None
+    return {body.names[i]: body.names[p] for i, p in enumerate(body.parent) if p >= 0}
 
 
 @router.get("", response_model=SessionList, summary="all sessions, newest first", responses=ERRORS)
@@ -247,10 +251,10 @@ def get_gltf(request: Request, sid: str = Depends(session_id),
                                      chunk_frames=frames.play_frames, out_bytes=OUT_BYTES, vrm=vrm[0] if vrm else None))
 
         body = _slotted(request, lambda: _export(stream), hold)
+    vrm_header = {"X-Flockcal-Vrm": vrm[0].spec or f"none: {vrm[0].reason}".encode("ascii", "replace").decode()} \
+        if vrm else {}
     headers = {"Content-Disposition": f'attachment; filename="{sid}.glb"',
-               "X-Flockcal-Fit-Seq": "final" if fit_seq is None else str(fit_seq)}
-    if vrm:
-        headers["X-Flockcal-Vrm"] = vrm[0].spec or f"none: {vrm[0].reason}".encode("ascii", "replace").decode()
+               "X-Flockcal-Fit-Seq": "final" if fit_seq is None else str(fit_seq), **vrm_header}
     # In a slot like /take and /bvh: a client that stops reading a long animation is cut off after the stall time.
     return SlottedResponse(body, request.app.state.download_slots, media_type="model/gltf-binary", headers=headers)
 
