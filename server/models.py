@@ -12,8 +12,9 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from flockcal.server.settings import PERFORMER_PATTERN, performer_pattern
+from flockcal.simulator.motion import ROUTINES
 from flockcal.solver.progress import STATES
-from flockcal.server.settings import PERFORMER_PATTERN
 
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9 _.\-]{0,63}$"
 Name = str  # validated against NAME_PATTERN where it enters
@@ -98,8 +99,10 @@ class CalibrationResult(Open):
 
 # --- sessions ------------------------------------------------------------------------------------
 class SessionCreate(Strict):
+    # Documented as the API applies it, to the name stripped of surrounding white space (openapi.py).
     performer: str = Field(min_length=1, max_length=64, pattern=PERFORMER_PATTERN,
-                           description="who is wearing the sensors (1–64 characters, no slashes, quotes or < >)")
+                           description="who is wearing the sensors (1–64 characters, no slashes, quotes or < >)",
+                           json_schema_extra={"pattern": performer_pattern()})
     hierarchy: dict[str, str] | None = Field(
         None, description="known {child: parent} map, root omitted; leave out for automatic topology")
     root: str | None = Field(None, pattern=NAME_PATTERN, description="root body; default chosen by the solver")
@@ -296,7 +299,9 @@ class SlipRequest(Strict):
 
 
 class MotionRequest(Strict):
-    routine: str = Field(pattern=r"^[a-z_]{1,32}$", description="exercise | walk | kiosk | idle")
+    # The routines are documented, not validated here: an unknown one is a 400 that names the routines.
+    routine: str = Field(pattern=r"^[a-z_]{1,32}$", description="exercise | walk | kiosk | idle",
+                         json_schema_extra={"enum": list(ROUTINES)})
 
 
 class SimulatorReply(Open):

@@ -51,7 +51,7 @@ def slip(body: SlipRequest, service=Depends(get_service), _role=Depends(require_
             ev = sim.inject_slip(body.sensor, body.distance_m)
         except FlockcalError as exc:
             raise BadRequest(str(exc)) from None
-    routine_s = ev["time_s"]  # the slip's moment on the performer's clock (the simulator's record of it)
+    routine_s = ev.time_s  # the slip's moment on the performer's clock
     clock = getattr(service.source, "reader_time", None)
     reader_time = clock(routine_s) if clock is not None else None
     # Seconds from now to the slip's sample: the simulator computes poses up to 0.1 s ahead.
