@@ -29,12 +29,11 @@ MAX_HELD_EVENTS = 10_000  # events kept in memory while the database cannot take
 MAX_HELD_RESIDUALS = 72_000  # residual rows likewise: an hour at 20 a second
 
 
-def slip_row(event: SlipEvent | SwapEvent) -> dict:
+def slip_event(event: SlipEvent | SwapEvent) -> Event:
     """A slip or swap event as the store and the websocket have it: its §5 `slip_events` entry with its
-    kind under "type" (the events table's column, the websocket message's field)."""
-    d = event.to_dict()
-    kind = d.pop("kind", "slip")
-    return json_safe({**d, "type": kind})
+    kind as the event's type (the events table's column, the websocket message's field)."""
+    entry = json_safe(event.to_dict())
+    return Event.new(event.kind, **{k: v for k, v in entry.items() if k != "kind"})
 
 
 class Persistence:
@@ -51,10 +50,10 @@ class Persistence:
         self._last_id: int | None = None
         self._last_db_flush = 0.0
 
-    def add_events(self, events: list[dict], live: LiveSession | None, session_time: float | None) -> None:
-        """Store events (slip, session, tracker, service), each as the part that made it wrote it; those
+    def add_events(self, events: list[Event], live: LiveSession | None, session_time: float | None) -> None:
+        """Store events (slip, session, tracker, service), each as the part that made it made it; those
         without a session belong to the live one, at `session_time` unless they carry their own."""
-        rows = [Event.made(ev, self.stamp(), None if live is None else live.id, session_time) for ev in events]
+        rows = [ev.stamped(self.stamp(), None if live is None else live.id, session_time) for ev in events]
         ids = None
         if not self.held_events:  # otherwise they wait behind the held ones, in order
             try:

@@ -24,9 +24,10 @@ from flockcal.server.fitting import FitJob, FitView, FitWorker, solve_fit
 from flockcal.server.ingest import Ingest
 from flockcal.server.limits import LimitStop, SessionLimits
 from flockcal.server.live_session import LiveSession
-from flockcal.server.persistence import Persistence, slip_row
+from flockcal.server.events import Event
+from flockcal.server.persistence import Persistence, slip_event
 from flockcal.server.snapshot import Snapshot, SnapshotMaker
-from flockcal.server.sources import event_dict
+from flockcal.server.sources import tracker_event
 from flockcal.server.store import Store
 from flockcal.solver.calibration import Calibration
 from flockcal.solver.live import LiveCalibration, LiveUpdate
@@ -99,7 +100,7 @@ class Pipeline:
         self.rate_hz = rate_hz or (lambda: 144.0)
         self._cond = threading.Condition()
         self._pending: list[Frames] = []
-        self._pending_events: list[TrackerEvent | dict] = []
+        self._pending_events: list[TrackerEvent | Event] = []
         self._commands: list[tuple[Callable, Future, int]] = []  # (fn, its future, frames before it)
         self._stop = False
         self._thread: threading.Thread | None = None
@@ -142,11 +143,11 @@ class Pipeline:
         """The source's callback for tracker news (its own thread): queued as it came, typed."""
         self._queue_event(event)
 
-    def add_event(self, event: dict) -> None:
-        """Queue an event (slip, session, tracker) for the store and the websocket: its JSON object."""
+    def add_event(self, event: Event) -> None:
+        """Queue an event (slip, session, tracker, service) for the store and the websocket."""
         self._queue_event(event)
 
-    def _queue_event(self, event: TrackerEvent | dict) -> None:
+    def _queue_event(self, event: TrackerEvent | Event) -> None:
         with self._cond:
             self._pending_events.append(event)
             self._cond.notify()
@@ -336,26 +337,26 @@ class Pipeline:
             return
         events = []
         if update.done is not None:
-            events.append({"type": "session", "session_id": live.id, "action": update.done.action,
-                           "time_s": update.done.time_s, "message": update.done.message})
-        events += [slip_row(ev) for ev in update.events]
+            events.append(Event.new("session", session_id=live.id, time_s=update.done.time_s,
+                                    action=update.done.action, message=update.done.message))
+        events += [slip_event(ev) for ev in update.events]
         live.slips += [ev for ev in update.events if ev.kind == "slip"]  # what its result lists (not swaps)
         exc = update.failure
         if exc is not None:
             log.error("slip monitor failed; slips are no longer watched in session %s", live.id,
                       exc_info=(type(exc), exc, exc.__traceback__))
-            events.append({
-                "type": "tracker", "kind": "slip_watch_failed",
-                "message": f"slip detection stopped for this session ({type(exc).__name__}: {exc}); "
-                           f"recording and fitting go on; restart the session to watch for slips again"})
+            events.append(Event.new(
+                "tracker", kind="slip_watch_failed",
+                message=f"slip detection stopped for this session ({type(exc).__name__}: {exc}); "
+                        f"recording and fitting go on; restart the session to watch for slips again"))
         if events:
             self._add_events(events)
         if update.residuals:
             self.persistence.add_residuals(live, self.snapshots.add_residuals(update.residuals))
 
-    def _add_events(self, events: list[TrackerEvent | dict]) -> None:
+    def _add_events(self, events: list[TrackerEvent | Event]) -> None:
         tracker = [ev for ev in events if isinstance(ev, TrackerEvent)]
-        self.persistence.add_events([event_dict(ev) if isinstance(ev, TrackerEvent) else ev for ev in events],
+        self.persistence.add_events([tracker_event(ev) if isinstance(ev, TrackerEvent) else ev for ev in events],
                                     self.live, self._session_time())
         for ev in tracker:  # the reader's raw recording ran out of room
             if ev.kind == "recording_stopped" and ev.disk_full:

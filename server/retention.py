@@ -17,6 +17,7 @@ from typing import NamedTuple
 
 from flockcal.server.clock import Reading, ServiceClock
 from flockcal.server.errors import Conflict, Gone, ServerError
+from flockcal.server.events import Event
 from flockcal.malloc import release_free_heap
 
 log = logging.getLogger(__name__)
@@ -292,10 +293,10 @@ class Retention:
             "INSERT INTO retention (session_id, pruned_at, freed_bytes, reason) VALUES (?, ?, ?, ?) "
             "ON CONFLICT(session_id) DO UPDATE SET pruned_at = excluded.pruned_at, "
             "freed_bytes = excluded.freed_bytes, reason = excluded.reason", (sid, now, freed, reason))
-        self.add_event({"type": "session", "session_id": sid, "time_s": None, "action": "pruned",
-                        "freed_bytes": freed, "reason": reason,
-                        "message": f"session {sid}'s frames and raw recording were pruned ({freed / 1e6:.1f} MB, "
-                                   f"{reason}); its result, skeleton and events are kept"})
+        self.add_event(Event.new("session", session_id=sid, time_s=None, action="pruned", freed_bytes=freed,
+                                 reason=reason,
+                                 message=f"session {sid}'s frames and raw recording were pruned ({freed / 1e6:.1f} "
+                                         f"MB, {reason}); its result, skeleton and events are kept"))
         log.info("pruned session %s (%.1f MB, %s)", sid, freed / 1e6, reason)
         return {"id": sid, "freed_bytes": freed, "reason": reason}
 

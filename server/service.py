@@ -15,6 +15,7 @@ from pathlib import Path
 from flockcal.clock import SYSTEM, Clock
 from flockcal.server.clock import ServiceClock
 from flockcal.server.errors import ConfigError
+from flockcal.server.events import Event
 from flockcal.server.hub import SnapshotHub
 from flockcal.server.limits import SessionLimits
 from flockcal.server.outputs import Outputs
@@ -160,7 +161,8 @@ class Service:
         self.pipeline.feed(frames)
         self.outputs.feed(frames)
     def _clock_stepped(self, event: dict) -> None:
-        self.pipeline.add_event(event)
+        # The clock writes its step as keyword fields (server/clock.py); Event.new's signature types them.
+        self.pipeline.add_event(Event.new(**event))
         self.retention.wake()
 
     def stop(self) -> None:

@@ -229,8 +229,8 @@ class SessionManager:
                 raise
             if lease_s is not None:
                 self.leases.grant(sid, lease_s)
-            self.pipeline.add_event({"type": "session", "session_id": sid, "time_s": 0.0, "action": "started",
-                                     "message": f"session {sid} started for {performer}"})
+            self.pipeline.add_event(Event.new("session", session_id=sid, time_s=0.0, action="started",
+                                              message=f"session {sid} started for {performer}"))
             return self.get(sid)
 
     def renew(self, session_id: str) -> dict:
@@ -269,8 +269,8 @@ class SessionManager:
             duration = max(self.clock.monotonic() - live.started_mono, 0.0)
             self.update_row(session_id, SessionEnd("stopped", row.created_at + duration, round(duration, 3), live.frames,
                                                    result, note, live.cal.progress if result is not None else None))
-            self.pipeline.add_event({"type": "session", "session_id": session_id, "action": "stopped",
-                                     "time_s": None, "message": f"session {session_id} stopped after {live.frames} frames"})
+            self.pipeline.add_event(Event.new("session", session_id=session_id, time_s=None, action="stopped",
+                                              message=f"session {session_id} stopped after {live.frames} frames"))
             self.retention.wake()
             return self.get(session_id)
 

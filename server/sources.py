@@ -17,6 +17,7 @@ from flockcal.drivers.port_guard import check_port
 from flockcal.errors import FlockcalError
 from flockcal.frames import Frames
 from flockcal.server.errors import ConfigError
+from flockcal.server.events import Event
 from flockcal.server.settings import Settings
 
 if TYPE_CHECKING:
@@ -81,21 +82,12 @@ def open_simulation(url: str):
         port.close()
 
 
-def event_dict(event) -> dict:
-    """A TrackerEvent (dataclass or object) as a JSON-able dict with type 'tracker': the event as the store and
-    the websocket have it."""
-    if isinstance(event, dict):
-        d = dict(event)
-    elif dataclasses.is_dataclass(event):
-        d = dataclasses.asdict(event)
-    else:
-        d = {k: v for k, v in vars(event).items() if not k.startswith("_")}
-    if d.get("type", "tracker") != "tracker":  # a dict's own type is its kind of tracker news
-        kind = d.pop("type")
-        d = {**d, "kind": kind}
-    d = {k: v if isinstance(v, (str, int, float, bool, type(None), list, dict)) else str(v)
-         for k, v in {**d, "type": "tracker"}.items()}
-    return {k: v for k, v in d.items() if k != "wall_time" or isinstance(v, (int, float))}
+def tracker_event(event: TrackerEvent) -> Event:
+    """The driver's news as the store and the websocket have it: an event of type "tracker" with the
+    TrackerEvent's fields (kind, message, time, data), each JSON-able."""
+    fields = dataclasses.asdict(event)
+    return Event.new("tracker", **{k: v if isinstance(v, (str, int, float, bool, type(None), list, dict)) else str(v)
+                                   for k, v in fields.items()})
 
 
 class TrackerSource:
