@@ -144,21 +144,47 @@ def _operation(method: str, path: str, op: dict) -> list[str]:
             extra = _limits(schema)
             meaning = _cell(p.get("description", schema.get("description", "")))
             lines.append(f"| `{p['name']}`{'' if p.get('required') else ' (optional)'} | {p['in']} | "
-                         f"{schema_type(schema)} | {meaning}{'; ' + extra if extra else ''} |")
+                         f"{schema_type(schema)} | {'; '.join(x for x in (meaning, extra) if x)} |")
         lines.append("")
     body = op.get("requestBody")
     if body:
         kinds = ", ".join(f"{schema_type(c.get('schema', {}))} (`{t}`)" for t, c in body["content"].items())
         lines += [f"Request body: {kinds}.", ""]
-    lines += ["| status | meaning |", "|---|---|"]
-    for status, resp in op.get("responses", {}).items():
-        content = resp.get("content", {})
-        shapes = ", ".join(schema_type(c["schema"]) for c in content.values() if c.get("schema"))
-        kinds = ", ".join(f"`{t}`" for t, c in content.items() if not c.get("schema"))
-        what = " ".join(x for x in (shapes, kinds) if x)
+    ok = {k: v for k, v in op.get("responses", {}).items() if k.startswith("2")}
+    errors = sorted(k for k in op.get("responses", {}) if not k.startswith("2"))
+    for status, resp in ok.items():
+        lines.append(f"Answer: {status}, {_response(resp)}.")
+    if errors:
+        lines.append(f"Errors: {', '.join(f'[{e}](#errors)' for e in errors)}.")
+    return lines + [""]
+
+
+def _response(resp: dict) -> str:
+    content = resp.get("content", {})
+    shapes = ", ".join(schema_type(c["schema"]) for c in content.values() if c.get("schema"))
+    kinds = ", ".join(f"`{t}`" for t, c in content.items() if not c.get("schema"))
+    what = " ".join(x for x in (shapes, kinds) if x) or "no body"
+    headers = ", ".join(f"`{h}`" for h in resp.get("headers", {}))
+    return f"{what}{'; header ' + headers if headers else ''}"
+
+
+def _errors(doc: dict) -> list[str]:
+    """Each error status once: the service answers every one of them the same way on every operation."""
+    seen: dict[str, dict] = {}
+    for ops in doc["paths"].values():
+        for op in ops.values():
+            for status, resp in op.get("responses", {}).items():
+                if not status.startswith("2"):
+                    if len(resp.get("description", "")) > len(seen.get(status, {}).get("description", "")):
+                        seen[status] = resp
+    lines = ["## Errors", "",
+             "Every error answers with an [`ErrorReply`](#errorreply) (`detail`: what went wrong and what to do; "
+             "`error`: a code). Each operation below lists the statuses it can answer.", "",
+             "| status | meaning | headers |", "|---|---|---|"]
+    for status in sorted(seen):
+        resp = seen[status]
         headers = ", ".join(f"`{h}`" for h in resp.get("headers", {}))
-        lines.append(f"| {status} | {_cell(resp.get('description', ''))}"
-                     f"{' — ' + what if what else ''}{'; header ' + headers if headers else ''} |")
+        lines.append(f"| {status} | {_cell(resp.get('description', ''))} | {headers} |")
     return lines + [""]
 
 
@@ -174,14 +200,14 @@ def _schema(name: str, schema: dict) -> list[str]:
             extra = _limits(sub)
             meaning = _cell(sub.get("description", ""))
             lines.append(f"| `{field}`{'' if field in required else ' (optional)'} | {schema_type(sub)} | "
-                         f"{meaning}{'; ' + extra if extra and meaning else extra} |")
+                         f"{'; '.join(x for x in (meaning, extra) if x)} |")
         lines.append("")
     return lines
 
 
 def openapi_markdown(_arg: str | None = None) -> str:
     doc = openapi_document()
-    lines = []
+    lines = _errors(doc)
     by_tag: dict[str, list] = {}
     for path, ops in doc["paths"].items():
         for method, op in ops.items():
