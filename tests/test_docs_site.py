@@ -148,8 +148,14 @@ def test_the_test_command_builds_the_site_strictly_in_a_venv():
 
 
 def tour() -> list[list[str]]:
+    """Each tour line's words up to a pipe or a redirection (the shell's, not the command's)."""
     lines = [ln for ln in fenced_lines(section("A tour")) if ln.startswith("flockcal ")]
-    return [shlex.split(ln, comments=True) for ln in lines]
+    out = []
+    for ln in lines:
+        words = shlex.split(ln, comments=True)
+        cut = next((i for i, w in enumerate(words) if w in ("|", ">", ">>", "&&", ";", "&")), len(words))
+        out.append(words[:cut])
+    return out
 
 
 def test_each_tour_line_is_a_command_line_flockcal_takes():
