@@ -75,7 +75,7 @@ NOT_OURS = {
 }
 # A dotted word ending in one of these is a file name (`take.npz`, `ID.fobraw.part`), not code.
 FILE_SUFFIXES = {"npz", "fobraw", "part", "json", "csv", "bvh", "glb", "gltf", "html", "c3d", "py", "js", "md",
-                 "css", "toml", "txt", "sqlite3", "frames", "service", "png", "svg"}
+                 "css", "toml", "txt", "sqlite3", "frames", "service", "png", "svg", "yml"}
 
 
 # --- the code's names -------------------------------------------------------------------------------
