@@ -138,7 +138,7 @@ def step(R, t, x, dp, dx):
     return rotvec_matrix(dp[..., :3]) @ R, t + dp[..., 3:], x + dx
 
 
-def adjust(markers, shapes, bundle: Bundle, R, t, x, max_iter: int = 30, tol: float = 1e-3):
+def adjust(markers, shapes, bundle: Bundle, R, t, x, max_iter: int = 100, tol: float = 1e-6):
     """Levenberg–Marquardt on the bundle: the frames' poses eliminated by a Schur complement."""
     F, G = R.shape[:2]
     J = len(bundle.joints)
@@ -254,7 +254,7 @@ def chain_poses(markers: np.ndarray, groups: list[np.ndarray], bundle: Bundle, s
 
 
 def bundle_joint_points(markers: np.ndarray, groups: list[np.ndarray], bundle: Bundle, points: dict[int, np.ndarray],
-                        frames: np.ndarray, max_iter: int = 30) -> dict[int, np.ndarray]:
+                        frames: np.ndarray, max_iter: int = 100) -> dict[int, np.ndarray]:
     """{child: (n, 3) world joint centre per frame} for the bundle's joints: the offsets adjusted on `frames`
     (those where every body of the bundle has a starting pose), every frame's poses then chained from them
     (`chain_poses`), each joint the mean of its two bodies' placing of it (NaN where neither has a pose).

@@ -62,49 +62,74 @@ def fitted(markers, groups, pairs, frames, penalty, max_iter, poses=None, tol: f
     seen &= np.where(placed.mean(1, keepdims=True) >= 0.5, placed, True)[..., None]
     Mz = np.where(seen[..., None], Mz, 0.0)
 
-    def solve(order, which):
-        p0 = np.stack([starts[a, b][0] for a, b in order])
+    def solve(p0, which):
         dist = np.linalg.norm(Mz[which] - p0[:, :, None], axis=-1)
         r0 = ((dist * seen[which]).sum(1) / np.maximum(seen[which].sum(1), 1)).clip(1e-3)
         p, r = solve_joint_points(Mz[which], seen[which], p0, r0, lam[which], max_iter, tol)
         return p, r, cost_of(which, p, r)
 
+    def better_of(p0, which):
+        nonlocal p, r, cost
+        p2, r2, cost2 = solve(p0, which)
+        better = cost2 < cost[which]
+        p[which[better]], r[which[better]], cost[which[better]] = p2[better], r2[better], cost2[better]
+
     every = np.arange(len(pairs))
-    p, r, cost = solve(pairs, every)
-    both = every[[min(len(groups[a]), len(groups[b])) >= 3 and len(groups[a]) == len(groups[b]) for a, b in pairs]]
+    p, r, cost = solve(np.stack([starts[a, b][0] for a, b in pairs]), every)
+    sizes = np.array([(len(groups[a]), len(groups[b])) for a, b in pairs]).reshape(-1, 2)
+    both = every[(sizes.min(1) >= 3) & (sizes[:, 0] == sizes[:, 1])]
     if len(both):
-        p2, r2, cost2 = solve(pairs[both][:, ::-1], both)
-        better = cost2 < cost[both]
-        p[both[better]], r[both[better]] = p2[better], r2[better]
+        better_of(np.stack([starts[b, a][0] for a, b in pairs[both]]), both)
+    # Two bodies of two markers have no frame to start from: the joint starts at the middle of each pair of
+    # their markers in turn (it lies between the two bodies, near their nearest markers), the best kept.
+    few = every[sizes.max(1) < 3]
+    for i in range(2):
+        for j in range(2):
+            if len(few):
+                both_seen = (seen[few, :, i] & seen[few, :, 2 + j])[..., None]
+                better_of(np.where(both_seen, 0.5 * (Mz[few, :, i] + Mz[few, :, 2 + j]), p[few]), few)
     split = np.array([len(groups[a]) for a, _ in pairs])
     flipped = mirrored(Mz, seen, split, p, r)
-    if (flipped != p).any():
-        p, r = solve_joint_points(Mz, seen, flipped, r, lam, max_iter, tol)
+    moved = np.flatnonzero((flipped != p).any(axis=(1, 2)))
+    if len(moved):
+        p[moved], r[moved] = solve_joint_points(Mz[moved], seen[moved], flipped[moved], r[moved], lam[moved], max_iter, tol)
     return p, r, Mz, seen
 
 
 def mirrored(Mz: np.ndarray, seen: np.ndarray, split: np.ndarray, p: np.ndarray, r: np.ndarray) -> np.ndarray:
     """The points p (B, F, 3), each frame's moved to its mirror image across the plane of either body's seen
-    markers (columns before / from `split`) where that keeps the fitted radii r better."""
+    markers (columns before / from `split`), or turned about the line through a body's two seen markers (every
+    30°), where that keeps the fitted radii r better: three markers leave a point a mirror image across their
+    plane, two a whole circle about their line."""
     Q = seen.shape[2]
-    best, out = None, p.copy()
+    out = p.copy()
 
     def misfit(x):
-        return np.where(seen, np.linalg.norm(Mz - x[:, :, None], axis=-1) - r[:, None], 0.0) ** 2
+        return (np.where(seen, np.linalg.norm(Mz - x[:, :, None], axis=-1) - r[:, None], 0.0) ** 2).sum(2)
 
-    best = misfit(p).sum(2)
+    best = misfit(p)
+
+    def keep(x, where):
+        nonlocal out, best
+        cost = misfit(x)
+        take = where & (cost < best)
+        out = np.where(take[..., None], x, out)
+        best = np.where(take, cost, best)
+
     for side in (np.arange(Q)[None] < split[:, None], np.arange(Q)[None] >= split[:, None]):
         w = (seen & side[:, None]).astype(float)  # (B, F, Q)
         n = w.sum(2)
         c = (Mz * w[..., None]).sum(2) / np.maximum(n, 1)[..., None]
         d = (Mz - c[:, :, None]) * w[..., None]
-        _, V = np.linalg.eigh(np.einsum("bfqi,bfqj->bfij", d, d))
-        normal = V[..., 0]  # the least-spread direction: the plane's normal
-        x = p - 2.0 * ((p - c) * normal).sum(-1, keepdims=True) * normal
-        cost = misfit(x).sum(2)
-        take = (n >= 3) & (cost < best)
-        out = np.where(take[..., None], x, out)
-        best = np.where(take, cost, best)
+        lam, V = np.linalg.eigh(np.einsum("bfqi,bfqj->bfij", d, d))
+        normal, line = V[..., 0], V[..., 2]  # the least-spread direction (a plane's normal), the most (a line)
+        keep(out - 2.0 * ((out - c) * normal).sum(-1, keepdims=True) * normal, n >= 3)
+        x = out - c
+        along = (x * line).sum(-1, keepdims=True) * line
+        across = x - along
+        for angle in np.radians(np.arange(30, 360, 30)):  # Rodrigues about the line, from the best so far
+            turned = across * np.cos(angle) + np.cross(line, across) * np.sin(angle)
+            keep(c + along + turned, n == 2)
     return out
 
 
