@@ -11,7 +11,6 @@ error of flockcal's determined joints next to plain least squares' on the same j
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import sys
 from pathlib import Path
 
@@ -25,16 +24,6 @@ from flockcal.simulator import body as bodies  # noqa: E402
 from flockcal.simulator.take import simulate  # noqa: E402
 from flockcal.solver.accumulator import GramAccumulator  # noqa: E402
 from flockcal.solver.calibration import calibrate  # noqa: E402
-
-
-def hinged(seed: int):
-    m = bodies.human(seed=seed)
-    jt, axis, lim, rest = list(m.joint_type), m.hinge_axis.copy(), m.limits.copy(), m.rest.copy()
-    for i, n in enumerate(m.names):
-        if bodies.segment(n) in ("hand", "foot"):
-            jt[i], axis[i], lim[i], rest[i] = "hinge", [0.0, 1.0, 0.0], 0.0, 0.0
-            lim[i, 0] = (-0.6, 0.5)
-    return dataclasses.replace(m, joint_type=tuple(jt), hinge_axis=axis, limits=lim, rest=rest)
 
 
 def evaluate(take, truth=None, hierarchy=None):
@@ -76,7 +65,7 @@ def main() -> None:
         cases.append((f"exercise 37 s 120 Hz, 14-bit, seed {seed}", "human", "exercise", 37, 120, seed, {"quantise": 72}))
     cases += [
         ("exercise, 3× tracker noise", "human", "exercise", 37, 120, 3, {"quantise": 72, "noise_scale": 3.0}),
-        ("exercise, true wrist/ankle hinges", hinged(1), "exercise", 37, 120, 1, {"quantise": 72}),
+        ("exercise, true wrist/ankle hinges", bodies.with_hinges(bodies.human(seed=1)), "exercise", 37, 120, 1, {"quantise": 72}),
         ("walk 30 s 144 Hz", "human", "walk", 30, 144, 1, {}),
         ("kiosk 30 s 144 Hz", "human", "kiosk", 30, 144, 1, {}),
         ("idle (standing) 30 s, seed 1", "human", "idle", 30, 120, 1, {}),

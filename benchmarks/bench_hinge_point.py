@@ -9,6 +9,10 @@ knee capture's knee (its technical clusters as sensors) against the femoral epic
     python benchmarks/bench_hinge_point.py                          # 10 seeds x exercise, kiosk, walk
     python benchmarks/bench_hinge_point.py --seeds 3 --routines kiosk --prefixes 20 25 30 60 120
     python benchmarks/bench_hinge_point.py --real                   # ../shared/data/biobuddy_right_knee.c3d
+    python benchmarks/bench_hinge_point.py --hinged --sta-mm 0 --prefixes 20 30 60   # wrists, ankles hinges too
+
+With --hinged the simulated wrists and ankles are hinges as well (`simulator.body.with_hinges`): each elbow
+and knee then has a hinge beside it, whose centre the data leave anywhere on its axis (issue #50).
 """
 
 from __future__ import annotations
@@ -20,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from flockcal.simulator import body as bodies
 from flockcal.simulator.performer import Performer
 from flockcal.solver.accumulator import GramAccumulator
 from flockcal.solver.calibration import calibrate
@@ -27,7 +32,7 @@ from flockcal.solver.hinge_point import hinge_offsets
 
 RATE = 144.0
 TARGET_MAX_M, TARGET_MEDIAN_M, TARGET_STEADY_M = 0.012, 0.005, 0.003
-RULES = {2: "two bones", 1: "one bone", 0: "min-norm", -1: "not a hinge"}
+RULES = {3: "a bone and the next hinge's axis", 2: "two bones", 1: "one bone", 0: "min-norm", -1: "not a hinge"}
 
 
 def true_joints(perf: Performer) -> dict:
@@ -69,7 +74,8 @@ def rule_on_true_neighbours(cal, truth: dict) -> dict:
         if key in truth and not J.hinge[k]:
             child, tc, tl, _ = truth[key]
             c[k], l[k] = (tc, tl) if names[i] == child else (tl, tc)
-    s, how, _ = hinge_offsets(J.pairs, c, l, J.axis_i, J.axis_j, J.hinge, J.determined)
+    s, how, _ = hinge_offsets(J.pairs, c, l, J.axis_i, J.axis_j, J.hinge, J.determined, J.axis_offset,
+                              J.direction_error[:, 0], J.direction_error.max(axis=1))
     out = {}
     for k, (i, p) in enumerate(J.pairs.tolist()):
         key = frozenset((names[i], names[p]))
@@ -95,8 +101,11 @@ def hinge_bones(cal, perf: Performer) -> list[float]:
     return out
 
 
-def simulated(seeds: list[int], routines: list[str], prefixes: list[float], sta_mm: float | None) -> None:
+def simulated(seeds: list[int], routines: list[str], prefixes: list[float], sta_mm: float | None,
+              hinged: bool = False) -> None:
     along, steady, same_rule, bones, rules, flagged, missing = [], [], [], [], {}, 0, 0
+    first: dict[str, list[float]] = {}  # the shortest prefix, hinges the fit found as hinges only
+    not_hinge_first = 0
     oracle: list[float] = []
     per_routine: dict[str, list[float]] = {}
     start = time.perf_counter()
@@ -104,8 +113,10 @@ def simulated(seeds: list[int], routines: list[str], prefixes: list[float], sta_
         for seed in seeds:
             # The routine as the service's simulator runs it (planned for 60 s: exercise and walk loop every
             # 60 s, the kiosk every 30 s), taken for as long as the longest prefix.
-            perf = Performer("human", routine=routine, seed=seed, rate_hz=RATE, seconds=60.0, sta_mm=sta_mm,
-                             height=1.5 + 0.45 * ((seed * 0.618) % 1.0))
+            height = 1.5 + 0.45 * ((seed * 0.618) % 1.0)
+            model = bodies.with_hinges(bodies.human(height=height, seed=seed)) if hinged else "human"
+            perf = Performer(model, routine=routine, seed=seed, rate_hz=RATE, seconds=60.0, sta_mm=sta_mm,
+                             height=height)
             truth = true_joints(perf)
             acc = GramAccumulator(perf.n_sensors)
             done = 0.0
@@ -123,6 +134,13 @@ def simulated(seeds: list[int], routines: list[str], prefixes: list[float], sta_
                     flagged += is_hinge
                     if is_hinge:
                         rules[rule] = rules.get(rule, 0) + 1
+                if t_end == min(prefixes):
+                    for child, (a, _, _, is_hinge) in rows.items():
+                        if child.endswith(("forearm", "shin")):
+                            if is_hinge:
+                                first.setdefault(routine, []).append(abs(a))
+                            else:
+                                not_hinge_first += 1
                 if t_end == max(prefixes):
                     bones += hinge_bones(cal, perf)
                     oracle += [abs(x) for x in rule_on_true_neighbours(cal, truth).values()]
@@ -144,7 +162,14 @@ def simulated(seeds: list[int], routines: list[str], prefixes: list[float], sta_
     a, st, sr, b = np.array(along), np.array(steady), np.array(same_rule), np.array(bones)
     sta = "default" if sta_mm is None else f"{sta_mm:g} mm"
     print(f"hinges: {len(seeds)} seeds x {', '.join(routines)}, soft tissue {sta}, {RATE:g} Hz, prefixes "
-          f"{', '.join(f'{x:g}' for x in prefixes)} s ({took:.0f} s)")
+          f"{', '.join(f'{x:g}' for x in prefixes)} s{', wrists and ankles hinges too' if hinged else ''} "
+          f"({took:.0f} s)")
+    f = [x for v in first.values() for x in v]
+    if f:
+        print(f"  elbows and knees found as hinges at {min(prefixes):g} s: median {1000 * np.median(f):.1f} mm, max "
+              f"{1000 * max(f):.1f} mm along the axis; per routine: " + ", ".join(
+                  f"{r} max {1000 * max(v):.1f}" for r, v in first.items())
+              + f"; not (yet) a determined hinge there: {not_hinge_first}")
     print(f"  along the axis at {max(prefixes):g} s: median {1000 * np.median(a):.1f} mm, max {1000 * a.max():.1f} mm "
           f"(targets {1000 * TARGET_MEDIAN_M:g} / {1000 * TARGET_MAX_M:g}); per routine: " + ", ".join(
               f"{r} median {1000 * np.median(v):.1f} max {1000 * np.max(v):.1f}" for r, v in per_routine.items()))
@@ -199,11 +224,13 @@ def main() -> None:
     ap.add_argument("--prefixes", type=float, nargs="+", default=[20, 25, 30, 45, 60, 90, 120])
     ap.add_argument("--sta-mm", type=float, default=None, help="soft tissue (default: the simulator's default)")
     ap.add_argument("--real", action="store_true", help="only the real knee capture")
+    ap.add_argument("--hinged", action="store_true", help="wrists and ankles built as hinges too")
     args = ap.parse_args()
     if args.real:
         real_knee()
         return
-    simulated(list(range(args.first_seed, args.first_seed + args.seeds)), args.routines, args.prefixes, args.sta_mm)
+    simulated(list(range(args.first_seed, args.first_seed + args.seeds)), args.routines, args.prefixes, args.sta_mm,
+              args.hinged)
 
 
 if __name__ == "__main__":

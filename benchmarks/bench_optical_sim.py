@@ -12,6 +12,11 @@ saved as a marker .npz, in a new interpreter, start-up included (issue 31: ≤ 3
     python benchmarks/bench_optical_sim.py --seeds 0 1 --sta 12 --fresh
     python benchmarks/bench_optical_sim.py --routines walk --seeds 1 --per-body 3 4 --joint-bias   # and --sta 0
 
+`flockcal simulate -o take.c3d`'s marker take (docs/simulator.md), seeds 1-5:
+
+    python benchmarks/bench_optical_sim.py --routines walk --seeds 1 2 3 4 5 --sta 0 --seconds 45 --rate 100 \
+        --per-body 3 4 --occlusion 0 --swaps 0
+
 `--joint-bias` also prints, per case, how far each tree joint's reported centre (`fit.joint_points`) sits
 from the simulator's true joint centre (the child bone's origin): the constant offset (median over frames,
 in the true bone's frame) and the scatter about it; median and range over the true joints found. With
@@ -109,11 +114,12 @@ def score(out: dict, truth: dict) -> dict:
     }
 
 
-def simulate(routine: str, seed: int, sta_mm: float, seconds: float, rate_hz: float, per_body=(2, 4)):
+def simulate(routine: str, seed: int, sta_mm: float, seconds: float, rate_hz: float, per_body=(2, 4),
+             occlusion: float = 0.036, swaps: int = 1):
     from flockcal.simulator import optical as so
 
     return so.simulate_markers("human", routine, seconds=seconds, rate_hz=rate_hz, seed=seed, per_body=tuple(per_body),
-                               noise_m=0.001, occlusion=0.036, n_swaps=1, sta_mm=sta_mm)
+                               noise_m=0.001, occlusion=occlusion, n_swaps=swaps, sta_mm=sta_mm)
 
 
 def joint_bias(fit, truth: dict, routine: str, seed: int, seconds: float, rate_hz: float) -> tuple[np.ndarray, np.ndarray]:
@@ -290,6 +296,8 @@ def main() -> int:
     ap.add_argument("--rate", type=float, default=144.0)
     ap.add_argument("--per-body", nargs=2, type=int, default=[2, 4], metavar=("LOW", "HIGH"),
                     help="markers a body (default 2 4)")
+    ap.add_argument("--occlusion", type=float, default=0.036, help="fraction of frames in gaps (default 0.036)")
+    ap.add_argument("--swaps", type=int, default=1, help="label swaps (default 1)")
     ap.add_argument("--fresh", action="store_true", help="also time a fresh `flockcal fit-markers` process")
     ap.add_argument("--verbose", action="store_true", help="print the swaps and the wrong edges")
     ap.add_argument("--joint-bias", action="store_true", help="print the joint centres' offset from the truth")
@@ -304,7 +312,7 @@ def main() -> int:
         print(f"{'routine':<7} {'seed':>4} {'k':>3} {'bodies':>7} {'markers':>7} {'seg s':>6}")
         for routine in args.routines:
             for seed in args.seeds:
-                take, truth = simulate(routine, seed, args.sta, args.seconds, args.rate, args.per_body)
+                take, truth = simulate(routine, seed, args.sta, args.seconds, args.rate, args.per_body, args.occlusion, args.swaps)
                 head, lines = segmentation_lines(take, truth)
                 print(f"{routine:<7} {seed:>4} {take.markers.shape[1]:>3} {head}")
                 print("\n".join(lines)) if lines else None
@@ -316,7 +324,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as tmp:
         for routine in args.routines:
             for seed in args.seeds:
-                take, truth = simulate(routine, seed, args.sta, args.seconds, args.rate, args.per_body)
+                take, truth = simulate(routine, seed, args.sta, args.seconds, args.rate, args.per_body, args.occlusion, args.swaps)
                 t0 = time.perf_counter()
                 fit = fit_markers(take.markers, take.marker_names, take.rate_hz, take.times)
                 out = fit.to_dict()

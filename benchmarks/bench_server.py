@@ -27,6 +27,14 @@ CPU (in this process) separately, p99 latency, refits/s and slip alarms; then th
 of each pair of neighbouring runs, and its median.
 
     python benchmarks/bench_server.py --ab main --rounds 3 --seconds 30
+
+The live humanoid streams (issue 47): `--streams` runs the service with `--vrpn` and `--osc` and attaches
+VRPN's own client (`vrpn_print_devices` from ../shared/tools/vrpn, over its UDP channel, output discarded)
+and a VMC receiver (a UDP socket this process drains); `--streams-ab` runs this tree's service in turn
+without (A) and with (B) them, as `--ab` does two revisions, and prints what the streams add in points of
+one core (B − A per round, neighbouring runs) and their own thread's share (fc-outputs).
+
+    python benchmarks/bench_server.py --streams-ab --rounds 3 --seconds 20
 """
 
 from __future__ import annotations
@@ -158,13 +166,19 @@ def main(argv=None) -> int:
                          "rate, then 1000: every snapshot the service publishes)")
     ap.add_argument("--ab", metavar="REV", help="A/B mode: the service of git revision REV against this tree's, in turn")
     ap.add_argument("--rounds", type=int, default=3, help="A/B mode: runs of each side (default 3)")
+    ap.add_argument("--streams", action="store_true",
+                    help="serve VRPN and VMC with a VRPN client and a VMC receiver attached")
+    ap.add_argument("--streams-ab", action="store_true",
+                    help="A/B mode for the streams: this tree without them (A) and with them and their clients (B)")
     args = ap.parse_args(argv)
     if args.ab:
         return ab(args.ab, args.rounds, args.seconds, args.dashboards, args.probe_hz[0])
+    if args.streams_ab:
+        return streams_ab(args.rounds, args.seconds, args.dashboards, args.probe_hz[0])
 
     tmp = tempfile.mkdtemp(prefix="flockcal-bench-site-")
     try:  # this tree's code, as B runs it in A/B mode, not whatever the editable install points at
-        with Service(tree_site(tmp)) as svc:
+        with Service(tree_site(tmp), streams=args.streams) as svc:
             for probe_hz in args.probe_hz:
                 window(svc, args.seconds, args.dashboards, probe_hz)
     finally:
@@ -177,16 +191,27 @@ class Service:
     session settled into its steady state, serving the code of `site` (`tree_site`, `export_revision`), which
     goes first on the service's PYTHONPATH."""
 
-    def __init__(self, site: str):
+    def __init__(self, site: str, streams: bool = False):
         self.site = site
+        self.streams = streams
+        self.attached: list = []
 
     def __enter__(self) -> "Service":
         performer = Performer("human", "exercise", seed=1, rate_hz=RATE)
         self.pty = PtyTracker(MarkedSource(performer), birds=16, baud=921600, rate_hz=RATE).start()
         self.clock_t0 = self.pty.flock.clock._t0
         self.data = tempfile.mkdtemp(prefix="flockcal-bench-")
+        extra = []
+        if self.streams:
+            if not PRINT_DEVICES.exists():
+                raise SystemExit(f"bench_server: --streams needs VRPN's client at {PRINT_DEVICES}")
+            self.vrpn_port = free_port()
+            self.vmc = VmcDrain()
+            self.attached.append(self.vmc)
+            extra = ["--vrpn", str(self.vrpn_port), "--osc", f"127.0.0.1:{self.vmc.port}"]
         self.proc = ServerProcess(["--device", self.pty.device, "--birds", "16", "--fast-init", "--scale", "72",
-                                   "--baud", "921600", "--data-dir", self.data, "--names", ",".join(performer.names)],
+                                   "--baud", "921600", "--data-dir", self.data, "--names", ",".join(performer.names),
+                                   *extra],
                                   free_port(), log_path=os.path.join(self.data, "serve.log"), cwd=self.data)
         saved = os.environ.get("PYTHONPATH")
         try:
@@ -196,6 +221,10 @@ class Service:
             self.proc.start()
             wait_connected(self.proc.url, frames=int(RATE))
             httpx.post(self.proc.url + "/api/sessions", json={"performer": "bench"}).raise_for_status()
+            if self.streams:  # VRPN's own client on its UDP channel, its printing thrown away
+                client = subprocess.Popen([str(PRINT_DEVICES), f"flockcal@127.0.0.1:{self.vrpn_port}"],
+                                          stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+                self.attached.append(client)
             time.sleep(3.0)  # let the fit settle into its steady state
         except BaseException:
             self.__exit__()
@@ -210,6 +239,12 @@ class Service:
 
     def __exit__(self, *exc) -> None:
         try:
+            for thing in self.attached:
+                if isinstance(thing, subprocess.Popen):
+                    thing.terminate()
+                    thing.wait(10)
+                else:
+                    thing.close()
             self.proc.stop()
         finally:
             self.pty.stop()
@@ -220,6 +255,39 @@ class Service:
         with open(f"/proc/self/task/{self.pty._thread.native_id}/stat") as fh:
             fields = fh.read().rsplit(")", 1)[1].split()
         return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+PRINT_DEVICES = Path(__file__).resolve().parents[1].parent / "shared" / "tools" / "vrpn" / "vrpn_print_devices"
+
+
+class VmcDrain:
+    """A VMC receiver that takes every datagram and throws it away (a thread of this process)."""
+
+    def __init__(self):
+        import socket
+        import threading
+
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_DGRAM)
+        self.sock.bind(("127.0.0.1", 0))
+        self.sock.settimeout(0.5)
+        self.port = self.sock.getsockname()[1]
+        self.received = 0
+        self._stop = False
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self):
+        while not self._stop:
+            try:
+                self.sock.recv(65536)
+                self.received += 1
+            except OSError:
+                pass
+
+    def close(self):
+        self._stop = True
+        self._thread.join(5)
+        self.sock.close()
 
 
 def measure_window(svc: Service, seconds: float, dashboards: int, probe_hz: float) -> dict:
@@ -362,6 +430,41 @@ def ab(rev: str, rounds: int, seconds: float, dashboards: int, probe_hz: float) 
             b = np.median([w[key] for s, w in runs if s == "B"])
             print(f"  {what:27s} A {a:6.1f}   B {b:6.1f}")
         print("  " + ratio_line("service CPU", round_ratios(runs, "cpu")))
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return 0
+
+
+def streams_ab(rounds: int, seconds: float, dashboards: int, probe_hz: float) -> int:
+    """This tree's service without (A) and with (B) the VRPN and VMC streams and their clients, in turn."""
+    tmp = tempfile.mkdtemp(prefix="flockcal-streams-ab-")
+    try:
+        site = tree_site(tmp)
+        print(f"streams A/B: A = this tree, no streams; B = this tree with --vrpn and --osc, vrpn_print_devices and "
+              f"a VMC receiver attached; 16 birds at {RATE:g} Hz, {seconds:g} s windows, probe at {probe_hz:g} Hz, "
+              f"{dashboards} extra dashboards, {rounds} rounds")
+        runs: list[tuple[str, dict]] = []
+        for r, side in ab_order(rounds):
+            with Service(site, streams=side == "B") as svc:
+                w = measure_window(svc, seconds, dashboards, probe_hz)
+                if side == "B":
+                    st = httpx.get(svc.proc.url + "/api/status").json()["outputs"]
+                    w["clients"] = len(st["vrpn"]["clients"])
+                    w["vmc_received"] = svc.vmc.received
+            runs.append((side, w))
+            top = ", ".join(f"{k} {v:.1f}" for k, v in sorted(w["threads"].items(), key=lambda kv: -kv[1]) if v >= 0.5)
+            extra = f"; VRPN clients {w['clients']}, VMC bundles received {w['vmc_received']}" if side == "B" else ""
+            print(f"  round {r + 1} {side}: service {w['cpu']:5.1f} % ({top}); p99 {w['p99']:5.1f} ms; "
+                  f"refits {w['fits_hz']:4.1f}/s; load {w['load']:.1f}{extra}", flush=True)
+        diffs = []
+        for k in range(0, len(runs) - 1, 2):
+            (s0, w0), (_, w1) = runs[k], runs[k + 1]
+            a, b = (w0, w1) if s0 == "A" else (w1, w0)
+            diffs.append(b["cpu"] - a["cpu"])
+        own = [w["threads"].get("fc-outputs", 0.0) for s, w in runs if s == "B"]
+        print(f"  streams add (B - A, points of one core) per round: {' '.join(f'{d:+.1f}' for d in diffs)}; "
+              f"median {np.median(diffs):+.1f} (target at most +3)")
+        print(f"  their thread fc-outputs: {' '.join(f'{x:.1f}' for x in own)} % of one core; median {np.median(own):.1f}")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return 0

@@ -12,6 +12,7 @@ from typing import Callable
 import numpy as np
 
 from flockcal.drivers.link import FlockSetup
+from flockcal.hemisphere_unfold import path_toggles
 
 _POSITION_FORMATS = ("position", "position_angles", "position_matrix", "position_quaternion")
 
@@ -152,28 +153,15 @@ class BirdChecks:
         """Undo hemisphere folding: the bird reports −p once a sensor crosses into the other hemisphere.
 
         Consecutive valid raw positions pointing to opposite sides (p·q < 0) can only be such a flip (a
-        real move would have to pass through the transmitter). Positions are corrected in place.
+        real move would have to pass through the transmitter: `path_toggles`, which files are unfolded
+        with too). Positions are corrected in place.
         """
-        n = len(p)
-        if valid.all():  # the usual case: each bird's previous position is the row above
-            prev = np.concatenate([self.raw_last[None], p[:-1]])
-            raw_last = p[-1].copy()
-        else:
-            rows = np.arange(n)[:, None]
-            idx = np.where(valid, rows, -1)
-            last = np.maximum.accumulate(idx, axis=0)
-            prev_idx = np.vstack([np.full((1, self.m), -1), last[:-1]])
-            cols = np.arange(self.m)[None, :]
-            prev = np.where((prev_idx >= 0)[..., None], p[np.maximum(prev_idx, 0), cols], self.raw_last)
-            raw_last = np.where((last[-1] >= 0)[:, None], p[np.maximum(last[-1], 0), np.arange(self.m)],
-                                self.raw_last)
-        toggle = valid & (np.einsum("nmi,nmi->nm", p, prev) < 0)
+        toggle, self.raw_last = path_toggles(p, valid, self.raw_last)
         if toggle.any():
             for b in np.flatnonzero(toggle.any(axis=0)):
                 self.emit(("hemisphere_flip", f"bird {b} crossed the hemisphere boundary "
                                     f"{int(toggle[:, b].sum())} time(s); positions corrected",
                                     {"bird": int(b), "count": int(toggle[:, b].sum())}))
-        self.raw_last = raw_last
         if not toggle.any():
             if self.flipped.any():
                 p[:, self.flipped] *= -1.0

@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from flockcal.errors import FlockcalError
+from flockcal.atomic import replacing
 from flockcal.takes import read_npz, write_npz
 
 
@@ -132,7 +133,11 @@ def load_marker_npz(path: str | os.PathLike) -> MarkerTake:
 
 
 def save_markers(path: str | os.PathLike, take: MarkerTake) -> None:
-    """Write a marker .npz (atomically)."""
+    """Write a marker take (atomically): a .c3d file for a name ending in .c3d (`save_c3d`), else the
+    marker .npz of docs/design.md §5."""
+    if Path(path).suffix.lower() == ".c3d":
+        save_c3d(path, take)
+        return
     write_npz(
         path,
         markers=take.markers,
@@ -200,6 +205,42 @@ def c3d_layout(path: str | os.PathLike) -> C3dLayout | None:
     return C3dLayout(last - first + 1, frame_bytes, (start_block - 1) * 512, size)
 
 
+def ezc3d_module(doing: str):
+    """The ezc3d module, or a MarkerError naming the extra that brings it (`doing`: "reading", "writing")."""
+    try:
+        import ezc3d
+    except ImportError:
+        raise MarkerError(f"{doing} C3D needs the ezc3d package: pip install 'flockcal[optical]'") from None
+    return ezc3d
+
+
+def save_c3d(path: str | os.PathLike, take: MarkerTake) -> None:
+    """Write a marker take as a C3D file (through ezc3d), atomically: POINT:UNITS mm, the take's rate and
+    marker names as labels, a marker not seen in a frame stored as C3D marks one (residual −1, at the
+    origin), so `load_c3d` reads the take back as it was (to float32's precision)."""
+    ezc3d = ezc3d_module("writing")
+    c = ezc3d.c3d()
+    c["parameters"]["POINT"]["RATE"]["value"] = [float(take.rate_hz)]
+    c["parameters"]["POINT"]["LABELS"]["value"] = list(take.marker_names)
+    c.add_parameter("POINT", "UNITS", ["mm"])
+    xyz = take.markers.transpose(2, 1, 0) * 1000.0  # (3, k, n) mm
+    seen = take.visible().T
+    points = np.ones((4, take.n_markers, take.n_frames))
+    points[:3] = np.where(seen, xyz, 0.0)
+    c["data"]["points"] = points
+    c["data"]["meta_points"] = {"residuals": np.where(seen, 0.0, -1.0)[None],
+                                "camera_masks": np.zeros((7, *seen.shape), dtype=bool)}
+    with replacing(path) as tmp:
+        out = tmp.with_name(tmp.name + ".c3d")  # ezc3d adds .c3d to a name that lacks it
+        try:
+            c.write(str(out))
+            os.replace(out, tmp)
+        except RuntimeError as exc:  # ezc3d reports a failed write so
+            raise OSError(str(exc)) from None
+        finally:
+            out.unlink(missing_ok=True)
+
+
 def load_c3d(path: str | os.PathLike, salvage: bool = False) -> MarkerTake:
     """Markers of a C3D file in metres: model outputs dropped, invalid points (residual < 0, or exactly
     at the origin, which some writers use for 'not seen') set to NaN, unnamed points named P1…
@@ -208,10 +249,7 @@ def load_c3d(path: str | os.PathLike, salvage: bool = False) -> MarkerTake:
     refused with the count it holds, unless `salvage`: then those frames are read and the take's
     `declared_frames` says how many there should have been."""
     path = Path(path)
-    try:
-        import ezc3d
-    except ImportError:
-        raise MarkerError("reading C3D needs the ezc3d package: pip install 'flockcal[optical]'") from None
+    ezc3d = ezc3d_module("reading")
     layout = c3d_layout(path)
     if layout is not None and layout.size < layout.data_start:
         raise MarkerError(f"{path}: the file ends at byte {layout.size}, before its marker data (from byte "

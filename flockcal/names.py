@@ -1,4 +1,5 @@
-"""Readable names for sensors and joints: 'l_forearm' → 'left forearm', the joint it ends → 'left elbow'.
+"""Readable names for sensors and joints: 'l_forearm' → 'left forearm', the joint it ends → 'left elbow';
+and the humanoid bones a sensor's name implies ('l_forearm' → leftLowerArm), checked against the data's finding.
 
 Base layer: the CLI tables, the report and the progress hints all name things the same way; the
 dashboard's pages read the table here too, as the script the service makes of it (/static/names.js).
@@ -69,10 +70,48 @@ def joint_name(child: str, parent: str | None) -> str:
     return f"{readable_body(parent)}–{readable_body(child)}" if parent else readable_body(child)
 
 
+def names_joint(child: str, parent: str | None) -> bool:
+    """Whether `joint_name` reads a body part from either name ('left elbow'), not just joins the two."""
+    return bool(_body_joint(child) or (parent and _body_joint(parent)))
+
+
 def joint_label(child: str, parent: str | None) -> str:
     """The joint's name for a sentence: 'the left elbow', 'the joint between the bird 1 and the bird 2'."""
-    if _body_joint(child) or (parent and _body_joint(parent)):
+    if names_joint(child, parent):
         return f"the {joint_name(child, parent)}"
     if not parent:
         return f"the {readable_body(child)}"
     return f"the joint between the {readable_body(parent)} and the {readable_body(child)}"
+
+
+# Body keyword → the humanoid bones (VRM 1.0 names; a limb's without its side) a sensor so named implies. A
+# name that may mean more than one segment implies each ("arm": Mixamo's LeftArm is the upper arm, a person's
+# "left arm" the whole limb), so only a bone outside them contradicts it. First match wins: "forearm"
+# before "arm", "upper leg" before "leg".
+BODY_BONES = [
+    (r"hand|wrist|palm|finger", ("Hand",)), (r"foot|ankle|toe|heel", ("Foot",)), (r"head|skull", ("head",)),
+    (r"fore ?arm|lower ?arm|low ?arm|radius|ulna", ("LowerArm",)),
+    (r"shin|shank|calf|lower ?leg|low ?leg|tibia", ("LowerLeg",)),
+    (r"upper ?arm|up ?arm|humerus", ("UpperArm",)), (r"thigh|upper ?leg|up ?leg|femur", ("UpperLeg",)),
+    (r"\barm\b", ("UpperArm", "LowerArm")), (r"\bleg\b", ("UpperLeg", "LowerLeg")),
+    (r"chest|thorax|upper ?back|sternum|breast", ("chest",)),
+    (r"abdomen|spine|waist|belly|lower ?back|lumbar|torso", ("spine", "chest")),
+    (r"pelvis|hips?\b|sacrum|buttock", ("hips",)),
+]
+
+
+@lru_cache(maxsize=1024)
+def named_bones(name: str) -> tuple[str, ...]:
+    """The humanoid bones (VRM 1.0 names) sensor `name` implies: 'l_forearm' → ('leftLowerArm',), 'RightUpLeg'
+    → ('rightUpperLeg',), 'forearm' → both forearms, 'left leg' → left thigh and shin; () for a name that says
+    no body part ('bird 3'). A limb's side comes from the name ('l', 'left', 'LeftHand', 'r shin'), trunk
+    and head have none."""
+    body = readable_body(name)
+    sides = ("left", "right")
+    for s in sides:
+        if body.startswith(s + " "):
+            sides, body = (s,), body[len(s) + 1:]
+    for pattern, bones in BODY_BONES:
+        if re.search(pattern, body):
+            return tuple(b if b[0].islower() else s + b for b in bones for s in (sides if b[0].isupper() else ("",)))
+    return ()

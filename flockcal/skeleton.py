@@ -1,23 +1,18 @@
-"""The saved-skeleton file's model: its format and version, its structural checks, and `Skeleton`.
+"""The saved-skeleton file's format: its name and version, its errors and its structural checks.
 
 Base layer: the server's skeleton library, the solver's saved-skeleton fit and the exports share it.
 Checks that need the solver (one tree, bones that agree with the joint centres) are the exports'
-`parse_skeleton`, which builds the `Skeleton`; fitting a take with one is the solver's `known_fit`.
+`parse_skeleton`, which builds the solver's `Skeleton` (flockcal.solver.known_skeleton) that `known_fit` fits with.
 """
 
 from __future__ import annotations
 
 import json
 import math
-from dataclasses import dataclass
-from typing import TYPE_CHECKING
 
 import numpy as np
 
 from flockcal.errors import FlockcalError
-
-if TYPE_CHECKING:
-    from flockcal.solver.reconstruct import Articulation
 
 FORMAT = "flockcal-skeleton"
 VERSION = 1
@@ -29,47 +24,6 @@ class SkeletonError(FlockcalError, ValueError):
 
 class SkeletonRangeError(SkeletonError):
     """A number in a skeleton file that is not finite or not a body's size (the API answers 422)."""
-
-
-@dataclass(frozen=True)
-class Skeleton:
-    """A validated skeleton file: the saved tree, ready to fit a new take of the same performer."""
-
-    data: dict
-    articulation: "Articulation"  # the solver's tree with joint centres (flockcal.solver.reconstruct), built on parsing
-
-    @property
-    def names(self) -> tuple[str, ...]:
-        return self.articulation.names
-
-    @property
-    def root(self) -> str:
-        return self.articulation.names[self.articulation.root]
-
-    @property
-    def hierarchy(self) -> dict[str, str]:
-        """{child: parent}, root omitted: what `calibrate(..., hierarchy=)` and `--hierarchy` take."""
-        return dict(self.data["parent"])
-
-    @property
-    def bone_stderr(self) -> dict[tuple[str, str], float]:
-        out = {}
-        for b in self.data["bones"]:
-            if isinstance(b.get("stderr_m"), (int, float)):
-                out[(b["from_joint"], b["to_joint"])] = out[(b["to_joint"], b["from_joint"])] = float(b["stderr_m"])
-        return out
-
-    @property
-    def bone_keys(self) -> frozenset:
-        """(from_joint, to_joint) of every bone the file holds: the ones its take measured."""
-        return frozenset((b["from_joint"], b["to_joint"]) for b in self.data["bones"])
-
-    def check_names(self, names) -> None:
-        """SkeletonError unless the take's sensors are exactly the skeleton's (any order)."""
-        try:
-            self.articulation.reordered(names)
-        except ValueError as exc:  # the solver's ArticulationError, a ValueError: names that do not match
-            raise SkeletonError(f"skeleton does not match the take: {exc}") from None
 
 
 # A body is metres: a joint this far from its sensor, or a bone this long, is a damaged or hostile file

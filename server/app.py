@@ -41,10 +41,28 @@ PLACEHOLDER = """<!doctype html><meta charset="utf-8"><title>flockcal</title>
 
 def names_module() -> str:
     """flockcal.names' joint-name table as the ES module the pages import (/static/names.js): one table
-    names the joints for the progress hints and the pages' labels alike."""
+    names the joints for the progress hints and the pages' labels alike; and the humanoid bones in words
+    (solver/humanoid.py's `bone_words`: "leftLowerArm" → "left forearm"), which body each sensor was found on."""
+    from flockcal.solver.humanoid import BONES, bone_words
+
     rows = ",\n".join(f"  [new RegExp({json.dumps(p)}), {json.dumps(j)}, {r}]" for p, j, r in BODY_JOINTS)
     head = "// Made by the service from flockcal/names.py: body keyword, its joint, how far out it sits."
-    return f"{head}\nexport const BODY_JOINTS = [\n{rows},\n];\n"
+    words = json.dumps({b: bone_words(b) for b in BONES}, indent=1)
+    return (f"{head}\nexport const BODY_JOINTS = [\n{rows},\n];\n"
+            f"// Made from solver/humanoid.py: each humanoid bone (VRM 1.0 name) in words.\n"
+            f"export const BONE_WORDS = {words};\n")
+
+
+def _allowed(request: Request) -> str:
+    """The methods the request's path takes, over every route of it (the router names only the first's)."""
+    from starlette.routing import Match
+
+    from flockcal.server.openapi import api_routes
+
+    matched = [r for r in api_routes(request.app.router.routes) if r.matches(request.scope)[0] != Match.NONE]
+    # A path of its own (/api/sessions/presets) is that resource, not an {id} the wider routes would take.
+    literal = [r for r in matched if "{" not in r.path_format]
+    return ", ".join(sorted({m for r in (literal or matched) for m in (r.methods or ())}))
 
 
 def _error(status: int, message: str, code: str, headers: dict | None = None) -> JSONResponse:
@@ -210,8 +228,10 @@ def create_app(settings: Settings, service=None) -> FastAPI:
         if exc.status_code == 404:
             return _error(404, f"no such path {request.url.path}; the API is listed at /docs", "not_found")
         if exc.status_code == 405:
-            return _error(405, f"{request.method} is not allowed on {request.url.path}; see /docs", "method_not_allowed")
-        return _error(exc.status_code, str(exc.detail), "http_error")
+            # With the Allow header the router names (RFC 9110 §15.5.6): what the path does take.
+            return _error(405, f"{request.method} is not allowed on {request.url.path}; see /docs", "method_not_allowed",
+                          {"Allow": _allowed(request)})
+        return _error(exc.status_code, str(exc.detail), "http_error", exc.headers)
 
     app.include_router(status.router)
     app.include_router(sessions.router)
@@ -220,6 +240,17 @@ def create_app(settings: Settings, service=None) -> FastAPI:
     app.include_router(skeletons.router)
     app.include_router(simulator.router)
     app.include_router(live.router)
+
+    def openapi() -> dict:
+        # As the API behaves now (server/openapi.py): its sensors' names and the presets saved so far are part
+        # of it, so it is made afresh for each request of it (tens of ms; not a hot path).
+        from flockcal.server.openapi import openapi_document
+
+        svc = getattr(app.state, "service", None)
+        return openapi_document(app, settings.auth_required, tuple(svc.pipeline.names) if svc else (),
+                                tuple(sessions.presets(svc)) if svc else ())
+
+    app.openapi = openapi
 
     def page(name: str, what: str):
         path = STATIC / name

@@ -37,14 +37,23 @@ class FrameFile:
 
     def __init__(self, path: str | Path):
         self.path = Path(path)
-        with open(self.path, "rb") as fh:
-            line = fh.readline()
-            self.offset = fh.tell()
+        # Held open until `close()`: a download reads what it began with, whatever happens to the name
+        # (retention and DELETE wait for it, server/holds.py; this is the last line of defence).
+        self._fh = open(self.path, "rb")
+        try:
+            self._open()
+        except BaseException:
+            self._fh.close()
+            raise
+
+    def _open(self) -> None:
+        line = self._fh.readline()
+        self.offset = self._fh.tell()
         header = parse_header(line, self.path.name)  # FrameLogError (a ValueError) when cut or damaged
         self.names: list[str] = list(header["names"])
         self.m = len(self.names)
         self.dtype = record_dtype(self.m)
-        self.n = (os.path.getsize(self.path) - self.offset) // self.dtype.itemsize
+        self.n = (os.fstat(self._fh.fileno()).st_size - self.offset) // self.dtype.itemsize
         self.chunk = max(1, CHUNK_BYTES // self.dtype.itemsize)
         # Damaged records become frames with no valid sensor (server/framelog.py: sanitize), chunk by chunk
         # exactly as read_frames does for the whole log.
@@ -67,26 +76,30 @@ class FrameFile:
         hold ~10 arrays of its size."""
         return max(1, self.chunk // 4)
 
+    def close(self) -> None:
+        self._fh.close()
+
+    def _read(self, start: int, count: int) -> np.ndarray:
+        size = self.dtype.itemsize
+        data = os.pread(self._fh.fileno(), count * size, self.offset + start * size)
+        return np.frombuffer(data, dtype=self.dtype, count=len(data) // size)
+
     def records(self, start: int, count: int) -> np.ndarray:
-        with open(self.path, "rb") as fh:
-            fh.seek(self.offset + start * self.dtype.itemsize)
-            return np.fromfile(fh, dtype=self.dtype, count=count)
+        return self._read(start, count)
 
     def chunks(self, size: int | None = None) -> Iterator[Frames]:
         """`Frames` (times from the first frame) per chunk of `size` frames (default CHUNK_BYTES' worth), as a
         Take holds them: invalid sensor-frames zeroed (flockcal.takes.make_take)."""
         size = size or self.chunk
         last = -np.inf
-        with open(self.path, "rb") as fh:
-            fh.seek(self.offset)
-            left = self.n
-            while left > 0:
-                rec = np.fromfile(fh, dtype=self.dtype, count=min(size, left))
-                if not len(rec):
-                    return
-                left -= len(rec)
-                times, R, t, valid, last = sanitize(rec, self.span, last)
-                yield Frames(times - self.t0, R, t, valid)
+        start = 0
+        while start < self.n:
+            rec = self._read(start, min(size, self.n - start))
+            if not len(rec):
+                return
+            start += len(rec)
+            times, R, t, valid, last = sanitize(rec, self.span, last)
+            yield Frames(times - self.t0, R, t, valid)
 
 
 DOWNLOAD_STALL_S = 30.0  # a download whose client takes no data for this long is cut off, its slot freed
@@ -204,9 +217,17 @@ class StallClockFileResponse(StallClock, FileResponse):
     """A file sent as it is (a stopped session's raw recording), on the stall clock but in no slot (a file
     costs the service no build); Range requests as FileResponse answers them."""
 
-    def __init__(self, path, slots: DownloadSlots, **kw):
+    def __init__(self, path, slots: DownloadSlots, release=None, **kw):
         super().__init__(path, **kw)
         self.slots = slots
+        self.release = release  # called once the response has been sent, or the client went away
+
+    async def __call__(self, scope, receive, send) -> None:
+        try:
+            await super().__call__(scope, receive, send)
+        finally:
+            if self.release is not None:
+                self.release()
 
 
 # --- .npz take ------------------------------------------------------------------------------------------

@@ -17,6 +17,7 @@ import numpy as np
 
 from flockcal.errors import FlockcalError
 from flockcal.solver.calibration import Calibration
+from flockcal.solver.humanoid import Humanoid, Sample
 from flockcal.solver.solve import solve
 from flockcal.threads import name_os_thread
 
@@ -46,12 +47,15 @@ def json_safe(obj):
 
 
 def solve_fit(acc, names, hierarchy=None, root=None, skeleton=None, tolerance: float = 0.005,
-              previous: Calibration | None = None) -> Calibration:
+              previous: Calibration | None = None, sample: Sample | None = None,
+              humanoid: Humanoid | None = None) -> Calibration:
     """A fit of `acc`: the solver's `solve` picks plain, slip-segmented or saved-skeleton fitting; `previous`
-    (the last Calibration of a saved-skeleton fit) warm-starts one. SolverError etc. propagate."""
+    (the session's last fit) warm-starts a saved-skeleton fit; the humanoid is found from `sample`, the last
+    one (`humanoid`, else `previous`'s) kept while the tree and the sample have not changed enough to matter.
+    SolverError etc. propagate."""
     if skeleton is not None:
-        return solve(acc, names, skeleton=skeleton, previous=previous)
-    return solve(acc, names, hierarchy, root, tolerance=tolerance)
+        return solve(acc, names, skeleton=skeleton, previous=previous, sample=sample, humanoid=humanoid)
+    return solve(acc, names, hierarchy, root, tolerance=tolerance, previous=previous, sample=sample, humanoid=humanoid)
 
 
 def fit_doc(cal: Calibration) -> dict:
@@ -61,9 +65,10 @@ def fit_doc(cal: Calibration) -> dict:
 
 
 def fit_calibration(acc, names, hierarchy=None, root=None, skeleton=None, tolerance: float = 0.005,
-                    previous: Calibration | None = None) -> tuple[dict, Calibration]:
+                    previous: Calibration | None = None, sample: Sample | None = None,
+                    humanoid: Humanoid | None = None) -> tuple[dict, Calibration]:
     """(JSON-safe §5 dict, Calibration) of `solve_fit`: a session's final fit, which is stored."""
-    cal = solve_fit(acc, names, hierarchy, root, skeleton, tolerance, previous)
+    cal = solve_fit(acc, names, hierarchy, root, skeleton, tolerance, previous, sample, humanoid)
     return fit_doc(cal), cal
 
 
@@ -89,6 +94,8 @@ class FitJob:
     skeleton: object
     stamp: tuple[float, int]  # (session time, slip epoch) the fit was begun at
     tolerance: float | None = None  # the session's (its profile's); None: the worker's own
+    sample: Sample | None = None  # the session's sample of frames, to find the humanoid from
+    previous: Calibration | None = None  # the session's newest fit (its humanoid is kept while it holds)
 
 
 @dataclass(frozen=True)
@@ -189,9 +196,10 @@ class FitWorker:
     def _fit(self, job: FitJob) -> Calibration:
         if job.skeleton is None:
             tolerance = self.tolerance if job.tolerance is None else job.tolerance
-            return solve_fit(job.acc, self.names, job.hierarchy, job.root, tolerance=tolerance)
+            return solve_fit(job.acc, self.names, job.hierarchy, job.root, tolerance=tolerance, previous=job.previous,
+                             sample=job.sample)
         # Start from this session's last known-skeleton fit: one or two Gauss–Newton steps.
         prev = self._known_prev[1] if self._known_prev and self._known_prev[0] == job.session_id else None
-        known = solve_fit(job.acc, self.names, skeleton=job.skeleton, previous=prev)
+        known = solve_fit(job.acc, self.names, skeleton=job.skeleton, previous=prev, sample=job.sample)
         self._known_prev = (job.session_id, known)
         return known

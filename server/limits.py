@@ -59,8 +59,10 @@ class SessionLimits:
     """`max_session_s` (None: no maximum) and `min_free_bytes` kept free on the recordings' disk. Its
     methods return the events to record (`tick`, `storage_failed`) and the stop a session needs (`check`)."""
 
-    def __init__(self, recordings: Path, max_session_s: float | None, min_free_bytes: int):
+    def __init__(self, recordings: Path, max_session_s: float | None, min_free_bytes: int,
+                 stamp: Callable[[], float] = time.time):
         self.recordings = Path(recordings)
+        self.stamp = stamp  # unix seconds for `since` (the service clock's stamps: server/clock.py)
         self.max_session_s = max_session_s
         self.min_free_bytes = int(min_free_bytes)
         self._stopping: str | None = None  # the session a stop was asked for (once per session)
@@ -86,7 +88,7 @@ class SessionLimits:
         with self._lock:
             if self.full_since is not None:
                 return []
-            self.full_since, self.full_message = time.time(), message
+            self.full_since, self.full_message = self.stamp(), message
         log.warning("%s", message)
         return [{"type": "service", "action": "disk_full", "message": message, "free_bytes": self.free}]
 
@@ -111,7 +113,7 @@ class SessionLimits:
         with self._lock:
             since, self.full_since, self.full_message = self.full_since, None, None
         message = (f"room again on the disk holding {self.recordings} ({free / 2**20:.0f} MB free, full for "
-                   f"{time.time() - since:.0f} s): sessions can start")
+                   f"{max(self.stamp() - since, 0.0):.0f} s): sessions can start")
         log.warning("%s", message)
         return [{"type": "service", "action": "disk_ok", "message": message, "free_bytes": free}]
 

@@ -41,6 +41,15 @@ class Joint(Open):
     coverage: list[float | None] = []
     c_stderr_m: float | None = None
     l_stderr_m: float | None = None
+    name: str | None = Field(None, description="the joint as people name it: the humanoid's on a human tree "
+                                               "('left knee', 'lower back'), else read from the sensor names")
+
+
+class NameConflict(Open):
+    sensor: str
+    named: str = Field(description="the humanoid bone (VRM 1.0 name) the sensor's name implies")
+    found: str = Field(description="the bone the data found the sensor on (the outputs follow this)")
+    message: str
 
 
 class Bone(Open):
@@ -76,6 +85,11 @@ class CalibrationResult(Open):
     bones: list[Bone] = []
     loop_candidates: list[LoopCandidate] = []
     slip_events: list[SlipEvent] = []
+    humanoid: dict[str, str] | None = Field(
+        None, description="{sensor: VRM 1.0 bone} found from the tree and the motion; null when the tree is not "
+                          "human-shaped (`humanoid_note` says why) or no humanoid was looked for")
+    humanoid_conflicts: list[NameConflict] = Field(
+        [], description="sensors whose names say another bone than the one found (docs/solver.md)")
 
 
 # --- sessions ------------------------------------------------------------------------------------
@@ -120,8 +134,11 @@ class Session(Open):
     names: list[str]
     device: str
     rate_hz: float | None = None
-    created_at: float
-    stopped_at: float | None = None
+    created_at: float = Field(description="unix s when it started: the service clock's stamp, which never steps "
+                                          "back (docs/service.md#clock)")
+    stopped_at: float | None = Field(None, description="created_at + duration_s: never before created_at")
+    duration_s: float | None = Field(None, description="how long it recorded (so far, while live), measured on the "
+                                                       "monotonic clock: a step of the wall clock does not move it")
     frames: int = 0
     recording: str | None = None
     note: str | None = None
@@ -228,6 +245,15 @@ class Status(Open):
     downloads: dict | None = Field(None, description="download slots: limit, running (held now), stall_s and "
                                                      "stalled (downloads cut off for a client that took no data; "
                                                      "server/downloads.py)")
+    outputs: dict | None = Field(None, description="the live humanoid streams, null when none was asked for: vrpn "
+                                                   "(port, clients with address, state and channel, reports, "
+                                                   "dropped), vmc (targets, rate_hz, bundles_sent, failed, "
+                                                   "last_error), humanoid (streaming, reason, bones) and problems "
+                                                   "(outputs that could not start; server/outputs.py)")
+    clock: dict | None = Field(None, description="the service clock: service_s (the time retention ages count "
+                                                 "in), offset_s (the wall clock's steps, summed), stamp_ahead_s "
+                                                 "(stamps ahead of a wall clock that stepped back), steps and "
+                                                 "last_step (server/clock.py)")
 
 
 class ResidualSeries(BaseModel):

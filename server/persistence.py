@@ -40,8 +40,10 @@ class Persistence:
     """Writes the live session out; owns the recent events and the time of the last database flush.
     `on_storage_failed(exc)` hears of a write that failed for want of room."""
 
-    def __init__(self, store: Store, on_storage_failed: Callable[[Exception], None] | None = None):
+    def __init__(self, store: Store, on_storage_failed: Callable[[Exception], None] | None = None,
+                 stamp: Callable[[], float] = time.time):
         self.store = store
+        self.stamp = stamp  # events' wall_time: the service clock's stamps, which never step back
         self.on_storage_failed = on_storage_failed
         self.recent: deque[dict] = deque(maxlen=RECENT_EVENTS)
         self.held_events: list[dict] = []  # shown with their ids, not yet in the database
@@ -54,7 +56,7 @@ class Persistence:
         rows = []
         for ev in events:
             ev = dict(ev)
-            ev.setdefault("wall_time", time.time())
+            ev["wall_time"] = self.stamp()  # the service clock: in id order, never back
             if live is not None and "session_id" not in ev:
                 ev["session_id"] = live.id
                 if "time_s" not in ev:

@@ -17,6 +17,7 @@ from typing import Callable
 
 from flockcal.errors import FlockcalError
 from flockcal.frames import Frames
+from flockcal.server.clock import ServiceClock
 from flockcal.server.fitting import SLIP_FIELDS, FitJob, FitView, FitWorker, fit_calibration
 from flockcal.server.ingest import Ingest
 from flockcal.server.limits import LimitStop, SessionLimits
@@ -80,6 +81,7 @@ class Pipeline:
         tolerance: float = 0.005,
         target: float = 0.005 / 2 ** 0.5,
         limits: SessionLimits | None = None,
+        clock: ServiceClock | None = None,
     ):
         self.names = tuple(names)
         self.m = len(self.names)
@@ -88,6 +90,8 @@ class Pipeline:
         self.residual_s = 1.0 / residual_hz
         self.on_publish = on_publish
         self.limits = limits  # session length, free disk (server/limits.py)
+        # Stamps on events and snapshots (never stepping back: server/clock.py).
+        self.clock = clock if clock is not None else ServiceClock()
         self.detect_slips = detect_slips
         self.rate_hz = rate_hz or (lambda: 144.0)
         self._cond = threading.Condition()
@@ -101,9 +105,9 @@ class Pipeline:
         self._flush_held_rows: Callable[[], bool] = lambda: True
         # The parts, and the state below, belong to the pipeline thread.
         self.ingest = Ingest(self.m)
-        self.persistence = Persistence(store, on_storage_failed=self._storage_failed)
+        self.persistence = Persistence(store, on_storage_failed=self._storage_failed, stamp=self.clock.stamp)
         self.fitter = FitWorker(self.names, tolerance, on_done=self._wake)
-        self.snapshots = SnapshotMaker(self.names, source_status, target)
+        self.snapshots = SnapshotMaker(self.names, source_status, target, stamp=self.clock.stamp)
         self.live: LiveSession | None = None
         self.pose_fit: Calibration | None = None  # the fit the live skeleton is drawn with
         # Whose fit that is: (session id, fit_seq), fit_seq None for a stopped session's final (stored) fit;
@@ -206,8 +210,11 @@ class Pipeline:
             result, error = None, None
             if cal.frames > 0:
                 try:
+                    last = cal.calibration
                     result, final = fit_calibration(cal.acc, self.names, live.hierarchy, live.root,
-                                                    live.skeleton, live.profile.tolerance_m)
+                                                    live.skeleton, live.profile.tolerance_m,
+                                                    sample=cal.sample.snapshot(),
+                                                    humanoid=last.humanoid if last is not None else None)
                     slips = self.persistence.slip_events(live, SLIP_FIELDS)
                     if slips:
                         result["slip_events"] = slips
@@ -361,7 +368,8 @@ class Pipeline:
                 # Hand a copy of the Gram matrix to the fit thread; frames keep flowing meanwhile.
                 job = live.cal.fit_input()
                 self.fitter.submit(FitJob(live.id, job.acc, live.hierarchy, live.root, live.skeleton,
-                                          (job.time_s, job.epoch), live.profile.tolerance_m))
+                                          (job.time_s, job.epoch), live.profile.tolerance_m, job.sample,
+                                          job.previous))
                 # Keep a fixed grid (not "period after the last start") so the rate holds at fit_hz.
                 self._last_fit_time = max(self._last_fit_time + self.min_fit_s, now - self.min_fit_s)
         snap = self._make_snapshot()

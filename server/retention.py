@@ -1,6 +1,7 @@
 """Retention: how long sessions keep their bulky files (frames, raw tracker bytes) and the background
 pruner that enforces `serve --keep-days` / `--keep-disk`. Results, events, the session's skeleton file and
 its residual series (thinned to 1 Hz) stay; a pinned session is never pruned, nor any while one is live.
+Ages are service time (server/clock.py): a step of the wall clock makes no recording older.
 """
 
 from __future__ import annotations
@@ -13,7 +14,8 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
-from flockcal.server.errors import Conflict, Gone
+from flockcal.server.clock import Reading, ServiceClock
+from flockcal.server.errors import Conflict, Gone, ServerError
 from flockcal.malloc import release_free_heap
 
 log = logging.getLogger(__name__)
@@ -25,7 +27,8 @@ SCHEMA = """CREATE TABLE IF NOT EXISTS retention (
     pinned INTEGER NOT NULL DEFAULT 0,
     pruned_at REAL,                 -- unix seconds; NULL while the frames and raw recording are on disk
     freed_bytes INTEGER,
-    reason TEXT                     -- why it was pruned (age or budget), in words
+    reason TEXT,                    -- why it was pruned (age or budget), in words
+    clock_offset REAL               -- created_at less the service time it was recorded at (NULL: from before)
 )"""
 
 # The calibrated skeleton is written next to the recordings before the frames go, so /skeleton still
@@ -85,6 +88,10 @@ def tree_bytes(path: Path) -> int:
     return total
 
 
+class _Downloading(Exception):
+    """The session's files are held by a download in progress (server/holds.py)."""
+
+
 class Retention:
     """The pruner of one service. `wake()` after a session stops; it also looks every `interval_s`.
 
@@ -93,15 +100,17 @@ class Retention:
     """
 
     def __init__(self, store, sessions, data_dir: Path, policy: Policy, add_event, interval_s: float = 60.0,
-                 clock=time.time):
+                 clock: ServiceClock | None = None):
         self.store = store
         self.sessions = sessions
         self.data_dir = Path(data_dir)
         self.policy = policy
         self.add_event = add_event
         self.interval_s = float(interval_s)
-        self.clock = clock
+        self.clock = clock if clock is not None else ServiceClock()
         self.store.query(SCHEMA)
+        if "clock_offset" not in {r["name"] for r in self.store.query("PRAGMA table_info(retention)")}:
+            self.store.query("ALTER TABLE retention ADD COLUMN clock_offset REAL")  # databases from before
         self._wake = threading.Event()
         self._stop = threading.Event()
         self._thread: threading.Thread | None = None
@@ -132,6 +141,7 @@ class Retention:
     def _loop(self) -> None:
         while not self._stop.is_set():
             try:
+                self._save_clock()
                 self.prune_once()
                 self.last_error = None
                 if self.sessions.live_id() is None:  # the gap between guests: no session's I/O to delay
@@ -142,13 +152,29 @@ class Retention:
             self._wake.wait(self.interval_s)
             self._wake.clear()
 
+    def _save_clock(self) -> None:
+        """Keep the service clock (woken at once when the wall clock steps: Service._clock_stepped). A full or
+        failing disk keeps it in memory until a later pass can write it."""
+        try:
+            self.clock.save()
+        except ServerError as exc:
+            log.warning("the service clock could not be saved yet: %s", exc)
+
     # --- pruning ----------------------------------------------------------------------------------
+    def recorded(self, sid: str, reading: Reading) -> None:
+        """A session starts recording at `reading` (its created_at is reading.stamp): keep the stamp's lead on
+        service time, so its age is service time (the wall clock's steps until then taken out)."""
+        self.store.query("INSERT INTO retention (session_id, clock_offset) VALUES (?, ?) ON CONFLICT(session_id) "
+                         "DO UPDATE SET clock_offset = excluded.clock_offset", (sid, reading.stamp - reading.service_s))
+
     def candidates(self) -> list[dict]:
-        """Sessions whose files may go, oldest first: not live, not pinned, not pruned yet."""
+        """Sessions whose files may go, oldest first: not live, not pinned, not pruned yet. `recorded_s` is the
+        service time they were recorded at: created_at less the stamps' lead on service time then."""
         rows = self.store.query(
-            "SELECT s.id, s.created_at, s.state FROM sessions s LEFT JOIN retention r ON r.session_id = s.id "
+            "SELECT s.id, s.created_at, s.state, s.created_at - COALESCE(r.clock_offset, 0) AS recorded_s "
+            "FROM sessions s LEFT JOIN retention r ON r.session_id = s.id "
             "WHERE s.state != 'live' AND COALESCE(r.pinned, 0) = 0 AND r.pruned_at IS NULL "
-            "ORDER BY s.created_at")
+            "ORDER BY recorded_s")
         return [dict(r) for r in rows]
 
     def prune_once(self) -> list[dict]:
@@ -156,19 +182,20 @@ class Retention:
         if not self.policy.active:
             return []
         with self._run_lock:
-            now = self.clock()
-            self.last_run_at = now
+            now = self.clock.read()
+            self.last_run_at = now.stamp
             if self.sessions.live_id() is not None:
                 return []
             pruned = []
-            cutoff = None if self.policy.keep_days is None else now - self.policy.keep_days * DAY_S
+            # Service time, not the wall clock: a step forward (NTP at boot) ages nothing (server/clock.py).
+            cutoff = None if self.policy.keep_days is None else now.service_s - self.policy.keep_days * DAY_S
             used = self.data_bytes(max_age_s=0.0) if self.policy.keep_bytes is not None else 0
             rows = self.candidates()
             # Pruned between sessions, the directory must also hold the next guest's files while they
             # record: keep room for one session as large as the largest of the last few.
             room = self.next_session_bytes(rows) if self.policy.keep_bytes is not None else 0
             for row in rows:
-                if cutoff is not None and row["created_at"] < cutoff:
+                if cutoff is not None and row["recorded_s"] < cutoff:
                     reason = f"older than {self.policy.keep_days:g} days"
                 elif self.policy.keep_bytes is not None and used + room > self.policy.keep_bytes:
                     reason = (f"data directory over the {self.policy.keep_bytes / GB:g} GB budget with room "
@@ -180,7 +207,10 @@ class Retention:
                 # database's rows (its thinned residuals, the event: ~40 kB of WAL pages). Counted as freed
                 # bytes alone, a pass left the directory that much over the room it meant to keep.
                 before = self._touched_bytes(row["id"])
-                done = self._prune(row["id"], reason)
+                try:
+                    done = self._prune(row["id"], reason)
+                except _Downloading:  # its files are being sent: the pass after the download takes them
+                    continue
                 if done is None:  # a session went live meanwhile: stop, the next gap resumes
                     break
                 used += self._touched_bytes(row["id"]) - before
@@ -218,23 +248,34 @@ class Retention:
         with mgr._lock:  # no session starts while its predecessor's files go
             if mgr.live_id() is not None:
                 return None
-            self._keep_skeleton(sid)
-            freed = 0
-            for path in (mgr.frames_path(sid), mgr.raw_path(sid)):
-                try:
-                    size = path.stat().st_size
-                    path.unlink()
-                    freed += size
-                except FileNotFoundError:
-                    pass
-            # The 20 Hz residual series is the one bulky row set a pruned session keeps: thinned to 1 Hz
-            # (a season of guests would otherwise grow the database by ~0.2 MB each, for good).
-            self.store.thin_residuals(sid, PRUNED_RESIDUAL_S)
-            now = self.clock()
-            self.store.query(
-                "INSERT INTO retention (session_id, pruned_at, freed_bytes, reason) VALUES (?, ?, ?, ?) "
-                "ON CONFLICT(session_id) DO UPDATE SET pruned_at = excluded.pruned_at, "
-                "freed_bytes = excluded.freed_bytes, reason = excluded.reason", (sid, now, freed, reason))
+            if mgr.holds.claim(sid, lambda: Gone(f"session {sid}'s frames and raw recording were pruned just now "
+                                                 f"({reason}); its result, skeleton and events are kept")):
+                raise _Downloading(sid)
+            try:
+                return self._prune_files(sid, reason)
+            finally:
+                mgr.holds.unclaim(sid)
+
+    def _prune_files(self, sid: str, reason: str) -> dict:
+        """Remove the session's frames and raw recording (under the manager's lock, its files claimed)."""
+        mgr = self.sessions
+        self._keep_skeleton(sid)
+        freed = 0
+        for path in (mgr.frames_path(sid), mgr.raw_path(sid)):
+            try:
+                size = path.stat().st_size
+                path.unlink()
+                freed += size
+            except FileNotFoundError:
+                pass
+        # The 20 Hz residual series is the one bulky row set a pruned session keeps: thinned to 1 Hz
+        # (a season of guests would otherwise grow the database by ~0.2 MB each, for good).
+        self.store.thin_residuals(sid, PRUNED_RESIDUAL_S)
+        now = self.clock.stamp()
+        self.store.query(
+            "INSERT INTO retention (session_id, pruned_at, freed_bytes, reason) VALUES (?, ?, ?, ?) "
+            "ON CONFLICT(session_id) DO UPDATE SET pruned_at = excluded.pruned_at, "
+            "freed_bytes = excluded.freed_bytes, reason = excluded.reason", (sid, now, freed, reason))
         self.add_event({"type": "session", "session_id": sid, "time_s": None, "action": "pruned",
                         "freed_bytes": freed, "reason": reason,
                         "message": f"session {sid}'s frames and raw recording were pruned ({freed / 1e6:.1f} MB, "

@@ -12,9 +12,12 @@ import logging
 import os
 from pathlib import Path
 
+from flockcal.clock import SYSTEM, Clock
+from flockcal.server.clock import ServiceClock
 from flockcal.server.errors import ConfigError
 from flockcal.server.hub import SnapshotHub
 from flockcal.server.limits import SessionLimits
+from flockcal.server.outputs import Outputs
 from flockcal.server.pipeline import Pipeline
 from flockcal.server.retention import policy_from
 from flockcal.server.sessions import SessionManager
@@ -56,7 +59,7 @@ def _room_hint(exc: OSError, data: Path) -> str:
 
 
 class Service:
-    def __init__(self, settings: Settings, source: FrameSource | None = None):
+    def __init__(self, settings: Settings, source: FrameSource | None = None, clock: Clock = SYSTEM):
         self.settings = settings.check()
         data = Path(settings.data_dir)
         data.mkdir(parents=True, exist_ok=True)
@@ -67,6 +70,13 @@ class Service:
         except BaseException:
             os.close(self._lock_fd)
             raise
+        try:
+            # Stamps, durations, leases and retention ages all read this one clock (server/clock.py).
+            self.clock = ServiceClock(clock, self.store)
+        except BaseException:
+            self.store.close()
+            os.close(self._lock_fd)
+            raise
         self.source = source if source is not None else TrackerSource(settings)
         self.interrupted = self.store.mark_interrupted()
         if self.interrupted:
@@ -75,7 +85,8 @@ class Service:
         # back, a limit the pipeline finds stopping its session through the session manager, is given to
         # the pipeline when it starts (as the frame source gets the pipeline's feed).
         self.hub = SnapshotHub()
-        self.limits = SessionLimits(data / "recordings", settings.max_session_s, settings.min_free_bytes)
+        self.limits = SessionLimits(data / "recordings", settings.max_session_s, settings.min_free_bytes,
+                                    stamp=self.clock.stamp)
         self.pipeline = Pipeline(
             self.source.names,
             self.store,
@@ -88,13 +99,14 @@ class Service:
             tolerance=settings.tolerance_m,
             target=settings.progress_target_m,
             limits=self.limits,
+            clock=self.clock,
         )
         # A session records the rate the tracker streams at when it starts (the flock's own unless --rate).
         self.sessions = SessionManager(self.store, self.pipeline, data, settings.device_url,
                                        lambda: self.source.status().get("rate_hz") or settings.rate_hz,
                                        profiles=settings.session_profile, raw_recorder=self.source,
                                        retention_policy=policy_from(settings.keep_days, settings.keep_disk_gb),
-                                       retention_interval_s=settings.retention_interval_s)
+                                       retention_interval_s=settings.retention_interval_s, clock=self.clock)
         self.leases = self.sessions.leases  # sessions started with a lease end when their client stops renewing
         self.retention = self.sessions.retention  # prunes old sessions' frames and raw recordings between sessions
         try:
@@ -106,6 +118,9 @@ class Service:
             self.store.close()
             os.close(self._lock_fd)
             raise
+        # The live humanoid streams (VRPN, VMC), when asked for: bound now, so a port in use is said at start.
+        self.outputs = (Outputs(settings, self.pipeline.names, lambda: self.pipeline.snapshot)
+                        if settings.vrpn_port is not None or settings.osc_targets else None)
         self.started = False
         self.stopped_session: dict | None = None  # the session stop() closed, for `serve` to report
 
@@ -127,11 +142,25 @@ class Service:
         return getattr(self.source, "simulator", None)
 
     def start(self) -> None:
+        # A step of the wall clock is an event, and kept at once (the housekeeping pass saves the clock).
+        self.clock.bind(self._clock_stepped)
         self.pipeline.start(stop_session=self.sessions.stop_for_limit, flush_held_rows=self.sessions.flush_held_rows)
-        self.source.start(self.pipeline.feed, self.pipeline.tracker_event)
+        feed = self.pipeline.feed
+        if self.outputs is not None and self.outputs.active:
+            self.outputs.start()
+            feed = self._feed_all
+        self.source.start(feed, self.pipeline.tracker_event)
         self.retention.start()
         self.leases.start()
         self.started = True
+
+    def _feed_all(self, frames) -> None:
+        """The reader's batch to the pipeline and, queued for their own thread, to the live streams."""
+        self.pipeline.feed(frames)
+        self.outputs.feed(frames)
+    def _clock_stepped(self, event: dict) -> None:
+        self.pipeline.add_event(event)
+        self.retention.wake()
 
     def stop(self) -> None:
         live = self.sessions.live_id()
@@ -145,10 +174,16 @@ class Service:
         try:
             self.source.stop()
         finally:
+            if self.outputs is not None:
+                self.outputs.stop()
             self.pipeline.stop()
             # What a full disk kept in memory, if there is room now; else the live session comes back
             # interrupted at the next start, its recording kept.
             if not (self.pipeline.persistence.flush_held() and self.sessions.flush_held_rows()):
                 log.warning("the database could not take what was held in memory while the disk was full")
+            try:
+                self.clock.save()
+            except Exception as exc:  # a full or damaged disk: the next start counts from the last save
+                log.warning("the service clock could not be saved: %s", exc)
             self.store.close()
             os.close(self._lock_fd)

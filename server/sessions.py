@@ -14,8 +14,10 @@ from pathlib import Path
 from typing import Callable
 
 from flockcal.errors import FlockcalError
+from flockcal.server.clock import ServiceClock
 from flockcal.server.errors import BadRequest, Conflict, InsufficientStorage, NotFound, Unavailable
 from flockcal.server.framelog import FrameLog, read_frames
+from flockcal.server.holds import RETRY_AFTER_S, FileHolds
 from flockcal.server.fitting import SLIP_FIELDS, json_safe
 from flockcal.server.lease import SessionLeases
 from flockcal.server.limits import LimitStop
@@ -34,8 +36,8 @@ RAW_SUFFIX = ".fobraw"
 SKELETON_SUFFIX = ".skeleton.json"  # the saved skeleton a session was started with (for stop and resolve)
 
 
-def new_session_id() -> str:
-    return time.strftime("%Y%m%d-%H%M%S") + "-" + secrets.token_hex(3)
+def new_session_id(stamp: float | None = None) -> str:
+    return time.strftime("%Y%m%d-%H%M%S", time.localtime(stamp)) + "-" + secrets.token_hex(3)
 
 
 class SessionManager:
@@ -47,8 +49,11 @@ class SessionManager:
 
     def __init__(self, store: Store, pipeline: Pipeline, data_dir: Path, device: str,
                  rate_hz: float | None | Callable[[], float | None], profiles: Callable[[str | None], Profile],
-                 raw_recorder=None, retention_policy: Policy | None = None, retention_interval_s: float = 60.0):
+                 raw_recorder=None, retention_policy: Policy | None = None, retention_interval_s: float = 60.0,
+                 clock: ServiceClock | None = None):
         self.store = store
+        # Stamps (created_at), measured durations and lease deadlines: one clock (server/clock.py).
+        self.clock = clock if clock is not None else pipeline.clock
         self.pipeline = pipeline
         self.recordings = Path(data_dir) / "recordings"
         self.recordings.mkdir(parents=True, exist_ok=True)
@@ -56,9 +61,10 @@ class SessionManager:
         self.rate_hz = rate_hz
         self.profiles = profiles
         self.raw_recorder = raw_recorder
-        self.leases = SessionLeases(stop=self.stop, add_event=pipeline.add_event)
+        self.holds = FileHolds()  # downloads in progress hold a session's files (server/holds.py)
+        self.leases = SessionLeases(stop=self.stop, add_event=pipeline.add_event, clock=self.clock.monotonic)
         self.retention = Retention(store, self, Path(data_dir), retention_policy or Policy(), pipeline.add_event,
-                                   interval_s=retention_interval_s)
+                                   interval_s=retention_interval_s, clock=self.clock)
         self._lock = threading.Lock()  # one start/stop at a time
         # Row updates the database could not take (a full disk): shown from memory, stored once it can.
         self._held_rows: dict[str, dict] = {}
@@ -134,13 +140,14 @@ class SessionManager:
             live = self.live_id()
             if live is not None:
                 raise Conflict(f"session {live} is live; stop it (POST /api/sessions/{live}/stop) before starting another")
-            sid = new_session_id()
+            now = self.clock.read()
+            sid = new_session_id(now.stamp)
             rate = self.rate_hz() if callable(self.rate_hz) else self.rate_hz
             rate = float(rate) if rate else None  # None: not known (a take then uses its arrivals' mean rate)
             row = {
                 "id": sid, "performer": performer, "state": "live", "root": root, "hierarchy": hierarchy,
                 "names": list(self.names), "device": self.device, "rate_hz": rate,
-                "created_at": time.time(), "frames": 0, "recording": self.frames_path(sid).name,
+                "created_at": now.stamp, "frames": 0, "recording": self.frames_path(sid).name,
                 "profile": prof.name,
             }
             try:
@@ -154,6 +161,11 @@ class SessionManager:
 
                     self.skeleton_path(sid).write_text(json.dumps(dict(skeleton.data, preset=skeleton_name)))
                 self.store.insert_session(row)
+                try:
+                    self.retention.recorded(sid, now)
+                except BaseException:
+                    self.store.delete_session(sid)
+                    raise
             except BaseException as exc:  # a full disk: nothing of the session is left behind
                 framelog.close()
                 self.frames_path(sid).unlink(missing_ok=True)
@@ -167,12 +179,14 @@ class SessionManager:
                     self.raw_recorder.start_recording(self.raw_path(sid))
                 except FlockcalError as exc:
                     log.warning("raw recording unavailable: %s", exc)
-            session = LiveSession(sid, performer, self.names, hierarchy, root, framelog, prof, skeleton=skeleton)
+            session = LiveSession(sid, performer, self.names, hierarchy, root, framelog, prof, skeleton=skeleton,
+                                  started_wall=now.stamp, started_mono=now.mono)
             try:
                 self.pipeline.begin_session(session)
             except BaseException:
                 framelog.close()
                 self.store.delete_session(sid)
+                self.retention.forget(sid)
                 self.skeleton_path(sid).unlink(missing_ok=True)
                 raise
             if lease_s is not None:
@@ -212,7 +226,11 @@ class SessionManager:
             if not result:
                 notes.append(f"no result: {error}")
             note = "; ".join(notes) or None
-            self.update_row(session_id, state="stopped", stopped_at=time.time(), frames=live.frames, result=result,
+            # Measured on the monotonic clock; stopped_at follows from it, so a step of the wall clock during
+            # the session (an event of its own) can neither stretch it nor put its end before its start.
+            duration = max(self.clock.monotonic() - live.started_mono, 0.0)
+            self.update_row(session_id, state="stopped", stopped_at=row["created_at"] + duration,
+                            duration_s=round(duration, 3), frames=live.frames, result=result,
                             note=note, progress=live.cal.progress.to_dict() if result and live.cal.progress else None)
             self.pipeline.add_event({"type": "session", "session_id": session_id, "action": "stopped",
                                      "time_s": None, "message": f"session {session_id} stopped after {live.frames} frames"})
@@ -224,23 +242,37 @@ class SessionManager:
             row = self._row(session_id)
             if row["state"] == "live" and self.live_id() == session_id:
                 raise Conflict(f"session {session_id} is live; stop it before deleting it")
-            files = (self.frames_path(session_id), self.raw_path(session_id), self.skeleton_path(session_id))
+            downloads = self.holds.claim(session_id, lambda: NotFound(f"session {session_id} was deleted"))
+            if downloads:
+                exc = Conflict(f"session {session_id} is being downloaded ({downloads} download"
+                               f"{'s' if downloads > 1 else ''} in progress, each sent whole); DELETE it again once "
+                               f"{'they have' if downloads > 1 else 'it has'} finished")
+                exc.retry_after = RETRY_AFTER_S
+                raise exc
             try:
-                self.store.delete_session(session_id)
-            except InsufficientStorage:
-                # The database needs room to delete rows too: the session's files are what makes it.
-                for p in files:
-                    p.unlink(missing_ok=True)
-                try:
-                    self.store.delete_session(session_id)
-                except InsufficientStorage as exc:
-                    raise InsufficientStorage(f"session {session_id}'s recordings were removed, but its rows could "
-                                              f"not be: {exc}; DELETE it again once there is room") from None
+                self._delete(session_id)
+            finally:
+                self.holds.unclaim(session_id)
+
+    def _delete(self, session_id: str) -> None:
+        """Remove the session's rows and files (under the lock, its files claimed from downloads)."""
+        files = (self.frames_path(session_id), self.raw_path(session_id), self.skeleton_path(session_id))
+        try:
+            self.store.delete_session(session_id)
+        except InsufficientStorage:
+            # The database needs room to delete rows too: the session's files are what makes it.
             for p in files:
                 p.unlink(missing_ok=True)
-            with self._held_lock:
-                self._held_rows.pop(session_id, None)
-            self.retention.forget(session_id)
+            try:
+                self.store.delete_session(session_id)
+            except InsufficientStorage as exc:
+                raise InsufficientStorage(f"session {session_id}'s recordings were removed, but its rows could "
+                                          f"not be: {exc}; DELETE it again once there is room") from None
+        for p in files:
+            p.unlink(missing_ok=True)
+        with self._held_lock:
+            self._held_rows.pop(session_id, None)
+        self.retention.forget(session_id)
 
     # --- rows the database could not take ------------------------------------------------------------
     def update_row(self, session_id: str, **fields) -> None:
@@ -274,7 +306,7 @@ class SessionManager:
         held = self._held(row["id"])
         if not held:
             return row
-        row.update({k: held[k] for k in ("state", "stopped_at", "frames", "note") if k in held})
+        row.update({k: held[k] for k in ("state", "stopped_at", "duration_s", "frames", "note") if k in held})
         if "result" in held:
             row["has_result"] = held["result"] is not None
         if held.get("progress"):
@@ -297,11 +329,13 @@ class SessionManager:
             try:
                 _name, skeleton = self.session_skeleton(session_id)
                 from flockcal.solver.calibration_json import event_from_json
+                from flockcal.solver.humanoid import take_sample
                 from flockcal.solver.solve import solve_take
 
                 events = [event_from_json(e, take.names) for e in slips]
                 prof = self._profile(row)
-                cal = solve_take(take, events, row["hierarchy"], row["root"], skeleton, tolerance=prof.tolerance_m)
+                cal = solve_take(take, events, row["hierarchy"], row["root"], skeleton, tolerance=prof.tolerance_m,
+                                 sample=take_sample(take).snapshot())
                 result = json_safe(cal.to_dict())
                 result["slip_events"] = [{k: e[k] for k in SLIP_FIELDS if k in e} for e in slips]
             except (FlockcalError, ValueError, ArithmeticError) as exc:  # LinAlgError is a ValueError
@@ -327,6 +361,7 @@ class SessionManager:
             row["frames"] = snap.session.frames
             row["has_result"] = snap.has_fit
             row["progress"], row["done"] = snap.session.progress, snap.session.done
+            row["duration_s"] = self._live_duration(session_id)
         row["has_recording"] = self.frames_path(session_id).exists()
         row["has_raw_recording"] = self.raw_path(session_id).exists()
         row["skeleton"] = self._skeleton_name(session_id)
@@ -334,6 +369,13 @@ class SessionManager:
             row["lease_s"] = self.leases.lease_s(session_id)
         self.retention.annotate([row])
         return row
+
+    def _live_duration(self, session_id: str) -> float | None:
+        """How long the live session has recorded so far, on the monotonic clock."""
+        live = self.pipeline.live
+        if live is None or live.id != session_id:
+            return None
+        return round(max(self.clock.monotonic() - live.started_mono, 0.0), 3)
 
     def _profile(self, row: dict):
         """The profile a stored session was recorded under (sessions from before profiles: stage)."""
@@ -366,6 +408,7 @@ class SessionManager:
                 row["frames"] = snap.session.frames
                 row["has_result"] = snap.has_fit
                 row["progress"], row["done"] = snap.session.progress, snap.session.done
+                row["duration_s"] = self._live_duration(row["id"])
         self.retention.annotate(rows)
         return rows
 

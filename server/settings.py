@@ -92,6 +92,9 @@ class Settings:
     keep_days: float | None = None  # retention (server/retention.py): recordings of the last N days; None: all
     keep_disk_gb: float | None = None  # ...and/or a data directory under this many GB; None: no budget
     retention_interval_s: float = 60.0  # how often the pruner looks when no session stops meanwhile
+    vrpn_port: int | None = None  # serve the humanoid as the VRPN tracker "flockcal" on this port (server/vrpn.py)
+    osc_targets: tuple[str, ...] = ()  # send it over the VMC protocol to these HOST[:PORT] (server/vmc.py)
+    osc_hz: float = 60.0  # VMC bundles a second
 
     @property
     def progress_target_m(self) -> float:
@@ -189,6 +192,8 @@ class Settings:
                 raise ConfigError(f"sensor name {bad[0]!r} is not allowed: use letters, digits, space, _ . -")
             if len(set(self.names)) != len(self.names):
                 raise ConfigError("sensor names must be unique")
+        if not 1 <= self.osc_hz <= 1000:
+            raise ConfigError(f"--osc-hz must be from 1 to 1000, got {self.osc_hz:g}")
         if self.keep_days is not None and not 0 < self.keep_days <= 36500:
             raise ConfigError(f"--keep-days must be more than 0 (and at most 36500), got {self.keep_days:g}")
         if self.keep_disk_gb is not None and not 0 < self.keep_disk_gb <= 1e6:

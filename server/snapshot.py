@@ -44,7 +44,7 @@ class ResidualSample:
 @dataclass(frozen=True, eq=False)
 class Snapshot:
     seq: int  # increases with every publish
-    wall_time: float  # unix seconds at publish
+    wall_time: float  # unix seconds at publish (the service clock's stamp: never steps back)
     frames: int  # frames received since the service started
     last_frame_time: float | None  # reader clock of the newest frame
     status: dict  # tracker status + pipeline figures + live session summary
@@ -122,8 +122,10 @@ class SnapshotMaker:
     `make` runs on the pipeline thread (which owns `seq`); any thread reads `current`, which is only ever
     replaced, never changed: the event loop never waits for the pipeline."""
 
-    def __init__(self, names, source_status: Callable[[], dict], target: float):
+    def __init__(self, names, source_status: Callable[[], dict], target: float,
+                 stamp: Callable[[], float] = time.time):
         self.names = tuple(names)
+        self.stamp = stamp
         self.source_status = source_status
         self.target = target
         self.seq = 0
@@ -163,7 +165,7 @@ class SnapshotMaker:
         )
         self.current = Snapshot(
             seq=self.seq,
-            wall_time=time.time(),
+            wall_time=self.stamp(),
             frames=ingest.frames,
             last_frame_time=ingest.last_frame_time,
             status=status,

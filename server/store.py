@@ -28,14 +28,15 @@ CREATE TABLE IF NOT EXISTS sessions (
     names TEXT NOT NULL,            -- JSON list of sensor names
     device TEXT NOT NULL,
     rate_hz REAL,
-    created_at REAL NOT NULL,       -- unix seconds
-    stopped_at REAL,
+    created_at REAL NOT NULL,       -- unix seconds (the service clock's stamp: server/clock.py)
+    stopped_at REAL,                -- created_at + duration_s: never before created_at
     frames INTEGER NOT NULL DEFAULT 0,
     recording TEXT,                 -- file name inside the recordings directory
     result TEXT,                    -- JSON of design.md §5, NULL until stopped or re-solved
     note TEXT,
     progress TEXT,                  -- JSON of solver/progress.py's Progress as the session ended (or was re-solved)
-    profile TEXT                    -- stage | kiosk: how it decides it is calibrated (NULL: stage, older sessions)
+    profile TEXT,                   -- stage | kiosk: how it decides it is calibrated (NULL: stage, older sessions)
+    duration_s REAL                 -- how long it recorded, on the monotonic clock (NULL: older sessions)
 );
 CREATE TABLE IF NOT EXISTS events (
     id INTEGER PRIMARY KEY AUTOINCREMENT,
@@ -56,7 +57,7 @@ CREATE INDEX IF NOT EXISTS residuals_session ON residuals (session_id, time_s);
 
 SESSION_COLUMNS = (
     "id", "performer", "state", "root", "hierarchy", "names", "device", "rate_hz",
-    "created_at", "stopped_at", "frames", "recording", "note", "profile",
+    "created_at", "stopped_at", "frames", "recording", "note", "profile", "duration_s",
 )
 
 
@@ -132,6 +133,9 @@ class Store:
             # ... and, since sessions chose how they decide they are calibrated, their profile (stage before).
             if "profile" not in columns:
                 self._db.execute("ALTER TABLE sessions ADD COLUMN profile TEXT")
+            # ... and, since durations are measured (server/clock.py), how long each recorded.
+            if "duration_s" not in columns:
+                self._db.execute("ALTER TABLE sessions ADD COLUMN duration_s REAL")
 
     @contextmanager
     def _guard(self):
@@ -293,6 +297,8 @@ class Store:
         d["hierarchy"] = self._loads(d["hierarchy"], f"{where}'s hierarchy") if d["hierarchy"] else None
         d["names"] = self._loads(d["names"], f"{where}'s sensor names")
         d["has_result"] = bool(d["has_result"])
+        if d.get("duration_s") is None and d.get("stopped_at") is not None:  # stopped before durations were measured
+            d["duration_s"] = max(d["stopped_at"] - d["created_at"], 0.0)
         doc = self._loads(d.pop("progress"), f"{where}'s progress") if d.get("progress") else None
         try:
             d["progress"] = doc["progress"] if doc else None

@@ -388,6 +388,28 @@ def human(height: float = 1.75, seed: int = 0, variation: float = 0.05, n_bodies
     return model.subset(HUMAN_PRIORITY[:n_bodies])
 
 
+# A wrist or an ankle built as a hinge (`with_hinges`): flexion about the bone frame's y axis, square to
+# the forearm and the shin, within about the range a human wrist or ankle bends.
+_FLEXION_AXIS = (0.0, 1.0, 0.0)
+_FLEXION_LIMITS = (-0.6, 0.5)
+
+
+def with_hinges(model: BodyModel, segments=("hand", "foot")) -> BodyModel:
+    """The same body with the joints of these segments made hinges (a human's "hand": the wrists, "foot":
+    the ankles): flexion only, about an axis square to the bone above, resting straight. Takes where a
+    hinge sits beside a hinge (docs/design.md §3c), for the solver's tests and benchmarks."""
+    wanted = set(segments)
+    jt, axis = list(model.joint_type), model.hinge_axis.copy()
+    limits, rest = model.limits.copy(), model.rest.copy()
+    hit = [i for i, name in enumerate(model.names) if segment(name) in wanted and model.parent[i] >= 0]
+    if not hit:
+        raise SimulatorError(f"no joint of {', '.join(sorted(wanted))} in this body ({', '.join(model.names)})")
+    for i in hit:
+        jt[i], axis[i], limits[i], rest[i] = "hinge", _FLEXION_AXIS, 0.0, 0.0
+        limits[i, 0] = _FLEXION_LIMITS
+    return replace(model, joint_type=tuple(jt), hinge_axis=axis, limits=limits, rest=rest)
+
+
 def _merge_into_parent(model: BodyModel, k: int) -> BodyModel:
     """Make body k rigid with its parent: its children hang from the parent at the composed rest offset."""
     p = int(model.parent[k])

@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException, Timeout, to_bytes
 
+from flockcal.clock import SYSTEM
 from flockcal.simulator.clocks import WallClock
 from flockcal.simulator.fake_tracker import FakeFlock, LineFaults
 from flockcal.simulator.performer import Performer
@@ -232,7 +233,7 @@ class Serial(SerialBase):
             wait = 0.02 if nxt is None else max(nxt - self.flock.clock(), 0.0005)
             if left is not None:
                 wait = min(wait, max(left, 0.0))
-            time.sleep(min(wait, 0.02))
+            SYSTEM.sleep(min(wait, 0.02))
             self._check()
         return bytes(data)
 

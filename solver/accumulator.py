@@ -13,7 +13,7 @@ from collections.abc import Mapping
 from types import MappingProxyType
 
 import numpy as np
-from scipy.linalg.blas import dsyrk
+from flockcal.solver.blas import dsyrk
 
 from flockcal.rotations import nearest_rotation
 from flockcal.solver.errors import SolverError

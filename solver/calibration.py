@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import dataclass, field, replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -17,6 +18,9 @@ from flockcal.solver.fits import TOLERANCE_M, PairFits, pair_fits
 from flockcal.solver.hierarchy import parse_hierarchy, sensor_index
 from flockcal.solver.hinge_point import hinge_offsets
 from flockcal.solver.topology import orient, rigid_bodies, spanning_tree
+
+if TYPE_CHECKING:
+    from flockcal.solver.humanoid import Humanoid
 
 
 @dataclass(frozen=True)
@@ -56,7 +60,65 @@ class Calibration:
 
     Joint arrays are in tree order (`order[1:]`); `segment_start_s` marks joints refitted after a slip,
     `rms_free` the free fit of each joint under a saved skeleton (`known_skeleton`), `optical` what a
-    marker fit adds. Build variants with `dataclasses.replace`; nothing here is changed in place.
+    marker fit adds, `humanoid` which humanoid bone each body is (found from a sample of the take's frames,
+    `solve(..., sample=)`). Build variants with `dataclasses.replace`; nothing here is changed in place.
+
+    Made by `flockcal.fit` (a take) and `calibrate` / `solve` (an accumulator), never by hand. m sensors,
+    J tree joints; a joint is a (child, parent) pair of sensor indices, `c` in the child's frame and `l` in
+    the parent's, metres.
+
+    Attributes
+    ----------
+    names : tuple of str
+        The m sensor names, in the take's order.
+    root : int
+        The sensor the tree hangs from.
+    parent : ndarray of int, shape (m,)
+        Each sensor's parent in the tree, -1 at the root.
+    order : ndarray of int, shape (m,)
+        The sensors root first, every parent before its children.
+    frames : int
+        Frames the fit summed.
+    joints : flockcal.solver.fits.PairFits
+        The tree's joints, in `order` (``order[1:]``): ``pairs`` (J, 2), centres ``c`` and ``l`` (J, 3),
+        ``rms`` (J,) residual, ``hinge`` and its axes, ``coverage``, standard errors, ``determined``
+        (J,) bool: the data pin the centre to the tolerance (docs/design.md §3a). Shortcuts on the
+        calibration itself: `c`, `l`, `rms`, `hinge`, `determined`, … .
+    bones : Bones
+        Joint-to-joint distances within each body, metres, with their standard errors.
+    placement : ndarray, shape (m, 3)
+        Each sensor's offset from its inboard joint in its own frame (NaN at the root).
+    loop_candidates, rigid_groups, ambiguous : list
+        Pairs outside the tree that fit like joints; groups of sensors that never turned against each
+        other; children whose parent the data cannot tell.
+    fits : flockcal.solver.fits.PairFits or None
+        Every pair's fit, when the tree was searched.
+    hierarchy_given : bool
+        The tree was given, not searched.
+    slip_events : tuple
+        The slips and swaps (`flockcal.solver.SlipEvent`, `flockcal.solver.SwapEvent`) the fit was
+        segmented at.
+    segment_start_s : ndarray, shape (J,), or None
+        Seconds: a joint re-fitted on the frames since a slip; NaN where it holds the whole take.
+    humanoid : flockcal.solver.Humanoid or None
+        Which humanoid bone each body is (`joint_names()` names the joints by it); None where it was not
+        looked for.
+
+    See Also
+    --------
+    flockcal.fit : fit a take.
+
+    Examples
+    --------
+    >>> import flockcal
+    >>> take, _ = flockcal.simulate(motion="exercise", seconds=20, birds=4, seed=1)
+    >>> cal = flockcal.fit(take, root="pelvis")
+    >>> cal.names[cal.root], cal.parent_map()
+    ('pelvis', {'chest': 'pelvis', 'head': 'chest', 'l_upper_arm': 'chest'})
+    >>> cal.c.shape, bool(cal.determined.all())
+    ((3, 3), True)
+    >>> cal.to_dict()["root"]          # the object `flockcal fit --json` prints
+    'pelvis'
     """
 
     names: tuple
@@ -79,6 +141,7 @@ class Calibration:
     optical: OpticalExtras | None = None
     state: object = None  # what the next refresh starts from (a saved-skeleton fit's KnownFit); not in the JSON
     hinge_point: "HingePoints | None" = None  # how each hinge's centre was placed on its axis
+    humanoid: "Humanoid | None" = None  # which humanoid bone each body is (solver/humanoid.py); None: not looked for
 
     # Joint arrays, named as the JSON names them.
     @property
@@ -109,6 +172,18 @@ class Calibration:
     def parent_map(self) -> dict:
         """{child name: parent name} for every sensor but the root."""
         return {self.names[i]: self.names[p] for i, p in enumerate(self.parent) if p >= 0}
+
+    def joint_names(self) -> list[str]:
+        """Each tree joint's name as people say it, in joint order: the humanoid's ("left knee", "lower
+        back") on a human tree, else the sensor names' reading (flockcal/names.py: "left elbow", "bird 1–bird 2")."""
+        from flockcal.names import joint_name
+
+        nm, hum = self.names, self.humanoid
+        out = []
+        for c, p in self.joints.pairs.tolist():
+            name = hum.joint_name(c, p) if hum is not None and hum.human else None
+            out.append(name or joint_name(nm[c], nm[p]))
+        return out
 
     def joint_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(child→parent index pairs (J, 2), c (J, 3), l (J, 3)): what pose and slip code read."""
@@ -170,7 +245,7 @@ def calibrate(acc, hierarchy=None, root=None, names=None, tolerance: float = TOL
         cal = Calibration(names, topo.root, topo.parent, topo.order, acc.frames, joints, _no_bones(),
                           np.full((m, 3), np.nan), topo.loop_candidates, topo.rigid_groups, topo.ambiguous,
                           fits)
-    joints, how = placed_hinges(acc, cal.joints)
+    joints, how = placed_hinges(acc, cal.joints, tolerance)
     cal = replace(cal, joints=joints, hinge_point=how)
     cal = replace(cal, placement=_placement(acc, cal))
     return replace(cal, bones=joint_bones(acc, cal))
@@ -180,18 +255,21 @@ def calibrate(acc, hierarchy=None, root=None, names=None, tolerance: float = TOL
 class HingePoints:
     """How each tree joint's centre was placed on its hinge axis (solver/hinge_point.py)."""
 
-    rule: np.ndarray  # (J,) 2 or 1: where the limb's bones meet the axis (bones used); 0: min-norm; −1: not a hinge
+    rule: np.ndarray  # (J,) 2 or 1: where the limb's bones meet the axis (bones used); 3: a bone and the next
+    # hinge's axis; 0: min-norm; −1: not a hinge
     data_share: np.ndarray  # (J,) the share of the least-squares point in it (0: none)
 
     def take(self, index) -> "HingePoints":
         return HingePoints(self.rule[index], self.data_share[index])
 
 
-def placed_hinges(acc, joints: PairFits) -> tuple[PairFits, HingePoints]:
+def placed_hinges(acc, joints: PairFits, tolerance: float = TOLERANCE_M) -> tuple[PairFits, HingePoints]:
     """The tree's `joints` with each hinge's centre slid along its axis to the rule's point
-    (solver/hinge_point.py), its residual recomputed there; and how each was placed."""
+    (solver/hinge_point.py; `tolerance`: the fit's, which says which neighbours' centres count), its
+    residual recomputed there; and how each was placed."""
     s, how, share = hinge_offsets(joints.pairs, joints.c, joints.l, joints.axis_i, joints.axis_j, joints.hinge,
-                                  joints.determined, joints.axis_offset, joints.direction_error[:, 0])
+                                  joints.determined, joints.axis_offset, joints.direction_error[:, 0],
+                                  joints.direction_error.max(axis=1), tolerance)
     moved = np.flatnonzero((how >= 0) & (s != 0))
     how = HingePoints(how, share)
     if not len(moved):

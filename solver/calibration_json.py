@@ -10,6 +10,7 @@ from __future__ import annotations
 
 from collections.abc import Mapping
 from dataclasses import replace
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -17,10 +18,12 @@ from flockcal.solver.calibration import Bones, Calibration
 from flockcal.solver.errors import SolverError
 from flockcal.solver.fits import unfitted
 
+if TYPE_CHECKING:
+    from flockcal.solver.humanoid import Humanoid
 
 
 # How a hinge's centre was placed on its axis (solver/hinge_point.py), by the number of limb bones used.
-HINGE_POINT_RULES = {2: "two_bones", 1: "one_bone", 0: "min_norm"}
+HINGE_POINT_RULES = {3: "bone_and_axis", 2: "two_bones", 1: "one_bone", 0: "min_norm"}
 
 
 def calibration_json(cal) -> dict:
@@ -34,7 +37,10 @@ def calibration_json(cal) -> dict:
     other) and "ambiguous" (children with more than one equally good parent). Joints and bones refitted
     after a slip carry "segment_start_s"; a hinge says how its centre was placed on its axis, "hinge_point":
     {"rule" (`HINGE_POINT_RULES`: where the limb's bones meet the axis, or the minimum-norm point),
-    "data_share" (the least-squares point's share in it)}. NaN becomes null and every number is a Python int or float:
+    "data_share" (the least-squares point's share in it)}. Every joint carries "name", as people name it
+    (`Calibration.joint_names`); the object ends with "humanoid" ({sensor: VRM 1.0 bone}, or null with
+    "humanoid_note" saying why) and "humanoid_conflicts" (sensors whose names say another bone than the one
+    found: [{"sensor", "named", "found", "message"}]). NaN becomes null and every number is a Python int or float:
     the dict is valid JSON as it stands.
     """
     nm = cal.names
@@ -51,6 +57,7 @@ def calibration_json(cal) -> dict:
     seg = None if cal.segment_start_s is None else _json(cal.segment_start_s)
     placed = None if cal.hinge_point is None else cal.hinge_point.rule.tolist()
     share = None if cal.hinge_point is None else cal.hinge_point.data_share.tolist()
+    joint_names = cal.joint_names()
     joints = []
     for k, ((child, parent), hinge) in enumerate(zip(j.pairs.tolist(), j.hinge.tolist())):
         e = {"child": nm[child], "parent": nm[parent], "c": vec[0][k], "l": vec[1][k], "rms_m": num[0][k],
@@ -78,6 +85,7 @@ def calibration_json(cal) -> dict:
             e["segment_start_s"] = seg[k]
         if hinge and placed is not None and placed[k] >= 0:
             e["hinge_point"] = {"rule": HINGE_POINT_RULES[placed[k]], "data_share": round(float(share[k]), 4)}
+        e["name"] = joint_names[k]
         joints.append(e)
     bones = bones_json(cal.bones, nm)
     out = {
@@ -100,7 +108,25 @@ def calibration_json(cal) -> dict:
         out["rigid_groups"] = [[nm[i] for i in g] for g in cal.rigid_groups]
         out["ambiguous"] = [{"child": nm[c], "parents": [nm[p] for p in ps], "note": note}
                             for c, ps, note in cal.ambiguous]
+    out.update(humanoid_json(cal.humanoid, nm))
     return out
+
+
+# What a fit made without a sample of the take's frames says in place of the humanoid.
+NOT_LOOKED_FOR = "not looked for: the fit was given no frames of the take to find the humanoid from"
+
+
+def humanoid_json(hum, names) -> dict:
+    """The §5 extension keys of a `Humanoid` (or None: not looked for): "humanoid" {sensor: bone} or null,
+    "humanoid_note" (only when null: why), "humanoid_conflicts" [{"sensor", "named", "found", "message"}]."""
+    from flockcal.solver.humanoid import conflict_message
+
+    if hum is None or not hum.human:
+        return {"humanoid": None, "humanoid_note": NOT_LOOKED_FOR if hum is None else hum.reason,
+                "humanoid_conflicts": []}
+    return {"humanoid": hum.mapping(names),
+            "humanoid_conflicts": [{"sensor": names[x.sensor], "named": x.named, "found": x.found,
+                                    "message": conflict_message(names, x)} for x in hum.conflicts]}
 
 
 def bones_json(b, names) -> list[dict]:
@@ -251,12 +277,32 @@ def calibration_from_json(d, names=None, error: type[Exception] = SolverError) -
     placement[joints.pairs[:, 0]] = joints.c
     z = np.zeros(0)
     bones = Bones(z.astype(int), z.astype(int), z.astype(int), z, z, z.astype(bool))
+    humanoid = humanoid_from_json(d, names)
     order, k = [root_i], 0
     while k < len(order):  # root first, parents before children (a cycle stays out: callers check the tree)
         order += np.flatnonzero(parent == order[k]).tolist()
         k += 1
     return Calibration(names, root_i, parent, np.asarray(order), int(d.get("frames") or 0), joints, bones, placement,
-                       rigid_groups=groups, hierarchy_given=True, known_skeleton=bool(d.get("known_skeleton")))
+                       rigid_groups=groups, hierarchy_given=True, known_skeleton=bool(d.get("known_skeleton")),
+                       humanoid=humanoid)
+
+
+def humanoid_from_json(d: Mapping, names) -> "Humanoid | None":
+    """The humanoid a §5 object names ("humanoid": {sensor: bone}; its T-pose frames are not in the JSON,
+    so they are NaN), a non-human one for null with its note, None when the object has no such key."""
+    from flockcal.solver.humanoid import Humanoid, NameConflict, bones_of
+
+    if "humanoid" not in d:
+        return None
+    m = len(names)
+    nan = np.full((3, 3), np.nan)
+    if not isinstance(d["humanoid"], Mapping):
+        return Humanoid((None,) * m, nan, np.full((m, 3, 3), np.nan), str(d.get("humanoid_note") or "not human"))
+    bones = bones_of(names, d["humanoid"])
+    index = {x: i for i, x in enumerate(names)}
+    conflicts = tuple(NameConflict(index[str(e["sensor"])], str(e["named"]), str(e["found"]))
+                      for e in d.get("humanoid_conflicts") or [] if isinstance(e, Mapping) and str(e.get("sensor")) in index)
+    return Humanoid(bones, nan, np.full((m, 3, 3), np.nan), "", conflicts)
 
 
 def _point(x) -> np.ndarray:

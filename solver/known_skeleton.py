@@ -1,4 +1,4 @@
-"""Fit a take with a saved skeleton: topology and bone lengths fixed, only sensor placements move.
+"""Fit a take with a saved skeleton (`Skeleton`): topology and bone lengths fixed, only sensor placements move.
 
 Each body's saved joint points are moved as one rigid piece into the new take's sensor frame: a
 Procrustes start from the free per-joint fits, then Gauss–Newton on the exact least-squares cost of all
@@ -10,14 +10,56 @@ from __future__ import annotations
 from dataclasses import dataclass, field, replace
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from flockcal.rotations import skew
+from flockcal.skeleton import SkeletonError
 from flockcal.solver.calibration import Bones, Calibration
 from flockcal.solver.calibration_json import bones_json
 from flockcal.solver.fits import PairFits, unfitted
 from flockcal.solver.hinge_point import LIMB_RULE_SD_M
 from flockcal.solver.reconstruct import Articulation, ArticulationError
+
+
+@dataclass(frozen=True)
+class Skeleton:
+    """A validated skeleton file (`flockcal.exports.skeleton.load_skeleton`): the saved tree, ready to fit a new
+    take of the same performer with `known_fit`."""
+
+    data: dict
+    articulation: Articulation  # the tree with its joint centres, built on parsing
+
+    @property
+    def names(self) -> tuple[str, ...]:
+        return self.articulation.names
+
+    @property
+    def root(self) -> str:
+        return self.articulation.names[self.articulation.root]
+
+    @property
+    def hierarchy(self) -> dict[str, str]:
+        """{child: parent}, root omitted: what `calibrate(..., hierarchy=)` and `--hierarchy` take."""
+        return dict(self.data["parent"])
+
+    @property
+    def bone_stderr(self) -> dict[tuple[str, str], float]:
+        out = {}
+        for b in self.data["bones"]:
+            if isinstance(b.get("stderr_m"), (int, float)):
+                out[(b["from_joint"], b["to_joint"])] = out[(b["to_joint"], b["from_joint"])] = float(b["stderr_m"])
+        return out
+
+    @property
+    def bone_keys(self) -> frozenset:
+        """(from_joint, to_joint) of every bone the file holds: the ones its take measured."""
+        return frozenset((b["from_joint"], b["to_joint"]) for b in self.data["bones"])
+
+    def check_names(self, names) -> None:
+        """SkeletonError unless the take's sensors are exactly the skeleton's (any order)."""
+        try:
+            self.articulation.reordered(names)
+        except ValueError as exc:  # the solver's ArticulationError, a ValueError: names that do not match
+            raise SkeletonError(f"skeleton does not match the take: {exc}") from None
 
 
 def body_points(art: Articulation) -> list[tuple[list[int], np.ndarray]]:
@@ -132,6 +174,8 @@ def fit_known_skeleton(
     a handful of 6m×6m solves whatever the take's length. A live refresh passes the `previous` result
     (same skeleton, same names) to start from it: usually one or two Gauss–Newton steps then.
     """
+    from scipy.spatial.transform import Rotation  # here: scipy.spatial costs every `flockcal fit` ~0.3 s to import
+
     from flockcal.solver.calibration import placed_hinges
     from flockcal.solver.fits import pair_fits
 
@@ -261,7 +305,7 @@ def saved_placement(skeleton, names) -> KnownFit:
 
 
 def fit_saved(skeleton, acc, names, previous: KnownFit | None = None) -> KnownFit:
-    """Fit an accumulated take (sensor order `names`) with a saved `skeleton` (a `flockcal.skeleton.Skeleton`);
+    """Fit an accumulated take (sensor order `names`) with a saved `skeleton` (a `Skeleton`);
     a live refresh passes the last KnownFit as `previous` to start from it."""
     skeleton.check_names(names)
     return fit_known_skeleton(acc, skeleton.articulation, names, bone_stderr=skeleton.bone_stderr,

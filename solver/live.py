@@ -13,6 +13,7 @@ import numpy as np
 from flockcal.frames import Frames
 from flockcal.solver.accumulator import GramAccumulator
 from flockcal.solver.calibration import Calibration
+from flockcal.solver.humanoid import HumanoidSample, Sample
 from flockcal.solver.progress import Profile, Progress
 from flockcal.solver.progress_tracker import ProgressTracker
 from flockcal.solver.progress_words import done_change
@@ -168,11 +169,15 @@ class DoneChange:
 @dataclass(frozen=True)
 class FitInput:
     """What a refit on another thread needs: a copy of the accumulator, and when it was taken (session
-    time, slip epoch: a fit begun before a slip cannot count that sensor's joints done again)."""
+    time, slip epoch: a fit begun before a slip cannot count that sensor's joints done again); the session's
+    sample of frames (what the humanoid is found from) and its newest fit (whose humanoid is kept while the
+    tree and the sample have not changed enough to matter)."""
 
     acc: GramAccumulator | SegmentedAccumulator
     time_s: float
     epoch: int
+    sample: Sample | None = None
+    previous: Calibration | None = None
 
 
 @dataclass(frozen=True)
@@ -230,6 +235,9 @@ class LiveCalibration:
                       if detect_slips else None)
         self.tracker = ProgressTracker.for_profile(profile, tree_fixed=self.tree_fixed)
         self.residuals = ResidualSampler(self.names, residual_period_s)
+        # A frame every 0.1 s of the session, at most 512 (then every 0.2 s, …): what the fit thread finds
+        # the humanoid from (solver/humanoid.py), 0.85 MB for 16 sensors however long the session.
+        self.sample = HumanoidSample(self.m)
         self.t0: float | None = None  # reader time of the session's first frame
         self.time_s = 0.0  # session time of the newest frame
         self.received = 0  # frames received
@@ -257,6 +265,7 @@ class LiveCalibration:
         t = np.where(valid[..., None], np.asarray(frames.positions, dtype=float), 0.0)
         ts = times - self.t0
         self.time_s = float(ts[-1])
+        self.sample.add(Frames(ts, R, t, valid))
         step = _Step()
         if self.watch is None:
             self.acc.ingest(ts, R, t, valid)
@@ -304,7 +313,7 @@ class LiveCalibration:
     def fit_input(self) -> FitInput:
         """A copy of the accumulator for a refit on another thread (frames keep flowing meanwhile)."""
         self._fit_frames = self.acc.frames
-        return FitInput(self.acc.copy(), self.time_s, self.slip_epoch)
+        return FitInput(self.acc.copy(), self.time_s, self.slip_epoch, self.sample.snapshot(), self.calibration)
 
     def add_fit(self, calibration: Calibration, time_s: float, epoch: int) -> LiveUpdate:
         """A refit of a `fit_input` taken at (`time_s`, `epoch`): its tree to the slip watch (a fitted

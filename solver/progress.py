@@ -174,6 +174,7 @@ class FitFacts:
     ambiguous: Mapping  # {child: [parents it fits equally well]}
     frames: int
     bones: Mapping  # {(body, from_joint, to_joint): length (m)}, drawn bones only
+    joint_names: Mapping = field(default_factory=dict)  # {child: the joint's name, "left knee"} (§5 joints[].name)
 
     @classmethod
     def of(cls, fit) -> "FitFacts":
@@ -204,7 +205,8 @@ class FitFacts:
         free = not cal.known_skeleton  # a saved skeleton's fit has no rigid groups or ambiguous children
         groups = {nm[i]: tuple(nm[x] for x in g) for g in (cal.rigid_groups if free else ()) for i in g}
         ambiguous = {nm[c]: [nm[p] for p in ps] for c, ps, _ in (cal.ambiguous if free else ())}
-        return cls(tuple(nm), nm[cal.root], cal.parent_map(), joints, groups, ambiguous, int(cal.frames), bones)
+        named = dict(zip((nm[c] for c in j.pairs[:, 0].tolist()), cal.joint_names()))
+        return cls(tuple(nm), nm[cal.root], cal.parent_map(), joints, groups, ambiguous, int(cal.frames), bones, named)
 
     @classmethod
     def from_dict(cls, d: Mapping) -> "FitFacts":
@@ -224,9 +226,10 @@ class FitFacts:
                 groups[name] = tuple(g)
         bones = {(b["body"], b["from_joint"], b["to_joint"]): b["length_m"] for b in d.get("bones") or []
                  if b.get("length_m") is not None}
+        named = {e["child"]: e["name"] for e in d.get("joints") or [] if isinstance(e.get("name"), str)}
         return cls(tuple(d.get("sensors") or ()), d.get("root"), dict(d.get("parent") or {}), joints, groups,
                    {a["child"]: a.get("parents") or [] for a in d.get("ambiguous") or []},
-                   int(d.get("frames") or 0), bones)
+                   int(d.get("frames") or 0), bones, named)
 
 
 def _finite(a, fill: float) -> list:
@@ -411,12 +414,14 @@ def standing(fit, target_m: float, tolerance_m: float | None = None, tree_fixed:
         # The bodies each end belongs to: a joint done against one member of a rigid group is the same joint
         # when the group comes apart and the tree re-links it to another member (ProgressTracker).
         bodies = (frozenset(f.groups.get(sensor, (sensor,))), frozenset(f.groups.get(par, (par,))))
+        # Named as the fit names it (the humanoid's "left knee"), else from the sensors' names.
+        label = f.joint_names.get(sensor) or joint_name(sensor, par)
         if j is None or (par is not None and par in f.groups.get(sensor, ())):
-            out.append(Standing(sensor, par, joint_name(sensor, par), JointState.RIGID, 0.0,
+            out.append(Standing(sensor, par, label, JointState.RIGID, 0.0,
                                 (frozenset((sensor,)), frozenset((par,)))))
             continue
         worst = max(j.needed())
-        it = Standing(sensor, par, joint_name(sensor, par), JointState.DONE, 1.0, bodies,
+        it = Standing(sensor, par, label, JointState.DONE, 1.0, bodies,
                       error_m=worst if math.isfinite(worst) else None,
                       pinned=sum(e <= tol for e in j.needed(hinge=False)), hinge=j.hinge)
         if not j.determined:

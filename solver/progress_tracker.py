@@ -247,7 +247,7 @@ class ProgressTracker:
         prompt = None
         if stalled is not None and doc.missing:
             first = doc.joint(doc.missing[0])
-            prompt = stall_prompt(first.joint, first.parent)
+            prompt = stall_prompt(first.joint, first.parent, first.label)
         prof = self.profile
         self.latest = replace(doc, tracked=True, stalled_s=stalled, prompt=prompt,
                               profile=None if prof is None else prof.name, rule=None if prof is None else prof.rule)

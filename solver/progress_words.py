@@ -1,7 +1,7 @@
 """Calibration progress in plain words (solver/progress.py decides it, this says it): why a joint is not
 calibrated yet, the operator's sentence of what to move next, the patient prompt of a stalled session,
-and the session event of becoming calibrated or undone. Bodies and joints are named as flockcal/names.py
-names them, which the pages share.
+and the session event of becoming calibrated or undone. Joints are named as the fit names them (a
+humanoid's "left knee"), else, like bodies, as flockcal/names.py names them, which the pages share.
 """
 
 from __future__ import annotations
@@ -40,9 +40,17 @@ def why_not_done(item: "Standing", target_m: float) -> str:
     return f"pinned to {1000 * item.error_m:.1f} mm, target {1000 * target_m:.1f} mm"
 
 
+def the_joint(joint: str, parent: str | None, label: str) -> str:
+    """The joint for a sentence: "the left knee"; "the joint between the bird 1 and the bird 2" where neither
+    the fit (`label`) nor the sensors' names say more."""
+    if label != joint_name(joint, parent):
+        return f"the {label}"  # the fit's own name (a humanoid's)
+    return joint_label(joint, parent)
+
+
 def hint_sentence(item: "Standing") -> str:
     """The operator's sentence for one sensor whose joint is not calibrated yet."""
-    label = joint_label(item.joint, item.parent)
+    label = the_joint(item.joint, item.parent, item.label)
     child, parent = readable_body(item.joint), readable_body(item.parent or "")
     undone = item.undone
     if undone and undone.reason == "slip":
@@ -66,10 +74,11 @@ def hint_sentence(item: "Standing") -> str:
     return f"Keep moving {label}: a little more and it is pinned down."
 
 
-def stall_prompt(joint: str, parent: str | None) -> str:
-    """The kiosk's patient prompt once the ring has stalled, naming the first joint still missing."""
+def stall_prompt(joint: str, parent: str | None, label: str | None = None) -> str:
+    """The kiosk's patient prompt once the ring has stalled, naming the first joint still missing (`label`:
+    as the fit names it)."""
     return (f"Take your time and keep going: big, slow movements of your "
-            f"{joint_name(joint, parent)}, every way it bends.")
+            f"{label or joint_name(joint, parent)}, every way it bends.")
 
 
 def done_change(progress: "Progress", was_done: bool, performer: str, prof: "Profile",

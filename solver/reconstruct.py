@@ -84,6 +84,34 @@ class Articulation:
         rigid = None if self.rigid is None else self.rigid[perm]
         return Articulation(names, parent, self.c[perm], self.l[perm], inverse[self.order], rigid)
 
+    def joint_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(child→parent index pairs (m−1, 2), c (m−1, 3), l (m−1, 3)) of the tree's joints, as
+        `Calibration.joint_arrays` gives them (what solver/humanoid.py's helpers read)."""
+        child = np.flatnonzero(self.parent >= 0)
+        return np.stack([child, self.parent[child]], axis=1), self.c[child], self.l[child]
+
+    def rerooted(self, root: int) -> "Articulation":
+        """The same joints hung from body `root`: every joint on the path from the old root to it turns
+        round (its c and l swap, as do child and parent); a body riding rigidly on its parent leaves its
+        parent riding rigidly on it. Complete the articulation first (a rigid body's l must be known)."""
+        root = int(root)
+        if root == self.root:
+            return self
+        parent, c, l = self.parent.copy(), self.c.copy(), self.l.copy()
+        rigid = None if self.rigid is None else self.rigid.copy()
+        below = root
+        while self.parent[below] >= 0:  # walk up the old tree, turning each joint on the way
+            above = int(self.parent[below])
+            parent[above], c[above], l[above] = below, self.l[below], self.c[below]
+            if rigid is not None:
+                rigid[above] = self.rigid[below]
+            below = above
+        parent[root] = -1
+        c[root] = l[root] = 0.0
+        if rigid is not None:
+            rigid[root] = False
+        return Articulation(self.names, parent, c, l, tree_order(parent), rigid)
+
     @property
     def incomplete(self) -> np.ndarray:
         """(m,) bool: rigidly attached bodies whose offset from the parent is not yet known."""

@@ -26,12 +26,13 @@ def _types() -> dict[str, type]:
     """The classes a record may hold, by name: nothing else is ever built from one."""
     from flockcal.solver.calibration import Bones, Calibration, HingePoints, OpticalExtras
     from flockcal.solver.fits import PairFits
+    from flockcal.solver.humanoid import Humanoid, NameConflict
     from flockcal.solver.known_skeleton import KnownFit
     from flockcal.solver.reconstruct import Articulation
     from flockcal.solver.slippage.monitor import SlipEvent, SwapEvent
 
     return {t.__name__: t for t in (Calibration, Bones, HingePoints, OpticalExtras, PairFits, KnownFit,
-                                    Articulation, SlipEvent, SwapEvent)}
+                                    Articulation, SlipEvent, SwapEvent, Humanoid, NameConflict)}
 
 
 def to_record(obj) -> dict:

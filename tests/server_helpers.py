@@ -175,3 +175,65 @@ class ServerProcess:
             except subprocess.TimeoutExpired:
                 self.proc.kill()
                 self.proc.wait(5)
+
+
+class SlowDownload:
+    """A GET whose client reads the status line and headers and then nothing more until `body()`, with a
+    small receive buffer (64 KB): the rest of a large body stays with the server, the download in progress.
+    (A plain client's buffer grows with the kernel's autotuning, up to 32 MB on the CI machines: the server
+    would finish sending a whole take at once.)"""
+
+    def __init__(self, base_url: str, path: str, headers: dict | None = None, rcvbuf: int = 65536):
+        import socket
+
+        url = httpx.URL(base_url)
+        self.sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
+        self.sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, rcvbuf)
+        self.sock.settimeout(30)
+        self.sock.connect((url.host, url.port))
+        extra = "".join(f"{k}: {v}\r\n" for k, v in (headers or {}).items())
+        self.sock.sendall(f"GET {path} HTTP/1.1\r\nHost: {url.host}\r\n{extra}\r\n".encode())
+        self._buf = b""
+        while b"\r\n\r\n" not in self._buf:
+            part = self.sock.recv(4096)
+            assert part, "the server closed the connection before the response's head"
+            self._buf += part
+        head, self._buf = self._buf.split(b"\r\n\r\n", 1)
+        lines = head.decode("latin-1").split("\r\n")
+        self.status = int(lines[0].split(" ", 2)[1])
+        self.headers = {k.strip().lower(): v.strip() for k, v in (ln.split(":", 1) for ln in lines[1:])}
+
+    def _read(self, n: int) -> bytes:
+        while len(self._buf) < n:
+            part = self.sock.recv(1 << 20)
+            if not part:
+                raise AssertionError(f"the body was cut off: the connection closed {n - len(self._buf)} bytes short")
+            self._buf += part
+        out, self._buf = self._buf[:n], self._buf[n:]
+        return out
+
+    def _line(self) -> bytes:
+        while b"\r\n" not in self._buf:
+            part = self.sock.recv(1 << 20)
+            if not part:
+                raise AssertionError("the body was cut off inside a chunk header (a chunked body without its end)")
+            self._buf += part
+        line, self._buf = self._buf.split(b"\r\n", 1)
+        return line
+
+    def body(self) -> bytes:
+        """The whole body (by Content-Length, or chunked to its last chunk); AssertionError when it is cut off."""
+        try:
+            if "content-length" in self.headers:
+                return self._read(int(self.headers["content-length"]))
+            assert self.headers.get("transfer-encoding") == "chunked", self.headers
+            parts = []
+            while (size := int(self._line().split(b";")[0], 16)) > 0:
+                parts.append(self._read(size))
+                assert self._read(2) == b"\r\n"
+            return b"".join(parts)
+        finally:
+            self.sock.close()
+
+    def close(self) -> None:
+        self.sock.close()

@@ -21,6 +21,9 @@ along its axis; its bones with it). "slip" when the slip monitor re-tested a sus
 where another sensor's step begins (issue #32): the take's second event, the forearm after the hand, now
 has its onset at 12.42 s instead of 12.2 s (the slip, with a 20° turn, is at 12.0 s), and the elbow
 moved 1.8 mm.
+All six when issue 47 named joints and bodies as people do: every joint gained `name` and every object the
+closing keys `humanoid`, `humanoid_note`, `humanoid_conflicts` (these six-sensor takes are no human tree,
+which the note says); every other key and value was kept as recorded.
 A deliberate change of the output re-records a file, and its commit says why.
 """
 
@@ -119,11 +122,11 @@ def test_free_fit(takes):
     out = _flockcal("fit", "free.npz", "--json", cwd=takes)
     d = json.loads(out)
     assert list(d) == ["sensors", "root", "parent", "frames", "joints", "bones", "loop_candidates",
-                       "slip_events", "rigid_groups", "ambiguous"]
+                       "slip_events", "rigid_groups", "ambiguous", "humanoid", "humanoid_note", "humanoid_conflicts"]
     assert d["frames"] == 24 * 60 and len(d["joints"]) == 5 and d["slip_events"] == []
     assert list(d["joints"][0]) == ["child", "parent", "c", "l", "rms_m", "epsilon", "singular_values", "hinge",
                                     "axis_child", "axis_parent", "coverage", "c_stderr_m", "l_stderr_m",
-                                    "determined", "direction_error_m", "noise_error_m"]
+                                    "determined", "direction_error_m", "noise_error_m", "name"]
     _check("free", out)
 
 

@@ -57,6 +57,7 @@ WRITERS = [
     ("record", ["--port", "sim://outputs?birds=2", "--birds", "2", "--seconds", "1", "-o"], "-o", "x.fobraw"),
     ("fit", ["take.npz", "--gltf"], "--gltf", "x.glb"),
     ("export-gltf", ["take.npz", "-o"], "-o", "x.glb"),
+    ("fit", ["take.npz", "--trc"], "--trc", "x.trc"),
 ]
 
 

@@ -371,6 +371,10 @@ def test_session_controls_start_stop_and_download_the_skeleton(dashboard, server
         page.click("#dl-gltf")
     assert Path(info.value.path()).read_bytes()[:4] == b"glTF"  # the binary container's magic (glTF 2.0 §4.4)
     assert info.value.suggested_filename == f"Bo-{sid}.glb"
+    with page.expect_download(timeout=15000) as info:
+        page.click("#dl-trc")
+    assert Path(info.value.path()).read_text().startswith("PathFileType\t4\t(X/Y/Z)")
+    assert info.value.suggested_filename == f"Bo-{sid}.trc"
     assert not page.errors
 
 

@@ -5,7 +5,6 @@ constant shared with the solver) and, where the simulator made it, to the truth.
 ../shared/data (tests/real_captures.py; skipped with the reason when absent).
 """
 
-import dataclasses
 import json
 import subprocess
 import sys
@@ -186,19 +185,8 @@ def test_feet_far_from_the_transmitter_with_three_times_the_noise_stay_determine
     assert got["l_foot"]["determined"] and got["r_foot"]["determined"]
 
 
-def _hinged_wrists_and_ankles(seed: int):
-    model = bodies.human(seed=seed)
-    jt, axis = list(model.joint_type), model.hinge_axis.copy()
-    limits, rest = model.limits.copy(), model.rest.copy()
-    for i, name in enumerate(model.names):
-        if bodies.segment(name) in ("hand", "foot"):
-            jt[i], axis[i], limits[i], rest[i] = "hinge", [0.0, 1.0, 0.0], 0.0, 0.0
-            limits[i, 0] = (-0.6, 0.5)
-    return dataclasses.replace(model, joint_type=tuple(jt), hinge_axis=axis, limits=limits, rest=rest)
-
-
 def test_true_ankle_and_wrist_hinges_are_found_as_hinges_on_their_axes():
-    take, truth = simulate(_hinged_wrists_and_ankles(1), "exercise", seconds=37, rate_hz=120, seed=1,
+    take, truth = simulate(bodies.with_hinges(bodies.human(seed=1)), "exercise", seconds=37, rate_hz=120, seed=1,
                            faults={"quantise": 72}, sta_mm=0)
     got = _held_to_truth_and_plain(take, truth)
     assert all(got[x]["hinge"] and got[x]["determined"] for x in ("l_foot", "r_foot", "l_hand", "r_hand"))

@@ -130,18 +130,22 @@ def test_no_page_cites_a_document_outside_the_repository(page):
 def test_the_checker_reports_a_missing_file_a_wrong_anchor_and_a_link_out_of_the_repository(tmp_path):
     # Tried: a page linking a missing file, a heading that is not there, and a file above the root;
     # the good links (same-page anchor, another page's heading, a URL, a link inside code) pass.
+    # Every document's name is made from the temporary folder's: no name here reads as one of the repository's.
+    def md(stem: str) -> str:
+        return f"{tmp_path.name}-{stem}" + ".md"
+
     (tmp_path / "docs").mkdir()
-    (tmp_path / "docs" / "other.md").write_text("# Other\n\n## Measured (bench_x.py, one core)\n")
-    page = tmp_path / "docs" / "page.md"
+    (tmp_path / "docs" / md("other")).write_text("# Other\n\n## Measured (bench_x.py, one core)\n")
+    page = tmp_path / "docs" / md("page")
     page.write_text(
         "# Page\n\n## WebSocket `/ws/live`\n\n"
-        "[ok](other.md#measured-bench_xpy-one-core) [ok](#websocket-wslive) [url](https://example.org/x)\n"
-        "`[code](nowhere.md)`\n\n```\n[fenced](nowhere.md)\n```\n"
-        "[gone](missing.md) [bad anchor](other.md#no-such-heading) [out](../../outside.md)\n"
+        f"[ok]({md('other')}#measured-bench_xpy-one-core) [ok](#websocket-wslive) [url](https://example.org/x)\n"
+        f"`[code]({md('nowhere')})`\n\n```\n[fenced]({md('nowhere')})\n```\n"
+        f"[gone]({md('missing')}) [bad anchor]({md('other')}#no-such-heading) [out](../../{md('outside')})\n"
     )
     problems = broken_links(page, tmp_path)
     assert len(problems) == 3, problems
-    assert any("missing.md" in p for p in problems)
+    assert any(md("missing") in p for p in problems)
     assert any("#no-such-heading" in p for p in problems)
     assert any("leaves the repository" in p for p in problems)
 

@@ -38,16 +38,15 @@ import importlib.util
 import inspect
 import re
 import subprocess
-import tomllib
 from dataclasses import dataclass, field
 from functools import cache
 from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[1]
+from layers import LAYERS, PACKAGE_DIRS, ROOT, import_edges, module_files
+
 PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
-PACKAGE_DIRS = tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["package-dir"]
 
 FENCE = re.compile(r"^(```|~~~)(\w*).*?\n(.*?)^\1[^\n]*$", re.M | re.S)
 SPAN = re.compile(r"(?<!`)`((?:[^`\n]|\n(?!\s*\n))+)`(?!`)")  # a span may wrap, never across a blank line
@@ -59,7 +58,7 @@ VARIABLES = {
     "cal": "flockcal.solver.calibration.Calibration",
     "calibration": "flockcal.solver.calibration.Calibration",
     "acc": "flockcal.solver.accumulator.GramAccumulator",
-    "skeleton": "flockcal.skeleton.Skeleton",
+    "skeleton": "flockcal.solver.known_skeleton.Skeleton",
     "reader": "flockcal.drivers.reader.TrackerReader",
     "watch": "flockcal.solver.slippage.watch.SlipWatch",
     "settings": "flockcal.server.settings.Settings",
@@ -80,23 +79,6 @@ FILE_SUFFIXES = {"npz", "fobraw", "part", "json", "csv", "bvh", "glb", "gltf", "
 
 
 # --- the code's names -------------------------------------------------------------------------------
-def module_files() -> dict[str, Path]:
-    """Dotted module name → file, for every module of the installed packages (pyproject's package-dir)."""
-    out = {}
-    for pkg, folder in PACKAGE_DIRS.items():
-        base = ROOT / folder
-        for path in sorted(base.rglob("*.py")):
-            rel = path.relative_to(base).with_suffix("")
-            parts = [p for p in rel.parts if p != "__init__"]
-            if any(not (base / Path(*rel.parts[:k]) / "__init__.py").exists() for k in range(1, len(rel.parts))):
-                continue  # a folder that is no package (or another package-dir's)
-            if rel.name == "__main__":
-                continue  # importing it runs the command line
-            name = ".".join([pkg, *parts])
-            out.setdefault(name, path)
-    return out
-
-
 @dataclass
 class ClassInfo:
     attrs: set[str] = field(default_factory=set)  # methods, class-level names, what methods set on self
@@ -473,7 +455,7 @@ def test_every_name_and_path_a_page_gives_in_code_exists(page):
 def test_the_checker_reports_each_kind_of_reference_that_is_gone(tmp_path):
     # Tried: each form of reference naming something that does not exist (the drift issue 33 found, among
     # them), beside the same form naming something that does; and spans that are no references.
-    page = tmp_path / "page.md"
+    page = tmp_path / f"{tmp_path.name}.page"  # a temporary name, none of the repository's documents
     page.write_text(
         "`flockcal.solver.fits.pair_fits` `flockcal.solver.fits.no_such` `fits.PairFits.rms` "
         "`PairFits.noise_floor` `sources.TrackerSource` `sources.frames_to_pipeline(feed)` "
@@ -496,46 +478,13 @@ def test_the_checker_reports_each_kind_of_reference_that_is_gone(tmp_path):
 
 
 # --- docs/internals.md's table of layers --------------------------------------------------------------
-LAYERS = ("base", "drivers", "simulator", "solver", "exports", "server", "commands")
-
-
-def layer_of(module: str) -> str | None:
-    """The layer of a dotted module name of this repository (None: not ours)."""
-    parts = module.split(".")
-    if parts[0] != "flockcal":
-        return None
-    if len(parts) > 1 and parts[1] in LAYERS:
-        return parts[1]
-    return "commands" if len(parts) > 1 and parts[1] in ("cli", "__main__") else "base"
-
-
-def imported_modules(tree: ast.AST) -> set[str]:
-    """Every module an import statement names, at any depth, except under `if TYPE_CHECKING:`."""
-    out: set[str] = set()
-
-    def visit(node):
-        if isinstance(node, ast.If) and isinstance(node.test, ast.Name) and node.test.id == "TYPE_CHECKING":
-            return
-        if isinstance(node, ast.ImportFrom) and node.module and not node.level:
-            out.add(node.module)
-        elif isinstance(node, ast.Import):
-            out.update(a.name for a in node.names)
-        for child in ast.iter_child_nodes(node):
-            visit(child)
-
-    visit(tree)
-    return out
-
-
 def test_the_table_of_layers_in_internals_is_what_the_modules_import():
-    # Tried against the code as it is: each layer's imports of other layers, besides the base layer.
+    # Tried against the code as it is: each layer's imports of other layers, besides the base layer (every
+    # import statement, in functions and under TYPE_CHECKING too: tests/layers.py).
     found = {layer: set() for layer in LAYERS}
-    for name, path in module_files().items():
-        own = layer_of(name)
-        for mod in imported_modules(ast.parse(path.read_text(encoding="utf-8"))):
-            other = layer_of(mod)
-            if other not in (None, own, "base"):
-                found[own].add(other)
+    for own, other in import_edges():
+        if other != "base":
+            found[own].add(other)
     text = (ROOT / "docs" / "internals.md").read_text(encoding="utf-8")
     rows = re.findall(r"^\| (\w+) \| [^|]+ \| ([^|]+) \|$", text, re.M)
     table = {layer: {w for w in re.findall(r"\w+", cell) if w in LAYERS} for layer, cell in rows if layer in LAYERS}

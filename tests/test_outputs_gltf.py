@@ -104,6 +104,13 @@ def world_positions(doc: dict, binary: bytes, frames: list[int]) -> dict[str, np
     return {node["name"]: place(k)[:, :3, 3] for k, node in enumerate(nodes) if "mesh" not in node}
 
 
+def sensor_nodes(doc) -> dict[str, int]:
+    """{sensor name: node index} of the body nodes, read from each node's extras (a node is named by its
+    humanoid bone on a human tree, by its sensor otherwise)."""
+    return {node["extras"]["flockcal"]["sensor"]: k for k, node in enumerate(doc["nodes"])
+            if "mesh" not in node and not node["extras"]["flockcal"].get("end_site")}
+
+
 # --- one take, fitted once by the CLI --------------------------------------------------------------
 @pytest.fixture(scope="module")
 def run(tmp_path_factory):
@@ -111,8 +118,12 @@ def run(tmp_path_factory):
     sim = flockcal("simulate", "--model", "human", "--motion", "exercise", "--seconds", "8", "--rate", "50",
                    "--seed", "7", "--dropout", "0.01", "-o", "take.npz", cwd=folder)
     assert sim.returncode == 0, sim.stderr
-    fit = flockcal("fit", "take.npz", "--no-slips", "--json", "--bvh", "take.bvh", "--gltf", "take.glb", cwd=folder)
+    fit = flockcal("fit", "take.npz", "--no-slips", "--json", "--bvh", "take.bvh", cwd=folder)
     assert fit.returncode == 0, fit.stderr
+    # The plain rig, rest at the take's first frame as the BVH's (fit --gltf's VRM humanoid in its T-pose:
+    # tests/test_outputs_vrm.py); the same fit, so the same skeleton as the BVH.
+    out = flockcal("export-gltf", "take.npz", "--rest", "first", "-o", "take.glb", cwd=folder)
+    assert out.returncode == 0, out.stderr
     doc, binary = read_glb((folder / "take.glb").read_bytes())
     with np.load(folder / "take.npz") as z:
         take = {k: z[k] for k in z.files}
@@ -122,9 +133,14 @@ def run(tmp_path_factory):
 def test_nodes_are_the_fitted_tree_with_its_offsets(run):
     _, fit, doc, _, _ = run
     parents = node_parents(doc)
-    by_name = {node["name"]: k for k, node in enumerate(doc["nodes"])}
+    by_name = sensor_nodes(doc)
     sensors = fit["sensors"]
-    assert set(sensors) <= set(by_name)
+    assert set(sensors) == set(by_name)
+    # A human tree: every body node carries its humanoid bone in PascalCase, the root the hips (issue 47).
+    assert fit["humanoid"] is not None and fit["humanoid"][fit["root"]] == "hips"
+    for sensor, k in by_name.items():
+        bone = fit["humanoid"][sensor]
+        assert doc["nodes"][k]["name"] == bone[0].upper() + bone[1:]
     root = by_name[fit["root"]]
     assert root not in parents and doc["skins"][0]["skeleton"] == root
     c = {j["child"]: np.array(j["c"]) for j in fit["joints"]}
@@ -184,7 +200,8 @@ def test_joint_positions_equal_the_fit_played_by_hand_and_the_bvh(run):
     n = len(take["rotations"])
     valid = take["valid"].all(axis=1)
     frames = [int(k) for k in np.flatnonzero(valid)[np.linspace(0, valid.sum() - 1, FRAMES_CHECKED).astype(int)]]
-    got = world_positions(doc, binary, frames)
+    node_of = {doc["nodes"][k]["name"]: s for s, k in sensor_nodes(doc).items()}
+    got = {node_of.get(k, k): v for k, v in world_positions(doc, binary, frames).items()}
     # By hand from the fit JSON: the root joint rides on its sensor; each child's joint sits at its
     # parent's joint plus R_parent (l − c_parent). Tracker frame Z down, X forward → Y up: (x, y, z) → (x, −z, y).
     names = [str(x) for x in take["names"]]
@@ -199,7 +216,7 @@ def test_joint_positions_equal_the_fit_played_by_hand_and_the_bvh(run):
             p = fit["parent"][s]
             joint[s] = joint[p] + R[:, names.index(p)] @ (l[s] - c.get(p, np.zeros(3)))
             todo.remove(s)
-    bvh = bvh_forward_kinematics(Bvh((folder / "take.bvh").read_text()))
+    bvh = {node_of.get(k, k): v for k, v in bvh_forward_kinematics(Bvh((folder / "take.bvh").read_text())).items()}
     for s in names:
         np.testing.assert_allclose(got[s], joint[s] @ up.T, atol=CLAIM_M, rtol=0, err_msg=s)
         np.testing.assert_allclose(got[s], bvh[s][frames] / 100.0, atol=CLAIM_M, rtol=0, err_msg=s)  # BVH is cm
@@ -208,7 +225,7 @@ def test_joint_positions_equal_the_fit_played_by_hand_and_the_bvh(run):
 
 def test_gltf_form_holds_the_same_document(run):
     folder, _, doc, binary, _ = run
-    out = flockcal("export-gltf", "take.npz", "-o", "take.gltf", cwd=folder)
+    out = flockcal("export-gltf", "take.npz", "--rest", "first", "-o", "take.gltf", cwd=folder)
     assert out.returncode == 0, out.stderr
     other = json.loads((folder / "take.gltf").read_text())
     import base64
@@ -263,8 +280,9 @@ def test_assimp_lists_the_joints_the_channels_and_the_duration(run):
     folder, fit, _, _, take = run
     info = subprocess.run(["assimp", "info", "take.glb"], cwd=folder, capture_output=True, text=True, timeout=120)
     assert info.returncode == 0, info.stderr
-    for s in fit["sensors"]:
-        assert f"╴{s}\n" in info.stdout, s
+    for s in fit["sensors"]:  # each body's node, named by its humanoid bone (a human tree)
+        bone = fit["humanoid"][s]
+        assert f"╴{bone[0].upper() + bone[1:]}\n" in info.stdout, s
     assert f"Animation Channels: {len(fit['sensors'])}" in info.stdout
     dump = subprocess.run(["assimp", "dump", "take.glb", "take.assxml", "-x"], cwd=folder, capture_output=True,
                           text=True, timeout=120)

@@ -48,7 +48,8 @@ def artifacts() -> Path:
 
 
 RIG_JS = """() => { const r = window.flockcalRig;
-    return r && {state: r.state, session: r.session, fitSeq: r.fitSeq, pose: r.pose, joints: r.joints()}; }"""
+    return r && {state: r.state, session: r.session, fitSeq: r.fitSeq, pose: r.pose, joints: r.joints(),
+                 sensors: r.sensors()}; }"""
 
 
 @pytest.fixture(scope="module")
@@ -97,10 +98,13 @@ def agree(rig: dict) -> float:
     pose, got = rig["pose"], rig["joints"]
     assert pose["rig"]["session"] == rig["session"] and pose["rig"]["fit_seq"] == rig["fitSeq"]
     worst = 0.0
+    # A node is named by its humanoid bone on a human tree (issue 47); its sensor is in its extras.
+    node_of = {(v["sensor"], v["end"]): k for k, v in rig["sensors"].items()}
     for joint in pose["joints"]:
         # A body's point is its node; a leaf's sensor is the node the rig ends that leaf with.
-        node = joint["name"].removesuffix(" sensor") + "_end" if joint["kind"] == "end" else joint["name"]
-        assert node in got, f"the rig has no node {node}"
+        end = joint["kind"] == "end"
+        node = node_of.get((joint["name"].removesuffix(" sensor") if end else joint["name"], end))
+        assert node in got, f"the rig has no node for {joint['name']}"
         p = TO_TRACKER @ np.array(got[node])
         np.testing.assert_allclose(p, joint["p"], atol=CLAIM_M, rtol=0, err_msg=node)
         worst = max(worst, float(np.linalg.norm(p - joint["p"])))

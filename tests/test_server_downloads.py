@@ -20,9 +20,10 @@ import pytest
 from flockcal.exports.bvh import bvh_chunks, bvh_text
 from flockcal.exports.gltf import glb_chunks, gltf_bytes
 from flockcal.exports.skeleton import skeleton_dict
+from flockcal.exports.trc import trc_chunks, trc_text
 from flockcal.server.framelog import FrameLog, read_frames
 from flockcal.server.settings import Settings
-from server_helpers import ServerThread, free_port, wait_connected
+from server_helpers import ServerThread, SlowDownload, free_port, wait_connected
 from flockcal.takes import make_take
 
 
@@ -123,8 +124,23 @@ def test_streamed_gltf_equals_the_export_of_the_whole_take(session):
     assert r.status_code == 200 and r.headers["content-type"] == "model/gltf-binary"
     assert "content-length" not in r.headers and r.content[:4] == b"glTF"
     same_glb(r.content, gltf_bytes(result, take, up="+z", name=sid))
+    # A four-body linkage is no humanoid: the plain rig, and the header says why (the CLI's one line).
+    assert r.headers["x-flockcal-vrm"].startswith("none: ")
     # Tried: an up axis the tracker cannot have: the BVH's answer, one line, before any byte.
     bad = httpx.get(srv.url + f"/api/sessions/{sid}/gltf?up=%2Bx", timeout=60)
+    assert bad.status_code == 409 and "up must be one of" in bad.json()["detail"]
+
+
+def test_streamed_trc_equals_the_export_of_the_whole_take(session):
+    srv, sid = session
+    result = httpx.get(srv.url + f"/api/sessions/{sid}/result").json()
+    take = take_of(srv.service.sessions.frames_path(sid))
+    r = httpx.get(srv.url + f"/api/sessions/{sid}/trc?up=%2Bz", timeout=60)
+    assert r.status_code == 200 and r.headers["content-type"].startswith("text/plain")
+    assert "content-length" not in r.headers and r.headers["content-disposition"].endswith(f'{sid}.trc"')
+    assert r.text == trc_text(result, take, up="+z", file_name=f"{sid}.trc")
+    # Tried: an up axis the tracker cannot have: one line, before any byte.
+    bad = httpx.get(srv.url + f"/api/sessions/{sid}/trc?up=%2Bx", timeout=60)
     assert bad.status_code == 409 and "up must be one of" in bad.json()["detail"]
 
 
@@ -167,25 +183,14 @@ def test_chunked_exports_hold_dropouts_and_rigid_sensors_like_the_whole_take(ses
         same_glb(streamed, gltf_bytes(calibration, take))
         # One writer, two sinks: the temporary file of a download and the memory of a file, byte for byte.
         assert streamed == gltf_bytes(calibration, frames, chunk_frames=frames.play_frames)
+        assert "".join(trc_chunks(calibration, frames, chunk_frames=frames.play_frames)) == trc_text(calibration, take)
 
 
 def held_download(base_url: str, path: str) -> tuple[socket.socket, int]:
-    """A GET whose client reads the status line and then nothing more, with a 64 KB receive buffer: the
-    rest of a 40 MB body stays with the server. (A plain client's buffer grows with the kernel's
-    autotuning, up to 32 MB on the CI machines, and nearly a whole take fits in it: the server then
-    finishes the download and frees its slot, which is not what this test is about.)"""
-    url = httpx.URL(base_url)
-    sock = socket.socket(socket.AF_INET, socket.SOCK_STREAM)
-    sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 65536)
-    sock.settimeout(30)
-    sock.connect((url.host, url.port))
-    sock.sendall(f"GET {path} HTTP/1.1\r\nHost: {url.host}\r\n\r\n".encode())
-    head = b""
-    while b"\r\n" not in head:
-        part = sock.recv(1024)
-        assert part, "the server closed the connection before a status line"
-        head += part
-    return sock, int(head.split(b" ", 2)[1])
+    """A GET whose client reads the status line and then nothing more (server_helpers.SlowDownload): the rest
+    of a 40 MB body stays with the server."""
+    download = SlowDownload(base_url, path)
+    return download.sock, download.status
 
 
 def test_downloads_beyond_the_limit_get_503_until_one_ends(tmp_path):

@@ -72,7 +72,10 @@ def test_to_dict_is_exactly_the_section_5_json(exact):
                   "axis_parent", "coverage", "c_stderr_m", "l_stderr_m"]
     # §5's keys first, in order; then the extensions (design.md §3a).
     assert all(list(j)[:13] == joint_keys for j in out["joints"]) and len(out["joints"]) == 6
-    assert all(list(j)[13:] == ["determined", "direction_error_m", "noise_error_m"] and j["determined"] for j in out["joints"])
+    assert all(list(j)[13:] == ["determined", "direction_error_m", "noise_error_m", "name"] and j["determined"]
+               for j in out["joints"])
+    # Issue 47's extensions close the object: no humanoid was looked for (no frames given), and it says so.
+    assert list(out)[-3:] == ["humanoid", "humanoid_note", "humanoid_conflicts"] and out["humanoid"] is None
     assert all(list(b) == ["body", "from_joint", "to_joint", "length_m", "stderr_m"] for b in out["bones"])
     assert all(len(j["singular_values"]) == 6 and len(j["coverage"]) == 3 for j in out["joints"])
     json.loads(json.dumps(out, allow_nan=False))  # no NaN or inf anywhere

@@ -20,7 +20,7 @@ SUFFIXES = (".npz", ".fobraw", ".c3d")
 # A slip's onset is an estimate (design.md §4): the combined sums drop the slipped sensor's frames from this
 # long before it, so no frame of the new placement can leak into the old one's sums.
 SLIP_GUARD_S = 0.5
-CHUNK = 65536  # frames per accumulator update, as in `flockcal fit`
+CHUNK = 65536  # frames per accumulator update (a multiple of its 256-frame block, as `flockcal fit` reads)
 
 
 @dataclass(frozen=True)
@@ -102,14 +102,16 @@ def take_kind(path: str) -> str:
 
 
 def load_sensor_take(path: str):
-    """The `Take` `fit` reads: an .npz as it is, a .fobraw as `flockcal convert` turns it into one."""
+    """The `Take` `fit` reads: an .npz with its hemisphere flips undone as `fit` undoes them, a .fobraw as
+    `flockcal convert` turns it into one."""
     if Path(path).suffix.lower() == ".fobraw":
         from flockcal.commands.record import recording_take
 
         return recording_take(path)
+    from flockcal.hemisphere_unfold import unfold_take
     from flockcal.takes import load_take
 
-    return load_take(path)
+    return unfold_take(load_take(path))[0]
 
 
 def shared_origin(paths: list[str]) -> np.ndarray | None:

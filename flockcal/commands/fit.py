@@ -9,13 +9,12 @@ from __future__ import annotations
 import argparse
 import json
 import sys
+from contextlib import contextmanager
 from pathlib import Path
 
 from flockcal.commands.takecheck import PARTIAL_EXIT, add_option, stop_for, too_short, too_still
 from flockcal.errors import UserError
 from flockcal.bars import Stages
-
-CHUNK = 65536  # frames per accumulator update; also the progress bar's step
 
 
 def register(subparsers) -> None:
@@ -30,10 +29,15 @@ def register(subparsers) -> None:
     p.add_argument("--json", action="store_true", help="print the JSON object of docs/design.md §5 instead of a table")
     p.add_argument("--bvh", metavar="OUT.bvh", help="also write the take as BVH through the fitted skeleton")
     p.add_argument("--gltf", metavar="OUT.glb", help="also write the fitted skeleton as a glTF 2.0 rig (skin, figure "
-                   "and the take as its animation; .glb or .gltf)")
+                   "and the take as its animation; .glb or .gltf), a VRM 1.0 humanoid when the tree is human-shaped")
+    p.add_argument("--trc", metavar="OUT.trc", help="also write the joint centres over the take as TRC virtual markers "
+                   "(millimetres; OpenSim reads it)")
     p.add_argument("--scale", metavar="FACTOR", help="multiply positions by FACTOR before fitting (unit scale, paper §4): "
                    "a number or the JSON file `flockcal scale --json` wrote")
     p.add_argument("--no-slips", action="store_true", help="skip the sensor-slip search (faster on long takes)")
+    p.add_argument("--max-take-gb", type=float, metavar="GB",
+                   help="refuse a take whose arrays unpack to more than GB gigabytes (default: $FLOCKCAL_MAX_TAKE_GB, "
+                        "else 4; the take is read a chunk at a time whatever its size)")
     add_option(p)
     add_tolerance(p)
     p.set_defaults(func=run)
@@ -71,31 +75,30 @@ def load_hierarchy(path: str) -> dict:
     return data
 
 
+@contextmanager
+def accumulating(take, progress: bool = True):
+    """The bar over a take's frames as they are summed, on a terminal once it takes a while: yields its update."""
+    from flockcal.bars import bar
+
+    with bar(take.n_frames, "accumulating", unit="frame", unit_scale=True) as shown:
+        shown.disable = shown.disable or not progress
+        yield shown.update
+
+
 def accumulate(take, progress: bool = True):
     """A GramAccumulator over the whole take, with a progress bar on a terminal once it takes a while."""
-    from flockcal.bars import bar
-    from flockcal.solver.accumulator import GramAccumulator
+    from flockcal.solver.take_fit import accumulate_take
 
-    acc = GramAccumulator(take.n_sensors)
-    n = take.n_frames
-    with bar(n, "accumulating", unit="frame", unit_scale=True) as shown:
-        shown.disable = shown.disable or not progress
-        for s in range(0, n, CHUNK):
-            e = min(n, s + CHUNK)
-            acc.add_poses(take.rotations[s:e], take.positions[s:e], take.valid[s:e])
-            shown.update(e - s)
-    return acc
+    with accumulating(take, progress) as update:
+        return accumulate_take(take, on_frames=update)
 
 
 def run(args: argparse.Namespace) -> int:
-    import dataclasses
-
     from flockcal.threads import single_threaded_blas
 
     single_threaded_blas()  # before numpy loads
     from flockcal.atomic import check_output
-    from flockcal.exports.bvh import write_bvh
-    from flockcal.takes import load_take
+    from flockcal.take_files import ScaledTake, TakeFile
 
     if args.bvh:
         check_output(args.bvh, "--bvh")  # before the fit, which can take minutes
@@ -104,30 +107,50 @@ def run(args: argparse.Namespace) -> int:
 
         check_output(args.gltf, "--gltf")
         binary_for(args.gltf, "--gltf")
-    take = load_take(args.file)
+    if args.trc:
+        check_output(args.trc, "--trc")
+    # Read a chunk at a time, as often as the fit needs (memory stays a chunk: docs/cli.md#memory).
+    take = TakeFile(args.file, args.max_take_gb)
     if args.scale is not None:
         from flockcal.commands.outputs import scale_factor
 
-        take = dataclasses.replace(take, positions=take.positions * scale_factor(args.scale))
+        take = ScaledTake(take, scale_factor(args.scale))
+    from flockcal.commands.outputs import unfolded
+
+    take = unfolded(take, "fit", args.file)
     hierarchy = load_hierarchy(args.hierarchy) if args.hierarchy else None
     # Fitted first, so bad input (names, hierarchy) is reported as such before the take is judged.
     tol = tolerance_m(args)
     cal = calibrate_take(take, hierarchy=hierarchy, root=args.root, tolerance=tol)
     if stop_for("fit", args.file, too_short(take) or too_still(cal), args.allow_partial):
         return PARTIAL_EXIT
-    with Stages("fit", ["searching for slips", "re-fitting after slips", "writing BVH", "writing glTF"]) as stages:
+    plain = ""  # why the glTF rig is no VRM humanoid, when it is not
+    with Stages("fit", ["searching for slips", "re-fitting after slips", "writing BVH", "writing glTF",
+                        "writing TRC"]) as stages:
         slips, result = fit_result(take, cal, tolerance=tol, find_slips=not args.no_slips, step=stages.step)
         if args.bvh:
+            from flockcal.exports.bvh import write_bvh  # here: scipy.spatial costs every fit ~0.3 s to import
+
             stages.step("writing BVH")
             write_bvh(args.bvh, cal, take)
         if args.gltf:
             from flockcal.exports.gltf import write_gltf
 
             stages.step("writing glTF")
-            write_gltf(args.gltf, cal, take)  # the skeleton the BVH plays, so the two files agree
-    for path in (args.bvh, args.gltf):
+            plain = write_gltf(args.gltf, cal, take)  # the skeleton the BVH plays, so the two files agree
+        if args.trc:
+            from flockcal.exports.trc import write_trc
+
+            stages.step("writing TRC")
+            write_trc(args.trc, cal, take)
+    for path in (args.bvh, args.gltf, args.trc):
         if path:
             print(f"wrote {path}", file=sys.stderr)
+    warn_conflicts(result)
+    if plain:
+        from flockcal.exports.vrm import plain_rig_note
+
+        print(plain_rig_note(args.gltf, plain), file=sys.stderr)
     if args.json:
         sys.stdout.write(json_text(result))
     else:
@@ -137,36 +160,32 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-# The fit path in parts, shared with `flockcal batch` (flockcal/commands/batch_tasks.py) so that a take's
-# batch result is byte for byte what `fit --json` prints.
+# The fit path in parts (the solver's `take_fit`, which `flockcal.fit` runs whole), shared with `flockcal
+# batch` (flockcal/commands/batch_tasks.py) so that a take's batch result is byte for byte what `fit --json` prints.
 def calibrate_take(take, hierarchy: dict | None = None, root: str | None = None, tolerance: float = 0.005,
                    progress: bool = True):
     """The whole-take `Calibration` of `take` (accumulated in chunks, bar on a terminal), by `solve`."""
-    from flockcal.solver.solve import solve
+    from flockcal.solver.take_fit import fit_whole_take
 
-    acc = accumulate(take, progress)
-    return solve(acc, take.names, hierarchy=hierarchy, root=root, tolerance=tolerance)
+    with accumulating(take, progress) as update:
+        return fit_whole_take(take, hierarchy=hierarchy, root=root, tolerance=tolerance, on_frames=update)
 
 
 def fit_result(take, cal, tolerance: float = 0.005, find_slips: bool = True, step=None) -> tuple[list, object]:
     """(slip events, the `Calibration` whose §5 JSON `fit --json` prints) for a take and its whole-take
-    calibration.
+    calibration: the solver's `refit_after_slips`, or no search at all (--no-slips)."""
+    from flockcal.solver.take_fit import refit_after_slips
 
-    The slipped sensors' joints and bones are re-fitted on the frames since their slip (docs/design.md
-    §4); everything else keeps the whole take. `step(name)` reports the stages ("searching for slips", …).
-    """
-    step = step or (lambda name: None)
-    slips, result = [], cal
-    if find_slips and len(cal.joints.pairs):
-        from flockcal.solver.slippage import detect_slips
-        from flockcal.solver.solve import solve_take
+    return refit_after_slips(take, cal, tolerance=tolerance, step=step) if find_slips else ([], cal)
 
-        step("searching for slips")
-        slips = detect_slips(take, cal)
-        if slips:
-            step("re-fitting after slips")
-            result = solve_take(take, slips, hierarchy=cal.parent_map(), root=cal.names[cal.root], tolerance=tolerance)
-    return slips, result
+
+def warn_conflicts(cal) -> None:
+    """One warning line on stderr for each sensor whose name says another bone than the data found."""
+    from flockcal.solver.humanoid import conflict_message
+
+    hum = cal.humanoid
+    for x in (hum.conflicts if hum is not None else ()):
+        print(f"warning: {conflict_message(cal.names, x)}", file=sys.stderr)
 
 
 def json_text(result) -> str:
@@ -203,11 +222,20 @@ def table(cal, source: str = "") -> str:
     """The readable report: topology as an indented tree, joints, bones in cm, loops and warnings."""
     import numpy as np
 
+    from flockcal.names import names_joint
+
     nm = cal.names
     J = cal.joints
+    jname = cal.joint_names()
+    hum = cal.humanoid
+    bone = {i: f" [{b}]" for i, b in enumerate(hum.bones) if b is not None} if hum is not None else {}
     row = {int(c): k for k, c in enumerate(J.pairs[:, 0])}
     how = "given hierarchy" if cal.hierarchy_given else "searched (minimum spanning tree)"
-    out = [f"{source}: {cal.frames} frames, {cal.n_sensors} sensors; topology {how}, root {nm[cal.root]}", "", "Topology"]
+    out = [f"{source}: {cal.frames} frames, {cal.n_sensors} sensors; topology {how}, root {nm[cal.root]}", ""]
+    if hum is not None:
+        out += ["Humanoid: " + ("every body's bone found from the tree and the take's motion [in brackets]"
+                                if hum.human else hum.reason), ""]
+    out.append("Topology")
     depth = np.zeros(cal.n_sensors, dtype=int)
     for x in cal.order:
         depth[x] = 0 if cal.parent[x] < 0 else depth[cal.parent[x]] + 1
@@ -224,16 +252,20 @@ def table(cal, source: str = "") -> str:
             k = row[x]
             kind = "hinge" if J.hinge[k] else "ball" if J.determined[k] else "undetermined"
             note = f"{kind}, rms {_mm(J.rms[k])} mm"
+            if (hum is not None and hum.human) or names_joint(nm[x], nm[p]):
+                note = f"{jname[k]}: {note}"
         else:
             note = f"rigid with {nm[p]}"
-        out.append(f"  {'  ' * depth[x]}{nm[x]}  ({note})")
+        out.append(f"  {'  ' * depth[x]}{nm[x]}{bone.get(x, '')}  ({note})")
+    width = max([5] + [len(x) for x in jname])
     out += ["", "Joints (c in the child's frame, l in the parent's; cm)"]
-    out.append(f"  {'child':<12} {'parent':<12} {'c':<26} {'l':<26} {'rms mm':>7} {'±c mm':>6} {'coverage (least first)':<24} axis (child frame)")
+    out.append(f"  {'joint':<{width}} {'child':<12} {'parent':<12} {'c':<26} {'l':<26} {'rms mm':>7} {'±c mm':>6} "
+               f"{'coverage (least first)':<24} axis (child frame)")
     for k in range(len(J)):
         cov = " ".join(f"{x:.3f}" for x in J.coverage[k])
         axis = " ".join(f"{x:+.3f}" for x in J.axis_i[k]) if J.hinge[k] else ""
         out.append(
-            f"  {nm[J.pairs[k, 0]]:<12} {nm[J.pairs[k, 1]]:<12} {_cm(J.c[k]):<26} {_cm(J.l[k]):<26} "
+            f"  {jname[k]:<{width}} {nm[J.pairs[k, 0]]:<12} {nm[J.pairs[k, 1]]:<12} {_cm(J.c[k]):<26} {_cm(J.l[k]):<26} "
             f"{_mm(J.rms[k]):>7} {_mm(J.c_stderr[k]):>6} {cov:<24} {axis}"
         )
     b = cal.bones
@@ -258,9 +290,7 @@ def table(cal, source: str = "") -> str:
         out += [f"  {nm[c]}: {', '.join(nm[p] for p in ps)} — {note}" for c, ps, note in cal.ambiguous]
     under = [k for k in range(len(J)) if not J.determined[k]]
     if under:
-        from flockcal.names import joint_label
-
-        names = ", ".join(joint_label(nm[J.pairs[k, 0]], nm[J.pairs[k, 1]]).removeprefix("the ") for k in under)
+        names = ", ".join(jname[k] for k in under)
         out += ["", f"Move more: {names} — not determined yet (the data do not pin the centre to the tolerance); "
                 "no bone ends there"]
     return "\n".join(out)

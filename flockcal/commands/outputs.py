@@ -31,8 +31,9 @@ def scale_factor(text: str) -> float:
     return value
 
 
-def load_scaled_take(path: str, scale: str | None):
-    """The take at `path`, its positions multiplied by the `--scale` factor if one was given."""
+def load_scaled_take(path: str, scale: str | None, command: str):
+    """The take at `path`, its positions multiplied by the `--scale` factor if one was given, its hemisphere
+    flips undone (`unfolded`)."""
     from dataclasses import replace
 
     from flockcal.solver.scale import apply_scale
@@ -41,6 +42,19 @@ def load_scaled_take(path: str, scale: str | None):
     take = load_take(path)
     if scale is not None:
         take = replace(take, positions=apply_scale(take.positions, scale_factor(scale)))
+    return unfolded(take, command, path)
+
+
+def unfolded(take, command: str, path: str, hemisphere: str | None = None):
+    """`take` with the hemisphere flips of a recording that did not track the hemisphere undone
+    (flockcal/hemisphere_unfold.py), saying on stderr how many frames it unfolded; the take itself when
+    there were none."""
+    from flockcal.hemisphere_unfold import unfold_take
+
+    take, how = unfold_take(take, hemisphere)
+    note = how.summary(take.names)
+    if note:
+        print(f"flockcal {command}: {path}: {note}", file=sys.stderr)
     return take
 
 
@@ -62,24 +76,32 @@ def fit_take(take, hierarchy: str | None = None, root: str | None = None, skelet
              with_free: bool = False):
     """Fit `take` for an output: with a saved skeleton file, a `{child: parent}` file, or a full search.
 
-    Returns a Calibration or a KnownFit; both give the docs/design.md §5 dict through `.to_dict()`. With
+    Returns a Calibration (a saved skeleton's carries its `KnownFit` as `state`), its humanoid found from a
+    sample of the take; `.to_dict()` gives the docs/design.md §5 dict. With
     `with_free`, returns (fit, free calibration of the same take), the free one judging whether the
     take moved enough (it is the fit itself unless a skeleton file was given).
     """
+    from dataclasses import replace
+
     from flockcal.solver.accumulator import GramAccumulator
     from flockcal.solver.calibration import calibrate
+    from flockcal.solver.humanoid import humanoid_for, take_sample
+    from flockcal.solver.solve import solve
 
     acc = GramAccumulator(take.n_sensors)
     acc.add_poses(take.rotations, take.positions, take.valid)
+    sample = take_sample(take).snapshot()
     if skeleton is not None:
         if hierarchy is not None or root is not None:
             raise UserError("--skeleton fixes the tree; leave out --hierarchy and --root")
         from flockcal.exports.skeleton import load_skeleton
         from flockcal.solver.known_skeleton import fit_saved
 
-        fit = fit_saved(load_skeleton(skeleton), acc, take.names)
+        known = fit_saved(load_skeleton(skeleton), acc, take.names)
+        fit = replace(known.calibration(), state=known)
+        fit = replace(fit, humanoid=humanoid_for(fit, sample))
         return (fit, calibrate(acc, names=list(take.names))) if with_free else fit
-    fit = calibrate(acc, hierarchy=_hierarchy(hierarchy), root=root, names=list(take.names))
+    fit = solve(acc, list(take.names), hierarchy=_hierarchy(hierarchy), root=root, sample=sample)
     return (fit, fit) if with_free else fit
 
 
@@ -91,7 +113,7 @@ def fitted_take(args, command: str):
     from flockcal.atomic import check_output
 
     check_output(args.output)  # before the fit, which can take minutes
-    take = load_scaled_take(args.take, args.scale)
+    take = load_scaled_take(args.take, args.scale, command)
     # Fitted first, so bad input (names, hierarchy, skeleton file) is reported as such before the take is judged.
     cal, free = fit_take(take, args.hierarchy, args.root, args.skeleton, with_free=True)
     if stop_for(command, args.take, too_short(take) or too_still(free), args.allow_partial):
@@ -232,10 +254,16 @@ def cmd_export_gltf(args) -> int:
     from flockcal.atomic import check_output
     from flockcal.exports.gltf import binary_for, write_gltf
 
+    from flockcal.exports.vrm import plain_rig_note
+
     check_output(args.output)
     binary_for(args.output, "-o")  # a wrong extension is told before the fit
-    return _export(args, "export-gltf",
-                   lambda path, cal, take, rest: write_gltf(path, cal, take, up=args.up, rest=rest))
+    why = []
+    code = _export(args, "export-gltf",
+                   lambda path, cal, take, rest: why.append(write_gltf(path, cal, take, up=args.up, rest=rest)))
+    if why and why[0]:
+        print(plain_rig_note(args.output, why[0]), file=sys.stderr)
+    return code
 
 
 def cmd_skeleton(args) -> int:
@@ -294,8 +322,9 @@ def register(subparsers) -> None:
     _add_fit_options(p)
     p.add_argument("-o", "--output", required=True, metavar="OUT.glb", help=".glb (binary) or .gltf (JSON)")
     p.add_argument("--up", default="-z", choices=["-z", "+z", "+y"], help="tracker world's up axis (default -z, the Flock's)")
-    p.add_argument("--rest", default="first", metavar="first|sensor|FRAME",
-                   help="the rig's rest (bind) pose: the take's first frame (default), a frame number, or raw sensor axes")
+    p.add_argument("--rest", default="tpose", metavar="tpose|first|sensor|FRAME",
+                   help="the rig's rest (bind) pose: a VRM 1.0 humanoid's T-pose (default; the take's first frame when "
+                        "the tree is not human-shaped), the take's first frame, a frame number, or raw sensor axes")
     p.set_defaults(func=cmd_export_gltf)
 
     p = subparsers.add_parser("skeleton", help="save the performer's calibrated skeleton for their next take")

@@ -80,6 +80,14 @@ def register(subparsers) -> None:
     p.add_argument("--download-stall-s", type=float, default=30.0, metavar="S",
                    help="a download whose client takes no data for S seconds is cut off and its slot freed "
                         "(default 30)")
+    p.add_argument("--vrpn", type=int, nargs="?", const=3883, metavar="PORT",
+                   help="serve the live humanoid as the VRPN tracker flockcal@HOST:PORT, one sensor per bone "
+                        "(TCP and UDP; PORT default 3883, VRPN's; docs/outputs.md)")
+    p.add_argument("--osc", action="append", default=[], metavar="HOST[:PORT]",
+                   help="send the live humanoid over the VMC protocol (OSC/UDP) to this receiver (PORT default "
+                        "39539; repeatable, or several separated by commas)")
+    p.add_argument("--osc-hz", type=float, default=60.0, metavar="HZ",
+                   help="VMC frames a second (default 60)")
     p.set_defaults(func=run)
 
 
@@ -116,6 +124,9 @@ def settings_from_args(args: argparse.Namespace):
         skeletons=tuple(args.skeleton),
         keep_days=args.keep_days,
         keep_disk_gb=args.keep_disk,
+        vrpn_port=args.vrpn,
+        osc_targets=tuple(args.osc),
+        osc_hz=args.osc_hz,
     )
 
 
@@ -219,6 +230,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"flockcal serve: dashboard {base}/   kiosk {base}/kiosk   API docs {base}/docs", flush=True)
     print(f"flockcal serve: data in {settings.data_dir}", flush=True)
     print(f"flockcal serve: retention: {service.retention.policy.describe()}", flush=True)
+    for line in service.outputs.lines if service.outputs is not None else ():
+        print(f"flockcal serve: {line}", flush=True)
     for entry in service.skeletons.list():
         print(f"flockcal serve: skeleton preset {entry['name']!r} ({entry['origin']})", flush=True)
     log.info("listening on %s", base)

@@ -1,7 +1,8 @@
 """BVH export of a take played back through its calibration (Blender, MotionBuilder, Maya import it).
 
 Each body pivots at its inboard joint (the root at its sensor, with the position channels); its BVH
-axes are its sensor axes turned so the rest pose is the take's first frame. Centimetres and Y-up in
+axes are its sensor axes turned so the rest pose is the take's first frame. Joints are named by their
+humanoid bone on a human tree (ROOT Hips), else by sensor. Centimetres and Y-up in
 the file, SI everywhere else. The take is read a chunk of frames at a time (`bvh_chunks`), so the CLI's
 file and the service's streamed download of a session of any length come from the same writer.
 """
@@ -18,7 +19,7 @@ from typing import Iterator
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from flockcal.atomic import write_atomic
+from flockcal.atomic import write_pieces
 from flockcal.errors import FlockcalError
 from flockcal.solver.reconstruct import (Articulation, Reconstruction, articulation, first_valid, held_poses,
                                          reconstruct_chunks)
@@ -62,6 +63,27 @@ def bvh_names(names) -> list[str]:
             safe = f"{base}_{k}"
         out.append(safe)
     return out
+
+
+def node_names(calibration, names) -> list[str]:
+    """BVH joint and glTF node names for the bodies `names` (sensor names, in the order wanted): on a human
+    tree each body's humanoid bone in PascalCase ("Hips", "LeftUpperArm", docs/outputs.md), else its sensor
+    name made BVH-safe (`bvh_names`); unique either way. `calibration`: a Calibration, its §5 dict, an
+    Articulation (sensor names: it carries no humanoid)."""
+    from flockcal.solver.humanoid import node_name
+
+    bones = humanoid_bones(calibration)
+    wanted = [node_name(bones[str(x)]) if str(x) in bones else str(x) for x in names]
+    return bvh_names(wanted)
+
+
+def humanoid_bones(calibration) -> dict[str, str]:
+    """{sensor name: humanoid bone} of a human tree's calibration (a Calibration or its §5 dict), else {}."""
+    if isinstance(calibration, dict):
+        mapping = calibration.get("humanoid")
+        return {str(k): str(v) for k, v in mapping.items()} if isinstance(mapping, dict) else {}
+    hum = getattr(calibration, "humanoid", None)
+    return hum.mapping(calibration.names) if hum is not None and hum.human else {}
 
 
 def _euler_degrees(R: np.ndarray) -> np.ndarray:
@@ -195,6 +217,7 @@ class Playback:
     world: np.ndarray
     A: np.ndarray
     first: tuple[np.ndarray, np.ndarray]
+    names: list[str] | None = None  # each body's BVH joint / glTF node name (`node_names`); None: bvh_names
 
     def chunks(self, take: ChunkedTake, chunk_frames: int | None = None) -> Iterator[Reconstruction]:
         """The take played through the articulation, `chunk_frames` frames at a time (None: the take's own)."""
@@ -211,7 +234,7 @@ def playback(calibration, take: ChunkedTake, up: str, rest: str | int) -> Playba
     if art.incomplete.any():
         art = art.completed(frames=take.chunks())
     first = first_valid(take.chunks())
-    return Playback(art, world, rest_frames(take, world, rest, first), first)
+    return Playback(art, world, rest_frames(take, world, rest, first), first, node_names(calibration, art.names))
 
 
 def bvh_chunks(calibration, take: ChunkedTake, *, units: str = "cm", up: str = "-z", rest: str | int = "first",
@@ -226,7 +249,7 @@ def bvh_chunks(calibration, take: ChunkedTake, *, units: str = "cm", up: str = "
         raise BvhError(f"units must be one of {', '.join(UNITS_PER_METRE)}, got {units!r}")
     scale = UNITS_PER_METRE[units]
     pb = playback(calibration, take, up, rest)
-    yield (hierarchy_text(pb.articulation, scale, pb.A)
+    yield (hierarchy_text(pb.articulation, scale, pb.A, pb.names)
            + f"MOTION\nFrames: {take.n_frames}\nFrame Time: {1.0 / take.rate_hz:.8f}\n")
     for rec in pb.chunks(take, chunk_frames):
         out = io.StringIO()
@@ -245,5 +268,6 @@ def bvh_bytes(calibration, take, **options) -> bytes:
 
 
 def write_bvh(path: str | os.PathLike, calibration, take, **options) -> None:
-    """Write the BVH file to `path` (atomically: a failure never leaves a half-written file)."""
-    write_atomic(path, bvh_text(calibration, take, **options), encoding="ascii")
+    """Write the BVH file to `path` a chunk of frames at a time (atomically: a failure never leaves a
+    half-written file)."""
+    write_pieces(path, bvh_chunks(calibration, take, **options), encoding="ascii")

@@ -22,7 +22,7 @@ from typing import Callable, Iterator
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from flockcal.atomic import write_atomic
+from flockcal.atomic import write_pieces
 from flockcal.errors import FlockcalError
 from flockcal.exports.bvh import Playback, bvh_names, depth_first, local_rotations, playback, rest_pose
 from flockcal.solver.reconstruct import Articulation, Reconstruction, reconstruct
@@ -70,13 +70,16 @@ def joint_notes(calibration) -> dict[str, dict]:
     return {str(j["child"]): j for j in data.get("joints", []) if isinstance(j, dict) and "child" in j}
 
 
-def build_rig(art: Articulation, A: np.ndarray, root_rest: np.ndarray, notes: dict[str, dict]) -> Rig:
-    """The rig of a completed articulation with file axes A (rest_frames) and the root's rest position."""
+def build_rig(art: Articulation, A: np.ndarray, root_rest: np.ndarray, notes: dict[str, dict],
+              names: list[str] | None = None) -> Rig:
+    """The rig of a completed articulation with file axes A (rest_frames) and the root's rest position;
+    `names`: each body's node name (`bvh.node_names`: humanoid bones on a human tree; default its sensor's)."""
     bodies = depth_first(art)
     node_of = {b: k for k, b in enumerate(bodies)}
     origin = art.origin()
     leaves = [b for b in bodies if not art.children(b)]
-    safe = bvh_names(list(art.names) + [f"{art.names[b]}_end" for b in leaves])
+    base = list(names) if names is not None else list(art.names)
+    safe = bvh_names(base + [f"{base[b]}_end" for b in leaves])
     names = [safe[b] for b in bodies] + safe[art.n_bodies:]
     parent = [-1 if art.parent[b] < 0 else node_of[int(art.parent[b])] for b in bodies]
     offset = [root_rest if b == art.root else A[art.parent[b]] @ (art.l[b] - origin[art.parent[b]]) for b in bodies]
@@ -245,19 +248,38 @@ class Layout:
     rotation_at: list[int]  # byte offset of body node k's (n, 4) float32 quaternions
 
 
-def gltf_plan(calibration, take: ChunkedTake, *, up: str = "-z", rest: str | int = "first", name: str = "take",
-              animation: bool = True) -> tuple[Layout, Playback, Rig]:
+def gltf_plan(calibration, take: ChunkedTake, *, up: str = "-z", rest: str | int = "tpose", name: str = "take",
+              animation: bool = True, vrm=None) -> tuple[Layout, Playback, Rig]:
     """The file of `take` played through `calibration` (a Calibration, a KnownFit, a §5 dict or an
     Articulation), as `bvh_chunks` plays it, but for its animation values (`fill_animation`); animation=False:
-    the rig alone (no pass over the frames but the first valid pose and any rigid sensor's mean)."""
-    pb = playback(calibration, take, up, rest)
-    art = pb.articulation
-    R, t = rest_pose(take, rest, pb.first)
-    root = reconstruct(R[None], t[None], art).joint_positions[0, art.root]  # the root joint at the rest frame
-    rig = build_rig(art, pb.A, pb.world @ root, joint_notes(calibration))
+    the rig alone (no pass over the frames but the first valid pose and any rigid sensor's mean).
+
+    rest="tpose" (the default): a VRM 1.0 humanoid in its T-pose when the tree is human-shaped
+    (`exports.vrm.vrm_plan`, or `vrm`: that plan made beforehand), else the rest of "first" with the
+    reason in the file's extras; "first", a frame index or "sensor": the plain rig (see bvh.rest_frames)."""
+    plan_vrm, plain = None, rest
+    if rest == "tpose":
+        from flockcal.exports.vrm import vrm_meta, vrm_plan
+
+        plan_vrm, plain = (vrm if vrm is not None else vrm_plan(calibration, take, up, meta=vrm_meta(name))), "first"
+    if plan_vrm is not None and plan_vrm.human:
+        pb, rig = plan_vrm.playback, plan_vrm.rig()
+    else:
+        pb = playback(calibration, take, up, plain)
+        art = pb.articulation
+        R, t = rest_pose(take, plain, pb.first)
+        root = reconstruct(R[None], t[None], art).joint_positions[0, art.root]  # the root joint at the rest frame
+        rig = build_rig(art, pb.A, pb.world @ root, joint_notes(calibration), pb.names)
     times = np.concatenate([f.times for f in take.chunks()]) if animation else None  # 8 bytes a frame
-    plan = layout(rig, None if times is None else key_times(times, take.rate_hz), name=name,
-                  extras=file_extras(up, rest, take.rate_hz))
+    extras = file_extras(up, rest, take.rate_hz)
+    if plan_vrm is not None:
+        extras["vrm"] = plan_vrm.spec
+        if not plan_vrm.human:
+            extras["rest"], extras["vrm_reason"] = "first", plan_vrm.reason
+    plan = layout(rig, None if times is None else key_times(times, take.rate_hz), name=name, extras=extras)
+    if plan_vrm is not None and plan_vrm.human:  # VRM 1.0: the humanoid's bones on the rig's nodes
+        plan.doc["extensionsUsed"] = ["VRMC_vrm"]
+        plan.doc["extensions"] = {"VRMC_vrm": plan_vrm.extension(rig)}
     return plan, pb, rig
 
 
@@ -277,10 +299,10 @@ def fill_animation(plan: Layout, pb: Playback, rig: Rig, take: ChunkedTake, writ
         k += len(quats)
 
 
-def gltf_document(calibration, take: ChunkedTake, *, up: str = "-z", rest: str | int = "first", name: str = "take",
-                  chunk_frames: int | None = None):
+def gltf_document(calibration, take: ChunkedTake, *, up: str = "-z", rest: str | int = "tpose", name: str = "take",
+                  chunk_frames: int | None = None, vrm=None):
     """(the glTF JSON as a dict, the binary buffer) for `take` played through `calibration`, in memory."""
-    plan, pb, rig = gltf_plan(calibration, take, up=up, rest=rest, name=name)
+    plan, pb, rig = gltf_plan(calibration, take, up=up, rest=rest, name=name, vrm=vrm)
     out = bytearray(b"".join(p if isinstance(p, bytes) else bytes(p) for p in plan.parts))
 
     def write(at: int, data: bytes) -> None:
@@ -290,17 +312,25 @@ def gltf_document(calibration, take: ChunkedTake, *, up: str = "-z", rest: str |
     return plan.doc, bytes(out)
 
 
-def glb_chunks(calibration, take: ChunkedTake, *, up: str = "-z", rest: str | int = "first", name: str = "take",
-               animation: bool = True, chunk_frames: int | None = None, out_bytes: int = 256 * 1024) -> Iterator[bytes]:
+def glb_chunks(calibration, take: ChunkedTake, *, up: str = "-z", rest: str | int = "tpose", name: str = "take",
+               animation: bool = True, chunk_frames: int | None = None, out_bytes: int = 256 * 1024,
+               vrm=None) -> Iterator[bytes]:
     """The .glb of `gltf_bytes` as pieces for a download whose memory must not grow with the take (the
     service's frame log): the head first, then the buffer, its animation blocks filled chunk by chunk in a
     temporary file and sent `out_bytes` at a time. Errors in the calibration or the take are raised by the
     first next(), before any byte. animation=False: the rig alone (193 kB for 16 bodies)."""
-    plan, pb, rig = gltf_plan(calibration, take, up=up, rest=rest, name=name, animation=animation)
+    plan, pb, rig = gltf_plan(calibration, take, up=up, rest=rest, name=name, animation=animation, vrm=vrm)
     if not animation:
         yield glb_head(plan.doc, plan.size) + b"".join(plan.parts)
         return
     yield glb_head(plan.doc, plan.size)
+    yield from buffer_pieces(plan, pb, rig, take, chunk_frames, out_bytes)
+
+
+def buffer_pieces(plan: Layout, pb: Playback, rig: Rig, take: ChunkedTake, chunk_frames: int | None = None,
+                  out_bytes: int = 256 * 1024) -> Iterator[bytes]:
+    """The binary buffer of `plan`, its animation blocks filled chunk by chunk in a temporary file, read
+    back `out_bytes` at a time: memory holds a chunk of the take and a piece, whatever its length."""
     with tempfile.TemporaryFile() as buf:
         for part in plan.parts:
             if isinstance(part, bytes):
@@ -317,6 +347,27 @@ def glb_chunks(calibration, take: ChunkedTake, *, up: str = "-z", rest: str | in
         buf.seek(0)
         while piece := buf.read(out_bytes):
             yield piece
+
+
+DATA_URI = "data:application/octet-stream;base64,"
+_BUFFER_MARK = "@flockcal-buffer@"  # where the base64 goes in the JSON text (no JSON escaping touches it)
+
+
+def gltf_json_chunks(calibration, take: ChunkedTake, *, up: str = "-z", rest: str | int = "tpose", name: str = "take",
+                     chunk_frames: int | None = None, vrm=None) -> Iterator[bytes]:
+    """The .gltf form of `gltf_bytes` (one JSON file, its buffer a base64 data URI) as pieces: the text
+    before the buffer, the buffer encoded a piece at a time, the text after it."""
+    plan, pb, rig = gltf_plan(calibration, take, up=up, rest=rest, name=name, vrm=vrm)
+    doc = dict(plan.doc, buffers=[{"byteLength": plan.size, "uri": DATA_URI + _BUFFER_MARK}])
+    head, tail = json.dumps(doc, separators=(",", ":")).split(_BUFFER_MARK)
+    yield head.encode("utf-8")
+    left = b""
+    for piece in buffer_pieces(plan, pb, rig, take, chunk_frames):
+        data = left + piece
+        cut = len(data) - len(data) % 3  # whole 3-byte groups: the pieces' base64 joins into the whole's
+        yield base64.b64encode(data[:cut])
+        left = data[cut:]
+    yield base64.b64encode(left) + tail.encode("utf-8")
 
 
 def file_extras(up: str, rest, rate_hz: float) -> dict:
@@ -411,7 +462,7 @@ def glb(doc: dict, binary: bytes) -> bytes:
 def gltf_json(doc: dict, binary: bytes) -> bytes:
     """The .gltf form: one JSON file, its buffer embedded as a base64 data URI."""
     doc = dict(doc, buffers=[{"byteLength": len(binary),
-                              "uri": "data:application/octet-stream;base64," + base64.b64encode(binary).decode("ascii")}])
+                              "uri": DATA_URI + base64.b64encode(binary).decode("ascii")}])
     return json.dumps(doc, separators=(",", ":")).encode("utf-8")
 
 
@@ -421,8 +472,16 @@ def gltf_bytes(calibration, take, *, binary: bool = True, **options) -> bytes:
     return glb(doc, data) if binary else gltf_json(doc, data)
 
 
-def write_gltf(path: str | os.PathLike, calibration, take, **options) -> None:
-    """Write the rig to `path`, .glb or .gltf by its extension (atomically: never a half-written file)."""
+def write_gltf(path: str | os.PathLike, calibration, take, **options) -> str:
+    """Write the rig to `path`, .glb or .gltf by its extension, the take a chunk at a time (atomically:
+    never a half-written file). Returns "" when the file is a VRM 1.0 humanoid or was not asked to be one
+    (rest other than "tpose"), else why the tree is no humanoid (the file is then the plain rig)."""
     binary = binary_for(path)
     options.setdefault("name", Path(path).stem)
-    write_atomic(path, gltf_bytes(calibration, take, binary=binary, **options))
+    if options.get("rest", "tpose") == "tpose" and options.get("vrm") is None:
+        from flockcal.exports.vrm import vrm_meta, vrm_plan
+
+        options["vrm"] = vrm_plan(calibration, take, options.get("up", "-z"), meta=vrm_meta(options["name"]))
+    write_pieces(path, (glb_chunks if binary else gltf_json_chunks)(calibration, take, **options))
+    vrm = options.get("vrm")
+    return vrm.reason if vrm is not None else ""

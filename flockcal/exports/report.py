@@ -144,11 +144,16 @@ def _fmt(x, scale=1.0, digits=1) -> str:
     return f"{float(x) * scale:.{digits}f}"
 
 
-def _tree_html(art: Articulation, rms_by_child: dict[str, float], standing: dict[str, dict]) -> str:
+def _tree_html(art: Articulation, rms_by_child: dict[str, float], standing: dict[str, dict],
+               bones: dict[str, str] | None = None, joint_names: dict[str, str] | None = None) -> str:
+    bones, joint_names = bones or {}, joint_names or {}
+
     def node(i: int) -> str:
-        label = html.escape(art.names[i])
+        name = art.names[i]
+        label = html.escape(name) + (f" <b>[{html.escape(bones[name])}]</b>" if name in bones else "")
         if art.parent[i] >= 0:
-            label += f" <span class=meta>(joint rms {_fmt(rms_by_child.get(art.names[i]), 1000, 2)} mm"
+            said = f"{html.escape(joint_names[name])}: " if name in joint_names else ""
+            label += f" <span class=meta>({said}joint rms {_fmt(rms_by_child.get(name), 1000, 2)} mm"
             st = standing.get(art.names[i])
             if st and not st["done"]:
                 label += f"; not calibrated: {html.escape(st['why'] or st['state'])}"
@@ -308,6 +313,8 @@ def report_html(
     rec = reconstruct(take.rotations, take.positions, art, take.valid)
     joints = [int(j) for j in art.order[1:]]
     by_child = {j["child"]: j for j in d.get("joints", [])}
+    joint_names = {c: j["name"] for c, j in by_child.items() if j.get("name")}
+    titles = [joint_names.get(n, n) for n in names]  # the residual figures' joints, as people name them
     # Bodies ending at a determined joint (a saved skeleton's bones are known whatever this take pinned).
     determined = np.array([d.get("known_skeleton") or (n in by_child and by_child[n].get("determined", True))
                            for n in names], dtype=bool)
@@ -333,7 +340,9 @@ def report_html(
         f"<p class=meta>Drawn with {html.escape(up)} up: {html.escape(up_from or 'given')}.</p>",
         _img(skeleton_figure(rec, _pose_frame(take.valid), bvh_world(up), determined), "skeleton drawing"),
         "<h2>Topology</h2>",
-        _tree_html(art, {names[j]: rms[j] for j in joints}, standing),
+        _tree_html(art, {names[j]: rms[j] for j in joints}, standing, d.get("humanoid") or {}, joint_names),
+        "<h2>Humanoid</h2>",
+        _humanoid_html(d),
         "<h2>Calibration progress</h2>",
         _progress_html(calibrated),
     ]
@@ -357,12 +366,13 @@ def report_html(
     for j in joints:
         info = by_child.get(names[j], {})
         joint_rows.append([
-            Text(names[j]), Text(names[art.parent[j]]), _fmt(rms[j], 1000, 2), _fmt(worst[j], 1000, 2),
+            Text(joint_names.get(names[j], "–")), Text(names[j]), Text(names[art.parent[j]]), _fmt(rms[j], 1000, 2),
+            _fmt(worst[j], 1000, 2),
             _fmt(info.get("epsilon"), 1000, 4), _fmt(float(np.linalg.norm(art.c[j])), 100, 2),
             _fmt(info.get("c_stderr_m"), 1000, 2), Text("yes" if info.get("hinge") else "no"),
             Text("yes" if info.get("determined") else "no"), _bars(info.get("coverage")),
         ])  # fmt: skip
-    headers = ["<joint (child)", "<parent", "rms (mm)", "max (mm)", "ε (mm)", "sensor→joint (cm)",
+    headers = ["<joint", "<child", "<parent", "rms (mm)", "max (mm)", "ε (mm)", "sensor→joint (cm)",
                "c std err (mm)", "<hinge", "<determined", "<coverage (3 axes)"]  # fmt: skip
     parts.append(_table(headers, joint_rows))
     parts.append(
@@ -374,9 +384,9 @@ def report_html(
         parts += [
             "<h2>Residuals over time</h2><p class=meta>e = R<sub>child</sub> c + t<sub>child</sub> − "
             "R<sub>parent</sub> l − t<sub>parent</sub>, world axes (paper figs 6–7).</p>",
-            _img(residual_time_figure(take.times, e, joints, names), "residuals over time"),
+            _img(residual_time_figure(take.times, e, joints, titles), "residuals over time"),
             "<h2>Residual magnitude histograms</h2><p class=meta>Paper fig 8.</p>",
-            _img(residual_histogram_figure(sep, joints, names), "residual histograms"),
+            _img(residual_histogram_figure(sep, joints, titles), "residual histograms"),
         ]
 
     parts.append("<h2>Coverage of the data</h2>")
@@ -397,6 +407,21 @@ def report_html(
         parts.append("<p>None detected.</p>")
     parts.append("</body></html>\n")
     return "\n".join(parts)
+
+
+def _humanoid_html(d: dict) -> str:
+    """Which humanoid bone each sensor was found on, and the names that say otherwise; or why there is none."""
+    mapping = d.get("humanoid")
+    if not isinstance(mapping, dict):
+        return f"<p>{html.escape(str(d.get('humanoid_note') or 'No humanoid was looked for.'))}</p>"
+    rows = [[Text(sensor), Text(bone)] for sensor, bone in mapping.items()]
+    out = ("<p>Each body's bone (VRM 1.0 names), found from the tree's shape and the take's motion, whatever "
+           "the sensors are called:</p>" + _table(["<sensor", "<found on"], rows))
+    conflicts = d.get("humanoid_conflicts") or []
+    if conflicts:
+        out += "<p><b>Names that say otherwise</b> (the outputs follow the data):</p><ul>" + "".join(
+            f"<li>{html.escape(c.get('message') or str(c))}</li>" for c in conflicts) + "</ul>"
+    return out
 
 
 def _progress_html(doc: dict) -> str:

@@ -2,7 +2,8 @@
 
 `skeleton_dict`/`write_skeleton` turn a Calibration into the file (the tree, joint centres in both bodies'
 frames, bones, placements, the source take); `load_skeleton` validates one, tree and bones included, and
-says what is wrong. The file's model (`Skeleton`, its format and structural checks) is the base layer's.
+says what is wrong. The file's format and structural checks are the base layer's (flockcal/skeleton.py), the
+`Skeleton` it builds the solver's (flockcal.solver.known_skeleton).
 """
 
 from __future__ import annotations
@@ -15,7 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from flockcal.atomic import write_atomic
-from flockcal.skeleton import FORMAT, VERSION, Skeleton, SkeletonError, check_skeleton_data, json_safe
+from flockcal.skeleton import FORMAT, VERSION, SkeletonError, check_skeleton_data, json_safe
+from flockcal.solver.known_skeleton import Skeleton
 from flockcal.solver.known_skeleton import bones as bones_of
 from flockcal.solver.reconstruct import ArticulationError, articulation
 

@@ -84,6 +84,7 @@ class Connection:
         self.slot: str | None = None  # the role (or PENDING_KEY) whose slot this connection holds
         self.peer = ws.client.host if ws.client else None
         self.evicted = False
+        self.role: str | None = None  # the token's role once known (admin | kiosk | read): pages say what they may do
 
     def check_token(self, token: str | None):
         """(role, None) for a token the service knows, else (None, why)."""
@@ -129,7 +130,8 @@ class Connection:
 
     def envelope(self, type_: str, body_json: str | None = None, **fields) -> str:
         self.seq += 1
-        head = json.dumps({"type": type_, "seq": self.seq, "time": round(time.time(), 6), **fields})
+        # `time`: the service clock's stamp (unix s), which never steps back (docs/service.md#clock).
+        head = json.dumps({"type": type_, "seq": self.seq, "time": round(self.service.clock.stamp(), 6), **fields})
         if body_json is None or body_json == "{}":
             return head
         return head[:-1] + ", " + body_json[1:]
@@ -186,12 +188,14 @@ class Connection:
                 await self.refuse(self.slots.full_message(role), 1013)
                 return False
             self.authorised = True
+            self.role = role
         try:
             self.sub = parse_subscribe(msg, settings.publish_hz)
         except (ValueError, TypeError) as exc:
             await self.send(self.envelope("error", message=str(exc)))
             return True
-        await self.send(self.envelope("subscribed", rate_hz=self.sub.rate_hz, content=list(self.sub.content)))
+        await self.send(self.envelope("subscribed", rate_hz=self.sub.rate_hz, content=list(self.sub.content),
+                                      role=self.role))
         self.changed.set()
         return True
 
@@ -304,10 +308,13 @@ async def live(ws: WebSocket):
         await conn.refuse(conn.slots.full_message(kind), 1013)
         return
     conn.authorised = role is not None
+    conn.role = role
     service.hub.clients += 1
     try:
+        # `role`: what the token may do (null until a token arrives in the subscribe message), so a page knows
+        # whether it may start sessions before it tries (the kiosk: docs/kiosk.md).
         await ws.send_text(conn.envelope("hello", protocol=1, content=list(CONTENT), max_rate_hz=settings.publish_hz,
-                                         auth_required=not conn.authorised))
+                                         auth_required=not conn.authorised, role=role))
         receiver = asyncio.create_task(conn.receive_loop())
         sender = asyncio.create_task(conn.send_loop())
         done, pending = await asyncio.wait({receiver, sender}, return_when=asyncio.FIRST_COMPLETED)

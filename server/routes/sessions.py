@@ -159,8 +159,9 @@ def get_take(request: Request, sid: str = Depends(session_id), service=Depends(g
 
     # Streamed from the frame log a chunk at a time (server/downloads.py): memory stays bounded for a
     # session of any length. A live session's take holds the frames recorded when the download began.
-    frames = _frames(service, sid)
-    body = _slotted(request, lambda: npz_stream(frames))
+    with _held(service, sid) as hold:
+        frames = hold.frames()
+        body = _slotted(request, lambda: npz_stream(frames), hold)
     return SlottedResponse(body, request.app.state.download_slots, media_type="application/octet-stream",
                            headers={"Content-Disposition": f'attachment; filename="{sid}.npz"'})
 
@@ -170,25 +171,27 @@ def get_take(request: Request, sid: str = Depends(session_id), service=Depends(g
 def get_skeleton(sid: str = Depends(session_id), service=Depends(get_service), _role=Depends(require_read)):
     from flockcal.exports.skeleton import skeleton_bytes
 
-    result, _live = service.sessions.result(sid)
-    row = service.sessions.get(sid)
-    kept = service.retention.kept_skeleton_path(sid)
-    if not service.sessions.frames_path(sid).exists() and kept.exists():
-        # Pruned (server/retention.py): the file was written from the frames before they went.
-        return Response(kept.read_bytes(), media_type="application/json",
-                        headers={"Content-Disposition": f'attachment; filename="{sid}-skeleton.json"'})
+    headers = {"Content-Disposition": f'attachment; filename="{sid}-skeleton.json"'}
+    # Built whole while the session's files are held (a DELETE meanwhile answers 409), then sent from memory.
+    with _held(service, sid) as hold:
+        result, _live = service.sessions.result(sid)
+        row = service.sessions.get(sid)
+        kept = service.retention.kept_skeleton_path(sid)
+        if not service.sessions.frames_path(sid).exists() and kept.exists():
+            # Pruned (server/retention.py): the file was written from the frames before they went.
+            return Response(kept.read_bytes(), media_type="application/json", headers=headers)
+        frames = hold.frames()
 
-    def make():
-        frames = _frames(service, sid)
-        # The performer names the file's preset when it is loaded back (`--skeleton`, POST /api/skeletons).
-        source = {"session": sid, "performer": row["performer"], "take": f"{sid}.npz",
-                  "frames": int(frames.n), "rate_hz": float(frames.rate_hz)}
-        # Sensors riding rigidly on their parent are placed from the recording, read a chunk at a time.
-        return skeleton_bytes(result, source=source, take=frames)
+        def make():
+            # The performer names the file's preset when it is loaded back (`--skeleton`, POST /api/skeletons).
+            source = {"session": sid, "performer": row["performer"], "take": f"{sid}.npz",
+                      "frames": int(frames.n), "rate_hz": float(frames.rate_hz)}
+            # Sensors riding rigidly on their parent are placed from the recording, read a chunk at a time.
+            return skeleton_bytes(result, source=source, take=frames)
 
-    data = _export(make)
-    return Response(data, media_type="application/json",
-                    headers={"Content-Disposition": f'attachment; filename="{sid}-skeleton.json"'})
+        data = _export(make)
+        hold.end()
+    return Response(data, media_type="application/json", headers=headers)
 
 
 @router.get("/{id}/bvh", responses={200: {"content": {"text/plain": {}}}, **ERRORS},
@@ -200,42 +203,122 @@ def get_bvh(request: Request, sid: str = Depends(session_id),
     from flockcal.exports.bvh import bvh_chunks
     from flockcal.server.downloads import SlottedResponse, primed
 
-    result, _live = service.sessions.result(sid)
-    frames = _frames(service, sid)
-    # The exports' own writer, reading the frame log a chunk at a time (server/downloads.py FrameFile).
-    text = bvh_chunks(result, frames, units=units, up=up, chunk_frames=frames.play_frames)
-    body = _slotted(request, lambda: _export(lambda: primed(part.encode("ascii") for part in text)))
+    with _held(service, sid) as hold:
+        result, _live = service.sessions.result(sid)
+        frames = hold.frames()
+        # The exports' own writer, reading the frame log a chunk at a time (server/downloads.py FrameFile).
+        text = bvh_chunks(result, frames, units=units, up=up, chunk_frames=frames.play_frames)
+        body = _slotted(request, lambda: _export(lambda: primed(part.encode("ascii") for part in text)), hold)
     return SlottedResponse(body, request.app.state.download_slots, media_type="text/plain",
                            headers={"Content-Disposition": f'attachment; filename="{sid}.bvh"'})
 
 
 @router.get("/{id}/gltf", responses={200: {"content": {"model/gltf-binary": {}}}, **ERRORS},
-            summary="the calibrated skeleton as a glTF 2.0 rig (.glb), the session's motion as its animation")
+            summary="the calibrated skeleton as a glTF 2.0 rig (.glb; a VRM 1.0 humanoid when the tree is "
+                    "human-shaped), the session's motion as its animation")
 def get_gltf(request: Request, sid: str = Depends(session_id),
              up: str = Query("-z", pattern="^[+-]?[xyz]$", description="the tracker world's up axis: +y, +z or -z"),
-             rest: str = Query("first", pattern="^(first|sensor)$",
-                               description="bind pose: the take's first frame, or the sensor axes (the live pose's `rig`)"),
+             rest: str = Query("tpose", pattern="^(tpose|first|sensor)$",
+                               description="bind pose: a VRM 1.0 humanoid's T-pose (the take's first frame when the "
+                                           "tree is not human-shaped), the take's first frame, or the sensor axes "
+                                           "(the live pose's `rig`)"),
              animation: bool = Query(True, description="false: the rig alone, without the take as its animation "
                                                        "(what the pages load to drive from the live pose)"),
              service=Depends(get_service), _role=Depends(require_read)):
+    """A human-shaped tree's rig is a VRM 1.0 humanoid (rest=tpose, the default): `X-Flockcal-Vrm` says
+    `1.0`, or `none: <why>` when the file is the plain rig instead."""
     from flockcal.exports.gltf import glb_chunks
+    from flockcal.exports.vrm import vrm_meta, vrm_plan
     from flockcal.server.downloads import OUT_BYTES, SlottedResponse, primed
 
     # The fit's number travels in a header (the file stays the CLI's): a page matches it with the live
     # pose's `rig.fit_seq` to know the rig it loaded is the one the stream drives ("final": the stored fit).
-    result, fit_seq = service.sessions.result_seq(sid)
-    frames = _frames(service, sid)
-    body = _slotted(request, lambda: _export(lambda: primed(
-        glb_chunks(result, frames, up=up, name=sid, rest=rest, animation=animation, chunk_frames=frames.play_frames,
-                   out_bytes=OUT_BYTES))))
+    with _held(service, sid) as hold:
+        result, fit_seq = service.sessions.result_seq(sid)
+        frames = hold.frames()
+        performer = service.sessions.get(sid).get("performer") or sid
+        vrm = []  # the VRM plan, made in the download's slot before the first byte (its reason goes in a header)
+
+        def stream():
+            if rest == "tpose":
+                vrm.append(vrm_plan(result, frames, up, meta=vrm_meta(performer)))
+            return primed(glb_chunks(result, frames, up=up, name=sid, rest=rest, animation=animation,
+                                     chunk_frames=frames.play_frames, out_bytes=OUT_BYTES, vrm=vrm[0] if vrm else None))
+
+        body = _slotted(request, lambda: _export(stream), hold)
+    headers = {"Content-Disposition": f'attachment; filename="{sid}.glb"',
+               "X-Flockcal-Fit-Seq": "final" if fit_seq is None else str(fit_seq)}
+    if vrm:
+        headers["X-Flockcal-Vrm"] = vrm[0].spec or f"none: {vrm[0].reason}".encode("ascii", "replace").decode()
     # In a slot like /take and /bvh: a client that stops reading a long animation is cut off after the stall time.
-    return SlottedResponse(body, request.app.state.download_slots, media_type="model/gltf-binary",
-                           headers={"Content-Disposition": f'attachment; filename="{sid}.glb"',
-                                    "X-Flockcal-Fit-Seq": "final" if fit_seq is None else str(fit_seq)})
+    return SlottedResponse(body, request.app.state.download_slots, media_type="model/gltf-binary", headers=headers)
 
 
-def _slotted(request: Request, make):
-    """make() → a stream, built and run within one of the app's download slots (503 when all are taken)."""
+@router.get("/{id}/trc", responses={200: {"content": {"text/plain": {}}}, **ERRORS},
+            summary="the session's joint centres as TRC virtual markers (millimetres), for OpenSim")
+def get_trc(request: Request, sid: str = Depends(session_id),
+            up: str = Query("-z", pattern="^[+-]?[xyz]$", description="the tracker world's up axis: +y, +z or -z"),
+            service=Depends(get_service), _role=Depends(require_read)):
+    from flockcal.exports.trc import trc_chunks
+    from flockcal.server.downloads import SlottedResponse, primed
+
+    with _held(service, sid) as hold:
+        result, _live = service.sessions.result(sid)
+        frames = hold.frames()
+        # The exports' own writer, reading the frame log a chunk at a time (server/downloads.py FrameFile).
+        text = trc_chunks(result, frames, up=up, file_name=f"{sid}.trc", chunk_frames=frames.play_frames)
+        body = _slotted(request, lambda: _export(lambda: primed(part.encode("utf-8") for part in text)), hold)
+    return SlottedResponse(body, request.app.state.download_slots, media_type="text/plain",
+                           headers={"Content-Disposition": f'attachment; filename="{sid}.trc"'})
+
+
+class _Hold:
+    """A download's hold on the session's files (server/holds.py: a DELETE meanwhile answers 409, retention
+    passes the session by) and the frame log it opened. `end()` lets both go, once; a streamed download hands
+    its hold to `_slotted`, which ends it when the body has been sent (or the client went away)."""
+
+    def __init__(self, service, sid: str):
+        self.service, self.sid = service, sid
+        self._release = service.sessions.holds.hold(sid)  # 404/410 while the files are being removed
+        self._frames = None
+        self.kept = False  # handed on to a stream, which ends it
+
+    def frames(self):
+        self._frames = _frames(self.service, self.sid)
+        return self._frames
+
+    def end(self) -> None:
+        frames, self._frames = self._frames, None
+        if frames is not None:
+            frames.close()
+        self._release()
+
+
+class _held:
+    """`with _held(service, sid) as hold:` — the session held (404 when it is gone) until the block ends, or
+    until the stream it was handed to has been sent."""
+
+    def __init__(self, service, sid: str):
+        self.hold = _Hold(service, sid)
+
+    def __enter__(self) -> _Hold:
+        try:
+            self.hold.service.sessions.get(self.hold.sid)  # 404 once deleted
+        except BaseException:
+            self.hold.end()
+            raise
+        return self.hold
+
+    def __exit__(self, kind, *exc) -> None:
+        if kind is not None or not self.hold.kept:
+            self.hold.end()
+
+
+def _slotted(request: Request, make, hold: _Hold | None = None):
+    """make() → a stream, built and run within one of the app's download slots (503 when all are taken);
+    `hold` ends with it."""
+    from flockcal.server.downloads import Slotted
+
     slots = request.app.state.download_slots
     slots.acquire()
     try:
@@ -243,23 +326,32 @@ def _slotted(request: Request, make):
     except BaseException:
         slots.release()
         raise
-    return slots.guard(stream)
+    if hold is None:
+        return slots.guard(stream)
+    hold.kept = True
+
+    def release():
+        slots.release()
+        hold.end()
+
+    return Slotted(stream, release)
 
 
 def _frames(service, sid: str):
-    """The session's frame log opened for a chunked read; 404 without one, 409 while it is empty."""
+    """The session's frame log opened for a chunked read; 404 without one (410 pruned), 409 while it is empty."""
     from flockcal.server.downloads import FrameFile
 
     service.sessions.get(sid)
     path = service.sessions.frames_path(sid)
-    if not path.exists():
-        service.retention.check_files(sid, "recording")  # 410 when retention pruned it
-        raise NotFound(f"session {sid} has no recording on disk")
     try:
         frames = FrameFile(path)
+    except FileNotFoundError:
+        service.retention.check_files(sid, "recording")  # 410 when retention pruned it
+        raise NotFound(f"session {sid} has no recording on disk") from None
     except ValueError as exc:
         raise Conflict(f"session {sid}'s recording cannot be read: {exc}") from None
     if frames.n == 0:
+        frames.close()
         raise Conflict(f"session {sid}'s recording holds no frames yet")
     return frames
 
@@ -285,28 +377,30 @@ def get_raw(request: Request, sid: str = Depends(session_id), service=Depends(ge
     convert` reads without --salvage). A stopped session's is its file."""
     from flockcal.server.downloads import Slotted, SlottedResponse, StallClockFileResponse
 
-    service.sessions.get(sid)
-    path = service.sessions.raw_path(sid)
-    if not path.exists():
-        service.retention.check_files(sid, "raw recording")
-        raise NotFound(f"session {sid} has no raw recording")
     name = f"{sid}.fobraw"
     slots = request.app.state.download_slots
-    # No slot (a file costs no build), but the slots' stall clock: a client that stops reading is cut off.
-    if service.sessions.live_id() != sid:
-        return StallClockFileResponse(path, slots, media_type="application/octet-stream", filename=name)
-    # FileResponse declares the size it saw, then sends to the end of the file: a live recording had grown
-    # meanwhile, h11 refused the surplus and the client got a body cut short of what was declared.
-    from flockcal.drivers.recording import intact_length
+    with _held(service, sid) as hold:
+        path = service.sessions.raw_path(sid)
+        if not path.exists():
+            service.retention.check_files(sid, "raw recording")
+            raise NotFound(f"session {sid} has no raw recording")
+        hold.kept = True  # the response ends the hold once it has been sent
+        # No slot (a file costs no build), but the slots' stall clock: a client that stops reading is cut off.
+        if service.sessions.live_id() != sid:
+            return StallClockFileResponse(path, slots, release=hold.end, media_type="application/octet-stream",
+                                          filename=name)
+        # FileResponse declares the size it saw, then sends to the end of the file: a live recording had grown
+        # meanwhile, h11 refused the surplus and the client got a body cut short of what was declared.
+        from flockcal.drivers.recording import intact_length
 
-    fh = open(path, "rb")  # held open: the snapshot stays readable whatever happens to the name
-    try:
-        length = intact_length(path, os.fstat(fh.fileno()).st_size)
-    except BaseException:
-        fh.close()
-        raise
-    return SlottedResponse(Slotted(_file_prefix(fh, length), lambda: None), slots,
-                           media_type="application/octet-stream",
+        fh = open(path, "rb")  # held open: the snapshot stays readable whatever happens to the name
+        try:
+            length = intact_length(path, os.fstat(fh.fileno()).st_size)
+        except BaseException:
+            fh.close()
+            hold.end()
+            raise
+    return SlottedResponse(Slotted(_file_prefix(fh, length), hold.end), slots, media_type="application/octet-stream",
                            headers={"Content-Length": str(length), "Content-Disposition": f'attachment; filename="{name}"'})
 
 

@@ -33,7 +33,10 @@ def list_skeletons(service=Depends(get_service), _role=Depends(require_read)) ->
 
 
 @router.post("", status_code=201, responses=ERRORS,
-             summary="upload a skeleton file (GET /api/sessions/{id}/skeleton, `flockcal skeleton`) as a preset")
+             summary="upload a skeleton file (GET /api/sessions/{id}/skeleton, `flockcal skeleton`) as a preset",
+             # The body is read whole (and checked against the tracker's sensors), not by a model: said here.
+             openapi_extra={"requestBody": {"required": True, "description": "a skeleton file's JSON",
+                                            "content": {"application/json": {"schema": {"type": "object"}}}}})
 async def upload_skeleton(request: Request,
                           name: str | None = Query(None, pattern=NAME_PATTERN,
                                                    description="preset name; default: the file's performer"),

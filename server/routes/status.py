@@ -15,12 +15,13 @@ router = APIRouter(prefix="/api", tags=["status"])
 @router.get("/status", response_model=Status, summary="tracker and pipeline status")
 def get_status(request: Request, service=Depends(get_service), _role=Depends(require_read)):
     """Connected, birds, rate, frames, dropped/resynced records, reconnects, last error, live session,
-    retention, the process's memory, its connections and its download slots."""
+    retention, the process's memory, its connections, its download slots and the live streams (VRPN, VMC)."""
     guard = getattr(request.app.state, "connection_guard", None)
     slots = getattr(request.app.state, "download_slots", None)
     return {**service.pipeline.snapshot.status, "retention": service.retention.status(), "process": process_memory(),
             "connections": guard.status() if guard is not None else None,
-            "downloads": slots.status() if slots is not None else None}
+            "downloads": slots.status() if slots is not None else None,
+            "outputs": service.outputs.status() if service.outputs is not None else None, "clock": service.clock.status()}
 
 
 @router.get("/events", response_model=list[Event], summary="events of the whole service (tracker, sessions, slips)")

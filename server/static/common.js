@@ -6,7 +6,7 @@
 import * as THREE from './vendor/three/three.module.js';
 import { OrbitControls } from './vendor/three/OrbitControls.js';
 import { parseRig, rigPath } from './rig.js';
-import { BODY_JOINTS } from './names.js'; // made by the service from flockcal/names.py
+import { BODY_JOINTS, BONE_WORDS } from './names.js'; // made by the service from flockcal/names.py
 
 // A token given once as ?token=… is kept for the tab, so reloads and reconnects keep working.
 const params = new URLSearchParams(location.search);
@@ -94,6 +94,22 @@ export function jointLabel(child, parent) {
   if (a && (!b || a.rank >= b.rank)) return a.label;
   if (b && parent) return b.label;
   return parent ? `${readable(parent)}–${readable(child)}` : readable(child);
+}
+
+// The body a sensor was found on ("left forearm"): the fit's humanoid (design.md §5 `humanoid`, found from
+// the data whatever the sensor is called), else the sensor's own name read as words.
+export function foundOn(fit, sensor) {
+  const bone = fit && fit.humanoid && fit.humanoid[sensor];
+  return bone ? (BONE_WORDS[bone] || bone) : readable(sensor);
+}
+
+// A joint named by its child as the fit names it (`joints[].name`: "left knee", "lower back"), else as the
+// two bodies' names say (jointLabel).
+export function jointName(fit, child, parent) {
+  const j = fit && (fit.joints || []).find((x) => x.child === child);
+  if (j && j.name) return j.name;
+  const p = parent !== undefined ? parent : fit && fit.parent && fit.parent[child];
+  return jointLabel(child, p);
 }
 
 // The live websocket: subscribes on every (re)connection and backs off up to 4 s between tries, so
@@ -222,6 +238,7 @@ export class SkeletonView {
       get pose() { return view.rigShown ? view.rigShown.pose : null; },
       get error() { return view.rigError || null; },
       joints() { return view.rigShown ? view.rigShown.rig.jointPositions() : null; },
+      sensors() { return view.rigShown ? view.rigShown.rig.sensorOf : null; },
     };
   }
 

@@ -2,7 +2,7 @@
 // markers, tracker status and session controls. It only shows what the service publishes on
 // /ws/live (status, fit, residuals, events, pose) and calls the REST API for session control.
 
-import { api, ApiError, connectLive, download, jointLabel, readable, SkeletonView } from './common.js';
+import { api, ApiError, connectLive, download, foundOn, jointName, readable, SkeletonView } from './common.js';
 
 const $ = (id) => document.getElementById(id);
 const view = new SkeletonView($('view'));
@@ -17,6 +17,7 @@ const state = {
   progress: null,       // the service's progress of the fit shown (docs/service.md, Progress): the page computes none
   trackerConnected: null,
   rate: [],             // [wall seconds, frames] samples for the measured frame rate
+  conflicts: new Set(), // name conflicts already alerted in this session (fits repeat them ~15 times a second)
 };
 
 // ---------------------------------------------------------------------------------- tracker status
@@ -93,6 +94,7 @@ function setSession(session) {
     backfill(session);
   }
   state.session = session;
+  if (prev && !session) showStopped(prev);
   $('start').disabled = !!session;
   $('stop').disabled = !session;
   $('performer').disabled = !!session;
@@ -110,6 +112,7 @@ function setSession(session) {
   $('dl-take').disabled = !state.lastSessionId;
   $('dl-bvh').disabled = !state.lastSessionId;
   $('dl-gltf').disabled = !state.lastSessionId;
+  $('dl-trc').disabled = !state.lastSessionId;
 }
 
 // A page opened (or a session found) mid-session: the websocket replays only its last few seconds of
@@ -136,6 +139,7 @@ async function backfill(session) {
 function resetSessionViews() {
   state.fit = null;
   state.progress = null;
+  state.conflicts.clear();
   residuals.clear();
   $('alerts').innerHTML = '<div class="muted small none">No alerts.</div>';
 }
@@ -190,6 +194,7 @@ async function downloadFile(kind) {
     if (kind === 'skeleton') await download(`${base}/skeleton`, `${who}-${id}-skeleton.json`);
     else if (kind === 'bvh') await download(`${base}/bvh`, `${who}-${id}.bvh`);
     else if (kind === 'glTF') await download(`${base}/gltf`, `${who}-${id}.glb`);
+    else if (kind === 'TRC') await download(`${base}/trc`, `${who}-${id}.trc`);
     else await download(`${base}/take`, `${who}-${id}.npz`);
   } catch (err) {
     const why = err instanceof ApiError && err.status === 409 ? 'no fit yet — move a little first' : err.message;
@@ -200,6 +205,7 @@ $('dl-skeleton').addEventListener('click', () => downloadFile('skeleton'));
 $('dl-take').addEventListener('click', () => downloadFile('take'));
 $('dl-bvh').addEventListener('click', () => downloadFile('bvh'));
 $('dl-gltf').addEventListener('click', () => downloadFile('glTF'));
+$('dl-trc').addEventListener('click', () => downloadFile('TRC'));
 
 // ---------------------------------------------------------------------------------- the fit
 
@@ -218,6 +224,8 @@ function jointColour(j) {
 function showFit(msg) {
   const result = msg.result;
   if (!result) return;
+  // A fit of the session just stopped, sent before its stop: its hints are over (showStopped).
+  if (!state.session && msg.session && msg.session.id === state.stoppedId) return;
   state.fit = result;
   state.progress = msg;
   view.setFit(result);
@@ -228,6 +236,7 @@ function showFit(msg) {
   showTopology(result);
   showBones(result);
   showCoverage(msg);
+  showConflicts(result);
   $('s-joints').textContent = `${msg.joints_done ?? 0} / ${msg.joints_needed ?? Math.max(0, (result.sensors || []).length - 1)}`;
   $('s-joints').dataset.done = msg.done ? 'true' : 'false';
   $('s-joints').dataset.fitSeq = String(msg.fit_seq);
@@ -243,21 +252,34 @@ function showTopology(result) {
   for (const [child, parent] of Object.entries(result.parent || {})) (children[parent] = children[parent] || []).push(child);
   const joint = {};
   for (const j of result.joints || []) joint[j.child] = j;
+  const human = result.humanoid || null;
+  const conflicted = {};
+  for (const c of result.humanoid_conflicts || []) conflicted[c.sensor] = c;
   const build = (name) => {
     const li = document.createElement('li');
     const label = document.createElement('span');
     label.className = 'node';
     label.textContent = readable(name);
     li.appendChild(label);
+    if (human && human[name]) {
+      // The body the data found this sensor on, whatever it is called (a name that says otherwise: warned).
+      const found = document.createElement('span');
+      found.className = `found${conflicted[name] ? ' conflict' : ''}`;
+      found.dataset.bone = human[name];
+      found.dataset.sensor = name;
+      found.textContent = `on the ${foundOn(result, name)}`;
+      if (conflicted[name]) found.title = conflicted[name].message;
+      li.appendChild(found);
+    }
     const j = joint[name];
     const st = standingOf(name);
     if (name === result.root) li.appendChild(badge('root', 'root'));
     else if (!j || (st && st.state === 'rigid')) li.appendChild(badge('rigid', 'moves rigidly with its parent so far — not fitted yet'));
     else if (st && !st.done && (st.state === 'undetermined' || st.state === 'not_turned')) {
-      li.appendChild(badge('undetermined', `${jointLabel(name, j.parent)}: ${st.why}`));
+      li.appendChild(badge('undetermined', `${jointName(result, name, j.parent)}: ${st.why}`));
     } else {
       if (j.hinge) li.appendChild(badge('hinge', 'turns about one axis only'));
-      const b = badge(st && st.done ? 'ok' : 'todo', jointLabel(name, j.parent));
+      const b = badge(st && st.done ? 'ok' : 'todo', jointName(result, name, j.parent));
       if (st && st.why) b.title = st.why;
       li.appendChild(b);
     }
@@ -272,7 +294,23 @@ function showTopology(result) {
   const notes = [];
   if (loops.length) notes.push(`closed loop? ${loops.map((l) => `${readable(l.a)}–${readable(l.b)}`).join(', ')}`);
   if (result.ambiguous && result.ambiguous.length) notes.push(`${result.ambiguous.length} ambiguous parent(s)`);
-  $('topology-note').textContent = notes.join(' · ');
+  const note = $('topology-note');
+  note.dataset.humanoid = human ? 'found' : 'none';
+  if (human) notes.push('limbs found from the motion');
+  else if (result.humanoid_note) notes.push('not a human tree: sensor names kept');
+  note.textContent = notes.join(' · ');
+  note.title = human ? '' : (result.humanoid_note || '');
+}
+
+// Sensors whose names say another limb than the one the data found them on: one alert each (the outputs
+// follow the data; the operator checks the strap or the name).
+function showConflicts(result) {
+  for (const c of result.humanoid_conflicts || []) {
+    const id = `conflict-${c.sensor}-${c.found}`;
+    if (state.conflicts.has(id)) continue;
+    state.conflicts.add(id);
+    addAlert('warn conflict', `Name and limb disagree: ${c.message}`, id);
+  }
 }
 
 function badge(kind, text) {
@@ -299,8 +337,8 @@ function showBones(result) {
     tr.dataset.to = b.to_joint;
     tr.dataset.lengthM = b.length_m;
     tr.dataset.stderrM = b.stderr_m;
-    const from = b.from_joint ? jointLabel(b.from_joint, parent[b.from_joint]) : '—';
-    const cells = [readable(b.body), `${from} → ${jointLabel(b.to_joint, parent[b.to_joint])}`,
+    const from = b.from_joint ? jointName(result, b.from_joint, parent[b.from_joint]) : '—';
+    const cells = [foundOn(result, b.body), `${from} → ${jointName(result, b.to_joint, parent[b.to_joint])}`,
       `${(b.length_m * 100).toFixed(1)} cm`, Number.isFinite(b.stderr_m) ? `${(b.stderr_m * 1000).toFixed(1)} mm` : '–'];
     cells.forEach((text, k) => {
       const td = document.createElement('td');
@@ -311,6 +349,19 @@ function showBones(result) {
     tbody.appendChild(tr);
   }
   if (!tbody.children.length) tbody.innerHTML = '<tr class="placeholder"><td colspan="4" class="muted">No joints fitted yet: move the performer.</td></tr>';
+}
+
+// The session stopped (here, from the kiosk, a lease or a limit): its "move next" hints no longer apply. Say
+// where it ended instead; the bars stay as it left them.
+function showStopped(session) {
+  state.stoppedId = session.id;
+  const todo = $('next-moves');
+  if (!todo) return;
+  const p = state.progress && state.progress.session && state.progress.session.id === session.id ? state.progress : null;
+  todo.className = 'next-moves stopped';
+  todo.dataset.state = 'stopped';
+  const reached = p ? (p.done ? ': every joint was calibrated' : `: ${p.joints_done ?? 0} of ${p.joints_needed ?? '?'} joints calibrated`) : '';
+  todo.textContent = `Session ${session.id} stopped${reached}. Start a session to calibrate again.`;
 }
 
 // One bar per sensor but the root, as the service counts it, furthest from calibrated first, under the
@@ -446,8 +497,7 @@ const residuals = {
     this.plot.setData(data);
   },
   labels() {
-    const parent = (state.fit && state.fit.parent) || {};
-    return this.names.map((j) => jointLabel(j, parent[j]));
+    return this.names.map((j) => jointName(state.fit, j));
   },
   build() {
     const el = $('residuals');
@@ -520,6 +570,12 @@ function addAlert(kind, text, id) {
   while (alerts.children.length > 6) alerts.lastChild.remove();
 }
 
+// A sensor as an alert names it: its name, and the limb the data found it on where that says more.
+function sensorSaid(sensor) {
+  const found = foundOn(state.fit, sensor);
+  return found !== readable(sensor) ? `${readable(sensor)} (on the ${found})` : readable(sensor);
+}
+
 // A slip or swap event as the residual plot marks it (a swap names both sensors).
 function slipMarker(e) {
   if (e.type !== 'swap') return e;
@@ -531,8 +587,8 @@ function showEvent(msg) {
   const e = msg.event || msg;
   const kind = e.type;
   if (kind === 'slip') {
-    const who = e.candidates && e.candidates.length > 1 ? e.candidates.map(readable).join(' or ') : readable(e.sensor);
-    const joints = (e.joints || []).map((j) => jointLabel(j, state.fit && state.fit.parent && state.fit.parent[j])).join(', ');
+    const who = e.candidates && e.candidates.length > 1 ? e.candidates.map(sensorSaid).join(' or ') : sensorSaid(e.sensor);
+    const joints = (e.joints || []).map((j) => jointName(state.fit, j)).join(', ');
     addAlert('slip', `Sensor slipped: ${who} at ${Number(e.time_s).toFixed(1)} s, residual jump ${Number(e.jump_mm).toFixed(0)} mm` +
       `${joints ? ` (${joints})` : ''} — check its strap; those joints re-fit from here.`, e.id);
     if (!state.session || e.session_id === state.session.id) residuals.addSlip(e);

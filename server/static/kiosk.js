@@ -4,9 +4,11 @@
 // URL options: ?token=… (a kiosk token starts and stops sessions; a read-only token follows the
 // sessions a host starts), reset_s=10 (how long "done" stays up), max_s=300 (a guest who walks away:
 // start afresh), mirror=0 (show the avatar as others see the guest, not as a mirror), lease_s=30 (a guest's
-// session ends this long after this page stops renewing it: closed, crashed or unplugged).
+// session ends this long after this page stops renewing it: closed, crashed or unplugged), operator=1 (the
+// attendant's strip along the bottom: which limb each sensor was found on, and any sensor whose name says
+// another limb; guests see neither).
 
-import { api, ApiError, connectLive, readable, SkeletonView } from './common.js';
+import { api, ApiError, connectLive, foundOn, readable, SkeletonView } from './common.js';
 
 const $ = (id) => document.getElementById(id);
 const params = new URLSearchParams(location.search);
@@ -17,6 +19,7 @@ const num = (key, fallback) => {
 const RESET_S = num('reset_s', 10);
 const MAX_S = num('max_s', 300);
 const LEASE_S = num('lease_s', 30);
+const OPERATOR = params.get('operator') === '1';
 
 const avatar = new SkeletonView($('avatar'), { colour: 0x7ee787, follow: true, mirror: params.get('mirror') !== '0' });
 const ring = $('ring-fill');
@@ -25,7 +28,7 @@ ring.style.strokeDasharray = `${CIRC}`;
 ring.style.strokeDashoffset = `${CIRC}`;
 
 const kiosk = {
-  state: 'starting',       // starting | live | done | waiting | error
+  state: 'starting',       // starting | live | done | waiting | busy | error
   session: null,           // the session being shown {id, performer}
   owned: false,            // started by a kiosk, so the kiosk stops it when the guest is done
   canControl: true,        // false with a read-only token: follow the host's sessions instead
@@ -47,7 +50,7 @@ function keepLease(session) {
   }, Math.max(1000, (LEASE_S * 1000) / 5));
 }
 
-const TITLES = { done: 'Calibrated!', waiting: 'Welcome!', error: 'One moment…' };
+const TITLES = { done: 'Calibrated!', waiting: 'Welcome!', busy: 'One moment…', error: 'One moment…' };
 
 function setState(s, text) {
   kiosk.state = s;
@@ -56,6 +59,33 @@ function setState(s, text) {
   el.dataset.state = s;
   el.textContent = text;
   document.body.classList.toggle('done', s === 'done');
+  // Busy: someone else's session is on the stage; the avatar (their body) is not shown to the guest.
+  document.body.classList.toggle('busy', s === 'busy');
+}
+
+// A session this kiosk (or another kiosk page) started for a guest: its profile and its performer's name
+// say so. Any other live session is an operator's, which a guest never sees as theirs.
+const isGuestSession = (s) => s.profile === 'kiosk' && /^guest /.test(s.performer || '');
+
+// The stage is in use by an operator's session: a clear screen that says so, until it ends (onStatus).
+function stageInUse() {
+  clearTimer();
+  kiosk.session = null;
+  keepLease(null);
+  setState('busy', 'the stage is in use — your calibration starts as soon as it is free');
+  setProgress(0, 0, null);
+  $('chips').innerHTML = '';
+  $('instruction').textContent = 'The stage is in use right now. Please wait a moment — we start as soon as it is free.';
+}
+
+// What to do when the page opens (or the stage frees): start a guest, take back this kiosk's own guest
+// after a reload, follow a host's session with a read-only token, or wait while an operator records.
+function startOrWait() {
+  const live = kiosk.lastStatus && kiosk.lastStatus.session;
+  if (!live) { startGuest(); return; }
+  if (!kiosk.canControl) { follow(live, false); return; }
+  if (isGuestSession(live)) { follow(live, true); return; }
+  stageInUse();
 }
 
 // The service's figure as it sends it: `percent` is its whole percent (100 only when done).
@@ -86,6 +116,11 @@ function actionFor(body) {
   return `Move your ${name}!`;
 }
 
+// The body part a sensor is on, in a guest's words: the limb the data found it on (whatever the sensor is
+// called), else its name read as words.
+let shownFit = null;
+const part = (sensor) => foundOn(shownFit, sensor);
+
 // One chip per sensor but the root, ticked when the service counts its joint as calibrated.
 function showChips(joints, next) {
   const el = $('chips');
@@ -95,7 +130,7 @@ function showChips(joints, next) {
     chip.className = `chip${j.done ? ' done' : ''}${j.joint === next ? ' next' : ''}`;
     chip.dataset.body = j.joint;
     chip.dataset.state = j.state;
-    chip.textContent = `${j.done ? '✓ ' : ''}${readable(j.joint)}`;
+    chip.textContent = `${j.done ? '✓ ' : ''}${part(j.joint)}`;
     el.appendChild(chip);
   }
 }
@@ -103,11 +138,41 @@ function showChips(joints, next) {
 // The next thing to do, for the joint the service lists first; if a calibrated joint was undone
 // (a sensor slipped), say so, so the guest knows why the ring went back.
 function instructionFor(m) {
-  const act = actionFor(m.joint);
-  if (m.undone && m.undone.reason === 'slip') return `Your ${readable(m.undone.sensor)} sensor moved — once more: ${act}`;
-  if (m.undone && m.undone.reason === 'tree') return `Once more, so your ${readable(m.joint)} is placed right: ${act}`;
-  if (m.undone) return `Your ${readable(m.joint)} needs a little more: ${act}`;
+  const act = actionFor(part(m.joint));
+  if (m.undone && m.undone.reason === 'slip') return `Your ${part(m.undone.sensor)} sensor moved — once more: ${act}`;
+  if (m.undone && m.undone.reason === 'tree') return `Once more, so your ${part(m.joint)} is placed right: ${act}`;
+  if (m.undone) return `Your ${part(m.joint)} needs a little more: ${act}`;
   return act;
+}
+
+// The attendant's strip (operator=1): the limb each sensor was found on, and the names that disagree.
+function showOperator(result) {
+  const el = $('operator');
+  if (!OPERATOR || !result) return;
+  el.classList.remove('hidden');
+  el.innerHTML = '';
+  const conflicts = result.humanoid_conflicts || [];
+  el.dataset.conflicts = String(conflicts.length);
+  for (const c of conflicts) {
+    const line = document.createElement('div');
+    line.className = 'conflict';
+    line.textContent = `⚠ ${c.message}`;
+    el.appendChild(line);
+  }
+  const line = document.createElement('div');
+  if (result.humanoid) {
+    for (const [sensor, bone] of Object.entries(result.humanoid)) {
+      const s = document.createElement('span');
+      s.className = 'found';
+      s.dataset.sensor = sensor;
+      s.dataset.bone = bone;
+      s.textContent = `${sensor} → ${foundOn(result, sensor)}`;
+      line.appendChild(s);
+    }
+  } else {
+    line.textContent = result.humanoid_note || 'no humanoid yet';
+  }
+  el.appendChild(line);
 }
 
 function onFit(msg) {
@@ -119,6 +184,8 @@ function onFit(msg) {
   }
   if (kiosk.state !== 'live' || !result || !kiosk.session) return;
   if (msg.session && msg.session.id !== kiosk.session.id) return;
+  shownFit = result;
+  showOperator(result);
   avatar.setFit(result);
   if (msg.rule) $('rule').textContent = msg.rule;
   const joints = msg.joint_progress || [];
@@ -176,9 +243,11 @@ async function startGuest() {
       return;
     }
     const live = kiosk.lastStatus && kiosk.lastStatus.session;
-    if (err instanceof ApiError && err.status === 409 && live) {
-      // Someone else's session is live (an operator, or a reload of this page): show it.
-      follow(live, /^guest /.test(live.performer));
+    if (err instanceof ApiError && err.status === 409) {
+      // A session started between the last status and this request: a guest's is taken over, an
+      // operator's waited out on a clear screen (never shown as this guest's).
+      if (live && isGuestSession(live)) follow(live, true);
+      else stageInUse();
       return;
     }
     setState('error', `waiting for the calibration service (${err.message})`);
@@ -199,7 +268,7 @@ async function finishGuest() {
   setState('done', 'done!');
   $('instruction').textContent = "You're all set — enjoy the show!";
   avatar.setJointState(Object.fromEntries(Object.keys(avatar.jointState).map((k) => [k, 'done'])));
-  $('chips').querySelectorAll('.chip').forEach((c) => { c.className = 'chip done'; c.textContent = `✓ ${readable(c.dataset.body)}`; });
+  $('chips').querySelectorAll('.chip').forEach((c) => { c.className = 'chip done'; c.textContent = `✓ ${part(c.dataset.body)}`; });
   clearTimer();
   if (session && !kiosk.owned) {
     // A host's session: it is theirs to stop. Stay "done" until it ends, then wait for the next.
@@ -242,9 +311,12 @@ function onStatus(s) {
     // The session ended without us (service restarted, host stopped it): next guest.
     kiosk.session = null;
     if (live && !kiosk.canControl) follow(live, false);
+    else if (live && !isGuestSession(live)) stageInUse();  // an operator took the stage meanwhile
     else { clearTimer(); kiosk.timer = setTimeout(startGuest, 500); setState('starting', 'getting ready…'); }
   } else if (kiosk.state === 'waiting' && live) {
     follow(live, false);
+  } else if (kiosk.state === 'busy' && !live) {
+    startGuest();  // the operator's session ended: the stage is the guests' again
   } else if (kiosk.state === 'done' && kiosk.doneSession && (!live || live.id !== kiosk.doneSession)) {
     kiosk.doneSession = null;
     kiosk.session = null;
@@ -273,10 +345,13 @@ connectLive({
   rateHz: 20,
   onState: (st) => { linkState = st; showBanner(); },
   onMessage: (msg) => {
-    if (msg.type === 'status') {
+    if (msg.type === 'hello' || msg.type === 'subscribed') {
+      // The token's role, before anything is tried: a read-only kiosk follows a host's sessions.
+      if (msg.role) kiosk.canControl = msg.role !== 'read';
+    } else if (msg.type === 'status') {
       onStatus(msg.status);
-      if (!started) { started = true; startGuest(); }
+      if (!started) { started = true; startOrWait(); }
     } else if (msg.type === 'fit') onFit(msg);
-    else if (msg.type === 'pose' && msg.pose) avatar.update(msg.pose);
+    else if (msg.type === 'pose' && msg.pose && kiosk.state !== 'busy') avatar.update(msg.pose);
   },
 });

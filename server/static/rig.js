@@ -29,6 +29,7 @@ export class LoadedRig {
     this.holder.add(gltf.scene);
     this.scene = gltf.scene;
     this.nodes = {};     // glTF node name (as the file and the pose's rig.rotations spell it) → Object3D
+    this.sensorOf = {};  // glTF node name → {sensor, end}: a node is named by its humanoid bone on a human tree
     this.markers = [];   // [{mesh, sensor, kind}]: state-coloured spheres riding on the rig's joints
     this.root = null;
     const json = gltf.parser.json;
@@ -44,6 +45,7 @@ export class LoadedRig {
       if (def.mesh !== undefined) return;
       this.nodes[def.name] = o;
       const info = (def.extras && def.extras.flockcal) || {};
+      this.sensorOf[def.name] = { sensor: info.sensor, end: !!info.end_site };
       if (info.joint === 'root') this.root = o;
       this.bodyCount = (this.bodyCount || 0) + (info.end_site ? 0 : 1);
       const kind = info.end_site ? 'end' : info.joint;

@@ -20,7 +20,7 @@ from itertools import combinations
 import numpy as np
 
 from flockcal.solver.slippage.baseline import configuration_design, prediction_rss, step_fits, step_scan
-from flockcal.solver.slippage.stats import residual
+from flockcal.solver.slippage.stats import present, residual, touching
 
 # Other sensors are listed as candidates down to this posterior share.
 CANDIDATE_SHARE = 0.05
@@ -91,8 +91,8 @@ def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarr
     """
     P = len(joints)
     after = np.arange(len(win.times)) >= win.onset_row
-    sensors = np.unique(joints[suspects])
-    near = np.isin(joints, sensors).any(axis=1) & ready & (win.use & after[:, None]).any(axis=0)
+    sensors = present(joints[suspects])
+    near = touching(joints, sensors) & ready & (win.use & after[:, None]).any(axis=0)
     sel = np.flatnonzero(near)
     if not (near & suspects).any():
         return Attribution(None)
@@ -108,7 +108,9 @@ def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarr
     inc_p = joints[:, 1][None, :] == np.arange(m)[:, None]
     slip_cost, steps, fx = _slip_costs(D, x, y, w, after, sel, inc_c, inc_p, min_jump)
     # Only a sensor one of whose joints stepped can have slipped (its other joints may lag behind).
-    possible = np.isin(np.arange(m), sensors) & ((inc_c | inc_p) & near[None, :]).any(axis=1)
+    possible = np.zeros(m, dtype=bool)
+    possible[sensors] = True
+    possible &= ((inc_c | inc_p) & near[None, :]).any(axis=1)
     joined = np.zeros(m, dtype=bool)
     wj = w
     if win.weight_joined is not None:
@@ -138,7 +140,7 @@ def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarr
         for k, (a, b) in enumerate(swaps):
             perm = np.arange(m)
             perm[[a, b]] = [b, a]
-            touched = sel[np.isin(joints[sel], (a, b)).any(axis=1)]
+            touched = sel[touching(joints[sel], (a, b))]
             if not len(touched):
                 continue
             g2, Q2 = win.swapped(perm, touched)
@@ -167,7 +169,7 @@ def attribute(win: Window, joints: np.ndarray, nbrs: np.ndarray, ready: np.ndarr
     post /= post.sum()
     if best >= m:
         a, b = swaps[best - m]
-        touched = np.flatnonzero(np.isin(joints, (a, b)).any(axis=1))
+        touched = np.flatnonzero(touching(joints, (a, b)))
         jump = float(np.median(np.linalg.norm(fx.step, axis=1)))
         return Attribution("swap", a, b, [(a, float(post[best])), (b, float(post[best]))],
                            float(post[best]), touched.tolist(), jump, evidence)

@@ -11,12 +11,11 @@ second order in the angles, in the confirming test) and, in the confirming test,
 
 from __future__ import annotations
 
-import warnings
 from dataclasses import dataclass
 
 import numpy as np
 
-from flockcal.solver.slippage.stats import CHI3_MEDIAN
+from flockcal.solver.slippage.stats import CHI3_MEDIAN, column_median, present
 
 
 def neighbours(joints: np.ndarray) -> np.ndarray:
@@ -79,12 +78,12 @@ def configuration_design(Q: np.ndarray, refs: np.ndarray, times: np.ndarray, ons
     o += 9
     if fb.size:
         entries = np.zeros((L, P + 1, 9))  # slot P stays zero: where the −1 padding points
-        used = np.unique(fb[fb >= 0])
+        used = present(fb[fb >= 0])
         entries[:, used] = Q[:, used].reshape(L, len(used), 9)
         D[..., o:o + 9 * fb.shape[1]] = entries[:, fb].reshape(L, q, -1)
         o += 9 * fb.shape[1]
     if width:
-        used = np.unique(nb[nb >= 0])
+        used = present(nb[nb >= 0])
         M = refs[used].swapaxes(-1, -2)[None] @ Q[:, used]  # (L, u, 3, 3)
         rel = np.zeros((L, P + 1, 3))
         rel[:, used, 0] = 0.5 * (M[..., 2, 1] - M[..., 1, 2])
@@ -171,12 +170,7 @@ def smooth_baseline(u: np.ndarray, Q: np.ndarray, mask: np.ndarray, nbrs: np.nda
     base = SmoothBaseline(sol[:, 0, :], C.reshape(9 * P, 3 * P), np.full(P, np.nan), N * stride, refs, inverse, nbrs)
     x = u - base.predict(Q)
     d = np.sqrt((x * x).sum(axis=-1))
-    if mask.all():
-        level = np.median(d, axis=0)
-    else:
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # a joint with no valid frame has no baseline
-            level = np.nanmedian(np.where(mask, d, np.nan), axis=0)
+    level = column_median(d, None if mask.all() else mask)  # a joint with no valid frame: NaN, no baseline
     base.sigma = np.where(N > K, np.maximum(level / CHI3_MEDIAN, scale_floor), np.nan)
     return base
 

@@ -17,13 +17,15 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from flockcal.errors import FlockcalError
+from flockcal.frames import frames_of
 from flockcal.solver.slippage.attribution import CANDIDATE_SHARE, Attribution, Window, attribute
 from flockcal.solver.slippage.buffer import FrameBuffer
 from flockcal.solver.slippage.framestep import FrameStep, frame_steps, noise_law, step_contrast
 from flockcal.solver.slippage.baseline import SmoothBaseline, neighbours, smooth_baseline
 from flockcal.solver.slippage.pending import PendingSuspicions, Suspicion
 from flockcal.solver.slippage.revisit import CAME_BACK_NATS, PoseHistory, came_back
-from flockcal.solver.slippage.stats import joint_geometry, local_variance, residual, window_glr
+from flockcal.solver.slippage.stats import (best_step, glr_candidates, joint_geometry, local_variance, present, residual,
+                                            touching)
 
 
 class SlippageError(FlockcalError, ValueError):
@@ -277,7 +279,7 @@ class SlipMonitor:
         p = len(J)
         start = np.full(p, self._t0)
         for ev in self.events:
-            touched = np.isin(J, [ev.sensor_index] if ev.kind == "slip" else list(ev.sensor_indices)).any(axis=1)
+            touched = touching(J, [ev.sensor_index] if ev.kind == "slip" else list(ev.sensor_indices))
             start = np.where(touched, np.fmax(start, ev.time_s), start)
         self.segment_start = np.where(kept, self.segment_start[k], start)
         self._quiet = np.where(kept, self._quiet[k], -1)
@@ -369,10 +371,12 @@ class SlipMonitor:
         ready = self.ready & finite
         out: list = []
         j = 0
+        candidates = None
         while j < len(ends):
             if not self._pending and not ready.any():
                 break
-            score, start, first_row = self._scan(first, step_last[j:], ready)
+            candidates = candidates or self._candidates(first, step_last)
+            score, start, first_row = self._scan(candidates, j, ready)
             hit = score >= self.threshold  # (steps j…, p)
             for k in range(j, len(ends)):
                 self.score = score[k - j]
@@ -393,18 +397,26 @@ class SlipMonitor:
             j = k + 1
         return out
 
-    def _scan(self, first: int, lasts: list[int], ready):
-        """The step test at the last frames `lasts` of some steps: scores and starts (steps, p)."""
+    def _candidates(self, first: int, lasts: list[int]):
+        """The step test's evidence at the last frames `lasts` of a block's steps, for every candidate start
+        (`glr_candidates`): the block's deviations stay as they are while its steps are tested, so one
+        computation serves every round of them; `_scan` picks each round's best."""
         buf = self._buf
         sl = slice(buf.slot(first), buf.slot(lasts[-1]) + 1)
         first_row = buf.index_of(sl.start)
-        earliest = np.maximum(self._quiet, 0) - first_row
         xs = np.concatenate([buf.dx[sl], buf.dy[sl]], axis=1)  # child-frame and parent-frame series side by side
         w = buf.w[sl]
         ws = np.concatenate([w, w], axis=1)
         # One end per step, its last frame: a step that stays only gains evidence with time.
-        score, start = window_glr(xs, ws, np.asarray(lasts) - first_row, self.window, 0.5 * self.min_jump,
-                                  self.min_frames, np.concatenate([earliest, earliest]))
+        g, usable, tau = glr_candidates(xs, ws, np.asarray(lasts) - first_row, self.window, 0.5 * self.min_jump,
+                                        self.min_frames)
+        return g, usable, tau, first_row
+
+    def _scan(self, candidates, j: int, ready):
+        """The step test at the block's steps from the j-th on: scores and starts (steps, p)."""
+        g, usable, tau, first_row = candidates
+        earliest = np.maximum(self._quiet, 0) - first_row
+        score, start = best_step(g[j:], usable[j:], tau[j:], np.concatenate([earliest, earliest]))
         p = len(self.joints)
         which = score[:, p:] > score[:, :p]
         score = np.where(which, score[:, p:], score[:, :p])
@@ -506,7 +518,7 @@ class SlipMonitor:
         base = buf.index_of(rows.start)
         pv = buf.pv[rows] & (buf.times[rows][:, None] >= self.segment_start[None, :])  # as the other tests mask
         law = self._noise_law(c, l)
-        sensors = np.unique(self.joints[ready])
+        sensors = present(self.joints[ready])
         while self._hits and self._hits[0][0] < lo_g - self._near[0]:
             self._hits.popleft()  # (hits come in order of the steps that found them, near enough in start)
         while True:
@@ -549,7 +561,7 @@ class SlipMonitor:
             onset = base + best.onset
             out.append(self._report(att, onset, float(buf.times[buf.slot(onset)]), now))
             ready = ready & self.ready
-            sensors = np.unique(self.joints[ready])
+            sensors = present(self.joints[ready])
             if not len(sensors):
                 break
         self._scanned = hi_g
@@ -677,7 +689,7 @@ class SlipMonitor:
         onset_row = int(np.searchsorted(rows, full.start + onset_row))
         post = slice(rows[onset_row], full.stop)
         g, Q = buf.g[rows], buf.Q[rows]
-        near = np.isin(self.joints, self.joints[fired]).any(axis=1) & ready
+        near = touching(self.joints, self.joints[fired]) & ready
         u_post = residual(buf.g[post][:, near], buf.Q[post][:, near], c[near], l[near])
         weight[onset_row:, near] = _with_own_noise(u_post, weight[onset_row:, near])
         if w_joined is not weight:
@@ -720,8 +732,8 @@ class SlipMonitor:
             if verify:
                 # Each of its joints' residuals also carries the skin of the sensor at the joint's other end,
                 # which moves with that sensor's joints: all of them must be back in the same pose.
-                ends = np.unique(J[pose])
-                pose = np.isin(J, ends).any(axis=1)
+                ends = present(J[pose])
+                pose = touching(J, ends)
             back = came_back(self._history, float(buf.times[post.start]), self.segment_start, buf.times[post],
                              buf.g[post], buf.Q[post], buf.pv[post], weight[onset_row:], child, parent, pose, c, l,
                              att.step)
@@ -829,28 +841,23 @@ def detect_slips(take, calibration=None, *, joints=None, c=None, l=None, batch_s
     its events): it would triple the scan's CPU, and `flockcal fit` has 1 s for a 30 s take, scan
     included (docs/slippage.md, sixth round).
 
-    take: a `flockcal.takes.Take` (or anything with rotations, positions, rate_hz and optionally valid,
-    times, names). Joint estimates come from `calibration` (a `Calibration` or its docs/design.md §5 dict)
+    take: a `flockcal.takes.Take`, any `ChunkedTake` (a take file read a piece at a time), or anything with
+    rotations, positions, rate_hz and optionally valid, times, names. Joint estimates come from `calibration` (a `Calibration` or its docs/design.md §5 dict)
     or from `joints` (p, 2) with `c`, `l` (p, 3). A whole-take fit is blended across a slip; the
     monitor's baselines are taken in both sensor frames of each joint, so the step still shows.
     """
-    R = np.asarray(take.rotations, dtype=float)
-    t = np.asarray(take.positions, dtype=float)
-    n, m = R.shape[:2]
+    given = getattr(take, "names", None)
+    m = len(given) if given is not None else np.shape(take.rotations)[1]
     rate = float(take.rate_hz)
-    names = tuple(getattr(take, "names", None) or (str(i) for i in range(m)))
-    valid = getattr(take, "valid", None)
-    times = getattr(take, "times", None)
-    times = np.arange(n) / rate if times is None else np.asarray(times, dtype=float)
+    names = tuple(given or (str(i) for i in range(m)))
     if calibration is not None:
         joints, c, l = joints_from_calibration(calibration, names)
     if joints is None or c is None or l is None:
         raise SlippageError("detect_slips needs a calibration or joints with c and l (fit the take first)")
     mon = SlipMonitor(joints, m, rate, names, frame_step=frame_step, **options)
-    step = max(1, int(round(batch_s * rate)))
-    for a in range(0, n, step):
-        b = min(n, a + step)
-        mon.add_frames(times[a:b], R[a:b], t[a:b], None if valid is None else valid[a:b], c, l)
+    # A piece at a time (a take on disk is read so: memory stays a piece and the monitor's window).
+    for f in frames_of(take, max(1, int(round(batch_s * rate)))):
+        mon.add_frames(f.times, f.rotations, f.positions, f.valid, c, l)
     return mon.events
 
 

@@ -9,6 +9,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from flockcal.solver.slippage.stats import present
+
 
 @dataclass(eq=False)  # identity: two suspicions with the same onset are still two
 class Suspicion:
@@ -52,7 +54,7 @@ class PendingSuspicions:
             d = np.abs(s[:, None] - onsets[None, :])  # (hits, pending)
             near = d.argmin(axis=1)
             close = d[np.arange(len(joints)), near] <= self.merge
-            for k in np.unique(near[close]):
+            for k in present(near[close]).tolist():
                 self.items[k].fired[joints[close & (near == k)]] = True
             joints, s = joints[~close], s[~close]
         if not len(joints):

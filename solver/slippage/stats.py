@@ -9,6 +9,48 @@ from __future__ import annotations
 
 import numpy as np
 
+
+def present(indices: np.ndarray) -> np.ndarray:
+    """The distinct values of non-negative integer `indices` (sensor or joint numbers), ascending: what
+    np.unique gives, without the import of numpy.ma that numpy 2's np.unique makes at a process's first
+    call (0.06 s of every `flockcal fit`, for a handful of small integers)."""
+    x = np.asarray(indices).ravel()
+    return np.flatnonzero(np.bincount(x)) if x.size else x[:0]
+
+
+def touching(joints: np.ndarray, sensors) -> np.ndarray:
+    """Which joints ((…, 2) sensor numbers) have one of `sensors` at an end: np.isin(joints,
+    sensors).any(axis=-1), by a lookup table (np.isin's own machinery is most of its cost on a few dozen
+    joints, and the slip scan asks a few hundred times per take)."""
+    J = np.asarray(joints)
+    s = np.asarray(sensors, dtype=np.intp).ravel()
+    if not J.size or not s.size:
+        return np.zeros(J.shape[:-1], dtype=bool)
+    table = np.zeros(max(int(J.max()), int(s.max())) + 1, dtype=bool)
+    table[s] = True
+    return table[J].any(axis=-1)
+
+
+def column_median(x: np.ndarray, mask: np.ndarray | None = None) -> np.ndarray:
+    """The median down each column of `x` (n, k): np.median(x, axis=0) (NaN where a column holds one), or
+    with `mask` (n, k) np.nanmedian over the rows where it is True and x is not NaN (NaN where there are
+    none). The same values, without the import of numpy.ma that both make at a process's first call
+    (0.04 s of every `flockcal fit`)."""
+    x = np.asarray(x, dtype=float)
+    if mask is None:
+        keep = np.ones(x.shape, dtype=bool)
+        spoilt = np.isnan(x).any(axis=0)
+    else:
+        keep = np.asarray(mask, dtype=bool) & ~np.isnan(x)
+        spoilt = np.zeros(x.shape[1:], dtype=bool)
+    ranked = np.sort(np.where(keep, x, np.inf), axis=0)
+    count = keep.sum(axis=0)
+    lo = np.take_along_axis(ranked, np.maximum((count - 1) // 2, 0)[None], axis=0)[0]
+    hi = np.take_along_axis(ranked, np.maximum(count // 2, 0)[None], axis=0)[0]
+    with np.errstate(invalid="ignore"):
+        middle = (lo + hi) / 2.0
+    return np.where(spoilt | (count == 0), np.nan, middle)
+
 # For a 3-D isotropic Gaussian residual with per-axis sd σ, the median of its norm is 1.5382 σ.
 CHI3_MEDIAN = 1.5382
 
@@ -81,8 +123,17 @@ def window_glr(x: np.ndarray, weight: np.ndarray, ends, window: int, margin: flo
     (k − window < τ ≤ k, τ ≥ earliest[j]), the weighted mean step μ over τ..k scores
     ½ Σw · max(|μ| − margin, 0)²: nats of evidence for a step larger than `margin`, which slow drifts
     of a few mm (a fit still settling) do not reach. Returns the best score (e, p) and its start index
-    (e, p), indices into x's first axis.
+    (e, p), indices into x's first axis. (`glr_candidates`, then `best_step`: a caller testing later
+    ends of the same series again, with other `earliest`, keeps the first and runs only the second.)
     """
+    return best_step(*glr_candidates(x, weight, ends, window, margin, min_frames), earliest)
+
+
+def glr_candidates(x: np.ndarray, weight: np.ndarray, ends, window: int, margin: float,
+                   min_frames: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """`window_glr`'s evidence for every end and candidate start, before the starts each series may not
+    use yet are left out: (g (e, W, p), usable (e, W, p): a start in the series with enough frames,
+    tau (e, W): the start's index). Each end's values depend on that end alone."""
     L, p = weight.shape
     A = np.concatenate([np.zeros((1, p)), np.cumsum(weight, axis=0)])
     B = np.concatenate([np.zeros((1, p, 3)), np.cumsum(weight[..., None] * x, axis=0)])
@@ -111,9 +162,15 @@ def window_glr(x: np.ndarray, weight: np.ndarray, ends, window: int, margin: flo
         trailing = SN / SA
         factor = np.where(SND >= 2, np.minimum(1.0, trailing / own), 1.0)
     g = 0.5 * SA * np.maximum(size - margin, 0.0) ** 2 * np.nan_to_num(factor, nan=1.0)
-    allowed = ok[..., None] & (SN >= min_frames) & (tau_c[..., None] >= earliest[None, None, :]) & (SA > 0)
-    g = np.where(allowed, np.nan_to_num(g), 0.0)
+    usable = ok[..., None] & (SN >= min_frames) & (SA > 0)
+    return np.nan_to_num(g), usable, tau_c
+
+
+def best_step(g: np.ndarray, usable: np.ndarray, tau: np.ndarray, earliest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The best score (e, p) and its start (e, p) of `glr_candidates`' output, starts before `earliest`
+    (p,) left out."""
+    g = np.where(usable & (tau[..., None] >= earliest[None, None, :]), g, 0.0)
     best = g.argmax(axis=1)  # (e, p)
     score = np.take_along_axis(g, best[:, None, :], axis=1)[:, 0, :]
-    start = np.take_along_axis(np.broadcast_to(tau_c[..., None], g.shape), best[:, None, :], axis=1)[:, 0, :]
+    start = np.take_along_axis(np.broadcast_to(tau[..., None], g.shape), best[:, None, :], axis=1)[:, 0, :]
     return score, start

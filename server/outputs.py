@@ -1,0 +1,322 @@
+"""The live humanoid streams, VRPN (server/vrpn.py) and VMC (server/vmc.py), on a thread of their own
+("fc-outputs"), fed each batch of frames as the reader hands it over and the newest fit from the snapshots:
+nothing here runs on the reader's or the pipeline's thread, and no socket ever blocks (docs/server.md).
+"""
+
+from __future__ import annotations
+
+import collections
+import errno
+import logging
+import selectors
+import socket
+import threading
+import time
+from typing import Callable
+
+import numpy as np
+
+from flockcal.errors import FlockcalError
+from flockcal.frames import Frames
+from flockcal.server import vmc, vrpn
+from flockcal.server.pose import quaternions
+from flockcal.solver.humanoid import BONES, Humanoid
+from flockcal.solver.humanoid_pose import HumanoidRig, humanoid_rig
+from flockcal.solver.reconstruct import held_poses
+from flockcal.threads import name_os_thread
+
+log = logging.getLogger(__name__)
+
+RIG_REFRESH_S = 0.2  # a new fit reaches the streams' rig at most this often (fits come 30 times a second)
+HUMANOID_REFRESH_S = 5.0  # the humanoid is found again this often, and whenever the tree changes
+SAMPLE_S, SAMPLE_FRAMES = 0.1, 600  # the frames the humanoid is found from: one every 0.1 s, the last minute
+TRACKING_S = 0.25  # newer frames than this, every bone's sensor valid: VMC's tracking status is OK
+OSC_GRACE_S = 0.02  # how long a due VMC bundle waits for a frame's wake-up to ride on
+QUEUE_BATCHES = 256  # batches waiting for the thread at most (the oldest go first: live streams want the newest)
+
+
+def humanoid_of(fit, sample: tuple[np.ndarray, np.ndarray, np.ndarray]) -> Humanoid:
+    """Which body is which humanoid bone: the one place the streams ask. The fit the service published
+    carries it (found by the fit thread from the session's sample); a fit without one that can pose a rig
+    (read back from a stored §5 result) has it found here from a sample of the live frames."""
+    hum = getattr(fit, "humanoid", None)
+    if hum is not None and hum.posable:
+        return hum
+    from flockcal.solver.humanoid import find_humanoid
+
+    return find_humanoid(fit, *sample)
+
+
+class Outputs:
+    """VRPN and VMC out, as `settings` ask (`vrpn_port`, `osc_targets`, `osc_hz`). Built before the service
+    serves: a port in use or a receiver that cannot be resolved is one line in `lines` (what `serve` prints)
+    and the service runs without that output. `feed` (the reader's thread) only queues; `start` / `stop`
+    run the thread."""
+
+    def __init__(self, settings, names: tuple[str, ...], snapshot: Callable[[], object]):
+        self.names = tuple(names)
+        self.m = len(self.names)
+        self.snapshot = snapshot
+        self.lines: list[str] = []
+        self.problems: list[str] = []
+        self.vrpn: vrpn.VrpnServer | None = None
+        self.vmc: vmc.VmcSender | None = None
+        self.osc_period = 1.0 / settings.osc_hz
+        if settings.vrpn_port is not None:
+            self._open_vrpn(settings.host, settings.vrpn_port)
+        if settings.osc_targets:
+            targets, problems = vmc.parse_targets(settings.osc_targets)
+            self.problems += problems
+            if targets:
+                self.vmc = vmc.VmcSender(targets)
+                self.lines.append(f"VMC to {', '.join(t.label for t in targets)} at {settings.osc_hz:g} Hz")
+        self.lines += self.problems
+        self._queue: collections.deque[Frames] = collections.deque(maxlen=QUEUE_BATCHES)
+        self._wake_r, self._wake_w = socket.socketpair()
+        self._wake_r.setblocking(False)
+        self._wake_w.setblocking(False)
+        self._woken = False
+        # Wake the thread for each batch only while a VRPN client takes every frame; VMC's ticks take the
+        # newest (waking per batch cost as much again as VMC's own work).
+        self._eager = False
+        self._stop = False
+        self._thread: threading.Thread | None = None
+        # Below: the thread's own.
+        self._held = (np.full((self.m, 3, 3), np.nan), np.full((self.m, 3), np.nan))
+        self._newest: tuple | None = None  # (reader time, valid (m,)) of the newest frame
+        self._segments: tuple | None = None  # (reader time, positions, rotations) worked out for it
+        self._sample = (np.zeros((SAMPLE_FRAMES, self.m, 3, 3)), np.zeros((SAMPLE_FRAMES, self.m, 3)),
+                        np.zeros((SAMPLE_FRAMES, self.m), dtype=bool))
+        self._sampled, self._sample_t = 0, -np.inf
+        self._fit = None
+        self._rig: HumanoidRig | None = None
+        self._packer: vrpn.ReportPacker | None = None  # the rig's VRPN messages, laid out once
+        self._layout: vmc.BoneLayout | None = None  # the rig's VMC bones, laid out once
+        self._rig_at = -np.inf
+        self._rig_stale = False
+        self._rig_key: tuple = (None, None)  # whose fit the rig is: snapshot's pose_fit_id
+        self._session = None  # the live session as the snapshot the rig was followed in showed it
+        self._humanoid: tuple | None = None  # (the tree it was found on, when, the Humanoid)
+        self.reason: str | None = "no fit yet"
+        self._bundles: dict[tuple, vmc.Bundle] = {}
+        self._t0 = time.monotonic()
+        self._status: dict = {}
+
+    def _open_vrpn(self, host: str, port: int) -> None:
+        if not 0 <= port <= 65535:
+            self.problems.append(f"VRPN not started: {port} is not a port (1-65535); give --vrpn PORT")
+            return
+        try:
+            self.vrpn = vrpn.VrpnServer(host, port, sensors=len(BONES))
+        except OSError as exc:
+            why = ("another program (another VRPN server?) uses it" if exc.errno == errno.EADDRINUSE
+                   else exc.strerror or str(exc))
+            self.problems.append(f"VRPN not started: cannot listen on {host} port {port} (TCP and UDP): {why}; "
+                                 "choose another with --vrpn PORT — the service runs without VRPN")
+            return
+        self.lines.append(f"VRPN tracker flockcal@{host}:{self.vrpn.port} (TCP and UDP; sensors 0-15: "
+                          f"{', '.join(BONES)})")
+
+    @property
+    def active(self) -> bool:
+        return self.vrpn is not None or self.vmc is not None
+
+    # -- any thread ---------------------------------------------------------------------------------------
+    def feed(self, frames: Frames) -> None:
+        """A batch from the reader: queued, the thread woken if a VRPN client waits for it. Never blocks."""
+        self._queue.append(frames)
+        if self._eager and not self._woken:
+            self._woken = True
+            try:
+                self._wake_w.send(b"\0")
+            except (BlockingIOError, OSError):
+                pass
+
+    def start(self) -> None:
+        if not self.active:
+            return
+        self._status = self._make_status()
+        self._thread = threading.Thread(target=self._run, name="flockcal-outputs", daemon=True)
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop = True
+        try:
+            self._wake_w.send(b"\0")
+        except OSError:
+            pass
+        if self._thread is not None:
+            self._thread.join(5)
+        if self.vrpn is not None:
+            self.vrpn.close()
+        if self.vmc is not None:
+            self.vmc.close()
+        self._wake_r.close()
+        self._wake_w.close()
+
+    def status(self) -> dict:
+        """Which outputs run, their clients and targets (/api/status `outputs`; refreshed twice a second)."""
+        return self._status if self._thread is not None else self._make_status()
+
+    # -- the thread ---------------------------------------------------------------------------------------
+    def _run(self) -> None:
+        name_os_thread("fc-outputs")
+        sel = selectors.DefaultSelector()
+        sel.register(self._wake_r, selectors.EVENT_READ, self._drain_wake)
+        if self.vrpn is not None:
+            self.vrpn.register(sel)
+        next_osc = self._t0
+        next_tick = 0.0
+        while not self._stop:
+            now = time.monotonic()
+            # While frames wake the thread (a VRPN client), a VMC bundle rides on the next frame's wake-up
+            # (frames come 144 times a second): a wake-up of its own cost as much again on a busy machine,
+            # whose caches hold none of this between wake-ups. A tracker gone quiet still gets its bundles.
+            osc_due = next_osc + (OSC_GRACE_S if self._eager else 0.0) if self.vmc is not None else now + 0.5
+            timeout = max(0.0, min(osc_due, next_tick) - now)
+            for key, mask in sel.select(timeout):
+                try:
+                    key.data(mask)
+                except Exception:  # one client's fault is not the stream's: log it, go on
+                    log.exception("outputs: a socket event failed")
+            now = time.monotonic()
+            self._eager = self.vrpn is not None and self.vrpn.streaming
+            try:
+                if self._queue:
+                    self._frames()
+                if self.vmc is not None and now >= next_osc:
+                    self._send_vmc(now, next_osc)
+                    # A fixed grid, so the rate holds; a thread held up skips the ticks it missed rather than
+                    # sending them in a burst (each would carry the same newest pose).
+                    next_osc += self.osc_period * max(1, np.ceil((now - next_osc) / self.osc_period))
+                if now >= next_tick:
+                    if self.vrpn is not None:
+                        self.vrpn.tick(now)
+                    self._status = self._make_status()
+                    next_tick = now + 0.5
+            except Exception:
+                log.exception("outputs: a step failed; the streams go on with the next frames")
+        sel.close()
+
+    def _drain_wake(self, _mask) -> None:
+        self._woken = False
+        try:
+            while self._wake_r.recv(4096):
+                pass
+        except (BlockingIOError, OSError):
+            pass
+
+    def _frames(self) -> None:
+        batches = []
+        while self._queue:
+            batches.append(self._queue.popleft())
+        streaming = self.vrpn is not None and self.vrpn.streaming
+        if not streaming and batches and len(batches[-1]) and batches[-1].valid[-1].all():
+            batches = [batches[-1][-1:]]  # VMC takes the newest frame: held poses need nothing before it
+        f = Frames.concat(batches, self.m)
+        if not len(f):
+            return
+        R, t = held_poses(f.rotations, f.positions, f.valid, before=self._held)
+        self._held = (R[-1], t[-1])
+        self._newest = (float(f.times[-1]), f.valid[-1])
+        self._segments = None
+        if f.times[-1] - self._sample_t >= SAMPLE_S:
+            k = self._sampled % SAMPLE_FRAMES
+            self._sample[0][k], self._sample[1][k] = R[-1], t[-1]
+            self._sample[2][k] = np.isfinite(t[-1]).all(axis=1)
+            self._sampled += 1
+            self._sample_t = f.times[-1]
+        self._follow_fit()
+        rig = self._rig
+        if rig is None or not streaming:
+            return
+        pos, rot = rig.segments(R, t)
+        self._segments = (self._newest[0], pos[-1], rot[-1])
+        n, k = pos.shape[:2]
+        quats = quaternions(rot.reshape(-1, 3, 3)).reshape(n, k, 4)
+        wall = f.times + (time.time() - time.monotonic())
+        self.vrpn.send_reports(self._packer.frames(wall, pos, quats))
+
+    def _follow_fit(self) -> None:
+        """The rig of the newest fit: the live session's own (not the last session's until it has one), or
+        with no session live the last stopped session's final fit; rebuilt at most every RIG_REFRESH_S."""
+        snap = self.snapshot()
+        fit = getattr(snap, "pose_fit", None)
+        key = getattr(snap, "pose_fit_id", None)  # (session id, fit number; None for its stored final fit)
+        session = self._session = getattr(snap, "session", None)
+        if session is not None and (key is None or key[0] != session.id):
+            fit = None
+        if fit is not self._fit:
+            self._fit, self._rig_stale = fit, True
+        now = time.monotonic()
+        # Another session's fit, a session's final fit or none at all: at once (what VMC's calibration
+        # state says must be what its bones are); the same session's next live fit: at the refresh rate.
+        urgent = fit is None or key is None or key[1] is None or key[0] != self._rig_key[0]
+        if not self._rig_stale or (not urgent and now - self._rig_at < RIG_REFRESH_S):
+            return
+        self._rig_at = now
+        self._segments = None
+        if fit is None:
+            self._rig, self.reason, self._rig_stale, self._rig_key = None, "no fit yet", False, (None, None)
+            return
+        if not self._sampled:
+            return  # no frame yet to find the humanoid from: the next frames try again
+        self._rig_stale = False
+        n = min(self._sampled, SAMPLE_FRAMES)
+        order = (np.arange(n) + (self._sampled - n)) % SAMPLE_FRAMES
+        sample = tuple(a[order] for a in self._sample)
+        tree = tuple(np.asarray(fit.parent).tolist())
+        try:
+            if self._humanoid is None or self._humanoid[0] != tree or now - self._humanoid[1] >= HUMANOID_REFRESH_S:
+                self._humanoid = (tree, now, humanoid_of(fit, sample))
+            rig, reason = humanoid_rig(fit, self._humanoid[2], frames=sample), None
+        except (FlockcalError, ValueError, np.linalg.LinAlgError) as exc:  # ArticulationError among them
+            rig, reason = None, str(exc)
+        if reason is not None and reason != self.reason:
+            log.warning("VRPN and VMC send no bones: %s", reason)  # one line a change, not one a fit
+        elif rig is not None and self._rig is None:
+            log.info("VRPN and VMC stream the humanoid: %s", ", ".join(BONES[k] for k in rig.present))
+        self._rig, self.reason, self._rig_key = rig, reason, key
+        if rig is not None:
+            self._packer = vrpn.ReportPacker(rig.present)
+            self._layout = vmc.BoneLayout(rig)
+
+    def _send_vmc(self, now: float, tick: float) -> None:
+        """One bundle: the newest frame's bones once there is a rig, else /VMC/Ext/OK "not loaded"; its
+        /VMC/Ext/T is the tick's time on the sender's grid (seconds since the streams started)."""
+        self._follow_fit()
+        rig, newest, session = self._rig, self._newest, self._session
+        tracking = int(newest is not None and now - newest[0] <= TRACKING_S
+                       and (rig is None or bool(newest[1][rig.sensor[rig.present]].all())))
+        t = tick - self._t0
+        numbers = None
+        if rig is not None and newest is not None:
+            if self._segments is not None and self._segments[0] == newest[0]:
+                pos, rot = self._segments[1], self._segments[2]
+            else:
+                pos, rot = (a[0] for a in rig.segments(self._held[0][None], self._held[1][None]))
+                self._segments = (newest[0], pos, rot)
+            numbers = self._layout.numbers(pos, rot)
+            if not np.isfinite(numbers).all():  # a sensor with no pose yet: the bones wait for one
+                numbers = None
+        if numbers is None:
+            state = vmc.CALIBRATING if session is not None else vmc.UNCALIBRATED
+            self.vmc.send(self._bundle(()).fill((0, state, 0, tracking), t))
+            return
+        state = vmc.CALIBRATING if session is not None and not session.done else vmc.CALIBRATED
+        self.vmc.send(self._bundle(self._layout.names).fill((1, state, 0, tracking), t, numbers))
+
+    def _bundle(self, names: tuple) -> vmc.Bundle:
+        if names not in self._bundles:
+            self._bundles[names] = vmc.Bundle(names)
+        return self._bundles[names]
+
+    def _make_status(self) -> dict:
+        rig = self._rig
+        return {
+            "vrpn": None if self.vrpn is None else self.vrpn.status(),
+            "vmc": None if self.vmc is None else {**self.vmc.status(), "rate_hz": round(1 / self.osc_period, 3)},
+            "humanoid": {"streaming": rig is not None, "reason": self.reason,
+                         "bones": [] if rig is None else [BONES[k] for k in rig.present]},
+            "problems": list(self.problems),
+        }
