@@ -216,13 +216,16 @@ def ezc3d_module(doing: str):
 
 def save_c3d(path: str | os.PathLike, take: MarkerTake) -> None:
     """Write a marker take as a C3D file (through ezc3d), atomically: POINT:UNITS mm, the take's rate and
-    marker names as labels, a marker not seen in a frame stored as C3D marks one (residual −1, at the
-    origin), so `load_c3d` reads the take back as it was (to float32's precision)."""
+    marker names as labels, the take's up axis (if it states one) as POINT:Z_SCREEN, a marker not seen in a
+    frame stored as C3D marks one (residual −1, at the origin), so `load_c3d` reads the take back as it was
+    (to float32's precision)."""
     ezc3d = ezc3d_module("writing")
     c = ezc3d.c3d()
     c["parameters"]["POINT"]["RATE"]["value"] = [float(take.rate_hz)]
     c["parameters"]["POINT"]["LABELS"]["value"] = list(take.marker_names)
     c.add_parameter("POINT", "UNITS", ["mm"])
+    if take.up is not None:  # the simulator's world is z down: a viewer (and `load_c3d`) reads it from here
+        c.add_parameter("POINT", "Z_SCREEN", [take.up.upper()])
     xyz = take.markers.transpose(2, 1, 0) * 1000.0  # (3, k, n) mm
     seen = take.visible().T
     points = np.ones((4, take.n_markers, take.n_frames))

@@ -10,7 +10,7 @@ import pytest
 
 from flockcal.cli import main
 from flockcal.exports.bvh import bvh_world
-from flockcal.markers import load_markers, make_marker_take, save_markers
+from flockcal.markers import load_markers, make_marker_take, save_c3d, save_markers
 from flockcal.simulator import optical as so
 
 # The simulator's world is the Flock's, z down; turning it half a turn about x makes it z up, as a lab's C3D is.
@@ -76,6 +76,17 @@ def test_up_given_on_the_command_line_wins_over_the_file(tmp_path, walk):
     write_c3d(tmp_path / "walk.c3d", walk.markers @ Z_DOWN_TO_Z_UP.T, walk)
     assert main(["report", str(tmp_path / "walk.c3d"), "-o", str(tmp_path / "r.html"), "--up=-z"]) == 0
     assert drawn_with(tmp_path / "r.html") == "Drawn with -z up: --up."
+
+
+def test_flockcals_own_c3d_states_its_z_down_world_and_is_drawn_head_up(tmp_path, walk):
+    # `flockcal simulate -o take.c3d` writes the simulator's z-down world: without POINT:Z_SCREEN a reader
+    # takes the C3D convention, +z, and draws it upside down.
+    pytest.importorskip("ezc3d", reason="writing C3D needs ezc3d: pip install '.[optical]' (or '.[test]')")
+    save_c3d(tmp_path / "sim.c3d", walk)
+    assert load_markers(tmp_path / "sim.c3d").up == "-z"
+    assert main(["report", str(tmp_path / "sim.c3d"), "-o", str(tmp_path / "r.html")]) == 0
+    assert drawn_with(tmp_path / "r.html") == "Drawn with -z up: the C3D's POINT:Z_SCREEN."
+    assert head_above_feet(walk.markers, walk.marker_names, "-z")
 
 
 def test_a_marker_npz_keeps_its_up_entry_and_one_without_is_drawn_in_the_flocks_frame(tmp_path, walk):
