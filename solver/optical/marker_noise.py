@@ -13,7 +13,7 @@ import numpy as np
 # A distance varies beyond its noise when the ratio of its variance to the noise's exceeds 1 by more than
 # z of its standard errors. On white Gaussian noise that ratio (both variances read by medians of absolute
 # deviations) has a standard deviation of RATIO_SD / √frames (3.2–3.4 measured over 480–4000 frames,
-# tests/test_optical_marker_noise.py; on the simulated takes' 651 pairs of markers on one bone, 1.00 of it).
+# tests/test_optical_fixed_markers.py; on the simulated takes' 651 pairs of markers on one bone, 1.00 of it).
 # z is set so that a take of fixed markers is read as sliding once in FALSE_ALARM takes, whatever the number
 # of tests (bodies, or pairs of markers) it makes: Bonferroni's bound on the normal tail.
 RATIO_SD = 3.3
