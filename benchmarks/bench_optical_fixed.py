@@ -2,15 +2,15 @@
 the simulator's walk, kiosk and exercise routines and several seeds. Prints a table and the worst case; asserts
 nothing. The claim it measures (docs/optical.md): every tree edge right, every bone within 3 mm.
 
-Each case: the simulated human (15 bodies by default: `--birds 16` keeps the abdomen, which the walk barely
-turns against the pelvis), 2–4 markers a body fixed to the bone, 1 mm noise, 3.6 % occlusion gaps, with and
-without a label swap (`--swaps 0 1`), 30 s at 100 Hz (`flockcal simulate`'s rate). Bodies, ARI and edges are
+Each case: the simulated human (15 bodies by default, as issue 50 measured; `--birds 16` keeps the abdomen),
+2–4 markers a body fixed to the bone, 1 mm noise, 3.6 % occlusion gaps, with and without a label swap (`--swaps 0 1`), 30 s at 100 Hz (`flockcal simulate`'s rate). Bodies, ARI and edges are
 scored as bench_optical_sim.py scores them (`score`: found bodies matched to true ones by their markers). Bones
 are every distance between two joints of one body (a hip's width too, which the fit's bone list, running
 from each body's inboard joint, leaves out), found against true, a joint named by the two bodies it links.
 
-    python benchmarks/bench_optical_fixed.py                                   # 3 routines × seeds 0-3 × swaps 0/1
-    python benchmarks/bench_optical_fixed.py --routines walk --seeds 0 1 --seconds 12 --rate 60
+    python benchmarks/bench_optical_fixed.py                     # 3 routines × seeds 0-3 × swaps 0/1
+    python benchmarks/bench_optical_fixed.py --seeds 0 1 2       # docs/optical.md's figure
+    python benchmarks/bench_optical_fixed.py --birds 16 --seeds 0 --swaps 1
 """
 
 from __future__ import annotations
