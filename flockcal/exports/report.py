@@ -291,11 +291,12 @@ def optical_html(cal: Calibration) -> str:
 
 def report_html(
     calibration, take, *, title: str | None = None, source: str | None = None, slips=None, up: str = "-z",
-    progress=None,
+    up_from: str = "", progress=None,
 ) -> str:
     """The report page for `take` (a flockcal.takes.Take) fitted as `calibration` (Calibration or its
-    §5 dict). `slips` overrides the slip events (list of §5 slip dicts); `up` is the world's up axis;
-    `progress(stage)` is told each of REPORT_STAGES as it begins (for a progress bar)."""
+    §5 dict). `slips` overrides the slip events (list of §5 slip dicts); `up` is the world's up axis and
+    `up_from` where it comes from (the page says both); `progress(stage)` is told each of REPORT_STAGES as it
+    begins (for a progress bar)."""
     step = progress or (lambda stage: None)
     import matplotlib
 
@@ -348,6 +349,7 @@ def report_html(
         f"root {html.escape(names[art.root])}; {100 * float(take.valid.mean()):.1f}% of sensor-frames valid; "
         f"made {made}</p>",
         "<h2>Skeleton</h2>",
+        f"<p class=meta>Drawn with {html.escape(up)} up: {html.escape(up_from or 'given')}.</p>",
         _img(skeleton_figure(rec, _pose_frame(take.valid), bvh_world(up), determined), "skeleton drawing"),
         "<h2>Topology</h2>",
         _tree_html(art, {names[j]: rms[j] for j in joints}, standing,
