@@ -1,6 +1,7 @@
 """What the live humanoid streams (VRPN, VMC; server/outputs.py) cost their own thread, in process, where a
-shared machine's load moves the figure less than a whole service's (bench_server.py --streams-ab measures
-the service itself): CPU time of the fc-outputs thread as % of one core while `Outputs` is fed 16 birds at
+shared machine's load moves the figure less than a whole service's (bench_server.py --streams-paired measures
+the service itself): CPU time of the fc-outputs thread and of the feeding thread inside `Outputs.feed` (where
+each frame's work is done, as on the service's reader) as % of one core while `Outputs` is fed 16 birds at
 144 Hz in the reader's 5 ms hand-overs, in real time, from the simulated performer's noisy poses through a
 fit of them; the same for VMC alone (60 Hz), VMC with VRPN's own client over UDP, and over TCP.
 
@@ -67,15 +68,18 @@ def run(mode: str, seconds: float, fit, names, R, x, v, t) -> dict:
         client = subprocess.Popen([str(PRINT_DEVICES), device], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         tid = next(th.native_id for th in threading.enumerate() if th.name == "flockcal-outputs")
-        start, fed, c0 = time.monotonic(), 0, None
+        start, fed, c0, in_feed = time.monotonic(), 0, None, 0.0
         total = int(seconds * RATE) + int(2 * RATE)  # 2 s to settle (the client connects), then the window
         while fed < total:
             due = min(total, int((time.monotonic() - start) * RATE))
             if due > fed:
-                out.feed(Frames(t[fed:due] - t[0] + start, R[fed:due], x[fed:due], v[fed:due]))
+                f = Frames(t[fed:due] - t[0] + start, R[fed:due], x[fed:due], v[fed:due])
+                before = time.thread_time()
+                out.feed(f)
+                in_feed += time.thread_time() - before
                 fed = due
             if c0 is None and fed >= 2 * RATE:
-                c0, w0, r0 = thread_cpu(tid), time.monotonic(), (out.vrpn.reports if out.vrpn else 0)
+                c0, w0, r0, in_feed = thread_cpu(tid), time.monotonic(), (out.vrpn.reports if out.vrpn else 0), 0.0
             time.sleep(0.005)
         c1, w1, r1 = thread_cpu(tid), time.monotonic(), (out.vrpn.reports if out.vrpn else 0)
         st = out.status()
@@ -85,7 +89,7 @@ def run(mode: str, seconds: float, fit, names, R, x, v, t) -> dict:
             client.wait(10)
         out.stop()
         drain.close()
-    return {"cpu": 100 * (c1 - c0) / (w1 - w0), "reports_hz": (r1 - r0) / (w1 - w0),
+    return {"cpu": 100 * (c1 - c0) / (w1 - w0), "feed": 100 * in_feed / (w1 - w0), "reports_hz": (r1 - r0) / (w1 - w0),
             "clients": len(st["vrpn"]["clients"]) if st["vrpn"] else 0, "bundles": st["vmc"]["bundles_sent"]}
 
 
@@ -110,11 +114,12 @@ def main(argv=None) -> int:
     acc = GramAccumulator(p.n_sensors)
     acc.add_poses(R, x, v)
     fit = calibrate(acc, hierarchy=HUMAN_PARENTS, root="pelvis", names=p.names)
-    print(f"the streams' thread (fc-outputs), 16 birds at {RATE:g} Hz fed in real time, {args.seconds:g} s windows")
+    print(f"the streams (fc-outputs and the work in feed), 16 birds at {RATE:g} Hz fed in real time, {args.seconds:g} s windows")
     for mode, what in (("vmc", "VMC at 60 Hz alone"), ("udp", "VMC + VRPN, vrpn_print_devices over UDP"),
                        ("tcp", "VMC + VRPN, vrpn_print_devices over TCP")):
         w = run(mode, args.seconds, fit, p.names, R, x, v, t)
-        print(f"  {what:42s} {w['cpu']:5.2f} % of one core   (VRPN frames {w['reports_hz']:5.1f}/s to "
+        print(f"  {what:42s} {w['cpu'] + w['feed']:5.2f} % of one core: fc-outputs {w['cpu']:5.2f}, in feed "
+              f"{w['feed']:5.2f}   (VRPN frames {w['reports_hz']:5.1f}/s to "
               f"{w['clients']} client(s); load {os.getloadavg()[0]:.1f})", flush=True)
     return 0
 
