@@ -15,6 +15,7 @@ the streams' thread.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import socket
 import subprocess
@@ -35,6 +36,7 @@ from flockcal.simulator.body import HUMAN_PARENTS  # noqa: E402
 from flockcal.simulator.performer import Performer  # noqa: E402
 from flockcal.solver.accumulator import GramAccumulator  # noqa: E402
 from flockcal.solver.calibration import calibrate  # noqa: E402
+from flockcal.solver.humanoid import find_humanoid  # noqa: E402
 
 RATE = 144.0
 PRINT_DEVICES = Path(__file__).resolve().parents[1].parent / "shared" / "tools" / "vrpn" / "vrpn_print_devices"
@@ -114,6 +116,14 @@ def main(argv=None) -> int:
     acc = GramAccumulator(p.n_sensors)
     acc.add_poses(R, x, v)
     fit = calibrate(acc, hierarchy=HUMAN_PARENTS, root="pelvis", names=p.names)
+    # The humanoid, as the service's fits carry it (found from a sample of the take, one frame every 0.1 s):
+    # without it the streams find none from their first frames and send no bones, which costs nothing.
+    every = t[::int(RATE / 10)].size
+    fit = dataclasses.replace(fit, humanoid=find_humanoid(fit, R[::int(RATE / 10)], x[::int(RATE / 10)],
+                                                          v[::int(RATE / 10)]))
+    if not fit.humanoid.posable:
+        print(f"bench_streams: no humanoid found from {every} frames: {fit.humanoid.reason}", file=sys.stderr)
+        return 2
     print(f"the streams (fc-outputs and the work in feed), 16 birds at {RATE:g} Hz fed in real time, {args.seconds:g} s windows")
     for mode, what in (("vmc", "VMC at 60 Hz alone"), ("udp", "VMC + VRPN, vrpn_print_devices over UDP"),
                        ("tcp", "VMC + VRPN, vrpn_print_devices over TCP")):

@@ -29,6 +29,7 @@ log = logging.getLogger(__name__)
 
 RIG_REFRESH_S = 0.2  # a new fit reaches the streams' rig at most this often (fits come 30 times a second)
 HUMANOID_REFRESH_S = 5.0  # the humanoid is found again this often, and whenever the tree changes
+RETRY_S = 1.0  # a fit that gave no rig (too few frames yet to find the humanoid from) is tried again this often
 SAMPLE_S, SAMPLE_FRAMES = 0.1, 600  # the frames the humanoid is found from: one every 0.1 s, the last minute
 TRACKING_S = 0.25  # newer frames than this, every bone's sensor valid: VMC's tracking status is OK
 QUIET_S = 0.05  # no batch from the reader for this long: the thread sends VMC's bundles on its own grid
@@ -92,6 +93,7 @@ class Outputs:
         # Below: the streams' state, stepped under the lock by the reader's hand-over and by the thread.
         self._lock = threading.Lock()
         self._last_feed = -np.inf
+        self._feed_gap = np.inf  # the reader's hand-overs' interval, smoothed
         self._next_osc = 0.0  # VMC's next tick on its fixed grid
         self._held = (np.full((self.m, 3, 3), np.nan), np.full((self.m, 3), np.nan))
         self._newest: tuple | None = None  # (reader time, valid (m,)) of the newest frame
@@ -106,6 +108,7 @@ class Outputs:
         self._live = Live(None, None, None, None)
         self._rig_at = -np.inf
         self._rig_stale = False
+        self._retry: tuple = (None, -np.inf)  # (a fit that gave no rig, when to try it again)
         self._rig_key: tuple = (None, None)  # whose fit the rig is: snapshot's pose_fit_id
         self._session = None  # the live session as the newest snapshot shows it
         self._humanoid: tuple | None = None  # (the tree it was found on, when, the Humanoid): the thread's
@@ -142,10 +145,13 @@ class Outputs:
         self._queue.append(frames)
         if self._thread is None or self._stop:
             return
-        now = self._last_feed = time.monotonic()
+        now = time.monotonic()
+        gap = now - self._last_feed
+        self._feed_gap = gap if gap > 1 else 0.8 * self._feed_gap + 0.2 * gap
+        self._last_feed = now
         try:
             with self._lock:
-                self._step(now)
+                self._step(now, self._reader_ticks(now))
         except Exception:
             log.exception("outputs: a step failed; the streams go on with the next frames")
 
@@ -176,12 +182,19 @@ class Outputs:
         """Which outputs run, their clients and targets (/api/status `outputs`; refreshed twice a second)."""
         return self._status if self._thread is not None else self._make_status()
 
+    def _reader_ticks(self, now: float) -> bool:
+        """Whether VMC's bundles go out at the reader's hand-overs: while they come at least twice a tick
+        (each bundle then at most half a tick late on its grid); else, and when the tracker goes quiet, the
+        thread keeps the grid (a 60 Hz tracker's frames would land either side of a 60 Hz tick)."""
+        return now - self._last_feed <= QUIET_S and self._feed_gap <= self.osc_period / 2
+
     # -- under the lock -----------------------------------------------------------------------------------
-    def _step(self, now: float) -> None:
+    def _step(self, now: float, osc: bool) -> None:
         """The queued frames when they are owed (every frame to a VRPN client; the newest to a due VMC tick),
-        VMC's bundle when due, and a poke to the thread when a new fit waits for its rig."""
+        VMC's bundle when due (`osc`: this caller keeps VMC's grid), and a poke to the thread when a new fit
+        waits for its rig."""
         streaming = self.vrpn is not None and self.vrpn.streaming
-        osc_due = self.vmc is not None and now >= self._next_osc
+        osc_due = osc and self.vmc is not None and now >= self._next_osc
         if self._queue and (streaming or osc_due):
             self._frames(streaming)
         if osc_due:
@@ -206,12 +219,11 @@ class Outputs:
         next_tick = 0.0
         while not self._stop:
             now = time.monotonic()
-            # While the reader hands frames over, VMC's bundles go out with them and the thread only watches
-            # for the tracker going quiet; then it keeps VMC's grid itself.
+            # While the reader's hand-overs keep VMC's grid, the thread only watches for them to slow down or
+            # stop; then it keeps the grid itself.
             wake = next_tick
             if self.vmc is not None:
-                quiet = now - self._last_feed > QUIET_S
-                wake = min(wake, self._next_osc if quiet else self._last_feed + QUIET_S)
+                wake = min(wake, self._last_feed + QUIET_S if self._reader_ticks(now) else self._next_osc)
             events = sel.select(max(0.0, wake - now))
             now = time.monotonic()
             try:
@@ -221,8 +233,8 @@ class Outputs:
                             key.data(mask)
                         except Exception:  # one client's fault is not the stream's: log it, go on
                             log.exception("outputs: a socket event failed")
-                    if self.vmc is not None and now - self._last_feed > QUIET_S:
-                        self._step(now)
+                    if self.vmc is not None and not self._reader_ticks(now):
+                        self._step(now, True)
                     if now >= next_tick:
                         if self._queue:  # frames no stream asked for yet: the held poses and the sample
                             self._frames(self.vrpn is not None and self.vrpn.streaming)
@@ -285,7 +297,7 @@ class Outputs:
             fit = None
         if fit is not self._fit:
             self._fit, self._fit_key, self._rig_stale = fit, key, True
-        if not self._rig_stale:
+        if not self._rig_stale or (self._retry[0] is fit and fit is not None and now < self._retry[1]):
             return False
         urgent = fit is None or key is None or key[1] is None or key[0] != self._rig_key[0]
         return (urgent or now - self._rig_at >= RIG_REFRESH_S) and (fit is None or self._sampled > 0)
@@ -307,7 +319,9 @@ class Outputs:
             sample = tuple(a[order] for a in self._sample)
         tree = tuple(np.asarray(fit.parent).tolist())
         try:
-            if self._humanoid is None or self._humanoid[0] != tree or now - self._humanoid[1] >= HUMANOID_REFRESH_S:
+            found = self._humanoid
+            if (found is None or found[0] != tree
+                    or now - found[1] >= (HUMANOID_REFRESH_S if found[2].human else RETRY_S)):
                 self._humanoid = (tree, now, humanoid_of(fit, sample))
             rig, reason = humanoid_rig(fit, self._humanoid[2], frames=sample), None
         except (FlockcalError, ValueError, np.linalg.LinAlgError) as exc:  # ArticulationError among them
@@ -324,6 +338,8 @@ class Outputs:
             live = Live(rig, old.packer if same else vrpn.ReportPacker(rig.present), vmc.BoneLayout(rig), session)
         with self._lock:
             self._live, self.reason, self._rig_key = live, reason, key
+            if rig is None:  # a stored fit stays the same object: without this it would never be tried again
+                self._retry, self._rig_stale = (fit, now + RETRY_S), self._rig_stale or fit is self._fit
 
     def _send_vmc(self, now: float, tick: float) -> None:
         """One bundle: the newest frame's bones once there is a rig, else /VMC/Ext/OK "not loaded"; its
