@@ -1,9 +1,10 @@
 """What the live humanoid streams (VRPN, VMC; server/outputs.py) cost their own thread, in process, where a
 shared machine's load moves the figure less than a whole service's (bench_server.py --streams-paired measures
-the service itself): CPU time of the fc-outputs thread and of the feeding thread inside `Outputs.feed` (where
-each frame's work is done, as on the service's reader) as % of one core while `Outputs` is fed 16 birds at
-144 Hz in the reader's 5 ms hand-overs, in real time, from the simulated performer's noisy poses through a
-fit of them; the same for VMC alone (60 Hz), VMC with VRPN's own client over UDP, and over TCP.
+the service itself): CPU time of the fc-outputs thread and of the feeding thread inside `Outputs.feed` (the
+reader's side: a queue append and the wake-up) as % of one core while `Outputs` is fed 16 birds at 144 Hz in
+the reader's 5 ms hand-overs, in real time, from the simulated performer's noisy poses through a fit of them
+that carries its humanoid, as the service's fits do; the same for VMC alone (60 Hz), VMC with VRPN's own
+client over UDP, and over TCP.
 
     python benchmarks/bench_streams.py [--seconds 20]
 
@@ -124,7 +125,7 @@ def main(argv=None) -> int:
     if not fit.humanoid.posable:
         print(f"bench_streams: no humanoid found from {every} frames: {fit.humanoid.reason}", file=sys.stderr)
         return 2
-    print(f"the streams (fc-outputs and the work in feed), 16 birds at {RATE:g} Hz fed in real time, {args.seconds:g} s windows")
+    print(f"the streams (fc-outputs and the reader's side in feed), 16 birds at {RATE:g} Hz fed in real time, {args.seconds:g} s windows")
     for mode, what in (("vmc", "VMC at 60 Hz alone"), ("udp", "VMC + VRPN, vrpn_print_devices over UDP"),
                        ("tcp", "VMC + VRPN, vrpn_print_devices over TCP")):
         w = run(mode, args.seconds, fit, p.names, R, x, v, t)
