@@ -53,8 +53,8 @@ class ConfirmingTest:
             # The second look: scored counting `second_look` of the lagged baseline's extrapolation as noise
             # (none, as the limbs move into a new pose, where it is most of it); a slip it names stands only
             # where the same pose before the onset shows the step stayed (`_attribute`).
-            second, later = self._attribute(onset, fired, ready, c, l, last, more_looks, share=self.settings.second_look_shares,
-                                            verify=True)
+            second, later = self._attribute(onset, fired, ready, c, l, last, more_looks,
+                                            share=self.settings.second_look_shares, verify=True)
             if later is not None:
                 item.verify = True
             if second.kind == "slip" and later is None:
@@ -149,9 +149,9 @@ class ConfirmingTest:
 
         win = Window(times, g, Q, use, weight, onset_row, c, l, swapped, swap_plausible,
                      None if w_joined is weight else w_joined)
-        att = attribute(win, self.joints, self._nbrs, ready, fired, self.m, self.settings.min_jump_m, self.settings.min_evidence,
-                        late_rows=self._pending.merge, min_tail=self.settings.min_frames, more_looks=more_looks,
-                        reseat_refuted=reseat)
+        att = attribute(win, self.joints, self._nbrs, ready, fired, self.m, self.settings.min_jump_m,
+                        self.settings.min_evidence, late_rows=self._pending.merge, min_tail=self.settings.min_frames,
+                        more_looks=more_looks, reseat_refuted=reseat)
         if att.kind in ("slip", None) and att.later_row is not None:
             return att, buf.index_of(int(rows[att.later_row]))
         if att.kind == "slip":

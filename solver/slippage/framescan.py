@@ -138,7 +138,8 @@ class FrameScan:
         h = self._scan_hold
         found = frame_steps(buf.g[rows], buf.Q[rows], pv, c, l, self.joints, [nb], own, leaf.onset - h,
                             leaf.onset + h + 1, self._half, self.settings.scale_floor_m, self._contrast, buf.t[rows], law)
-        if found and found[0].score >= self.settings.frame_step_nats and np.linalg.norm(found[0].step) >= self.settings.min_jump_m:
+        s = self.settings
+        if found and found[0].score >= s.frame_step_nats and np.linalg.norm(found[0].step) >= s.min_jump_m:
             return found[0]
         return None
 
