@@ -55,7 +55,9 @@ def import_seconds(module: str, runs: int) -> float:
 # The slip modules before solver/slippage/ became a package (issue 33), and their names inside it.
 MODULES = {"slippage": "monitor", "slippage_stats": "stats", "slippage_attribution": "attribution",
            "slippage_local": "baseline", "slippage_revisit": "revisit", "slippage_buffer": "buffer",
-           "slippage_pending": "pending"}
+           "slippage_pending": "pending", "slippage_framestep": "framestep", "slippage_events": "events",
+           "slippage_settings": "settings", "slippage_steptest": "steptest", "slippage_confirming": "confirming",
+           "slippage_framescan": "framescan"}
 
 
 def old_monitor(rev: str, folder: Path):

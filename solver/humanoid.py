@@ -12,10 +12,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from flockcal.frames import Frames
-from flockcal.frames import chunk_frames as frames_per_chunk
 from flockcal.names import named_bones
 from flockcal.rotations import nearest_rotation
+# The sample and the tree's shape live in their own modules; callers keep importing them from here.
+from flockcal.solver.humanoid_sample import SAMPLE_CAP, SAMPLE_DT_S, HumanoidSample, Sample, take_sample  # noqa: F401
+from flockcal.solver.humanoid_tree import HUMAN_TREE, _body_of, _Shape, tree_key, tree_shape  # noqa: F401
 
 # VRM 1.0 `humanoid.humanBones` names, in the order of the VRPN sensors (sensor k is BONES[k]).
 BONES: tuple[str, ...] = (
@@ -23,10 +24,6 @@ BONES: tuple[str, ...] = (
     "leftUpperArm", "leftLowerArm", "leftHand", "rightUpperArm", "rightLowerArm", "rightHand",
     "leftUpperLeg", "leftLowerLeg", "leftFoot", "rightUpperLeg", "rightLowerLeg", "rightFoot",
 )
-
-# What the shape test accepts, in the words every "not human" reason ends with.
-HUMAN_TREE = ("a human tree is hips and chest (with or without one spine body between them), a head on the "
-              "chest, two arms of three bodies on the chest and two legs of three bodies on the hips")
 
 # The joint at each bone's inboard end, as people name it. The trunk's two joints: hips–spine is the lower
 # back and spine–chest the mid back; with no spine body the one hips–chest joint spans the lumbar spine,
@@ -42,12 +39,6 @@ JOINT_NAMES = {
 _DEPTH = {"hips": 0, "spine": 1, "chest": 2, "head": 3, "leftUpperArm": 3, "rightUpperArm": 3,
           "leftLowerArm": 4, "rightLowerArm": 4, "leftHand": 5, "rightHand": 5, "leftUpperLeg": 1,
           "rightUpperLeg": 1, "leftLowerLeg": 2, "rightLowerLeg": 2, "leftFoot": 3, "rightFoot": 3}
-
-# The sample of the take the finding reads: a frame every SAMPLE_DT_S of the take's clock, at most
-# SAMPLE_CAP of them (beyond that every other one is dropped and the spacing doubles, so the sample keeps
-# covering the whole take): 0.85 MB for 16 sensors.
-SAMPLE_DT_S = 0.1
-SAMPLE_CAP = 512
 
 # A limb shows the plane it bends in when the angle at its middle joint varied by at least this over the
 # sample (radians rms, about 6°); a limb held stiller takes the trunk's lateral axis, carried onto it by
@@ -153,185 +144,7 @@ def node_name(bone: str) -> str:
     return bone[:1].upper() + bone[1:]
 
 
-# --- the sample -------------------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class Sample:
-    """A snapshot of a `HumanoidSample`: its frames, and how many frames it had ever taken in (`seen`)."""
-
-    frames: Frames
-    seen: int
-
-
-class HumanoidSample:
-    """A bounded, evenly spread sample of a take's frames: one every `dt` seconds of its clock, at most `cap`;
-    when full, every other frame goes and the spacing doubles. Fed a batch at a time (`add`); `frames()` is
-    a snapshot that later `add`s never change (arrays are appended past it or replaced, never rewritten),
-    so another thread may read it while frames keep coming. `seen` counts the frames ever taken in."""
-
-    def __init__(self, n_sensors: int, dt: float = SAMPLE_DT_S, cap: int = SAMPLE_CAP):
-        self.m = int(n_sensors)
-        self.dt = float(dt)
-        self.cap = max(2, int(cap) // 2 * 2)
-        self._alloc(self.cap)
-        self.n = 0
-        self.seen = 0
-        self._origin: float | None = None  # the first frame's time: the grid's zero
-        self._cell = -np.inf  # the grid cell of the newest frame kept
-
-    def _alloc(self, size: int) -> None:
-        self.times = np.zeros(size)
-        self.rotations = np.zeros((size, self.m, 3, 3))
-        self.positions = np.zeros((size, self.m, 3))
-        self.valid = np.zeros((size, self.m), dtype=bool)
-
-    def add(self, frames: Frames) -> int:
-        """Keep the frames of `frames` that fall on the sample's spacing; returns how many were kept. The
-        spacing is a grid of `dt` from the first frame's time: the first frame in each cell is kept, so the
-        sample depends on the frames alone, not on how they were batched."""
-        ts = np.asarray(frames.times, dtype=float)
-        kept, k0 = 0, 0
-        while k0 < len(ts):
-            if self._origin is None:
-                self._origin = float(ts[k0])
-            cells = np.floor((ts[k0:] - self._origin) / self.dt)
-            # The first frame past the last kept cell and every frame that reaches a new one (a running max:
-            # a clock that steps back enters no cell twice).
-            reach = np.maximum.accumulate(np.concatenate([[self._cell], cells]))
-            pick = k0 + np.flatnonzero(reach[1:] > reach[:-1])
-            room = self.cap - self.n
-            take = pick[:room]
-            if len(take):
-                v = np.asarray(frames.valid[take], dtype=bool)
-                at = slice(self.n, self.n + len(take))
-                self.times[at] = ts[take]
-                self.rotations[at] = np.where(v[..., None, None], frames.rotations[take], 0.0)
-                self.positions[at] = np.where(v[..., None], frames.positions[take], 0.0)
-                self.valid[at] = v
-                self.n += len(take)
-                self.seen += len(take)
-                kept += len(take)
-                self._cell = float(cells[take[-1] - k0])
-            if len(pick) <= room:
-                break
-            self._halve()
-            k0 = int(pick[room])
-        return kept
-
-    def _halve(self) -> None:
-        keep = slice(0, self.n, 2)
-        old = (self.times[keep], self.rotations[keep], self.positions[keep], self.valid[keep])
-        self._alloc(self.cap)  # new arrays: a snapshot of the old ones stays as it was
-        k = len(old[0])
-        self.times[:k], self.rotations[:k], self.positions[:k], self.valid[:k] = old
-        self.n = k
-        self.dt *= 2.0
-        self._cell = float(np.floor((self.times[k - 1] - self._origin) / self.dt))
-
-    def frames(self) -> Frames:
-        """The sample so far (views: valid while the sample lives, never rewritten)."""
-        n = self.n
-        return Frames(self.times[:n], self.rotations[:n], self.positions[:n], self.valid[:n])
-
-    def snapshot(self) -> Sample:
-        """The sample so far, for a fit on another thread (no copy: see the class)."""
-        return Sample(self.frames(), self.seen)
-
-
-def take_sample(take, dt: float = SAMPLE_DT_S, cap: int = SAMPLE_CAP, chunk_frames: int | None = None) -> HumanoidSample:
-    """The sample of a `flockcal.takes.ChunkedTake` (a Take, a take file, or the service's frame log), read
-    through its `chunks` (None: `flockcal.frames.chunk_frames`, about 8 MB of arrays, which keeps a take
-    file's memory to its budget; the sample does not depend on them): what `flockcal fit` and the exports
-    find the humanoid from, as the service does from its frames."""
-    sample = HumanoidSample(len(take.names), dt, cap)
-    for f in take.chunks(chunk_frames or frames_per_chunk(len(take.names))):
-        sample.add(f)
-    return sample
-
-
 # --- the finding ------------------------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class _Shape:
-    """The bodies of a human tree by role (sensor indices; spine −1 when there is none)."""
-
-    hips: int
-    spine: int
-    chest: int
-    head: int
-    arms: tuple  # two (upper, lower, hand)
-    legs: tuple  # two (upper, lower, foot)
-
-
-def tree_key(cal) -> frozenset:
-    """The tree as the finding sees it: its joints as unordered sensor pairs, and its rigid groups."""
-    pairs = cal.joints.pairs
-    return frozenset([frozenset(map(int, p)) for p in pairs.tolist()]
-                     + [("rigid", tuple(sorted(map(int, g)))) for g in cal.rigid_groups])
-
-
-def _body_of(cal) -> np.ndarray:
-    """(m,) the sensor that stands for each sensor's body: itself, or for a rigid member the member its
-    group hangs from (the tree hangs rigid members from that sensor, with no joint of their own)."""
-    m = len(cal.names)
-    is_joint = np.zeros(m, dtype=bool)
-    is_joint[cal.joints.pairs[:, 0]] = True
-    rep = np.arange(m)
-    for i in np.asarray(cal.order).tolist():
-        p = int(cal.parent[i])
-        if p >= 0 and not is_joint[i]:
-            rep[i] = rep[p]
-    return rep
-
-
-def tree_shape(cal) -> tuple[_Shape | None, str]:
-    """The roles of a human-shaped tree, or (None, why not) in a sentence for a user."""
-    rep = _body_of(cal)
-    bodies = sorted(set(rep.tolist()))
-    nbrs: dict[int, set] = {b: set() for b in bodies}
-    for c, p in cal.joints.pairs.tolist():
-        a, b = int(rep[c]), int(rep[p])
-        if a != b:
-            nbrs[a].add(b)
-            nbrs[b].add(a)
-    n = len(bodies)
-    if n not in (15, 16):
-        what = f"{n} bodies" + (f" (of {len(rep)} sensors: some move rigidly together)" if n != len(rep) else "")
-        return None, f"not a human tree: it has {what}; {HUMAN_TREE} (15 or 16 bodies)"
-    branch = [b for b in bodies if len(nbrs[b]) >= 3]
-    if len(branch) != 2:
-        return None, (f"not a human tree: {len(branch)} bodies branch (carry three or more neighbours), a human "
-                      f"tree has two, the hips and the chest; {HUMAN_TREE}")
-    a, b = branch
-    spine = -1
-    if b not in nbrs[a]:
-        between = [x for x in nbrs[a] & nbrs[b] if len(nbrs[x]) == 2]
-        if len(between) != 1:
-            return None, f"not a human tree: its two branching bodies are not joined through at most one body; {HUMAN_TREE}"
-        spine = between[0]
-    trunk = {a, b, spine}
-    chains = {}
-    for x in (a, b):
-        out = []
-        for start in sorted(nbrs[x] - trunk):
-            chain, prev, cur = [start], x, start
-            while len(nbrs[cur]) == 2:
-                prev, cur = cur, next(iter(nbrs[cur] - {prev}))
-                chain.append(cur)
-            out.append(chain)
-        chains[x] = out
-    lengths = {x: sorted(len(c) for c in chains[x]) for x in (a, b)}
-    chest = next((x for x in (a, b) if lengths[x] == [1, 3, 3]), None)
-    hips = next((x for x in (a, b) if lengths[x] == [3, 3] and x != chest), None)
-    if chest is None or hips is None:
-        said = " and ".join(f"{'+'.join(map(str, lengths[x])) or 'nothing'}" for x in (a, b))
-        return None, (f"not a human tree: its branching bodies carry chains of {said} bodies, where the chest "
-                      f"carries 1+3+3 (head and arms) and the hips 3+3 (legs); {HUMAN_TREE}")
-    head = next(c[0] for c in chains[chest] if len(c) == 1)
-    arms = tuple(tuple(c) for c in chains[chest] if len(c) == 3)
-    legs = tuple(tuple(c) for c in chains[hips])
-    return _Shape(hips, spine, chest, head, arms, legs), ""
-
 
 class _Points:
     """The sample's frames and every tree joint's centre in the world at each: the fitted centre, or where

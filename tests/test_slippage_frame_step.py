@@ -241,7 +241,7 @@ def test_every_sensor_scored_at_once_scores_each_as_alone():
     ready[4] = False  # one joint not watched (as after an event): its two sensors have one joint fewer
     n = buf.hi - buf.lo
     args = (buf.g[rows], buf.Q[rows], buf.pv[rows], c, l, mon.joints)
-    tail = (n - 200, n - mon._half + 1, mon._half, mon.scale_floor, mon._contrast, buf.t[rows], law)
+    tail = (n - 200, n - mon._half + 1, mon._half, mon.settings.scale_floor_m, mon._contrast, buf.t[rows], law)
     together = {f.sensor: f for f in frame_steps(*args, range(watch.n_sensors), ready, *tail)}
     assert len(together) >= 12
     for s, f in together.items():

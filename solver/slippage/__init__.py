@@ -1,11 +1,14 @@
-"""Slip and swap detection (docs/slippage.md): `SlipMonitor` and `detect_slips` (monitor), the one slip loop
-`SlipWatch` (watch), and the monitor's parts: step test (stats), baseline and confirming test (baseline),
-recent frames (buffer), suspicions by onset (pending), attribution, and the same pose again (revisit).
+"""Slip and swap detection (docs/slippage.md): `SlipMonitor` and `detect_slips` (monitor), its `SlipSettings`
+(settings) and events (events), the one slip loop `SlipWatch` (watch), and the monitor's parts: the step test
+(steptest, stats, baseline), the confirming test (confirming, attribution, revisit), the frame-rate step test
+(framescan, framestep), recent frames (buffer) and suspicions by onset (pending).
 """
 
-from flockcal.solver.slippage.monitor import SlipEvent, SlipMonitor, SlippageError, SwapEvent, detect_slips
+from flockcal.solver.slippage.events import SlipEvent, SlippageError, SwapEvent
+from flockcal.solver.slippage.monitor import SlipMonitor, detect_slips
+from flockcal.solver.slippage.settings import SlipSettings
 
-__all__ = ["SlipEvent", "SlipMonitor", "SlippageError", "SwapEvent", "SlipWatch", "detect_slips"]
+__all__ = ["SlipEvent", "SlipMonitor", "SlipSettings", "SlippageError", "SwapEvent", "SlipWatch", "detect_slips"]
 
 
 def __getattr__(name: str):
