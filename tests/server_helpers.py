@@ -69,6 +69,7 @@ class GuestSource:
     A new guest has another body: frames of the last one in a session would mix two skeletons. So swap
     with a lead (`lead_s` ≈ 0.3 s: the tracker computes poses up to 0.1 s ahead, and frames in flight),
     wait that long, then start the session; the routine's clock starts at the end of the lead.
+    `clock`: the tracker's time (`tracker.flock.time`).
     """
 
     def __init__(self, performer, clock):

@@ -19,7 +19,7 @@ from flockcal.drivers.status import decode_status_word
 from flockcal.rotations import from_euler
 from flockcal.drivers.link import Timing, TrackerError
 from flockcal.drivers.reader import TrackerConfig, TrackerReader
-from flockcal.simulator.clocks import ManualClock
+from flockcal.clock import ManualClock
 from flockcal.simulator.fake_tracker import FakeFlock
 from flockcal.simulator.smooth_source import SmoothSource
 from flockcal.simulator.pty_tracker import PtyTracker

@@ -12,7 +12,7 @@ from flockcal.drivers.parameters import change_command, examine_command, measure
 from flockcal.drivers.status import decode_flock_status, decode_status_word
 from flockcal.drivers.stream import StreamDecoder
 from flockcal.drivers.words import unpack_words
-from flockcal.simulator.clocks import ManualClock
+from flockcal.clock import ManualClock
 from flockcal.simulator.fake_tracker import FakeFlock
 from flockcal.simulator.smooth_source import SmoothSource
 from flockcal.simulator.pty_tracker import PtyTracker
@@ -92,7 +92,7 @@ def test_stream_over_the_pty_counts_rate_times_duration_and_matches_the_source(m
     trk, port, clock, src, flock = manual_pty
     _send(port, flock, change_command(50, 4) + change_command(35, 1)
           + b"".join(format_command("position_matrix", a) for a in range(1, 5)))
-    t_stream = clock.t
+    t_stream = flock.time()
     _send(port, flock, b"@")
     dec = StreamDecoder("position_matrix", group=True, n_birds=4)
     parts = []

@@ -44,7 +44,7 @@ def guest():
     # The simulator's default soft tissue: what skin-mounted sensors do, and what the kiosk profile is for.
     performer = Performer("human", "kiosk", seed=21, rate_hz=RATE, height=1.66)
     tracker = PtyTracker(performer, birds=16, baud=921600, rate_hz=RATE)
-    stream = GuestSource(performer, tracker.flock.clock)
+    stream = GuestSource(performer, tracker.flock.time)
     tracker.flock.source = stream
     tracker.start()
     yield performer, tracker, stream
