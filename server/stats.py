@@ -15,9 +15,9 @@ from flockcal.server.retention import tree_bytes
 _DAY = "date({col}, 'unixepoch', 'localtime')"
 
 
-def season(store, data_dir: Path, days: int = 14, retention: dict | None = None, now: float | None = None) -> dict:
-    """Per-day figures for the last `days` days (today included, newest first) and their totals."""
-    now = time.time() if now is None else now
+def season(store, data_dir: Path, now: float, days: int = 14, retention: dict | None = None) -> dict:
+    """Per-day figures for the last `days` days (today included, newest first) and their totals; `now` is
+    today's stamp (the service clock's, server/clock.py)."""
     since = now - days * 86400.0
     # A session counts as finished when the service said it was calibrated (the `calibrated` event,
     # written the moment progress reached done); its first such event's time_s is its time to calibrate.

@@ -12,7 +12,6 @@ import json
 import os
 import sqlite3
 import threading
-import time
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -237,7 +236,7 @@ class Store:
                     payload = {k: v for k, v in ev.items() if k not in ("id", "session_id", "type", "time_s", "wall_time")}
                     cur = self._db.execute(
                         "INSERT INTO events (id, session_id, type, time_s, wall_time, payload) VALUES (?, ?, ?, ?, ?, ?)",
-                        (ev.get("id"), ev.get("session_id"), ev["type"], ev.get("time_s"), ev.get("wall_time", time.time()),
+                        (ev.get("id"), ev.get("session_id"), ev["type"], ev.get("time_s"), ev["wall_time"],
                          json.dumps(payload)),
                     )
                     ids.append(cur.lastrowid)
