@@ -10,11 +10,12 @@ import socket
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 import httpx
 import numpy as np
+
+from service_process import wait_for
 
 
 def free_port() -> int:
@@ -25,33 +26,37 @@ def free_port() -> int:
 
 def wait_ready(url: str, timeout: float = 30.0, token: str | None = None, proc=None) -> None:
     headers = {"Authorization": f"Bearer {token}"} if token else {}
-    deadline = time.monotonic() + timeout
-    last = None
-    while time.monotonic() < deadline:
+    last = [None]
+
+    def ready() -> bool:
         if proc is not None and proc.poll() is not None:
             raise RuntimeError(f"the service exited with code {proc.returncode} before it was ready")
         try:
             r = httpx.get(url + "/api/status", headers=headers, timeout=2)
-            if r.status_code == 200:
-                return
-            last = r.text
         except httpx.HTTPError as exc:
-            last = exc
-        time.sleep(0.05)
-    raise TimeoutError(f"service at {url} not ready after {timeout} s ({last})")
+            last[0] = exc
+            return False
+        last[0] = r.text
+        return r.status_code == 200
+
+    wait_for(ready, timeout, lambda: f"the service at {url} ready (last answer: {last[0]})")
 
 
 def wait_connected(url: str, timeout: float = 30.0, token: str | None = None, frames: int = 1) -> dict:
     """Poll /api/status until the tracker streams (at least `frames` frames received)."""
     headers = {"Authorization": f"Bearer {token}"} if token else {}
-    deadline = time.monotonic() + timeout
-    st = {}
-    while time.monotonic() < deadline:
+
+    def streaming():
         st = httpx.get(url + "/api/status", headers=headers, timeout=5).json()
-        if st.get("connected") and st.get("frames", 0) >= frames:
-            return st
-        time.sleep(0.05)
-    raise TimeoutError(f"tracker did not stream within {timeout} s: {st}")
+        return st if st.get("connected") and st.get("frames", 0) >= frames else None
+
+    return wait_for(streaming, timeout, f"the tracker streams {frames} frame(s)")
+
+
+def status(url: str, token: str | None = None) -> dict:
+    """GET /api/status."""
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
+    return httpx.get(url + "/api/status", headers=headers, timeout=10).json()
 
 
 def start_session(url: str, performer: str = "Ann", **body) -> str:
@@ -119,11 +124,13 @@ class ServerThread:
         sock = listen_socket(self.settings.host, self.settings.http_port, self.settings.send_buffer_bytes)
         self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [sock]}, name="uvicorn", daemon=True)
         self.thread.start()
-        deadline = time.monotonic() + timeout
-        while not self.server.started:
-            if not self.thread.is_alive() or time.monotonic() > deadline:
+
+        def started() -> bool:
+            if not self.thread.is_alive():
                 raise RuntimeError("uvicorn did not start")
-            time.sleep(0.02)
+            return self.server.started
+
+        wait_for(started, timeout, "uvicorn started", every=0.02)
         return self
 
     def stop(self) -> None:

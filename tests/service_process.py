@@ -40,17 +40,17 @@ class Serve:
         with open(self.log, "ab") as out:
             self.proc = subprocess.Popen(self.args, stdout=out, stderr=subprocess.STDOUT, env=env,
                                          preexec_fn=self._limits)
-        deadline = time.monotonic() + ready_s
-        while time.monotonic() < deadline:
+
+        def ready() -> bool:
             if self.proc.poll() is not None:
                 raise RuntimeError(f"serve exited with {self.proc.returncode}: {self.output()[-2000:]}")
             try:
-                if httpx.get(self.url + "/api/status", timeout=2).status_code == 200:
-                    return self
+                return httpx.get(self.url + "/api/status", timeout=2).status_code == 200
             except httpx.HTTPError:
-                pass
-            time.sleep(0.05)
-        raise TimeoutError(f"serve not ready after {ready_s} s: {self.output()[-2000:]}")
+                return False
+
+        wait_for(ready, ready_s, lambda: f"serve ready ({self.output()[-2000:]})")
+        return self
 
     def output(self) -> str:
         return self.log.read_text(errors="replace") if self.log.exists() else ""
@@ -79,16 +79,17 @@ class Serve:
             self.proc.wait(10)
 
 
-def wait_for(condition, timeout: float, what: str, every: float = 0.05):
-    """Poll `condition()` until it returns something true; its value. AssertionError naming `what` after
-    `timeout` seconds."""
+def wait_for(condition, timeout: float, what, every: float = 0.05):
+    """Poll `condition()` until it returns something true; its value. AssertionError naming `what` (a string,
+    or a function giving one) after `timeout` seconds. The one place the tests wait on real time: `timeout`
+    only ends a hung test (every caller waits on a condition), `every` is how often it is looked at."""
     deadline = time.monotonic() + timeout
     while True:
         value = condition()
         if value:
             return value
         if time.monotonic() > deadline:
-            raise AssertionError(f"{what}: not within {timeout:g} s")
+            raise AssertionError(f"{what() if callable(what) else what}: not within {timeout:g} s")
         time.sleep(every)
 
 

@@ -8,13 +8,13 @@ is on, its reserve set just under what is free now so that the session's own rec
 from __future__ import annotations
 
 import os
-import time
 
 import httpx
 import pytest
 
 from flockcal.server.settings import Settings
 from server_helpers import ServerThread, free_port, wait_connected
+from service_process import wait_for
 
 
 def statvfs_free(path) -> int:
@@ -23,13 +23,11 @@ def statvfs_free(path) -> int:
 
 
 def wait_stopped(url: str, sid: str, timeout: float) -> dict:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
+    def stopped():
         row = httpx.get(url + f"/api/sessions/{sid}").json()
-        if row["state"] != "live":
-            return row
-        time.sleep(0.1)
-    raise AssertionError(f"session {sid} still live after {timeout} s")
+        return row if row["state"] != "live" else None
+
+    return wait_for(stopped, timeout, f"session {sid} stops")
 
 
 def limit_events(url: str, sid: str) -> list[dict]:
