@@ -136,7 +136,7 @@ class TrackerSource:
         try:
             self.reader = TrackerReader(cfg, on_frames=on_frames,
                                         on_event=lambda ev: on_event(event_dict(ev)),
-                                        recording_header={"names": list(self.names)})
+                                        recording_header={"names": list(self.names)}, clock=self.clock)
         except FlockcalError as exc:
             raise ConfigError(f"--device {self.url}: {exc}") from None
         self.reader.start()
