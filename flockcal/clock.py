@@ -27,7 +27,8 @@ class Clock(Protocol):
     arbitrary); `wall()`: unix seconds, which an operator or NTP may step either way; `epoch()`: an id of the
     monotonic clock's origin (readings under one id compare across processes; None: not known).
     `sleep(s)` waits `s` seconds of this clock; `wait(w, timeout)` waits on `w` (an Event, or a Condition held)
-    for at most `timeout` seconds of this clock, and says whether it was set or notified."""
+    for at most `timeout` seconds of this clock, and says whether it was set or notified (a Condition's waiter
+    looks again at what it waits for, as after any notify: a clock may wake it early)."""
 
     def monotonic(self) -> float: ...
 
@@ -107,8 +108,10 @@ class ManualClock:
     wall clock alone (an NTP step: forward when s > 0, back when s < 0). Thread-safe.
 
     Nothing passes on it by itself: `sleep(s)` returns once the test has advanced it `s` seconds, and `wait`
-    once its waitable is set (or notified) or the test has advanced it past the timeout, so a service thread
-    waiting on it follows the test's steps. (A wait looks at its waitable every `slice_s` of real time.)"""
+    once its waitable is set (or notified) or the test has advanced it past the timeout, so a thread waiting
+    on it follows the test's steps. `idle()` says whether every thread that waits on it has caught up with the
+    last step (each is waiting again, for a time still ahead): a test steps the clock, waits for `idle()`,
+    and steps again, as time passing would move a service whose threads all keep up."""
 
     def __init__(self, wall: float = 1.7e9, monotonic: float = 1000.0, epoch: str | None = "manual",
                  slice_s: float = 0.005):
@@ -116,7 +119,10 @@ class ManualClock:
         self._wall = float(wall)
         self._mono = float(monotonic)
         self._epoch = epoch
-        self.slice_s = float(slice_s)
+        self.slice_s = float(slice_s)  # how often a wait looks at an Event (a Condition is woken by `advance`)
+        self._waiting: dict[int, float] = {}  # thread id → the time it waits for (inf: only its waitable)
+        self._followers: dict[int, threading.Thread] = {}  # every thread that ever waited on the clock
+        self._conditions: dict[int, threading.Condition] = {}  # held Conditions waited on now, by thread
 
     def monotonic(self) -> float:
         with self._moved:
@@ -137,27 +143,76 @@ class ManualClock:
             self._mono += seconds
             self._wall += seconds
             self._moved.notify_all()
-            return self._mono
+            now, conditions = self._mono, list(self._conditions.values())
+        for cond in conditions:  # each wait on a Condition looks at the clock again (outside our lock)
+            with cond:
+                cond.notify_all()
+        return now
 
     def step_wall(self, seconds: float) -> None:
         with self._moved:
             self._wall += seconds
 
+    def idle(self) -> bool:
+        """Whether every live thread that has waited on this clock waits again for a time still ahead: none
+        is running, and none is due to wake."""
+        with self._moved:
+            now = self._mono
+            for ident, thread in list(self._followers.items()):
+                if not thread.is_alive():
+                    del self._followers[ident]
+                    self._waiting.pop(ident, None)
+                elif self._waiting.get(ident, now) <= now:
+                    return False
+            return True
+
+    def _park(self, until: float, cond: threading.Condition | None = None) -> None:
+        ident = threading.get_ident()
+        with self._moved:
+            self._followers[ident] = threading.current_thread()
+            self._waiting[ident] = until
+            if cond is not None:
+                self._conditions[ident] = cond
+
+    def _unpark(self) -> None:
+        ident = threading.get_ident()
+        with self._moved:
+            self._waiting.pop(ident, None)
+            self._conditions.pop(ident, None)
+
     def sleep(self, seconds: float) -> None:
         """Return once the clock has been advanced `seconds` from now."""
         with self._moved:
             until = self._mono + max(seconds, 0.0)
-            while self._mono < until:
-                self._moved.wait()
+        self._park(until)
+        try:
+            with self._moved:
+                while self._mono < until:
+                    self._moved.wait()
+        finally:
+            self._unpark()
 
     def wait(self, waitable: Waitable, timeout: float | None) -> bool:
-        if timeout is None:
-            return bool(waitable.wait())
-        until = self.monotonic() + max(timeout, 0.0)
-        while self.monotonic() < until:
-            if waitable.wait(self.slice_s):
-                return True
-        return bool(waitable.wait(0))
+        until = float("inf") if timeout is None else self.monotonic() + max(timeout, 0.0)
+        if hasattr(waitable, "is_set"):  # an Event: looked at every slice_s, woken at once by a step
+            self._park(until)
+            try:
+                with self._moved:
+                    while not waitable.is_set() and self._mono < until:
+                        self._moved.wait(self.slice_s)
+                return waitable.is_set()
+            finally:
+                self._unpark()
+        # A Condition its caller holds: notified by its owner, or by a step (then the caller looks again).
+        self._park(until, waitable)
+        try:
+            if timeout is None:
+                return bool(waitable.wait())
+            if self.monotonic() >= until:
+                return bool(waitable.wait(0))
+            return bool(waitable.wait(0.25))  # a step wakes it; the real-time bound only guards against a hang
+        finally:
+            self._unpark()
 
 
 SYSTEM = SystemClock()

@@ -53,6 +53,22 @@ def wait_connected(url: str, timeout: float = 30.0, token: str | None = None, fr
     return wait_for(streaming, timeout, f"the tracker streams {frames} frame(s)")
 
 
+def run_clock(clock, seconds: float, dt: float = 0.05, until=None, timeout: float = 60.0) -> float:
+    """Let `seconds` of a `ManualClock` pass (with `until`, only until it holds) in steps of `dt`, each once
+    every thread that follows the clock has caught up with the last (`ManualClock.idle`): the fake tracker,
+    the reader and the service move as time passing moves them, however slowly a loaded machine runs them.
+    Returns the seconds that passed; AssertionError when `until` did not hold within `seconds`."""
+    passed = 0.0
+    while passed < seconds - 1e-9:
+        if until is not None and until():
+            return passed
+        clock.advance(dt)
+        passed += dt
+        wait_for(clock.idle, timeout, "the threads that follow the clock catch up", every=0.001)
+    assert until is None or until(), f"not within {seconds:g} s of the clock"
+    return passed
+
+
 def status(url: str, token: str | None = None) -> dict:
     """GET /api/status."""
     headers = {"Authorization": f"Bearer {token}"} if token else {}
