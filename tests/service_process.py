@@ -17,16 +17,19 @@ import httpx
 
 class Serve:
     """`python -m flockcal serve ARGS` on a free port; `nofile=(soft, hard)` sets its open-files limits
-    first (what a systemd unit's LimitNOFILE, or the lack of one, gives it). Use as a context manager:
-    the child is stopped (SIGINT, then SIGKILL after 20 s) and reaped on the way out."""
+    first (what a systemd unit's LimitNOFILE, or the lack of one, gives it); `prefix` runs it through a
+    command that execs it (`unshare ... sh -c '...; exec "$@"'`). Use as a context manager: the child is
+    stopped (SIGINT, then SIGKILL after 20 s) and reaped on the way out."""
 
-    def __init__(self, args: list[str], port: int, log: Path, nofile: tuple[int, int] | None = None):
+    def __init__(self, args: list[str], port: int, log: Path, nofile: tuple[int, int] | None = None,
+                 prefix: list | None = None):
         self.port = port
         self.url = f"http://127.0.0.1:{port}"
         args = [str(a) for a in args]
         if "--data-dir" not in args:  # never the user's own data directory (one service per directory)
             args += ["--data-dir", str(Path(log).parent / f"data-{port}")]
-        self.args = [sys.executable, "-m", "flockcal", "serve", "--http-port", str(port), *args]
+        self.args = [*map(str, prefix or []), sys.executable, "-m", "flockcal", "serve", "--http-port", str(port),
+                     *args]
         self.log = Path(log)
         self.nofile = nofile
         self.proc: subprocess.Popen | None = None
