@@ -4,6 +4,7 @@ child process (for restarts and kill -9), plus the fake tracker on a pty as its 
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
@@ -67,6 +68,21 @@ def run_clock(clock, seconds: float, dt: float = 0.05, until=None, timeout: floa
         wait_for(clock.idle, timeout, "the threads that follow the clock catch up", every=0.001)
     assert until is None or until(), f"not within {seconds:g} s of the clock"
     return passed
+
+
+@contextlib.contextmanager
+def manual_service(settings, wall: float = 1.7e9):
+    """The whole service on a `ManualClock` the test moves (`run_clock`): the simulated tracker (a sim://
+    device is made on the service's clock), the reader, the pipeline, leases, retention and stamps, under
+    uvicorn on a thread. Yields (ServerThread, clock) once the tracker has sent 10 frames."""
+    from flockcal.clock import ManualClock
+    from flockcal.server.service import Service
+
+    clock = ManualClock(wall=wall, monotonic=1000.0)
+    service = Service(settings, clock=clock)
+    with ServerThread(settings, service) as srv:
+        run_clock(clock, 30.0, until=lambda: service.source.status().get("frames", 0) >= 10)
+        yield srv, clock
 
 
 def status(url: str, token: str | None = None) -> dict:

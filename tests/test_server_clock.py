@@ -17,10 +17,9 @@ import pytest
 
 from flockcal.clock import ManualClock, SystemClock
 from flockcal.server.clock import ServiceClock
-from flockcal.server.service import Service
 from flockcal.server.settings import Settings
 from flockcal.server.store import Store
-from server_helpers import ServerThread, free_port, run_clock, wait_connected
+from server_helpers import free_port, manual_service, run_clock, wait_connected
 
 HOUR = 3600.0
 
@@ -109,14 +108,10 @@ def test_the_system_clock_reads_the_boot_clock():
 
 @pytest.fixture()
 def stepping_service(tmp_path):
-    # The whole service on one clock the test moves: the simulated tracker (sim://, made on the service's
-    # clock), the reader, the pipeline, the leases, retention and the stamps.
-    manual = ManualClock(wall=time.time(), monotonic=1000.0)
+    # The whole service on one clock the test moves (server_helpers.manual_service).
     settings = Settings(device="sim://clock?birds=4&model=linkage&motion=exercise&rate=60", birds=4,
                         http_port=free_port(), data_dir=tmp_path / "data", keep_days=0.03)
-    service = Service(settings, clock=manual)
-    with ServerThread(settings, service) as srv:
-        run_clock(manual, 30.0, until=lambda: service.source.status().get("frames", 0) >= 10)
+    with manual_service(settings, wall=time.time()) as (srv, manual):
         yield srv, manual
 
 
