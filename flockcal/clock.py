@@ -139,15 +139,24 @@ class ManualClock:
         """Let `seconds` pass; the monotonic time after it."""
         if seconds < 0:
             raise ValueError("time passing cannot go back; step_wall steps the wall clock")
+        return self._move(lambda mono: mono + seconds)
+
+    def advance_to(self, monotonic: float) -> float:
+        """Let time pass until the monotonic clock reads `monotonic` exactly (steps summed in floating point
+        land a hair short of a time a sleeper computed as now + s); the monotonic time after it."""
+        return self._move(lambda mono: max(mono, monotonic))
+
+    def _move(self, to) -> float:
         with self._moved:
-            self._mono += seconds
-            self._wall += seconds
+            new = to(self._mono)
+            self._wall += new - self._mono
+            self._mono = new
             self._moved.notify_all()
-            now, conditions = self._mono, list(self._conditions.values())
+            conditions = list(self._conditions.values())
         for cond in conditions:  # each wait on a Condition looks at the clock again (outside our lock)
             with cond:
                 cond.notify_all()
-        return now
+        return new
 
     def step_wall(self, seconds: float) -> None:
         with self._moved:

@@ -119,7 +119,7 @@ class FitWorker:
 
     def __init__(self, names, tolerance: float, clock: Clock, on_done: Callable[[], None] = lambda: None):
         self.names = tuple(names)
-        self.clock = clock  # the seconds a fit took
+        self.clock = clock  # the seconds a fit took; the thread waits for jobs on it
         self.tolerance = float(tolerance)
         self.on_done = on_done
         self._cond = threading.Condition()
@@ -176,7 +176,7 @@ class FitWorker:
         while True:
             with self._cond:
                 while self._job is None and not self._stop:
-                    self._cond.wait()
+                    self.clock.wait(self._cond, None)  # on the clock: a test's clock waits for the fit
                 if self._stop:
                     return
                 job, self._job = self._job, None

@@ -59,15 +59,15 @@ def run_clock(clock, seconds: float, dt: float = 0.05, until=None, timeout: floa
     every thread that follows the clock has caught up with the last (`ManualClock.idle`): the fake tracker,
     the reader and the service move as time passing moves them, however slowly a loaded machine runs them.
     Returns the seconds that passed; AssertionError when `until` did not hold within `seconds`."""
-    passed = 0.0
-    while passed < seconds - 1e-9:
+    start, steps = clock.monotonic(), max(1, round(seconds / dt))
+    for k in range(1, steps + 1):
         if until is not None and until():
-            return passed
-        clock.advance(dt)
-        passed += dt
+            return (k - 1) * seconds / steps
+        # To start + k steps exactly: a thread that sleeps `seconds` from `start` wakes at the last.
+        clock.advance_to(start + seconds if k == steps else start + k * seconds / steps)
         wait_for(clock.idle, timeout, "the threads that follow the clock catch up", every=0.001)
     assert until is None or until(), f"not within {seconds:g} s of the clock"
-    return passed
+    return seconds
 
 
 @contextlib.contextmanager

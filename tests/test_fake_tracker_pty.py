@@ -44,6 +44,8 @@ def _pass(trk, clock, seconds, steps=1):
     """Let flock time pass, step by step, each step's bytes handed on to the pty before the next."""
     for _ in range(steps):
         clock.advance(seconds / steps)
+        # The flock has made this step's bytes (every thread on the clock caught up), then they are handed on.
+        wait_for(clock.idle, 5.0, "the flock catches up with the clock", every=0.001)
         _handed_on(trk)
 
 
@@ -141,8 +143,16 @@ def test_garbage_injection_is_visible_on_the_wire(manual_pty):
     dec.feed(port.read(port.in_waiting))
     trk.inject_garbage(30)
     _pass(trk, clock, 0.2)
-    out = dec.feed(port.read(port.in_waiting))
-    assert dec.dropped_bytes == 30 and dec.resyncs == 1 and len(out) > 0
+    # Read until the records after the garbage are decoded (the kernel hands a pty's bytes to its reader a
+    # moment after the server wrote them).
+    out = []
+
+    def resynced() -> bool:
+        out.extend(dec.feed(port.read(port.in_waiting)).addresses)
+        return dec.resyncs >= 1 and len(out) > 0
+
+    wait_for(resynced, 5.0, lambda: f"records after the garbage (dropped {dec.dropped_bytes}, {len(out)} records)")
+    assert dec.dropped_bytes == 30 and dec.resyncs == 1
 
 
 def test_disconnect_fails_the_client_and_reconnect_serves_the_same_path(manual_pty):
