@@ -1,6 +1,6 @@
 """VMC protocol out: the live humanoid as OSC bundles over UDP to VMC receivers (EVMC4U, VMC4UE, VMC4B, Godot's),
 laid out by python-osc once per set of bones and refilled in place each frame, sent fire-and-forget
-(docs/outputs.md#vmc-the-live-humanoid-over-the-vmc-protocol).
+(docs/streams.md#vmc-the-live-humanoid-over-the-vmc-protocol).
 """
 
 from __future__ import annotations
