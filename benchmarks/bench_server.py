@@ -35,6 +35,17 @@ without (A) and with (B) them, as `--ab` does two revisions, and prints what the
 one core (B − A per round, neighbouring runs) and their own thread's share (fc-outputs).
 
     python benchmarks/bench_server.py --streams-ab --rounds 3 --seconds 20
+
+The whole service's CPU moves by several points between runs of the same code on a shared machine (other
+work, the refit rate that follows it), more than the streams cost. `--streams-paired` runs A and B at the
+same time instead, each with its fake tracker in a process of its own, and reads both processes' CPU
+(/proc, user + system) over the same windows: what loads the machine loads both, and each window's B − A is
+one paired sample. `--windows` windows of `--seconds` per round, a fresh pair each round (which side starts
+first alternates); printed: the median B − A over all windows and per round, the same without the fit
+thread (whose CPU follows the refit rate each side got), per thread, and fc-outputs' own share. `--rev REV`
+serves git revision REV's code in either streams mode (default: this tree).
+
+    python benchmarks/bench_server.py --streams-paired --rounds 3 --windows 8 --seconds 5
 """
 
 from __future__ import annotations
@@ -170,11 +181,17 @@ def main(argv=None) -> int:
                     help="serve VRPN and VMC with a VRPN client and a VMC receiver attached")
     ap.add_argument("--streams-ab", action="store_true",
                     help="A/B mode for the streams: this tree without them (A) and with them and their clients (B)")
+    ap.add_argument("--streams-paired", action="store_true",
+                    help="the streams' A and B at the same time, CPU of both read over the same windows")
+    ap.add_argument("--windows", type=int, default=8, help="--streams-paired: windows per round (default 8)")
+    ap.add_argument("--rev", help="--streams-ab / --streams-paired: serve git revision REV (default: this tree)")
     args = ap.parse_args(argv)
     if args.ab:
         return ab(args.ab, args.rounds, args.seconds, args.dashboards, args.probe_hz[0])
     if args.streams_ab:
-        return streams_ab(args.rounds, args.seconds, args.dashboards, args.probe_hz[0])
+        return streams_ab(args.rounds, args.seconds, args.dashboards, args.probe_hz[0], args.rev)
+    if args.streams_paired:
+        return streams_paired(args.rounds, args.windows, args.seconds, args.rev)
 
     tmp = tempfile.mkdtemp(prefix="flockcal-bench-site-")
     try:  # this tree's code, as B runs it in A/B mode, not whatever the editable install points at
@@ -435,12 +452,23 @@ def ab(rev: str, rounds: int, seconds: float, dashboards: int, probe_hz: float) 
     return 0
 
 
-def streams_ab(rounds: int, seconds: float, dashboards: int, probe_hz: float) -> int:
-    """This tree's service without (A) and with (B) the VRPN and VMC streams and their clients, in turn."""
+def code_site(rev: str | None, into: str) -> tuple[str, str]:
+    """(site, label) of the code a streams run serves: git revision `rev`, or this tree when None."""
+    if rev is None:
+        return tree_site(into), "this tree"
+    commit = subprocess.run(["git", "-C", str(Path(__file__).resolve().parents[1]), "rev-parse", "--short", rev],
+                            capture_output=True, text=True)
+    if commit.returncode != 0:
+        raise SystemExit(f"bench_server: no git revision {rev!r}")
+    return export_revision(rev, into), f"{rev} ({commit.stdout.strip()})"
+
+
+def streams_ab(rounds: int, seconds: float, dashboards: int, probe_hz: float, rev: str | None = None) -> int:
+    """The service without (A) and with (B) the VRPN and VMC streams and their clients, in turn."""
     tmp = tempfile.mkdtemp(prefix="flockcal-streams-ab-")
     try:
-        site = tree_site(tmp)
-        print(f"streams A/B: A = this tree, no streams; B = this tree with --vrpn and --osc, vrpn_print_devices and "
+        site, code = code_site(rev, tmp)
+        print(f"streams A/B of {code}: A = no streams; B = --vrpn and --osc, vrpn_print_devices and "
               f"a VMC receiver attached; 16 birds at {RATE:g} Hz, {seconds:g} s windows, probe at {probe_hz:g} Hz, "
               f"{dashboards} extra dashboards, {rounds} rounds")
         runs: list[tuple[str, dict]] = []
@@ -465,6 +493,100 @@ def streams_ab(rounds: int, seconds: float, dashboards: int, probe_hz: float) ->
         print(f"  streams add (B - A, points of one core) per round: {' '.join(f'{d:+.1f}' for d in diffs)}; "
               f"median {np.median(diffs):+.1f} (target at most +3)")
         print(f"  their thread fc-outputs: {' '.join(f'{x:.1f}' for x in own)} % of one core; median {np.median(own):.1f}")
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+    return 0
+
+
+def _paired_side(site: str, streams: bool, conn) -> None:
+    """One side of a paired run, in a process of its own with its fake tracker: serve until told to stop."""
+    try:
+        with Service(site, streams=streams) as svc:
+            conn.send((svc.proc.proc.pid, svc.proc.url))
+            conn.recv()
+            conn.send(svc.vmc.received if streams else None)
+    except BaseException as exc:
+        conn.send(exc)
+        raise
+
+
+def _paired_reading(pid: int, url: str) -> tuple:
+    return cpu_seconds(pid), thread_cpu(pid), httpx.get(url + "/api/status").json()["fits"], time.monotonic()
+
+
+def streams_paired(rounds: int, windows: int, seconds: float, rev: str | None = None) -> int:
+    """The service without (A) and with (B) the streams at the same time; each window's B − A in points."""
+    tmp = tempfile.mkdtemp(prefix="flockcal-streams-paired-")
+    ctx = multiprocessing.get_context("spawn")
+    diffs: list[list[float]] = []
+    nofit: list[float] = []
+    per_thread: dict[str, list[float]] = {}
+    own: list[float] = []
+    sides_cpu: dict[str, list[float]] = {"A": [], "B": []}
+    fits: dict[str, list[float]] = {"A": [], "B": []}
+    try:
+        site, code = code_site(rev, tmp)
+        print(f"streams paired A/B of {code}: A (no streams) and B (--vrpn and --osc, vrpn_print_devices and a VMC "
+              f"receiver attached) at the same time, each with its fake tracker in a process of its own; 16 birds "
+              f"at {RATE:g} Hz, no websocket client; {rounds} rounds of {windows} windows of {seconds:g} s", flush=True)
+        for r in range(rounds):
+            procs, conns, where = {}, {}, {}
+            try:
+                for side in ("AB" if r % 2 == 0 else "BA"):
+                    here, there = ctx.Pipe()
+                    procs[side] = ctx.Process(target=_paired_side, args=(site, side == "B", there), daemon=True)
+                    procs[side].start()
+                    conns[side] = here
+                for side, conn in conns.items():
+                    got = conn.recv()
+                    if isinstance(got, BaseException):
+                        raise SystemExit(f"bench_server: side {side} did not start: {got}")
+                    where[side] = got
+                round_diffs = []
+                for _ in range(windows):
+                    before = {s: _paired_reading(*where[s]) for s in "AB"}
+                    time.sleep(seconds)
+                    after = {s: _paired_reading(*where[s]) for s in "AB"}
+                    share = {}
+                    for s in "AB":
+                        (c0, th0, f0, w0), (c1, th1, f1, w1) = before[s], after[s]
+                        wall = w1 - w0
+                        th = {k: 100 * (v - th0.get(k, 0.0)) / wall for k, v in th1.items()}
+                        share[s] = (100 * (c1 - c0) / wall, th)
+                        sides_cpu[s].append(share[s][0])
+                        fits[s].append((f1 - f0) / wall)
+                    (ca, tha), (cb, thb) = share["A"], share["B"]
+                    round_diffs.append(cb - ca)
+                    nofit.append((cb - thb.get("fc-fit", 0.0)) - (ca - tha.get("fc-fit", 0.0)))
+                    for k in set(tha) | set(thb):
+                        per_thread.setdefault(k, []).append(thb.get(k, 0.0) - tha.get(k, 0.0))
+                    own.append(thb.get("fc-outputs", 0.0))
+                diffs.append(round_diffs)
+                print(f"  round {r + 1}: B - A per window {' '.join(f'{d:+.1f}' for d in round_diffs)}; median "
+                      f"{np.median(round_diffs):+.1f}; A {np.median(sides_cpu['A'][-windows:]):.1f} %, "
+                      f"B {np.median(sides_cpu['B'][-windows:]):.1f} %; refits A {np.median(fits['A'][-windows:]):.1f}/s, "
+                      f"B {np.median(fits['B'][-windows:]):.1f}/s; load {os.getloadavg()[0]:.1f}", flush=True)
+            finally:
+                for side, conn in conns.items():
+                    try:
+                        conn.send("stop")
+                    except OSError:
+                        pass
+                for p in procs.values():
+                    p.join(60)
+                    if p.is_alive():
+                        p.terminate()
+                        p.join(10)
+        every = [d for rd in diffs for d in rd]
+        q1, q3 = np.percentile(every, [25, 75])
+        print(f"  streams add (B - A, points of one core): median {np.median(every):+.1f} over {len(every)} windows "
+              f"(quartiles {q1:+.1f} {q3:+.1f}; round medians {' '.join(f'{np.median(rd):+.1f}' for rd in diffs)}; "
+              f"target at most +3)")
+        print(f"  without the fit thread (its CPU follows the refit rate each side got): median {np.median(nofit):+.1f}")
+        tops = sorted(per_thread.items(), key=lambda kv: -abs(np.median(kv[1])))
+        print("  per thread, median B - A: " + ", ".join(f"{k} {np.median(v):+.1f}" for k, v in tops
+                                                        if abs(np.median(v)) >= 0.1))
+        print(f"  their thread fc-outputs: median {np.median(own):.1f} % of one core (range {min(own):.1f}-{max(own):.1f})")
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
     return 0

@@ -29,6 +29,8 @@ class MarkerTake:
     times: np.ndarray  # (n,) seconds since start
     source: str = "markers"
     declared_frames: int | None = None  # frames a C3D header declares, when the file held fewer (--salvage)
+    up: str | None = None  # the world's up axis the file states ("+z", "-z", "+y"), None when it states none
+    up_from: str = ""  # where `up` comes from, for a person ("the C3D's POINT:Z_SCREEN", …)
 
     @property
     def n_frames(self) -> int:
@@ -43,7 +45,8 @@ class MarkerTake:
         return np.isfinite(self.markers).all(-1)
 
 
-def make_marker_take(markers, marker_names, rate_hz, times=None, source: str = "markers") -> MarkerTake:
+def make_marker_take(markers, marker_names, rate_hz, times=None, source: str = "markers", up: str | None = None,
+                     up_from: str = "") -> MarkerTake:
     """Build a validated MarkerTake from arrays (metres); raises MarkerError naming the first problem."""
     M = np.asarray(markers, dtype=float)
     if M.ndim != 3 or M.shape[2] != 3:
@@ -82,7 +85,9 @@ def make_marker_take(markers, marker_names, rate_hz, times=None, source: str = "
             raise MarkerError(f"{source}: 'times' must be {n} finite numbers, got shape {ts.shape}")
         if np.any(np.diff(ts) < 0):
             raise MarkerError(f"{source}: 'times' must not go backwards")
-    return MarkerTake(M, names, rate, ts, source)
+    if up is not None and up not in UP_AXES:
+        raise MarkerError(f"{source}: 'up' must be one of {', '.join(UP_AXES)}, got {up!r}")
+    return MarkerTake(M, names, rate, ts, source, up=up, up_from=up_from if up is not None else "")
 
 
 def is_marker_take(path) -> bool:
@@ -122,7 +127,9 @@ def load_marker_npz(path: str | os.PathLike) -> MarkerTake:
     missing = [k for k in ("markers", "marker_names", "rate_hz") if k not in arrays]
     if missing:
         raise MarkerError(f"{path}: missing array(s) {', '.join(missing)} (docs/design.md §5 lists what a marker take holds)")
-    return make_marker_take(arrays["markers"], arrays["marker_names"], arrays["rate_hz"], arrays.get("times"), str(path))
+    up = str(np.asarray(arrays["up"]).reshape(-1)[0]) if "up" in arrays else None
+    return make_marker_take(arrays["markers"], arrays["marker_names"], arrays["rate_hz"], arrays.get("times"), str(path),
+                            up=up, up_from="the file's 'up' entry")
 
 
 def save_markers(path: str | os.PathLike, take: MarkerTake) -> None:
@@ -137,6 +144,7 @@ def save_markers(path: str | os.PathLike, take: MarkerTake) -> None:
         marker_names=np.asarray(take.marker_names, dtype=str),
         rate_hz=np.float64(take.rate_hz),
         times=take.times,
+        **({} if take.up is None else {"up": np.asarray(take.up)}),
     )
 
 
@@ -208,13 +216,16 @@ def ezc3d_module(doing: str):
 
 def save_c3d(path: str | os.PathLike, take: MarkerTake) -> None:
     """Write a marker take as a C3D file (through ezc3d), atomically: POINT:UNITS mm, the take's rate and
-    marker names as labels, a marker not seen in a frame stored as C3D marks one (residual −1, at the
-    origin), so `load_c3d` reads the take back as it was (to float32's precision)."""
+    marker names as labels, the take's up axis (if it states one) as POINT:Z_SCREEN, a marker not seen in a
+    frame stored as C3D marks one (residual −1, at the origin), so `load_c3d` reads the take back as it was
+    (to float32's precision)."""
     ezc3d = ezc3d_module("writing")
     c = ezc3d.c3d()
     c["parameters"]["POINT"]["RATE"]["value"] = [float(take.rate_hz)]
     c["parameters"]["POINT"]["LABELS"]["value"] = list(take.marker_names)
     c.add_parameter("POINT", "UNITS", ["mm"])
+    if take.up is not None:  # the simulator's world is z down: a viewer (and `load_c3d`) reads it from here
+        c.add_parameter("POINT", "Z_SCREEN", [take.up.upper()])
     xyz = take.markers.transpose(2, 1, 0) * 1000.0  # (3, k, n) mm
     seen = take.visible().T
     points = np.ones((4, take.n_markers, take.n_frames))
@@ -294,5 +305,22 @@ def load_c3d(path: str | os.PathLike, salvage: bool = False) -> MarkerTake:
     keep = [i for i, lab in enumerate(labels) if lab not in exclude]
     if len(keep) < 2:
         raise MarkerError(f"{path}: fewer than two marker trajectories after dropping model outputs")
-    take = make_marker_take(xyz[:, keep], [labels[i] for i in keep], rate, source=str(path))
+    up, up_from = c3d_up(params)
+    take = make_marker_take(xyz[:, keep], [labels[i] for i in keep], rate, source=str(path), up=up, up_from=up_from)
     return take if declared is None else replace(take, declared_frames=declared)
+
+
+# The up axes a take's world may have (flockcal.exports.bvh.UP_AXES draws them), as C3D's POINT:Z_SCREEN
+# names them (the axis a viewer shows pointing up).
+UP_AXES = ("+z", "-z", "+y")
+
+
+def c3d_up(params) -> tuple[str, str]:
+    """(up axis, where it comes from) of a C3D: its POINT:Z_SCREEN when that names an axis flockcal draws,
+    else +z, the format's usual convention (Vicon, Qualisys and the C3D.org sample files are Z-up)."""
+    screen = str((_param(params, "POINT", "Z_SCREEN", [""]) or [""])[0]).strip().lower()
+    if screen in UP_AXES:
+        return screen, "the C3D's POINT:Z_SCREEN"
+    if screen:
+        return "+z", f"the C3D convention (its POINT:Z_SCREEN {screen.upper()} is not drawn: give --up)"
+    return "+z", "the C3D convention (the file has no POINT:Z_SCREEN)"

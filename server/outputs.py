@@ -18,8 +18,8 @@ import numpy as np
 from flockcal.clock import Clock
 from flockcal.errors import FlockcalError
 from flockcal.frames import Frames
+from flockcal.rotations import as_quat
 from flockcal.server import vmc, vrpn
-from flockcal.server.pose import quaternions
 from flockcal.solver.humanoid import BONES, Humanoid
 from flockcal.solver.humanoid_pose import HumanoidRig, humanoid_rig
 from flockcal.solver.reconstruct import held_poses
@@ -29,6 +29,7 @@ log = logging.getLogger(__name__)
 
 RIG_REFRESH_S = 0.2  # a new fit reaches the streams' rig at most this often (fits come 30 times a second)
 HUMANOID_REFRESH_S = 5.0  # the humanoid is found again this often, and whenever the tree changes
+RETRY_S = 1.0  # a stopped session's fit that gave no rig (too few frames yet) is tried again this often
 SAMPLE_S, SAMPLE_FRAMES = 0.1, 600  # the frames the humanoid is found from: one every 0.1 s, the last minute
 TRACKING_S = 0.25  # newer frames than this, every bone's sensor valid: VMC's tracking status is OK
 OSC_GRACE_S = 0.02  # how long a due VMC bundle waits for a frame's wake-up to ride on
@@ -95,6 +96,7 @@ class Outputs:
         self._layout: vmc.BoneLayout | None = None  # the rig's VMC bones, laid out once
         self._rig_at = -np.inf
         self._rig_stale = False
+        self._retry: tuple = (None, -np.inf)  # (a fit that gave no rig, when to try it again)
         self._rig_key: tuple = (None, None)  # whose fit the rig is: snapshot's pose_fit_id
         self._session = None  # the live session as the snapshot the rig was followed in showed it
         self._humanoid: tuple | None = None  # (the tree it was found on, when, the Humanoid)
@@ -202,8 +204,7 @@ class Outputs:
     def _drain_wake(self, _mask) -> None:
         self._woken = False
         try:
-            while self._wake_r.recv(4096):
-                pass
+            self._wake_r.recv(4096)  # one byte a wake-up, sent only while `_woken` was clear
         except (BlockingIOError, OSError):
             pass
 
@@ -233,8 +234,7 @@ class Outputs:
             return
         pos, rot = rig.segments(R, t)
         self._segments = (self._newest[0], pos[-1], rot[-1])
-        n, k = pos.shape[:2]
-        quats = quaternions(rot.reshape(-1, 3, 3)).reshape(n, k, 4)
+        quats = as_quat(rot, scalar_first=False)
         wall = f.times + (self.clock.wall() - self.clock.monotonic())
         self.vrpn.send_reports(self._packer.frames(wall, pos, quats))
 
@@ -254,6 +254,8 @@ class Outputs:
         # state says must be what its bones are); the same session's next live fit: at the refresh rate.
         urgent = fit is None or key is None or key[1] is None or key[0] != self._rig_key[0]
         if not self._rig_stale or (not urgent and now - self._rig_at < RIG_REFRESH_S):
+            return
+        if fit is not None and self._retry[0] is fit and now < self._retry[1]:
             return
         self._rig_at = now
         self._segments = None
@@ -277,10 +279,15 @@ class Outputs:
             log.warning("VRPN and VMC send no bones: %s", reason)  # one line a change, not one a fit
         elif rig is not None and self._rig is None:
             log.info("VRPN and VMC stream the humanoid: %s", ", ".join(BONES[k] for k in rig.present))
-        self._rig, self.reason, self._rig_key = rig, reason, key
+        if rig is None and key is not None and key[1] is None:
+            # A stopped session's final fit stays the same object (a live session's next fit is tried anyway):
+            # found again from the frames come since (the first batch's sample alone finds no humanoid).
+            self._retry, self._rig_stale, self._humanoid = (fit, now + RETRY_S), True, None
         if rig is not None:
-            self._packer = vrpn.ReportPacker(rig.present)
+            if self._rig is None or not np.array_equal(self._rig.present, rig.present):
+                self._packer = vrpn.ReportPacker(rig.present)  # its layout hangs on the bones present only
             self._layout = vmc.BoneLayout(rig)
+        self._rig, self.reason, self._rig_key = rig, reason, key
 
     def _send_vmc(self, now: float, tick: float) -> None:
         """One bundle: the newest frame's bones once there is a rig, else /VMC/Ext/OK "not loaded"; its

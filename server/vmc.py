@@ -14,7 +14,7 @@ import numpy as np
 from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
 from pythonosc.osc_message_builder import OscMessageBuilder
 
-from flockcal.server.pose import quaternions
+from flockcal.rotations import as_quat
 
 log = logging.getLogger(__name__)
 
@@ -132,7 +132,7 @@ class BoneLayout:
         local[self.has] = np.swapaxes(rotations[self.up], -1, -2) @ rotations[self.has]
         pos = self.offsets.copy()
         pos[~self.has] = positions[~self.has] * UNITY_POSITION
-        return np.concatenate([pos, quaternions(local) * UNITY_QUATERNION], axis=1)
+        return np.concatenate([pos, as_quat(local, scalar_first=False) * UNITY_QUATERNION], axis=1)
 
 
 class Bundle:

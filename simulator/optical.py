@@ -245,7 +245,9 @@ def simulate_markers(
     obs = swap_labels(obs, swaps)
     if not np.isfinite(obs).any(axis=(1, 2)).all():
         raise SimulatorError("the occlusion left frames with no marker at all; lower the occlusion fraction")
-    take = make_marker_take(obs, names, rate_hz, times=times, source="simulated optical take")
+    # The simulator's world is the Flock's transmitter frame, z down.
+    take = make_marker_take(obs, names, rate_hz, times=times, source="simulated optical take", up="-z",
+                            up_from="the simulator (the Flock's frame)")
     truth = model.truth()
     truth.update(
         marker_body={nm: model.names[i] for nm, i in zip(names, body)},

@@ -29,6 +29,7 @@ import pytest
 from pythonosc.dispatcher import Dispatcher
 from pythonosc.osc_server import BlockingOSCUDPServer
 
+from flockcal.clock import SYSTEM
 from flockcal.server.settings import Settings
 from server_helpers import ServerProcess, ServerThread, free_port, wait_connected
 from service_process import wait_for
@@ -405,3 +406,43 @@ def test_bad_outputs_are_one_line_each_and_the_service_runs_without_them(tmp_pat
     assert not st["humanoid"]["streaming"] and "not human-shaped" in st["humanoid"]["reason"]
     assert len([x for x in text.splitlines() if "send no bones" in x]) == 1  # once, not once a fit
     assert all(b["/VMC/Ext/OK"][0] == 0 and "Hips" not in b for b in got)
+
+
+# -- a stored fit ---------------------------------------------------------------------------------------------
+def test_a_stopped_sessions_fit_without_a_humanoid_streams_once_frames_find_one(tmp_path):
+    """A service restarted after a session has that session's stored fit, with no humanoid in it: the streams
+    find it from the live frames. Tried: the fit (the same object throughout, as the snapshots hand it over)
+    and frames fed in real time at 144 Hz from their first; the first frames alone find no humanoid (no
+    elbow or knee bent yet), so the streams must look again as frames come, and have bones before 8 s of
+    frames run out (about 2 s here on a quiet machine)."""
+    from flockcal.frames import Frames
+    from flockcal.server.outputs import Outputs
+    from flockcal.simulator.body import HUMAN_PARENTS
+    from flockcal.simulator.performer import Performer
+    from flockcal.solver.accumulator import GramAccumulator
+    from flockcal.solver.calibration import calibrate
+
+    p = Performer("human", "exercise", seed=3, rate_hz=144)
+    t = np.arange(0, 8, 1 / 144)
+    R, x, v = p.poses(t)
+    acc = GramAccumulator(p.n_sensors)
+    acc.add_poses(R, x, v)
+    fit = calibrate(acc, hierarchy=HUMAN_PARENTS, root="pelvis", names=p.names)
+    assert fit.humanoid is None
+
+    class Stored:  # what the snapshots show with no session live: the last session's final fit
+        pose_fit, pose_fit_id, session = fit, ("stored", None), None
+
+    out = Outputs(Settings(vrpn_port=0, data_dir=tmp_path), p.names, lambda: Stored, SYSTEM)
+    out.start()
+    try:
+        start = time.monotonic()
+        fed = 0
+        while fed < len(t) and not out.status()["humanoid"]["streaming"]:
+            due = min(len(t), int((time.monotonic() - start) * 144) + 1)
+            out.feed(Frames(t[fed:due], R[fed:due], x[fed:due], v[fed:due]))
+            fed = due
+            time.sleep(0.005)
+        assert out.status()["humanoid"]["streaming"], f"no bones after {fed / 144:.1f} s of frames: {out.reason}"
+    finally:
+        out.stop()

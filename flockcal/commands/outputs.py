@@ -190,9 +190,20 @@ def cmd_report(args) -> int:
         take, cal = fitted_take(args, "report")
         if cal is None:
             return PARTIAL_EXIT
-        write_report(args.output, cal, take, source=Path(args.take).name, up=args.up, progress=stages.step)
+        up, up_from = report_up(args.up)
+        write_report(args.output, cal, take, source=Path(args.take).name, up=up, up_from=up_from, progress=stages.step)
     print(f"wrote {args.output}", file=sys.stderr)
     return 0
+
+
+def report_up(given: str, marker_take=None) -> tuple[str, str]:
+    """(up axis, where it comes from) for `report --up given`: as given; else (auto) the marker file's own
+    (`MarkerTake.up`), else the Flock's transmitter frame, z down."""
+    if given != "auto":
+        return given, "--up"
+    if marker_take is not None and marker_take.up is not None:
+        return marker_take.up, marker_take.up_from
+    return "-z", "the Flock's transmitter frame (give --up for another)"
 
 
 def report_markers(args) -> int:
@@ -208,8 +219,9 @@ def report_markers(args) -> int:
             raise UserError(f"--{option} applies to sensor takes; {args.take} is a marker take, whose skeleton "
                             f"comes from its markers (leave --{option} out)")
     with Stages("report", ["reading", *STAGES, "poses and JSON", *REPORT_STAGES]) as stages:
-        _, fit, _ = fit_marker_file(args.take, root=args.root, step=stages.step)
-        write_report(args.output, fit.calibration(), fit.take(), source=Path(args.take).name, up=args.up,
+        marker_take, fit, _ = fit_marker_file(args.take, root=args.root, step=stages.step)
+        up, up_from = report_up(args.up, marker_take)
+        write_report(args.output, fit.calibration(), fit.take(), source=Path(args.take).name, up=up, up_from=up_from,
                      progress=stages.step)
     print(f"wrote {args.output}", file=sys.stderr)
     return 0
@@ -292,7 +304,9 @@ def register(subparsers) -> None:
     p = subparsers.add_parser("report", help="one self-contained HTML page of a take's calibration (sensor or marker take)")
     _add_fit_options(p)
     p.add_argument("-o", "--output", required=True, metavar="REPORT.html")
-    p.add_argument("--up", default="-z", choices=["-z", "+z", "+y"], help="tracker world's up axis (default -z, the Flock's)")
+    p.add_argument("--up", default="auto", choices=["auto", "-z", "+z", "+y"],
+                   help="the world's up axis (default auto: a C3D's own, +z unless its POINT:Z_SCREEN says; a marker "
+                        ".npz's 'up' entry; else -z, the Flock's)")
     p.set_defaults(func=cmd_report)
 
     p = subparsers.add_parser("export-bvh", help="the take played through its fitted skeleton, as BVH")

@@ -15,6 +15,7 @@ import numpy as np
 
 from flockcal.solver.optical.articulation import JOINT_TOLERANCE_M as TOLERANCE_M
 from flockcal.solver.optical.joints import Tree, joint_point
+from flockcal.solver.optical.kirk_batch import shared_poses
 from flockcal.solver.optical.rigid import apply, procrustes_mean, rigid_fit
 from flockcal.solver.optical.segmentation import RIGID_TOLERANCE_M
 
@@ -146,14 +147,7 @@ def candidate_costs(
     G = len(groups)
     pick = joint_groups or (lambda a, b: (groups[a], groups[b]))
     cost = np.full((G, G), np.inf)
-    cache: dict = {}
-
-    def poses(points):  # one group's pose on these frames, shared by all its pairs (points are small here)
-        key = points.shape, hash(points.tobytes())
-        if key not in cache:
-            cache[key] = procrustes_mean(points)[1:]
-        return cache[key]
-
+    poses = shared_poses()  # one group's pose on these frames, shared by all its pairs
     for a, b in zip(*np.nonzero(np.triu(candidate, 1))):
         if points is not None and np.isfinite(points[a, b]):
             cost[a, b] = cost[b, a] = points[a, b]

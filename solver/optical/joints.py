@@ -66,6 +66,17 @@ def sphere_centre_guess(markers_a: np.ndarray, markers_b: np.ndarray, frames: np
     return p
 
 
+def start_points(ma: np.ndarray, mb: np.ndarray, frames: np.ndarray, poses=None) -> tuple[np.ndarray, np.ndarray]:
+    """(F, 3) where Kirk's fit of groups A (n,qa,3) and B starts on `frames`: the sphere fit of the larger
+    group's frame (`sphere_centre_guess`), else (and where it has no pose) the midpoint of their centroids;
+    and (F,) bool where the sphere fit placed it."""
+    mid = 0.5 * (nanmean(ma[frames], axis=1) + nanmean(mb[frames], axis=1))
+    guess = sphere_centre_guess(ma, mb, frames, poses)
+    placed = np.zeros(len(frames), dtype=bool) if guess is None else np.isfinite(guess).all(1)
+    p = mid if guess is None else np.where(placed[:, None], guess, mid)
+    return np.where(np.isfinite(p), p, 0.0), placed
+
+
 def joint_point(
     markers_a: np.ndarray,
     markers_b: np.ndarray,
@@ -96,9 +107,7 @@ def joint_point(
     if init is not None and np.isfinite(init[use]).all():
         p0 = init[use]
     else:
-        p0 = sphere_centre_guess(markers_a, markers_b, use, poses)
-        mid = 0.5 * (nanmean(markers_a[use], axis=1) + nanmean(markers_b[use], axis=1))
-        p0 = mid if p0 is None else np.where(np.isfinite(p0), p0, mid)
+        p0 = start_points(markers_a, markers_b, use, poses)[0]
     dist0 = np.linalg.norm(Mz - p0[:, None], axis=-1)
     r0 = (np.where(seen, dist0, 0).sum(0) / np.maximum(seen.sum(0), 1)).clip(1e-3)
     p, r = solve_joint_point(Mz, seen, p0, r0, penalty * F, max_iter)
@@ -233,53 +242,68 @@ def inv3(A: np.ndarray) -> np.ndarray:
 def solve_joint_point(M: np.ndarray, seen: np.ndarray, p0: np.ndarray, r0: np.ndarray, lam: float, max_iter: int = 60, tol: float = 1e-9):
     """Levenberg–Marquardt on Σ_(f,a seen) (‖M_fa − p_f‖ − r_a)² + lam Σ_a r_a², frames eliminated by a
     Schur complement. M (F,q,3) with unseen entries zeroed, seen (F,q); returns (p (F,3), r (q,))."""
+    p, r = solve_joint_points(M[None], seen[None], p0[None], r0[None], np.array([lam], dtype=float), max_iter, tol)
+    return p[0], r[0]
+
+
+def solve_joint_points(M: np.ndarray, seen: np.ndarray, p0: np.ndarray, r0: np.ndarray, lam: np.ndarray,
+                       max_iter: int = 60, tol: float = 1e-9):
+    """`solve_joint_point` for B independent problems at once, each with its own damping and stopping (a step
+    that does not lower a problem's cost is retried with more damping; the problems still running are stepped
+    together): M (B,F,q,3), seen (B,F,q), p0 (B,F,3), r0 (B,q), lam (B,); returns (p (B,F,3), r (B,q)). A
+    marker column a problem never sees (padding) keeps its starting radius."""
     w = seen.astype(float)
-    F, q = w.shape
+    B, F, q = w.shape
     eye3 = np.eye(3)
+    never = w.sum(1) == 0  # (B, q)
 
-    def residual(p, r):
-        diff = M - p[:, None]
-        d = np.sqrt(np.einsum("fqi,fqi->fq", diff, diff))
-        e = w * (d - r[None])
-        return e, diff, np.maximum(d, 1e-12)
+    def residual(i, p, r):
+        diff = M[i] - p[:, :, None]
+        d = np.sqrt(np.einsum("bfqi,bfqi->bfq", diff, diff))
+        return w[i] * (d - r[:, None]), diff, np.maximum(d, 1e-12)
 
-    def cost_of(e, r):
-        return float((e**2).sum() + lam * (r**2).sum())
+    def cost_of(i, e, r):
+        return (e**2).sum((1, 2)) + lam[i] * (r**2).sum(1)
 
-    p, r = p0.copy(), r0.copy()
-    e, diff, d = residual(p, r)
-    cost = cost_of(e, r)
-    mu = 1e-3
-    for _ in range(max_iter):
-        u = diff / d[..., None] * w[..., None]  # (F,q,3) = −∂e/∂p; ∂e/∂r = −1, so the p–r block of JᵀJ is uᵀ
-        ut = u.transpose(0, 2, 1)
-        U = ut @ u  # (F,3,3)
-        V = w.sum(0) + lam
-        gp = -(ut @ e[..., None])[..., 0]
-        gr = -(e.sum(0)) + lam * r
-        diagU = np.trace(U, axis1=1, axis2=2) / 3
-        u_rows = u.transpose(1, 0, 2).reshape(q, 3 * F)  # Σ_f over (F,q,3)·(F,3,q) as one BLAS product
-        while True:
-            Ui = inv3(U + (mu * np.maximum(diagU, 1e-12) + 1e-15)[:, None, None] * eye3)
-            UiW = Ui @ ut  # (F,3,q)
-            S = np.diag(V * (1 + mu)) - u_rows @ UiW.reshape(3 * F, q)
-            rhs = -gr + UiW.reshape(3 * F, q).T @ gp.reshape(3 * F)
-            try:
-                dr = np.linalg.solve(S, rhs)
-            except np.linalg.LinAlgError:
-                dr = np.linalg.lstsq(S, rhs, rcond=None)[0]
-            dp = (Ui @ (-gp - ut @ dr)[..., None])[..., 0]
-            p_new, r_new = p + dp, r + dr
-            e_new, diff_new, d_new = residual(p_new, r_new)
-            c_new = cost_of(e_new, r_new)
-            if c_new <= cost:
-                break
-            mu *= 10
-            if mu > 1e10:
-                return p, r
-        improvement = cost - c_new
-        p, r, e, diff, d, cost = p_new, r_new, e_new, diff_new, d_new, c_new
-        mu = max(mu / 10, 1e-9)
-        if improvement <= tol * max(cost, 1e-30):
-            break
+    p, r = p0.astype(float).copy(), r0.astype(float).copy()
+    every = np.arange(B)
+    e, diff, d = residual(every, p, r)
+    cost = cost_of(every, e, r)
+    mu = np.full(B, 1e-3)
+    steps = np.zeros(B, dtype=int)
+    done = np.full(B, max_iter <= 0)
+    while not done.all():
+        i = np.flatnonzero(~done)
+        n = len(i)
+        wi = w[i]
+        u = diff[i] / d[i][..., None] * wi[..., None]  # (n,F,q,3) = −∂e/∂p; ∂e/∂r = −1: the p–r block of JᵀJ is uᵀ
+        # Contiguous copies: numpy's stacked matmul on transposed views is several times slower.
+        ut = np.ascontiguousarray(u.swapaxes(2, 3))
+        U = ut @ u  # (n,F,3,3)
+        V = wi.sum(1) + lam[i, None] + never[i]
+        gp = (ut @ e[i][..., None])[..., 0]  # −∂cost/∂p / 2
+        gr = -(e[i].sum(1)) + lam[i, None] * r[i]
+        diagU = (U[..., 0, 0] + U[..., 1, 1] + U[..., 2, 2]) / 3
+        damp = (mu[i, None] * np.maximum(diagU, 1e-12) + 1e-15)[..., None, None] * eye3
+        Ui = inv3((U + damp).reshape(n * F, 3, 3)).reshape(n, F, 3, 3)
+        UiW = (Ui @ ut).reshape(n, 3 * F, q)
+        u_rows = np.ascontiguousarray(u.transpose(0, 2, 1, 3)).reshape(n, q, 3 * F)  # Σ_f as one BLAS product
+        S = V[..., None] * (1 + mu[i, None, None]) * np.eye(q) - u_rows @ UiW
+        rhs = -gr - (u_rows @ (Ui @ gp[..., None]).reshape(n, 3 * F, 1))[..., 0]
+        try:
+            dr = np.linalg.solve(S, rhs[..., None])[..., 0]
+        except np.linalg.LinAlgError:
+            dr = np.stack([np.linalg.lstsq(S[b], rhs[b], rcond=None)[0] for b in range(n)])
+        dp = (Ui @ (gp - (ut @ dr[:, None, :, None])[..., 0])[..., None])[..., 0]
+        p_new, r_new = p[i] + dp, r[i] + dr
+        e_new, diff_new, d_new = residual(i, p_new, r_new)
+        c_new = cost_of(i, e_new, r_new)
+        ok = c_new <= cost[i]
+        b = i[ok]
+        gain = cost[b] - c_new[ok]
+        p[b], r[b], e[b], diff[b], d[b], cost[b] = p_new[ok], r_new[ok], e_new[ok], diff_new[ok], d_new[ok], c_new[ok]
+        mu[i] = np.where(ok, np.maximum(mu[i] / 10, 1e-9), mu[i] * 10)
+        steps[b] += 1
+        done[b[gain <= tol * np.maximum(cost[b], 1e-30)]] = True
+        done |= (mu > 1e10) | (steps >= max_iter)
     return p, r

@@ -19,7 +19,9 @@ from flockcal.solver.fits import TOLERANCE_M as SENSOR_TOLERANCE_M
 from flockcal.solver.optical.exercised import (
     Exercised, candidate_costs, exercise_report, joint_decision, judge_pairs, spanning_forest,
 )  # fmt: skip
+from flockcal.solver.optical.fixed_markers import fixed_costs, fixed_joint_points, fixed_segmentation, hinge_slides
 from flockcal.solver.optical.joints import Tree, joint_point
+from flockcal.solver.optical.marker_noise import MarkerNoise, marker_noise
 from flockcal.solver.optical.pair_joints import pair_joint_points
 from flockcal.solver.optical.projection import BodyShape, bone_lengths, skeleton_shapes
 from flockcal.solver.optical.rotations import Outliers, body_poses, find_outliers, rigid_route_joint, robust_marker_residuals
@@ -53,6 +55,7 @@ class OpticalFit:
     joint_markers: dict[int, tuple[np.ndarray, np.ndarray]] = field(default_factory=dict)  # child → (its, parent's) markers the joint was fitted on
     pair_route: frozenset = frozenset()  # children of the joints placed by the pair fit over marker-only poses
     point_route: frozenset = frozenset()  # children of the joints to a body of two markers placed by `two_marker`
+    noise: MarkerNoise | None = None  # the markers' noise, and whether they sit fixed on their bodies
 
     @property
     def parent(self) -> np.ndarray:
@@ -142,14 +145,29 @@ def fit_joints(markers, groups, parent, frames=None, penalty: float = 1e-5, join
         fit = joint_point(markers[:, gc], markers[:, gp], penalty=penalty, frames=frames, extend=True)
         joint_points[int(child)] = fit.points
         joint_rms[int(child)] = fit.rms
-        res = np.abs(fit.residuals)
-        fin = res[np.isfinite(res)]
-        if fin.size:
-            thr = max(8 * 1.4826 * np.median(fin), 0.01)
-            worst = np.nanmax(np.nan_to_num(res, nan=0.0), axis=1)
-            bad = np.flatnonzero(worst > thr)
-            suspects[bad, idx[np.argmax(np.nan_to_num(res[bad], nan=0.0), axis=1)]] = True
+        mark_suspects(suspects, fit.residuals, idx)
     return joint_points, joint_rms, suspects
+
+
+def mark_suspects(suspects: np.ndarray, residuals: np.ndarray, idx: np.ndarray) -> None:
+    """In the frames where a joint's residual jumps (beyond 8 robust sd, and 1 cm), mark in `suspects` (n, k)
+    the marker furthest from its constant distance; `residuals` (n, q) are those of the markers `idx`."""
+    res = np.abs(residuals)
+    fin = res[np.isfinite(res)]
+    if fin.size:
+        thr = max(8 * 1.4826 * np.median(fin), 0.01)
+        worst = np.nanmax(np.nan_to_num(res, nan=0.0), axis=1)
+        bad = np.flatnonzero(worst > thr)
+        suspects[bad, idx[np.argmax(np.nan_to_num(res[bad], nan=0.0), axis=1)]] = True
+
+
+def fixed_joints(markers, groups, parent, frames, noise, only=None):
+    """`fit_joints` for markers fixed on their bones (`fixed_markers.fixed_joint_points`)."""
+    points, rms, residuals = fixed_joint_points(markers, groups, parent, frames, noise, only)
+    suspects = np.zeros(markers.shape[:2], dtype=bool)
+    for c, res in residuals.items():
+        mark_suspects(suspects, res, np.concatenate([groups[c], groups[int(parent[c])]]))
+    return points, rms, suspects
 
 
 # A refit without a few glitching marker-frames is skipped when it could move no body's fit by more than
@@ -266,7 +284,9 @@ def fit_markers(
     kept_names = tuple(names[i] for i in keep)
 
     step(STAGES[0])
-    clus = segment_markers(M, tolerance=rigid_tolerance, n_groups=n_groups)
+    # Markers fixed on their bones group by their distances' noise (`fixed_markers`), else by articulation.
+    clus = (fixed_segmentation(M, rigid_tolerance) if n_groups is None else None) or \
+        segment_markers(M, tolerance=rigid_tolerance, n_groups=n_groups)
     groups = clus.groups
     if len(groups) < 2:
         raise OpticalError("all markers move as one rigid body: there is no joint to find (move the limbs)")
@@ -282,14 +302,19 @@ def fit_markers(
     pick = joint_groups_of(clus, groups)
     exercised = judge_pairs(M, groups, joint_groups=pick)
     sizes = np.array([len(g) for g in groups])
-    # A body of two markers has no pose, but a joint to it has a centre fixed in its posed neighbour's frame:
-    # judged so (`two_marker`), it needs no Kirk fit, which fits almost any pair.
-    two = two_marker_joints(M, groups, exercised.shapes, exercised.candidate())
-    point_rms = two.rms(len(groups))
-    posed_pair = exercised.judged & np.isfinite(exercised.rms)
-    candidate = np.where(np.isfinite(point_rms) & ~posed_pair, two.candidate(len(groups)), exercised.candidate())
-    tree = spanning_forest(candidate_costs(M, groups, topo, candidate, joint_groups=pick, exercised=exercised,
-                                          points=point_rms), sizes, root=root)
+    noise = marker_noise(M, groups)
+    if noise.rigid:  # markers fixed on their bones: Kirk's distances judge every pair (`fixed_markers`)
+        two = TwoMarkerJoints()
+        tree = spanning_forest(fixed_costs(M, groups, noise, topo), sizes, root=root)
+    else:
+        # A body of two markers has no pose, but a joint to it has a centre fixed in its posed neighbour's
+        # frame: judged so (`two_marker`), it needs no Kirk fit, which fits almost any pair under skin.
+        two = two_marker_joints(M, groups, exercised.shapes, exercised.candidate())
+        point_rms = two.rms(len(groups))
+        posed_pair = exercised.judged & np.isfinite(exercised.rms)
+        candidate = np.where(np.isfinite(point_rms) & ~posed_pair, two.candidate(len(groups)), exercised.candidate())
+        tree = spanning_forest(candidate_costs(M, groups, topo, candidate, joint_groups=pick, exercised=exercised,
+                                              points=point_rms), sizes, root=root)
 
     work = M.copy()
     outliers = None
@@ -299,7 +324,8 @@ def fit_markers(
     # afterwards by the rigid-transform route from the poses the other joints and markers give.
     pointed = {int(c) for c in np.flatnonzero(par >= 0)
                if frozenset((int(c), int(par[c]))) in two.joints and min(sizes[c], sizes[par[c]]) < 3}
-    weak = {int(c) for c in np.flatnonzero(par >= 0) if sizes[c] < 3 and sizes[par[c]] < 3 and c not in pointed}
+    weak = {int(c) for c in np.flatnonzero(par >= 0)
+            if sizes[c] < 3 and sizes[par[c]] < 3 and c not in pointed and not noise.rigid}
     for c in sorted(weak):  # keep the Kirk joint where a body would be left with under three points
         p = int(par[c])
         points = [sizes[b] + sum(1 for j in range(len(par)) if j not in weak and (j == b or par[j] == b) and par[j] >= 0) for b in (c, p)]
@@ -310,7 +336,7 @@ def fit_markers(
     # and glitches already left out of the poses) when those poses pin it as the sensor path asks of a
     # sensor (PAIR_ROUTE_M); the others by the Kirk fit, which needs no pose.
     kids = {int(c) for c in np.flatnonzero(par >= 0)}
-    posed = {c for c in kids if pair_route(exercised, c, int(par[c]))}
+    posed = {c for c in kids if pair_route(exercised, c, int(par[c])) and not noise.rigid}
     pair_jp, pair_rms = pair_joint_points(M, groups, par, sorted(posed), exercised, pick)
     point_jp, point_jrms = point_joint_centres(M, groups, two, par, sorted(pointed), pair_jp)
     pair_jp, pair_rms = {**pair_jp, **point_jp}, {**pair_rms, **point_jrms}
@@ -321,7 +347,10 @@ def fit_markers(
         # Not started from the first pass's points: those carry the swaps, and a hinge's point creeps along
         # its axis (a flat valley) from wherever it starts.
         only = kirk if redo is None else kirk & redo
-        new_jp, new_rms, suspects = fit_joints(work, groups, par, fit_frames, joint_groups=pick, only=only)
+        if noise.rigid:
+            new_jp, new_rms, suspects = fixed_joints(work, groups, par, fit_frames, noise, only)
+        else:
+            new_jp, new_rms, suspects = fit_joints(work, groups, par, fit_frames, joint_groups=pick, only=only)
         jp, jrms = {**jp, **new_jp}, {**jrms, **new_rms}
         strong = {c: v for c, v in jp.items() if c not in weak}
         # Bodies whose markers or joints changed: all of them in the first pass.
@@ -347,12 +376,16 @@ def fit_markers(
         touched = {g for g, grp in enumerate(groups)
                    if swapped & set(grp.tolist()) or glitch_shift(res, outliers.mask, [grp]) >= REFIT_SHIFT_M}
         redo = {int(c) for c in np.flatnonzero(par >= 0) if c in touched or int(par[c]) in touched}
+    if noise.rigid:  # each hinge's point on its axis by the sensor path's rule, read from the poses
+        jp = hinge_slides(work, shapes, par, R, valid, jp)
+        shapes = skeleton_shapes(work, groups, par, jp)
+        R, t, valid = body_poses(work, shapes, jp)
     # Poses for every frame, also those thinned out of the joint fits: markers alone, plus joints where fitted.
     bones = bone_lengths(shapes, tree.parent)
     joint_markers = {int(c): pick(int(c), int(par[c])) for c in np.flatnonzero(par >= 0)}
     return OpticalFit(
         kept_names, labels, groups, clus, tree, shapes, bones, jp, jrms, R, t, valid, outliers,
-        float(rate_hz), times, unused, exercised, joint_markers, frozenset(posed), frozenset(pointed),
+        float(rate_hz), times, unused, exercised, joint_markers, frozenset(posed), frozenset(pointed), noise,
     )  # fmt: skip
 
 
