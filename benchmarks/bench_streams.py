@@ -30,6 +30,7 @@ os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")  # as `flockcal serve` runs B
 
 import numpy as np  # noqa: E402
 
+from flockcal.clock import SYSTEM  # noqa: E402
 from flockcal.frames import Frames  # noqa: E402
 from flockcal.server.outputs import Outputs  # noqa: E402
 from flockcal.server.settings import Settings  # noqa: E402
@@ -63,7 +64,7 @@ def run(mode: str, seconds: float, fit, names, R, x, v, t) -> dict:
     threading.Thread(target=lambda: _drain(drain), daemon=True).start()
     settings = Settings(vrpn_port=0 if mode != "vmc" else None, osc_targets=(f"127.0.0.1:{drain.getsockname()[1]}",),
                         data_dir=Path(tempfile.gettempdir()))
-    out = Outputs(settings, names, lambda: Snapshot(fit))
+    out = Outputs(settings, names, lambda: Snapshot(fit), SYSTEM)
     out.start()
     client = None
     if mode != "vmc":

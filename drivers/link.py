@@ -12,7 +12,6 @@ import fcntl
 import logging
 import os
 import termios
-import time
 from dataclasses import asdict, dataclass, field
 from typing import Callable
 
@@ -29,7 +28,7 @@ from flockcal.drivers.parameters import (
 from flockcal.drivers.records import FORMATS, record_length
 from flockcal.drivers.status import ERROR_CODES, BirdStatus, decode_flock_status, decode_status_word, error_is_fatal
 from flockcal.drivers.words import pack_words, unpack_words
-from flockcal.clock import SYSTEM
+from flockcal.clock import SYSTEM, Clock
 from flockcal.drivers.errors import TrackerError
 
 log = logging.getLogger(__name__)
@@ -63,11 +62,13 @@ Recorder = Callable[[bytes, int, float, bytes], None]  # (kind, port index, mono
 
 
 class FlockLink:
-    """One serial port to a bird: raw 8N1 binary, RTS low (RTS high holds the bird in reset)."""
+    """One serial port to a bird: raw 8N1 binary, RTS low (RTS high holds the bird in reset). `clock` dates
+    the bytes and times the waits (the initialisation's delays, reply timeouts, draining)."""
 
     def __init__(self, url: str, *, baud: int = 115200, index: int = 0, timing: Timing | None = None,
-                 recorder: Recorder | None = None, read_timeout: float = 0.05):
+                 recorder: Recorder | None = None, read_timeout: float = 0.05, clock: Clock = SYSTEM):
         self.url = url
+        self.clock = clock
         self.baud = int(baud)
         self.index = index
         self.timing = timing or Timing()
@@ -135,7 +136,7 @@ class FlockLink:
     # -- raw bytes -----------------------------------------------------------------------------
     def write(self, data: bytes) -> None:
         if self.recorder:
-            self.recorder(b"W", self.index, time.monotonic(), bytes(data))
+            self.recorder(b"W", self.index, self.clock.monotonic(), bytes(data))
         try:
             self.port.write(data)
             self.port.flush()
@@ -151,7 +152,7 @@ class FlockLink:
             data = self.port.read(max(1, self.port.in_waiting))
         except (serial.SerialException, OSError, TypeError, AttributeError) as exc:
             raise LinkLost(f"reading {self.url} failed: {exc}") from None
-        t = time.monotonic()
+        t = self.clock.monotonic()
         if data and record and self.recorder:
             self.recorder(b"R", self.index, t, data)
         return t, data
@@ -182,31 +183,31 @@ class FlockLink:
     def read_exact(self, n: int, timeout: float) -> bytes:
         """Up to `n` bytes, waiting at most `timeout` seconds in all."""
         out = bytearray()
-        deadline = time.monotonic() + timeout
-        while len(out) < n and time.monotonic() < deadline:
+        deadline = self.clock.monotonic() + timeout
+        while len(out) < n and self.clock.monotonic() < deadline:
             try:
                 chunk = self.port.read(n - len(out))
             except (serial.SerialException, OSError) as exc:
                 raise LinkLost(f"reading {self.url} failed: {exc}") from None
             if chunk:
                 if self.recorder:
-                    self.recorder(b"R", self.index, time.monotonic(), chunk)
+                    self.recorder(b"R", self.index, self.clock.monotonic(), chunk)
                 out += chunk
         return bytes(out)
 
     def drain(self) -> int:
         """Read and discard until the line is quiet (records in flight still arrive after a stop)."""
         quiet, limit = self.timing.drain_quiet, self.timing.drain_max
-        start = last = time.monotonic()
+        start = last = self.clock.monotonic()
         n = 0
         while True:
-            now = time.monotonic()
+            now = self.clock.monotonic()
             if now - last >= quiet or now - start >= limit:
                 break
             _, data = self.read_some()
             if data:
                 n += len(data)
-                last = time.monotonic()
+                last = self.clock.monotonic()
         try:
             self.port.reset_input_buffer()
         except (serial.SerialException, OSError):
@@ -222,14 +223,14 @@ class FlockLink:
         """
         try:
             self.port.rts = True
-            SYSTEM.sleep(self.timing.reset_hold)
+            self.clock.sleep(self.timing.reset_hold)
             self.port.rts = False
             self.modem_lines = True
         except (OSError, serial.SerialException, ValueError):
             self.modem_lines = False
             log.debug("%s: no modem lines (RTS reset skipped)", self.url)
             return False
-        SYSTEM.sleep(self.timing.reset_settle)
+        self.clock.sleep(self.timing.reset_settle)
         return True
 
     def command(self, data: bytes, address: int = 0, addressing: str = "normal") -> None:
@@ -502,9 +503,9 @@ def configure_flock(links: list[FlockLink], *, birds: int, rate_hz: float | None
 
     addresses = list(range(1, birds + 1))
     if birds > 1:
-        SYSTEM.sleep(timing.autoconfig)
+        master.clock.sleep(timing.autoconfig)
         master.change(50, birds)
-        SYSTEM.sleep(timing.autoconfig)
+        master.clock.sleep(timing.autoconfig)
         status = decode_flock_status(_examine(master, 36, 0, addressing))
         for i, a in enumerate(addresses):
             if not status.accessible[a - 1]:

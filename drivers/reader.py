@@ -12,13 +12,13 @@ import logging
 import queue
 import select
 import threading
-import time
 from dataclasses import asdict, dataclass, field
 from typing import Callable
 
 import numpy as np
 
 from flockcal import __version__
+from flockcal.clock import SYSTEM, Clock
 from flockcal.drivers.assembly import FrameAssembler
 from flockcal.drivers.hemispheres import HEMISPHERES
 from flockcal.drivers.link import (FlockLink, FlockSetup, LinkLost, Timing, TrackerError, check_bird_errors,
@@ -111,7 +111,7 @@ class TrackerEvent:
 
     kind: str
     message: str
-    time: float = field(default_factory=time.monotonic)
+    time: float  # on the reader's clock (its monotonic seconds)
     data: dict = field(default_factory=dict)
 
     @property
@@ -156,9 +156,11 @@ class TrackerReader:
     """
 
     def __init__(self, cfg: TrackerConfig, on_frames: FramesCallback | None = None,
-                 on_event: EventCallback | None = None, recording_header: dict | None = None):
+                 on_event: EventCallback | None = None, recording_header: dict | None = None,
+                 clock: Clock = SYSTEM):
         cfg.validate()
         self.cfg = cfg
+        self.clock = clock  # dates the bytes and frames; times every wait, deadline and stall
         self.recording_header = dict(recording_header or {})  # more header entries (e.g. sensor names)
         self.on_frames = on_frames
         self.on_event = on_event
@@ -193,17 +195,17 @@ class TrackerReader:
         if self.cfg.recording_path:
             settings = {**self.recording_header, "flockcal": __version__, "config": self.cfg.to_dict()}
             # Pending until the flock streams: a start that fails leaves no stub behind.
-            self._recorder = RecordingWriter(self.cfg.recording_path, settings, pending=True)
+            self._recorder = RecordingWriter(self.cfg.recording_path, settings, pending=True, clock=self.clock)
         self._fail_fast = wait is not None
         self._thread = threading.Thread(target=self._run, name="flockcal-tracker", daemon=True)
         self._thread.start()
         if wait is not None:
-            deadline = time.monotonic() + wait
-            while not self._connected_once.wait(0.05):
+            deadline = self.clock.monotonic() + wait
+            while not self.clock.wait(self._connected_once, 0.05):
                 if self._first_failure is not None or not self._thread.is_alive():
                     self.stop()
                     raise self._first_failure or TrackerError("the tracker reader stopped before connecting")
-                if time.monotonic() > deadline:
+                if self.clock.monotonic() > deadline:
                     self.stop()
                     raise TrackerError(f"the flock on {', '.join(self.cfg.urls)} did not start streaming within "
                                        f"{wait:g} s")
@@ -226,10 +228,10 @@ class TrackerReader:
         Raises RecordingError when the file cannot be created (nothing else changes then).
         """
         settings = {**self.recording_header, **(header or {}), "flockcal": __version__, "config": self.cfg.to_dict()}
-        writer = RecordingWriter(path, settings)
+        writer = RecordingWriter(path, settings, clock=self.clock)
         with self._recording_lock:
             if self._stream_marker is not None:
-                writer.mark(time.monotonic(), self._stream_marker)
+                writer.mark(self.clock.monotonic(), self._stream_marker)
             old, self._recorder = self._recorder, writer
         if old is not None:
             old.close()
@@ -251,7 +253,7 @@ class TrackerReader:
 
     # -- events and bookkeeping ----------------------------------------------------------------
     def _emit(self, kind: str, message: str, **data) -> None:
-        event = TrackerEvent(kind, message, time.monotonic(), data)
+        event = TrackerEvent(kind, message, self.clock.monotonic(), data)
         level = logging.INFO if kind in ("connected", "resync", "hemisphere_flip", "stopped") else logging.WARNING
         log.log(level, "%s", event)
         if kind in ("disconnected", "stalled", "error", "bird_error"):
@@ -312,7 +314,7 @@ class TrackerReader:
         if asm is None:
             return
         if (rec := self._recorder) is not None:
-            rec.mark(time.monotonic(), {"flush": True, "reason": reason})
+            rec.mark(self.clock.monotonic(), {"flush": True, "reason": reason})
         asm.flush()
         self._deliver(asm)
         with self._lock:
@@ -362,7 +364,7 @@ class TrackerReader:
                         self._status["reconnects"] += 1
                     self._emit("reconnecting", f"reconnecting in {delay:.2f} s (attempt {attempt})",
                                attempt=attempt, delay=delay)
-                    self._stop.wait(delay)
+                    self.clock.wait(self._stop, delay)
         finally:
             self._close_links()
             with self._lock:
@@ -373,7 +375,7 @@ class TrackerReader:
     def _emit_stopped(self) -> None:
         if self.on_event is not None:
             try:
-                self.on_event(TrackerEvent("stopped", "the tracker reader stopped", time.monotonic(), {}))
+                self.on_event(TrackerEvent("stopped", "the tracker reader stopped", self.clock.monotonic(), {}))
             except Exception:
                 log.exception("on_event callback failed")
 
@@ -385,7 +387,8 @@ class TrackerReader:
     def _connect(self) -> FrameAssembler:
         cfg = self.cfg
         group = cfg.resolved_group()
-        self._links = [FlockLink(u, baud=cfg.baud, index=i, timing=self.timing, recorder=self._record)
+        self._links = [FlockLink(u, baud=cfg.baud, index=i, timing=self.timing, recorder=self._record,
+                                 clock=self.clock)
                        for i, u in enumerate(cfg.urls)]
         for link in self._links:
             link.open(expected=self._identities.get(link.url))  # a reconnect refuses a port that changed
@@ -403,7 +406,7 @@ class TrackerReader:
         with self._recording_lock:
             self._stream_marker = {"stream": setup.to_dict(), "assembler": options}
             if (rec := self._recorder) is not None:
-                rec.mark(time.monotonic(), self._stream_marker)
+                rec.mark(self.clock.monotonic(), self._stream_marker)
                 rec.commit()
         asm = FrameAssembler(setup, **options)
         if cfg.mode == "stream":
@@ -447,7 +450,7 @@ class TrackerReader:
                     ready, _, _ = select.select(list(by_fd), [], [], timeout)
                 except (OSError, ValueError) as exc:
                     raise LinkLost(f"waiting for data failed: {exc}") from None
-                t = time.monotonic()
+                t = self.clock.monotonic()
                 return [(by_fd[fd].index, t, by_fd[fd].read_available()) for fd in ready]
             items = []
             if point:
@@ -458,7 +461,7 @@ class TrackerReader:
             else:
                 # Sleep until the next hand-over rather than waking for every read: the pumps stamp
                 # each chunk on arrival, so batching here costs no timing precision.
-                self._stop.wait(timeout)
+                self.clock.wait(self._stop, timeout)
             while len(items) < 4096:
                 try:
                     items.append(q.get_nowait())
@@ -466,7 +469,7 @@ class TrackerReader:
                     break
             return items
 
-        now = time.monotonic()
+        now = self.clock.monotonic()
         last_rx = np.full(len(self._links), now)
         last_batch = last_check = last_wake = now
         # Hand-overs happen only when there is something to hand over; stalls are looked for on this beat.
@@ -484,10 +487,10 @@ class TrackerReader:
                 if self._stop.is_set():
                     # In point mode the last poll's answer may be on its way: let it finish (briefly),
                     # so the last frame is whole rather than missing its later birds.
-                    if not point or (got_since_poll >= expect).all() or time.monotonic() - poll_sent > 0.25:
+                    if not point or (got_since_poll >= expect).all() or self.clock.monotonic() - poll_sent > 0.25:
                         break
                 elif point:
-                    now = time.monotonic()
+                    now = self.clock.monotonic()
                     answered = (got_since_poll >= expect).all() or now - poll_sent > max(2 * poll_period, 0.25)
                     if now >= next_poll and answered:
                         poll(self._links, setup)
@@ -497,13 +500,13 @@ class TrackerReader:
                 if point:
                     wait = 0.005
                 elif not direct:  # pumps do not wake this thread: look again one hand-over interval on
-                    wait = max(0.0, last_wake + cfg.batch_interval - time.monotonic())
+                    wait = max(0.0, last_wake + cfg.batch_interval - self.clock.monotonic())
                 elif asm.ready:
-                    wait = max(0.0, last_batch + cfg.batch_interval - time.monotonic())
+                    wait = max(0.0, last_batch + cfg.batch_interval - self.clock.monotonic())
                 else:  # nothing to hand over: sleep until bytes come (or it is time to look for a stall)
-                    wait = max(0.0, last_check + check_period - time.monotonic())
+                    wait = max(0.0, last_check + check_period - self.clock.monotonic())
                 arrived = receive(wait)
-                last_wake = time.monotonic()
+                last_wake = self.clock.monotonic()
                 for port, t, data in arrived:
                     if isinstance(data, Exception):
                         raise data
@@ -513,7 +516,7 @@ class TrackerReader:
                     got_since_poll[port] += len(data)
                     if rate is not None:
                         rate.bytes += len(data)
-                now = time.monotonic()
+                now = self.clock.monotonic()
                 if asm.ready and now - last_batch >= cfg.batch_interval:
                     last_batch = now
                     self._deliver(asm)
@@ -571,7 +574,7 @@ class TrackerReader:
             try:
                 t, data = link.read_some(record=False)
             except TrackerError as exc:
-                q.put((link.index, time.monotonic(), exc))
+                q.put((link.index, link.clock.monotonic(), exc))
                 return
             if data:
                 q.put((link.index, t, data))

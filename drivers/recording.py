@@ -14,7 +14,7 @@ File layout (all integers little-endian):
         sync   2 bytes b"CK"
         kind   1 byte  b"R" bytes read, b"W" bytes written, b"M" a marker (UTF-8 JSON payload)
         port   uint8   index of the serial port (0 for group mode)
-        time   float64 arrival time, time.monotonic() seconds of the recording process
+        time   float64 arrival time, the recording process's monotonic clock in seconds (flockcal.clock)
         length uint32  payload length
         payload
         crc    uint32  CRC-32 of the 16 header bytes and the payload
@@ -35,6 +35,7 @@ from typing import Iterator
 
 import numpy as np
 
+from flockcal.clock import SYSTEM, Clock
 from flockcal.drivers.assembly import FrameAssembler  # the decoding path of the live reader
 from flockcal.drivers.link import FlockSetup
 from flockcal.drivers.records import record_length
@@ -80,14 +81,15 @@ class RecordingWriter:
     """
 
     def __init__(self, path: str | os.PathLike, settings: dict, flush_interval: float = 0.05,
-                 pending: bool = False):
+                 pending: bool = False, clock: Clock = SYSTEM):
         self.path = Path(path)
+        self.clock = clock  # the flush cadence, and the header's start
         self.pending = bool(pending)
         self._file = self.path.with_name(self.path.name + ".part") if pending else self.path
         self.flush_interval = float(flush_interval)
         head = dict(settings)
-        head.setdefault("wall_start", time.strftime("%Y-%m-%dT%H:%M:%S%z"))
-        head.setdefault("monotonic_start", time.monotonic())
+        head.setdefault("wall_start", time.strftime("%Y-%m-%dT%H:%M:%S%z", time.localtime(clock.wall())))
+        head.setdefault("monotonic_start", clock.monotonic())
         text = json.dumps(head, sort_keys=True, default=str).encode("utf-8")
         try:
             self._fh = open(self._file, "wb")
@@ -105,7 +107,7 @@ class RecordingWriter:
             raise RecordingError(f"cannot write the recording {self.path}: {exc.strerror}") from None
         self._buf = bytearray()
         self._lock = threading.Lock()
-        self._last_flush = time.monotonic()
+        self._last_flush = self.clock.monotonic()
         self.bytes_read = 0
         self.chunks = 0
         self.closed = False
@@ -160,7 +162,7 @@ class RecordingWriter:
     def flush(self) -> None:
         with self._lock:
             if not self.closed:
-                self._flush_locked(time.monotonic())
+                self._flush_locked(self.clock.monotonic())
 
     def commit(self) -> None:
         """Put a pending recording under its name (the tracker started: it is worth keeping)."""
@@ -182,7 +184,7 @@ class RecordingWriter:
                     pass
                 self._file.unlink(missing_ok=True)
                 return
-            self._flush_locked(time.monotonic())
+            self._flush_locked(self.clock.monotonic())
             if self.error is not None:  # the flush failed and closed the file
                 return
             try:
@@ -440,8 +442,9 @@ class Decoder:
     frames in batches; with `keep` they are also kept for `result()`."""
 
     def __init__(self, settings: dict, on_frames=None, *, keep: bool = True, realtime: bool = False,
-                 speed: float = 1.0, batch_seconds: float = 0.05):
+                 speed: float = 1.0, batch_seconds: float = 0.05, clock: Clock = SYSTEM):
         self.on_frames, self.keep = on_frames, keep
+        self.clock = clock  # what `realtime` paces by
         self.realtime, self.speed, self.batch_seconds = realtime, speed, batch_seconds
         self.parts: list[Frames] = []
         self.setups: list[dict] = []
@@ -457,7 +460,7 @@ class Decoder:
         start = settings.get("monotonic_start")
         self.latest = float(start) if isinstance(start, (int, float)) and math.isfinite(start) else None
         self.record_bytes = 0
-        self.wall0 = time.monotonic()
+        self.wall0 = clock.monotonic()
         self.rec0: float | None = None
         self.last_emit = 0.0
 
@@ -528,9 +531,9 @@ class Decoder:
                 self.parts.append(out)
             if self.on_frames is not None:
                 if self.realtime:
-                    delay = (now - self.rec0) / self.speed - (time.monotonic() - self.wall0)
+                    delay = (now - self.rec0) / self.speed - (self.clock.monotonic() - self.wall0)
                     if delay > 0:
-                        time.sleep(delay)
+                        self.clock.sleep(delay)
                 self.on_frames(out)
 
     def _retire(self) -> None:
@@ -552,16 +555,17 @@ class Decoder:
 
 
 def replay(recording: Recording, on_frames=None, realtime: bool = False, speed: float = 1.0,
-           batch_seconds: float = 0.05, on_progress=None) -> Replay:
+           batch_seconds: float = 0.05, on_progress=None, clock: Clock = SYSTEM) -> Replay:
     """Decode a recording through the same assembler as the live read (same bytes, same order, same
     arrival times), so the frames are identical to the ones the live reader delivered.
 
     `on_frames(frames)` is called with `Frames` in batches; with `realtime` the batches
-    are paced by the recorded arrival times (divided by `speed`). `on_progress(chunks done)` is called
+    are paced by the recorded arrival times (divided by `speed`) on `clock`. `on_progress(chunks done)` is called
     every PROGRESS_CHUNKS chunks and at the end (for a progress bar). Junk chunks (`Replay.junk`) are
     counted, and kept out of the assembler where they would corrupt it.
     """
-    dec = Decoder(recording.settings, on_frames, realtime=realtime, speed=speed, batch_seconds=batch_seconds)
+    dec = Decoder(recording.settings, on_frames, realtime=realtime, speed=speed, batch_seconds=batch_seconds,
+                  clock=clock)
     offsets = recording.offsets or [None] * len(recording.chunks)
     for k, (chunk, pos) in enumerate(zip(recording.chunks, offsets)):
         if on_progress is not None and k % PROGRESS_CHUNKS == 0 and k:

@@ -22,6 +22,7 @@ from fastapi_offline import FastAPIOffline
 from starlette.exceptions import HTTPException as StarletteHTTPException
 
 from flockcal import __version__
+from flockcal.clock import SYSTEM, Clock
 from flockcal.names import BODY_JOINTS
 from flockcal.server.errors import ServerError
 from flockcal.server.backoff import TokenBackoff
@@ -190,16 +191,18 @@ class DocsPolicy:
         await self.app(scope, receive, with_policy)
 
 
-def create_app(settings: Settings, service=None) -> FastAPI:
-    """The app; `service` may be given (tests), else one is built from `settings` at startup."""
+def create_app(settings: Settings, service=None, clock: Clock = SYSTEM) -> FastAPI:
+    """The app; `service` may be given (tests), else one is built from `settings` at startup on `clock`
+    (a given service's clock is the app's)."""
     from flockcal.server.routes import live, retention, sessions, simulator, skeletons, stats, status
     from flockcal.server.service import Service
 
     settings = settings.check()
+    clock = service.clock if service is not None else clock
 
     @asynccontextmanager
     async def lifespan(app: FastAPI):
-        svc = service or Service(settings)
+        svc = service or Service(settings, clock=clock)
         app.state.service = svc
         svc.hub.bind(asyncio.get_running_loop())
         if not svc.started:
@@ -222,7 +225,7 @@ def create_app(settings: Settings, service=None) -> FastAPI:
         swagger_ui_parameters={"validatorUrl": None},
     )
     app.state.settings = settings
-    app.state.token_backoff = TokenBackoff()
+    app.state.token_backoff = TokenBackoff(clock)
     app.state.ws_slots = ClientSlots(settings.ws_max_clients)
     app.state.download_slots = DownloadSlots(settings.max_downloads, settings.download_stall_s)
 

@@ -8,13 +8,14 @@ without failures. While it waits every token it sends is refused unread, right o
 from __future__ import annotations
 
 import threading
-import time
 from collections import OrderedDict
+
+from flockcal.clock import Clock
 
 
 class TokenBackoff:
-    def __init__(self, free: int = 10, base_s: float = 1.0, max_s: float = 60.0, forget_s: float = 600.0,
-                 max_peers: int = 4096, clock=time.monotonic):
+    def __init__(self, clock: Clock, free: int = 10, base_s: float = 1.0, max_s: float = 60.0,
+                 forget_s: float = 600.0, max_peers: int = 4096):
         self.free, self.base_s, self.max_s, self.forget_s = free, base_s, max_s, forget_s
         self.max_peers = max_peers  # bounded memory whatever the number of addresses
         self.clock = clock
@@ -25,12 +26,12 @@ class TokenBackoff:
         """Seconds `peer` must wait before a token of theirs is looked at again (0: now)."""
         with self._lock:
             entry = self._entry(peer, create=False)
-            return max(0.0, entry[2] - self.clock()) if entry else 0.0
+            return max(0.0, entry[2] - self.clock.monotonic()) if entry else 0.0
 
     def failed(self, peer: str | None) -> None:
         with self._lock:
             entry = self._entry(peer, create=True)
-            now = self.clock()
+            now = self.clock.monotonic()
             entry[0] += 1
             entry[1] = now
             over = entry[0] - self.free
@@ -40,7 +41,8 @@ class TokenBackoff:
     def _entry(self, peer: str | None, create: bool) -> list[float] | None:
         key = peer or "?"
         entry = self._peers.get(key)
-        if entry is not None and self.clock() - entry[1] > self.forget_s and self.clock() >= entry[2]:
+        now = self.clock.monotonic()
+        if entry is not None and now - entry[1] > self.forget_s and now >= entry[2]:
             del self._peers[key]
             entry = None
         if entry is None and create:

@@ -44,7 +44,8 @@ class Reading:
 
 
 class ServiceClock:
-    """The clock the service's parts share (thread-safe). `read()` looks at the underlying clock and finds
+    """The clock the service's parts share (thread-safe), a `flockcal.clock.Clock` itself (monotonic time,
+    sleeps and waits are the underlying clock's). `read()` looks at the underlying clock and finds
     a step of the wall clock by comparing its delta with the monotonic one: the step goes into `offset`
     (wall minus service time), so service time never moves with it; a step back holds the stamps, which then
     run at half speed until the wall clock meets them. Each step is an event for `bind`'s sink.
@@ -104,6 +105,12 @@ class ServiceClock:
 
     def epoch(self) -> str | None:
         return self.clock.epoch()
+
+    def sleep(self, seconds: float) -> None:
+        self.clock.sleep(seconds)
+
+    def wait(self, waitable, timeout: float | None) -> bool:
+        return self.clock.wait(waitable, timeout)
 
     def _stepped(self, jump: float, wall: float, while_down: bool) -> dict:
         self.steps += 1

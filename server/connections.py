@@ -13,9 +13,9 @@ import asyncio
 import json
 import logging
 import resource
-import time
 from typing import Any
 
+from flockcal.clock import Clock
 from flockcal.server.wsgate import TRANSPORT_KEY
 
 log = logging.getLogger(__name__)
@@ -64,8 +64,9 @@ class ConnectionGuard:
     """The state all connections share: the cap, those waiting for their request, and counters that
     `/api/status` shows (`connections`)."""
 
-    def __init__(self, cap: int, deadline_s: float = REQUEST_DEADLINE_S):
+    def __init__(self, cap: int, clock: Clock, deadline_s: float = REQUEST_DEADLINE_S):
         self.cap = int(cap)
+        self.clock = clock  # which connection has waited longest (the deadline itself is the event loop's timer)
         self.deadline_s = float(deadline_s)
         self.open: set[GuardedConnection] = set()
         self.timed_out = 0  # requests not whole within the deadline: connection closed
@@ -144,7 +145,7 @@ class GuardedConnection(asyncio.Protocol):
             return
         cycle = getattr(self.inner, "cycle", None)
         if cycle is not None and cycle is not self.seen_cycle and not getattr(cycle, "more_body", True):
-            self.seen_cycle, self.seen_at = cycle, time.monotonic()  # the request is whole: the app has it
+            self.seen_cycle, self.seen_at = cycle, self.guard.clock.monotonic()  # the request is whole: the app has it
             self._disarm()
 
     def eof_received(self):
@@ -170,7 +171,7 @@ class GuardedConnection(asyncio.Protocol):
     def _arm(self) -> None:
         if self.timer is not None:
             self.timer.cancel()
-        self.waiting_since = time.monotonic()
+        self.waiting_since = self.guard.clock.monotonic()
         self.armed_cycle = getattr(self.inner, "cycle", None)  # the request before the one now awaited
         self.timer = self.loop.call_later(self.guard.deadline_s, self._expired)
 
@@ -187,7 +188,7 @@ class GuardedConnection(asyncio.Protocol):
         cycle = getattr(self.inner, "cycle", None)
         if cycle is not None and cycle is not self.armed_cycle and not getattr(cycle, "more_body", True):
             # A request came whole meanwhile without bytes of its own (pipelined behind the last response).
-            self.seen_cycle, self.seen_at = cycle, time.monotonic()
+            self.seen_cycle, self.seen_at = cycle, self.guard.clock.monotonic()
             self._disarm()
             return
         if cycle is not None and not getattr(cycle, "response_complete", True) and not getattr(cycle, "more_body", True):

@@ -8,13 +8,13 @@ from __future__ import annotations
 import logging
 import math
 import threading
-import time
 from dataclasses import dataclass
 from functools import cached_property
 from typing import Callable
 
 import numpy as np
 
+from flockcal.clock import Clock
 from flockcal.errors import FlockcalError
 from flockcal.solver.calibration import Calibration
 from flockcal.solver.humanoid import Humanoid, Sample
@@ -114,8 +114,9 @@ class FitWorker:
     released (so it may take the pipeline's lock: the order is always pipeline lock → this one, never back).
     """
 
-    def __init__(self, names, tolerance: float, on_done: Callable[[], None] = lambda: None):
+    def __init__(self, names, tolerance: float, clock: Clock, on_done: Callable[[], None] = lambda: None):
         self.names = tuple(names)
+        self.clock = clock  # the seconds a fit took; the thread waits for jobs on it
         self.tolerance = float(tolerance)
         self.on_done = on_done
         self._cond = threading.Condition()
@@ -172,11 +173,11 @@ class FitWorker:
         while True:
             with self._cond:
                 while self._job is None and not self._stop:
-                    self._cond.wait()
+                    self.clock.wait(self._cond, None)  # on the clock: a test's clock waits for the fit
                 if self._stop:
                     return
                 job, self._job = self._job, None
-            start = time.perf_counter()
+            start = self.clock.monotonic()
             cal, error = None, None
             try:
                 cal = self._fit(job)
@@ -186,7 +187,7 @@ class FitWorker:
                 log.exception("fit failed")
                 error = f"fit failed: {exc}"
             with self._cond:
-                self._done = FitDone(job.session_id, cal, error, time.perf_counter() - start, job.stamp)
+                self._done = FitDone(job.session_id, cal, error, self.clock.monotonic() - start, job.stamp)
                 self._busy = False
             self.on_done()
 

@@ -9,9 +9,9 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 from typing import Callable
 
+from flockcal.clock import Clock
 from flockcal.server.events import Event
 
 log = logging.getLogger(__name__)
@@ -21,13 +21,12 @@ WATCH_S = 0.5
 
 
 class SessionLeases:
-    """Leases by session id on the monotonic wall clock (a page's absence is wall time, not session time).
+    """Leases by session id on the service's monotonic clock (a page's absence is real time, not session time).
 
     `stop(session_id, note=...)` stops a session (SessionManager.stop) and records why on its row in the
     same update; `add_event` queues an event."""
 
-    def __init__(self, stop: Callable[..., object], add_event: Callable[[Event], None],
-                 clock: Callable[[], float] = time.monotonic):
+    def __init__(self, stop: Callable[..., object], add_event: Callable[[Event], None], clock: Clock):
         self._stop = stop
         self._add_event = add_event
         self._clock = clock
@@ -38,7 +37,7 @@ class SessionLeases:
 
     def grant(self, session_id: str, lease_s: float) -> None:
         with self._lock:
-            self._leases[session_id] = (float(lease_s), self._clock() + float(lease_s))
+            self._leases[session_id] = (float(lease_s), self._clock.monotonic() + float(lease_s))
 
     def renew(self, session_id: str) -> float | None:
         """Extend the lease by its length from now; returns that length, or None when the session has none."""
@@ -46,7 +45,7 @@ class SessionLeases:
             held = self._leases.get(session_id)
             if held is None:
                 return None
-            self._leases[session_id] = (held[0], self._clock() + held[0])
+            self._leases[session_id] = (held[0], self._clock.monotonic() + held[0])
             return held[0]
 
     def release(self, session_id: str) -> None:
@@ -57,7 +56,7 @@ class SessionLeases:
         """Seconds until the lease expires (None: no lease)."""
         with self._lock:
             held = self._leases.get(session_id)
-        return None if held is None else max(held[1] - self._clock(), 0.0)
+        return None if held is None else max(held[1] - self._clock.monotonic(), 0.0)
 
     def lease_s(self, session_id: str) -> float | None:
         with self._lock:
@@ -75,7 +74,7 @@ class SessionLeases:
             self._thread.join(timeout=5.0)
 
     def expired(self) -> list[str]:
-        now = self._clock()
+        now = self._clock.monotonic()
         with self._lock:
             gone = [sid for sid, (_, until) in self._leases.items() if until <= now]
             for sid in gone:
@@ -83,7 +82,7 @@ class SessionLeases:
         return gone
 
     def _watch(self) -> None:
-        while not self._wake.wait(WATCH_S):
+        while not self._clock.wait(self._wake, WATCH_S):
             for sid in self.expired():
                 self._end(sid)
 

@@ -14,11 +14,11 @@ from __future__ import annotations
 import logging
 import os
 import threading
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
+from flockcal.server.clock import ServiceClock
 from flockcal.server.errors import InsufficientStorage
 from flockcal.server.events import Event
 
@@ -60,17 +60,17 @@ class SessionLimits:
     """`max_session_s` (None: no maximum) and `min_free_bytes` kept free on the recordings' disk. Its
     methods return the events to record (`tick`, `storage_failed`) and the stop a session needs (`check`)."""
 
-    def __init__(self, recordings: Path, max_session_s: float | None, min_free_bytes: int,
-                 stamp: Callable[[], float] = time.time):
+    def __init__(self, recordings: Path, max_session_s: float | None, min_free_bytes: int, clock: ServiceClock):
         self.recordings = Path(recordings)
-        self.stamp = stamp  # unix seconds for `since` (the service clock's stamps: server/clock.py)
+        self.clock = clock  # the look's cadence and how long the disk was full; its stamps for `since`
         self.max_session_s = max_session_s
         self.min_free_bytes = int(min_free_bytes)
         self._stopping: str | None = None  # the session a stop was asked for (once per session)
         self._lock = threading.Lock()  # the disk state: set from any thread, cleared by tick
-        self._last_tick = 0.0
+        self._last_tick: float | None = None
         self.free: int | None = None
-        self.full_since: float | None = None  # wall time the disk became full, None while there is room
+        self.full_since: float | None = None  # the stamp of when the disk became full, None while there is room
+        self._full_at = 0.0  # ... on the monotonic clock
         self.full_message: str | None = None
 
     # --- the disk ----------------------------------------------------------------------------------
@@ -89,15 +89,16 @@ class SessionLimits:
         with self._lock:
             if self.full_since is not None:
                 return []
-            self.full_since, self.full_message = self.stamp(), message
+            self.full_since, self.full_message = self.clock.stamp(), message
+            self._full_at = self.clock.monotonic()
         log.warning("%s", message)
         return [Event.new("service", action="disk_full", message=message, free_bytes=self.free)]
 
     def tick(self, flush_held: Callable[[], bool]) -> list[Event]:
         """Look at the disk (at most once a second): full below the reserve; room again once above it and
         `flush_held()` has stored everything held in memory. Returns the events. Pipeline thread."""
-        now = time.monotonic()
-        if now - self._last_tick < DISK_CHECK_S:
+        now = self.clock.monotonic()
+        if self._last_tick is not None and now - self._last_tick < DISK_CHECK_S:
             return []
         self._last_tick = now
         try:
@@ -112,9 +113,9 @@ class SessionLimits:
         if self.full_since is None or free < ROOM_BYTES or not flush_held():
             return []
         with self._lock:
-            since, self.full_since, self.full_message = self.full_since, None, None
+            full_at, self.full_since, self.full_message = self._full_at, None, None
         message = (f"room again on the disk holding {self.recordings} ({free / 2**20:.0f} MB free, full for "
-                   f"{max(self.stamp() - since, 0.0):.0f} s): sessions can start")
+                   f"{max(now - full_at, 0.0):.0f} s): sessions can start")
         log.warning("%s", message)
         return [Event.new("service", action="disk_ok", message=message, free_bytes=free)]
 

@@ -5,10 +5,8 @@ it calls; other threads see it through the snapshots.
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, field
 
-from flockcal.clock import SYSTEM
 from flockcal.server.framelog import FrameLog
 from flockcal.server.fitting import FitView
 from flockcal.solver.live import LiveCalibration
@@ -28,9 +26,9 @@ class LiveSession:
     root: str | None
     framelog: FrameLog
     profile: Profile
+    started_wall: float  # its created_at: a stamp shown to people
+    started_mono: float  # on the service clock's monotonic(): durations
     skeleton: object = None  # a saved Skeleton: topology and bones fixed, only placements are fitted
-    started_wall: float = field(default_factory=time.time)  # its created_at: a stamp shown to people
-    started_mono: float = field(default_factory=SYSTEM.monotonic)  # on the service clock's monotonic(): durations
     cal: LiveCalibration | None = None  # the live calibration: accumulator, slip watch, residuals, progress
     fit: FitView | None = None  # the newest fit (`cal.calibration`), with its §5 dict made on first use
     fit_error: str | None = None

@@ -10,7 +10,8 @@ from __future__ import annotations
 
 import logging
 import re
-import time
+
+from flockcal.clock import Clock
 
 INTERVAL_S = 60.0
 MAX_KINDS = 1000  # kinds remembered at once (messages that differ only in their numbers are one kind)
@@ -34,7 +35,7 @@ def kind_of(record: logging.LogRecord) -> tuple:
 class LogThrottle(logging.Filter):
     """A handler filter: warnings and errors of one kind pass once per `interval_s`."""
 
-    def __init__(self, interval_s: float = INTERVAL_S, clock=time.monotonic):
+    def __init__(self, clock: Clock, interval_s: float = INTERVAL_S):
         super().__init__()
         self.interval_s = float(interval_s)
         self.clock = clock
@@ -48,7 +49,7 @@ class LogThrottle(logging.Filter):
             record.msg, record.args = plain, ()
             record.exc_info, record.exc_text, record.stack_info = None, None, None
         kind = kind_of(record)
-        now = self.clock()
+        now = self.clock.monotonic()
         seen = self._kinds.get(kind)
         if seen is not None and now - seen[0] < self.interval_s:
             seen[1] += 1
@@ -65,10 +66,10 @@ class LogThrottle(logging.Filter):
         return True
 
 
-def throttle_all_handlers(throttle: LogThrottle | None = None) -> LogThrottle:
-    """Put `throttle` (a new one by default) on every handler configured now: the root logger's and those
-    of named loggers (uvicorn configures its own)."""
-    throttle = throttle or LogThrottle()
+def throttle_all_handlers(clock: Clock) -> LogThrottle:
+    """Put a throttle on `clock` on every handler configured now: the root logger's and those of named
+    loggers (uvicorn configures its own)."""
+    throttle = LogThrottle(clock)
     loggers = [logging.getLogger()] + [x for x in logging.Logger.manager.loggerDict.values()
                                        if isinstance(x, logging.Logger)]
     for logger in loggers:

@@ -11,11 +11,11 @@ import logging
 import selectors
 import socket
 import threading
-import time
 from typing import Callable
 
 import numpy as np
 
+from flockcal.clock import Clock
 from flockcal.errors import FlockcalError
 from flockcal.frames import Frames
 from flockcal.rotations import as_quat
@@ -52,9 +52,10 @@ class Outputs:
     """VRPN and VMC out, as `settings` ask (`vrpn_port`, `osc_targets`, `osc_hz`). Built before the service
     serves: a port in use or a receiver that cannot be resolved is one line in `lines` (what `serve` prints)
     and the service runs without that output. `feed` (the reader's thread) only queues; `start` / `stop`
-    run the thread."""
+    run the thread. `clock`: the service's (the frames' times, the streams' cadence, VRPN's wall times)."""
 
-    def __init__(self, settings, names: tuple[str, ...], snapshot: Callable[[], object]):
+    def __init__(self, settings, names: tuple[str, ...], snapshot: Callable[[], object], clock: Clock):
+        self.clock = clock
         self.names = tuple(names)
         self.m = len(self.names)
         self.snapshot = snapshot
@@ -101,7 +102,7 @@ class Outputs:
         self._humanoid: tuple | None = None  # (the tree it was found on, when, the Humanoid)
         self.reason: str | None = "no fit yet"
         self._bundles: dict[tuple, vmc.Bundle] = {}
-        self._t0 = time.monotonic()
+        self._t0 = clock.monotonic()
         self._status: dict = {}
 
     def _open_vrpn(self, host: str, port: int) -> None:
@@ -109,7 +110,7 @@ class Outputs:
             self.problems.append(f"VRPN not started: {port} is not a port (1-65535); give --vrpn PORT")
             return
         try:
-            self.vrpn = vrpn.VrpnServer(host, port, sensors=len(BONES))
+            self.vrpn = vrpn.VrpnServer(host, port, self.clock, sensors=len(BONES))
         except OSError as exc:
             why = ("another program (another VRPN server?) uses it" if exc.errno == errno.EADDRINUSE
                    else exc.strerror or str(exc))
@@ -170,7 +171,7 @@ class Outputs:
         next_osc = self._t0
         next_tick = 0.0
         while not self._stop:
-            now = time.monotonic()
+            now = self.clock.monotonic()
             # While frames wake the thread (a VRPN client), a VMC bundle rides on the next frame's wake-up
             # (frames come 144 times a second): a wake-up of its own cost as much again on a busy machine,
             # whose caches hold none of this between wake-ups. A tracker gone quiet still gets its bundles.
@@ -181,7 +182,7 @@ class Outputs:
                     key.data(mask)
                 except Exception:  # one client's fault is not the stream's: log it, go on
                     log.exception("outputs: a socket event failed")
-            now = time.monotonic()
+            now = self.clock.monotonic()
             self._eager = self.vrpn is not None and self.vrpn.streaming
             try:
                 if self._queue:
@@ -234,7 +235,7 @@ class Outputs:
         pos, rot = rig.segments(R, t)
         self._segments = (self._newest[0], pos[-1], rot[-1])
         quats = as_quat(rot, scalar_first=False)
-        wall = f.times + (time.time() - time.monotonic())
+        wall = f.times + (self.clock.wall() - self.clock.monotonic())
         self.vrpn.send_reports(self._packer.frames(wall, pos, quats))
 
     def _follow_fit(self) -> None:
@@ -248,7 +249,7 @@ class Outputs:
             fit = None
         if fit is not self._fit:
             self._fit, self._rig_stale = fit, True
-        now = time.monotonic()
+        now = self.clock.monotonic()
         # Another session's fit, a session's final fit or none at all: at once (what VMC's calibration
         # state says must be what its bones are); the same session's next live fit: at the refresh rate.
         urgent = fit is None or key is None or key[1] is None or key[0] != self._rig_key[0]

@@ -10,10 +10,10 @@ the session, and `flush_held` stores them once it can.
 from __future__ import annotations
 
 import logging
-import time
 from collections import deque
 from typing import Callable
 
+from flockcal.server.clock import ServiceClock
 from flockcal.server.errors import InsufficientStorage, ServerError
 from flockcal.server.events import Event
 from flockcal.server.fitting import json_safe
@@ -40,15 +40,17 @@ class Persistence:
     """Writes the live session out; owns the recent events and the time of the last database flush.
     `on_storage_failed(exc)` hears of a write that failed for want of room."""
 
-    def __init__(self, store: Store, on_storage_failed: Callable[[Exception], None] | None = None,
-                 stamp: Callable[[], float] = time.time):
+    def __init__(self, store: Store, clock: ServiceClock,
+                 on_storage_failed: Callable[[Exception], None] | None = None):
         self.store = store
-        self.stamp = stamp  # events' wall_time: the service clock's stamps, which never step back
+        self.clock = clock
+        self.stamp = clock.stamp  # events' wall_time: the service clock's stamps, which never step back
         self.on_storage_failed = on_storage_failed
         self.recent: deque[Event] = deque(maxlen=RECENT_EVENTS)
         self.held_events: list[Event] = []  # shown with their ids, not yet in the database
         self._last_id: int | None = None
         self._last_db_flush = 0.0
+        self._last_log_flush = 0.0
 
     def add_events(self, events: list[Event], live: LiveSession | None, session_time: float | None) -> None:
         """Store events (slip, session, tracker, service), each as the part that made it made it; those
@@ -105,14 +107,16 @@ class Persistence:
 
     def tick(self, live: LiveSession, now: float) -> None:
         """Flush what is due: the frame log every flush_s, the database once a second."""
-        if now - live.framelog.last_flush >= live.framelog.flush_s:
+        # Timed here on the service's clock (the log also flushes itself as frames arrive).
+        if now - self._last_log_flush >= live.framelog.flush_s:
             live.framelog.flush()
+            self._last_log_flush = now
         if now - self._last_db_flush >= DB_FLUSH_S:
             self.flush_db(live)
 
     def flush_db(self, live: LiveSession) -> None:
         rows, live.residual_rows = live.residual_rows, []
-        self._last_db_flush = time.monotonic()
+        self._last_db_flush = self.clock.monotonic()
         try:
             self.store.add_residuals(live.id, rows)
         except ServerError as exc:

@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
 from concurrent.futures import Future
 from dataclasses import replace
 from typing import Callable
@@ -109,8 +108,8 @@ class Pipeline:
         self._flush_held_rows: Callable[[], bool] = lambda: True
         # The parts, and the state below, belong to the pipeline thread.
         self.ingest = Ingest(self.m)
-        self.persistence = Persistence(store, on_storage_failed=self._storage_failed, stamp=self.clock.stamp)
-        self.fitter = FitWorker(self.names, tolerance, on_done=self._wake)
+        self.persistence = Persistence(store, self.clock, on_storage_failed=self._storage_failed)
+        self.fitter = FitWorker(self.names, tolerance, self.clock, on_done=self._wake)
         self.snapshots = SnapshotMaker(self.names, source_status, target, stamp=self.clock.stamp)
         self.live: LiveSession | None = None
         self.pose_fit: Calibration | None = None  # the fit the live skeleton is drawn with
@@ -252,10 +251,10 @@ class Pipeline:
                     has_work = bool(self._pending or self._pending_events or self.fitter.has_result())
                     # Publish as soon as frames arrive, but no more than publish_hz; status twice a second.
                     due = last_publish + (self.min_publish_s if has_work else 0.5)
-                    now = time.monotonic()
+                    now = self.clock.monotonic()
                     if now >= due:
                         break
-                    self._cond.wait(due - now)
+                    self.clock.wait(self._cond, due - now)
                 stopping = self._stop
                 if stopping:
                     batches, self._pending = self._pending, []
@@ -283,7 +282,7 @@ class Pipeline:
                 self._publish()
             except Exception:  # the pipeline must survive a bad batch; the log says why
                 log.exception("pipeline step failed")
-            last_publish = time.monotonic()
+            last_publish = self.clock.monotonic()
             if stopping:
                 if self.live is not None:
                     self.persistence.flush_db(self.live)
@@ -323,7 +322,7 @@ class Pipeline:
             self._storage_failed(f"{live.framelog.path.name}: {live.framelog.error.strerror or live.framelog.error}")
         # Behind the tracker, the slip loop refits less often until it has caught up; keeping up, it runs
         # at the measured 1/30 s cadence.
-        lag = time.monotonic() - self.ingest.last_frame_time
+        lag = self.clock.monotonic() - self.ingest.last_frame_time
         catch_up = FAR_CATCH_UP if lag > FAR_BEHIND_S else CATCH_UP if lag > BEHIND_S else 1
         update = live.cal.add_frames(frames, catch_up)
         if self.limits is not None:
@@ -364,7 +363,7 @@ class Pipeline:
 
     def _publish(self) -> None:
         live = self.live
-        now = time.monotonic()
+        now = self.clock.monotonic()
         if self.limits is not None:  # the disk, once a second (full, or room again)
             for ev in self.limits.tick(lambda: self.persistence.flush_held() and self._flush_held_rows()):
                 self.add_event(ev)

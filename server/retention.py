@@ -116,15 +116,15 @@ class Retention:
     keep_days, then more until the data directory is under the budget. Each prune is an event.
     """
 
-    def __init__(self, store, sessions, data_dir: Path, policy: Policy, add_event, interval_s: float = 60.0,
-                 clock: ServiceClock | None = None):
+    def __init__(self, store, sessions, data_dir: Path, policy: Policy, add_event, interval_s: float = 60.0, *,
+                 clock: ServiceClock):
         self.store = store
         self.sessions = sessions
         self.data_dir = Path(data_dir)
         self.policy = policy
         self.add_event = add_event
         self.interval_s = float(interval_s)
-        self.clock = clock if clock is not None else ServiceClock()
+        self.clock = clock
         self.store.query(SCHEMA)
         if "clock_offset" not in {n for (n,) in self.store.query("SELECT name FROM pragma_table_info('retention')")}:
             self.store.query("ALTER TABLE retention ADD COLUMN clock_offset REAL")  # databases from before
@@ -166,7 +166,7 @@ class Retention:
             except Exception as exc:  # a failing pass must not end the service; the next one retries
                 self.last_error = f"{type(exc).__name__}: {exc}"
                 log.exception("retention pass failed")
-            self._wake.wait(self.interval_s)
+            self.clock.wait(self._wake, self.interval_s)
             self._wake.clear()
 
     def _save_clock(self) -> None:
@@ -362,7 +362,7 @@ class Retention:
     def data_bytes(self, max_age_s: float = 5.0) -> int:
         """The data directory's size, walked at most every `max_age_s` (a season leaves tens of thousands of
         small files, and /api/status is polled)."""
-        now = time.monotonic()
+        now = self.clock.monotonic()
         if self._usage is None or now - self._usage[0] > max_age_s:
             self._usage = (now, tree_bytes(self.data_dir))
         return self._usage[1]

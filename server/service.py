@@ -78,7 +78,7 @@ class Service:
             self.store.close()
             os.close(self._lock_fd)
             raise
-        self.source = source if source is not None else TrackerSource(settings)
+        self.source = source if source is not None else TrackerSource(settings, clock=clock)
         self.interrupted = self.store.mark_interrupted()
         if self.interrupted:
             log.warning("sessions %s were live when the service last stopped; marked interrupted", ", ".join(self.interrupted))
@@ -87,7 +87,7 @@ class Service:
         # the pipeline when it starts (as the frame source gets the pipeline's feed).
         self.hub = SnapshotHub()
         self.limits = SessionLimits(data / "recordings", settings.max_session_s, settings.min_free_bytes,
-                                    stamp=self.clock.stamp)
+                                    clock=self.clock)
         self.pipeline = Pipeline(
             self.source.names,
             self.store,
@@ -119,7 +119,7 @@ class Service:
             os.close(self._lock_fd)
             raise
         # The live humanoid streams (VRPN, VMC), when asked for: bound now, so a port in use is said at start.
-        self.outputs = (Outputs(settings, self.pipeline.names, lambda: self.pipeline.snapshot)
+        self.outputs = (Outputs(settings, self.pipeline.names, lambda: self.pipeline.snapshot, self.clock)
                         if settings.vrpn_port is not None or settings.osc_targets else None)
         self.started = False
         self.stopped_session: SessionRow | None = None  # the session stop() closed, for `serve` to report

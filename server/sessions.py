@@ -101,7 +101,7 @@ class SessionManager:
         self.profiles = profiles
         self.raw_recorder = raw_recorder
         self.holds = FileHolds()  # downloads in progress hold a session's files (server/holds.py)
-        self.leases = SessionLeases(stop=self.stop, add_event=pipeline.add_event, clock=self.clock.monotonic)
+        self.leases = SessionLeases(stop=self.stop, add_event=pipeline.add_event, clock=self.clock)
         self.retention = Retention(store, self, Path(data_dir), retention_policy or Policy(), pipeline.add_event,
                                    interval_s=retention_interval_s, clock=self.clock)
         self._lock = threading.Lock()  # one start/stop at a time

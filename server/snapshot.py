@@ -8,7 +8,6 @@ JSON bodies) are computed on first use and cached on the snapshot, so 50 clients
 from __future__ import annotations
 
 import json
-import time
 from collections import deque
 from dataclasses import dataclass
 from functools import cached_property
@@ -120,8 +119,7 @@ class SnapshotMaker:
     `make` runs on the pipeline thread (which owns `seq`); any thread reads `current`, which is only ever
     replaced, never changed: the event loop never waits for the pipeline."""
 
-    def __init__(self, names, source_status: Callable[[], dict], target: float,
-                 stamp: Callable[[], float] = time.time):
+    def __init__(self, names, source_status: Callable[[], dict], target: float, stamp: Callable[[], float]):
         self.names = tuple(names)
         self.stamp = stamp
         self.source_status = source_status

@@ -9,10 +9,10 @@ only a sim:// device gives a `simulator` (the performer, reached through the por
 from __future__ import annotations
 
 import dataclasses
-import time
 import urllib.parse
 from typing import TYPE_CHECKING, Callable, Protocol
 
+from flockcal.clock import SYSTEM, Clock
 from flockcal.drivers.port_guard import check_port
 from flockcal.errors import FlockcalError
 from flockcal.frames import Frames
@@ -59,27 +59,24 @@ def named_sim_url(url: str, name: str = "flockcal") -> str:
     return url
 
 
-def open_simulation(url: str):
-    """(the simulated performer, its flock's clock) behind a sim:// URL, or None for any other device.
+def open_simulation(url: str, clock: Clock):
+    """(the simulated performer, its fake flock) behind a sim:// URL, or None for any other device.
 
-    Opening the port creates the named simulation up front (so its sensor names are known); the port
-    hands over its performer, which the named flock keeps after the port closes, for the reader's ports
-    (and their re-opens on reconnect) to stream.
+    The named simulation is made up front on the service's clock (so its sensor names are known, and its
+    time is the reader's); the named flock outlives its ports, for the reader's ports (and their re-opens on
+    reconnect) to stream.
     """
     if not url.lower().startswith("sim://"):
         return None
     import serial
 
-    import flockcal.simulator  # noqa: F401  (registers sim:// with pyserial)
+    from flockcal.simulator.protocol_sim import simulation_for
 
     try:
-        port = serial.serial_for_url(url)
+        sim = simulation_for(url, clock)
     except (serial.SerialException, ValueError) as exc:
         raise ConfigError(f"--device {url}: {exc}") from None
-    try:
-        return port.performer, port.flock.clock
-    finally:
-        port.close()
+    return sim.source, sim.flock
 
 
 def tracker_event(event: TrackerEvent) -> Event:
@@ -93,27 +90,26 @@ def tracker_event(event: TrackerEvent) -> Event:
 class TrackerSource:
     """The driver's TrackerReader on `settings.device_url` (a sim:// URL gets a name and a control handle)."""
 
-    def __init__(self, settings: Settings, recording_path=None):
+    def __init__(self, settings: Settings, recording_path=None, clock: Clock = SYSTEM):
         self.settings = settings
+        self.clock = clock  # the reader's, and a simulation's: its frames are dated on the service's clock
         self.urls = [named_sim_url(u) for u in settings.device_urls]
         self.url = ",".join(self.urls)
         for url in self.urls:  # a port another program holds, or that leads elsewhere: refused before serving
             check_port(url)
-        sim = open_simulation(self.urls[0])
-        self.simulator, self._sim_clock = sim if sim is not None else (None, None)
+        sim = open_simulation(self.urls[0], clock)
+        self.simulator, self._flock = sim if sim is not None else (None, None)
         self.names = sensor_names(settings, self.simulator.names if self.simulator else None)
         self.reader = None
         self.recording_path = recording_path
 
     def reader_time(self, sim_time: float) -> float | None:
-        """A simulated time on the reader's clock (time.monotonic), or None when the simulation does not run
-        on the wall clock. The reader dates each record on arrival, back-dated by the line's period, so the
+        """A simulated time on the reader's clock (the service's monotonic one), or None when the simulation
+        runs on another clock. The reader dates each record on arrival, back-dated by the line's period, so the
         two agree to within a record's transfer time (a few ms at the simulator's baud rates)."""
-        from flockcal.simulator.clocks import WallClock
-
-        if not isinstance(self._sim_clock, WallClock):
+        if self._flock is None or self._flock.clock is not self.clock:
             return None
-        return float(sim_time) + (time.monotonic() - self._sim_clock())
+        return float(sim_time) + self._flock.origin
 
     def start(self, on_frames: OnFrames, on_event: OnEvent) -> None:
         from flockcal.drivers.link import Timing
@@ -134,7 +130,7 @@ class TrackerSource:
         try:
             self.reader = TrackerReader(cfg, on_frames=on_frames,
                                         on_event=on_event,
-                                        recording_header={"names": list(self.names)})
+                                        recording_header={"names": list(self.names)}, clock=self.clock)
         except FlockcalError as exc:
             raise ConfigError(f"--device {self.url}: {exc}") from None
         self.reader.start()

@@ -23,10 +23,10 @@ class _Session(NamedTuple):
     calibrated_s: float | None  # session time of its first `calibrated` event; None: never calibrated
 
 
-def season(store, data_dir: Path, days: int = 14, keep_bytes: int | None = None, now: float | None = None) -> dict:
+def season(store, data_dir: Path, days: int = 14, keep_bytes: int | None = None, *, now: float) -> dict:
     """Per-day figures for the last `days` days (today included, newest first) and their totals; `keep_bytes`:
-    retention's budget (`serve --keep-disk`), if any."""
-    now = time.time() if now is None else now
+    retention's budget (`serve --keep-disk`), if any; `now` is today's stamp (the service clock's,
+    server/clock.py)."""
     since = now - days * 86400.0
     # A session counts as finished when the service said it was calibrated (the `calibrated` event,
     # written the moment progress reached done); its first such event's time_s is its time to calibrate.

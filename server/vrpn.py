@@ -10,10 +10,11 @@ import logging
 import selectors
 import socket
 import struct
-import time
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from flockcal.clock import Clock
 
 log = logging.getLogger(__name__)
 
@@ -64,17 +65,16 @@ def padded(n: int) -> int:
     return -(-n // ALIGN) * ALIGN
 
 
-def message(type_id: int, sender_id: int, payload: bytes = b"", when: float | None = None, seq: int = 0) -> bytes:
-    """One message (vrpn_Endpoint::marshall_message): the header's length counts the header and the payload
-    but not the payload's padding, which the reader infers."""
-    when = time.time() if when is None else when
+def message(type_id: int, sender_id: int, payload: bytes, when: float, seq: int = 0) -> bytes:
+    """One message (vrpn_Endpoint::marshall_message), sent at `when` (unix s): the header's length counts the
+    header and the payload but not the payload's padding, which the reader infers."""
     sec = int(when)
     head = struct.pack(">IIIiiI", HEADER + len(payload), sec & 0xFFFFFFFF, int((when - sec) * 1e6), sender_id,
                        type_id, seq & 0xFFFFFFFF)
     return head + payload.ljust(padded(len(payload)), b"\0")
 
 
-def description(kind: int, number: int, name: str, when: float | None = None) -> bytes:
+def description(kind: int, number: int, name: str, when: float) -> bytes:
     """A sender or type description: the name's length with its NUL, then the name and the NUL."""
     raw = name.encode() + b"\0"
     return message(kind, number, len(raw).to_bytes(4, "big") + raw, when)
@@ -129,8 +129,8 @@ class Client:
     sock: socket.socket
     address: tuple  # the peer's TCP address
     tcp_only: bool  # it connected to the TCP port itself (no UDP channel will come)
-    since: float = field(default_factory=time.time)
-    started: float = field(default_factory=time.monotonic)
+    since: float  # when it came (unix s, shown in /api/status)
+    started: float  # ... on the monotonic clock (the cookie's deadline)
     state: str = "cookie"  # connecting (the server calls back) | cookie (waiting for the peer's) | connected
     inbox: bytearray = field(default_factory=bytearray)
     outbox: bytearray = field(default_factory=bytearray)
@@ -150,8 +150,9 @@ class VrpnServer:
     A client whose TCP backlog (what its socket would not take) passes `backlog_bytes` has stopped reading
     and is dropped, as the websocket's slow clients are; UDP reports are fire-and-forget."""
 
-    def __init__(self, host: str, port: int, device: str = "flockcal", sensors: int = 16,
+    def __init__(self, host: str, port: int, clock: Clock, device: str = "flockcal", sensors: int = 16,
                  max_clients: int = 32, backlog_bytes: int = BACKLOG):
+        self.clock = clock
         self.device = device
         self.sensors = sensors
         self.max_clients = max_clients
@@ -195,7 +196,7 @@ class VrpnServer:
                 self.dropped["refused"] += 1
                 sock.close()
                 continue
-            self._add(Client(sock, addr, tcp_only=True))
+            self._add(Client(sock, addr, True, self.clock.wall(), self.clock.monotonic()))
 
     def _lobbed(self, _mask) -> None:
         """Connection requests (vrpn_udp_request_lob_packet): "HOST PORT" asks to be called back on TCP PORT.
@@ -226,7 +227,7 @@ class VrpnServer:
             if err not in (0, errno.EINPROGRESS):
                 sock.close()
                 continue
-            self._add(Client(sock, (ip, port), tcp_only=False, state="connecting"))
+            self._add(Client(sock, (ip, port), False, self.clock.wall(), self.clock.monotonic(), state="connecting"))
 
     def _add(self, c: Client) -> None:
         c.sock.setblocking(False)
@@ -282,7 +283,7 @@ class VrpnServer:
                 return
             del c.inbox[:COOKIE_SIZE]
             c.state = "connected"
-            now = time.time()
+            now = self.clock.wall()
             self._send(c, description(SENDER_DESCRIPTION, 0, self.device, now)
                        + b"".join(description(TYPE_DESCRIPTION, k, name, now) for k, name in enumerate(TYPES)))
             log.info("VRPN: client %s connected", c.label)
@@ -310,13 +311,13 @@ class VrpnServer:
             if 0 < sender < 65536:
                 c.udp = (c.address[0], sender)
         elif kind >= 0 and c.senders.get(sender) == self.device:
-            what = c.types.get(kind)
+            what, now = c.types.get(kind), self.clock.wall()
             if what == PING:
-                self._send(c, message(TYPES.index(PONG), 0))
+                self._send(c, message(TYPES.index(PONG), 0, b"", now))
             elif what == REQUEST_TO_ROOM:
-                self._send(c, message(TYPES.index(TO_ROOM), 0, to_room_payload()))
+                self._send(c, message(TYPES.index(TO_ROOM), 0, to_room_payload(), now))
             elif what == REQUEST_UNIT_TO_SENSOR:
-                self._send(c, b"".join(message(TYPES.index(UNIT_TO_SENSOR), 0, unit_to_sensor_payload(k))
+                self._send(c, b"".join(message(TYPES.index(UNIT_TO_SENSOR), 0, unit_to_sensor_payload(k), now)
                                        for k in range(self.sensors)))
 
     # -- what the server says -----------------------------------------------------------------------------

@@ -24,6 +24,6 @@ __getattr__, __dir__, __all__ = public_api(__name__, {
     "routine": "flockcal.simulator.motion",
     "FakeFlock": "flockcal.simulator.fake_tracker",
     "PtyTracker": "flockcal.simulator.pty_tracker",
-    "ManualClock": "flockcal.simulator.clocks",
+    "ManualClock": "flockcal.clock",
     "SimulatorError": "flockcal.simulator.body",
 })

@@ -2,13 +2,14 @@
 
 `FakeFlock` takes host bytes, answers commands (fake_commands, fake_parameters) and streams records of
 a pose source at the measurement rate, limited by each port's baud rate (8N1: baud/10 bytes/s).
-Transports (a pty, the sim:// URL handler) only move bytes; time comes from a clock (simulator.clocks).
+Transports (a pty, the sim:// URL handler) only move bytes; time comes from a `flockcal.clock.Clock` (the
+machine's, or a test's `ManualClock`).
 """
 
 from __future__ import annotations
 
 import threading
-from typing import Callable, Protocol
+from typing import Protocol
 
 import numpy as np
 # Quaternion records are encoded on the streaming thread, through scipy's Rotation, which flockcal.rotations
@@ -16,11 +17,11 @@ import numpy as np
 # do not wait ~0.2 s for it (they were lost, and the rest came in a burst).
 import scipy.spatial.transform  # noqa: F401
 
+from flockcal.clock import SYSTEM, Clock
 from flockcal.drivers.hemispheres import fold_to_hemisphere
 from flockcal.drivers.records import DEFAULT_FORMAT, data_words, record_length
 from flockcal.drivers.words import encode_words
 from flockcal.errors import FlockcalError
-from flockcal.simulator.clocks import WallClock
 from flockcal.simulator.fake_commands import CommandSet
 from flockcal.simulator.fake_parameters import ParameterSet
 from flockcal.simulator.fake_units import DEFAULT_RATE_HZ, MAX_RATE_HZ, OUTPUT_BUFFER_LIMIT, Bird, Line
@@ -72,7 +73,8 @@ class FakeFlock(CommandSet, ParameterSet):
     source: a PoseSource. birds: sensor birds (default: all of the source's sensors), at FBB
     addresses 1..birds, or 2..birds+1 after an ERC/ERT at address 1 when `ert`. ports: 1 (one
     line to the master) or `birds` (one line per sensor bird, sharing the flock's clock).
-    clock: a callable giving seconds (`ManualClock` for tests, `WallClock` for real time).
+    clock: the `flockcal.clock.Clock` it runs on (the machine's; a test's `ManualClock`); the flock's time
+    (`time()`) is its monotonic seconds since the flock was made.
     scale_inches: power-up position scale, 36 or 72 (p3); default the source's `full_scale_in`
     or 36. With `ert` the scale is 144 in, as on the real extended-range transmitter.
     pose_lookahead: seconds of measurement cycles asked of the source in one call (sources with
@@ -81,7 +83,7 @@ class FakeFlock(CommandSet, ParameterSet):
 
     def __init__(self, source: PoseSource, *, birds: int | None = None, ert: bool = False,
                  rate_hz: float = DEFAULT_RATE_HZ, baud: float = 115200, ports: int = 1,
-                 clock: Callable[[], float] | None = None, scale_inches: float | None = None,
+                 clock: Clock = SYSTEM, scale_inches: float | None = None,
                  quaternion_convention: str = "fob", seed: int = 0,
                  buffer_limit: int = OUTPUT_BUFFER_LIMIT, pose_lookahead: float = 0.1) -> None:
         n = source.n_sensors if birds is None else int(birds)
@@ -93,7 +95,8 @@ class FakeFlock(CommandSet, ParameterSet):
         if ports not in (1, n):
             raise FakeTrackerError(f"ports must be 1 (one line to the master) or {n} (one per bird), not {ports}")
         self.source = source
-        self.clock = clock if clock is not None else WallClock()
+        self.clock = clock
+        self.origin = clock.monotonic()  # the flock's time 0 on its clock
         self.ert = bool(ert)
         self.n_birds = n
         self.units = units
@@ -119,7 +122,7 @@ class FakeFlock(CommandSet, ParameterSet):
         self.sensor_addresses = list(range(first, first + n))
         homes = [1] if ports == 1 else self.sensor_addresses
         self.lines = [Line(k, home, float(baud)) for k, home in enumerate(homes)]
-        self.now = float(self.clock())
+        self.now = self.time()
         self.error_code = 0
         self.error_address = 0
         self.standby = False
@@ -212,6 +215,10 @@ class FakeFlock(CommandSet, ParameterSet):
         with self._lock:
             self._sync()
             return self._arrived(self._line(port))
+
+    def time(self) -> float:
+        """The flock's time: seconds on its clock since it was made."""
+        return self.clock.monotonic() - self.origin
 
     def next_arrival(self, port: int = 0) -> float | None:
         """Clock time at which the next not-yet-arrived byte will arrive (None: nothing queued)."""
@@ -338,7 +345,7 @@ class FakeFlock(CommandSet, ParameterSet):
 
     def _sync(self) -> None:
         """Advance to the clock: stream the measurement cycles that have passed, per line."""
-        t = float(self.clock())
+        t = self.time()
         if t < self.now:
             return
         k1 = int(np.floor((t - self.cycle_origin) * self.rate_hz + 1e-9))

@@ -6,10 +6,10 @@ the clock): what a group-mode flock streams, in reads of a few frames under the 
 from __future__ import annotations
 
 import os
-import time
 
 import numpy as np
 
+from flockcal.clock import SYSTEM, Clock
 from flockcal.drivers.link import FlockSetup
 from flockcal.drivers.recording import RecordingWriter
 from flockcal.drivers.records import encode_records, record_length
@@ -18,9 +18,10 @@ from flockcal.simulator.fake_tracker import PoseSource
 
 def write_recording(path: str | os.PathLike, source: PoseSource, seconds: float, rate_hz: float = 100.0, *,
                     record_format: str = "position_quaternion", scale_inches: float = 72.0, baud: int = 921600,
-                    frames_per_read: int = 2, block_s: float = 10.0) -> int:
+                    frames_per_read: int = 2, block_s: float = 10.0, clock: Clock = SYSTEM) -> int:
     """Write `seconds` of `source` at `rate_hz` to `path`; the number of frames. Arrival times run from now
-    on the monotonic clock (a frame arrives once its bytes crossed a `baud` line), as a recorder stamps them."""
+    on `clock`'s monotonic time (a frame arrives once its bytes crossed a `baud` line), as a recorder stamps
+    them."""
     m = source.n_sensors
     addresses = np.arange(1, m + 1)
     setup = FlockSetup(urls=["fast://"], birds=m, addresses=addresses.tolist(), group=m > 1, mode="stream",
@@ -31,8 +32,8 @@ def write_recording(path: str | os.PathLike, source: PoseSource, seconds: float,
     n = int(round(seconds * rate_hz))
     block = max(frames_per_read, int(block_s * rate_hz) // frames_per_read * frames_per_read)
     settings = {"names": list(source.names), "config": {"urls": setup.urls, "birds": m}}
-    with RecordingWriter(path, settings) as rec:
-        t0 = time.monotonic()
+    with RecordingWriter(path, settings, clock=clock) as rec:
+        t0 = clock.monotonic()
         rec.mark(t0, {"stream": setup.to_dict(), "assembler": {}})
         for a in range(0, n, block):
             k = min(block, n - a)

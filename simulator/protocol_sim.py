@@ -1,4 +1,5 @@
-"""pyserial URL handler for `sim://`: an in-process fake Flock of Birds on the wall clock, no pty.
+"""pyserial URL handler for `sim://`: an in-process fake Flock of Birds on the machine's clock (or one given to
+`simulation_for`), no pty.
 
 `serial.serial_for_url("sim://NAME?birds=16&motion=walk&seed=3&rate=144&baud=115200")`; several
 ports may share one flock by NAME (`&port=k`, one line per bird). An open port's `simulation` (and its
@@ -10,14 +11,12 @@ from __future__ import annotations
 
 import itertools
 import threading
-import time
 import urllib.parse
 from dataclasses import dataclass, field
 
 from serial.serialutil import PortNotOpenError, SerialBase, SerialException, Timeout, to_bytes
 
-from flockcal.clock import SYSTEM
-from flockcal.simulator.clocks import WallClock
+from flockcal.clock import SYSTEM, Clock
 from flockcal.simulator.fake_tracker import FakeFlock, LineFaults
 from flockcal.simulator.performer import Performer
 
@@ -108,12 +107,31 @@ def _parse(url: str) -> tuple[str, dict]:
     return parts.netloc, params
 
 
-def _attach(name: str, params: dict) -> Simulation:
+def simulation_for(url: str, clock: Clock = SYSTEM) -> Simulation:
+    """The simulation `sim://NAME…` names, made on `clock` when none runs (a service hands it its own clock
+    before its reader opens the port). A named simulation on another clock is made afresh when no port has it
+    open; SerialException when one has."""
+    name, params = _parse(url)
+    if not name:
+        raise SerialException(f"simulation_for needs a named simulation (sim://NAME?…), not {url!r}")
+    return _attach(name, params, clock, ports=False)
+
+
+def _attach(name: str, params: dict, clock: Clock | None = None, ports: bool = True) -> Simulation:
+    """The simulation `name` (made if none runs), with a port of it opened when `ports`. A port joins its
+    simulation on that simulation's clock (`clock` None); a new one runs on `clock`, or the machine's."""
     with _registry_lock:
         named = bool(name)
         if not named:
             name = f"anonymous-{next(_anonymous)}"
         sim = SIMULATIONS.get(name)
+        if clock is None:
+            clock = sim.flock.clock if sim is not None else SYSTEM
+        if sim is not None and sim.flock.clock is not clock:
+            if any(sim.open_ports.values()):
+                raise SerialException(f"sim://{name} runs on another clock and has a port open; close it first "
+                                      "or name another simulation")
+            sim = None
         if sim is None:
             source = make_pose_source(birds=params["birds"], motion=params["motion"],
                                       seed=params["seed"], noise=params["noise"], model=params["model"],
@@ -122,7 +140,7 @@ def _attach(name: str, params: dict) -> Simulation:
             flock = FakeFlock(source, birds=birds, ert=params["ert"], rate_hz=params["rate"],
                               baud=params["baud"] or 115200,
                               ports=birds if params["port"] is not None else 1,
-                              clock=WallClock(), scale_inches=params["scale"],
+                              clock=clock, scale_inches=params["scale"],
                               quaternion_convention=params["quaternion"], seed=params["seed"])
             sim = Simulation(name, flock, source, params, named)
             SIMULATIONS[name] = sim
@@ -132,6 +150,8 @@ def _attach(name: str, params: dict) -> Simulation:
         if not 0 <= port < sim.flock.n_ports:
             raise SerialException(f"sim://{name} has ports 0..{sim.flock.n_ports - 1} "
                                   f"(one per bird only when the first open gave &port=), not {port}")
+        if not ports:
+            return sim
         if not sim.flock.connected(port):
             raise SerialException(f"could not open sim://{name} port {port}: disconnected")
         sim.open_ports[port] = sim.open_ports.get(port, 0) + 1
@@ -230,10 +250,10 @@ class Serial(SerialBase):
                 break
             left = timeout.time_left()
             nxt = self.flock.next_arrival(self._port_index)
-            wait = 0.02 if nxt is None else max(nxt - self.flock.clock(), 0.0005)
+            wait = 0.02 if nxt is None else max(nxt - self.flock.time(), 0.0005)
             if left is not None:
                 wait = min(wait, max(left, 0.0))
-            SYSTEM.sleep(min(wait, 0.02))
+            self.flock.clock.wait(self._cancel, min(wait, 0.02))
             self._check()
         return bytes(data)
 

@@ -106,6 +106,13 @@ class PtyTracker(LineFaults):
     def device(self) -> str:
         return self.devices[0]
 
+    def pending(self, port: int | None = None) -> int:
+        """Bytes the flock has sent by its clock's present that have not yet reached the pty (all ports by
+        default): 0 once the server thread has handed on everything a client could read now."""
+        with self._lock:
+            return sum(self.flock.in_waiting(k) + len(p.backlog) for k in self._ports(port)
+                       if (p := self._ptys[k]) is not None)
+
     @property
     def pts_paths(self) -> list[str | None]:
         """The /dev/pts/N behind each port (changes on reconnect)."""

@@ -4,17 +4,19 @@ child process (for restarts and kill -9), plus the fake tracker on a pty as its 
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 import httpx
 import numpy as np
+
+from service_process import wait_for
 
 
 def free_port() -> int:
@@ -25,33 +27,68 @@ def free_port() -> int:
 
 def wait_ready(url: str, timeout: float = 30.0, token: str | None = None, proc=None) -> None:
     headers = {"Authorization": f"Bearer {token}"} if token else {}
-    deadline = time.monotonic() + timeout
-    last = None
-    while time.monotonic() < deadline:
+    last = [None]
+
+    def ready() -> bool:
         if proc is not None and proc.poll() is not None:
             raise RuntimeError(f"the service exited with code {proc.returncode} before it was ready")
         try:
             r = httpx.get(url + "/api/status", headers=headers, timeout=2)
-            if r.status_code == 200:
-                return
-            last = r.text
         except httpx.HTTPError as exc:
-            last = exc
-        time.sleep(0.05)
-    raise TimeoutError(f"service at {url} not ready after {timeout} s ({last})")
+            last[0] = exc
+            return False
+        last[0] = r.text
+        return r.status_code == 200
+
+    wait_for(ready, timeout, lambda: f"the service at {url} ready (last answer: {last[0]})")
 
 
 def wait_connected(url: str, timeout: float = 30.0, token: str | None = None, frames: int = 1) -> dict:
     """Poll /api/status until the tracker streams (at least `frames` frames received)."""
     headers = {"Authorization": f"Bearer {token}"} if token else {}
-    deadline = time.monotonic() + timeout
-    st = {}
-    while time.monotonic() < deadline:
+
+    def streaming():
         st = httpx.get(url + "/api/status", headers=headers, timeout=5).json()
-        if st.get("connected") and st.get("frames", 0) >= frames:
-            return st
-        time.sleep(0.05)
-    raise TimeoutError(f"tracker did not stream within {timeout} s: {st}")
+        return st if st.get("connected") and st.get("frames", 0) >= frames else None
+
+    return wait_for(streaming, timeout, f"the tracker streams {frames} frame(s)")
+
+
+def run_clock(clock, seconds: float, dt: float = 0.05, until=None, timeout: float = 60.0) -> float:
+    """Let `seconds` of a `ManualClock` pass (with `until`, only until it holds) in steps of `dt`, each once
+    every thread that follows the clock has caught up with the last (`ManualClock.idle`): the fake tracker,
+    the reader and the service move as time passing moves them, however slowly a loaded machine runs them.
+    Returns the seconds that passed; AssertionError when `until` did not hold within `seconds`."""
+    start, steps = clock.monotonic(), max(1, round(seconds / dt))
+    for k in range(1, steps + 1):
+        if until is not None and until():
+            return (k - 1) * seconds / steps
+        # To start + k steps exactly: a thread that sleeps `seconds` from `start` wakes at the last.
+        clock.advance_to(start + seconds if k == steps else start + k * seconds / steps)
+        wait_for(clock.idle, timeout, "the threads that follow the clock catch up", every=0.001)
+    assert until is None or until(), f"not within {seconds:g} s of the clock"
+    return seconds
+
+
+@contextlib.contextmanager
+def manual_service(settings, wall: float = 1.7e9):
+    """The whole service on a `ManualClock` the test moves (`run_clock`): the simulated tracker (a sim://
+    device is made on the service's clock), the reader, the pipeline, leases, retention and stamps, under
+    uvicorn on a thread. Yields (ServerThread, clock) once the tracker has sent 10 frames."""
+    from flockcal.clock import ManualClock
+    from flockcal.server.service import Service
+
+    clock = ManualClock(wall=wall, monotonic=1000.0)
+    service = Service(settings, clock=clock)
+    with ServerThread(settings, service) as srv:
+        run_clock(clock, 30.0, until=lambda: service.source.status().get("frames", 0) >= 10)
+        yield srv, clock
+
+
+def status(url: str, token: str | None = None) -> dict:
+    """GET /api/status."""
+    headers = {"Authorization": f"Bearer {token}"} if token else {}
+    return httpx.get(url + "/api/status", headers=headers, timeout=10).json()
 
 
 def start_session(url: str, performer: str = "Ann", **body) -> str:
@@ -69,6 +106,7 @@ class GuestSource:
     A new guest has another body: frames of the last one in a session would mix two skeletons. So swap
     with a lead (`lead_s` ≈ 0.3 s: the tracker computes poses up to 0.1 s ahead, and frames in flight),
     wait that long, then start the session; the routine's clock starts at the end of the lead.
+    `clock`: the tracker's time (`tracker.flock.time`).
     """
 
     def __init__(self, performer, clock):
@@ -118,11 +156,13 @@ class ServerThread:
         sock = listen_socket(self.settings.host, self.settings.http_port, self.settings.send_buffer_bytes)
         self.thread = threading.Thread(target=self.server.run, kwargs={"sockets": [sock]}, name="uvicorn", daemon=True)
         self.thread.start()
-        deadline = time.monotonic() + timeout
-        while not self.server.started:
-            if not self.thread.is_alive() or time.monotonic() > deadline:
+
+        def started() -> bool:
+            if not self.thread.is_alive():
                 raise RuntimeError("uvicorn did not start")
-            time.sleep(0.02)
+            return self.server.started
+
+        wait_for(started, timeout, "uvicorn started", every=0.02)
         return self
 
     def stop(self) -> None:

@@ -17,16 +17,19 @@ import httpx
 
 class Serve:
     """`python -m flockcal serve ARGS` on a free port; `nofile=(soft, hard)` sets its open-files limits
-    first (what a systemd unit's LimitNOFILE, or the lack of one, gives it). Use as a context manager:
-    the child is stopped (SIGINT, then SIGKILL after 20 s) and reaped on the way out."""
+    first (what a systemd unit's LimitNOFILE, or the lack of one, gives it); `prefix` runs it through a
+    command that execs it (`unshare ... sh -c '...; exec "$@"'`). Use as a context manager: the child is
+    stopped (SIGINT, then SIGKILL after 20 s) and reaped on the way out."""
 
-    def __init__(self, args: list[str], port: int, log: Path, nofile: tuple[int, int] | None = None):
+    def __init__(self, args: list[str], port: int, log: Path, nofile: tuple[int, int] | None = None,
+                 prefix: list | None = None):
         self.port = port
         self.url = f"http://127.0.0.1:{port}"
         args = [str(a) for a in args]
         if "--data-dir" not in args:  # never the user's own data directory (one service per directory)
             args += ["--data-dir", str(Path(log).parent / f"data-{port}")]
-        self.args = [sys.executable, "-m", "flockcal", "serve", "--http-port", str(port), *args]
+        self.args = [*map(str, prefix or []), sys.executable, "-m", "flockcal", "serve", "--http-port", str(port),
+                     *args]
         self.log = Path(log)
         self.nofile = nofile
         self.proc: subprocess.Popen | None = None
@@ -40,17 +43,17 @@ class Serve:
         with open(self.log, "ab") as out:
             self.proc = subprocess.Popen(self.args, stdout=out, stderr=subprocess.STDOUT, env=env,
                                          preexec_fn=self._limits)
-        deadline = time.monotonic() + ready_s
-        while time.monotonic() < deadline:
+
+        def ready() -> bool:
             if self.proc.poll() is not None:
                 raise RuntimeError(f"serve exited with {self.proc.returncode}: {self.output()[-2000:]}")
             try:
-                if httpx.get(self.url + "/api/status", timeout=2).status_code == 200:
-                    return self
+                return httpx.get(self.url + "/api/status", timeout=2).status_code == 200
             except httpx.HTTPError:
-                pass
-            time.sleep(0.05)
-        raise TimeoutError(f"serve not ready after {ready_s} s: {self.output()[-2000:]}")
+                return False
+
+        wait_for(ready, ready_s, lambda: f"serve ready ({self.output()[-2000:]})")
+        return self
 
     def output(self) -> str:
         return self.log.read_text(errors="replace") if self.log.exists() else ""
@@ -79,16 +82,17 @@ class Serve:
             self.proc.wait(10)
 
 
-def wait_for(condition, timeout: float, what: str, every: float = 0.05):
-    """Poll `condition()` until it returns something true; its value. AssertionError naming `what` after
-    `timeout` seconds."""
+def wait_for(condition, timeout: float, what, every: float = 0.05):
+    """Poll `condition()` until it returns something true; its value. AssertionError naming `what` (a string,
+    or a function giving one) after `timeout` seconds. The one place the tests wait on real time: `timeout`
+    only ends a hung test (every caller waits on a condition), `every` is how often it is looked at."""
     deadline = time.monotonic() + timeout
     while True:
         value = condition()
         if value:
             return value
         if time.monotonic() > deadline:
-            raise AssertionError(f"{what}: not within {timeout:g} s")
+            raise AssertionError(f"{what() if callable(what) else what}: not within {timeout:g} s")
         time.sleep(every)
 
 

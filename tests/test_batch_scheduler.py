@@ -15,6 +15,7 @@ import pytest
 
 from flockcal.simulator.performer import Performer
 from flockcal.takes import make_take, save_take
+from service_process import wait_for
 
 pytest.importorskip("distributed", reason="flockcal batch needs Dask: pip install '.[test]'")
 
@@ -40,10 +41,11 @@ def cluster(tmp_path_factory):
     procs = [_dask("scheduler", "--host", "127.0.0.1", "--port", "0", "--dashboard-address", "127.0.0.1:0",
                    "--scheduler-file", str(info), cwd=home, log=log)]
     try:
-        deadline = time.monotonic() + 60
-        while not info.exists() or not info.read_text().strip():
-            assert time.monotonic() < deadline and procs[0].poll() is None, (home / "dask.log").read_text()
-            time.sleep(0.2)
+        def written() -> bool:
+            assert procs[0].poll() is None, (home / "dask.log").read_text()
+            return info.exists() and bool(info.read_text().strip())
+
+        wait_for(written, 60, lambda: f"the scheduler's file ({(home / 'dask.log').read_text()})", every=0.2)
         address = json.loads(info.read_text())["address"]
         for _ in range(2):
             procs.append(_dask("worker", address, "--nthreads", "1", "--nworkers", "1", "--host", "127.0.0.1",

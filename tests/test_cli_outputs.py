@@ -9,7 +9,6 @@ from __future__ import annotations
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import pytest
@@ -18,6 +17,7 @@ from flockcal.atomic import OutputError, replacing, write_atomic
 from flockcal.drivers.recording import read_recording
 from flockcal.markers import save_markers
 from flockcal.simulator import optical as so
+from service_process import wait_for
 
 
 def flockcal(*argv, cwd: Path, timeout: float = 120):
@@ -130,13 +130,13 @@ def test_record_stopped_by_sigterm_closes_its_file_and_says_what_it_wrote(tmp_pa
                                  "sim://sigterm?birds=3&motion=exercise&rate=60", "--birds", "3", "-o", "rec.fobraw"],
                                 cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=err)
     try:
-        deadline = time.monotonic() + 60
         # Recording once it has said so and the file holds data beyond its header.
-        while not ("recording to" in err_path.read_text() and (tmp_path / "rec.fobraw").exists()
-                   and (tmp_path / "rec.fobraw").stat().st_size > 4096):
+        def recording() -> bool:
             assert proc.poll() is None, err_path.read_text()
-            assert time.monotonic() < deadline, f"record did not start: {err_path.read_text()}"
-            time.sleep(0.05)
+            return ("recording to" in err_path.read_text() and (tmp_path / "rec.fobraw").exists()
+                    and (tmp_path / "rec.fobraw").stat().st_size > 4096)
+
+        wait_for(recording, 60, lambda: f"record starts ({err_path.read_text()})")
         proc.send_signal(signal.SIGTERM)
         assert proc.wait(timeout=30) == 0, err_path.read_text()
     finally:

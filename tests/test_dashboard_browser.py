@@ -20,6 +20,7 @@ import numpy as np
 import pytest
 
 from server_helpers import ServerProcess, free_port, wait_connected
+from service_process import wait_for
 from flockcal.simulator.performer import Performer
 from browser_helpers import NEEDS_CHROMIUM
 
@@ -104,14 +105,13 @@ def dashboard(browser, server):
 
 
 def wait_until(predicate, timeout: float, what: str, interval: float = 0.25):
-    deadline = time.monotonic() + timeout
-    value = None
-    while time.monotonic() < deadline:
-        value = predicate()
-        if value:
-            return value
-        time.sleep(interval)
-    raise AssertionError(f"{what} did not happen within {timeout:g} s (last: {value!r})")
+    return wait_for(predicate, timeout, what, every=interval)
+
+
+def transitions_done(page, selector: str) -> None:
+    """Wait until the CSS transitions of `selector` have run (for a picture of where they end)."""
+    page.wait_for_function("s => document.querySelector(s).getAnimations().every(a => a.playState !== 'running')",
+                           arg=selector, timeout=10000)
 
 
 def canvas_pixels(page, selector: str, colours: list[str], tolerance: int = 40) -> dict:
@@ -245,12 +245,14 @@ def test_injected_slip_shows_on_the_residual_plot_and_as_an_alert(dashboard, per
     slips = int(page.get_attribute("#residuals", "data-slips"))
     assert slips >= 1
     # The marker is drawn on the plot: dashed red lines in the uPlot canvas.
-    time.sleep(0.5)
-    px = canvas_pixels(page, "#residuals canvas", ["#f85149"], tolerance=60)
-    assert px["colours"][0] > 30, px
+    wait_until(lambda: canvas_pixels(page, "#residuals canvas", ["#f85149"], tolerance=60)["colours"][0] > 30, 10,
+               "the slip's marker drawn on the plot")
     text = page.text_content("#alerts")
     assert re.search(r"Sensor slipped: [^—]*left forearm", text), text
-    time.sleep(2)  # a little more plot after the slip, for the picture
+    # A little more plot after the slip, for the picture: two seconds more of the session.
+    slipped_at = httpx.get(f"{server.url}/api/status", headers=admin()).json()["session"]["time_s"]
+    wait_until(lambda: httpx.get(f"{server.url}/api/status", headers=admin()).json()["session"]["time_s"] >= slipped_at + 2,
+               30, "two seconds more of the session")
     page.screenshot(path=str(artifacts() / "dashboard.png"), full_page=True)
     assert not page.errors
 
@@ -392,7 +394,7 @@ def test_kiosk_reaches_done_on_the_kiosk_routine_and_starts_the_next_guest(brows
         assert guest is not None
         page.wait_for_selector("#kiosk-state[data-state=done]", timeout=75000)
         record("kiosk_seconds_to_done", round(time.monotonic() - started, 1))
-        time.sleep(0.7)  # let the ring finish its transition for the picture
+        transitions_done(page, "#ring-fill")  # the ring where its transition ends, for the picture
         page.screenshot(path=str(artifacts() / "kiosk.png"))
         # "Done" is the service's: the guest's session is stored done, with every joint calibrated, and its
         # stored calibration has every joint (tests/test_kiosk_browser.py checks the ring step by step).

@@ -6,7 +6,6 @@ from __future__ import annotations
 
 import os
 import re
-import time
 
 import numpy as np
 import pytest
@@ -19,10 +18,11 @@ from flockcal.drivers.status import decode_status_word
 from flockcal.rotations import from_euler
 from flockcal.drivers.link import Timing, TrackerError
 from flockcal.drivers.reader import TrackerConfig, TrackerReader
-from flockcal.simulator.clocks import ManualClock
+from flockcal.clock import ManualClock
 from flockcal.simulator.fake_tracker import FakeFlock
 from flockcal.simulator.smooth_source import SmoothSource
 from flockcal.simulator.pty_tracker import PtyTracker
+from service_process import wait_for
 
 
 def _ask(flock, clock, data, dt=0.05):
@@ -96,7 +96,8 @@ def test_without_a_scale_the_driver_keeps_the_trackers_own(power_up):
                             scale_inches=None, timing=Timing.fast())
         reader = TrackerReader(cfg, on_frames=lambda f: valid.append(f.valid.copy()), on_event=events.append)
         reader.start(wait=15)
-        time.sleep(1.5)
+        # 1.5 s of the tracker's frames (90 at 60 Hz), counted: a starved machine reads them later.
+        wait_for(lambda: sum(map(len, valid)) >= 90, 60, "90 frames read")
         reader.stop()
         flock_scale = trk.flock.scale_inches
     assert reader.setup.scale_from_tracker and reader.setup.scale_inches == power_up == flock_scale

@@ -79,6 +79,12 @@ class Collector:
     def count(self) -> int:
         return sum(len(x[0]) for x in self.parts)
 
+    def after(self, n: int) -> int:
+        """Wait until `n` more frames have come; the count then (faults land a few records apart)."""
+        target = self.count() + n
+        wait_for(lambda: self.count() >= target, 60, f"{n} more frames read", every=0.005)
+        return self.count()
+
     def event(self, e):
         self.events.append(e)
 
@@ -92,22 +98,19 @@ class Collector:
         return [e.kind for e in self.events]
 
 
-def read_for(cfg: TrackerConfig, seconds: float, during=None, min_frames: int = 0,
-             until=None) -> tuple[Collector, dict]:
-    """Stream for `seconds`, and on until `min_frames` frames have come and `until(collector)` holds (a
-    starved machine delivers fewer in the same time, and re-initialises a flock slower; 60 s at most), then
-    stop."""
+def read_for(cfg: TrackerConfig, frames: int, during=None, until=None) -> tuple[Collector, dict]:
+    """Stream until `frames` frames have come (after `during(collector)`, which injects faults as frames come)
+    and `until(collector)` holds, then stop: counted, not timed (a starved machine delivers fewer frames in
+    the same time, and re-initialises a flock slower; 60 s at most)."""
     col = Collector()
     reader = TrackerReader(cfg, on_frames=col.frames, on_event=col.event)
     watch = StallWatch().start()
     reader.start(wait=15)
     try:
         if during:
-            during()
-        time.sleep(seconds)
-        deadline = time.monotonic() + 60
-        while (col.count() < min_frames or (until and not until(col))) and time.monotonic() < deadline:
-            time.sleep(0.05)
+            during(col)
+        wait_for(lambda: col.count() >= frames and (until is None or until(col)), 60,
+                 lambda: f"{frames} frames read ({col.count()}; events {col.kinds()})")
     finally:
         col.stopping = True
         reader.stop()
@@ -203,7 +206,7 @@ def test_group_mode_16_birds_decodes_the_simulated_poses_in_every_format(fmt):
     src = OrbitSource(16, seed=1)
     # The fake line is faster than RS-232 so every format fits 16 birds; the driver still says 115200.
     with PtyTracker(src, birds=16, baud=921600) as trk:
-        col, status = read_for(fast_config([trk.device], 16, rate_hz=40, record_format=fmt), 1.2)
+        col, status = read_for(fast_config([trk.device], 16, rate_hz=40, record_format=fmt), 48)
     times, R, p, valid = col.arrays()
     assert status["record_format"] == fmt and status["group"]
     assert valid[1:-1].all(), "a complete group response was marked invalid"
@@ -219,7 +222,7 @@ def test_group_mode_16_birds_decodes_the_simulated_poses_in_every_format(fmt):
 def test_one_port_per_bird_16_ports_decodes_the_simulated_poses_in_every_format(fmt):
     src = OrbitSource(16, seed=2)
     with PtyTracker(src, birds=16, ports=16, baud=115200) as trk:
-        col, status = read_for(fast_config(trk.devices, 16, rate_hz=40, record_format=fmt), 1.0, min_frames=30)
+        col, status = read_for(fast_config(trk.devices, 16, rate_hz=40, record_format=fmt), 40)
     times, R, p, valid = col.arrays()
     assert not status["group"] and status["record_format"] == fmt
     rot_tol, pos_tol = tolerance(fmt, 36)
@@ -243,7 +246,7 @@ def test_one_port_per_bird_16_ports_decodes_the_simulated_poses_in_every_format(
 def test_auto_format_falls_back_to_position_quaternion_when_the_line_is_too_slow():
     src = OrbitSource(16)
     with PtyTracker(src, birds=16, baud=115200) as trk:
-        col, status = read_for(fast_config([trk.device], 16, rate_hz=40), 0.5)
+        col, status = read_for(fast_config([trk.device], 16, rate_hz=40), 20)
     # position/matrix needs 16 × 40 × 25 = 16000 B/s; 115200 baud carries about 11520.
     assert status["record_format"] == "position_quaternion"
     fallback = [e for e in col.events if e.kind == "format_fallback"]
@@ -255,7 +258,7 @@ def test_point_mode_polls_one_frame_per_poll():
     src = OrbitSource(4, seed=3)
     with PtyTracker(src, birds=4, baud=115200) as trk:
         col, status = read_for(fast_config([trk.device], 4, rate_hz=20, mode="point",
-                                           record_format="position_matrix"), 1.0)
+                                           record_format="position_matrix"), 20)
     times, R, p, valid = col.arrays()
     assert valid.all()
     # One frame per poll, never more polls than the rate allows (a loaded machine polls later, not sooner:
@@ -273,15 +276,16 @@ def test_point_mode_polls_one_frame_per_poll():
 def test_garbage_and_dropped_bytes_lose_only_damaged_records_and_never_a_corrupt_pose():
     src = OrbitSource(8, seed=4)
     with PtyTracker(src, birds=8, baud=115200) as trk:
-        def faults():
-            time.sleep(0.3)
-            for k in range(6):
+        def faults(col):
+            col.after(15)
+            for k in range(6):  # each fault a few records after the last
                 trk.inject_garbage(5 + 3 * k)  # between records
-                time.sleep(0.07)
+                col.after(3)
                 trk.drop_bytes(1 + k)  # inside the next record
-                time.sleep(0.07)
+                col.after(3)
+            col.after(25)
         col, status = read_for(fast_config([trk.device], 8, rate_hz=50, record_format="position_quaternion"),
-                               0.5, during=faults)
+                               0, during=faults)
     times, R, p, valid = col.arrays()
     assert status["resynced"] >= 6 and "resync" in col.kinds()
     lost = int((~valid[1:-1]).sum())
@@ -305,8 +309,8 @@ def test_a_2s_stall_is_reported_and_the_flock_is_reinitialised():
     with PtyTracker(src, birds=4, baud=115200) as trk:
         # Until the flock is back and streaming: at a load of 17 its re-initialisation took three attempts
         # and was still going 0.9 s after the stall ended.
-        col, status = read_for(fast_config([trk.device], 4, rate_hz=50, backoff=(0.1, 0.5)), 3.2,
-                               during=lambda: (time.sleep(0.3), trk.stall(2.0)), until=streaming_again)
+        col, status = read_for(fast_config([trk.device], 4, rate_hz=50, backoff=(0.1, 0.5)), 0,
+                               during=lambda col: (col.after(15), trk.stall(2.0)), until=streaming_again)
     kinds = col.kinds()
     assert "stalled" in kinds and "reconnecting" in kinds
     assert kinds.count("connected") >= 2
@@ -322,14 +326,15 @@ def test_a_2s_stall_is_reported_and_the_flock_is_reinitialised():
 def test_an_unplugged_port_is_reported_and_reopened_when_it_comes_back():
     src = OrbitSource(4, seed=6)
     with PtyTracker(src, birds=4, baud=115200) as trk:
-        def unplug():
-            time.sleep(0.3)
+        def unplug(col):
+            col.after(15)
             trk.disconnect()
-            time.sleep(0.6)
+            # Plugged back once the reader has found the port gone and tried it again.
+            wait_for(lambda: col.kinds().count("reconnecting") >= 2, 30, "a second try while unplugged")
             trk.reconnect()
         # Until the port is back and streaming: at a load of 12 the first frames after the reconnect came
         # 2.3 s after the first, and a fixed 1.5 s read held five of them.
-        col, status = read_for(fast_config([trk.device], 4, rate_hz=50, backoff=(0.1, 0.4)), 1.5, during=unplug,
+        col, status = read_for(fast_config([trk.device], 4, rate_hz=50, backoff=(0.1, 0.4)), 0, during=unplug,
                                until=lambda col: streaming_again(col, 1.2))
     kinds = col.kinds()
     assert "disconnected" in kinds and "reconnecting" in kinds and kinds.count("connected") >= 2
@@ -398,11 +403,11 @@ def test_a_recording_replays_to_byte_identical_frames(tmp_path):
     src = OrbitSource(6, seed=7)
     path = tmp_path / "take.fobraw"
     with PtyTracker(src, birds=6, baud=115200) as trk:
-        def faults():
-            time.sleep(0.3)
+        def faults(col):
+            col.after(15)
             trk.drop_bytes(3)
             trk.inject_garbage(9)
-        col, _ = read_for(fast_config([trk.device], 6, rate_hz=50, recording_path=str(path)), 0.8, during=faults)
+        col, _ = read_for(fast_config([trk.device], 6, rate_hz=50, recording_path=str(path)), 40, during=faults)
     live = col.arrays()
     out = replay(read_recording(path))
     again = (out.frames.times, out.frames.rotations, out.frames.positions, out.frames.valid)
@@ -413,8 +418,8 @@ def test_a_recording_replays_to_byte_identical_frames(tmp_path):
 def test_a_hemisphere_crossing_is_detected_and_corrected():
     src = OrbitSource(2, seed=8, cross=True)
     with PtyTracker(src, birds=2, baud=115200) as trk:
-        col, _ = read_for(fast_config([trk.device], 2, rate_hz=50, record_format="position_matrix"), 1.3,
-                          during=src.arm)
+        col, _ = read_for(fast_config([trk.device], 2, rate_hz=50, record_format="position_matrix"), 65,
+                          during=lambda col: src.arm())
     assert "hemisphere_flip" in col.kinds()
     times, R, p, valid = col.arrays()
     assert (p[valid[:, 0], 0, 0] < 0).any(), "bird 0 should be seen behind the transmitter"
@@ -435,7 +440,7 @@ def test_per_session_recordings_each_replay_alone_to_the_poses_streamed_meanwhil
                                recording_header={"names": ["a", "b", "c"]})
         reader.start(wait=15)
         try:
-            time.sleep(0.3)
+            col.after(15)
             # Each recording is held open for 30 frames read (0.6 s at 50 Hz), counted, not slept: a starved
             # reader read 0.31 s of frames in 0.6 s of wall time at a load of 17.
             reader.start_recording(first, {"session_file": True})
@@ -446,7 +451,7 @@ def test_per_session_recordings_each_replay_alone_to_the_poses_streamed_meanwhil
             wait_for(lambda: col.count() >= n, 60.0, "30 frames read into the second recording", every=0.01)
             reader.stop_recording()
             size = second.stat().st_size
-            time.sleep(0.3)
+            col.after(15)  # read on after the stop
         finally:
             reader.stop()
     assert second.stat().st_size == size, "a stopped recording kept growing"

@@ -3,7 +3,6 @@ use, and a sensor beyond it is reported invalid (never as a clipped pose) with a
 
 from __future__ import annotations
 
-import time
 
 import numpy as np
 import pytest
@@ -12,6 +11,7 @@ from flockcal.rotations import from_euler
 from flockcal.drivers.link import Timing, TrackerError
 from flockcal.drivers.reader import TrackerConfig, TrackerReader
 from flockcal.simulator.pty_tracker import PtyTracker
+from service_process import wait_for
 
 INCH = 0.0254
 
@@ -37,7 +37,8 @@ class ReachingSource:
         return R, p, np.ones((len(t), 4), bool)
 
 
-def read_reaching(scale: int, power_up: float, seconds: float = 1.5):
+def read_reaching(scale: int, power_up: float, frames: int = 90):
+    """What the reader makes of `frames` frames (1.5 s at 60 Hz, counted) of a reaching sensor."""
     parts, events = [], []
     with PtyTracker(ReachingSource(power_up), birds=4, baud=115200) as trk:
         cfg = TrackerConfig(urls=[trk.device], birds=4, rate_hz=60, record_format="position_quaternion",
@@ -46,7 +47,7 @@ def read_reaching(scale: int, power_up: float, seconds: float = 1.5):
                                on_event=events.append)
         reader.start(wait=15)
         try:
-            time.sleep(seconds)
+            wait_for(lambda: sum(len(x[1]) for x in parts) >= frames, 60, f"{frames} frames read")
         finally:
             reader.stop()
         flock_scale = trk.flock.scale_inches

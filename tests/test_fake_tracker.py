@@ -10,7 +10,7 @@ from flockcal.drivers.records import FORMATS, decode_records
 from quantisation import position_axis_m, rotation_rad, tolerance
 from flockcal.drivers.status import decode_flock_status, decode_status_word
 from flockcal.drivers.stream import StreamDecoder
-from flockcal.simulator.clocks import ManualClock
+from flockcal.clock import ManualClock
 from flockcal.simulator.fake_tracker import FakeFlock, FakeTrackerError
 from flockcal.simulator.smooth_source import SmoothSource
 
@@ -130,7 +130,7 @@ def test_every_format_decodes_to_the_source_poses_within_quantisation(group):
             prefix = fbb_prefix(address)
         flock.write(prefix)
         # records come from the measurement cycles after STREAM, one per cycle (the set fits the line)
-        first = int(np.floor((clock.t - flock.cycle_origin) * flock.rate_hz + 1e-9)) + 1
+        first = int(np.floor((flock.time() - flock.cycle_origin) * flock.rate_hz + 1e-9)) + 1
         parts = _stream(flock, clock, 1.0, dec)
         _ask(flock, clock, b"?")
         sel = _concat(parts, "addresses") == address
@@ -252,7 +252,7 @@ def test_hemisphere_mirrors_positions_on_the_wrong_side():
     _ask(flock, clock, hemisphere_command("aft"))  # sensors are at +X: all mirrored
     reply = _ask(flock, clock, b"B")
     _, p, _ = decode_records("position_angles", reply, group=False)
-    asked = clock.t - 0.05  # POINT answers with the latest completed measurement cycle
+    asked = flock.time() - 0.05  # POINT answers with the latest completed measurement cycle
     cycle = flock.cycle_origin + np.floor((asked - flock.cycle_origin) * flock.rate_hz + 1e-9) / flock.rate_hz
     _, pos, _ = src.poses(np.array([cycle]))
     assert np.allclose(p[0], -pos[0, 0], atol=2e-4)

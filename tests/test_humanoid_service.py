@@ -19,6 +19,7 @@ from flockcal.names import joint_name
 from flockcal.server.settings import Settings
 from humanoid_cases import swapped_hands
 from server_helpers import ServerThread, free_port, wait_connected
+from service_process import wait_for
 
 # The operator typed the names in cable order with the two hands swapped.
 NAMES, TRUE = swapped_hands()
@@ -31,17 +32,6 @@ def server(tmp_path_factory):
     with ServerThread(settings) as srv:
         wait_connected(srv.url)
         yield srv
-
-
-def wait_for(predicate, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    last = None
-    while time.monotonic() < deadline:
-        last = predicate()
-        if last:
-            return last
-        time.sleep(0.2)
-    raise AssertionError(f"{what} within {timeout:g} s (last: {last!r})")
 
 
 async def first_fit(url: str, session: str, timeout: float = 20.0) -> dict:

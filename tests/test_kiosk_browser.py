@@ -20,6 +20,7 @@ import httpx
 import pytest
 
 from server_helpers import GuestSource, ServerProcess, free_port, wait_connected
+from service_process import wait_for
 from flockcal.simulator.performer import Performer
 from flockcal.simulator.pty_tracker import PtyTracker
 from browser_helpers import NEEDS_CHROMIUM
@@ -44,7 +45,7 @@ def guest():
     # The simulator's default soft tissue: what skin-mounted sensors do, and what the kiosk profile is for.
     performer = Performer("human", "kiosk", seed=21, rate_hz=RATE, height=1.66)
     tracker = PtyTracker(performer, birds=16, baud=921600, rate_hz=RATE)
-    stream = GuestSource(performer, tracker.flock.clock)
+    stream = GuestSource(performer, tracker.flock.time)
     tracker.flock.source = stream
     tracker.start()
     yield performer, tracker, stream
@@ -126,15 +127,14 @@ def test_the_ring_is_the_services_progress_at_every_step_and_never_100_before_ev
     dashboard = open_capturing(browser, f"{server.url}/?token={READ}", 1440, 1000)
     try:
         # The guest starts the routine when the kiosk's session starts.
-        deadline = time.monotonic() + 20
-        while not (sid := httpx.get(f"{server.url}/api/sessions", headers=admin()).json()["live"]):
-            assert time.monotonic() < deadline, "the kiosk started no session"
-            time.sleep(0.02)
+        sid = wait_for(lambda: httpx.get(f"{server.url}/api/sessions", headers=admin()).json()["live"], 20,
+                       "the kiosk starts a session", every=0.02)
         stream.begin()
         started = time.monotonic()
-        shown, rest_matches, dash_checks, labels_checked = [], 0, 0, False
-        while True:
-            assert time.monotonic() - started < DONE_WITHIN_S, f"not done after {DONE_WITHIN_S:g} s; ring {shown[-1:]}"
+        shown, seen = [], {"rest": 0, "dash": 0, "labels": False}
+
+        def look() -> bool:
+            """One look at the ring, the REST progress and the dashboard; True once the ring says done."""
             ring = kiosk.evaluate(RING_JS)
             rest = httpx.get(f"{server.url}/api/sessions/{sid}/progress", headers=admin()).json()
             if ring["seq"]:
@@ -159,7 +159,7 @@ def test_the_ring_is_the_services_progress_at_every_step_and_never_100_before_ev
             # REST serves the same figures as the websocket for the same fit.
             same = rest_twin(kiosk, rest)
             if same is not None:
-                rest_matches += 1
+                seen["rest"] += 1
                 assert (rest["progress"], rest["percent"], rest["done"], rest["missing"], rest["joint_progress"]) == (
                     same["progress"], same["percent"], same["done"], same["missing"], same["joint_progress"])
             if len(shown) % 5 == 1 and shown:
@@ -169,29 +169,31 @@ def test_the_ring_is_the_services_progress_at_every_step_and_never_100_before_ev
                     assert dash["joints"] == f"{dmsg['joints_done']} / {dmsg['joints_needed']}"
                     assert {r["joint"] for r in dash["rows"] if r["done"] == "true"} == {
                         j["joint"] for j in dmsg["joint_progress"] if j["done"]}
-                    dash_checks += 1
-                    if not labels_checked:
+                    seen["dash"] += 1
+                    if not seen["labels"]:
                         # The page's own joint names (bones table, topology) are the service's labels.
                         pairs = [[j["joint"], j["parent"]] for j in dmsg["joint_progress"]]
                         js = dashboard.evaluate(
                             "async (pairs) => { const m = await import('/static/common.js');"
                             " return pairs.map(([c, p]) => m.jointLabel(c, p)); }", pairs)
                         assert js == [j["label"] for j in dmsg["joint_progress"]]
-                        labels_checked = True
-            if ring["state"] == "done":
-                break
-            time.sleep(0.15)
+                        seen["labels"] = True
+            return ring["state"] == "done"
+
+        wait_for(look, DONE_WITHIN_S, lambda: f"the ring done (ring {shown[-1:]})", every=0.15)
         took = time.monotonic() - started
-        kiosk.wait_for_timeout(700)  # the ring's transition, for the picture
+        # The ring where its transition ends, for the picture.
+        kiosk.wait_for_function("document.querySelector('#ring-fill').getAnimations().every(a => a.playState !== 'running')",
+                                timeout=10000)
         kiosk.screenshot(path=str(_artifacts() / "kiosk-progress.png"))
         assert shown[-1] == 100 and len(set(shown)) >= 5, shown  # the ring went through the figures
         assert all(b >= a for a, b in zip(shown, shown[1:])), f"the ring went back on a clean take: {shown}"
-        assert rest_matches >= 3 and dash_checks >= 3 and labels_checked
+        assert seen["rest"] >= 3 and seen["dash"] >= 3 and seen["labels"], seen
         # What the kiosk showed is what the service keeps: the guest's session is stored done.
         stored = _wait_stopped(server, sid)
         assert stored["done"] is True and stored["missing"] == [] and stored["joints_done"] == 15
         assert stored["done_at_s"] <= DONE_SESSION_S, stored["done_at_s"]
-        print(f"kiosk done after {took:.1f} s of wall time; {len(shown)} ring samples, {rest_matches} REST matches")
+        print(f"kiosk done after {took:.1f} s of wall time; {len(shown)} ring samples, {seen['rest']} REST matches")
         assert not kiosk.errors and not dashboard.errors
     finally:
         kiosk.close()
@@ -201,13 +203,11 @@ def test_the_ring_is_the_services_progress_at_every_step_and_never_100_before_ev
 def _wait_stopped(server, sid: str) -> dict:
     # A guard, not the promise (which is only that the kiosk stops it): a stop on a 2-core machine at a
     # load of 8 once took over 15 s.
-    deadline = time.monotonic() + 45
-    while time.monotonic() < deadline:
+    def stopped():
         doc = httpx.get(f"{server.url}/api/sessions/{sid}/progress", headers=admin()).json()
-        if not doc["live"]:
-            return doc
-        time.sleep(0.2)
-    raise AssertionError("the kiosk did not stop its guest's session after done")
+        return doc if not doc["live"] else None
+
+    return wait_for(stopped, 45, "the kiosk stops its guest's session after done", every=0.2)
 
 
 def _artifacts():
@@ -231,6 +231,10 @@ def test_a_read_only_kiosk_showing_a_hosts_session_done_goes_back_and_says_why_w
         assert kiosk.text_content("#percent") == "100%"
         # Tried: the forearm sensor slides 3 cm on the skin after the guest was calibrated.
         performer.inject_slip("l_forearm", 0.03)
+        # How soon the slip is found is judged on the session's own clock (tests/test_server_slip.py); here,
+        # once the service has found it (a loaded machine's pipeline may run behind), the page follows it.
+        wait_for(lambda: not httpx.get(f"{server.url}/api/sessions/{sid}/progress", headers=admin()).json()["done"],
+                 60, "the service undoes the guest's done", every=0.2)
         kiosk.wait_for_selector("#kiosk-state[data-state=live]", timeout=10000)
         kiosk.wait_for_function("/sensor moved/.test(document.querySelector('#instruction').textContent)",
                                 timeout=5000)
@@ -264,20 +268,24 @@ def test_a_guest_who_never_finishes_is_handed_on_after_max_s(browser, server, gu
         started = time.monotonic()
         # The kiosk checks on each status message (about one a second): handed on within max_s + 2 s,
         # plus 20 s for a loaded machine's session stop and start (a stop once took over 15 s at load 8).
-        nxt, prompt = None, None
-        while time.monotonic() - started < 14 + 2 + 20:
+        prompts = []
+
+        def handed_on():
+            """The next guest's session once there is one; meanwhile, the patient prompt noted when it shows."""
             nxt = httpx.get(f"{server.url}/api/sessions", headers=admin()).json()["live"]
             if nxt and nxt != first:
-                break
+                return nxt
             shown = page.evaluate("() => { const el = document.querySelector('#instruction');"
                                   " return {why: el.dataset.why, text: el.textContent}; }")
-            if shown["why"] == "stalled" and prompt is None:
-                prompt = shown["text"]
+            if shown["why"] == "stalled" and not prompts:
+                prompts.append(shown["text"])
                 doc = httpx.get(f"{server.url}/api/sessions/{first}/progress", headers=admin()).json()
                 assert doc["stalled_s"] >= 8 and doc["prompt"], doc
-            time.sleep(0.2)
+            return None
+
+        wait_for(handed_on, 14 + 2 + 20, "the kiosk hands on to the next guest's session", every=0.2)
+        prompt = prompts[0] if prompts else None
         waited = time.monotonic() - started
-        assert nxt and nxt != first, f"still on the first guest's session after {waited:.1f} s"
         assert waited > 14 - 1, f"handed on after {waited:.1f} s, before max_s"
         assert prompt and prompt.startswith("Take your time"), prompt
         gone = httpx.get(f"{server.url}/api/sessions/{first}", headers=admin()).json()
@@ -292,8 +300,8 @@ def test_a_guest_who_never_finishes_is_handed_on_after_max_s(browser, server, gu
 def test_a_guest_session_ends_after_its_lease_once_the_kiosk_page_goes_away(browser, server, guest):
     # Issue #30: a kiosk page closed just after it started the next guest left that session live, and
     # POST /api/sessions answered 409 until someone stopped it by hand. Tried: the page (lease_s=3) is
-    # closed while its guest's session is live; the session must end within the lease plus the
-    # watcher's half second, plus 20 s for a loaded machine's stop, and the next session must start.
+    # closed while its guest's session is live; the session must end for its lease, and the next session must
+    # start.
     performer, tracker, stream = guest
     live = httpx.get(f"{server.url}/api/sessions", headers=admin()).json()["live"]
     if live:
@@ -310,12 +318,11 @@ def test_a_guest_session_ends_after_its_lease_once_the_kiosk_page_goes_away(brow
         assert httpx.get(f"{server.url}/api/sessions", headers=admin()).json()["live"] == sid
     finally:
         page.close()
-    closed = time.monotonic()
-    # Stopped, with the reason stored on its row (the note is written just after the stop).
-    while not ((row := httpx.get(f"{server.url}/api/sessions/{sid}", headers=admin()).json())["state"] == "stopped"
-               and "lease" in (row.get("note") or "")):
-        assert time.monotonic() - closed < 3 + 0.5 + 20, f"the session outlived its page by more than its lease: {row}"
-        time.sleep(0.1)
+    # Stopped, with the reason stored on its row (the note is written just after the stop). How long after
+    # its lease ran out is the lease watcher's promise, held on a clock the test moves in test_server_lease.py;
+    # here 60 s only stops a hung test.
+    wait_for(lambda: (row := httpx.get(f"{server.url}/api/sessions/{sid}", headers=admin()).json())["state"] == "stopped"
+             and "lease" in (row.get("note") or ""), 60, "the session stopped for its lease", every=0.1)
     r = httpx.post(f"{server.url}/api/sessions", json={"performer": "Next guest"}, headers=admin())
     assert r.status_code == 201, r.text
     httpx.post(f"{server.url}/api/sessions/{r.json()['id']}/stop", headers=admin(), timeout=30)

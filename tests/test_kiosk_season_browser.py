@@ -17,6 +17,7 @@ import httpx
 import pytest
 
 from server_helpers import ServerProcess, free_port, wait_connected
+from service_process import wait_for
 from flockcal.simulator.performer import Performer
 from flockcal.simulator.pty_tracker import PtyTracker
 from browser_helpers import NEEDS_CHROMIUM
@@ -63,13 +64,7 @@ def live_id(url: str):
 
 
 def wait_until(fn, timeout: float, what: str):
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
-        value = fn()
-        if value:
-            return value
-        time.sleep(0.2)
-    raise TimeoutError(f"no {what} within {timeout} s")
+    return wait_for(fn, timeout, what, every=0.2)
 
 
 def new_page(browser, url: str, fake_clock: bool = False):
@@ -97,7 +92,8 @@ def stop_live(url: str) -> None:
 
 def test_the_dashboards_season_panel_shows_the_services_stats(browser, server):
     sid = httpx.post(f"{server.url}/api/sessions", headers=admin(), json={"performer": "guest one"}).json()["id"]
-    time.sleep(1.0)
+    wait_until(lambda: httpx.get(f"{server.url}/api/sessions/{sid}", headers=admin()).json()["frames"] >= RATE, 30,
+               "frames in the session")
     httpx.post(f"{server.url}/api/sessions/{sid}/stop", headers=admin(), timeout=30)
     # What was tried: the kiosk's token pinning a session (admin only), the stats with no token at all.
     r = httpx.post(f"{server.url}/api/sessions/{sid}/pin", headers={"Authorization": f"Bearer {KIOSK}"})
@@ -130,7 +126,10 @@ def test_unplugged_tracker_comes_back_and_the_kiosk_takes_the_next_guest_by_itse
         try:
             page.wait_for_selector("#kiosk-state[data-tracker=disconnected]", timeout=15000)
             assert "tracker is disconnected" in page.text_content("#banner")
-            time.sleep(2.0)
+            # Unplugged until the service has tried the port again and found it gone.
+            tries = httpx.get(f"{server.url}/api/status", headers=admin()).json()["reconnects"]
+            wait_until(lambda: httpx.get(f"{server.url}/api/status", headers=admin()).json()["reconnects"] > tries,
+                       30, "a try of the unplugged port")
         finally:
             tracker.reconnect()
         page.wait_for_selector("#kiosk-state[data-tracker=connected]", timeout=30000)
@@ -159,10 +158,8 @@ def test_a_kiosk_page_left_open_through_a_ten_minute_outage_keeps_trying_and_rec
             # The refused connection closes in real time (chromium itself spaces out failing websocket
             # connections by up to ~5 s); only then does the page schedule its next try. Read through
             # the DOM: the page's own timers are the fake ones.
-            deadline = time.monotonic() + 15
-            while page.get_attribute("#kiosk-state", "data-link") != "closed":
-                assert time.monotonic() < deadline, "the page's connection attempt never ended"
-                time.sleep(0.02)
+            wait_for(lambda: page.get_attribute("#kiosk-state", "data-link") == "closed", 15,
+                     "the page's connection attempt ended", every=0.02)
 
         attempts = lambda: page.evaluate("window.__attempts")  # noqa: E731
         tried = attempts()

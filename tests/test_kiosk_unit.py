@@ -12,7 +12,6 @@ import signal
 import sqlite3
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import httpx
@@ -21,6 +20,7 @@ import pytest
 from flockcal.cli import build_parser
 from flockcal.commands.serve import settings_from_args
 from server_helpers import ServerProcess, free_port, wait_connected
+from service_process import wait_for
 
 UNIT = Path(__file__).resolve().parents[1] / "docs" / "kiosk" / "flockcal.service"
 
@@ -89,10 +89,8 @@ def test_the_units_sigterm_stops_the_live_session_and_stores_its_result(tmp_path
     try:
         wait_connected(server.url)
         sid = httpx.post(server.url + "/api/sessions", json={"performer": "guest"}).json()["id"]
-        deadline = time.monotonic() + 30
-        while httpx.get(server.url + f"/api/sessions/{sid}").json()["frames"] < 300:
-            assert time.monotonic() < deadline, "the session took no frames"
-            time.sleep(0.1)
+        wait_for(lambda: httpx.get(server.url + f"/api/sessions/{sid}").json()["frames"] >= 300, 30,
+                 "the session takes 300 frames")
         server.proc.send_signal(signal.SIGTERM)
         # uvicorn shuts down gracefully; serve then prints its stop report and exits 0, which
         # Restart=on-failure leaves stopped.

@@ -6,13 +6,13 @@ from __future__ import annotations
 
 import io
 import threading
-import time
 
 import httpx
 import numpy as np
 
 from flockcal.server.settings import Settings
-from server_helpers import ServerThread, free_port, wait_connected
+from server_helpers import free_port, manual_service, run_clock
+from service_process import wait_for
 
 RATE = 144.0
 STALL_S = 6.0
@@ -21,8 +21,9 @@ STALL_S = 6.0
 def test_a_backlog_is_worked_off_in_steps_with_snapshots_between(tmp_path):
     settings = Settings(device=f"sim://backlog?birds=8&motion=exercise&rate={RATE:g}&baud=921600", birds=8, baud=921600,
                         http_port=free_port(), data_dir=tmp_path)
-    with ServerThread(settings) as srv:
-        wait_connected(srv.url)
+    # On the service's clock, moved by the test (server_helpers.manual_service): the stall is 6 s of the
+    # tracker's frames however fast the machine runs.
+    with manual_service(settings) as (srv, clock):
         pipe = srv.service.pipeline
         # What the fake tracker sent, as the reader decoded it, batch by batch (on the reader's thread).
         reader = srv.service.source.reader
@@ -45,19 +46,29 @@ def test_a_backlog_is_worked_off_in_steps_with_snapshots_between(tmp_path):
         after_start = n_sent()
         assert r.status_code == 201, r.text
         sid = r.json()["id"]
-        time.sleep(2.0)
+        run_clock(clock, 2.0)
         seen: list[tuple[float, int]] = []
         publish = pipe.on_publish
 
         def spy(snap):
-            seen.append((time.monotonic(), snap.frames))
+            seen.append((clock.monotonic(), snap.frames))
             publish(snap)
 
         pipe.on_publish = spy
-        # Tried: the pipeline thread held up for 6 s (as a starved machine does), 6 s of frames waiting.
-        pipe.call(lambda: time.sleep(STALL_S))
-        stalled = time.monotonic()
-        time.sleep(3.0)
+        # Tried: the pipeline thread held up for 6 s (as a starved machine's is), 6 s of frames waiting.
+        held: list[float] = []
+
+        def hold() -> None:
+            held.append(clock.monotonic())
+            clock.sleep(STALL_S)
+
+        caller = threading.Thread(target=pipe.call, args=(hold,), daemon=True)
+        caller.start()
+        wait_for(lambda: held, 30, "the pipeline thread held")
+        run_clock(clock, STALL_S)
+        caller.join(30)
+        stalled = clock.monotonic()
+        run_clock(clock, 3.0)
         pipe.on_publish = publish
         before_stop = n_sent()
         r = httpx.post(srv.url + f"/api/sessions/{sid}/stop", timeout=60)
@@ -100,15 +111,14 @@ def test_a_pipeline_behind_for_good_still_refits(tmp_path):
     # behind at every step for 4 s. Before, no refit went out at all while it was behind.
     settings = Settings(device=f"sim://behind?birds=8&motion=exercise&rate={RATE:g}&baud=921600", birds=8,
                         baud=921600, http_port=free_port(), data_dir=tmp_path)
-    with ServerThread(settings) as srv:
-        wait_connected(srv.url)
+    with manual_service(settings) as (srv, clock):
         pipe = srv.service.pipeline
         r = httpx.post(srv.url + "/api/sessions", json={"performer": "Behind"}, timeout=30)
         assert r.status_code == 201, r.text
-        time.sleep(2.0)
+        run_clock(clock, 2.0)
         pipe._behind = lambda now: True
         before = pipe.fits_done
-        time.sleep(4.0)
+        run_clock(clock, 4.0)
         during = pipe.fits_done - before
         del pipe._behind
         httpx.post(srv.url + f"/api/sessions/{r.json()['id']}/stop", timeout=60)

@@ -9,20 +9,17 @@ hour forward mid-session and back again.
 
 from __future__ import annotations
 
-import asyncio
 import json
 import time
 
 import httpx
 import pytest
-import websockets
 
 from flockcal.clock import ManualClock, SystemClock
 from flockcal.server.clock import ServiceClock
-from flockcal.server.service import Service
 from flockcal.server.settings import Settings
 from flockcal.server.store import Store
-from server_helpers import ServerThread, free_port, wait_connected
+from server_helpers import free_port, manual_service, run_clock, wait_connected
 
 HOUR = 3600.0
 
@@ -111,105 +108,24 @@ def test_the_system_clock_reads_the_boot_clock():
 
 @pytest.fixture()
 def stepping_service(tmp_path):
-    manual = ManualClock(wall=time.time(), monotonic=1000.0)
+    # The whole service on one clock the test moves (server_helpers.manual_service).
     settings = Settings(device="sim://clock?birds=4&model=linkage&motion=exercise&rate=60", birds=4,
                         http_port=free_port(), data_dir=tmp_path / "data", keep_days=0.03)
-    service = Service(settings, clock=manual)
-    with ServerThread(settings, service) as srv:
-        wait_connected(srv.url)
+    with manual_service(settings, wall=time.time()) as (srv, manual):
         yield srv, manual
 
 
-async def _times(url: str, stop: asyncio.Event) -> list[float]:
-    got = []
-    async with websockets.connect(url.replace("http", "ws") + "/ws/live") as ws:
-        await ws.send(json.dumps({"type": "subscribe", "rate_hz": 50, "content": ["status", "events"]}))
-        while not stop.is_set():
-            try:
-                msg = json.loads(await asyncio.wait_for(ws.recv(), 0.5))
-            except asyncio.TimeoutError:
-                continue
-            got.append(msg["time"])
-    return got
-
-
-def test_the_service_on_a_stepping_clock_keeps_durations_leases_and_recordings(stepping_service):
-    srv, manual = stepping_service
-    url = srv.url
-
-    async def run():
-        stop = asyncio.Event()
-        watcher = asyncio.create_task(_times(url, stop))
-        client = httpx.AsyncClient(timeout=30)
-        s = (await client.post(url + "/api/sessions", json={"performer": "Ann", "lease_s": 100})).json()
-        await asyncio.sleep(1.0)
-        manual.advance(70.0)
-        # Tried: the wall clock steps an hour forward mid-session (NTP after boot, flat RTC battery).
-        manual.step_wall(HOUR)
-        await asyncio.sleep(1.5)  # three looks of the lease watcher
-        lease = (await client.get(url + f"/api/sessions/{s['id']}")).json()
-        manual.advance(2.0)
-        await asyncio.sleep(0.5)
-        stopped = (await client.post(url + f"/api/sessions/{s['id']}/stop")).json()
-        # ... and two hours back between sessions.
-        manual.step_wall(-2 * HOUR)
-        manual.advance(1.0)
-        nxt = (await client.post(url + "/api/sessions", json={"performer": "Bo"})).json()
-        await asyncio.sleep(0.5)
-        await client.post(url + f"/api/sessions/{nxt['id']}/stop")
-        await asyncio.sleep(0.5)
-        stop.set()
-        times = await watcher
-        await client.aclose()
-        return s, lease, stopped, nxt, times
-
-    s, lease, stopped, nxt, times = asyncio.run(run())
-    # The lease (100 s, 30 s left) is on the monotonic clock: the hour's step did not end the session.
-    assert lease["state"] == "live" and stopped["state"] == "stopped"
-    assert "lease" not in (stopped["note"] or "")
-    # Its duration is what passed (72 s on the injected clock), and its stamps agree with it.
-    assert stopped["duration_s"] == pytest.approx(72.0)
-    assert stopped["stopped_at"] - stopped["created_at"] == pytest.approx(stopped["duration_s"])
-    # The next session, started after the wall clock went back, starts no earlier than this one did.
-    assert nxt["created_at"] >= stopped["created_at"]
-    # Events: both steps, and wall_time never back in id order; the websocket's time never back either.
-    events = httpx.get(url + "/api/events?limit=5000").json()
-    steps = [e["step_s"] for e in events if e.get("action") == "clock_step"]
-    assert steps == [pytest.approx(HOUR), pytest.approx(-2 * HOUR)]
-    walls = [e["wall_time"] for e in events]
-    assert walls == sorted(walls), walls
-    assert len(times) > 10 and times == sorted(times)
-    # Retention (--keep-days 0.03, 43.2 min): an hour's step forward ages nothing; 45 min of service time does.
-    ret = srv.service.retention
-    assert ret.prune_once() == []
-    assert httpx.get(url + f"/api/sessions/{s['id']}/take").status_code == 200
-    manual.advance(45 * 60.0)
-    pruned = {p["id"] for p in ret.prune_once()}
-    assert pruned == {s["id"], nxt["id"]}
-    assert httpx.get(url + f"/api/sessions/{s['id']}/take").status_code == 410
-    status = httpx.get(url + "/api/status").json()["clock"]
-    assert status["steps"] == 2 and status["offset_s"] == pytest.approx(-HOUR)
-
-
-# --- the real service under libfaketime --------------------------------------------------------------------
-def _libfaketime() -> str | None:
-    import glob
-
-    found = sorted(glob.glob("/usr/lib/*/faketime/libfaketime.so.1")) + sorted(glob.glob("/usr/lib/faketime/libfaketime.so.1"))
-    return found[0] if found else None
-
-
-class _Watch:
+class _Times:
     """The websocket's `time` of every message, read on a thread until `close()`."""
 
-    def __init__(self, url: str):
+    def __init__(self, url: str, rate_hz: float = 50):
         import threading
 
         from websockets.sync.client import connect
 
         self.times: list[float] = []
         self.ws = connect(url.replace("http", "ws") + "/ws/live").__enter__()
-        self.ws.send(json.dumps({"type": "subscribe", "rate_hz": 20, "content": ["status", "events"]}))
+        self.ws.send(json.dumps({"type": "subscribe", "rate_hz": rate_hz, "content": ["status", "events"]}))
         self.thread = threading.Thread(target=self._run, daemon=True)
         self.thread.start()
 
@@ -224,6 +140,66 @@ class _Watch:
         self.ws.close()
         self.thread.join(10)
         return self.times
+
+
+def test_the_service_on_a_stepping_clock_keeps_durations_leases_and_recordings(stepping_service):
+    srv, manual = stepping_service
+    url, service = srv.url, srv.service
+    watch = _Times(url)
+    s = httpx.post(url + "/api/sessions", json={"performer": "Ann", "lease_s": 20}, timeout=30).json()
+    run_clock(manual, 14.0, dt=0.1)
+    # Tried: the wall clock steps an hour forward mid-session (NTP after boot, flat RTC battery).
+    manual.step_wall(HOUR)
+    run_clock(manual, 1.5, dt=0.1)  # three looks of the lease watcher, each after the step
+    lease = httpx.get(url + f"/api/sessions/{s['id']}", timeout=30).json()
+    assert service.leases.expired() == [] and service.leases.remaining(s["id"]) == pytest.approx(4.5)
+    run_clock(manual, 0.5, dt=0.1)
+    stopped = httpx.post(url + f"/api/sessions/{s['id']}/stop", timeout=30).json()
+    # ... and two hours back between sessions.
+    manual.step_wall(-2 * HOUR)
+    run_clock(manual, 1.0, dt=0.1)
+    nxt = httpx.post(url + "/api/sessions", json={"performer": "Bo"}, timeout=30).json()
+    run_clock(manual, 0.5, dt=0.1)
+    httpx.post(url + f"/api/sessions/{nxt['id']}/stop", timeout=30)
+    run_clock(manual, 0.5, dt=0.1)
+    times = watch.close()
+    # The lease (20 s, 4.5 s left) is on the monotonic clock: the hour's step did not end the session.
+    assert lease["state"] == "live" and stopped["state"] == "stopped"
+    assert "lease" not in (stopped["note"] or "")
+    # Its duration is what passed on the clock (16 s), and its stamps agree with it.
+    assert stopped["duration_s"] == pytest.approx(16.0)
+    assert stopped["stopped_at"] - stopped["created_at"] == pytest.approx(stopped["duration_s"])
+    assert stopped["frames"] >= 0.9 * 16.0 * 60  # the tracker and the reader moved with the clock
+    # The next session, started after the wall clock went back, starts no earlier than this one did.
+    assert nxt["created_at"] >= stopped["created_at"]
+    # Events: both steps, and wall_time never back in id order; the websocket's time never back either.
+    events = httpx.get(url + "/api/events?limit=5000").json()
+    steps = [e["step_s"] for e in events if e.get("action") == "clock_step"]
+    assert steps == [pytest.approx(HOUR), pytest.approx(-2 * HOUR)]
+    walls = [e["wall_time"] for e in events]
+    assert walls == sorted(walls), walls
+    assert len(times) > 10 and times == sorted(times)
+    # Retention (--keep-days 0.03, 43.2 min): an hour's step forward ages nothing; 45 min of service time does.
+    # (The tracker is stopped first: 45 minutes of its frames are not what this is about.)
+    ret = service.retention
+    ret.stop()
+    service.source.stop()
+    assert ret.prune_once() == []
+    assert httpx.get(url + f"/api/sessions/{s['id']}/take").status_code == 200
+    run_clock(manual, 45 * 60.0, dt=60.0)
+    pruned = {p["id"] for p in ret.prune_once()}
+    assert pruned == {s["id"], nxt["id"]}
+    assert httpx.get(url + f"/api/sessions/{s['id']}/take").status_code == 410
+    status = httpx.get(url + "/api/status").json()["clock"]
+    assert status["steps"] == 2 and status["offset_s"] == pytest.approx(-HOUR)
+
+
+# --- the real service under libfaketime --------------------------------------------------------------------
+def _libfaketime() -> str | None:
+    import glob
+
+    found = sorted(glob.glob("/usr/lib/*/faketime/libfaketime.so.1")) + sorted(glob.glob("/usr/lib/faketime/libfaketime.so.1"))
+    return found[0] if found else None
 
 
 @pytest.mark.skipif(_libfaketime() is None, reason="libfaketime is not installed (Debian: apt-get install faketime); "
@@ -259,7 +235,7 @@ def test_serve_under_libfaketime_stepped_an_hour_forward_mid_session_and_back(tm
             def steps():
                 return [e for e in events() if e.get("action") == "clock_step"]
 
-            watch = _Watch(url)
+            watch = _Times(url, rate_hz=20)
             first = httpx.post(url + "/api/sessions", json={"performer": "Ann"}, timeout=30).json()["id"]
             wait_for(lambda: frames(first) >= 60, 30, "the first session records")
             httpx.post(url + f"/api/sessions/{first}/stop", timeout=30)

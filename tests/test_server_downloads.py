@@ -24,6 +24,7 @@ from flockcal.exports.trc import trc_chunks, trc_text
 from flockcal.server.framelog import FrameLog, read_frames
 from flockcal.server.settings import Settings
 from server_helpers import ServerThread, SlowDownload, free_port, wait_connected
+from service_process import wait_for
 from flockcal.takes import make_take
 
 
@@ -43,7 +44,8 @@ def session(tmp_path_factory):
     with ServerThread(settings) as srv:
         wait_connected(srv.url)
         sid = httpx.post(srv.url + "/api/sessions", json={"performer": "Dee"}).json()["id"]
-        time.sleep(4.0)
+        # 4 s of the tracker's frames (at 60 Hz), counted.
+        wait_for(lambda: httpx.get(srv.url + f"/api/sessions/{sid}").json()["frames"] >= 240, 60, "240 frames")
         assert httpx.post(srv.url + f"/api/sessions/{sid}/stop", timeout=30).status_code == 200
         yield srv, sid
 
@@ -216,9 +218,9 @@ def test_downloads_beyond_the_limit_get_503_until_one_ends(tmp_path):
             r = httpx.get(srv.url + url)
             assert r.status_code == 503 and "at most 2" in r.json()["detail"], r.text
             held.pop()[0].close()
-            deadline = time.monotonic() + 10
-            while (r := httpx.get(srv.url + url, timeout=60)).status_code == 503 and time.monotonic() < deadline:
-                time.sleep(0.1)
+            # The slot freed by the close is taken by the next request once the server has seen it go.
+            r = wait_for(lambda: (r := httpx.get(srv.url + url, timeout=60)).status_code != 503 and r, 10,
+                         "a download slot free again", every=0.1)
             assert r.status_code == 200 and len(r.content) > n * m * 97  # the whole take
         finally:
             for sock, _ in held:

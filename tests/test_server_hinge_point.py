@@ -6,13 +6,13 @@ a pty; once the routine has run once, the live fits served by GET /result keep e
 
 from __future__ import annotations
 
-import time
 
 import httpx
 import numpy as np
 
 from flockcal.server.settings import Settings
 from server_helpers import ServerThread, free_port, wait_connected
+from service_process import wait_for
 
 LOOP_S = 8.0  # tests/conftest.py's performer
 WATCH_UNTIL_S = 3 * LOOP_S
@@ -29,20 +29,18 @@ def test_live_fits_keep_each_hinge_put_along_its_axis_once_the_routine_has_run(t
     with ServerThread(settings) as srv:
         wait_connected(srv.url)
         sid = httpx.post(srv.url + "/api/sessions", json={"performer": "Ann"}).json()["id"]
-        deadline = time.monotonic() + 180.0  # only stops a hung test: the watch runs on session time
-        last_frames = -1
-        while True:
-            assert time.monotonic() < deadline, "the session did not reach its third loop"
+        last_frames = [-1]
+
+        def watched() -> bool:
+            """One look at the live result (the watch runs on session time); True once past WATCH_UNTIL_S."""
             r = httpx.get(f"{srv.url}/api/sessions/{sid}/result", timeout=30)
             if r.status_code != 200:
-                time.sleep(0.2)
-                continue
+                return False
             fit = r.json()
             t = fit["frames"] / 144.0
-            if fit["frames"] == last_frames or t < LOOP_S:
-                time.sleep(0.2)
-                continue
-            last_frames = fit["frames"]
+            if fit["frames"] == last_frames[0] or t < LOOP_S:
+                return False
+            last_frames[0] = fit["frames"]
             for j in fit["joints"]:
                 key = frozenset((j["child"], j["parent"]))
                 if key not in truth or not j["hinge"] or not j.get("hinge_point"):
@@ -53,9 +51,10 @@ def test_live_fits_keep_each_hinge_put_along_its_axis_once_the_routine_has_run(t
                 axis = np.array(true["axis_child"] if j["child"] == true["child"] else true["axis_parent"])
                 along = float((np.array(mine) - np.array(other)) @ axis)
                 seen.setdefault((true["child"], j["hinge_point"]["rule"]), []).append((t, along))
-            if t >= WATCH_UNTIL_S:
-                break
-            time.sleep(0.3)
+            return t >= WATCH_UNTIL_S
+
+        # 180 s only stops a hung test.
+        wait_for(watched, 180.0, "the session reaches its third loop", every=0.25)
         httpx.post(f"{srv.url}/api/sessions/{sid}/stop", timeout=60)
     assert {child for child, _ in seen} >= {"l_forearm", "r_forearm"}, sorted(seen)
     for (child, rule), values in seen.items():

@@ -1,20 +1,25 @@
 """Recording limits (server/limits.py): a session stops cleanly at the maximum length, and before the
 disk fills; both leave a stored result and an event saying why; no session starts on a full disk.
 
-A real uvicorn on loopback with the built-in simulator; the disk is the real one the data directory
-is on, its reserve set just under what is free now so that the session's own recording crosses it.
+A real uvicorn on loopback with the built-in simulator. The disk reserve is tried on a disk of the service's
+own (`flockcal serve` on a tmpfs in a mount namespace of its own), so the session's own recording crosses it
+whatever else the machine writes; the full-at-start check on the real disk the data directory is on.
 """
 
 from __future__ import annotations
 
+import io
 import os
-import time
+import shutil
+import subprocess
 
 import httpx
+import numpy as np
 import pytest
 
 from flockcal.server.settings import Settings
 from server_helpers import ServerThread, free_port, wait_connected
+from service_process import Serve, wait_for
 
 
 def statvfs_free(path) -> int:
@@ -23,13 +28,11 @@ def statvfs_free(path) -> int:
 
 
 def wait_stopped(url: str, sid: str, timeout: float) -> dict:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
+    def stopped():
         row = httpx.get(url + f"/api/sessions/{sid}").json()
-        if row["state"] != "live":
-            return row
-        time.sleep(0.1)
-    raise AssertionError(f"session {sid} still live after {timeout} s")
+        return row if row["state"] != "live" else None
+
+    return wait_for(stopped, timeout, f"session {sid} stops")
 
 
 def limit_events(url: str, sid: str) -> list[dict]:
@@ -53,26 +56,60 @@ def test_a_session_stops_at_the_maximum_length_with_its_result(tmp_path):
     assert 2.0 * 60 <= row["frames"] <= (2.0 + 2.0) * 60, row["frames"]
 
 
+def _private_disk() -> str | None:
+    """Why a private file system cannot be mounted here (None: it can): `unshare -rm` (a user and mount
+    namespace of its own, no privilege needed where the kernel allows user namespaces) and tmpfs."""
+    if shutil.which("unshare") is None:
+        return "no unshare (util-linux)"
+    try:
+        probe = subprocess.run(["unshare", "-rm", "sh", "-c", "mount -t tmpfs -o size=1m tmpfs /tmp"],
+                               capture_output=True, text=True, timeout=20)
+    except (OSError, subprocess.TimeoutExpired) as exc:
+        return f"unshare -rm failed: {exc}"
+    return None if probe.returncode == 0 else f"unshare -rm cannot mount a tmpfs: {probe.stderr.strip()[:200]}"
+
+
+DISK_MB = 32  # the private disk the service records on
+RESERVE_MB = 30  # --min-free-mb: the service starts with under 0.2 MB of it used, so 1.8 MB of frames cross it
+
+
+@pytest.mark.skipif(_private_disk() is not None, reason=f"a private disk is needed: {_private_disk()}")
 def test_recording_stops_cleanly_before_the_disk_reserve_is_reached(tmp_path):
-    settings = Settings(device="sim://diskfull?birds=16&motion=exercise&rate=144&baud=921600", birds=16,
-                        http_port=free_port(), data_dir=tmp_path)
-    with ServerThread(settings) as srv:
-        wait_connected(srv.url)
-        # 16 birds at 144 Hz log ~225 kB/s; the reserve is put 1 MB below what is free at the start, so
-        # the session's own frames cross it within seconds (other writers only bring the stop sooner).
-        # Set on the running service: free space moves too much to fix it before the service starts.
-        srv.service.limits.min_free_bytes = statvfs_free(tmp_path) - 2**20
-        r = httpx.post(srv.url + "/api/sessions", json={"performer": "Disk"})
+    # The service runs on a disk of its own: a 32 MB tmpfs mounted in a mount namespace made for it alone
+    # (unshare -rm), so no other program's writes or deletes move its free space and the session's own
+    # frames (16 birds at 144 Hz: ~0.45 MB/s with the raw recording) are what cross the reserve.
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    mount = 'mount -t tmpfs -o size="$1"m tmpfs "$2" && shift 2 && exec "$@"'
+    port = free_port()
+    serve = Serve(["--device", "sim://diskfull?birds=16&motion=exercise&rate=144&baud=921600", "--birds", 16,
+                   "--data-dir", disk / "data", "--min-free-mb", RESERVE_MB],
+                  port, tmp_path / "serve.log", prefix=["unshare", "-rm", "sh", "-c", mount, "sh", DISK_MB, disk])
+    with serve:
+        url = serve.url
+        wait_connected(url)
+        status = httpx.get(url + "/api/status").json()["disk"]
+        assert status["full"] is False and status["free_bytes"] > RESERVE_MB * 2**20, status
+        assert status["free_bytes"] <= DISK_MB * 2**20, status  # the service records on the private disk
+        r = httpx.post(url + "/api/sessions", json={"performer": "Disk"})
         assert r.status_code == 201, r.text
         sid = r.json()["id"]
-        row = wait_stopped(srv.url, sid, 60)
-        events = limit_events(srv.url, sid)
+        row = wait_stopped(url, sid, 120)
+        events = limit_events(url, sid)
         assert row["state"] == "stopped" and row["has_result"], row
         assert [e["reason"] for e in events] == ["disk_full"] and "--min-free-mb" in events[0]["message"]
         assert "disk" in row["note"]
+        # Stopped at the reserve, before the disk filled: no write was refused (the stop names the reserve,
+        # not a failed write), and most of the disk is still free.
+        assert "below the" in events[0]["message"] and "a write failed" not in events[0]["message"], events
+        after = httpx.get(url + "/api/status").json()["disk"]
+        assert after["full"] is True and 0.5 * RESERVE_MB * 2**20 < after["free_bytes"] < RESERVE_MB * 2**20, after
         # The recording is whole: its take downloads and holds every frame the row counts.
-        r = httpx.get(srv.url + f"/api/sessions/{sid}/take", timeout=30)
+        r = httpx.get(url + f"/api/sessions/{sid}/take", timeout=60)
         assert r.status_code == 200
+        take = np.load(io.BytesIO(r.content))
+        assert len(take["times"]) == row["frames"] > 144, (len(take["times"]), row["frames"])
+        serve.stop()  # reaped (an interrupted serve exits 130)
 
 
 def test_no_session_starts_when_the_disk_is_at_the_reserve(tmp_path):

@@ -15,21 +15,21 @@ def test_accepted_connections_send_at_once_and_have_a_bounded_buffer():
     port = sock.getsockname()[1]
     seen: dict = {}
 
-    class Probe(asyncio.Protocol):
-        def connection_made(self, transport):
-            s = transport.get_extra_info("socket")
-            seen["nodelay"] = s.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY)
-            seen["sndbuf"] = s.getsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF)
-            transport.close()
-
     async def main():
+        accepted = asyncio.Event()
+
+        class Probe(asyncio.Protocol):
+            def connection_made(self, transport):
+                s = transport.get_extra_info("socket")
+                seen["nodelay"] = s.getsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY)
+                seen["sndbuf"] = s.getsockopt(socket.SOL_SOCKET, socket.SO_SNDBUF)
+                transport.close()
+                accepted.set()
+
         server = await asyncio.get_running_loop().create_server(Probe, sock=sock)
         async with server:
             _, writer = await asyncio.open_connection("127.0.0.1", port)
-            for _ in range(100):
-                if seen:
-                    break
-                await asyncio.sleep(0.01)
+            await asyncio.wait_for(accepted.wait(), 10)
             writer.close()
 
     asyncio.run(main())

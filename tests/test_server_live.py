@@ -16,6 +16,7 @@ import websockets
 
 from flockcal.server.settings import Settings
 from server_helpers import ServerThread, free_port, wait_connected
+from service_process import wait_for
 
 CLIENTS = 50
 RATE = 5.0
@@ -55,8 +56,8 @@ async def subscriber(url: str, rate: float, content: list[str], seconds: float) 
     return got
 
 
-async def stalled_client(url: str, done: asyncio.Event) -> None:
-    """Subscribes to everything at the top rate, then never reads until `done` is set."""
+async def stalled_client(url: str, done: asyncio.Event, subscribed: asyncio.Event) -> None:
+    """Subscribes to everything at the top rate (then sets `subscribed`), then never reads until `done` is set."""
     sock = socket.socket()
     sock.setsockopt(socket.SOL_SOCKET, socket.SO_RCVBUF, 4096)  # a tiny window, so the server's sends block soon
     host, port = url.split("//")[1].split("/")[0].split(":")
@@ -64,6 +65,7 @@ async def stalled_client(url: str, done: asyncio.Event) -> None:
     ws = await websockets.connect(url, sock=sock, max_queue=1)
     await ws.send(json.dumps({"type": "subscribe", "rate_hz": 1000,
                               "content": ["status", "fit", "residuals", "events", "pose"]}))
+    subscribed.set()
     await done.wait()
     ws.transport.abort()
 
@@ -74,14 +76,13 @@ def test_fifty_clients_get_their_rate_while_a_stalled_client_is_dropped(server):
     dropped_before = server.service.hub.dropped_slow
 
     async def main():
-        done = asyncio.Event()
-        stall = asyncio.create_task(stalled_client(url, done))
-        await asyncio.sleep(0.5)
+        done, subscribed = asyncio.Event(), asyncio.Event()
+        stall = asyncio.create_task(stalled_client(url, done, subscribed))
+        await asyncio.wait_for(subscribed.wait(), 30)
         results = await asyncio.gather(*[subscriber(url, RATE, ["status", "fit", "pose"], WINDOW_S)
                                          for _ in range(CLIENTS)])
-        deadline = time.monotonic() + 20
-        while server.service.hub.dropped_slow == dropped_before and time.monotonic() < deadline:
-            await asyncio.sleep(0.1)
+        await asyncio.to_thread(wait_for, lambda: server.service.hub.dropped_slow != dropped_before, 20,
+                                "the stalled client dropped")
         done.set()
         await stall
         return results

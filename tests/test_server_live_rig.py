@@ -22,6 +22,7 @@ import websockets
 
 from flockcal.server.settings import Settings
 from server_helpers import ServerThread, free_port, wait_connected
+from service_process import wait_for
 from test_outputs_gltf import accessor, node_parents, quat_matrix, read_glb, validator_issues
 
 CLAIM_M = 1e-4
@@ -35,11 +36,9 @@ def stopped(tmp_path_factory):
     with ServerThread(settings) as srv:
         wait_connected(srv.url)
         sid = httpx.post(srv.url + "/api/sessions", json={"performer": "Rig"}).json()["id"]
-        deadline = time.monotonic() + 60  # only stops a hung test; enough is judged on the session's frames
-        while time.monotonic() < deadline:
-            if (httpx.get(srv.url + "/api/status", timeout=10).json()["session"] or {}).get("frames", 0) >= 240:
-                break
-            time.sleep(0.2)
+        # 60 s only stops a hung test; enough is judged on the session's frames.
+        wait_for(lambda: (httpx.get(srv.url + "/api/status", timeout=10).json()["session"] or {}).get("frames", 0) >= 240,
+                 60, "the session holds 240 frames", every=0.2)
         assert httpx.post(srv.url + f"/api/sessions/{sid}/stop", timeout=30).status_code == 200
         yield srv, sid
 

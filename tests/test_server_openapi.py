@@ -119,7 +119,7 @@ def test_schemathesis_finds_no_server_error_and_no_reply_outside_the_document(se
     # own) would then answer everything after with 429, as it answers a guesser. Here it lets every try through.
     from flockcal.server.backoff import TokenBackoff
 
-    srv.app.state.token_backoff = TokenBackoff(free=10**9)
+    srv.app.state.token_backoff = TokenBackoff(srv.service.clock, free=10**9)
     began = time.monotonic()
     run = subprocess.run(
         [sys.executable, "-m", "schemathesis.cli", "--config-file", str(config), "run", srv.url + "/openapi.json",

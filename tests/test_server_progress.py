@@ -38,7 +38,7 @@ def guest():
     # soft tissue slows a guest down and has its own, benchmark-only figures there.
     performer = Performer("human", "kiosk", seed=33, rate_hz=RATE, height=1.81, sta_mm=0)
     tracker = PtyTracker(performer, birds=16, baud=921600, rate_hz=RATE)
-    source = GuestSource(performer, tracker.flock.clock)
+    source = GuestSource(performer, tracker.flock.time)
     tracker.flock.source = source
     tracker.start()
     yield performer, tracker, source

@@ -10,7 +10,6 @@ import json
 import sqlite3
 import subprocess
 import sys
-import time
 
 import httpx
 import numpy as np
@@ -20,6 +19,7 @@ from flockcal.drivers.recording import read_recording, replay
 from flockcal.server.framelog import read_frames
 from flockcal.server.settings import Settings
 from server_helpers import ServerProcess, ServerThread, free_port, wait_connected
+from service_process import wait_for
 
 RATE = 144.0
 MOVE_S = 7.0  # the exercise routine compressed to an 8 s loop pins down all 15 joints in about 6 s
@@ -32,13 +32,11 @@ def settings_for(tracker, data_dir, **kw) -> Settings:
 
 
 def wait_session_time(url: str, seconds: float, timeout: float = 60.0) -> dict:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
+    def reached():
         st = httpx.get(url + "/api/status").json()
-        if st["session"] and st["session"]["time_s"] >= seconds:
-            return st
-        time.sleep(0.1)
-    raise TimeoutError(f"session did not reach {seconds} s: {st}")
+        return st if st["session"] and st["session"]["time_s"] >= seconds else None
+
+    return wait_for(reached, timeout, f"the session reaches {seconds} s of its time")
 
 
 def undirected(parent: dict) -> set:

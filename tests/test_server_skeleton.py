@@ -10,7 +10,6 @@ from __future__ import annotations
 import json
 import subprocess
 import sys
-import time
 
 import httpx
 import numpy as np
@@ -38,13 +37,11 @@ def settings_for(tracker, data_dir, **kw) -> Settings:
 
 
 def wait_session_time(url: str, seconds: float, timeout: float = 60.0) -> None:
-    deadline = time.monotonic() + timeout
-    while time.monotonic() < deadline:
+    def reached() -> bool:
         st = httpx.get(url + "/api/status").json()
-        if st["session"] and st["session"]["time_s"] >= seconds and st["session"].get("fit_error") is None:
-            return
-        time.sleep(0.1)
-    raise TimeoutError(f"session did not reach {seconds} s")
+        return bool(st["session"] and st["session"]["time_s"] >= seconds and st["session"].get("fit_error") is None)
+
+    wait_for(reached, timeout, f"the session reaches {seconds} s of its time, fitted")
 
 
 def record(url: str, seconds: float, **start) -> str:

@@ -29,8 +29,10 @@ import pytest
 from pythonosc.dispatcher import Dispatcher
 from pythonosc.osc_server import BlockingOSCUDPServer
 
+from flockcal.clock import SYSTEM
 from flockcal.server.settings import Settings
 from server_helpers import ServerProcess, ServerThread, free_port, wait_connected
+from service_process import wait_for
 
 VRPN_TOOLS = Path(__file__).resolve().parents[1].parent / "shared" / "tools" / "vrpn"
 PRINT_DEVICES = VRPN_TOOLS / "vrpn_print_devices"
@@ -90,13 +92,8 @@ class Receiver:
         return out[:-1]  # the last may still be arriving
 
     def wait(self, condition, timeout: float = 60.0, since: float = 0.0) -> list[dict]:
-        deadline = time.monotonic() + timeout  # only stops a hung test
-        while time.monotonic() < deadline:
-            got = self.bundles(since)
-            if condition(got):
-                return got
-            time.sleep(0.05)
-        raise AssertionError(f"VMC receiver: condition not met; last bundle {got[-1:] if got else None}")
+        """The bundles since `since` once `condition` holds of them (`timeout` only stops a hung test)."""
+        return settled(lambda: self.bundles(since), condition, timeout)
 
     def close(self):
         self.server.shutdown()
@@ -107,14 +104,16 @@ def outputs(url: str) -> dict:
     return httpx.get(url + "/api/status", timeout=10).json()["outputs"]
 
 
-def wait_for(what, condition, timeout: float = 60.0):
-    deadline = time.monotonic() + timeout  # only stops a hung test
-    while time.monotonic() < deadline:
-        value = what()
-        if condition(value):
-            return value
-        time.sleep(0.1)
-    raise AssertionError(f"condition not met within {timeout} s: {value}")
+def settled(what, condition, timeout: float = 60.0):
+    """`what()` once `condition` holds of it (`timeout` only stops a hung test)."""
+    seen = []
+
+    def met() -> bool:
+        seen[:] = [what()]
+        return condition(seen[0])
+
+    wait_for(met, timeout, lambda: f"condition met (last: {seen[0] if seen else None})", every=0.1)
+    return seen[0]
 
 
 @pytest.fixture(scope="module")
@@ -135,9 +134,9 @@ def streams(tmp_path_factory):
             r = httpx.post(srv.url + "/api/sessions", json={"performer": "Vee", "hierarchy": TREE, "root": "pelvis"})
             assert r.status_code == 201, r.text
             sid = r.json()["id"]
-            wait_for(lambda: outputs(srv.url)["humanoid"], lambda h: h["streaming"])
+            settled(lambda: outputs(srv.url)["humanoid"], lambda h: h["streaming"])
             live = receiver.wait(lambda b: len(b) >= 5 and "Hips" in b[-1], since=time.monotonic())
-            wait_for(lambda: httpx.get(srv.url + "/api/status").json()["session"]["frames"], lambda n: n >= 4 * RATE_HZ)
+            settled(lambda: httpx.get(srv.url + "/api/status").json()["session"]["frames"], lambda n: n >= 4 * RATE_HZ)
             assert httpx.post(srv.url + f"/api/sessions/{sid}/stop", timeout=60).status_code == 200
             result = httpx.get(srv.url + f"/api/sessions/{sid}/result", timeout=30).json()
             stopped = time.monotonic()
@@ -162,14 +161,10 @@ def print_devices(device: str, frames: int = 30, seconds: float = 0.0,
     pattern = re.compile(r"Tracker (\S+), sensor (\d+):\s*\n\s*pos \(\s*([-\d.]+),\s*([-\d.]+),\s*([-\d.]+)\)")
     try:
         started = time.monotonic()
-        deadline = started + timeout  # only stops a hung test
-        while time.monotonic() < deadline:
-            got = whole_frames(pattern.findall("".join(lines[:len(lines) - 1])), device)
-            if len(got) >= frames and time.monotonic() - started >= seconds:
-                break
-            if proc.poll() is not None:
-                break
-            time.sleep(0.05)
+        # `seconds` is real time on purpose: the client's own ping timer (3 s) is what is watched.
+        wait_for(lambda: proc.poll() is not None or (
+            len(whole_frames(pattern.findall("".join(lines[:len(lines) - 1])), device)) >= frames
+            and time.monotonic() - started >= seconds), timeout, f"{frames} frames printed by {device}")
     finally:
         proc.send_signal(signal.SIGINT)  # its Ctrl-C handler ends the loop and flushes what it printed
         try:
@@ -315,9 +310,9 @@ def test_the_status_lists_each_vrpn_client_and_a_client_that_stops_reading_is_dr
     stalled = RawVrpn(streams["port"], rcvbuf=4096)
     try:
         mine = f"127.0.0.1:{stalled.sock.getsockname()[1]}"
-        listed = wait_for(lambda: outputs(url)["vrpn"], lambda v: any(c["address"] == mine for c in v["clients"]))
+        listed = settled(lambda: outputs(url)["vrpn"], lambda v: any(c["address"] == mine for c in v["clients"]))
         assert [c for c in listed["clients"] if c["address"] == mine][0]["channel"] == "tcp"
-        after = wait_for(lambda: outputs(url)["vrpn"], lambda v: v["dropped"]["slow"] > dropped, timeout=120)
+        after = settled(lambda: outputs(url)["vrpn"], lambda v: v["dropped"]["slow"] > dropped, timeout=120)
         assert all(c["address"] != mine for c in after["clients"])
     finally:
         stalled.close()
@@ -393,8 +388,8 @@ def test_bad_outputs_are_one_line_each_and_the_service_runs_without_them(tmp_pat
         proc.start()
         wait_connected(proc.url)
         assert httpx.post(proc.url + "/api/sessions", json={"performer": "Chain"}).status_code == 201
-        wait_for(lambda: httpx.get(proc.url + "/api/status").json()["fits"], lambda n: n >= 10)
-        st = wait_for(lambda: outputs(proc.url), lambda o: "human" in (o["humanoid"]["reason"] or ""))
+        settled(lambda: httpx.get(proc.url + "/api/status").json()["fits"], lambda n: n >= 10)
+        st = settled(lambda: outputs(proc.url), lambda o: "human" in (o["humanoid"]["reason"] or ""))
         got = receiver.wait(lambda b: len(b) >= 5, since=time.monotonic())
         text = log.read_text()
     finally:
@@ -438,7 +433,7 @@ def test_a_stopped_sessions_fit_without_a_humanoid_streams_once_frames_find_one(
     class Stored:  # what the snapshots show with no session live: the last session's final fit
         pose_fit, pose_fit_id, session = fit, ("stored", None), None
 
-    out = Outputs(Settings(vrpn_port=0, data_dir=tmp_path), p.names, lambda: Stored)
+    out = Outputs(Settings(vrpn_port=0, data_dir=tmp_path), p.names, lambda: Stored, SYSTEM)
     out.start()
     try:
         start = time.monotonic()

@@ -6,7 +6,6 @@ keeps watching (a slip just after it is found); a failing monitor stops watching
 from __future__ import annotations
 
 import logging
-import time
 
 import httpx
 import numpy as np
@@ -18,6 +17,7 @@ from flockcal.solver.accumulator import GramAccumulator
 from flockcal.solver.slippage.watch import SlipWatch
 from flockcal.solver.slippage import SlipMonitor
 from server_helpers import ServerThread, free_port, wait_connected
+from service_process import wait_for
 from slip_replay import tree
 
 RATE = 100.0
@@ -185,14 +185,18 @@ def test_live_service_reports_a_failing_slip_monitor_once_as_a_tracker_event(tmp
         r = httpx.post(srv.url + "/api/sessions", json={"performer": "Eve", "skeleton": "human"})
         assert r.status_code == 201, r.text
         sid = r.json()["id"]
-        deadline = time.monotonic() + 30
-        failed = []
-        while time.monotonic() < deadline and not failed:
-            time.sleep(0.5)
-            events = httpx.get(srv.url + f"/api/sessions/{sid}/events").json()["events"]
-            failed = [e for e in events if e["type"] == "tracker" and e.get("kind") == "slip_watch_failed"]
-        time.sleep(1.0)  # more frames: the failure must not be reported again
-        events = httpx.get(srv.url + f"/api/sessions/{sid}/events").json()["events"]
+        def session_events() -> list[dict]:
+            return httpx.get(srv.url + f"/api/sessions/{sid}/events").json()["events"]
+
+        def frames() -> int:
+            return httpx.get(srv.url + "/api/status").json()["session"]["frames"]
+
+        wait_for(lambda: any(e["type"] == "tracker" and e.get("kind") == "slip_watch_failed"
+                             for e in session_events()), 30, "the slip watch's failure reported", every=0.2)
+        # A second of frames more (100 at 100 Hz): the failure must not be reported again.
+        more = frames() + 100
+        wait_for(lambda: frames() >= more, 30, "100 frames more")
+        events = session_events()
         frames_before = httpx.get(srv.url + "/api/status").json()["session"]["frames"]
         r = httpx.post(srv.url + f"/api/sessions/{sid}/stop", timeout=30)
         assert r.status_code == 200, r.text

@@ -179,6 +179,7 @@ def stop_report(service) -> list[str]:
 def run(args: argparse.Namespace) -> int:
     import uvicorn
 
+    from flockcal.clock import SYSTEM
     from flockcal.server.app import create_app
     from flockcal.server.connections import ConnectionGuard, connection_cap, guarded_protocol, raise_fd_limit
     from flockcal.server.errors import ConfigError
@@ -207,7 +208,7 @@ def run(args: argparse.Namespace) -> int:
         raise UserError(f"cannot listen on {settings.host}:{settings.http_port}: {exc.strerror}; "
                         "choose another --http-port or --host") from None
     try:
-        service = Service(settings)  # opens (and checks) the database and the device before serving
+        service = Service(settings, clock=SYSTEM)  # opens (and checks) the database and the device before serving
     except DatabaseDamaged as exc:
         sock.close()
         raise DamagedDatabase(str(exc)) from None
@@ -237,7 +238,7 @@ def run(args: argparse.Namespace) -> int:
     # No per-message deflate: compressing every snapshot once per client costs more CPU than the
     # loopback or LAN bandwidth it saves.
     # Every request whole within a deadline, connections capped under the descriptors (server/connections.py).
-    guard = ConnectionGuard(connection_cap(soft), settings.request_deadline_s)
+    guard = ConnectionGuard(connection_cap(soft), service.clock, settings.request_deadline_s)
     app.state.connection_guard = guard
     config = uvicorn.Config(app, host=settings.host, port=settings.http_port, log_level="warning",
                             ws_max_size=64 * 1024, ws_per_message_deflate=False, lifespan="on",
@@ -245,7 +246,7 @@ def run(args: argparse.Namespace) -> int:
                             # A stop waits this long for responses in flight (a download), then cuts them:
                             # systemd's TimeoutStopSec (30 s) must not run out first.
                             timeout_graceful_shutdown=10)
-    throttle_all_handlers()  # after uvicorn.Config: it configures uvicorn's handlers
+    throttle_all_handlers(service.clock)  # after uvicorn.Config: it configures uvicorn's handlers
     server = uvicorn.Server(config)
     # uvicorn stops gracefully on SIGTERM as on Ctrl-C, then raises the signal again with the handler it
     # found: Python's default for SIGTERM ends the process there, before the stop report below. With a

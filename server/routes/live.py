@@ -10,7 +10,6 @@ import asyncio
 import json
 import logging
 import math
-import time
 
 from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 
@@ -213,6 +212,7 @@ class Connection:
             if self.evicted and not self.authorised:
                 await self.refuse(self.slots.full_message(PENDING_KEY), 1013)
                 return
+        clock = self.service.clock  # the pacing: a client's rate and the status period
         sent_seq = 0
         fit_seq = -1
         residual_seq = 0
@@ -228,7 +228,7 @@ class Connection:
                 sub, fit_seq, status_at, next_due = self.sub, -1, 0.0, 0.0
                 if "residuals" in sub.content:
                     residual_seq = _residual_start(hub.latest)
-            now = time.monotonic()
+            now = clock.monotonic()
             if now < next_due:
                 try:
                     async with asyncio.timeout(next_due - now):
@@ -243,15 +243,15 @@ class Connection:
             self.changed.clear()
             # At the top rate every snapshot goes out as soon as it is published.
             top = sub.rate_hz >= self.service.settings.publish_hz
-            next_due = 0.0 if top else time.monotonic() + 1.0 / sub.rate_hz
+            next_due = 0.0 if top else clock.monotonic() + 1.0 / sub.rate_hz
             sent_seq = snap.seq
             out = []
             content = sub.content
             if "status" in content:
                 key = (snap.status.get("connected"), snap.session and snap.session.id,
                        (snap.status.get("disk") or {}).get("full"))
-                if key != status_key or time.monotonic() - status_at >= STATUS_PERIOD_S:
-                    status_key, status_at = key, time.monotonic()
+                if key != status_key or clock.monotonic() - status_at >= STATUS_PERIOD_S:
+                    status_key, status_at = key, clock.monotonic()
                     out.append(self.envelope("status", snap.status_json))
             if "fit" in content and snap.has_fit and snap.fit_seq != fit_seq:
                 fit_seq = snap.fit_seq

@@ -5,8 +5,6 @@ The dashboard's tests and demos use these to make something happen on purpose.
 
 from __future__ import annotations
 
-import time
-
 from fastapi import APIRouter, Depends
 
 from flockcal.errors import FlockcalError
@@ -55,7 +53,7 @@ def slip(body: SlipRequest, service=Depends(get_service), _role=Depends(require_
     clock = getattr(service.source, "reader_time", None)
     reader_time = clock(routine_s) if clock is not None else None
     # Seconds from now to the slip's sample: the simulator computes poses up to 0.1 s ahead.
-    in_s = None if reader_time is None else round(reader_time - time.monotonic(), 4)
+    in_s = None if reader_time is None else round(reader_time - service.clock.monotonic(), 4)
     session_id, at_s = _session_time(service.pipeline.live, reader_time)
     when = f" at {at_s:.3f} s into session {session_id}" if at_s is not None else ""
     return {"message": f"sensor {body.sensor} slipped by {body.distance_m * 1000:.0f} mm{when}",
