@@ -7,8 +7,11 @@ sequence over one port (group mode) or one port per bird and returns the `FlockS
 
 from __future__ import annotations
 
+import errno
+import fcntl
 import logging
 import os
+import termios
 import time
 from dataclasses import asdict, dataclass, field
 from typing import Callable
@@ -17,6 +20,8 @@ import serial
 
 from flockcal.drivers.commands import ADDRESSING_MODES, MAX_ADDRESS, Command, fbb_prefix
 from flockcal.drivers.hemispheres import HEMISPHERES, hemisphere_bytes
+from flockcal.drivers import uucp_lock
+from flockcal.drivers.port_guard import PortIdentity, busy_error, check_port, uucp_lock_for
 from flockcal.drivers.parameters import (
     change_command, examine_command, examine_reply_length, measurement_rate_from_word, measurement_rate_word,
     software_revision,
@@ -25,7 +30,7 @@ from flockcal.drivers.records import FORMATS, record_length
 from flockcal.drivers.status import ERROR_CODES, BirdStatus, decode_flock_status, decode_status_word, error_is_fatal
 from flockcal.drivers.words import pack_words, unpack_words
 from flockcal.clock import SYSTEM
-from flockcal.errors import FlockcalError
+from flockcal.drivers.errors import TrackerError
 
 log = logging.getLogger(__name__)
 
@@ -34,10 +39,6 @@ BAUD_RATES = (2400, 4800, 9600, 19200, 38400, 57600, 115200)
 # the matrix needs no sign convention; the quaternion is the compact fallback the issue asks for).
 FULL_FORMATS = ("position_matrix", "position_quaternion", "position_angles")
 LINK_MARGIN = 0.9  # keep 10 % of the line free for jitter and command traffic
-
-
-class TrackerError(FlockcalError):
-    """A tracker problem a person can act on (no answer, wrong baud rate, a bird error, …)."""
 
 
 @dataclass
@@ -74,32 +75,58 @@ class FlockLink:
         self.read_timeout = read_timeout
         self.port: serial.SerialBase | None = None
         self.modem_lines = None  # False when the port has no RTS/DTR (a pty, some adapters)
+        self.identity: PortIdentity | None = None  # the device a path led to when opened (None: a URL)
+        self._lock = None  # its UUCP lock file, when this link made one
 
     # -- opening and closing -------------------------------------------------------------------
-    def open(self) -> "FlockLink":
+    def open(self, expected: PortIdentity | None = None) -> "FlockLink":
+        """Open the port alone: a device path is checked first (port_guard: nobody else holds it, it is
+        nobody's terminal, and with `expected` it still leads to what streamed before), its UUCP lock file
+        taken, and the device node it led to opened exclusively (flock, then TIOCEXCL), so nothing is written
+        to a port that turned into something else. PortBusy / PortChanged / TrackerError otherwise."""
+        ident = check_port(self.url, expected)
+        lock = uucp_lock_for(self.url, ident)
         try:
             port = serial.serial_for_url(
-                self.url, do_not_open=True, baudrate=self.baud, bytesize=8, parity="N", stopbits=1,
-                timeout=self.read_timeout, write_timeout=2.0, xonxoff=False, rtscts=False, dsrdtr=False)
+                ident.device if ident else self.url, do_not_open=True, baudrate=self.baud, bytesize=8, parity="N",
+                stopbits=1, timeout=self.read_timeout, write_timeout=2.0, xonxoff=False, rtscts=False,
+                dsrdtr=False, **({"exclusive": True} if ident else {}))
             # pyserial asserts RTS on open by default, which holds a bird in standby; DTR low would
             # silence it (protocol.md §11.1).
             port.rts = False
             port.dtr = True
             port.open()
         except (serial.SerialException, OSError, ValueError) as exc:
+            if lock is not None:
+                uucp_lock.release(lock)
             reason = getattr(exc, "strerror", None) or str(exc)
+            if ident is not None and getattr(exc, "errno", None) in (errno.EAGAIN, errno.EBUSY):
+                raise busy_error(self.url, ident, "locked" if exc.errno == errno.EAGAIN else "busy") from None
             raise TrackerError(f"cannot open {self.url}: {reason} — check the device name, the cable, and that "
                                f"no other program holds the port") from None
-        self.port = port
+        if ident is not None:
+            try:  # other openers get EBUSY (root excepted), whether or not they flock
+                fcntl.ioctl(port.fileno(), termios.TIOCEXCL)
+            except OSError:
+                pass
+        self.port, self.identity, self._lock = port, ident, lock
         return self
 
     def close(self) -> None:
         port, self.port = self.port, None
+        lock, self._lock = self._lock, None
         if port is not None:
+            if self.identity is not None:
+                try:  # a pty keeps the flag after the last close while its other end is open
+                    fcntl.ioctl(port.fileno(), termios.TIOCNXCL)
+                except (OSError, ValueError, serial.SerialException):
+                    pass
             try:
                 port.close()
             except (serial.SerialException, OSError):
                 pass
+        if lock is not None:
+            uucp_lock.release(lock)
 
     @property
     def is_open(self) -> bool:

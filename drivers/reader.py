@@ -164,6 +164,7 @@ class TrackerReader:
         self._connected_once = threading.Event()
         self._first_failure: TrackerError | None = None
         self._links: list[FlockLink] = []
+        self._identities: dict = {}  # url → PortIdentity of the device it led to when the flock first answered
         # The recording in progress: swapped under _recording_lock, read once per use by the reader thread
         # (a writer closed meanwhile ignores what it is given).
         self._recorder: RecordingWriter | None = None
@@ -382,7 +383,7 @@ class TrackerReader:
         self._links = [FlockLink(u, baud=cfg.baud, index=i, timing=self.timing, recorder=self._record)
                        for i, u in enumerate(cfg.urls)]
         for link in self._links:
-            link.open()
+            link.open(expected=self._identities.get(link.url))  # a reconnect refuses a port that changed
         setup = configure_flock(self._links, birds=cfg.birds, rate_hz=cfg.rate_hz if cfg.mode == "stream" else None,
                                 record_format=cfg.record_format, group=group, mode=cfg.mode,
                                 hemisphere=cfg.hemisphere, scale_inches=cfg.scale_inches, emit=self._emit)
@@ -390,6 +391,8 @@ class TrackerReader:
             # Frames come as often as we poll; the assembler needs that period, not the measurement rate.
             setup.rate_hz = float(cfg.rate_hz or min(setup.rate_hz, 20.0))
         self.setup = setup
+        # What each port led to once a flock answered on it: what a reconnect must find again.
+        self._identities.update({link.url: link.identity for link in self._links if link.identity is not None})
         options = dict(hemisphere_tracking=cfg.hemisphere_tracking, max_speed=cfg.max_speed,
                        max_turn_rate=cfg.max_turn_rate)
         with self._recording_lock:

@@ -23,6 +23,7 @@ File layout (all integers little-endian):
 from __future__ import annotations
 
 import json
+import math
 import os
 import struct
 import threading
@@ -30,9 +31,13 @@ import time
 import zlib
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import Iterator
+
+import numpy as np
 
 from flockcal.drivers.assembly import FrameAssembler  # the decoding path of the live reader
 from flockcal.drivers.link import FlockSetup
+from flockcal.drivers.records import record_length
 from flockcal.errors import FlockcalError
 from flockcal.frames import Frames
 
@@ -206,6 +211,7 @@ class Recording:
     good_bytes: int  # bytes up to the end of the last intact chunk
     problem: str | None = None  # why reading stopped early (truncated tail or corruption), if it did
     markers: list[dict] = field(default_factory=list)
+    offsets: list[int] = field(default_factory=list)  # byte offset of each chunk in the file
 
     @property
     def truncated(self) -> bool:
@@ -231,76 +237,127 @@ class Recording:
         return text
 
 
+class ChunkReader:
+    """A .fobraw file read a chunk at a time, memory a read block and one chunk: the settings header when
+    opened (RecordingError if it is not a recording), then iterating gives (byte offset, Chunk) in file
+    order. A tail cut short ends the chunks (`problem` says how); a damaged chunk with data after it is a
+    RecordingError when reached, unless `salvage` ends the chunks there. Afterwards `good_bytes` is where
+    the intact chunks end."""
+
+    BLOCK = 1 << 20
+
+    def __init__(self, path: str | os.PathLike, salvage: bool = False):
+        self.path = Path(path)
+        self.salvage = salvage
+        try:
+            self._fh = open(self.path, "rb")
+        except FileNotFoundError:
+            raise RecordingError(f"{self.path}: no such recording") from None
+        except OSError as exc:
+            raise RecordingError(f"{self.path}: cannot read it ({exc.strerror})") from None
+        try:
+            self.size = os.fstat(self._fh.fileno()).st_size
+            self.settings, self.first = self._header()
+        except BaseException:
+            self._fh.close()
+            raise
+        self.problem: str | None = None
+        self.good_bytes = self.size
+        self.count = 0
+
+    def _header(self) -> tuple[dict, int]:
+        path = self.path
+        head = self._fh.read(len(MAGIC) + 4)
+        if not head.startswith(MAGIC):
+            if head.startswith(MAGIC[:6]):
+                raise RecordingError(f"{path}: a .fobraw recording of an unknown version — it needs a newer flockcal")
+            raise RecordingError(f"{path}: not a flockcal raw recording (.fobraw) — it does not start with {MAGIC[:6]!r}")
+        if len(head) < len(MAGIC) + 4:
+            raise RecordingError(f"{path}: the recording is cut off inside its header; nothing can be recovered")
+        (hlen,) = _U32.unpack_from(head, len(MAGIC))
+        if hlen > MAX_CHUNK or self.size < len(head) + hlen + 4:
+            raise RecordingError(f"{path}: the recording is cut off inside its header; nothing can be recovered")
+        body = self._fh.read(hlen + 4)
+        text = body[:hlen]
+        if zlib.crc32(text) != _U32.unpack_from(body, hlen)[0]:
+            raise RecordingError(f"{path}: the settings header is corrupt (checksum mismatch); the file cannot be replayed")
+        try:
+            settings = json.loads(text.decode("utf-8"))
+        except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+            raise RecordingError(f"{path}: the settings header is not valid JSON ({exc})") from None
+        return settings, len(head) + hlen + 4
+
+    def __iter__(self) -> Iterator[tuple[int, Chunk]]:
+        buf, start = bytearray(), self.first  # buf holds the file from byte `start` on
+        pos, size = self.first, self.size
+
+        def have(upto: int) -> None:
+            nonlocal buf, start
+            if upto - start <= len(buf):
+                return
+            del buf[: pos - start]
+            start = pos
+            self._fh.seek(start + len(buf))
+            buf += self._fh.read(max(upto - start - len(buf), self.BLOCK))
+
+        try:
+            while pos < size:
+                if size - pos < _CHUNK.size:
+                    self.problem = f"{size - pos} bytes of a chunk header cut off at the end"
+                    break
+                have(pos + _CHUNK.size)
+                sync, kind, port, t, length = _CHUNK.unpack_from(buf, pos - start)
+                end = pos + _CHUNK.size + length + 4
+                damaged = sync != SYNC or kind not in (READ, WRITE, MARK) or length > MAX_CHUNK
+                if not damaged and end > size:
+                    self.problem = f"last chunk cut off ({size - pos} of {end - pos} bytes present)"
+                    break
+                if not damaged:
+                    have(end)
+                    at = pos - start
+                    payload = bytes(buf[at + _CHUNK.size : at + _CHUNK.size + length])
+                    (crc,) = _U32.unpack_from(buf, at + _CHUNK.size + length)
+                    damaged = zlib.crc32(payload, zlib.crc32(buf[at : at + _CHUNK.size])) != crc
+                if damaged:
+                    self.problem = f"corrupt chunk at byte {pos} (chunk {self.count})"
+                    if not self.salvage:
+                        raise RecordingError(
+                            f"{self.path}: {self.problem}, with {size - pos} bytes after it; the first {self.count} "
+                            f"chunks are intact — replay them with --salvage"
+                        )
+                    break
+                yield pos, Chunk(kind, port[0], t, payload)
+                self.count += 1
+                pos = end
+        finally:
+            self.good_bytes = pos if self.problem else size
+            self._fh.close()
+
+
 def read_recording(path: str | os.PathLike, salvage: bool = False) -> Recording:
-    """Read a .fobraw file.
+    """Read a .fobraw file whole (ChunkReader's chunks in a list; a long one: `decode_recording`).
 
     A tail cut short (the process was killed mid-write) is dropped and noted in `problem`. A damaged
     chunk with intact data after it is corruption: a RecordingError, unless `salvage` keeps what came
     before it.
     """
-    path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise RecordingError(f"{path}: no such recording") from None
-    except OSError as exc:
-        raise RecordingError(f"{path}: cannot read it ({exc.strerror})") from None
-    if not data.startswith(MAGIC):
-        if data.startswith(MAGIC[:6]):
-            raise RecordingError(f"{path}: a .fobraw recording of an unknown version — it needs a newer flockcal")
-        raise RecordingError(f"{path}: not a flockcal raw recording (.fobraw) — it does not start with {MAGIC[:6]!r}")
-    pos = len(MAGIC)
-    if len(data) < pos + 4:
-        raise RecordingError(f"{path}: the recording is cut off inside its header; nothing can be recovered")
-    (hlen,) = _U32.unpack_from(data, pos)
-    pos += 4
-    if len(data) < pos + hlen + 4:
-        raise RecordingError(f"{path}: the recording is cut off inside its header; nothing can be recovered")
-    text = data[pos : pos + hlen]
-    (hcrc,) = _U32.unpack_from(data, pos + hlen)
-    if zlib.crc32(text) != hcrc:
-        raise RecordingError(f"{path}: the settings header is corrupt (checksum mismatch); the file cannot be replayed")
-    try:
-        settings = json.loads(text.decode("utf-8"))
-    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise RecordingError(f"{path}: the settings header is not valid JSON ({exc})") from None
-    pos += hlen + 4
-
-    chunks: list[Chunk] = []
-    markers: list[dict] = []
-    problem = None
-    size = len(data)
-    while pos < size:
-        if size - pos < _CHUNK.size:
-            problem = f"{size - pos} bytes of a chunk header cut off at the end"
-            break
-        sync, kind, port, t, length = _CHUNK.unpack_from(data, pos)
-        end = pos + _CHUNK.size + length + 4
-        damaged = sync != SYNC or kind not in (READ, WRITE, MARK) or length > MAX_CHUNK
-        if not damaged and end > size:
-            problem = f"last chunk cut off ({size - pos} of {end - pos} bytes present)"
-            break
-        if not damaged:
-            payload = data[pos + _CHUNK.size : end - 4]
-            (crc,) = _U32.unpack_from(data, end - 4)
-            damaged = zlib.crc32(payload, zlib.crc32(data[pos : pos + _CHUNK.size])) != crc
-        if damaged:
-            problem = f"corrupt chunk at byte {pos} (chunk {len(chunks)})"
-            if not salvage:
-                raise RecordingError(
-                    f"{path}: {problem}, with {size - pos} bytes after it; the first {len(chunks)} chunks are "
-                    f"intact — replay them with --salvage"
-                )
-            break
-        chunk = Chunk(kind, port[0], t, bytes(payload))
-        if kind == MARK:
-            try:
-                markers.append(chunk.marker())
-            except (UnicodeDecodeError, json.JSONDecodeError):
-                raise RecordingError(f"{path}: marker chunk {len(chunks)} at byte {pos} is not valid JSON") from None
+    reader = ChunkReader(path, salvage)
+    chunks, offsets, markers = [], [], []
+    for pos, chunk in reader:
         chunks.append(chunk)
-        pos = end
-    return Recording(path, settings, chunks, size, pos if problem else size, problem, markers)
+        offsets.append(pos)
+        if chunk.kind == MARK and isinstance(info := _marker(chunk), dict):
+            markers.append(info)
+    return Recording(reader.path, reader.settings, chunks, reader.size, reader.good_bytes, reader.problem, markers,
+                     offsets)
+
+
+def _marker(chunk: Chunk):
+    """A marker's JSON (None when its payload is not JSON: a junk chunk)."""
+    try:
+        return chunk.marker()
+    except (UnicodeDecodeError, json.JSONDecodeError):
+        return None
 
 
 def intact_length(path: str | os.PathLike, size: int | None = None) -> int:
@@ -355,6 +412,42 @@ def _whole_chunk_end(fh, pos: int, size: int) -> int | None:
 
 
 @dataclass
+class Junk:
+    """Chunks whose checksums hold but that no recorder wrote (random or foreign data spliced in), all
+    skipped: where they are and why each was judged so (a time out of the recording's order, a port it does
+    not have, a marker that is not a recorder's JSON, read bytes with more phasing bits than Flock records
+    can hold)."""
+
+    chunks: int = 0
+    bytes: int = 0
+    first: int | None = None  # byte offset of the first such chunk
+    end: int | None = None  # where the last one ends
+    reasons: dict = field(default_factory=dict)  # reason → chunks
+
+    def add(self, pos: int | None, end: int | None, size: int, reason: str) -> None:
+        self.chunks += 1
+        self.bytes += size
+        self.reasons[reason] = self.reasons.get(reason, 0) + 1
+        if pos is not None:
+            self.first = pos if self.first is None else min(self.first, pos)
+            self.end = end if self.end is None else max(self.end, end)
+
+    def __bool__(self) -> bool:
+        return self.chunks > 0
+
+    def describe(self) -> str:
+        where = f" between bytes {self.first:,} and {self.end:,}" if self.first is not None else ""
+        why = "; ".join(f"{n:,} {reason}" for reason, n in sorted(self.reasons.items(), key=lambda x: -x[1]))
+        return f"{self.chunks:,} junk chunk{'s' if self.chunks != 1 else ''} ({self.bytes:,} bytes){where}: {why}"
+
+
+# A chunk's time may run behind the one before it by this much (a marker from another thread stamped a
+# moment earlier), and ahead by this much (a stalled process); anything else was not stamped by a recorder.
+BACKWARD_S = 1.0
+FORWARD_S = 86400.0
+
+
+@dataclass
 class Replay:
     """What replaying a recording gave: the frames, the decoding settings, events and counters."""
 
@@ -365,6 +458,126 @@ class Replay:
     resyncs: int
     dropped_records: int
     rejected_records: int
+    junk: Junk = field(default_factory=Junk)
+    frame_count: int = 0  # frames decoded (all of them, also when they were handed on and not kept)
+
+
+class Decoder:
+    """A recording's chunks → frames through the live reader's assembler, one chunk at a time (replay's
+    engine): markers start and end streams, read bytes are fed with their arrival times, junk chunks are
+    judged (`Junk`) and kept out of the assembler where they would corrupt it. `on_frames(frames)` gets the
+    frames in batches; with `keep` they are also kept for `result()`."""
+
+    def __init__(self, settings: dict, on_frames=None, *, keep: bool = True, realtime: bool = False,
+                 speed: float = 1.0, batch_seconds: float = 0.05):
+        self.on_frames, self.keep = on_frames, keep
+        self.realtime, self.speed, self.batch_seconds = realtime, speed, batch_seconds
+        self.parts: list[Frames] = []
+        self.setups: list[dict] = []
+        self.events: list[dict] = []
+        self.junk = Junk()
+        self.frames = 0
+        self.m = 0
+        self.asm: FrameAssembler | None = None
+        self.totals = dict(resyncs=0, dropped=0, rejected=0)
+        config = settings.get("config") if isinstance(settings.get("config"), dict) else {}
+        urls = config.get("urls")
+        self.ports = len(urls) if isinstance(urls, list) and urls else 256  # until a stream says
+        start = settings.get("monotonic_start")
+        self.latest = float(start) if isinstance(start, (int, float)) and math.isfinite(start) else None
+        self.record_bytes = 0
+        self.wall0 = time.monotonic()
+        self.rec0: float | None = None
+        self.last_emit = 0.0
+
+    def feed(self, chunk: Chunk, pos: int | None = None, end: int | None = None) -> None:
+        t = chunk.time
+        reason = None
+        if not math.isfinite(t) or (self.latest is not None and not
+                                    self.latest - BACKWARD_S <= t <= self.latest + FORWARD_S):
+            reason = "with times no recorder wrote"
+        elif chunk.kind != MARK and chunk.port >= self.ports:
+            reason = f"on ports the recording does not have (it has {self.ports})"
+        elif chunk.kind == MARK:
+            info = _marker(chunk)
+            if not isinstance(info, dict) or ("stream" in info and not self._stream(info, t)):
+                reason = "markers that are not a recorder's"
+        if reason is not None:
+            self.junk.add(pos, end, len(chunk.payload), reason)
+            return
+        self.latest = t if self.latest is None else max(self.latest, t)
+        if self.rec0 is None:
+            self.rec0 = self.last_emit = t
+        if chunk.kind == MARK:
+            if info.get("flush"):
+                self._collect(t, force=True)
+                self._retire()
+            elif "event" in info:
+                self.events.append(info)
+        elif chunk.kind == READ and self.asm is not None:
+            if self._not_records(chunk.payload):
+                self.junk.add(pos, end, len(chunk.payload), "of bytes that cannot be Flock records")
+                return
+            self.asm.feed(chunk.port, t, chunk.payload)
+            self._collect(t)
+
+    def _stream(self, info: dict, t: float) -> bool:
+        """Start decoding the stream a marker describes; False when it describes none a recorder makes."""
+        try:
+            setup = FlockSetup.from_dict(info["stream"])
+            asm = FrameAssembler(setup, **info.get("assembler", {}))
+        except (TypeError, ValueError, KeyError, AttributeError, IndexError):
+            return False
+        self._retire()
+        self.setups.append(info["stream"])
+        self.m = setup.birds
+        self.asm = asm
+        self.ports = len(asm.ports) if setup.group else len(setup.urls)
+        self.record_bytes = record_length(setup.record_format, group=setup.group)
+        self.last_emit = t
+        return True
+
+    def _not_records(self, data: bytes) -> bool:
+        """Whether read bytes cannot be a Flock stream: its records carry one phasing byte (high bit set) in
+        `record_bytes`, so a stretch of several records holds few; random bytes hold one in two."""
+        n, L = len(data), self.record_bytes
+        if n < 4 * L:
+            return False
+        high = int(np.count_nonzero(np.frombuffer(data, np.uint8) & 0x80))
+        return high > 2 * n / L + 2
+
+    def _collect(self, now: float, force: bool = False) -> None:
+        if self.asm is None or (not force and now - self.last_emit < self.batch_seconds):
+            return
+        self.last_emit = now
+        out = self.asm.take()
+        if len(out):
+            self.frames += len(out)
+            if self.keep:
+                self.parts.append(out)
+            if self.on_frames is not None:
+                if self.realtime:
+                    delay = (now - self.rec0) / self.speed - (time.monotonic() - self.wall0)
+                    if delay > 0:
+                        time.sleep(delay)
+                self.on_frames(out)
+
+    def _retire(self) -> None:
+        if self.asm is None:
+            return
+        self.asm.flush()
+        self._collect(self.last_emit, force=True)
+        self.totals["resyncs"] += self.asm.resyncs
+        self.totals["dropped"] += self.asm.dropped_records
+        self.totals["rejected"] += self.asm.rejected_records
+        self.asm = None
+
+    def finish(self) -> Replay:
+        """End the last stream; what the replay gave (its frames if kept, else none)."""
+        self._retire()
+        frames = Frames.concat(self.parts, self.m)
+        return Replay(frames, self.setups, self.events, len(self.setups), self.totals["resyncs"],
+                      self.totals["dropped"], self.totals["rejected"], self.junk, self.frames)
 
 
 def replay(recording: Recording, on_frames=None, realtime: bool = False, speed: float = 1.0,
@@ -374,64 +587,31 @@ def replay(recording: Recording, on_frames=None, realtime: bool = False, speed: 
 
     `on_frames(frames)` is called with `Frames` in batches; with `realtime` the batches
     are paced by the recorded arrival times (divided by `speed`). `on_progress(chunks done)` is called
-    every PROGRESS_CHUNKS chunks and at the end (for a progress bar).
+    every PROGRESS_CHUNKS chunks and at the end (for a progress bar). Junk chunks (`Replay.junk`) are
+    counted, and kept out of the assembler where they would corrupt it.
     """
-    parts, setups, events = [], [], []
-    asm = None
-    m = 0
-    totals = dict(resyncs=0, dropped=0, rejected=0)
-    wall0 = time.monotonic()
-    rec0 = recording.chunks[0].time if recording.chunks else 0.0
-    last_emit = rec0
-
-    def collect(now: float, force: bool = False) -> None:
-        nonlocal last_emit
-        if asm is None or (not force and now - last_emit < batch_seconds):
-            return
-        last_emit = now
-        out = asm.take()
-        if len(out):
-            parts.append(out)
-            if on_frames is not None:
-                if realtime:
-                    delay = (now - rec0) / speed - (time.monotonic() - wall0)
-                    if delay > 0:
-                        time.sleep(delay)
-                on_frames(out)
-
-    def retire() -> None:
-        nonlocal asm
-        if asm is None:
-            return
-        asm.flush()
-        collect(last_emit, force=True)
-        totals["resyncs"] += asm.resyncs
-        totals["dropped"] += asm.dropped_records
-        totals["rejected"] += asm.rejected_records
-        asm = None
-
-    for k, chunk in enumerate(recording.chunks):
+    dec = Decoder(recording.settings, on_frames, realtime=realtime, speed=speed, batch_seconds=batch_seconds)
+    offsets = recording.offsets or [None] * len(recording.chunks)
+    for k, (chunk, pos) in enumerate(zip(recording.chunks, offsets)):
         if on_progress is not None and k % PROGRESS_CHUNKS == 0 and k:
             on_progress(k)
-        if chunk.kind == MARK:
-            info = chunk.marker()
-            if "stream" in info:
-                retire()
-                setup = FlockSetup.from_dict(info["stream"])
-                setups.append(info["stream"])
-                m = setup.birds
-                asm = FrameAssembler(setup, **info.get("assembler", {}))
-                last_emit = chunk.time
-            elif info.get("flush"):
-                collect(chunk.time, force=True)
-                retire()
-            elif "event" in info:
-                events.append(info)
-        elif chunk.kind == READ and asm is not None:
-            asm.feed(chunk.port, chunk.time, chunk.payload)
-            collect(chunk.time)
-    retire()
+        end = None if pos is None else pos + _CHUNK.size + len(chunk.payload) + 4
+        dec.feed(chunk, pos, end)
+    out = dec.finish()
     if on_progress is not None:
         on_progress(len(recording.chunks))
-    frames = Frames.concat(parts, m)
-    return Replay(frames, setups, events, len(setups), totals["resyncs"], totals["dropped"], totals["rejected"])
+    return out
+
+
+def decode_recording(reader: ChunkReader, decoder: Decoder, on_progress=None) -> Replay:
+    """Feed every chunk `reader` gives to `decoder` (one made with keep=False keeps no frames: memory is
+    then a read block, one chunk and the assembler's state, whatever the file's length); its Replay.
+    `on_progress(bytes done)` every PROGRESS_CHUNKS chunks and at the end."""
+    for k, (pos, chunk) in enumerate(reader):
+        decoder.feed(chunk, pos, pos + _CHUNK.size + len(chunk.payload) + 4)
+        if on_progress is not None and k % PROGRESS_CHUNKS == 0 and k:
+            on_progress(pos)
+    out = decoder.finish()
+    if on_progress is not None:
+        on_progress(reader.size)
+    return out

@@ -7,7 +7,7 @@ cannot be written is an `OutputError` naming it and the fix, with nothing left b
 from __future__ import annotations
 
 import os
-from collections.abc import Iterator
+from collections.abc import Iterable, Iterator
 from contextlib import contextmanager
 from pathlib import Path
 
@@ -69,3 +69,11 @@ def write_atomic(path: str | os.PathLike, data: str | bytes, encoding: str = "ut
     """Write text or bytes to `path` atomically."""
     with replacing(path) as tmp:
         tmp.write_bytes(data.encode(encoding) if isinstance(data, str) else data)
+
+
+def write_pieces(path: str | os.PathLike, pieces: Iterable[str | bytes], encoding: str = "utf-8") -> None:
+    """Write text or bytes that come a piece at a time (a long take's export) to `path` atomically: memory
+    holds one piece, and a failure part way leaves `path` as it was."""
+    with replacing(path) as tmp, open(tmp, "wb") as fh:
+        for piece in pieces:
+            fh.write(piece.encode(encoding) if isinstance(piece, str) else piece)

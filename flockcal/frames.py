@@ -7,9 +7,15 @@ loose arrays to hand it on.
 
 from __future__ import annotations
 
+from collections.abc import Iterator
 from dataclasses import dataclass
 
 import numpy as np
+
+CHUNK_BYTES = 8 * 2**20  # frames per chunk of a take read piece by piece: about this much of float64 arrays
+# Chunks hold a multiple of the accumulator's 256-frame block: its sums come out bit for bit the same
+# whatever the chunk size, so `fit --json` of a file read in chunks is what it was for the whole take.
+ROW_ALIGN = 256
 
 
 @dataclass(frozen=True)
@@ -52,3 +58,49 @@ class Frames:
             return parts[0]
         return Frames(*(np.concatenate([getattr(p, k) for p in parts])
                         for k in ("times", "rotations", "positions", "valid")))
+
+
+def frames_of(take, size: int) -> Iterator[Frames]:
+    """A take's frames in order, `size` at a time: its own `chunks(size)` when it has them (a Take, a
+    flockcal.take_files.TakeFile, the service's frame log), else slices of its arrays (rotations,
+    positions, and valid and times when it has them; times default to frame / rate_hz)."""
+    if hasattr(take, "chunks"):
+        yield from take.chunks(size)
+        return
+    R = np.asarray(take.rotations, dtype=float)
+    t = np.asarray(take.positions, dtype=float)
+    n, m = R.shape[:2]
+    valid = getattr(take, "valid", None)
+    valid = np.ones((n, m), bool) if valid is None else np.asarray(valid, dtype=bool)
+    times = getattr(take, "times", None)
+    times = np.arange(n) / float(take.rate_hz) if times is None else np.asarray(times, dtype=float)
+    for a in range(0, n, max(1, int(size))):
+        b = min(n, a + max(1, int(size)))
+        yield Frames(times[a:b], R[a:b], t[a:b], valid[a:b])
+
+
+def chunk_frames(m: int, budget: int = CHUNK_BYTES) -> int:
+    """Frames of `m` sensors per chunk: about `budget` bytes of arrays, a multiple of ROW_ALIGN."""
+    per_frame = m * (9 + 3) * 8 + m + 8
+    return max(ROW_ALIGN, budget // per_frame // ROW_ALIGN * ROW_ALIGN)
+
+
+def rechunked(parts: Iterator[Frames], size: int, m: int) -> Iterator[Frames]:
+    """The frames of `parts` (batches of any lengths, in order) again, exactly `size` at a time (the last
+    batch shorter)."""
+    held: list[Frames] = []
+    count = 0
+    for part in parts:
+        if not len(part):
+            continue
+        held.append(part)
+        count += len(part)
+        if count < size:
+            continue
+        whole, a = Frames.concat(held, m), 0
+        while count - a >= size:
+            yield whole[a:a + size]
+            a += size
+        held, count = ([whole[a:]], count - a) if count > a else ([], 0)
+    if count:
+        yield Frames.concat(held, m)

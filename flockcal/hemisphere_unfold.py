@@ -274,8 +274,18 @@ def unfold_positions(times: np.ndarray, positions: np.ndarray, valid: np.ndarray
 
 def unfold_take(take, hemisphere: str | None = None):
     """(`take` with its hemisphere flips undone — the same object when there were none, the
-    `HemisphereUnfold` that did it): `unfold_positions` over the take's frames."""
+    `HemisphereUnfold` that did it): `unfold_positions` over the take's frames. A take read a chunk at a time
+    (a `flockcal.take_files.TakeFile`: no `positions` array) is read once to find out, and comes back as an
+    `UnfoldedTake` that unfolds each pass the same way (CHUNK frames at a time from its first)."""
     from dataclasses import replace
+
+    if not hasattr(take, "positions"):
+        from flockcal.take_files import UnfoldedTake
+
+        unfold = HemisphereUnfold(len(take.names), hemisphere)
+        for f in take.chunks(HemisphereUnfold.CHUNK):
+            unfold.feed(f.times, f.positions, f.valid)
+        return (UnfoldedTake(take, hemisphere) if unfold.frames_unfolded else take), unfold
 
     positions, unfold = unfold_positions(take.times, take.positions, take.valid, hemisphere)
     return (take if positions is take.positions else replace(take, positions=positions)), unfold

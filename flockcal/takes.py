@@ -15,6 +15,7 @@ from typing import Iterator, Protocol, runtime_checkable
 
 import numpy as np
 
+from flockcal import npz
 from flockcal.atomic import replacing
 from flockcal.errors import FlockcalError
 from flockcal.frames import Frames
@@ -172,56 +173,85 @@ def make_take(
     """
     R = np.asarray(rotations, dtype=float)
     t = np.asarray(positions, dtype=float)
-    if R.ndim != 4 or R.shape[2:] != (3, 3):
-        raise TakeError(f"{source}: 'rotations' must have shape (n, m, 3, 3), got {R.shape}")
-    n, m = R.shape[:2]
-    if t.shape != (n, m, 3):
-        raise TakeError(f"{source}: 'positions' must have shape ({n}, {m}, 3) to match 'rotations', got {t.shape}")
     names = tuple(str(x) for x in np.atleast_1d(np.asarray(names)).tolist())
-    if len(names) != m:
-        raise TakeError(f"{source}: 'names' has {len(names)} entries but the arrays have {m} sensors")
-    if m < 2:
-        raise TakeError(f"{source}: needs at least two sensors to find a joint, got {m}")
-    if len(set(names)) != m:
-        dup = sorted({x for x in names if names.count(x) > 1})
-        raise TakeError(f"{source}: sensor names must be unique; repeated: {', '.join(dup)}")
-    if any(not x.strip() for x in names):
-        raise TakeError(f"{source}: sensor names must not be empty")
-    if n < 1:
-        raise TakeError(f"{source}: the take has no frames")
-    rate = float(np.asarray(rate_hz))
-    if not np.isfinite(rate) or rate <= 0:
-        raise TakeError(f"{source}: 'rate_hz' must be a positive number, got {rate_hz!r}")
-    if valid is None:
-        v = np.ones((n, m), dtype=bool)
-    else:
-        v = np.asarray(valid)
-        if v.shape != (n, m):
-            raise TakeError(f"{source}: 'valid' must have shape ({n}, {m}), got {v.shape}")
-        v = v.astype(bool)
-    finite = np.isfinite(R).all(axis=(2, 3)) & np.isfinite(t).all(axis=2)
-    bad = v & ~finite
-    if bad.any():
-        k, i = np.argwhere(bad)[0]
-        raise TakeError(
-            f"{source}: {int(bad.sum())} sensor-frames marked valid hold NaN or inf "
-            f"(first: frame {k}, sensor {names[i]!r}); mark them invalid with a 'valid' array"
-        )
-    if times is None:
+    v = None if valid is None else np.asarray(valid)
+    ts = None if times is None else np.asarray(times, dtype=float)
+    n, m = check_shapes(source, R.shape, t.shape, len(names), None if v is None else v.shape,
+                        None if ts is None else ts.shape)
+    check_names(source, names)
+    rate = check_rate(source, rate_hz)
+    v = np.ones((n, m), dtype=bool) if v is None else v.astype(bool)
+    check_finite(source, R, t, v, names)
+    if ts is None:
         ts = np.arange(n, dtype=float) / rate
     else:
-        ts = np.asarray(times, dtype=float)
-        if ts.shape != (n,):
-            raise TakeError(f"{source}: 'times' must have shape ({n},), got {ts.shape}")
-        if not np.isfinite(ts).all():
-            raise TakeError(f"{source}: 'times' holds NaN or inf")
-        if n > 1 and np.any(np.diff(ts) < 0):
-            raise TakeError(f"{source}: 'times' must not go backwards")
+        check_times(source, ts)
     # Invalid sensor-frames may hold anything; store zeros so no NaN leaks into sums downstream.
     if not v.all():
         R = np.where(v[..., None, None], R, 0.0)
         t = np.where(v[..., None], t, 0.0)
     return Take(R, t, names, rate, v, ts, dict(extra or {}))
+
+
+def check_shapes(source: str, rotations: tuple, positions: tuple, names: int, valid: tuple | None,
+                 times: tuple | None) -> tuple[int, int]:
+    """(n, m) when the arrays' shapes make a take (a Take's arrays, or an .npz's declared shapes read
+    before its data); TakeError naming the first that does not."""
+    if len(rotations) != 4 or tuple(rotations[2:]) != (3, 3):
+        raise TakeError(f"{source}: 'rotations' must have shape (n, m, 3, 3), got {tuple(rotations)}")
+    n, m = rotations[:2]
+    if tuple(positions) != (n, m, 3):
+        raise TakeError(f"{source}: 'positions' must have shape ({n}, {m}, 3) to match 'rotations', got "
+                        f"{tuple(positions)}")
+    if names != m:
+        raise TakeError(f"{source}: 'names' has {names} entries but the arrays have {m} sensors")
+    if m < 2:
+        raise TakeError(f"{source}: needs at least two sensors to find a joint, got {m}")
+    if n < 1:
+        raise TakeError(f"{source}: the take has no frames")
+    if valid is not None and tuple(valid) != (n, m):
+        raise TakeError(f"{source}: 'valid' must have shape ({n}, {m}), got {tuple(valid)}")
+    if times is not None and tuple(times) != (n,):
+        raise TakeError(f"{source}: 'times' must have shape ({n},), got {tuple(times)}")
+    return int(n), int(m)
+
+
+def check_names(source: str, names: tuple[str, ...]) -> None:
+    """TakeError unless the sensor names are unique and none is blank."""
+    if len(set(names)) != len(names):
+        dup = sorted({x for x in names if names.count(x) > 1})
+        raise TakeError(f"{source}: sensor names must be unique; repeated: {', '.join(dup)}")
+    if any(not x.strip() for x in names):
+        raise TakeError(f"{source}: sensor names must not be empty")
+
+
+def check_rate(source: str, rate_hz) -> float:
+    rate = float(np.asarray(rate_hz))
+    if not np.isfinite(rate) or rate <= 0:
+        raise TakeError(f"{source}: 'rate_hz' must be a positive number, got {rate_hz!r}")
+    return rate
+
+
+def check_finite(source: str, R: np.ndarray, t: np.ndarray, v: np.ndarray, names, first: int | None = None) -> None:
+    """TakeError when sensor-frames marked valid hold NaN or inf. `first`: R is a chunk of a take read piece
+    by piece, starting at that frame (the count is then not known)."""
+    bad = v & ~(np.isfinite(R).all(axis=(2, 3)) & np.isfinite(t).all(axis=2))
+    if bad.any():
+        k, i = np.argwhere(bad)[0]
+        count = f"{int(bad.sum())} " if first is None else ""
+        raise TakeError(
+            f"{source}: {count}sensor-frames marked valid hold NaN or inf "
+            f"(first: frame {(first or 0) + k}, sensor {names[i]!r}); mark them invalid with a 'valid' array"
+        )
+
+
+def check_times(source: str, ts: np.ndarray, before: float = -np.inf) -> None:
+    """TakeError unless `ts` are finite and never go backwards (nor back past `before`, the time of the
+    frame before them)."""
+    if not np.isfinite(ts).all():
+        raise TakeError(f"{source}: 'times' holds NaN or inf")
+    if len(ts) and (ts[0] < before or np.any(np.diff(ts) < 0)):
+        raise TakeError(f"{source}: 'times' must not go backwards")
 
 
 def load_take(path: str | os.PathLike) -> Take:
@@ -320,14 +350,28 @@ def save_take(path: str | os.PathLike, take: Take) -> None:
 
 
 def read_npz(path: Path, error: type[Exception], hint: str) -> dict:
-    """Every array of an .npz file, or `error` saying it is truncated or not an .npz at all."""
+    """Every array of an .npz file, or `error` saying it is truncated, not an .npz at all, or would unpack to
+    more than the limit or the memory available (judged from its headers, before any data is read)."""
     if not zipfile.is_zipfile(path):
         raise error(f"{path}: not a .npz take (no complete zip archive of arrays: truncated, or not a take; {hint})")
+    try:
+        declared = npz.members(path)
+        npz.check_size(declared, describe_arrays(declared), whole=True)
+    except npz.NpzError as exc:
+        raise error(f"{path}: {exc}") from None
     try:
         with np.load(path, allow_pickle=False) as data:
             return {k: data[k] for k in data.files}
     except (zipfile.BadZipFile, OSError, ValueError, EOFError) as exc:
         raise error(f"{path}: not a readable .npz take ({exc})") from None
+
+
+def describe_arrays(arrays: dict) -> str:
+    """What an archive's declared arrays hold, for a person: frames and sensors when it is a take."""
+    rot = arrays.get("rotations")
+    if rot is not None and len(rot.shape) >= 2:
+        return f"{rot.shape[0]:,} frames of {rot.shape[1]:,} sensors"
+    return f"{len(arrays)} arrays"
 
 
 def write_npz(path: str | os.PathLike, **arrays) -> None:

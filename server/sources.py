@@ -12,6 +12,7 @@ import time
 import urllib.parse
 from typing import Callable, Protocol
 
+from flockcal.drivers.port_guard import check_port
 from flockcal.errors import FlockcalError
 from flockcal.frames import Frames
 from flockcal.server.errors import ConfigError
@@ -102,6 +103,8 @@ class TrackerSource:
         self.settings = settings
         self.urls = [named_sim_url(u) for u in settings.device_urls]
         self.url = ",".join(self.urls)
+        for url in self.urls:  # a port another program holds, or that leads elsewhere: refused before serving
+            check_port(url)
         sim = open_simulation(self.urls[0])
         self.simulator, self._sim_clock = sim if sim is not None else (None, None)
         self.names = sensor_names(settings, self.simulator.names if self.simulator else None)

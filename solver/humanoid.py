@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from flockcal.frames import Frames
+from flockcal.frames import chunk_frames as frames_per_chunk
 from flockcal.names import named_bones
 from flockcal.rotations import nearest_rotation
 
@@ -237,11 +238,13 @@ class HumanoidSample:
         return Sample(self.frames(), self.seen)
 
 
-def take_sample(take, dt: float = SAMPLE_DT_S, cap: int = SAMPLE_CAP, chunk_frames: int = 65536) -> HumanoidSample:
-    """The sample of a `flockcal.takes.ChunkedTake` (a Take, or the service's frame log), read through its
-    `chunks`: what `flockcal fit` and the exports find the humanoid from, as the service does from its frames."""
+def take_sample(take, dt: float = SAMPLE_DT_S, cap: int = SAMPLE_CAP, chunk_frames: int | None = None) -> HumanoidSample:
+    """The sample of a `flockcal.takes.ChunkedTake` (a Take, a take file, or the service's frame log), read
+    through its `chunks` (None: `flockcal.frames.chunk_frames`, about 8 MB of arrays, which keeps a take
+    file's memory to its budget; the sample does not depend on them): what `flockcal fit` and the exports
+    find the humanoid from, as the service does from its frames."""
     sample = HumanoidSample(len(take.names), dt, cap)
-    for f in take.chunks(chunk_frames):
+    for f in take.chunks(chunk_frames or frames_per_chunk(len(take.names))):
         sample.add(f)
     return sample
 

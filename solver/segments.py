@@ -12,7 +12,8 @@ from dataclasses import dataclass, field, fields, replace
 
 import numpy as np
 
-from flockcal.solver.accumulator import GramAccumulator
+from flockcal.frames import Frames, chunk_frames, frames_of
+from flockcal.solver.accumulator import BLOCK, GramAccumulator
 from flockcal.solver.calibration import Bones, Calibration, calibrate
 from flockcal.solver.calibration import joint_bones as _joint_bones
 from flockcal.solver.errors import SolverError
@@ -350,24 +351,70 @@ class SegmentView:
         return out
 
 
-def segmented_from_take(take, events) -> SegmentedAccumulator:
+def segmented_from_take(take, events, piece: int | None = None) -> SegmentedAccumulator:
     """A SegmentedAccumulator over a whole recorded take, with a segment opened at each slip event
-    (`take` as for `detect_slips`; `events` from it, or stored events with time_s and sensor_index)."""
-    R = np.asarray(take.rotations, dtype=float)
-    t = np.asarray(take.positions, dtype=float)
-    n, m = R.shape[:2]
-    times = getattr(take, "times", None)
-    times = np.arange(n) / float(take.rate_hz) if times is None else np.asarray(times, dtype=float)
-    valid = getattr(take, "valid", None)
+    (`take` as for `detect_slips`: a take file is read `piece` frames at a time, by default about 8 MB of
+    arrays; `events` from it, or stored events with time_s and sensor_index)."""
+    m = len(take.names) if getattr(take, "names", None) is not None else np.shape(take.rotations)[1]
+    piece = piece or chunk_frames(m)
     seg = SegmentedAccumulator(m)
     seg._snaps = deque()  # offline: keep a snapshot at every event time, however far apart
     cuts = sorted({float(e.time_s) for e in events})
-    bounds = [0] + [int(np.searchsorted(times, c, side="left")) for c in cuts] + [n]
-    for k, (a, b) in enumerate(zip(bounds[:-1], bounds[1:])):
-        if k > 0:
-            seg._snaps.append((cuts[k - 1], seg.whole.copy()))
-        if b > a:
-            seg.whole.add_poses(R[a:b], t[a:b], None if valid is None else valid[a:b])
-    seg.last_time = float(times[-1]) if n else float("nan")
+    feed = _SegmentFeed(seg.whole, piece)
+    k, last = 0, float("nan")
+    for f in frames_of(take, piece):
+        a = 0
+        while k < len(cuts):  # the cuts inside this chunk (the first frame at or after each)
+            b = int(np.searchsorted(f.times, cuts[k], side="left"))
+            if b >= len(f):
+                break
+            feed.add(f[a:b])
+            feed.end()
+            seg._snaps.append((cuts[k], seg.whole.copy()))
+            a, k = b, k + 1
+        feed.add(f[a:])
+        if len(f):
+            last = float(f.times[-1])
+    feed.end()
+    for c in cuts[k:]:  # slips at or after the last frame
+        seg._snaps.append((c, seg.whole.copy()))
+    seg.last_time = last
     seg.apply(sorted(events, key=lambda e: e.time_s))
     return seg
+
+
+class _SegmentFeed:
+    """Hands one segment's frames to an accumulator in pieces, making the same `add_poses` blocks as one call
+    with the whole segment would: pieces of `piece` frames (a multiple of the accumulator's block) from the
+    segment's start, the last one longer than a block, so none of it waits in the accumulator's pending
+    block to be summed with the next segment's frames."""
+
+    def __init__(self, acc, piece: int):
+        self.acc = acc
+        self.piece = max(BLOCK, piece // BLOCK * BLOCK)
+        self.held: list = []
+        self.count = 0
+
+    def add(self, frames) -> None:
+        if not len(frames):
+            return
+        self.held.append(frames)
+        self.count += len(frames)
+        if self.count <= self.piece + BLOCK:
+            return
+        whole, a = Frames.concat(self.held, frames.n_sensors), 0
+        while self.count - a > self.piece + BLOCK:
+            self._put(whole[a:a + self.piece])
+            a += self.piece
+        rest = whole[a:]  # copied, so the concatenation is not kept alive by a view of its tail
+        self.held = [Frames(*(np.array(getattr(rest, k)) for k in ("times", "rotations", "positions", "valid")))]
+        self.count = len(rest)
+
+    def end(self) -> None:
+        if self.held:
+            self._put(Frames.concat(self.held, self.held[0].n_sensors))
+        self.held, self.count = [], 0
+
+    def _put(self, f) -> None:
+        if len(f):
+            self.acc.add_poses(f.rotations, f.positions, f.valid)

@@ -14,14 +14,15 @@ from flockcal.solver.calibration import Calibration
 from flockcal.solver.fits import TOLERANCE_M
 from flockcal.solver.solve import solve
 
-CHUNK = 65536  # frames per accumulator update (a multiple of its block: the sums are one pass's)
-
-
 def accumulate_take(take, on_frames: Callable[[int], object] | None = None) -> GramAccumulator:
-    """A `GramAccumulator` over every frame of `take` (a `Take` or any `ChunkedTake`), read `CHUNK` frames at
-    a time; `on_frames(k)` is told each time k more frames are in (a progress bar's `update`)."""
+    """A `GramAccumulator` over every frame of `take` (a `Take` or any `ChunkedTake`), read `chunk_frames`
+    at a time (about 8 MB of arrays, a multiple of the accumulator's block: the sums are one pass's, and a
+    take file's memory stays a chunk); `on_frames(k)` is told each time k more frames are in (a progress
+    bar's `update`)."""
+    from flockcal.frames import chunk_frames, frames_of
+
     acc = GramAccumulator(len(take.names))
-    for frames in take.chunks(CHUNK):
+    for frames in frames_of(take, chunk_frames(len(take.names))):
         acc.add_poses(frames.rotations, frames.positions, frames.valid)
         if on_frames is not None:
             on_frames(len(frames))

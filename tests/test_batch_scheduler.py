@@ -145,3 +145,70 @@ def test_combine_folds_many_takes_into_plain_least_squares_on_all_their_frames(t
         assert np.linalg.norm(np.subtract(j["c"], plain.c)) <= 1e-3, j["child"]
         checked += 1
     assert checked >= 2
+
+
+# Start-up before the probe (the interpreter, flockcal's and Dask's imports) is about 1.5 s here; the margin
+# covers it on a loaded 2-core machine. The claim (docs/batch.md): the probe itself ends by --timeout.
+STARTUP_MARGIN_S = 8.0
+
+
+def _batch_at(address, tmp_path, timeout=3.0):
+    (tmp_path / "t.npz").write_bytes(b"")
+    started = time.monotonic()
+    run = flockcal("batch", tmp_path / "t.npz", "-o", tmp_path / "out", "--scheduler", address, "--timeout",
+                   timeout, check=False)
+    return run, run.stderr.decode(), time.monotonic() - started
+
+
+def test_an_http_server_at_the_scheduler_address_is_named_in_one_line_within_the_timeout(tmp_path):
+    # Tried: a real HTTP server on loopback that answers 400 to whatever it is sent (what the Dask dashboard
+    # port does), given as the scheduler. Dask's client read "HTTP/1.1" as a frame length (3.07 EiB).
+    import http.server
+    import threading
+
+    class Refuse(http.server.BaseHTTPRequestHandler):
+        def do_GET(self):
+            self.send_error(400, "Bad Request")
+
+        def log_message(self, *args):
+            pass
+
+    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Refuse)
+    threading.Thread(target=server.serve_forever, daemon=True).start()
+    try:
+        address = f"tcp://127.0.0.1:{server.server_address[1]}"
+        run, err, took = _batch_at(address, tmp_path)
+    finally:
+        server.shutdown()
+        server.server_close()
+    assert run.returncode == 2 and err.count("\n") == 1, err
+    assert f"{address} is not a Dask scheduler: an HTTP server answered ('HTTP/1.0 " in err, err
+    assert "Traceback" not in err and took < 3.0 + STARTUP_MARGIN_S, took
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
+def test_a_silent_listener_at_the_scheduler_address_is_named_and_given_up_on_at_the_timeout(tmp_path):
+    # Tried: a TCP listener that accepts connections (the kernel completes them) and never says a word.
+    import socket
+
+    with socket.socket() as listener:
+        listener.bind(("127.0.0.1", 0))
+        listener.listen(8)
+        address = f"tcp://127.0.0.1:{listener.getsockname()[1]}"
+        run, err, took = _batch_at(address, tmp_path, timeout=2.0)
+    assert run.returncode == 2 and err.count("\n") == 1, err
+    assert f"{address} is not a Dask scheduler: it accepted the connection but sent nothing in 2 s" in err, err
+    assert 2.0 <= took < 2.0 + STARTUP_MARGIN_S, took
+
+
+def test_the_dashboard_port_of_a_running_cluster_is_named_as_an_http_server(cluster, tmp_path):
+    # Tried: the likeliest mistake, the running scheduler's own dashboard port given as the scheduler.
+    from distributed import Client
+
+    with Client(cluster, timeout=60) as c:
+        port = c.scheduler_info()["services"]["dashboard"]
+    address = f"tcp://127.0.0.1:{port}"
+    run, err, took = _batch_at(address, tmp_path)
+    assert run.returncode == 2 and err.count("\n") == 1, err
+    assert f"{address} is not a Dask scheduler: an HTTP server answered ('HTTP/1.1 400 Bad Request'" in err, err
+    assert took < 3.0 + STARTUP_MARGIN_S, took

@@ -145,6 +145,11 @@ def default_workers() -> int:
 
 def start_client(args: argparse.Namespace, n_takes: int):
     """(client, cluster or None, where) for --scheduler or a new LocalCluster."""
+    if args.scheduler:
+        from flockcal.commands.scheduler_probe import check_scheduler
+
+        # On a plain socket first: Dask's client, pointed at something else, can hang past its timeout.
+        check_scheduler(args.scheduler, args.timeout)
     Client, LocalCluster, _ = import_dask()
     if not getattr(args, "verbose", 0):
         # The scheduler of a local cluster runs in this process and logs every worker it registers.
@@ -152,7 +157,7 @@ def start_client(args: argparse.Namespace, n_takes: int):
     if args.scheduler:
         try:
             client = Client(args.scheduler, timeout=args.timeout)
-        except (OSError, TimeoutError, ValueError) as exc:
+        except (OSError, TimeoutError, ValueError, MemoryError) as exc:  # MemoryError: a peer's garbage as a length
             raise UserError(f"cannot reach the Dask scheduler at {args.scheduler} ({' '.join(str(exc).split())}); "
                             "start one with `dask scheduler` and give its tcp://host:port") from None
         try:

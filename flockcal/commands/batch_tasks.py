@@ -20,7 +20,7 @@ SUFFIXES = (".npz", ".fobraw", ".c3d")
 # A slip's onset is an estimate (design.md §4): the combined sums drop the slipped sensor's frames from this
 # long before it, so no frame of the new placement can leak into the old one's sums.
 SLIP_GUARD_S = 0.5
-CHUNK = 65536  # frames per accumulator update, as in `flockcal fit`
+CHUNK = 65536  # frames per accumulator update (a multiple of its 256-frame block, as `flockcal fit` reads)
 
 
 @dataclass(frozen=True)

@@ -35,6 +35,9 @@ def register(subparsers) -> None:
     p.add_argument("--scale", metavar="FACTOR", help="multiply positions by FACTOR before fitting (unit scale, paper §4): "
                    "a number or the JSON file `flockcal scale --json` wrote")
     p.add_argument("--no-slips", action="store_true", help="skip the sensor-slip search (faster on long takes)")
+    p.add_argument("--max-take-gb", type=float, metavar="GB",
+                   help="refuse a take whose arrays unpack to more than GB gigabytes (default: $FLOCKCAL_MAX_TAKE_GB, "
+                        "else 4; the take is read a chunk at a time whatever its size)")
     add_option(p)
     add_tolerance(p)
     p.set_defaults(func=run)
@@ -91,13 +94,11 @@ def accumulate(take, progress: bool = True):
 
 
 def run(args: argparse.Namespace) -> int:
-    import dataclasses
-
     from flockcal.threads import single_threaded_blas
 
     single_threaded_blas()  # before numpy loads
     from flockcal.atomic import check_output
-    from flockcal.takes import load_take
+    from flockcal.take_files import ScaledTake, TakeFile
 
     if args.bvh:
         check_output(args.bvh, "--bvh")  # before the fit, which can take minutes
@@ -108,11 +109,12 @@ def run(args: argparse.Namespace) -> int:
         binary_for(args.gltf, "--gltf")
     if args.trc:
         check_output(args.trc, "--trc")
-    take = load_take(args.file)
+    # Read a chunk at a time, as often as the fit needs (memory stays a chunk: docs/cli.md#memory).
+    take = TakeFile(args.file, args.max_take_gb)
     if args.scale is not None:
         from flockcal.commands.outputs import scale_factor
 
-        take = dataclasses.replace(take, positions=take.positions * scale_factor(args.scale))
+        take = ScaledTake(take, scale_factor(args.scale))
     from flockcal.commands.outputs import unfolded
 
     take = unfolded(take, "fit", args.file)

@@ -7,6 +7,7 @@ import signal
 import sys
 import threading
 import time
+from pathlib import Path
 
 from flockcal.errors import UserError
 
@@ -194,6 +195,11 @@ def _replay(args) -> int:
     if args.speed <= 0:
         raise UserError("--speed must be positive")
     out = _decode(rec, replay, realtime=args.realtime, speed=args.speed)
+    if not out.setups:
+        raise UserError(f"{args.recording}: the recording never reached streaming ({out.junk.describe()}); nothing "
+                        f"to decode")
+    if out.junk:
+        print(f"flockcal replay: warning: {args.recording}: {out.junk.describe()}", file=sys.stderr)
     f = out.frames
     valid = f.valid.mean() if len(f) else 0.0
     span = f.times[-1] - f.times[0] if len(f) > 1 else 0.0
@@ -217,46 +223,119 @@ def _replay(args) -> int:
 
 def _convert(args) -> int:
     from flockcal.atomic import check_output
-    from flockcal.takes import save_take
+    from flockcal.commands.takecheck import PARTIAL_EXIT
 
     check_output(args.output)
-    take = recording_take(args.recording, names=args.names, salvage=args.salvage, command="convert")
-    save_take(args.output, take)
-    print(f"wrote {args.output}: {take.n_frames} frames of {take.n_sensors} sensors ({', '.join(take.names)}), "
-          f"{take.valid.mean():.1%} valid", file=sys.stderr)
+    take, out = convert_recording(args.recording, args.output, names=args.names, salvage=args.salvage,
+                                  command="convert")
+    print(f"wrote {args.output}: {take.n_frames} frames of {len(take.names)} sensors ({', '.join(take.names)}), "
+          f"{take.valid_fraction:.1%} valid", file=sys.stderr)
+    if out.junk:
+        print(f"flockcal convert: warning: {args.recording}: {out.junk.describe()}; the take holds what the rest "
+              f"decoded to (exit status {PARTIAL_EXIT})", file=sys.stderr)
+        return PARTIAL_EXIT
     return 0
 
 
-def recording_take(path: str, names: str | None = None, salvage: bool = False, command: str | None = None):
-    """The `Take` `flockcal convert` writes for a .fobraw recording (`flockcal batch` fits it the same way):
-    decoded as the live reader decodes it, then the hemisphere flips the reader could not undo (sensors
-    outside the hemisphere from the start, or a recording made without tracking it) undone as `fit` undoes
-    them; `command`, when given, says on stderr how many frames that unfolded."""
-    import numpy as np
+def convert_recording(path: str, output: str, names: str | None = None, salvage: bool = False,
+                      command: str | None = None):
+    """Decode the .fobraw at `path` into the take `output` a chunk at a time (what `flockcal convert` does):
+    decoded as the live reader decodes it, the hemisphere flips the reader could not undo undone as `fit`
+    undoes them (`command`, when given, says on stderr how many frames that unfolded), written as it comes.
+    Memory stays a read block and a batch of frames whatever the recording's length, and nothing is left at
+    `output` when it fails. (the TakeWriter, for its counts; the Replay, without frames, for its junk)."""
+    from flockcal.bars import bar
+    from flockcal.drivers.recording import ChunkReader, Decoder, RecordingError, decode_recording
+    from flockcal.hemisphere_unfold import HemisphereUnfold
+    from flockcal.take_files import TakeWriter
 
+    reader = ChunkReader(path, salvage)
+    made: list[TakeWriter] = []
+
+    def on_frames(f) -> None:
+        setup = dec.setups[-1]
+        if not made:
+            given = take_names(path, names, reader.settings, f.n_sensors)
+            unfold = HemisphereUnfold(len(given), setup.get("hemisphere"))
+            made.append(TakeWriter(output, given, setup["rate_hz"], source=path, unfold=unfold))
+        check_carried(path, f, setup)
+        made[0].append(f)
+
+    dec = Decoder(reader.settings, on_frames, keep=False)
+    try:
+        with bar(reader.size, "decoding", unit="B", unit_scale=True) as shown:
+            done = [0]
+
+            def advance(at: int) -> None:
+                shown.update(at - done[0])
+                done[0] = at
+
+            out = decode_recording(reader, dec, on_progress=advance)
+        if reader.problem:
+            print(f"flockcal: {Path(path).name}: recovered {reader.good_bytes} of {reader.size} bytes "
+                  f"({reader.problem})", file=sys.stderr)
+        if not out.setups:
+            junk = f" ({out.junk.describe()})" if out.junk else ""
+            raise UserError(f"{path}: the recording never reached streaming (the flock did not start){junk}; "
+                            f"nothing to decode")
+        if not made:
+            raise RecordingError(f"{path}: no complete frame could be decoded")
+        writer = made[0]
+        writer.rate_hz = out.setups[-1]["rate_hz"]
+        writer.commit()
+        note = writer.unfold.summary(writer.names)
+        if note and command is not None:
+            print(f"flockcal {command}: {path}: {note}", file=sys.stderr)
+        return writer, out
+    except BaseException:
+        if made:
+            made[0].discard()
+        raise
+
+
+def recording_take(path: str, names: str | None = None, salvage: bool = False, command: str | None = None):
+    """The `Take` `flockcal convert` writes for a .fobraw recording, in memory (`flockcal batch` fits it the
+    same way): decoded as the live reader decodes it, then the hemisphere flips the reader could not undo
+    (sensors outside the hemisphere from the start, or a recording made without tracking it) undone as `fit`
+    undoes them; `command`, when given, says on stderr how many frames that unfolded."""
+    from flockcal.commands.outputs import unfolded
     from flockcal.drivers.recording import RecordingError
+    from flockcal.hemisphere_unfold import unfold_take
     from flockcal.takes import make_take
 
     rec, replay = _load(path, salvage)
     out = _decode(rec, replay)
     f = out.frames
-    if len(f) == 0:
+    if not out.setups or len(f) == 0:
         raise RecordingError(f"{path}: no complete frame could be decoded")
     setup = out.setups[-1]
-    m = f.valid.shape[1]
-    names = parse_names(names, m) or rec.settings.get("names") or default_names(m)
-    if len(names) != m:
-        raise RecordingError(f"{path}: its header names {len(names)} sensors but it holds {m} birds; "
-                             f"name them with --names")
-    carried = np.isfinite(f.positions).all(axis=2) & np.isfinite(f.rotations).all(axis=(2, 3))
-    if (f.valid & ~carried).any():
-        raise RecordingError(f"{path}: its record format {setup['record_format']} lacks position or "
-                             f"orientation; a take needs both (record with position_matrix or position_quaternion)")
-    from flockcal.commands.outputs import unfolded
-    from flockcal.hemisphere_unfold import unfold_take
-
+    names = take_names(path, names, rec.settings, f.valid.shape[1])
+    check_carried(path, f, setup)
     take = make_take(f.rotations, f.positions, names, setup["rate_hz"], valid=f.valid, times=f.times - f.times[0],
                      source=path)
     if command is None:
         return unfold_take(take, setup.get("hemisphere"))[0]
     return unfolded(take, command, path, setup.get("hemisphere"))
+
+
+def take_names(path: str, names: str | None, settings: dict, m: int) -> list[str]:
+    """The sensor names of a recording's take: --names, else the names its header carries, else bird1…birdN."""
+    from flockcal.drivers.recording import RecordingError
+
+    given = parse_names(names, m) or settings.get("names") or default_names(m)
+    if len(given) != m:
+        raise RecordingError(f"{path}: its header names {len(given)} sensors but it holds {m} birds; "
+                             f"name them with --names")
+    return given
+
+
+def check_carried(path: str, f, setup: dict) -> None:
+    """RecordingError when valid frames lack position or orientation (a record format a take cannot hold)."""
+    import numpy as np
+
+    from flockcal.drivers.recording import RecordingError
+
+    carried = np.isfinite(f.positions).all(axis=2) & np.isfinite(f.rotations).all(axis=(2, 3))
+    if (f.valid & ~carried).any():
+        raise RecordingError(f"{path}: its record format {setup['record_format']} lacks position or "
+                             f"orientation; a take needs both (record with position_matrix or position_quaternion)")

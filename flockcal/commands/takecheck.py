@@ -29,9 +29,15 @@ def determined_joints(cal) -> np.ndarray:
 
 
 def too_short(take) -> str | None:
-    """Why `take` is too short to fit, or None."""
-    both = np.count_nonzero(take.valid.sum(axis=1) >= 2)  # frames with at least one pair of valid sensors
-    span = float(take.times[-1] - take.times[0]) if take.n_frames > 1 else 0.0
+    """Why `take` (a Take, or a take file read a chunk at a time) is too short to fit, or None."""
+    from flockcal.frames import chunk_frames, frames_of
+
+    both, first, last = 0, 0.0, 0.0
+    for k, f in enumerate(frames_of(take, chunk_frames(len(take.names)))):
+        both += np.count_nonzero(f.valid.sum(axis=1) >= 2)  # frames with at least one pair of valid sensors
+        first = float(f.times[0]) if k == 0 else first
+        last = float(f.times[-1])
+    span = last - first if take.n_frames > 1 else 0.0
     if both >= MIN_FRAMES and span >= MIN_SECONDS:
         return None
     return (f"too short to fit: {both} frame(s) with two sensors valid over {span:.2f} s (a fit needs at least "

@@ -19,7 +19,7 @@ from typing import Iterator
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from flockcal.atomic import write_atomic
+from flockcal.atomic import write_pieces
 from flockcal.errors import FlockcalError
 from flockcal.solver.reconstruct import (Articulation, Reconstruction, articulation, first_valid, held_poses,
                                          reconstruct_chunks)
@@ -268,5 +268,6 @@ def bvh_bytes(calibration, take, **options) -> bytes:
 
 
 def write_bvh(path: str | os.PathLike, calibration, take, **options) -> None:
-    """Write the BVH file to `path` (atomically: a failure never leaves a half-written file)."""
-    write_atomic(path, bvh_text(calibration, take, **options), encoding="ascii")
+    """Write the BVH file to `path` a chunk of frames at a time (atomically: a failure never leaves a
+    half-written file)."""
+    write_pieces(path, bvh_chunks(calibration, take, **options), encoding="ascii")

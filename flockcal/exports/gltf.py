@@ -22,7 +22,7 @@ from typing import Callable, Iterator
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from flockcal.atomic import write_atomic
+from flockcal.atomic import write_pieces
 from flockcal.errors import FlockcalError
 from flockcal.exports.bvh import Playback, bvh_names, depth_first, local_rotations, playback, rest_pose
 from flockcal.solver.reconstruct import Articulation, Reconstruction, reconstruct
@@ -324,6 +324,13 @@ def glb_chunks(calibration, take: ChunkedTake, *, up: str = "-z", rest: str | in
         yield glb_head(plan.doc, plan.size) + b"".join(plan.parts)
         return
     yield glb_head(plan.doc, plan.size)
+    yield from buffer_pieces(plan, pb, rig, take, chunk_frames, out_bytes)
+
+
+def buffer_pieces(plan: Layout, pb: Playback, rig: Rig, take: ChunkedTake, chunk_frames: int | None = None,
+                  out_bytes: int = 256 * 1024) -> Iterator[bytes]:
+    """The binary buffer of `plan`, its animation blocks filled chunk by chunk in a temporary file, read
+    back `out_bytes` at a time: memory holds a chunk of the take and a piece, whatever its length."""
     with tempfile.TemporaryFile() as buf:
         for part in plan.parts:
             if isinstance(part, bytes):
@@ -340,6 +347,27 @@ def glb_chunks(calibration, take: ChunkedTake, *, up: str = "-z", rest: str | in
         buf.seek(0)
         while piece := buf.read(out_bytes):
             yield piece
+
+
+DATA_URI = "data:application/octet-stream;base64,"
+_BUFFER_MARK = "@flockcal-buffer@"  # where the base64 goes in the JSON text (no JSON escaping touches it)
+
+
+def gltf_json_chunks(calibration, take: ChunkedTake, *, up: str = "-z", rest: str | int = "tpose", name: str = "take",
+                     chunk_frames: int | None = None, vrm=None) -> Iterator[bytes]:
+    """The .gltf form of `gltf_bytes` (one JSON file, its buffer a base64 data URI) as pieces: the text
+    before the buffer, the buffer encoded a piece at a time, the text after it."""
+    plan, pb, rig = gltf_plan(calibration, take, up=up, rest=rest, name=name, vrm=vrm)
+    doc = dict(plan.doc, buffers=[{"byteLength": plan.size, "uri": DATA_URI + _BUFFER_MARK}])
+    head, tail = json.dumps(doc, separators=(",", ":")).split(_BUFFER_MARK)
+    yield head.encode("utf-8")
+    left = b""
+    for piece in buffer_pieces(plan, pb, rig, take, chunk_frames):
+        data = left + piece
+        cut = len(data) - len(data) % 3  # whole 3-byte groups: the pieces' base64 joins into the whole's
+        yield base64.b64encode(data[:cut])
+        left = data[cut:]
+    yield base64.b64encode(left) + tail.encode("utf-8")
 
 
 def file_extras(up: str, rest, rate_hz: float) -> dict:
@@ -434,7 +462,7 @@ def glb(doc: dict, binary: bytes) -> bytes:
 def gltf_json(doc: dict, binary: bytes) -> bytes:
     """The .gltf form: one JSON file, its buffer embedded as a base64 data URI."""
     doc = dict(doc, buffers=[{"byteLength": len(binary),
-                              "uri": "data:application/octet-stream;base64," + base64.b64encode(binary).decode("ascii")}])
+                              "uri": DATA_URI + base64.b64encode(binary).decode("ascii")}])
     return json.dumps(doc, separators=(",", ":")).encode("utf-8")
 
 
@@ -445,15 +473,15 @@ def gltf_bytes(calibration, take, *, binary: bool = True, **options) -> bytes:
 
 
 def write_gltf(path: str | os.PathLike, calibration, take, **options) -> str:
-    """Write the rig to `path`, .glb or .gltf by its extension (atomically: never a half-written file).
-    Returns "" when the file is a VRM 1.0 humanoid or was not asked to be one (rest other than "tpose"),
-    else why the tree is no humanoid (the file is then the plain rig)."""
+    """Write the rig to `path`, .glb or .gltf by its extension, the take a chunk at a time (atomically:
+    never a half-written file). Returns "" when the file is a VRM 1.0 humanoid or was not asked to be one
+    (rest other than "tpose"), else why the tree is no humanoid (the file is then the plain rig)."""
     binary = binary_for(path)
     options.setdefault("name", Path(path).stem)
     if options.get("rest", "tpose") == "tpose" and options.get("vrm") is None:
         from flockcal.exports.vrm import vrm_meta, vrm_plan
 
         options["vrm"] = vrm_plan(calibration, take, options.get("up", "-z"), meta=vrm_meta(options["name"]))
-    write_atomic(path, gltf_bytes(calibration, take, binary=binary, **options))
+    write_pieces(path, (glb_chunks if binary else gltf_json_chunks)(calibration, take, **options))
     vrm = options.get("vrm")
     return vrm.reason if vrm is not None else ""

@@ -14,7 +14,7 @@ from typing import Iterator
 
 import numpy as np
 
-from flockcal.atomic import write_atomic
+from flockcal.atomic import write_pieces
 from flockcal.errors import FlockcalError
 from flockcal.exports.bvh import bvh_world
 from flockcal.solver.reconstruct import Articulation, articulation
@@ -148,6 +148,7 @@ def trc_text(calibration, take, **options) -> str:
 
 
 def write_trc(path: str | os.PathLike, calibration, take, **options) -> None:
-    """Write the TRC to `path` (atomically: a failure never leaves a half-written file)."""
+    """Write the TRC to `path` a chunk of frames at a time (atomically: a failure never leaves a
+    half-written file)."""
     options.setdefault("file_name", Path(path).name)
-    write_atomic(path, trc_text(calibration, take, **options), encoding="utf-8")
+    write_pieces(path, trc_chunks(calibration, take, **options), encoding="utf-8")

@@ -17,6 +17,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 
 from flockcal.errors import FlockcalError
+from flockcal.frames import frames_of
 from flockcal.solver.slippage.attribution import CANDIDATE_SHARE, Attribution, Window, attribute
 from flockcal.solver.slippage.buffer import FrameBuffer
 from flockcal.solver.slippage.framestep import FrameStep, frame_steps, noise_law, step_contrast
@@ -840,28 +841,23 @@ def detect_slips(take, calibration=None, *, joints=None, c=None, l=None, batch_s
     its events): it would triple the scan's CPU, and `flockcal fit` has 1 s for a 30 s take, scan
     included (docs/slippage.md, sixth round).
 
-    take: a `flockcal.takes.Take` (or anything with rotations, positions, rate_hz and optionally valid,
-    times, names). Joint estimates come from `calibration` (a `Calibration` or its docs/design.md §5 dict)
+    take: a `flockcal.takes.Take`, any `ChunkedTake` (a take file read a piece at a time), or anything with
+    rotations, positions, rate_hz and optionally valid, times, names. Joint estimates come from `calibration` (a `Calibration` or its docs/design.md §5 dict)
     or from `joints` (p, 2) with `c`, `l` (p, 3). A whole-take fit is blended across a slip; the
     monitor's baselines are taken in both sensor frames of each joint, so the step still shows.
     """
-    R = np.asarray(take.rotations, dtype=float)
-    t = np.asarray(take.positions, dtype=float)
-    n, m = R.shape[:2]
+    given = getattr(take, "names", None)
+    m = len(given) if given is not None else np.shape(take.rotations)[1]
     rate = float(take.rate_hz)
-    names = tuple(getattr(take, "names", None) or (str(i) for i in range(m)))
-    valid = getattr(take, "valid", None)
-    times = getattr(take, "times", None)
-    times = np.arange(n) / rate if times is None else np.asarray(times, dtype=float)
+    names = tuple(given or (str(i) for i in range(m)))
     if calibration is not None:
         joints, c, l = joints_from_calibration(calibration, names)
     if joints is None or c is None or l is None:
         raise SlippageError("detect_slips needs a calibration or joints with c and l (fit the take first)")
     mon = SlipMonitor(joints, m, rate, names, frame_step=frame_step, **options)
-    step = max(1, int(round(batch_s * rate)))
-    for a in range(0, n, step):
-        b = min(n, a + step)
-        mon.add_frames(times[a:b], R[a:b], t[a:b], None if valid is None else valid[a:b], c, l)
+    # A piece at a time (a take on disk is read so: memory stays a piece and the monitor's window).
+    for f in frames_of(take, max(1, int(round(batch_s * rate)))):
+        mon.add_frames(f.times, f.rotations, f.positions, f.valid, c, l)
     return mon.events
 
 
