@@ -29,7 +29,8 @@ __all__ = ["FrameLog", "FrameLogError", "FrameLogReader", "parse_header", "read_
 
 
 class FrameLog:
-    """Append-only writer; `write` buffers, `flush` hands the bytes to the OS (survives a process kill).
+    """Append-only writer; `write` buffers (the first frames are written at once), `flush` hands the bytes
+    to the OS (survives a process kill).
 
     A write that fails (a full disk) ends the log: `error` holds why, the file is cut back to its last
     whole block, and later frames are not written; the caller stops the session (server/limits.py)."""
@@ -67,7 +68,9 @@ class FrameLog:
         rec["pos"] = positions
         self._pending.append(rec)
         self.frames += n
-        if time.monotonic() - self.last_flush >= self.flush_s:
+        # The first frames go out at once: a fit of them is published within a frame or two (fits run at
+        # 30 Hz), and a download or the rig a page loads for it must find the session's log holding frames.
+        if (n and self.frames == n) or time.monotonic() - self.last_flush >= self.flush_s:
             self.flush()
 
     def flush(self) -> None:

@@ -143,32 +143,36 @@ def test_a_crash_or_damage_on_disk_costs_only_the_blocks_it_hits(tmp_path):
     data = path.read_bytes()
     body = data.index(b"\n") + 1
     heads = [body]  # block offsets, walked by the documented head: b"FB", codec, 0, frames, payload bytes, CRCs
+    first = [0]  # each block's first frame
     while heads[-1] < len(data):
+        first.append(first[-1] + int.from_bytes(data[heads[-1] + 4:heads[-1] + 8], "little"))
         size = int.from_bytes(data[heads[-1] + 8:heads[-1] + 12], "little")
         heads.append(heads[-1] + 20 + size)
-    assert heads[-1] == len(data) and len(heads) - 1 == len(times) // 36
+    # The first batch (3 frames) is written at once, then a block a flush (36 frames).
+    assert heads[-1] == len(data) and first[-1] == len(times) and first[1:4] == [3, 36, 72], first
 
     cut = tmp_path / "cut.frames"
     cut.write_bytes(data[:heads[5] + 30])  # five whole blocks and the start of the sixth
-    assert_bitwise(read_frames(cut), times[:180], R[:180], p[:180], valid[:180])
+    f5 = first[5]
+    assert_bitwise(read_frames(cut), times[:f5], R[:f5], p[:f5], valid[:f5])
     with FrameLogReader(cut) as log:
-        assert log.n == 180
+        assert log.n == f5
 
     damaged = bytearray(data)
-    damaged[heads[2] + 40:heads[2] + 60] = bytes(20)  # block 2's payload (frames 72-107)
-    damaged[heads[4] + 3] ^= 0xFF  # block 4's head (frames 144-179)
+    damaged[heads[2] + 40:heads[2] + 60] = bytes(20)  # block 2's payload (frames 36-71)
+    damaged[heads[4] + 3] ^= 0xFF  # block 4's head (frames 108-143)
     (tmp_path / "damaged.frames").write_bytes(bytes(damaged))
     got = read_frames(tmp_path / "damaged.frames")
-    keep = np.r_[0:144, 180:len(times)]
+    keep = np.r_[0:first[4], first[5]:len(times)]
     assert len(got["times"]) == len(keep)
-    lost = np.arange(72, 108)
-    assert not got["valid"][lost].any() and (got["times"][lost] == times[71]).all()
-    fine = np.r_[0:72, 108:144]
+    lost = np.arange(first[2], first[3])
+    assert not got["valid"][lost].any() and (got["times"][lost] == times[first[2] - 1]).all()
+    fine = np.r_[0:first[2], first[3]:first[4]]
     assert_bitwise({k: got[k][fine] for k in got if k not in ("names", "rate_hz")}, times[fine], R[fine], p[fine],
                    valid[fine])
-    rest = np.arange(144, len(keep))
-    assert_bitwise({k: got[k][rest] for k in got if k not in ("names", "rate_hz")}, times[180:], R[180:], p[180:],
-                   valid[180:])
+    rest = np.arange(first[4], len(keep))
+    assert_bitwise({k: got[k][rest] for k in got if k not in ("names", "rate_hz")}, times[first[5]:], R[first[5]:],
+                   p[first[5]:], valid[first[5]:])
     frames = FrameFile(tmp_path / "damaged.frames")
     chunks = list(frames.chunks(50))
     frames.close()
@@ -181,3 +185,55 @@ def test_a_log_of_a_newer_version_is_refused_in_one_line(tmp_path):
     path.write_bytes(json.dumps({"format": "flockcal-frames", "version": 3, "names": ["a"]}).encode() + b"\n" + bytes(64))
     with pytest.raises(FrameLogError, match=r"future\.frames: a frame log of version 3.*reads versions 1 and 2"):
         read_frames(path)
+
+
+def test_a_fit_published_before_the_first_flush_interval_finds_its_frames_in_the_log(tmp_path):
+    """What was tried: the service's pipeline with a session whose frame log flushes only every hour, fed a
+    second of 6 sensors at 144 Hz, until its first fit is published (fits run at 30 Hz, the log's flush every
+    0.25 s: the first fit came first, and a page loading that fit's rig (`/gltf?rest=sensor`, the kiosk's
+    first request of a guest session) got 409 "holds no frames yet"). When the pose names the session's fit,
+    the log opened as the downloads open it holds frames, and the rig is built from it."""
+    import time
+
+    from flockcal.exports.gltf import glb_chunks
+    from flockcal.frames import Frames
+    from flockcal.server.live_session import LiveSession
+    from flockcal.server.pipeline import Pipeline
+    from flockcal.server.store import Store
+    from flockcal.solver.progress import profile
+
+    perf = Performer("human", routine="walk", rate_hz=RATE, birds=6)
+    names = tuple(perf.names)
+    store = Store(tmp_path / "flockcal.sqlite3")
+    pipe = Pipeline(names, store, lambda: {"connected": True})
+    pipe.start()
+    path = tmp_path / "s.frames"
+    try:
+        store.insert_session({"id": "s", "performer": "p", "state": "live", "root": None, "hierarchy": None,
+                              "names": list(names), "device": "test", "rate_hz": RATE, "created_at": time.time(),
+                              "frames": 0, "recording": "s.frames", "profile": "stage"})
+        prof = profile("stage", 0.005, 0.005 / 2 ** 0.5)
+        pipe.begin_session(LiveSession("s", "p", names, None, None, FrameLog(path, list(names), RATE, flush_s=3600.0),
+                                       prof))
+        times = np.arange(int(RATE)) / RATE
+        R, t, valid = perf.poses(times)
+        start = time.monotonic()
+        for a in range(0, len(times), 3):
+            pipe.feed(Frames(start + times[a:a + 3], R[a:a + 3], t[a:a + 3], valid[a:a + 3]))
+        deadline = time.monotonic() + 120
+        while (pipe.snapshot.pose_fit_id or ("",))[0] != "s":
+            assert time.monotonic() < deadline, "no fit of the session within 120 s"
+            pipe.call(lambda: None, timeout=60)  # the pipeline has taken what it was fed
+            time.sleep(0.05)
+        snap = pipe.snapshot
+        assert snap.has_fit and snap.session.id == "s"
+        frames = FrameFile(path)  # as the routes open it: n fixed at open
+        try:
+            assert frames.n > 0, "the session's first fit is published while its frame log reads no frames"
+            glb = b"".join(glb_chunks(snap.fit, frames, up="-z",
+                                      name="s", rest="sensor", animation=False, chunk_frames=frames.play_frames))
+            assert glb[:4] == b"glTF"
+        finally:
+            frames.close()
+    finally:
+        pipe.stop()
