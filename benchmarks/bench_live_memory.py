@@ -136,6 +136,17 @@ def main() -> int:
     print(f"RSS {rss[0]:.1f} → {rss[after][0]:.1f} MB at the end of the {args.warmup_min:g}-min warm-up → {rss[-1]:.1f} MB; "
           f"slope after warm-up {rss_slope:+.1f} MB an hour ({rss_slope / TARGET_RSS_MB_PER_H:.2f}× the "
           f"{TARGET_RSS_MB_PER_H:g} MB/h target)")
+    # Where it flattens: the slope over each later stretch (a session behind its tracker on a loaded machine
+    # fills its windows later than the wall clock says).
+    edges = [args.warmup_min] + [m for m in (10.0, 20.0) if args.warmup_min < m < minutes] + [minutes]
+    parts = []
+    for a, b in zip(edges[:-1], edges[1:]):
+        w = (t >= 60.0 * a) & (t <= 60.0 * b + 1.0)
+        parts.append(f"{a:g}–{b:.0f} min {slope_per_hour(t[w], rss[w]):+.1f}")
+    done = np.array([s["frames"] or 0 for s in samples], dtype=float)
+    at_warm = done[after][0] / (60.0 * args.warmup_min * args.rate)
+    print(f"RSS slope by stretch (MB an hour): {', '.join(parts)}; the session had taken in {at_warm:.0%} of "
+          f"{args.warmup_min:g} min of frames when the warm-up ended")
     print(f"Python's live blocks after warm-up {blocks[after][0] / 1e3:.0f}k → {blocks[-1] / 1e3:.0f}k "
           f"({block_slope:+.1f}k an hour)")
     rows = []

@@ -1,4 +1,4 @@
-"""A live session's memory is bounded by design (docs/service.md "Memory and disk of a long session"): the
+"""A live session's memory is bounded by design (docs/service.md "A long session's memory and disk"): the
 live pipeline (server/pipeline.py, with its live calibration, slip watch, persistence and snapshots) holds
 as many bytes after two minutes of a session as after one; and the accumulator's segment snapshots share
 a few moments arrays however often refits copy it (the RSS of a real service over half an hour is
