@@ -126,6 +126,11 @@ class TrackerEvent:
     def bird(self) -> int | None:
         return self.data.get("bird")
 
+    @property
+    def disk_full(self) -> bool:
+        """A `recording_stopped` for want of room on the disk."""
+        return bool(self.data.get("disk_full"))
+
     def __str__(self) -> str:
         return f"{self.kind}: {self.message}"
 

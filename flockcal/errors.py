@@ -12,12 +12,8 @@ class FlockcalError(Exception):
     Every error flockcal raises for bad input or a failed device is one: each layer derives its own
     (`flockcal.takes.TakeError`, `flockcal.solver.errors.SolverError`, `flockcal.drivers.TrackerError`,
     `flockcal.server.ServerError`, …), so one ``except flockcal.FlockcalError`` catches them all and
-    lets a bug (any other exception) through.
-
-    Parameters
-    ----------
-    message : str
-        One line: the thing that is wrong and what to do about it.
+    lets a bug (any other exception) through. Its one argument is the message: one line, the thing that is
+    wrong and what to do about it.
 
     Attributes
     ----------

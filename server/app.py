@@ -11,6 +11,7 @@ import json
 import logging
 from contextlib import asynccontextmanager
 from pathlib import Path
+from typing import NamedTuple
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -70,25 +71,39 @@ def _error(status: int, message: str, code: str, headers: dict | None = None) ->
 
 
 def _validation_message(exc: RequestValidationError) -> tuple[int, str]:
-    errors = exc.errors()
+    errors = [_Problem.of(e) for e in exc.errors()]
     for e in errors:
-        if e.get("type") == "json_invalid":
-            ctx = e.get("ctx") or {}
-            return 400, f"the request body is not valid JSON ({ctx.get('error', 'parse error')}); send a JSON object"
+        if e.type == "json_invalid":
+            return 400, f"the request body is not valid JSON ({e.ctx.get('error', 'parse error')}); send a JSON object"
     parts = []
     for e in errors[:5]:
-        loc = ".".join(str(x) for x in e.get("loc", ()) if x != "body") or "body"
-        msg = e.get("msg", "invalid")
-        if e.get("type") == "extra_forbidden":
+        loc = ".".join(str(x) for x in e.loc if x != "body") or "body"
+        msg = e.msg
+        if e.type == "extra_forbidden":
             msg = "unknown field; remove it (see /docs for the fields this request takes)"
-        elif e.get("type") == "string_pattern_mismatch":
+        elif e.type == "string_pattern_mismatch":
             msg = _pattern_message(loc, e)
         parts.append(f"{loc}: {msg}")
     more = f" (and {len(errors) - 5} more)" if len(errors) > 5 else ""
     return 422, "invalid request — " + "; ".join(parts) + more
 
 
-def _pattern_message(loc: str, error: dict) -> str:
+class _Problem(NamedTuple):
+    """One of pydantic's validation errors (its ErrorDetails), read once."""
+
+    type: str | None
+    loc: tuple
+    msg: str
+    input: object
+    ctx: dict
+
+    @staticmethod
+    def of(e) -> "_Problem":
+        return _Problem(e.get("type"), tuple(e.get("loc", ())), e.get("msg", "invalid"), e.get("input"),
+                        e.get("ctx") or {})
+
+
+def _pattern_message(loc: str, error: _Problem) -> str:
     """What a field that failed its pattern must look like: its own rule, not every field's."""
     from flockcal.server.settings import NAME_RULE, PERFORMER_RULE
 
@@ -97,8 +112,8 @@ def _pattern_message(loc: str, error: dict) -> str:
         return f"is not allowed: a performer name is {PERFORMER_RULE}"
     if field in ("root", "skeleton", "sensor", "name"):
         return f"is not allowed: a {field} name is {NAME_RULE}"
-    shown = repr(error.get("input"))[:40]
-    return f"{shown} is not allowed; it must match {(error.get('ctx') or {}).get('pattern', 'its pattern')} (see /docs)"
+    shown = repr(error.input)[:40]
+    return f"{shown} is not allowed; it must match {error.ctx.get('pattern', 'its pattern')} (see /docs)"
 
 
 class BodyLimit:

@@ -140,20 +140,20 @@ class ServiceClock:
         if not rows:
             self.save()
             return
-        saved = rows[0]
+        offset_s, service_s, stamp, saved_epoch, mono, steps = rows[0]
         step = None
         with self._lock:
             m, w = self._mono, self._wall
             epoch = self.clock.epoch()
-            if saved["epoch"] is not None and saved["epoch"] == epoch and saved["mono"] is not None \
-                    and m >= saved["mono"]:
-                service = saved["service_s"] + (m - saved["mono"])  # the same boot: downtime measured
+            if saved_epoch is not None and saved_epoch == epoch and mono is not None \
+                    and m >= mono:
+                service = service_s + (m - mono)  # the same boot: downtime measured
             else:
-                service = max(saved["service_s"], w - saved["offset_s"])  # rebooted: the wall's advance, if any
-            jump = (w - saved["offset_s"]) - service
+                service = max(service_s, w - offset_s)  # rebooted: the wall's advance, if any
+            jump = (w - offset_s) - service
             self.offset = w - service
-            self.steps = int(saved["steps"])
-            self._stamp = max(w, saved["stamp"])
+            self.steps = int(steps)
+            self._stamp = max(w, stamp)
             if abs(jump) > STEP_S:
                 step = self._stepped(jump, w, while_down=True)
         if step is not None:

@@ -1,6 +1,6 @@
-"""Fits for the live service: the fit worker thread and the one place a fit is made. A live fit travels as
-its typed `Calibration` (what the session's live calibration computes with, solver/live.py); its §5 dict
-is made at the edge, when a client or the store asks for it (`fit_doc`; server/snapshot.py's `FitView`).
+"""Fits for the live service: the fit worker thread and the one place a fit is made. A fit travels as its
+typed `Calibration` (what the session's live calibration computes with, solver/live.py; what the store keeps
+whole, server/store.py); its §5 dict is made at the edge, once, when a client asks for it (`FitView.doc`).
 """
 
 from __future__ import annotations
@@ -22,9 +22,6 @@ from flockcal.solver.solve import solve
 from flockcal.threads import name_os_thread
 
 log = logging.getLogger(__name__)
-
-SLIP_FIELDS = ("time_s", "sensor", "candidates", "joints", "jump_mm", "confidence", "detected_s")
-
 
 def json_safe(obj):
     """JSON-safe copy: NaN and ±inf become None (browsers cannot parse them), numpy scalars become floats."""

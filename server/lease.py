@@ -12,6 +12,8 @@ import threading
 import time
 from typing import Callable
 
+from flockcal.server.events import Event
+
 log = logging.getLogger(__name__)
 
 # How often the watcher looks; a lease ends at most this much after it expires.
@@ -24,7 +26,7 @@ class SessionLeases:
     `stop(session_id, note=...)` stops a session (SessionManager.stop) and records why on its row in the
     same update; `add_event` queues an event."""
 
-    def __init__(self, stop: Callable[..., object], add_event: Callable[[dict], None],
+    def __init__(self, stop: Callable[..., object], add_event: Callable[[Event], None],
                  clock: Callable[[], float] = time.monotonic):
         self._stop = stop
         self._add_event = add_event
@@ -90,8 +92,8 @@ class SessionLeases:
                    "POST /api/sessions/{id}/lease in time; the kiosk page that started it went away)")
         log.warning("%s", message)
         try:
-            self._add_event({"type": "session", "session_id": session_id, "action": "limit",
-                             "reason": "lease_expired", "message": message})
+            self._add_event(Event.new("session", session_id=session_id, action="limit", reason="lease_expired",
+                                      message=message))
             self._stop(session_id, note=message)
         except Exception as exc:  # stopped meanwhile by a client or a limit: nothing left to do
             log.info("lease stop of %s: %s", session_id, exc)

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Callable
 
 from flockcal.server.errors import InsufficientStorage
+from flockcal.server.events import Event
 
 log = logging.getLogger(__name__)
 
@@ -47,12 +48,12 @@ class LimitStop:
     message: str
     time_s: float | None
 
-    def event(self) -> dict:
-        event = {"type": "session", "session_id": self.session_id, "action": "limit", "reason": self.reason,
-                 "message": self.message}
-        if self.time_s is not None:
-            event["time_s"] = self.time_s
-        return event
+    def event(self) -> Event:
+        if self.time_s is None:
+            return Event.new("session", session_id=self.session_id, action="limit", reason=self.reason,
+                             message=self.message)
+        return Event.new("session", session_id=self.session_id, time_s=self.time_s, action="limit",
+                         reason=self.reason, message=self.message)
 
 
 class SessionLimits:
@@ -78,21 +79,21 @@ class SessionLimits:
         return {"full": self.full_since is not None, "free_bytes": self.free, "reserve_bytes": self.min_free_bytes,
                 "since": self.full_since, "message": self.full_message}
 
-    def storage_failed(self, why: str) -> list[dict]:
+    def storage_failed(self, why: str) -> list[Event]:
         """A write failed for want of room (the frame log, the raw recording, the database): the disk is
         full from now until `tick` finds room and stores what was held; a recording session's `check`
         stops it. Returns the event saying so, the first time."""
         return self._set_full(f"a write failed for want of room on the disk holding {self.recordings}: {why}")
 
-    def _set_full(self, message: str) -> list[dict]:
+    def _set_full(self, message: str) -> list[Event]:
         with self._lock:
             if self.full_since is not None:
                 return []
             self.full_since, self.full_message = self.stamp(), message
         log.warning("%s", message)
-        return [{"type": "service", "action": "disk_full", "message": message, "free_bytes": self.free}]
+        return [Event.new("service", action="disk_full", message=message, free_bytes=self.free)]
 
-    def tick(self, flush_held: Callable[[], bool]) -> list[dict]:
+    def tick(self, flush_held: Callable[[], bool]) -> list[Event]:
         """Look at the disk (at most once a second): full below the reserve; room again once above it and
         `flush_held()` has stored everything held in memory. Returns the events. Pipeline thread."""
         now = time.monotonic()
@@ -115,7 +116,7 @@ class SessionLimits:
         message = (f"room again on the disk holding {self.recordings} ({free / 2**20:.0f} MB free, full for "
                    f"{max(self.stamp() - since, 0.0):.0f} s): sessions can start")
         log.warning("%s", message)
-        return [{"type": "service", "action": "disk_ok", "message": message, "free_bytes": free}]
+        return [Event.new("service", action="disk_ok", message=message, free_bytes=free)]
 
     # --- before a session starts (request thread) ----------------------------------------------
     def check_start(self) -> None:

@@ -19,7 +19,7 @@ from flockcal.solver.progress import Profile
 class LiveSession:
     """The session being recorded. Set when it starts (SessionManager.start): who, the tree it was given,
     its frame log and profile; `cal` when the pipeline installs it. Written afterwards only by the pipeline
-    (`fit`, `fit_error`, `log_failed`) and its persistence (`residual_rows`)."""
+    (`fit`, `fit_error`, `log_failed`, `slips`) and its persistence (`residual_rows`)."""
 
     id: str
     performer: str
@@ -35,6 +35,7 @@ class LiveSession:
     fit: FitView | None = None  # the newest fit (`cal.calibration`), with its §5 dict made on first use
     fit_error: str | None = None
     residual_rows: list = field(default_factory=list)  # (time_s, {joint: mm}) not yet in the store
+    slips: list = field(default_factory=list)  # the SlipEvents it reported, which its stored result lists
     log_failed: bool = False  # the frame log's write failure was reported (the log ended there)
 
     @property

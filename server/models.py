@@ -1,17 +1,20 @@
 """Pydantic models of the REST API: requests are strict, responses mirror design.md §5.
 
-Only this module and the routes use pydantic; everything below them passes plain dicts and arrays.
+Only this module and the routes use pydantic; everything below them passes typed objects (a `Calibration`,
+a `store.SessionRow`, an `events.Event`, a `Progress`), which a route answers with: FastAPI validates it into
+the route's model once (a dataclass by its attributes; a fit by its §5 object, solver/calibration_json.py).
 Result models allow extra fields so the §5 contract can grow without breaking the API.
 """
 
 from __future__ import annotations
 
-from typing import Literal
+from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from flockcal.server.settings import PERFORMER_PATTERN, performer_pattern
+from flockcal.simulator.motion import ROUTINES
 from flockcal.solver.progress import STATES
-from flockcal.server.settings import PERFORMER_PATTERN
 
 NAME_PATTERN = r"^[A-Za-z0-9][A-Za-z0-9 _.\-]{0,63}$"
 Name = str  # validated against NAME_PATTERN where it enters
@@ -72,6 +75,8 @@ class SlipEvent(Open):
     candidates: list[str] = []
     joints: list[str] = []
     jump_mm: float | None = None
+    # A session's result lists its slips (swaps are events of their own): the §5 entry's kind goes unsaid.
+    kind: Literal["slip", "swap"] = Field("slip", exclude=True)
 
 
 class CalibrationResult(Open):
@@ -94,8 +99,10 @@ class CalibrationResult(Open):
 
 # --- sessions ------------------------------------------------------------------------------------
 class SessionCreate(Strict):
+    # Documented as the API applies it, to the name stripped of surrounding white space (openapi.py).
     performer: str = Field(min_length=1, max_length=64, pattern=PERFORMER_PATTERN,
-                           description="who is wearing the sensors (1–64 characters, no slashes, quotes or < >)")
+                           description="who is wearing the sensors (1–64 characters, no slashes, quotes or < >)",
+                           json_schema_extra={"pattern": performer_pattern()})
     hierarchy: dict[str, str] | None = Field(
         None, description="known {child: parent} map, root omitted; leave out for automatic topology")
     root: str | None = Field(None, pattern=NAME_PATTERN, description="root body; default chosen by the solver")
@@ -292,7 +299,9 @@ class SlipRequest(Strict):
 
 
 class MotionRequest(Strict):
-    routine: str = Field(pattern=r"^[a-z_]{1,32}$", description="exercise | walk | kiosk | idle")
+    # The routines are documented, not validated here: an unknown one is a 400 that names the routines.
+    routine: str = Field(pattern=r"^[a-z_]{1,32}$", description="exercise | walk | kiosk | idle",
+                         json_schema_extra={"enum": list(ROUTINES)})
 
 
 class SimulatorReply(Open):
@@ -322,6 +331,19 @@ class SimulatorState(Open):
     sta_mm: float = Field(description="soft-tissue artefact: the largest slide of a skin sensor, mm (0: rigid)")
     slips: list[dict] = Field(description="slips injected so far, on the performer's clock: {time_s, sensor, jump_mm, "
                                           "angle_deg, displacement_bone_m}")
+
+
+class ClientMessage(BaseModel):
+    """A websocket client's message (docs/service.md#websocket-wslive) read off its JSON object once: the
+    fields the service acts on, each as sent (a missing one as its default). What each must be, and the
+    message that says so, is the route's (server/routes/live.py)."""
+
+    model_config = ConfigDict(extra="allow")
+
+    type: Any = None  # "subscribe" | "ping"
+    token: Any = None
+    rate_hz: Any = 10  # messages a second; null: the publish rate
+    content: Any = ["status"]
 
 
 class ErrorReply(BaseModel):

@@ -12,8 +12,6 @@ from fastapi.openapi.utils import get_openapi
 from fastapi.routing import APIRoute
 
 from flockcal.server.auth import require_admin, require_read, require_session_control
-from flockcal.server.models import NAME_PATTERN
-from flockcal.server.routes.deps import SESSION_ID_RE
 
 ERROR = {"application/json": {"schema": {"$ref": "#/components/schemas/ErrorReply"}}}
 RETRY_AFTER = {"Retry-After": {"description": "seconds to wait before trying again", "required": True,
@@ -111,42 +109,21 @@ def openapi_document(app: FastAPI, token_required: bool, sensors: tuple[str, ...
 
 
 def _patterns(op: dict, sensors: tuple[str, ...]) -> None:
-    """Path and query parameters as the routes check them: ids and names by their pattern, joints by name."""
+    """Query parameters naming a joint as the route checks them: one of this service's sensors (the patterns
+    of ids and names are the routes' own: routes/deps.py, routes/skeletons.py)."""
     for param in op.get("parameters", []):
-        schema = param.get("schema", {})
-        if param["in"] == "path" and param["name"] == "id":
-            schema["pattern"] = f"^{SESSION_ID_RE.pattern}$"
-        elif param["in"] == "path" and param["name"] == "name":
-            schema["pattern"] = NAME_PATTERN
-        elif param["in"] == "query" and param["name"] == "joint" and sensors:
-            schema["anyOf"] = [{"type": "string", "enum": list(sensors)}, {"type": "null"}]
-
-
-def performer_pattern() -> str:
-    """PERFORMER_PATTERN as the API applies it (to the name stripped of surrounding white space): at least one
-    character that is not white space, none outside the allowed set, white space around it."""
-    from flockcal.server.settings import PERFORMER_PATTERN
-
-    allowed = PERFORMER_PATTERN[len("^[^"):PERFORMER_PATTERN.rindex("]{")]
-    return rf"^\s*[^{allowed}]*[^{allowed}\s][^{allowed}]*\s*$"
+        if (param["in"], param["name"]) == ("query", "joint") and sensors:
+            param["schema"]["anyOf"] = [{"type": "string", "enum": list(sensors)}, {"type": "null"}]
 
 
 def _bodies(schemas: dict, sensors: tuple[str, ...], presets: tuple[str, ...]) -> None:
-    """Request bodies naming a sensor, a routine or a preset name one this service has (none known: as declared)."""
+    """Request bodies naming a sensor or a preset name one this service has (none known: as declared)."""
     if not sensors:
         return
-    from flockcal.simulator.motion import ROUTINES
-
     slip = schemas.get("SlipRequest", {}).get("properties", {})
     if "sensor" in slip:
         slip["sensor"] = {**slip["sensor"], "enum": list(sensors)}
-    motion = schemas.get("MotionRequest", {}).get("properties", {})
-    if "routine" in motion:
-        motion["routine"] = {**motion["routine"], "enum": list(ROUTINES)}
     create = schemas.get("SessionCreate", {}).get("properties", {})
-    if "performer" in create:
-        # The name is stripped before it is checked: blank is no name, and spaces around one are dropped.
-        create["performer"] = {**create["performer"], "pattern": performer_pattern()}
     for field, names in (("root", sensors), ("skeleton", presets)):
         if field in create and names:
             create[field] = {"anyOf": [{"type": "string", "enum": list(names)}, {"type": "null"}],

@@ -18,8 +18,8 @@ import numpy as np
 
 from flockcal.errors import FlockcalError
 from flockcal.frames import Frames
+from flockcal.rotations import as_quat
 from flockcal.server import vmc, vrpn
-from flockcal.server.pose import quaternions
 from flockcal.solver.humanoid import BONES, Humanoid
 from flockcal.solver.humanoid_pose import HumanoidRig, humanoid_rig
 from flockcal.solver.reconstruct import held_poses
@@ -232,8 +232,7 @@ class Outputs:
             return
         pos, rot = rig.segments(R, t)
         self._segments = (self._newest[0], pos[-1], rot[-1])
-        n, k = pos.shape[:2]
-        quats = quaternions(rot.reshape(-1, 3, 3)).reshape(n, k, 4)
+        quats = as_quat(rot, scalar_first=False)
         wall = f.times + (time.time() - time.monotonic())
         self.vrpn.send_reports(self._packer.frames(wall, pos, quats))
 

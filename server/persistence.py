@@ -15,6 +15,7 @@ from collections import deque
 from typing import Callable
 
 from flockcal.server.errors import InsufficientStorage, ServerError
+from flockcal.server.events import Event
 from flockcal.server.fitting import json_safe
 from flockcal.server.live_session import LiveSession
 from flockcal.server.store import Store
@@ -28,12 +29,11 @@ MAX_HELD_EVENTS = 10_000  # events kept in memory while the database cannot take
 MAX_HELD_RESIDUALS = 72_000  # residual rows likewise: an hour at 20 a second
 
 
-def slip_row(event: SlipEvent | SwapEvent) -> dict:
+def slip_event(event: SlipEvent | SwapEvent) -> Event:
     """A slip or swap event as the store and the websocket have it: its §5 `slip_events` entry with its
-    kind under "type" (the events table's column, the websocket message's field)."""
-    d = event.to_dict()
-    d["type"] = d.pop("kind", "slip")
-    return json_safe(d)
+    kind as the event's type (the events table's column, the websocket message's field)."""
+    entry = json_safe(event.to_dict())
+    return Event.new(event.kind, **{k: v for k, v in entry.items() if k != "kind"})
 
 
 class Persistence:
@@ -45,23 +45,15 @@ class Persistence:
         self.store = store
         self.stamp = stamp  # events' wall_time: the service clock's stamps, which never step back
         self.on_storage_failed = on_storage_failed
-        self.recent: deque[dict] = deque(maxlen=RECENT_EVENTS)
-        self.held_events: list[dict] = []  # shown with their ids, not yet in the database
+        self.recent: deque[Event] = deque(maxlen=RECENT_EVENTS)
+        self.held_events: list[Event] = []  # shown with their ids, not yet in the database
         self._last_id: int | None = None
         self._last_db_flush = 0.0
 
-    def add_events(self, events: list[dict], live: LiveSession | None, session_time: float | None) -> None:
-        """Store events (slip, session, tracker, service); those without a session belong to the live one,
-        at `session_time` unless they carry their own."""
-        rows = []
-        for ev in events:
-            ev = dict(ev)
-            ev["wall_time"] = self.stamp()  # the service clock: in id order, never back
-            if live is not None and "session_id" not in ev:
-                ev["session_id"] = live.id
-                if "time_s" not in ev:
-                    ev["time_s"] = session_time if session_time is not None else 0.0
-            rows.append(ev)
+    def add_events(self, events: list[Event], live: LiveSession | None, session_time: float | None) -> None:
+        """Store events (slip, session, tracker, service), each as the part that made it made it; those
+        without a session belong to the live one, at `session_time` unless they carry their own."""
+        rows = [ev.stamped(self.stamp(), None if live is None else live.id, session_time) for ev in events]
         ids = None
         if not self.held_events:  # otherwise they wait behind the held ones, in order
             try:
@@ -71,19 +63,17 @@ class Persistence:
         if ids is None:
             ids = self._hold(rows)
         for ev, i in zip(rows, ids):
-            ev["id"] = i
             self._last_id = i
-            self.recent.append(ev)
+            self.recent.append(ev.numbered(i))
 
-    def _hold(self, rows: list[dict]) -> list[int]:
+    def _hold(self, rows: list[Event]) -> list[int]:
         if self._last_id is None:
             try:
                 self._last_id = self.store.last_event_id()
             except ServerError:
                 self._last_id = 0
         ids = list(range(self._last_id + 1, self._last_id + 1 + len(rows)))
-        for ev, i in zip(rows, ids):
-            self.held_events.append({**ev, "id": i})
+        self.held_events += [ev.numbered(i) for ev, i in zip(rows, ids)]
         if len(self.held_events) > MAX_HELD_EVENTS:
             dropped = len(self.held_events) - MAX_HELD_EVENTS
             del self.held_events[:dropped]
@@ -133,13 +123,3 @@ class Persistence:
             self.store.update_session(live.id, frames=live.frames)
         except ServerError as exc:  # the count is written again next second, and at the stop
             self._failed(exc, "frame count")
-
-    def slip_events(self, live: LiveSession, fields: tuple[str, ...]) -> list[dict]:
-        """The session's slip events (stored, and any held in memory), with the fields a result carries."""
-        try:
-            stored = self.store.events(live.id, limit=100_000)
-        except ServerError:
-            stored = []
-        seen = {e["id"] for e in stored}
-        held = [e for e in self.held_events if e.get("session_id") == live.id and e["id"] not in seen]
-        return [{k: e[k] for k in fields if k in e} for e in stored + held if e["type"] == "slip"]

@@ -13,23 +13,27 @@ import logging
 import threading
 import time
 from concurrent.futures import Future
+from dataclasses import replace
 from typing import Callable
 
+from flockcal.drivers.reader import TrackerEvent
 from flockcal.errors import FlockcalError
 from flockcal.frames import Frames
 from flockcal.server.clock import ServiceClock
-from flockcal.server.fitting import SLIP_FIELDS, FitJob, FitView, FitWorker, fit_calibration
+from flockcal.server.fitting import FitJob, FitView, FitWorker, solve_fit
 from flockcal.server.ingest import Ingest
 from flockcal.server.limits import LimitStop, SessionLimits
 from flockcal.server.live_session import LiveSession
-from flockcal.server.persistence import Persistence, slip_row
+from flockcal.server.events import Event
+from flockcal.server.persistence import Persistence, slip_event
 from flockcal.server.snapshot import Snapshot, SnapshotMaker
+from flockcal.server.sources import tracker_event
 from flockcal.server.store import Store
 from flockcal.solver.calibration import Calibration
 from flockcal.solver.live import LiveCalibration, LiveUpdate
 from flockcal.threads import name_os_thread
 
-__all__ = ["SLIP_FIELDS", "LiveSession", "Pipeline"]
+__all__ = ["LiveSession", "Pipeline"]
 
 log = logging.getLogger(__name__)
 
@@ -96,7 +100,7 @@ class Pipeline:
         self.rate_hz = rate_hz or (lambda: 144.0)
         self._cond = threading.Condition()
         self._pending: list[Frames] = []
-        self._pending_events: list[dict] = []
+        self._pending_events: list[TrackerEvent | Event] = []
         self._commands: list[tuple[Callable, Future, int]] = []  # (fn, its future, frames before it)
         self._stop = False
         self._thread: threading.Thread | None = None
@@ -135,14 +139,18 @@ class Pipeline:
             if len(self._pending) == 1:  # later batches find the pipeline already counting down to publish
                 self._cond.notify()
 
-    def tracker_event(self, event: dict) -> None:
+    def tracker_event(self, event: TrackerEvent) -> None:
+        """The source's callback for tracker news (its own thread): queued as it came, typed."""
+        self._queue_event(event)
+
+    def add_event(self, event: Event) -> None:
+        """Queue an event (slip, session, tracker, service) for the store and the websocket."""
+        self._queue_event(event)
+
+    def _queue_event(self, event: TrackerEvent | Event) -> None:
         with self._cond:
             self._pending_events.append(event)
             self._cond.notify()
-
-    def add_event(self, event: dict) -> None:
-        """Queue an event (slip, session, tracker) for the store and the websocket."""
-        self.tracker_event(event)
 
     def call(self, fn: Callable[[], object], timeout: float = 30.0):
         """Run `fn` on the pipeline thread after the frames handed over until now (not those after them), and
@@ -197,8 +205,9 @@ class Pipeline:
 
         self.call(install)
 
-    def end_session(self) -> tuple[LiveSession, dict | None, str | None]:
-        """Stop recording; returns (session, final fit dict or None, why there is no fit)."""
+    def end_session(self) -> tuple[LiveSession, Calibration | None, str | None]:
+        """Stop recording; returns (session, its final fit with the session's slips, or None; why there is
+        no fit)."""
 
         def finish():
             live = self.live
@@ -211,13 +220,11 @@ class Pipeline:
             if cal.frames > 0:
                 try:
                     last = cal.calibration
-                    result, final = fit_calibration(cal.acc, self.names, live.hierarchy, live.root,
-                                                    live.skeleton, live.profile.tolerance_m,
-                                                    sample=cal.sample.snapshot(),
-                                                    humanoid=last.humanoid if last is not None else None)
-                    slips = self.persistence.slip_events(live, SLIP_FIELDS)
-                    if slips:
-                        result["slip_events"] = slips
+                    final = solve_fit(cal.acc, self.names, live.hierarchy, live.root, live.skeleton,
+                                      live.profile.tolerance_m, sample=cal.sample.snapshot(),
+                                      humanoid=last.humanoid if last is not None else None)
+                    # The stored result lists the slips the session reported (its live fits list none).
+                    result = replace(final, slip_events=tuple(live.slips)) if live.slips else final
                     # What the session had reached, as the stored result has it (done joints stay done).
                     self._record(live, cal.add_final_fit(final))
                 except FlockcalError as exc:
@@ -226,7 +233,7 @@ class Pipeline:
                 error = "no frames arrived during the session"
             live.framelog.close()
             self.live = None
-            if result:
+            if result is not None:
                 self.pose_fit = cal.calibration
                 self.pose_fit_id = (live.id, None)
             self._publish()
@@ -330,27 +337,30 @@ class Pipeline:
             return
         events = []
         if update.done is not None:
-            events.append({"type": "session", "session_id": live.id, "action": update.done.action,
-                           "time_s": update.done.time_s, "message": update.done.message})
-        events += [slip_row(ev) for ev in update.events]
+            events.append(Event.new("session", session_id=live.id, time_s=update.done.time_s,
+                                    action=update.done.action, message=update.done.message))
+        events += [slip_event(ev) for ev in update.events]
+        live.slips += [ev for ev in update.events if ev.kind == "slip"]  # what its result lists (not swaps)
         exc = update.failure
         if exc is not None:
             log.error("slip monitor failed; slips are no longer watched in session %s", live.id,
                       exc_info=(type(exc), exc, exc.__traceback__))
-            events.append({
-                "type": "tracker", "kind": "slip_watch_failed",
-                "message": f"slip detection stopped for this session ({type(exc).__name__}: {exc}); "
-                           f"recording and fitting go on; restart the session to watch for slips again"})
+            events.append(Event.new(
+                "tracker", kind="slip_watch_failed",
+                message=f"slip detection stopped for this session ({type(exc).__name__}: {exc}); "
+                        f"recording and fitting go on; restart the session to watch for slips again"))
         if events:
             self._add_events(events)
         if update.residuals:
             self.persistence.add_residuals(live, self.snapshots.add_residuals(update.residuals))
 
-    def _add_events(self, events: list[dict]) -> None:
-        self.persistence.add_events(events, self.live, self._session_time())
-        for ev in events:  # the reader's raw recording ran out of room
-            if ev.get("kind") == "recording_stopped" and (ev.get("data") or {}).get("disk_full"):
-                self._storage_failed(ev.get("message") or "the raw recording")
+    def _add_events(self, events: list[TrackerEvent | Event]) -> None:
+        tracker = [ev for ev in events if isinstance(ev, TrackerEvent)]
+        self.persistence.add_events([tracker_event(ev) if isinstance(ev, TrackerEvent) else ev for ev in events],
+                                    self.live, self._session_time())
+        for ev in tracker:  # the reader's raw recording ran out of room
+            if ev.kind == "recording_stopped" and ev.disk_full:
+                self._storage_failed(ev.message or "the raw recording")
 
     def _publish(self) -> None:
         live = self.live

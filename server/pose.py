@@ -13,7 +13,9 @@ from __future__ import annotations
 
 import numpy as np
 
+from flockcal.rotations import as_quat
 from flockcal.solver.calibration import Calibration
+from flockcal.solver.calibration_json import as_calibration
 from flockcal.solver.reconstruct import ArticulationError, articulation, reconstruct
 
 
@@ -41,11 +43,11 @@ RIG_UP = "-z"
 class _Layout:
     """What a fit fixes about the drawing: the articulation, point names and kinds, bones, leaves."""
 
-    def __init__(self, art, names: tuple[str, ...], determined: set[str] | None = None, fit=None):
+    def __init__(self, art, names: tuple[str, ...], determined: set[str] | None, fit: Calibration):
         from flockcal.exports.bvh import node_names
 
         self.art = art
-        self.rig_names = node_names(fit if fit is not None else art, names)  # the rig's node names (the glTF's)
+        self.rig_names = node_names(fit, names)  # the rig's node names (the glTF's)
         art.levels  # worked out once here; the per-frame completed copies of `art` inherit it
         m = len(names)
         root = art.root
@@ -65,24 +67,20 @@ class _Layout:
 _cache: list = [None, None, None]  # (fit, names, layout): a fit changes ~30 times/s, poses more often
 
 
-def _determined(fit: Calibration | dict) -> set[str] | None:
+def _determined(cal: Calibration) -> set[str] | None:
     """The children of the fit's determined joints; None for a saved skeleton, whose bones are known
     whatever this take has pinned yet."""
-    if isinstance(fit, Calibration):
-        if fit.known_skeleton:
-            return None
-        return {fit.names[int(c)] for c, d in zip(fit.joint_child, fit.joints.determined) if d}
-    if fit.get("known_skeleton"):
+    if cal.known_skeleton:
         return None
-    # Joints of stored fits made before "determined" existed count as determined.
-    return {j["child"] for j in fit.get("joints") or [] if j.get("determined", True)}
+    return {cal.names[int(c)] for c, d in zip(cal.joint_child, cal.joints.determined) if d}
 
 
 def _layout(fit: Calibration | dict, names: tuple[str, ...]) -> _Layout | None:
     if _cache[0] is fit and _cache[1] == names:
         return _cache[2]
     try:
-        layout = _Layout(articulation(fit).reordered(names), names, _determined(fit), fit)
+        cal = as_calibration(fit, error=ArticulationError)  # a §5 dict (a truth file) is decoded once, here
+        layout = _Layout(articulation(cal).reordered(names), names, _determined(cal), cal)
     except (ArticulationError, KeyError, ValueError, TypeError):
         layout = None
     _cache[:] = [fit, names, layout]
@@ -92,8 +90,9 @@ def _layout(fit: Calibration | dict, names: tuple[str, ...]) -> _Layout | None:
 def live_pose(names, rotations, positions, valid, fit: Calibration | dict | None,
               fit_id: tuple[str, int | None] | None = None) -> dict:
     """Pose message body for one frame: (m,3,3) rotations, (m,3) positions, (m,) valid; fit = the live
-    service's Calibration, or a §5 dict (a stored result, a truth file); fit_id = (session id, fit_seq)
-    of that fit, fit_seq None for a stopped session's stored fit (the rig's `session` and `fit_seq`).
+    service's Calibration, or a §5 dict (a truth file: decoded once by `calibration_from_json`); fit_id =
+    (session id, fit_seq) of that fit, fit_seq None for a stopped session's stored fit (the rig's `session`
+    and `fit_seq`).
 
     joints: one point per tree joint (named by its child body; `determined` false for one the data do not
     pin yet), one for the root sensor and one for each leaf's sensor (so end bones have a far end); bones:
@@ -101,7 +100,7 @@ def live_pose(names, rotations, positions, valid, fit: Calibration | dict | None
     rotation (body → world) of each sensor.
     """
     base = sensors_only(names, rotations, positions, valid)
-    if fit is None or (isinstance(fit, dict) and not fit.get("parent")):
+    if fit is None:
         return base
     layout = _layout(fit, tuple(names))
     if layout is None:
@@ -113,20 +112,15 @@ def live_pose(names, rotations, positions, valid, fit: Calibration | dict | None
         return base
     # Pivots (inboard joint of each body, root sensor at the root), then the leaves' sensors.
     at = _round(np.concatenate([rec.joint_positions[0], rec.sensor_positions[0, layout.leaves]]))
-    base["joints"] = [{"name": n, "kind": k, "p": p, "determined": d} for (n, k, d), p in zip(layout.heads, at)]
-    base["bones"] = layout.bones
-    base["root"] = layout.root
-    base["rig"] = rig_pose(rec, layout)
-    if fit_id is not None:
-        base["rig"]["session"], base["rig"]["fit_seq"] = fit_id
-    return base
+    joints = [{"name": n, "kind": k, "p": p, "determined": d} for (n, k, d), p in zip(layout.heads, at)]
+    return {**base, "joints": joints, "bones": layout.bones, "root": layout.root, "rig": rig_pose(rec, layout, fit_id)}
 
 
-def rig_pose(rec, layout: _Layout) -> dict:
+def rig_pose(rec, layout: _Layout, fit_id: tuple[str, int | None] | None = None) -> dict:
     """The frame as the glTF rig plays it with rest "sensor" (node axes = sensor axes, so no rest frame
     to carry): node name → local rotation [x, y, z, w] (child: R_pᵀ R_j; root: W R_root, as
     exports/bvh.local_rotations with A = I), and the root node's translation W t_root, metres, Y-up
-    (the same numbers `/gltf?rest=sensor` keys its animation with)."""
+    (the same numbers `/gltf?rest=sensor` keys its animation with); with `fit_id`, whose fit it is."""
     from flockcal.exports.bvh import bvh_world
 
     art = layout.art
@@ -134,41 +128,10 @@ def rig_pose(rec, layout: _Layout) -> dict:
     R = rec.rotations[0]
     local = np.swapaxes(R[np.maximum(art.parent, 0)], -1, -2) @ R
     local[art.root] = world @ R[art.root]
-    q = np.round(quaternions(local), 7).tolist()
+    q = np.round(as_quat(local, scalar_first=False), 7).tolist()
     root = _round(world @ rec.joint_positions[0, art.root], 6)
-    return {"up": RIG_UP, "rest": "sensor", "root": root, "rotations": dict(zip(layout.rig_names, q))}
-
-
-# Shepperd's four forms of a rotation's quaternion (x, y, z, w), each 4× the quaternion times one of its
-# components, as weights on (1, r00, r01, r02, r10, r11, r12, r20, r21, r22): row 4i + c is form i's
-# component c. Form i is the one whose own component i (4 q_i² > 0) is largest: forms x, y, z, w.
-_FORMS = np.array([
-    # form x: 1 + r00 − r11 − r22, r01 + r10, r02 + r20, r21 − r12
-    [1, 1, 0, 0, 0, -1, 0, 0, 0, -1], [0, 0, 1, 0, 1, 0, 0, 0, 0, 0], [0, 0, 0, 1, 0, 0, 0, 1, 0, 0],
-    [0, 0, 0, 0, 0, 0, -1, 0, 1, 0],
-    # form y: r01 + r10, 1 − r00 + r11 − r22, r12 + r21, r02 − r20
-    [0, 0, 1, 0, 1, 0, 0, 0, 0, 0], [1, -1, 0, 0, 0, 1, 0, 0, 0, -1], [0, 0, 0, 0, 0, 0, 1, 0, 1, 0],
-    [0, 0, 0, 1, 0, 0, 0, -1, 0, 0],
-    # form z: r02 + r20, r12 + r21, 1 − r00 − r11 + r22, r10 − r01
-    [0, 0, 0, 1, 0, 0, 0, 1, 0, 0], [0, 0, 0, 0, 0, 0, 1, 0, 1, 0], [1, -1, 0, 0, 0, -1, 0, 0, 0, 1],
-    [0, 0, -1, 0, 1, 0, 0, 0, 0, 0],
-    # form w: r21 − r12, r02 − r20, r10 − r01, 1 + r00 + r11 + r22
-    [0, 0, 0, 0, 0, 0, -1, 0, 1, 0], [0, 0, 0, 1, 0, 0, 0, -1, 0, 0], [0, 0, -1, 0, 1, 0, 0, 0, 0, 0],
-    [1, 1, 0, 0, 0, 1, 0, 0, 0, 1],
-], dtype=float).T
-
-
-def quaternions(R: np.ndarray) -> np.ndarray:
-    """(m, 4) unit quaternions x, y, z, w of rotation matrices (m, 3, 3), by the largest of w², x², y², z²
-    (Shepperd's rule, numerically safe at every angle; the chosen component positive). All four forms come
-    out of one product with `_FORMS`: scipy's Rotation.from_matrix costs about 40 µs a matrix here, and the
-    rule's masked steps 110 µs for 16 matrices, which the live streams pay up to 144 times a second."""
-    R = np.asarray(R, dtype=float).reshape(-1, 9)
-    forms = (R @ _FORMS[1:] + _FORMS[0]).reshape(-1, 4, 4)
-    rows = _ROWS[:len(R)] if len(R) <= len(_ROWS) else np.arange(len(R))
-    q = forms[rows, forms[:, _DIAGONAL, _DIAGONAL].argmax(axis=1)]
-    return q / np.sqrt(np.einsum("ij,ij->i", q, q))[:, None]
-
-
-_DIAGONAL = np.arange(4)
-_ROWS = np.arange(1024)  # row numbers made once: a live frame's matrices are a few dozen
+    rig = {"up": RIG_UP, "rest": "sensor", "root": root, "rotations": dict(zip(layout.rig_names, q))}
+    if fit_id is None:
+        return rig
+    session, fit_seq = fit_id
+    return {**rig, "session": session, "fit_seq": fit_seq}

@@ -11,11 +11,13 @@ import math
 import os
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
+from typing import NamedTuple
 
 from flockcal.server.clock import Reading, ServiceClock
 from flockcal.server.errors import Conflict, Gone, ServerError
+from flockcal.server.events import Event
 from flockcal.malloc import release_free_heap
 
 log = logging.getLogger(__name__)
@@ -68,6 +70,21 @@ class Policy:
         return "keep recordings of " + " and ".join(parts) + "; results, skeletons and events kept for good"
 
 
+class PruneState(NamedTuple):
+    """A session's standing with retention: pinned, and when (and why) its files were pruned, if they were."""
+
+    pinned: bool = False
+    pruned_at: float | None = None
+    pruned_reason: str | None = None
+
+
+class Candidate(NamedTuple):
+    """A session whose files may go: its id and the service time it was recorded at."""
+
+    id: str
+    recorded_s: float
+
+
 def tree_bytes(path: Path) -> int:
     """Bytes of every file under `path` (what the data directory takes on disk, give or take blocks)."""
     total = 0
@@ -109,7 +126,7 @@ class Retention:
         self.interval_s = float(interval_s)
         self.clock = clock if clock is not None else ServiceClock()
         self.store.query(SCHEMA)
-        if "clock_offset" not in {r["name"] for r in self.store.query("PRAGMA table_info(retention)")}:
+        if "clock_offset" not in {n for (n,) in self.store.query("SELECT name FROM pragma_table_info('retention')")}:
             self.store.query("ALTER TABLE retention ADD COLUMN clock_offset REAL")  # databases from before
         self._wake = threading.Event()
         self._stop = threading.Event()
@@ -167,15 +184,15 @@ class Retention:
         self.store.query("INSERT INTO retention (session_id, clock_offset) VALUES (?, ?) ON CONFLICT(session_id) "
                          "DO UPDATE SET clock_offset = excluded.clock_offset", (sid, reading.stamp - reading.service_s))
 
-    def candidates(self) -> list[dict]:
+    def candidates(self) -> list[Candidate]:
         """Sessions whose files may go, oldest first: not live, not pinned, not pruned yet. `recorded_s` is the
         service time they were recorded at: created_at less the stamps' lead on service time then."""
         rows = self.store.query(
-            "SELECT s.id, s.created_at, s.state, s.created_at - COALESCE(r.clock_offset, 0) AS recorded_s "
+            "SELECT s.id, s.created_at - COALESCE(r.clock_offset, 0) AS recorded_s "
             "FROM sessions s LEFT JOIN retention r ON r.session_id = s.id "
             "WHERE s.state != 'live' AND COALESCE(r.pinned, 0) = 0 AND r.pruned_at IS NULL "
             "ORDER BY recorded_s")
-        return [dict(r) for r in rows]
+        return [Candidate(*r) for r in rows]
 
     def prune_once(self) -> list[dict]:
         """One pass; returns what it pruned ({id, freed_bytes, reason}). Nothing while a session is live."""
@@ -195,7 +212,7 @@ class Retention:
             # record: keep room for one session as large as the largest of the last few.
             room = self.next_session_bytes(rows) if self.policy.keep_bytes is not None else 0
             for row in rows:
-                if cutoff is not None and row["recorded_s"] < cutoff:
+                if cutoff is not None and row.recorded_s < cutoff:
                     reason = f"older than {self.policy.keep_days:g} days"
                 elif self.policy.keep_bytes is not None and used + room > self.policy.keep_bytes:
                     reason = (f"data directory over the {self.policy.keep_bytes / GB:g} GB budget with room "
@@ -206,26 +223,26 @@ class Retention:
                 # What the prune writes counts too: the kept skeleton file (~27 kB for 16 sensors) and the
                 # database's rows (its thinned residuals, the event: ~40 kB of WAL pages). Counted as freed
                 # bytes alone, a pass left the directory that much over the room it meant to keep.
-                before = self._touched_bytes(row["id"])
+                before = self._touched_bytes(row.id)
                 try:
-                    done = self._prune(row["id"], reason)
+                    done = self._prune(row.id, reason)
                 except _Downloading:  # its files are being sent: the pass after the download takes them
                     continue
                 if done is None:  # a session went live meanwhile: stop, the next gap resumes
                     break
-                used += self._touched_bytes(row["id"]) - before
+                used += self._touched_bytes(row.id) - before
                 pruned.append(done)
             self.over_budget = self.policy.keep_bytes is not None and used > self.policy.keep_bytes
             if pruned:
                 self._usage = None
             return pruned
 
-    def next_session_bytes(self, rows: list[dict]) -> int:
+    def next_session_bytes(self, rows: list[Candidate]) -> int:
         """Room to keep for the next session's frames and raw bytes: the largest recording among the
         last ROOM_SESSIONS sessions still on disk, at most ROOM_SHARE of the budget (one long session
         must not clear the whole directory)."""
         mgr = self.sessions
-        sizes = [sum(p.stat().st_size for p in (mgr.frames_path(r["id"]), mgr.raw_path(r["id"])) if p.exists())
+        sizes = [sum(p.stat().st_size for p in (mgr.frames_path(r.id), mgr.raw_path(r.id)) if p.exists())
                  for r in rows[-ROOM_SESSIONS:]]
         return min(max(sizes, default=0), int(ROOM_SHARE * (self.policy.keep_bytes or 0)))
 
@@ -276,10 +293,10 @@ class Retention:
             "INSERT INTO retention (session_id, pruned_at, freed_bytes, reason) VALUES (?, ?, ?, ?) "
             "ON CONFLICT(session_id) DO UPDATE SET pruned_at = excluded.pruned_at, "
             "freed_bytes = excluded.freed_bytes, reason = excluded.reason", (sid, now, freed, reason))
-        self.add_event({"type": "session", "session_id": sid, "time_s": None, "action": "pruned",
-                        "freed_bytes": freed, "reason": reason,
-                        "message": f"session {sid}'s frames and raw recording were pruned ({freed / 1e6:.1f} MB, "
-                                   f"{reason}); its result, skeleton and events are kept"})
+        self.add_event(Event.new("session", session_id=sid, time_s=None, action="pruned", freed_bytes=freed,
+                                 reason=reason,
+                                 message=f"session {sid}'s frames and raw recording were pruned ({freed / 1e6:.1f} "
+                                         f"MB, {reason}); its result, skeleton and events are kept"))
         log.info("pruned session %s (%.1f MB, %s)", sid, freed / 1e6, reason)
         return {"id": sid, "freed_bytes": freed, "reason": reason}
 
@@ -295,7 +312,7 @@ class Retention:
         try:
             take = self.sessions.take(sid)
             row = self.store.session(sid)
-            source = {"session": sid, "performer": row["performer"], "take": f"{sid}.npz",
+            source = {"session": sid, "performer": row.performer, "take": f"{sid}.npz",
                       "frames": int(take.n_frames), "rate_hz": float(take.rate_hz)}
             write_atomic(path, skeleton_bytes(result, source=source, take=take))
         except Exception as exc:  # a result the exporter cannot draw: /skeleton said so before as well
@@ -305,31 +322,23 @@ class Retention:
     def kept_skeleton_path(self, sid: str) -> Path:
         return self.sessions.recordings / f"{sid}{KEPT_SKELETON_SUFFIX}"
 
-    def state(self, sid: str) -> dict:
+    def state(self, sid: str) -> PruneState:
         rows = self.store.query("SELECT pinned, pruned_at, reason FROM retention WHERE session_id = ?", (sid,))
-        if not rows:
-            return {"pinned": False, "pruned_at": None, "pruned_reason": None}
-        return {"pinned": bool(rows[0]["pinned"]), "pruned_at": rows[0]["pruned_at"], "pruned_reason": rows[0]["reason"]}
+        return _state(*rows[0]) if rows else PruneState()
 
-    def annotate(self, rows: list[dict]) -> list[dict]:
-        """Add pinned / pruned_at to session rows (GET /api/sessions and /api/sessions/{id})."""
-        states = {r["session_id"]: r for r in self.store.query("SELECT session_id, pinned, pruned_at, reason FROM retention")} \
-            if len(rows) > 1 else {}
-        for row in rows:
-            if len(rows) > 1:
-                r = states.get(row["id"])
-                st = {"pinned": bool(r["pinned"]), "pruned_at": r["pruned_at"], "pruned_reason": r["reason"]} if r \
-                    else {"pinned": False, "pruned_at": None, "pruned_reason": None}
-            else:
-                st = self.state(row["id"])
-            row.update(st)
-        return rows
+    def annotate(self, rows: list) -> list:
+        """Session rows (store.SessionRow) with their pinned / pruned_at (GET /api/sessions and /api/sessions/{id})."""
+        if len(rows) > 1:
+            states = {sid: _state(*st) for sid, *st in
+                      self.store.query("SELECT session_id, pinned, pruned_at, reason FROM retention")}
+            return [replace(row, **states.get(row.id, PruneState())._asdict()) for row in rows]
+        return [replace(row, **self.state(row.id)._asdict()) for row in rows]
 
     def pin(self, sid: str, pinned: bool = True) -> None:
         """Pin (never prune) or unpin a session; a pruned session cannot be pinned back to its frames."""
         st = self.state(sid)
-        if pinned and st["pruned_at"] is not None:
-            raise Conflict(f"session {sid} was already pruned ({st['pruned_reason']}); its frames are gone, "
+        if pinned and st.pruned_at is not None:
+            raise Conflict(f"session {sid} was already pruned ({st.pruned_reason}); its frames are gone, "
                            "so pinning cannot keep them")
         self.store.query(
             "INSERT INTO retention (session_id, pinned) VALUES (?, ?) "
@@ -345,9 +354,9 @@ class Retention:
     def check_files(self, sid: str, what: str) -> None:
         """Raise 410 Gone when the session's `what` (frames, raw recording) was pruned."""
         st = self.state(sid)
-        if st["pruned_at"] is not None:
-            when = time.strftime("%Y-%m-%d %H:%M", time.localtime(st["pruned_at"]))
-            raise Gone(f"session {sid}'s {what} was pruned on {when} ({st['pruned_reason']}); its result, "
+        if st.pruned_at is not None:
+            when = time.strftime("%Y-%m-%d %H:%M", time.localtime(st.pruned_at))
+            raise Gone(f"session {sid}'s {what} was pruned on {when} ({st.pruned_reason}); its result, "
                        f"skeleton and events are kept. Pin sessions you need whole (POST /api/sessions/{{id}}/pin)")
 
     def data_bytes(self, max_age_s: float = 5.0) -> int:
@@ -360,8 +369,8 @@ class Retention:
 
     def status(self) -> dict:
         """For /api/status: the policy, the disk it governs, what was pruned and pinned."""
-        counts = self.store.query("SELECT COALESCE(SUM(pinned), 0) AS pinned, COUNT(pruned_at) AS pruned, "
-                                  "COALESCE(SUM(freed_bytes), 0) AS freed FROM retention")[0]
+        pinned, pruned, freed = self.store.query("SELECT COALESCE(SUM(pinned), 0), COUNT(pruned_at), "
+                                                 "COALESCE(SUM(freed_bytes), 0) FROM retention")[0]
         used = self.data_bytes()
         return {
             "enabled": self.policy.active,
@@ -370,12 +379,16 @@ class Retention:
             "keep_disk_gb": None if self.policy.keep_bytes is None else self.policy.keep_bytes / GB,
             "data_dir_bytes": used,
             "over_budget": bool(self.over_budget),
-            "pinned_sessions": int(counts["pinned"]),
-            "pruned_sessions": int(counts["pruned"]),
-            "freed_bytes": int(counts["freed"]),
+            "pinned_sessions": int(pinned),
+            "pruned_sessions": int(pruned),
+            "freed_bytes": int(freed),
             "last_run_at": self.last_run_at,
             "last_error": self.last_error,
         }
+
+
+def _state(pinned, pruned_at, reason) -> PruneState:
+    return PruneState(bool(pinned), pruned_at, reason)
 
 
 def policy_from(keep_days: float | None, keep_disk_gb: float | None) -> Policy:

@@ -15,6 +15,7 @@ from pathlib import Path
 from flockcal.clock import SYSTEM, Clock
 from flockcal.server.clock import ServiceClock
 from flockcal.server.errors import ConfigError
+from flockcal.server.events import Event
 from flockcal.server.hub import SnapshotHub
 from flockcal.server.limits import SessionLimits
 from flockcal.server.outputs import Outputs
@@ -24,7 +25,7 @@ from flockcal.server.sessions import SessionManager
 from flockcal.server.settings import Settings
 from flockcal.server.skeletons import SkeletonLibrary
 from flockcal.server.sources import FrameSource, TrackerSource
-from flockcal.server.store import Store
+from flockcal.server.store import SessionRow, Store
 
 log = logging.getLogger(__name__)
 
@@ -102,8 +103,7 @@ class Service:
             clock=self.clock,
         )
         # A session records the rate the tracker streams at when it starts (the flock's own unless --rate).
-        self.sessions = SessionManager(self.store, self.pipeline, data, settings.device_url,
-                                       lambda: self.source.status().get("rate_hz") or settings.rate_hz,
+        self.sessions = SessionManager(self.store, self.pipeline, data, settings.device_url, self.source_rate,
                                        profiles=settings.session_profile, raw_recorder=self.source,
                                        retention_policy=policy_from(settings.keep_days, settings.keep_disk_gb),
                                        retention_interval_s=settings.retention_interval_s, clock=self.clock)
@@ -122,19 +122,21 @@ class Service:
         self.outputs = (Outputs(settings, self.pipeline.names, lambda: self.pipeline.snapshot)
                         if settings.vrpn_port is not None or settings.osc_targets else None)
         self.started = False
-        self.stopped_session: dict | None = None  # the session stop() closed, for `serve` to report
+        self.stopped_session: SessionRow | None = None  # the session stop() closed, for `serve` to report
+
+    def source_rate(self) -> float | None:
+        """The rate the tracker streams at (its status's), else --rate's; None when neither is known."""
+        return self.source.status().get("rate_hz") or self.settings.rate_hz
 
     def tracker_rate(self) -> float:
-        rate = self.source.status().get("rate_hz") or self.settings.rate_hz
+        rate = self.source_rate()
         return float(rate) if rate else 100.0
 
     def status_of_source(self) -> dict:
-        st = dict(self.source.status())
-        st.setdefault("birds", self.settings.birds)
-        st["device"] = self.settings.device_url
-        st["simulator"] = self.simulator is not None
-        st["disk"] = self.limits.disk_status()
-        return st
+        st = self.source.status()
+        birds = {} if "birds" in st else {"birds": self.settings.birds}
+        return {**st, **birds, "device": self.settings.device_url, "simulator": self.simulator is not None,
+                "disk": self.limits.disk_status()}
 
     @property
     def simulator(self):
@@ -159,7 +161,8 @@ class Service:
         self.pipeline.feed(frames)
         self.outputs.feed(frames)
     def _clock_stepped(self, event: dict) -> None:
-        self.pipeline.add_event(event)
+        # The clock writes its step as keyword fields (server/clock.py); Event.new's signature types them.
+        self.pipeline.add_event(Event.new(**event))
         self.retention.wake()
 
     def stop(self) -> None:

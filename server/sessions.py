@@ -10,6 +10,7 @@ import logging
 import secrets
 import threading
 import time
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -17,17 +18,19 @@ from flockcal.errors import FlockcalError
 from flockcal.server.clock import ServiceClock
 from flockcal.server.errors import BadRequest, Conflict, InsufficientStorage, NotFound, Unavailable
 from flockcal.server.framelog import FrameLog, read_frames
+from flockcal.server.events import Event
+from flockcal.server.fitting import FitView
 from flockcal.server.holds import RETRY_AFTER_S, FileHolds
-from flockcal.server.fitting import SLIP_FIELDS, json_safe
 from flockcal.server.lease import SessionLeases
 from flockcal.server.limits import LimitStop
 from flockcal.server.live_session import LiveSession
 from flockcal.server.pipeline import Pipeline
 from flockcal.server.retention import Policy, Retention
 from flockcal.server.settings import PERFORMER_RE, PERFORMER_RULE
-from flockcal.server.store import Store
+from flockcal.server.store import SessionRow, Store
+from flockcal.solver.calibration import Calibration
 from flockcal.solver.hierarchy import check_hierarchy
-from flockcal.solver.progress import Profile, progress_of, waiting
+from flockcal.solver.progress import Profile, Progress, progress_of, waiting
 
 log = logging.getLogger(__name__)
 
@@ -38,6 +41,42 @@ SKELETON_SUFFIX = ".skeleton.json"  # the saved skeleton a session was started w
 
 def new_session_id(stamp: float | None = None) -> str:
     return time.strftime("%Y%m%d-%H%M%S", time.localtime(stamp)) + "-" + secrets.token_hex(3)
+
+
+@dataclass(frozen=True)
+class SessionEnd:
+    """What a stop writes to the session's row (`SessionManager.update_row`): held in memory, as it is, while
+    the database cannot take it."""
+
+    state: str
+    stopped_at: float
+    duration_s: float
+    frames: int
+    result: Calibration | None  # the final fit, with the session's slips
+    note: str | None
+    progress: Progress | None
+
+    def columns(self) -> dict:
+        """The row's columns it sets (Store.update_session)."""
+        return dict(state=self.state, stopped_at=self.stopped_at, duration_s=self.duration_s, frames=self.frames,
+                    result=self.result, note=self.note, progress=self.progress)
+
+
+@dataclass(frozen=True)
+class SessionProgress:
+    """A session's progress with where it comes from (GET /api/sessions/{id}/progress): the live one as the
+    service keeps it, a stopped one as it stood at its stop (or its re-solve)."""
+
+    session_id: str
+    live: bool
+    time_s: float | None
+    fit_seq: int | None
+    frames: int
+    progress: Progress
+
+    def to_dict(self) -> dict:
+        return {"session_id": self.session_id, "live": self.live, "time_s": self.time_s, "fit_seq": self.fit_seq,
+                "frames": self.frames, **self.progress.to_dict()}
 
 
 class SessionManager:
@@ -67,7 +106,7 @@ class SessionManager:
                                    interval_s=retention_interval_s, clock=self.clock)
         self._lock = threading.Lock()  # one start/stop at a time
         # Row updates the database could not take (a full disk): shown from memory, stored once it can.
-        self._held_rows: dict[str, dict] = {}
+        self._held_rows: dict[str, SessionEnd] = {}
         self._held_lock = threading.Lock()
 
     @property
@@ -96,16 +135,15 @@ class SessionManager:
         return self.recordings / f"{session_id}{SKELETON_SUFFIX}"
 
     def session_skeleton(self, session_id: str):
-        """(preset name, Skeleton) the session was started with, or (None, None) for a free fit."""
+        """The Skeleton the session was started with, or None for a free fit."""
         import json
 
         from flockcal.exports.skeleton import parse_skeleton
 
         path = self.skeleton_path(session_id)
         if not path.exists():
-            return None, None
-        data = json.loads(path.read_text())
-        return data.get("preset"), parse_skeleton(data, origin=path.name)
+            return None
+        return parse_skeleton(json.loads(path.read_text()), origin=path.name)
 
     def live_id(self) -> str | None:
         s = self.pipeline.snapshot.session
@@ -120,7 +158,7 @@ class SessionManager:
     # --- lifecycle ---------------------------------------------------------------------------------
     def start(self, performer: str, hierarchy: dict | None = None, root: str | None = None,
               skeleton=None, skeleton_name: str | None = None, profile: str | None = None,
-              lease_s: float | None = None) -> dict:
+              lease_s: float | None = None) -> SessionRow:
         """Start a session; with a saved `skeleton` (flockcal.exports.skeleton.Skeleton) its tree and
         bones are kept and only the sensor placements are fitted. `profile` ("stage" or "kiosk", default
         the service's) says how it decides it is calibrated (solver/progress.py). With `lease_s` the session
@@ -191,27 +229,27 @@ class SessionManager:
                 raise
             if lease_s is not None:
                 self.leases.grant(sid, lease_s)
-            self.pipeline.add_event({"type": "session", "session_id": sid, "time_s": 0.0, "action": "started",
-                                     "message": f"session {sid} started for {performer}"})
+            self.pipeline.add_event(Event.new("session", session_id=sid, time_s=0.0, action="started",
+                                              message=f"session {sid} started for {performer}"))
             return self.get(sid)
 
     def renew(self, session_id: str) -> dict:
         """Renew a live session's lease (POST /api/sessions/{id}/lease)."""
         row = self._row(session_id)
-        if row["state"] != "live" or self.live_id() != session_id:
-            raise Conflict(f"session {session_id} is not live (it is {row['state']}); there is no lease to renew")
+        if row.state != "live" or self.live_id() != session_id:
+            raise Conflict(f"session {session_id} is not live (it is {row.state}); there is no lease to renew")
         lease = self.leases.renew(session_id)
         if lease is None:
             raise Conflict(f"session {session_id} was started without a lease (POST /api/sessions with lease_s)")
         return {"session_id": session_id, "lease_s": lease, "expires_in_s": round(self.leases.remaining(session_id), 3)}
 
-    def stop(self, session_id: str, note: str | None = None) -> dict:
+    def stop(self, session_id: str, note: str | None = None) -> SessionRow:
         """Stop the live session; `note` says why when the service stopped it (a limit, a lapsed lease). It
         lands in the same row update as the stopped state, so no reader sees one without the other."""
         with self._lock:
             row = self._row(session_id)
-            if row["state"] != "live" or self.live_id() != session_id:
-                raise Conflict(f"session {session_id} is not live (it is {row['state']}); nothing to stop")
+            if row.state != "live" or self.live_id() != session_id:
+                raise Conflict(f"session {session_id} is not live (it is {row.state}); nothing to stop")
             self.leases.release(session_id)
             if self.raw_recorder is not None:
                 try:
@@ -223,24 +261,23 @@ class SessionManager:
             if live.framelog.error is not None:
                 notes.append(f"recording stopped early ({live.framelog.error.strerror or live.framelog.error}): "
                              f"{live.framelog.path.name} holds the frames written until then")
-            if not result:
+            if result is None:
                 notes.append(f"no result: {error}")
             note = "; ".join(notes) or None
             # Measured on the monotonic clock; stopped_at follows from it, so a step of the wall clock during
             # the session (an event of its own) can neither stretch it nor put its end before its start.
             duration = max(self.clock.monotonic() - live.started_mono, 0.0)
-            self.update_row(session_id, state="stopped", stopped_at=row["created_at"] + duration,
-                            duration_s=round(duration, 3), frames=live.frames, result=result,
-                            note=note, progress=live.cal.progress.to_dict() if result and live.cal.progress else None)
-            self.pipeline.add_event({"type": "session", "session_id": session_id, "action": "stopped",
-                                     "time_s": None, "message": f"session {session_id} stopped after {live.frames} frames"})
+            self.update_row(session_id, SessionEnd("stopped", row.created_at + duration, round(duration, 3), live.frames,
+                                                   result, note, live.cal.progress if result is not None else None))
+            self.pipeline.add_event(Event.new("session", session_id=session_id, time_s=None, action="stopped",
+                                              message=f"session {session_id} stopped after {live.frames} frames"))
             self.retention.wake()
             return self.get(session_id)
 
     def delete(self, session_id: str) -> None:
         with self._lock:
             row = self._row(session_id)
-            if row["state"] == "live" and self.live_id() == session_id:
+            if row.state == "live" and self.live_id() == session_id:
                 raise Conflict(f"session {session_id} is live; stop it before deleting it")
             downloads = self.holds.claim(session_id, lambda: NotFound(f"session {session_id} was deleted"))
             if downloads:
@@ -275,49 +312,48 @@ class SessionManager:
         self.retention.forget(session_id)
 
     # --- rows the database could not take ------------------------------------------------------------
-    def update_row(self, session_id: str, **fields) -> None:
-        """Update the session's row; on a full disk the update is held in memory (readers see it) and
+    def update_row(self, session_id: str, end: SessionEnd) -> None:
+        """Write a stop to the session's row; on a full disk it is held in memory (readers see it) and
         stored by `flush_held_rows` once the database can take it."""
         with self._held_lock:
-            fields = {**self._held_rows.pop(session_id, {}), **fields}
+            self._held_rows.pop(session_id, None)
             try:
-                self.store.update_session(session_id, **fields)
+                self.store.update_session(session_id, **end.columns())
             except (InsufficientStorage, Unavailable) as exc:
-                self._held_rows[session_id] = fields
+                self._held_rows[session_id] = end
                 log.warning("session %s's row is held in memory: %s", session_id, exc)
 
     def flush_held_rows(self) -> bool:
         """Store the held row updates; True when none are left."""
         with self._held_lock:
-            for sid in list(self._held_rows):
+            for sid, end in list(self._held_rows.items()):
                 try:
-                    self.store.update_session(sid, **self._held_rows[sid])
+                    self.store.update_session(sid, **end.columns())
                 except (InsufficientStorage, Unavailable):
                     return False
                 del self._held_rows[sid]
             return True
 
-    def _held(self, session_id: str) -> dict:
+    def _held(self, session_id: str) -> SessionEnd | None:
         with self._held_lock:
-            return dict(self._held_rows.get(session_id, {}))
+            return self._held_rows.get(session_id)
 
-    def _overlay(self, row: dict) -> dict:
-        """A stored row as it is meant to be: with any update the database has not taken yet."""
-        held = self._held(row["id"])
-        if not held:
+    def _overlay(self, row: SessionRow) -> SessionRow:
+        """A stored row as it is meant to be: with any stop the database has not taken yet."""
+        end = self._held(row.id)
+        if end is None:
             return row
-        row.update({k: held[k] for k in ("state", "stopped_at", "duration_s", "frames", "note") if k in held})
-        if "result" in held:
-            row["has_result"] = held["result"] is not None
-        if held.get("progress"):
-            row["progress"], row["done"] = held["progress"]["progress"], held["progress"]["done"]
+        row = replace(row, state=end.state, stopped_at=end.stopped_at, duration_s=end.duration_s, frames=end.frames,
+                      note=end.note, has_result=end.result is not None)
+        if end.progress is not None:
+            row = replace(row, progress=end.progress.progress, done=end.progress.done)
         return row
 
-    def resolve(self, session_id: str) -> dict:
+    def resolve(self, session_id: str) -> SessionRow:
         """Re-fit a stopped or interrupted session from its frame log (same hierarchy and root)."""
         with self._lock:
             row = self._row(session_id)
-            if row["state"] == "live":
+            if row.state == "live":
                 raise Conflict(f"session {session_id} is live; stop it first")
             path = self.frames_path(session_id)
             if not path.exists():
@@ -325,50 +361,51 @@ class SessionManager:
                 raise NotFound(f"session {session_id} has no recording on disk ({path.name}); it cannot be re-solved")
             take = self.take(session_id)
             n = take.n_frames
-            slips = [e for e in self.store.events(session_id, limit=None) if e["type"] == "slip" and e.get("sensor") in take.names]
+            slips = self.store.slips(session_id, take.names)
             try:
-                _name, skeleton = self.session_skeleton(session_id)
-                from flockcal.solver.calibration_json import event_from_json
+                skeleton = self.session_skeleton(session_id)
                 from flockcal.solver.humanoid import take_sample
                 from flockcal.solver.solve import solve_take
 
-                events = [event_from_json(e, take.names) for e in slips]
                 prof = self._profile(row)
-                cal = solve_take(take, events, row["hierarchy"], row["root"], skeleton, tolerance=prof.tolerance_m,
+                cal = solve_take(take, slips, row.hierarchy, row.root, skeleton, tolerance=prof.tolerance_m,
                                  sample=take_sample(take).snapshot())
-                result = json_safe(cal.to_dict())
-                result["slip_events"] = [{k: e[k] for k in SLIP_FIELDS if k in e} for e in slips]
             except (FlockcalError, ValueError, ArithmeticError) as exc:  # LinAlgError is a ValueError
                 raise Conflict(f"session {session_id} could not be solved from its recording: {exc}") from None
-            state = "stopped" if row["state"] == "interrupted" else row["state"]
+            state = "stopped" if row.state == "interrupted" else row.state
             # A re-solve is one fit of the whole recording: its progress has no session history to keep.
-            progress = progress_of(cal, prof.target_m, prof.tolerance_m).to_dict()
-            self.store.update_session(session_id, result=result, frames=n, state=state, progress=progress,
-                                      note=f"re-solved from its recording ({n} frames)")
+            progress = progress_of(cal, prof.target_m, prof.tolerance_m)
+            self.store.update_session(session_id, result=replace(cal, slip_events=slips), frames=n, state=state,
+                                      progress=progress, note=f"re-solved from its recording ({n} frames)")
             return self.get(session_id)
 
     # --- reading -----------------------------------------------------------------------------------
-    def _row(self, session_id: str) -> dict:
+    def _row(self, session_id: str) -> SessionRow:
         row = self.store.session(session_id)
         if row is None:
             raise NotFound(f"no session {session_id!r}; GET /api/sessions lists them")
         return self._overlay(row)
 
-    def get(self, session_id: str) -> dict:
-        row = self._row(session_id)
-        snap = self.pipeline.snapshot
-        if snap.session and snap.session.id == session_id:
-            row["frames"] = snap.session.frames
-            row["has_result"] = snap.has_fit
-            row["progress"], row["done"] = snap.session.progress, snap.session.done
-            row["duration_s"] = self._live_duration(session_id)
-        row["has_recording"] = self.frames_path(session_id).exists()
-        row["has_raw_recording"] = self.raw_path(session_id).exists()
-        row["skeleton"] = self._skeleton_name(session_id)
-        if row["state"] == "live":
-            row["lease_s"] = self.leases.lease_s(session_id)
-        self.retention.annotate([row])
+    def get(self, session_id: str) -> SessionRow:
+        (row,) = self._shown([self._row(session_id)])
         return row
+
+    def list(self) -> list[SessionRow]:
+        return self._shown([self._overlay(r) for r in self.store.sessions()])
+
+    def _shown(self, rows: list[SessionRow]) -> list[SessionRow]:
+        """Rows as the API shows them: the live session's figures as they stand, its lease, the files on
+        disk, the saved skeleton it was started with, retention's pin and prune."""
+        snap = self.pipeline.snapshot
+        out = []
+        for row in rows:
+            if snap.session and snap.session.id == row.id:
+                row = replace(row, frames=snap.session.frames, has_result=snap.has_fit, progress=snap.session.progress,
+                              done=snap.session.done, duration_s=self._live_duration(row.id))
+            out.append(replace(row, has_recording=self.frames_path(row.id).exists(),
+                               has_raw_recording=self.raw_path(row.id).exists(), skeleton=self._skeleton_name(row.id),
+                               lease_s=self.leases.lease_s(row.id) if row.state == "live" else None))
+        return self.retention.annotate(out)
 
     def _live_duration(self, session_id: str) -> float | None:
         """How long the live session has recorded so far, on the monotonic clock."""
@@ -377,10 +414,10 @@ class SessionManager:
             return None
         return round(max(self.clock.monotonic() - live.started_mono, 0.0), 3)
 
-    def _profile(self, row: dict):
+    def _profile(self, row: SessionRow):
         """The profile a stored session was recorded under (sessions from before profiles: stage)."""
         try:
-            return self.profiles(row.get("profile") or "stage")
+            return self.profiles(row.profile or "stage")
         except ValueError:
             return self.profiles("stage")
 
@@ -397,29 +434,15 @@ class SessionManager:
         except (ValueError, OSError):
             return "?"
 
-    def list(self) -> list[dict]:
-        snap = self.pipeline.snapshot
-        rows = [self._overlay(r) for r in self.store.sessions()]
-        for row in rows:
-            row["has_recording"] = self.frames_path(row["id"]).exists()
-            row["has_raw_recording"] = self.raw_path(row["id"]).exists()
-            row["skeleton"] = self._skeleton_name(row["id"])
-            if snap.session and snap.session.id == row["id"]:
-                row["frames"] = snap.session.frames
-                row["has_result"] = snap.has_fit
-                row["progress"], row["done"] = snap.session.progress, snap.session.done
-                row["duration_s"] = self._live_duration(row["id"])
-        self.retention.annotate(rows)
-        return rows
-
-    def result(self, session_id: str) -> tuple[dict, bool]:
-        """(§5 result, live?) — the live fit for the live session, the stored one otherwise."""
+    def result(self, session_id: str) -> tuple[FitView, bool]:
+        """(the fit, live?) — the live fit for the live session, the stored one otherwise."""
         result, fit_seq = self.result_seq(session_id)
         return result, fit_seq is not None
 
-    def result_seq(self, session_id: str) -> tuple[dict, int | None]:
-        """(§5 result, fit_seq): the live session's fit with its number (read from one snapshot, so the
-        two agree), or the stored result with None — the pair a pose's `rig` names (server/pose.py)."""
+    def result_seq(self, session_id: str) -> tuple[FitView, int | None]:
+        """(the fit, fit_seq): the live session's fit with its number (read from one snapshot, so the two
+        agree), or the stored result with None — the pair a pose's `rig` names (server/pose.py). The fit is
+        typed (`FitView.calibration`) and made JSON once, at the route that sends it (`FitView.doc`)."""
         row = self._row(session_id)
         snap = self.pipeline.snapshot
         if snap.session and snap.session.id == session_id:
@@ -428,37 +451,38 @@ class SessionManager:
                 raise Conflict(f"session {session_id} has no fit yet ({why}); keep the performer moving")
             # The slips reported so far, as the stored result lists them at the stop: the live fit is made
             # ~30 times a second and carries only its joints; the events are the session's.
-            slips = [{k: e[k] for k in SLIP_FIELDS if k in e}
-                     for e in self.store.events(session_id, limit=None) if e["type"] == "slip"]
-            return ({**snap.fit, "slip_events": slips} if slips else snap.fit), snap.fit_seq
-        held = self._held(session_id)
-        result = held["result"] if held.get("result") is not None else self.store.result(session_id)
+            slips = self.store.slips(session_id, row.names)
+            if not slips:
+                return snap.fit_view, snap.fit_seq
+            return FitView(replace(snap.fit_view.calibration, slip_events=slips)), snap.fit_seq
+        end = self._held(session_id)
+        result = end.result if end is not None and end.result is not None else self.store.result(session_id)
         if result is None:
             hint = " — POST /api/sessions/{0}/resolve re-solves it from its recording".format(session_id) \
-                if row["state"] == "interrupted" else ""
-            raise Conflict(f"session {session_id} has no result ({row['note'] or row['state']}){hint}")
-        return result, None
+                if row.state == "interrupted" else ""
+            raise Conflict(f"session {session_id} has no result ({row.note or row.state}){hint}")
+        return FitView(result), None
 
-    def progress(self, session_id: str) -> dict:
-        """The session's progress document (solver/progress.py) with where it comes from: the live one as
-        the service keeps it, a stopped one as it stood at its stop (or its re-solve)."""
+    def progress(self, session_id: str) -> SessionProgress:
+        """The session's progress (solver/progress.py) with where it comes from: the live one as the service
+        keeps it, a stopped one as it stood at its stop (or its re-solve)."""
         row = self._row(session_id)
         snap = self.pipeline.snapshot
-        head = {"session_id": session_id, "live": False, "time_s": None, "fit_seq": None, "frames": row["frames"]}
         if snap.session and snap.session.id == session_id and snap.progress is not None:
-            head.update(live=True, time_s=snap.session.time_s, fit_seq=snap.fit_seq if snap.has_fit else None,
-                        frames=snap.session.frames)
-            return {**head, **snap.progress_doc}
-        doc = self._held(session_id).get("progress") or self.store.progress(session_id)
-        if doc is None:
+            return SessionProgress(session_id, True, snap.session.time_s, snap.fit_seq if snap.has_fit else None,
+                                   snap.session.frames, snap.progress)
+        end = self._held(session_id)
+        progress = end.progress if end is not None and end.progress is not None else self.store.progress(session_id)
+        if progress is None:
             result = self.store.result(session_id)
             if result is None:
-                why = row["note"] or (f"the session is {row['state']} and has no result")
-                return {**head, **waiting(row["names"], self._profile(row).target_m, why).to_dict()}
-            # Stopped before sessions kept their progress: its stored result, on its own.
-            prof = self._profile(row)
-            doc = progress_of(result, prof.target_m, prof.tolerance_m).to_dict()
-        return {**head, **doc}
+                why = row.note or (f"the session is {row.state} and has no result")
+                progress = waiting(row.names, self._profile(row).target_m, why)
+            else:
+                # Stopped before sessions kept their progress: its stored result, on its own.
+                prof = self._profile(row)
+                progress = progress_of(result, prof.target_m, prof.tolerance_m)
+        return SessionProgress(session_id, False, None, None, row.frames, progress)
 
     def residuals(self, session_id: str, joint: str | None, since: float | None,
                   limit: int = 100_000) -> tuple[list[tuple[float, dict]], bool]:
@@ -504,6 +528,6 @@ class SessionManager:
         return make_take(data["rotations"], data["positions"], data["names"], rate, valid=data["valid"],
                          times=times, source=f"session {session_id}")
 
-    def events(self, session_id: str, since_id: int = 0, limit: int = 1000) -> list[dict]:
+    def events(self, session_id: str, since_id: int = 0, limit: int = 1000) -> list[Event]:
         self._row(session_id)
         return self.store.events(session_id, since_id, limit)

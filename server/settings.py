@@ -31,6 +31,13 @@ PERFORMER_RULE = "1–64 characters without slashes, quotes, < >, control or inv
 PERFORMER_RE = re.compile(PERFORMER_PATTERN)
 
 
+def performer_pattern() -> str:
+    """PERFORMER_PATTERN as the API applies it (to the name stripped of surrounding white space): at least one
+    character that is not white space, none outside the allowed set, white space around it."""
+    allowed = PERFORMER_PATTERN[len("^[^"):PERFORMER_PATTERN.rindex("]{")]
+    return rf"^\s*[^{allowed}]*[^{allowed}\s][^{allowed}]*\s*$"
+
+
 def default_device(birds: int = DEFAULT_BIRDS, rate_hz: float = DEFAULT_RATE_HZ) -> str:
     """The built-in simulator: a performer doing the exercise routine, looping forever. Its line is
     emulated at 921600 baud: 16 birds at 144 Hz need more than a 115200-baud line carries."""

@@ -35,19 +35,10 @@ class Entry:
     origin: str  # "upload" (stored in the data dir) or the --skeleton file's path
 
     def summary(self) -> dict:
-        data = self.skeleton.data
-        source = data.get("source") if isinstance(data.get("source"), dict) else {}
-        return {"name": self.name, "performer": performer_of(data), "root": self.skeleton.root,
-                "sensors": list(self.skeleton.names), "hierarchy": self.skeleton.hierarchy,
-                "bones": len(data.get("bones", [])), "origin": self.origin, "source": source,
-                "created_utc": data.get("created_utc")}
-
-
-def performer_of(data: dict) -> str | None:
-    """The performer a skeleton file names (top level or its `source`), if any."""
-    source = data.get("source") if isinstance(data.get("source"), dict) else {}
-    name = data.get("performer") or source.get("performer")
-    return name if isinstance(name, str) and name.strip() else None
+        skel = self.skeleton
+        return {"name": self.name, "performer": skel.performer, "root": skel.root, "sensors": list(skel.names),
+                "hierarchy": skel.hierarchy, "bones": skel.bone_count, "origin": self.origin, "source": skel.source,
+                "created_utc": skel.created_utc}
 
 
 def safe_name(text: str) -> str | None:
@@ -57,13 +48,12 @@ def safe_name(text: str) -> str | None:
     return name if name and NAME_RE.fullmatch(name) else None
 
 
-def check_performers(data: dict) -> None:
-    """BadRequest unless every performer the file names (top level, `source`) is a valid performer name:
-    it is shown in the preset list and may become a session's performer."""
+def check_performers(skel) -> None:
+    """BadRequest unless every performer the skeleton file names (top level, `source`) is a valid performer
+    name: it is shown in the preset list and may become a session's performer."""
     from flockcal.server.settings import PERFORMER_RE, PERFORMER_RULE
 
-    source = data.get("source") if isinstance(data.get("source"), dict) else {}
-    for where, value in (("performer", data.get("performer")), ("source.performer", source.get("performer"))):
+    for where, value in skel.performers:
         if value is None:
             continue
         if not isinstance(value, str) or not PERFORMER_RE.fullmatch(value) or not value.strip():
@@ -138,7 +128,7 @@ class SkeletonLibrary:
         path = Path(path)
         skel = load_skeleton(path)
         self._check(skel, str(path))
-        name = safe_name(performer_of(skel.data) or "") or safe_name(path.stem)
+        name = safe_name(skel.performer or "") or safe_name(path.stem)
         if name is None:
             raise SkeletonError(f"{path}: cannot make a preset name from it; rename the file (letters, digits, _ . -)")
         if name in RESERVED:
@@ -169,9 +159,9 @@ class SkeletonLibrary:
             raise ServerError(str(exc), status=422, code="invalid_request") from None
         except SkeletonError as exc:
             raise BadRequest(str(exc)) from None
-        check_performers(skel.data)
+        check_performers(skel)
         if name is None:
-            name = safe_name(performer_of(skel.data) or "")
+            name = safe_name(skel.performer or "")
             if name is None:
                 raise BadRequest("the skeleton names no performer; give one as ?name=")
         elif not NAME_RE.fullmatch(name):

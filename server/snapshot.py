@@ -16,6 +16,7 @@ from typing import Callable
 
 import numpy as np
 
+from flockcal.server.events import Event
 from flockcal.server.fitting import FitView
 from flockcal.server.live_session import SessionSummary
 from flockcal.server.pose import live_pose
@@ -53,7 +54,7 @@ class Snapshot:
     fit_view: FitView | None  # the live session's newest fit
     fit_seq: int  # increases when the fit changes
     residuals: tuple[ResidualSample, ...]  # recent samples, oldest first
-    events: tuple[dict, ...]  # recent events (each with its store id), oldest first
+    events: tuple[Event, ...]  # recent events (each with its store id), oldest first
     rotations: np.ndarray | None  # newest pose of each sensor (m,3,3) (held where invalid)
     positions: np.ndarray | None  # (m,3)
     valid: np.ndarray | None  # (m,) whether the newest frame held a valid record for each sensor
@@ -75,10 +76,6 @@ class Snapshot:
         """The progress as the service publishes it (docs/service.md), None without a live session."""
         return None if self.progress is None else self.progress.to_dict()
 
-    @property
-    def hints(self) -> list[dict]:
-        return self.progress_doc["hints"] if self.progress is not None else []
-
     @cached_property
     def pose(self) -> dict | None:
         if self.rotations is None:
@@ -96,8 +93,9 @@ class Snapshot:
         # The progress document's fields ride at the top level next to the fit: "progress" stays the number
         # it always was, now the service's one definition (docs/service.md#progress-one-figure-for-the-kiosk-the-dashboard-and-the-api).
         return json.dumps({
-            "result": self.fit, **(self.progress_doc or {}), "hints": self.hints,
-            "session": self.status["session"], "fit_seq": self.fit_seq, "snapshot": self.seq, "frames": self.frames,
+            "result": self.fit, **(self.progress_doc or {"hints": []}),
+            "session": None if self.session is None else self.session.to_dict(), "fit_seq": self.fit_seq,
+            "snapshot": self.seq, "frames": self.frames,
         })
 
     @cached_property

@@ -1,6 +1,7 @@
 """Frame sources the pipeline can listen to: the tracker reader (any pyserial URL, sim:// included).
 
-A source calls `on_frames(frames)` with a `Frames` batch and `on_event(dict)` for tracker news, from its own thread; `status()` reports the link; `start_recording`
+A source calls `on_frames(frames)` with a `Frames` batch and `on_event(event)` for tracker news (a
+`drivers.reader.TrackerEvent`), from its own thread; `status()` reports the link; `start_recording`
 / `stop_recording` write the raw bytes of one session. The pipeline does not care which source it has;
 only a sim:// device gives a `simulator` (the performer, reached through the port the source opened).
 """
@@ -10,16 +11,20 @@ from __future__ import annotations
 import dataclasses
 import time
 import urllib.parse
-from typing import Callable, Protocol
+from typing import TYPE_CHECKING, Callable, Protocol
 
 from flockcal.drivers.port_guard import check_port
 from flockcal.errors import FlockcalError
 from flockcal.frames import Frames
 from flockcal.server.errors import ConfigError
+from flockcal.server.events import Event
 from flockcal.server.settings import Settings
 
+if TYPE_CHECKING:
+    from flockcal.drivers.reader import TrackerEvent
+
 OnFrames = Callable[[Frames], None]
-OnEvent = Callable[[dict], None]
+OnEvent = Callable[["TrackerEvent"], None]
 
 
 class FrameSource(Protocol):
@@ -77,23 +82,12 @@ def open_simulation(url: str):
         port.close()
 
 
-def event_dict(event) -> dict:
-    """A TrackerEvent (dataclass or object) as a JSON-able dict with type 'tracker'."""
-    if isinstance(event, dict):
-        d = dict(event)
-    elif dataclasses.is_dataclass(event):
-        d = dataclasses.asdict(event)
-    else:
-        d = {k: v for k, v in vars(event).items() if not k.startswith("_")}
-    if "type" in d and d["type"] != "tracker":
-        d["kind"] = d.pop("type")
-    d["type"] = "tracker"
-    for k, v in list(d.items()):
-        if not isinstance(v, (str, int, float, bool, type(None), list, dict)):
-            d[k] = str(v)
-    if "wall_time" in d and not isinstance(d["wall_time"], (int, float)):
-        d.pop("wall_time")
-    return d
+def tracker_event(event: TrackerEvent) -> Event:
+    """The driver's news as the store and the websocket have it: an event of type "tracker" with the
+    TrackerEvent's fields (kind, message, time, data), each JSON-able."""
+    fields = dataclasses.asdict(event)
+    return Event.new("tracker", **{k: v if isinstance(v, (str, int, float, bool, type(None), list, dict)) else str(v)
+                                   for k, v in fields.items()})
 
 
 class TrackerSource:
@@ -139,7 +133,7 @@ class TrackerSource:
         )
         try:
             self.reader = TrackerReader(cfg, on_frames=on_frames,
-                                        on_event=lambda ev: on_event(event_dict(ev)),
+                                        on_event=on_event,
                                         recording_header={"names": list(self.names)})
         except FlockcalError as exc:
             raise ConfigError(f"--device {self.url}: {exc}") from None

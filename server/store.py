@@ -12,11 +12,17 @@ import json
 import os
 import sqlite3
 import threading
-import time
+from collections.abc import Mapping
 from contextlib import contextmanager
+from dataclasses import dataclass
 from pathlib import Path
 
+from flockcal.errors import FlockcalError
 from flockcal.server.errors import DatabaseDamaged, InsufficientStorage, ServerError, Unavailable
+from flockcal.server.events import Event
+from flockcal.solver.calibration import Calibration
+from flockcal.solver.progress import Progress
+from flockcal.solver.slippage.monitor import SlipEvent
 
 SCHEMA = """
 CREATE TABLE IF NOT EXISTS sessions (
@@ -32,7 +38,8 @@ CREATE TABLE IF NOT EXISTS sessions (
     stopped_at REAL,                -- created_at + duration_s: never before created_at
     frames INTEGER NOT NULL DEFAULT 0,
     recording TEXT,                 -- file name inside the recordings directory
-    result TEXT,                    -- JSON of design.md §5, NULL until stopped or re-solved
+    result TEXT,                    -- the fit as a record (solver/records.py: the Calibration whole, its slips
+                                    -- typed); older rows: the JSON of design.md §5. NULL until stopped or re-solved
     note TEXT,
     progress TEXT,                  -- JSON of solver/progress.py's Progress as the session ended (or was re-solved)
     profile TEXT,                   -- stage | kiosk: how it decides it is calibrated (NULL: stage, older sessions)
@@ -59,6 +66,40 @@ SESSION_COLUMNS = (
     "id", "performer", "state", "root", "hierarchy", "names", "device", "rate_hz",
     "created_at", "stopped_at", "frames", "recording", "note", "profile", "duration_s",
 )
+
+
+@dataclass(frozen=True)
+class SessionRow:
+    """A session as the API shows it (`models.Session`): its row, decoded once where it is read, then what
+    the session manager adds (its files, its lease, retention's pin and prune; the live session's figures).
+    The fields up to `done` are read from the row, in `SESSION_COLUMNS` order; `progress` and `done` are
+    its stored progress document's (None before one was kept)."""
+
+    id: str
+    performer: str
+    state: str  # live | stopped | interrupted
+    root: str | None
+    hierarchy: dict | None
+    names: list
+    device: str
+    rate_hz: float | None
+    created_at: float
+    stopped_at: float | None
+    frames: int
+    recording: str | None
+    note: str | None
+    profile: str | None
+    duration_s: float | None
+    has_result: bool
+    progress: float | None
+    done: bool | None
+    has_recording: bool = False
+    has_raw_recording: bool = False
+    skeleton: str | None = None
+    lease_s: float | None = None
+    pinned: bool = False
+    pruned_at: float | None = None
+    pruned_reason: str | None = None
 
 
 def damaged_message(path: Path, what: str) -> str:
@@ -127,7 +168,7 @@ class Store:
         with self._lock:
             self._db.executescript(SCHEMA)
             # Databases made before sessions kept their progress gain the column (empty for old sessions).
-            columns = {r["name"] for r in self._db.execute("PRAGMA table_info(sessions)")}
+            columns = {name for (name,) in self._db.execute("SELECT name FROM pragma_table_info('sessions')")}
             if "progress" not in columns:
                 self._db.execute("ALTER TABLE sessions ADD COLUMN progress TEXT")
             # ... and, since sessions chose how they decide they are calibrated, their profile (stage before).
@@ -172,38 +213,44 @@ class Store:
             return self._db.execute(sql, args).fetchall()
 
     # --- sessions -----------------------------------------------------------------------------
-    def insert_session(self, row: dict) -> None:
+    def insert_session(self, row: Mapping) -> None:
+        """A new session's row from its column values by name (SESSION_COLUMNS)."""
         cols = [c for c in SESSION_COLUMNS if c in row]
         vals = [json.dumps(row[c]) if c in ("hierarchy", "names") and row[c] is not None else row[c] for c in cols]
         self._run(f"INSERT INTO sessions ({', '.join(cols)}) VALUES ({', '.join('?' * len(cols))})", vals)
 
     def update_session(self, session_id: str, **fields) -> None:
-        for key in ("result", "progress"):
-            if key in fields and fields[key] is not None and not isinstance(fields[key], str):
-                fields[key] = json.dumps(fields[key])
+        """Set columns of a session's row: `result` a Calibration (kept whole as its record: solver/records.py),
+        `progress` a Progress (its document), others as they are."""
         sets = ", ".join(f"{k} = ?" for k in fields)
-        self._run(f"UPDATE sessions SET {sets} WHERE id = ?", [*fields.values(), session_id])
+        self._run(f"UPDATE sessions SET {sets} WHERE id = ?", [*map(_column, fields.values()), session_id])
 
-    def session(self, session_id: str) -> dict | None:
-        rows = self._run(f"SELECT {', '.join(SESSION_COLUMNS)}, result IS NOT NULL AS has_result, progress "
-                         "FROM sessions WHERE id = ?", (session_id,))
-        return self._session_dict(rows[0]) if rows else None
+    def session(self, session_id: str) -> SessionRow | None:
+        rows = self._run(f"{_SESSION_SELECT} WHERE id = ?", (session_id,))
+        return self._session_row(rows[0]) if rows else None
 
-    def sessions(self) -> list[dict]:
-        rows = self._run(f"SELECT {', '.join(SESSION_COLUMNS)}, result IS NOT NULL AS has_result, progress "
-                         "FROM sessions ORDER BY created_at DESC")
-        return [self._session_dict(r) for r in rows]
+    def sessions(self) -> list[SessionRow]:
+        rows = self._run(f"{_SESSION_SELECT} ORDER BY created_at DESC")
+        return [self._session_row(r) for r in rows]
 
-    def progress(self, session_id: str) -> dict | None:
-        """The progress document stored when the session stopped or was re-solved, None before."""
+    def progress(self, session_id: str) -> Progress | None:
+        """The progress stored when the session stopped or was re-solved, None before."""
         rows = self._run("SELECT progress FROM sessions WHERE id = ?", (session_id,))
-        text = rows[0]["progress"] if rows else None
-        return self._loads(text, f"session {session_id}'s progress") if text else None
+        text = rows[0][0] if rows else None
+        if not text:
+            return None
+        what = f"session {session_id}'s progress"
+        try:
+            return Progress.from_dict(self._loads(text, what))
+        except (KeyError, TypeError, ValueError):
+            raise DatabaseDamaged(damaged_message(self.path, f"{what} is not a progress document")) from None
 
-    def result(self, session_id: str) -> dict | None:
+    def result(self, session_id: str) -> Calibration | None:
+        """The session's stored fit, decoded once: its record, or (a row stored before records) its §5 object
+        read by the one parser, solver/calibration_json.py."""
         rows = self._run("SELECT result FROM sessions WHERE id = ?", (session_id,))
-        text = rows[0]["result"] if rows else None
-        return self._loads(text, f"session {session_id}'s result") if text else None
+        text = rows[0][0] if rows else None
+        return decoded_result(text, self.path, f"session {session_id}'s result") if text else None
 
     def delete_session(self, session_id: str) -> None:
         with self._lock, self._guard():
@@ -219,26 +266,24 @@ class Store:
 
     def mark_interrupted(self) -> list[str]:
         """Sessions left 'live' by a process that died: mark them interrupted; returns their ids."""
-        ids = [r["id"] for r in self._run("SELECT id FROM sessions WHERE state = 'live'")]
+        ids = [sid for (sid,) in self._run("SELECT id FROM sessions WHERE state = 'live'")]
         if ids:
             self._run("UPDATE sessions SET state = 'interrupted', note = ? WHERE state = 'live'",
                       ("the service stopped while this session was live; re-solve it from its recording",))
         return ids
 
     # --- events and residuals ------------------------------------------------------------------
-    def add_events(self, events: list[dict]) -> list[int]:
-        """Insert events ({session_id, type, time_s, wall_time, …payload}); returns their ids. An event that
-        carries an `id` keeps it (one held in memory while the disk was full, already shown with it)."""
+    def add_events(self, events: list[Event]) -> list[int]:
+        """Insert events; returns their ids. An event that has an id keeps it (one held in memory while the
+        disk was full, already shown with it)."""
         ids = []
         with self._lock, self._guard():
             self._db.execute("BEGIN")
             try:
                 for ev in events:
-                    payload = {k: v for k, v in ev.items() if k not in ("id", "session_id", "type", "time_s", "wall_time")}
                     cur = self._db.execute(
                         "INSERT INTO events (id, session_id, type, time_s, wall_time, payload) VALUES (?, ?, ?, ?, ?, ?)",
-                        (ev.get("id"), ev.get("session_id"), ev["type"], ev.get("time_s"), ev.get("wall_time", time.time()),
-                         json.dumps(payload)),
+                        (ev.id, ev.session_id, ev.type, ev.time_s, ev.wall_time, json.dumps(ev.payload)),
                     )
                     ids.append(cur.lastrowid)
                 self._db.execute("COMMIT")
@@ -249,16 +294,31 @@ class Store:
 
     def last_event_id(self) -> int:
         """The largest event id stored (a read: it works on a full disk)."""
-        return int(self._run("SELECT COALESCE(MAX(id), 0) AS n FROM events")[0]["n"])
+        return int(self._run("SELECT COALESCE(MAX(id), 0) FROM events")[0][0])
 
-    def events(self, session_id: str | None, since_id: int = 0, limit: int | None = 1000) -> list[dict]:
+    def events(self, session_id: str | None, since_id: int = 0, limit: int | None = 1000) -> list[Event]:
         """Events after `since_id`, oldest first, at most `limit` (None: all of them)."""
         limit = -1 if limit is None else limit  # SQLite: a negative LIMIT is none
         if session_id is None:
-            rows = self._run("SELECT * FROM events WHERE id > ? ORDER BY id LIMIT ?", (since_id, limit))
+            rows = self._run(f"{_EVENT_SELECT} WHERE id > ? ORDER BY id LIMIT ?", (since_id, limit))
         else:
-            rows = self._run("SELECT * FROM events WHERE session_id = ? AND id > ? ORDER BY id LIMIT ?", (session_id, since_id, limit))
-        return [self._event_dict(r) for r in rows]
+            rows = self._run(f"{_EVENT_SELECT} WHERE session_id = ? AND id > ? ORDER BY id LIMIT ?",
+                             (session_id, since_id, limit))
+        return [self._event(*r) for r in rows]
+
+    def slips(self, session_id: str, names) -> tuple[SlipEvent, ...]:
+        """The session's slip events naming one of `names`, oldest first, as the slip monitor reported them
+        (to their stored rounding): what its result lists and a re-solve refits at."""
+        from flockcal.solver.calibration_json import event_from_json
+
+        rows = self._run("SELECT time_s, payload FROM events WHERE session_id = ? AND type = 'slip' AND "
+                         "json_extract(payload, '$.sensor') IN (SELECT value FROM json_each(?)) ORDER BY id",
+                         (session_id, json.dumps(list(names))))
+        what = f"a slip event of session {session_id}"
+        try:
+            return tuple(event_from_json({**self._loads(payload, what), "time_s": t}, names) for t, payload in rows)
+        except (FlockcalError, TypeError, ValueError) as exc:
+            raise DatabaseDamaged(damaged_message(self.path, f"{what} cannot be read: {exc}")) from None
 
     def add_residuals(self, session_id: str, samples: list[tuple[float, dict]]) -> None:
         if not samples:
@@ -274,7 +334,7 @@ class Store:
             "SELECT time_s, rms_mm FROM residuals WHERE session_id = ? AND time_s > ? ORDER BY time_s LIMIT ?",
             (session_id, since, limit),
         )
-        return [(r["time_s"], self._loads(r["rms_mm"], f"a residual sample of session {session_id}")) for r in rows]
+        return [(t, self._loads(rms, f"a residual sample of session {session_id}")) for t, rms in rows]
 
     def thin_residuals(self, session_id: str, every_s: float = 1.0) -> int:
         """Keep one residual sample per `every_s` of a session's time (the first of each), for a session
@@ -288,30 +348,56 @@ class Store:
 
     def counts(self) -> dict:
         """Row counts per table (tests use this to see that a bad request changed nothing)."""
-        return {t: self._run(f"SELECT COUNT(*) AS n FROM {t}")[0]["n"] for t in ("sessions", "events", "residuals")}
+        return {t: self._run(f"SELECT COUNT(*) FROM {t}")[0][0] for t in ("sessions", "events", "residuals")}
 
-
-    def _session_dict(self, row: sqlite3.Row) -> dict:
-        d = dict(row)
-        where = f"session {d.get('id')!r}"
-        d["hierarchy"] = self._loads(d["hierarchy"], f"{where}'s hierarchy") if d["hierarchy"] else None
-        d["names"] = self._loads(d["names"], f"{where}'s sensor names")
-        d["has_result"] = bool(d["has_result"])
-        if d.get("duration_s") is None and d.get("stopped_at") is not None:  # stopped before durations were measured
-            d["duration_s"] = max(d["stopped_at"] - d["created_at"], 0.0)
-        doc = self._loads(d.pop("progress"), f"{where}'s progress") if d.get("progress") else None
-        try:
-            d["progress"] = doc["progress"] if doc else None
-            d["done"] = doc["done"] if doc else None
-        except (TypeError, KeyError):
-            raise DatabaseDamaged(damaged_message(self.path, f"{where}'s progress is not a progress document")) from None
-        if not isinstance(d["names"], list) or not isinstance(d["id"], str):
+    def _session_row(self, row: sqlite3.Row) -> SessionRow:
+        (sid, performer, state, root, hierarchy, names, device, rate_hz, created_at, stopped_at, frames, recording,
+         note, profile, duration_s, has_result, progress, done) = row
+        where = f"session {sid!r}"
+        hierarchy = self._loads(hierarchy, f"{where}'s hierarchy") if hierarchy else None
+        names = self._loads(names, f"{where}'s sensor names")
+        if not isinstance(names, list) or not isinstance(sid, str):
             raise DatabaseDamaged(damaged_message(self.path, f"{where}'s row is malformed"))
-        return d
+        if duration_s is None and stopped_at is not None:  # stopped before durations were measured
+            duration_s = max(stopped_at - created_at, 0.0)
+        return SessionRow(sid, performer, state, root, hierarchy, names, device, rate_hz, created_at, stopped_at,
+                          frames, recording, note, profile, duration_s, bool(has_result), progress,
+                          None if done is None else bool(done))
 
-    def _event_dict(self, row: sqlite3.Row) -> dict:
-        d = self._loads(row["payload"], f"event {row['id']}")
+    def _event(self, id: int, session_id: str | None, type: str, time_s: float | None, wall_time: float,
+               payload: str) -> Event:
+        d = self._loads(payload, f"event {id}")
         if not isinstance(d, dict):
-            raise DatabaseDamaged(damaged_message(self.path, f"event {row['id']} is not a JSON object"))
-        d.update(id=row["id"], session_id=row["session_id"], type=row["type"], time_s=row["time_s"], wall_time=row["wall_time"])
-        return d
+            raise DatabaseDamaged(damaged_message(self.path, f"event {id} is not a JSON object"))
+        return Event.stored(id, session_id, type, time_s, wall_time, d)
+
+
+# A session row with its stored progress document's figure and flag (SessionRow's fields in order).
+_SESSION_SELECT = (f"SELECT {', '.join(SESSION_COLUMNS)}, result IS NOT NULL, json_extract(progress, '$.progress'), "
+                   "json_extract(progress, '$.done') FROM sessions")
+_EVENT_SELECT = "SELECT id, session_id, type, time_s, wall_time, payload FROM events"
+
+
+def _column(value):
+    """A value as its column holds it: a fit as its record, a progress as its document, JSON for the rest
+    that is not a plain value."""
+    if isinstance(value, Calibration):
+        from flockcal.solver.records import record_text
+
+        return record_text(value)
+    if isinstance(value, Progress):
+        value = value.to_dict()
+    return json.dumps(value) if isinstance(value, (dict, list)) else value
+
+
+def decoded_result(text: str, path: Path, what: str) -> Calibration:
+    """A stored fit: its record (solver/records.py), or the §5 object a row held before records."""
+    from flockcal.solver.calibration_json import calibration_from_json
+    from flockcal.solver.records import from_record
+
+    try:
+        if text.startswith('{"$record"'):
+            return from_record(text, Calibration)
+        return calibration_from_json(json.loads(text))
+    except (FlockcalError, ValueError, TypeError) as exc:
+        raise DatabaseDamaged(damaged_message(path, f"{what} cannot be read: {exc}")) from None

@@ -1,6 +1,6 @@
 """VMC protocol out: the live humanoid as OSC bundles over UDP to VMC receivers (EVMC4U, VMC4UE, VMC4B, Godot's),
 laid out by python-osc once per set of bones and refilled in place each frame, sent fire-and-forget
-(docs/outputs.md#vmc-the-live-humanoid-over-the-vmc-protocol).
+(docs/streams.md#vmc-the-live-humanoid-over-the-vmc-protocol).
 """
 
 from __future__ import annotations
@@ -14,7 +14,7 @@ import numpy as np
 from pythonosc.osc_bundle_builder import IMMEDIATELY, OscBundleBuilder
 from pythonosc.osc_message_builder import OscMessageBuilder
 
-from flockcal.server.pose import quaternions
+from flockcal.rotations import as_quat
 
 log = logging.getLogger(__name__)
 
@@ -132,7 +132,7 @@ class BoneLayout:
         local[self.has] = np.swapaxes(rotations[self.up], -1, -2) @ rotations[self.has]
         pos = self.offsets.copy()
         pos[~self.has] = positions[~self.has] * UNITY_POSITION
-        return np.concatenate([pos, quaternions(local) * UNITY_QUATERNION], axis=1)
+        return np.concatenate([pos, as_quat(local, scalar_first=False) * UNITY_QUATERNION], axis=1)
 
 
 class Bundle:

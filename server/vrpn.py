@@ -1,6 +1,6 @@
 """A VRPN tracker server, the live humanoid as `vrpn_Tracker` reports to any VRPN client, written from VRPN's
 protocol description and sources (Format_Of_Protocol.txt, vrpn_Connection.C, vrpn_Tracker.C): TCP and UDP on
-one port, non-blocking sockets on the caller's selector (docs/outputs.md#vrpn-the-live-humanoid-as-a-vrpn-tracker).
+one port, non-blocking sockets on the caller's selector (docs/streams.md#vrpn-the-live-humanoid-as-a-vrpn-tracker).
 """
 
 from __future__ import annotations

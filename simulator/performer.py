@@ -221,12 +221,12 @@ class Performer:
         direction=None,
         angle_deg: float = 0.0,
         unstreamed: bool = False,
-    ) -> dict:
+    ) -> SlipEvent:
         """Make `sensor` slide `distance_m` along the skin at `at_time` (default: just after the last time
         streamed). `direction` is a 3-vector in the body's bone frame (default: a seeded direction in the
         skin's plane); `angle_deg` turns the sensor about the skin normal too. `unstreamed`: refuse an
         `at_time` whose poses were already handed out (a live stream cannot take a slip back). Returns
-        the event."""
+        the event (`.as_dict(names)`: as `slips` lists it)."""
         i = self.index(sensor)
         if not 0.0 <= float(distance_m) < 0.5:
             raise SimulatorError(f"slip distance {distance_m} m should be between 0 and 0.5 m")
@@ -245,7 +245,7 @@ class Performer:
                 raise SimulatorError("slip direction must be a non-zero 3-vector in the body's bone frame")
             ev = SlipEvent(when, i, float(distance_m) * d / np.linalg.norm(d), float(np.radians(angle_deg)))
             self._faults = replace(self._faults, slips=self._faults.slips + (ev,))
-        return ev.as_dict(self.names)
+        return ev
 
     def set_dropout(self, prob: float, burst_s: float = 0.0) -> None:
         """Lose each sensor-frame with probability `prob` (in bursts of `burst_s` seconds if > 0)."""

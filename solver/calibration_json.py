@@ -14,7 +14,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from flockcal.solver.calibration import Bones, Calibration
+from flockcal.solver.calibration import Bones, Calibration, HingePoints, OpticalExtras
 from flockcal.solver.errors import SolverError
 from flockcal.solver.fits import unfitted
 
@@ -96,7 +96,7 @@ def calibration_json(cal) -> dict:
         "joints": joints,
         "bones": bones,
         "loop_candidates": [{"a": nm[a], "b": nm[bb], "rms_m": _num(r)} for a, bb, r in cal.loop_candidates],
-        "slip_events": [event_json(e) for e in cal.slip_events],
+        "slip_events": [_clean(event_json(e)) for e in cal.slip_events],
     }
     if optical is not None:
         out.update(bodies=dict(optical.bodies), markers=_clean(dict(optical.markers)),
@@ -221,12 +221,18 @@ def as_calibration(obj, names=None, error: type[Exception] = SolverError) -> Cal
 
 
 def calibration_from_json(d, names=None, error: type[Exception] = SolverError) -> Calibration:
-    """A Calibration from a §5 object (`flockcal fit --json`, a skeleton file, a stored fit).
+    """A Calibration from a §5 object (`flockcal fit --json`, a skeleton file, a stored fit): the one parser.
 
-    Reads only the stable contract: `sensors` (or the take's `names` when absent), `root`, `parent`
-    (when absent: the joints' own child → parent), `joints[].child/parent/c/l` and `rigid_groups`;
-    every other joint statistic is NaN. Joints off the tree (loop candidates) are dropped; a null
-    centre becomes NaN. `error` is the exception the caller's users know; its message names the problem.
+    Reads the whole object `calibration_json` writes, so that `calibration_json(calibration_from_json(d))`
+    is `d` again for any object it wrote: `sensors` (or the take's `names` when absent), `root`, `parent`
+    (when absent: the joints' own child → parent), every tree joint's `c`, `l` and statistics, `bones`,
+    `loop_candidates`, `slip_events` (as `SlipEvent` / `SwapEvent`), `rigid_groups`, `ambiguous`, a saved
+    skeleton's and an optical fit's extra keys, and the humanoid. A field the object lacks reads as nothing
+    measured (NaN, no hinge, nothing refitted after a slip); a joint without "determined" (a fit written
+    before docs/design.md §3a, a truth file) counts as determined. Joints off the tree (loop candidates)
+    are dropped; a null number becomes NaN. What the §5 object leaves out (the all-pair fits, covariances,
+    a saved-skeleton fit's state) is not there to read: solver/records.py keeps a result whole. `error` is
+    the exception the caller's users know; its message names the problem.
     """
     if not isinstance(d, Mapping):
         raise error(f"expected a Calibration or its §5 dict, got {type(d).__name__}")
@@ -259,7 +265,7 @@ def calibration_from_json(d, names=None, error: type[Exception] = SolverError) -
     if root is not None and str(root) in index and parent[index[str(root)]] != -1:
         raise error(f"root {root!r} has a parent in the parent map")
     root_i = index[str(root)] if root is not None and str(root) in index else int(roots[0]) if len(roots) else 0
-    rows, c, l = [], [], []
+    rows, tree = [], []
     for e in entries:
         child = str(e["child"])
         if child not in index:
@@ -268,23 +274,109 @@ def calibration_from_json(d, names=None, error: type[Exception] = SolverError) -
         if parent[i] < 0 or names[parent[i]] != str(e["parent"]):
             continue  # a non-tree joint (loop candidate) takes no part in driving the tree
         rows.append((i, int(parent[i])))
-        c.append(_point(e.get("c")))
-        l.append(_point(e.get("l")))
-    joints = unfitted(rows)
-    joints = replace(joints, c=np.array(c, dtype=float).reshape(-1, 3), l=np.array(l, dtype=float).reshape(-1, 3))
-    groups = [[index[str(x)] for x in g if str(x) in index] for g in (d.get("rigid_groups") or [])]
+        tree.append(e)
+    try:
+        joints, extra = _joint_fits(rows, tree)
+        bones = _bones_from_json(d.get("bones") or [], index)
+        loops = [(index[str(x["a"])], index[str(x["b"])], _or_nan(x.get("rms_m"))) for x in d.get("loop_candidates") or []]
+        groups = [[index[str(x)] for x in g if str(x) in index] for g in (d.get("rigid_groups") or [])]
+        ambiguous = [(index[str(x["child"])], [index[str(p)] for p in x.get("parents") or []], str(x.get("note") or ""))
+                     for x in d.get("ambiguous") or []]
+    except KeyError as exc:
+        raise error(f"the calibration names {exc} where a sensor or a field was expected (docs/design.md §5 "
+                    "lists the fields)") from None
+    except (TypeError, ValueError) as exc:
+        raise error(f"the calibration has a malformed field ({exc}); docs/design.md §5 lists the fields") from None
+    events = tuple(event_from_json(e, names, error) for e in d.get("slip_events") or [])
     placement = np.full((m, 3), np.nan)
     placement[joints.pairs[:, 0]] = joints.c
-    z = np.zeros(0)
-    bones = Bones(z.astype(int), z.astype(int), z.astype(int), z, z, z.astype(bool))
     humanoid = humanoid_from_json(d, names)
     order, k = [root_i], 0
     while k < len(order):  # root first, parents before children (a cycle stays out: callers check the tree)
         order += np.flatnonzero(parent == order[k]).tolist()
         k += 1
     return Calibration(names, root_i, parent, np.asarray(order), int(d.get("frames") or 0), joints, bones, placement,
-                       rigid_groups=groups, hierarchy_given=True, known_skeleton=bool(d.get("known_skeleton")),
-                       humanoid=humanoid)
+                       loop_candidates=loops, rigid_groups=groups, ambiguous=ambiguous, hierarchy_given=True,
+                       slip_events=events, known_skeleton=bool(d.get("known_skeleton")), humanoid=humanoid,
+                       optical=_optical_from_json(d, extra) if "markers" in d else None, **extra["calibration"])
+
+
+# The §5 keys a calibration's own fields fill; an optical fit's other top-level keys are its exercise report.
+_KEYS = frozenset(("sensors", "root", "parent", "frames", "joints", "bones", "loop_candidates", "slip_events",
+                   "bodies", "markers", "unused_markers", "swap_events", "marker_outlier_threshold_m", "known_skeleton",
+                   "rigid_groups", "ambiguous", "humanoid", "humanoid_note", "humanoid_conflicts"))
+_HINGE_RULES = {name: code for code, name in HINGE_POINT_RULES.items()}
+
+
+def _joint_fits(rows: list, entries: list) -> tuple:
+    """(PairFits of the tree joints' §5 entries, what else they carry: the Calibration's per-joint fields and an
+    optical fit's per-joint keys)."""
+    p = len(rows)
+    joints = unfitted(rows)
+
+    def num(key):
+        return np.array([_or_nan(e.get(key)) for e in entries], dtype=float).reshape(p)
+
+    def vec(key, k=3):
+        return np.array([_vector(e.get(key), k) for e in entries], dtype=float).reshape(p, k)
+
+    def present(key):
+        return any(key in e for e in entries)
+
+    joints = replace(
+        joints, c=vec("c"), l=vec("l"), rms=num("rms_m"), epsilon=num("epsilon"), singular_values=vec("singular_values", 6),
+        hinge=np.array([bool(e.get("hinge")) for e in entries], dtype=bool).reshape(p),
+        determined=np.array([bool(e.get("determined", True)) for e in entries], dtype=bool).reshape(p),
+        axis_i=vec("axis_child"), axis_j=vec("axis_parent"), coverage=vec("coverage"), c_stderr=num("c_stderr_m"),
+        l_stderr=num("l_stderr_m"), direction_error=vec("direction_error_m"), noise_error=vec("noise_error_m"))
+    own = {}
+    if present("rms_free_m"):
+        own["rms_free"] = num("rms_free_m")
+    if present("segment_start_s"):
+        own["segment_start_s"] = num("segment_start_s")
+    if present("hinge_point"):
+        placed = [e.get("hinge_point") or {} for e in entries]
+        own["hinge_point"] = HingePoints(np.array([_HINGE_RULES[h["rule"]] if h else -1 for h in placed], dtype=int),
+                                         np.array([float(h["data_share"]) if h else 0.0 for h in placed], dtype=float))
+    optical = {}
+    if present("kirk_rms_m"):
+        optical["kirk_rms"] = num("kirk_rms_m")
+        optical["joint_decisions"] = tuple({"determined": e.get("determined"), "direction_error_m": e.get("direction_error_m")}
+                                           for e in entries)
+    return joints, {"calibration": own, "optical": optical}
+
+
+def _bones_from_json(entries: list, index: dict) -> Bones:
+    """The `Bones` of §5 `bones` entries (a bone between two outboard joints of the root body names one of
+    them as its `from_joint`, where every other bone names its own body's inboard joint: its body)."""
+    body = np.array([index[str(b["body"])] for b in entries], dtype=int)
+    frm = np.array([-1 if b.get("from_joint") is None else index[str(b["from_joint"])] for b in entries], dtype=int)
+    to = np.array([index[str(b["to_joint"])] for b in entries], dtype=int)
+    length = np.array([_or_nan(b.get("length_m")) for b in entries], dtype=float)
+    stderr = np.array([_or_nan(b.get("stderr_m")) for b in entries], dtype=float)
+    seg = (np.array([_or_nan(b.get("segment_start_s")) for b in entries], dtype=float)
+           if any("segment_start_s" in b for b in entries) else None)
+    return Bones(body, frm, to, length, stderr, (frm >= 0) & (frm != body), seg)
+
+
+def _optical_from_json(d: Mapping, extra: dict) -> OpticalExtras:
+    """An optical fit's extra keys (solver/optical/pipeline.py: "bodies", "markers", …) as its `OpticalExtras`."""
+    got = extra["optical"]
+    m = len(d["joints"])
+    return OpticalExtras(got.get("kirk_rms", np.full(m, np.nan)), dict(d["bodies"]), dict(d.get("markers") or {}),
+                         tuple(d.get("unused_markers") or ()), tuple(d.get("swap_events") or ()),
+                         _or_nan(d.get("marker_outlier_threshold_m")), got.get("joint_decisions", ()),
+                         {k: v for k, v in d.items() if k not in _KEYS})
+
+
+def _vector(x, k: int) -> list:
+    """A §5 vector of k numbers, NaN for a null entry or a null vector."""
+    if x is None:
+        return [np.nan] * k
+    out = [np.nan if v is None else float(v) for v in x]
+    if len(out) != k:
+        raise ValueError(f"{out!r} is not {k} numbers")
+    return out
 
 
 def humanoid_from_json(d: Mapping, names) -> "Humanoid | None":
@@ -305,5 +397,3 @@ def humanoid_from_json(d: Mapping, names) -> "Humanoid | None":
     return Humanoid(bones, nan, np.full((m, 3, 3), np.nan), "", conflicts)
 
 
-def _point(x) -> np.ndarray:
-    return np.broadcast_to(np.asarray(np.nan if x is None else x, dtype=float), 3).astype(float)

@@ -50,6 +50,32 @@ class Skeleton:
         return out
 
     @property
+    def source(self) -> dict:
+        """What the file says it was calibrated from (`source`: session, performer, take, frames, rate_hz), {}
+        when it says nothing."""
+        source = self.data.get("source")
+        return source if isinstance(source, dict) else {}
+
+    @property
+    def performers(self) -> tuple[tuple[str, object], ...]:
+        """(where, value) of each performer name the file gives, as written: top level, then its source's."""
+        return (("performer", self.data.get("performer")), ("source.performer", self.source.get("performer")))
+
+    @property
+    def performer(self) -> str | None:
+        """The performer the file names (top level, else its source's), if it names one."""
+        name = next((v for _, v in self.performers if v), None)
+        return name if isinstance(name, str) and name.strip() else None
+
+    @property
+    def created_utc(self) -> str | None:
+        return self.data.get("created_utc")
+
+    @property
+    def bone_count(self) -> int:
+        return len(self.data.get("bones", []))
+
+    @property
     def bone_keys(self) -> frozenset:
         """(from_joint, to_joint) of every bone the file holds: the ones its take measured."""
         return frozenset((b["from_joint"], b["to_joint"]) for b in self.data["bones"])

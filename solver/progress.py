@@ -163,8 +163,8 @@ class JointFit:
 
 @dataclass(frozen=True)
 class FitFacts:
-    """The fields of one fit progress reads, by name: from a `Calibration` (the live service, the report,
-    a re-solve) or from its §5 dict (a stored result, a fit written out by hand)."""
+    """The fields of one fit progress reads, by name, off a `Calibration` (the live service, the report, a
+    re-solve; a §5 dict, a fit written out by hand, is decoded into one first)."""
 
     sensors: tuple
     root: str | None
@@ -178,58 +178,52 @@ class FitFacts:
 
     @classmethod
     def of(cls, fit) -> "FitFacts":
-        """`fit` (a Calibration, its §5 dict, or FitFacts) as FitFacts."""
+        """`fit` (a Calibration, FitFacts, or a §5 dict: decoded first by `calibration_from_json`, the one
+        parser) as FitFacts."""
         if isinstance(fit, FitFacts):
             return fit
-        if isinstance(fit, Calibration):
-            return cls.of_calibration(fit)
-        return cls.from_dict(fit)
+        if not isinstance(fit, Calibration):
+            from flockcal.solver.calibration_json import calibration_from_json
+
+            fit = calibration_from_json(fit)
+        return cls.of_calibration(fit)
 
     @classmethod
     def of_calibration(cls, cal: Calibration) -> "FitFacts":
-        if cal.optical is not None:
-            # An optical fit's joints are judged from the bodies' poses (its §5 JSON carries the decisions).
-            return cls.from_dict(cal.to_dict())
         nm = cal.names
         j = cal.joints
-        err, noise = _finite(j.direction_error, math.inf), _finite(j.noise_error, math.inf)
+        determined, err = j.determined.tolist(), _finite(j.direction_error, math.inf)
+        noise = _finite(j.noise_error, math.inf)
+        optical = cal.optical is not None
+        if optical:
+            # An optical fit's joints are judged from the bodies' poses (solver/optical/exercised.py), not by
+            # the pair fit's statistics; a joint it could not judge counts as not determined, and no
+            # white-noise share is known.
+            determined, err = _judged(cal.optical.joint_decisions, len(j))
+            noise = [[math.inf] * 3 for _ in range(len(j))]
         cov = _finite(j.coverage, 0.0)
         joints = {}
-        for k, ((child, par), hinge, det) in enumerate(zip(j.pairs.tolist(), j.hinge.tolist(), j.determined.tolist())):
+        for k, ((child, par), hinge, det) in enumerate(zip(j.pairs.tolist(), j.hinge.tolist(), determined)):
             joints[nm[child]] = JointFit(nm[child], nm[par], bool(hinge), bool(det), tuple(err[k]), tuple(noise[k]),
                                          tuple(cov[k]))
         b = cal.bones
         bones = {(nm[body], nm[frm] if frm >= 0 else None, nm[to]): length
                  for body, frm, to, length in zip(b.body.tolist(), b.from_joint.tolist(), b.to_joint.tolist(),
                                                   b.length.tolist()) if math.isfinite(length)}
-        free = not cal.known_skeleton  # a saved skeleton's fit has no rigid groups or ambiguous children
+        free = not (cal.known_skeleton or optical)  # a saved skeleton's or optical fit: no rigid groups, no ambiguity
         groups = {nm[i]: tuple(nm[x] for x in g) for g in (cal.rigid_groups if free else ()) for i in g}
         ambiguous = {nm[c]: [nm[p] for p in ps] for c, ps, _ in (cal.ambiguous if free else ())}
         named = dict(zip((nm[c] for c in j.pairs[:, 0].tolist()), cal.joint_names()))
         return cls(tuple(nm), nm[cal.root], cal.parent_map(), joints, groups, ambiguous, int(cal.frames), bones, named)
 
-    @classmethod
-    def from_dict(cls, d: Mapping) -> "FitFacts":
-        """From a §5 dict: absent fields read as nothing known (no error: inf, no coverage: 0)."""
-        def vec(x, default):
-            return tuple(default if v is None else float(v) for v in (x or (None,) * 3))
 
-        joints = {}
-        for e in d.get("joints") or []:
-            joints[e["child"]] = JointFit(
-                e["child"], e["parent"], bool(e.get("hinge")), bool(e.get("determined")),
-                vec(e.get("direction_error_m"), math.inf), vec(e.get("noise_error_m"), math.inf),
-                tuple(float(v or 0.0) for v in (e.get("coverage") or (0.0, 0.0, 0.0))))
-        groups = {}
-        for g in d.get("rigid_groups") or []:
-            for name in g:
-                groups[name] = tuple(g)
-        bones = {(b["body"], b["from_joint"], b["to_joint"]): b["length_m"] for b in d.get("bones") or []
-                 if b.get("length_m") is not None}
-        named = {e["child"]: e["name"] for e in d.get("joints") or [] if isinstance(e.get("name"), str)}
-        return cls(tuple(d.get("sensors") or ()), d.get("root"), dict(d.get("parent") or {}), joints, groups,
-                   {a["child"]: a.get("parents") or [] for a in d.get("ambiguous") or []},
-                   int(d.get("frames") or 0), bones, named)
+def _judged(decisions, n: int) -> tuple[list, list]:
+    """(determined, direction error as (J, 3) floats with inf for unknown) of an optical fit's joint decisions
+    (`OpticalExtras.joint_decisions`; none: nothing judged)."""
+    decisions = decisions or ({},) * n
+    determined = [bool(x.get("determined")) for x in decisions]
+    err = [[math.inf if v is None else float(v) for v in (x.get("direction_error_m") or (None,) * 3)] for x in decisions]
+    return determined, [[v if math.isfinite(v) else math.inf for v in row] for row in err]
 
 
 def _finite(a, fill: float) -> list:

@@ -92,12 +92,6 @@ def fit(take, *, hierarchy: Mapping[str, str] | None = None, root: str | None = 
         Search for sensor slips and re-fit after them. False fits every frame together, as if no sensor
         had moved on the skin (faster on a long take).
 
-    A take recorded without tracking the hemisphere (positions read −p while a sensor is outside it) is
-    unfolded first, as ``flockcal fit`` unfolds it, with a `UserWarning` saying how many frames were.
-
-    A take recorded without tracking the hemisphere (positions read −p while a sensor is outside it) is
-    unfolded first, as ``flockcal fit`` unfolds it, with a `UserWarning` saying how many frames were.
-
     Returns
     -------
     Calibration
@@ -117,6 +111,11 @@ def fit(take, *, hierarchy: Mapping[str, str] | None = None, root: str | None = 
     --------
     flockcal.load_take : read a take file.
     flockcal.solver.calibrate : fit an accumulator you fed yourself (live, or merged from several takes).
+
+    Notes
+    -----
+    A take recorded without tracking the hemisphere (positions read −p while a sensor is outside it) is
+    unfolded first, as ``flockcal fit`` unfolds it, with a `UserWarning` saying how many frames were.
 
     Examples
     --------

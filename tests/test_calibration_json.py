@@ -37,6 +37,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 GOLDEN = Path(__file__).parent / "golden" / "calibration"
@@ -172,3 +173,22 @@ def test_optical_markers(takes):
     d = json.loads(out)
     assert {"bodies", "markers", "swap_events"} <= set(d) and len(d["sensors"]) == 3
     _check("markers", out)
+
+
+@pytest.mark.parametrize("case", ["free", "hierarchy", "slip", "saved_skeleton", "markers"])
+def test_the_one_parser_reads_back_every_field_it_wrote(case):
+    """A §5 object (a fitted tree, after a slip, a saved skeleton's, an optical one) read by
+    `calibration_from_json` is the Calibration it was written from, as far as the object tells: written
+    out again it is the same text, key for key and digit for digit. So a stored result, a report's file and
+    the live fit are one typed object, whichever way they came (the service's store keeps its results this way
+    or whole: solver/records.py)."""
+    from flockcal.solver.calibration_json import calibration_from_json, calibration_json
+
+    text = (GOLDEN / f"{case}.json").read_text()
+    cal = calibration_from_json(json.loads(text))
+    assert json.dumps(calibration_json(cal), indent=2 if text.startswith("{\n") else None) + "\n" == text
+    if case == "slip":
+        assert [type(e).__name__ for e in cal.slip_events] == ["SlipEvent"] * len(cal.slip_events) != []
+        assert np.isfinite(cal.segment_start_s).any() and np.isfinite(cal.bones.length).all()
+    if case == "markers":
+        assert cal.optical is not None and len(cal.optical.joint_decisions) == len(cal.joints)

@@ -1,4 +1,4 @@
-"""Every module, class, function and file that README.md and docs/*.md name in code exists (issue 33).
+"""Every module, class, function and file that README.md and docs/**/*.md name in code exists (issue 33).
 
 What counts as a reference (docs/development.md states the same convention for writers):
 
@@ -46,7 +46,7 @@ import pytest
 
 from layers import LAYERS, PACKAGE_DIRS, ROOT, import_edges, module_files
 
-PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+PAGES = [ROOT / "README.md", *sorted(p for p in (ROOT / "docs").rglob("*.md") if "hooks" not in p.parts)]
 
 FENCE = re.compile(r"^(```|~~~)(\w*).*?\n(.*?)^\1[^\n]*$", re.M | re.S)
 SPAN = re.compile(r"(?<!`)`((?:[^`\n]|\n(?!\s*\n))+)`(?!`)")  # a span may wrap, never across a blank line
@@ -75,7 +75,7 @@ NOT_OURS = {
 }
 # A dotted word ending in one of these is a file name (`take.npz`, `ID.fobraw.part`), not code.
 FILE_SUFFIXES = {"npz", "fobraw", "part", "json", "csv", "bvh", "glb", "gltf", "html", "c3d", "py", "js", "md",
-                 "css", "toml", "txt", "sqlite3", "frames", "service", "png", "svg"}
+                 "css", "toml", "txt", "sqlite3", "frames", "service", "png", "svg", "yml"}
 
 
 # --- the code's names -------------------------------------------------------------------------------

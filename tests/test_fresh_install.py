@@ -1,4 +1,5 @@
-"""The README's first command on a fresh machine: `pip install . && flockcal serve`.
+"""The README's first command on a fresh machine: a new venv,
+`python3 -m venv .venv && . .venv/bin/activate && pip install . && flockcal serve`.
 
 The repository is installed with plain `pip install <repo>` (no extras) into a new virtualenv without
 system site packages, so nothing the test extra brings (websockets, httpx, playwright) can hide a

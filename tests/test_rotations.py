@@ -35,6 +35,39 @@ def test_quaternions_are_scalar_first_with_nonnegative_w():
     assert np.abs(rotations.from_quat(q * 3.0) - R.as_matrix()).max() < 1e-14  # any norm > 0
 
 
+def test_xyzw_quaternions_are_scipys_signed_by_their_largest_component_at_every_angle():
+    # Tried: random rotations, and the angles where a naive formula divides by nearly zero: half-turns about
+    # each axis and about diagonals (w ≈ 0), and near-identities (x, y, z ≈ 0); over leading axes and past
+    # the 1024 rows the routine keeps ready.
+    half_turns = Rotation.from_rotvec(np.pi * np.array([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [0, 1, 1],
+                                                          [1, 1, 1], [-1, 2, 0.5]]) /
+                                      np.linalg.norm([[1, 0, 0], [0, 1, 0], [0, 0, 1], [1, 1, 0], [0, 1, 1],
+                                                      [1, 1, 1], [-1, 2, 0.5]], axis=1)[:, None])
+    small = Rotation.from_rotvec(RNG.normal(size=(20, 3)) * 1e-9)
+    R = Rotation.concatenate([Rotation.random(2000, random_state=5), half_turns, small])
+    oracle = R.as_quat()
+    oracle *= np.sign(oracle[np.arange(len(oracle)), np.abs(oracle).argmax(axis=1)])[:, None]
+    q = rotations.as_quat(R.as_matrix().reshape(-1, 1, 3, 3), scalar_first=False)
+    assert q.shape == (len(oracle), 1, 4)
+    q = q[:, 0]
+    assert np.abs(q - oracle).max() < 1e-14
+    assert (q[np.arange(len(q)), np.abs(q).argmax(axis=1)] > 0).all()
+    assert np.abs(rotations.from_quat(q[:, [3, 0, 1, 2]]) - R.as_matrix()).max() < 1e-14
+
+
+def test_one_routine_turns_matrices_into_quaternions():
+    # Quaternions were worked out in three places (rotations, the glTF export, the live pose), two ways;
+    # only flockcal.rotations may: everything else calls `as_quat`.
+    import re
+    from pathlib import Path
+
+    root = Path(rotations.__file__).resolve().parent.parent
+    pattern = re.compile(r"\.as_quat\(\s*\)|from_matrix\([^)]*\)\.as_quat|def \w*quaternions?\(|def (as|from)_quat\(")
+    found = [f"{p.relative_to(root)}" for folder in ("flockcal", "server", "solver", "drivers", "simulator")
+             for p in (root / folder).rglob("*.py") if p.name != "rotations.py" and pattern.search(p.read_text())]
+    assert found == [], found
+
+
 def test_the_flock_quaternion_is_that_of_the_transpose_and_conventions_are_checked():
     R = Rotation.random(50, random_state=4).as_matrix()
     q_fob = rotations.as_flock_quat(R)

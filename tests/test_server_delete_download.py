@@ -56,8 +56,8 @@ def big_session(srv, source: str, n: int) -> str:
     log.close()
     mgr.raw_path(sid).write_bytes(mgr.raw_path(source).read_bytes() * 40)
     row = store.session(source)
-    store.insert_session({"id": sid, "performer": "Big", "state": "stopped", "names": row["names"],
-                          "device": "test", "created_at": time.time(), "frames": k * REPEAT, "rate_hz": row["rate_hz"]})
+    store.insert_session({"id": sid, "performer": "Big", "state": "stopped", "names": row.names,
+                          "device": "test", "created_at": time.time(), "frames": k * REPEAT, "rate_hz": row.rate_hz})
     store.update_session(sid, result=store.result(source))
     return sid
 

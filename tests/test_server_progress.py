@@ -195,11 +195,11 @@ def test_a_database_from_before_progress_was_kept_opens_and_reads_it_as_unknown(
     db.close()
     store = Store(path)
     try:
-        (row,) = store.sessions()
-        assert row["progress"] is None and row["done"] is None
-        assert store.progress(row["id"]) is None
-        store.update_session(row["id"], progress={"progress": 0.5, "done": False})
-        assert store.session(row["id"])["progress"] == 0.5
+        (row,) = store.sessions()  # (a typed row: store.SessionRow)
+        assert row.progress is None and row.done is None
+        assert store.progress(row.id) is None
+        store.update_session(row.id, progress={"progress": 0.5, "done": False})
+        assert store.session(row.id).progress == 0.5
     finally:
         store.close()
 

@@ -166,11 +166,10 @@ def stop_report(service) -> list[str]:
     if row is None:
         lines.append("no session was live; nothing new to save")
     else:
-        kept = "result stored" if row.get("has_result") else (row.get("note") or "no result")
-        lines.append(f"stopped session {row['id']} ({row.get('performer') or '?'}, {row.get('frames', 0)} frames): "
-                     f"{kept}")
+        kept = "result stored" if row.has_result else (row.note or "no result")
+        lines.append(f"stopped session {row.id} ({row.performer or '?'}, {row.frames} frames): {kept}")
         rec = service.sessions
-        for path in (rec.frames_path(row["id"]), rec.raw_path(row["id"])):
+        for path in (rec.frames_path(row.id), rec.raw_path(row.id)):
             if path.exists():
                 lines.append(f"saved {path}")
     lines.append(f"sessions, results and events in {data / 'flockcal.sqlite3'}")

@@ -20,11 +20,11 @@ from pathlib import Path
 from typing import Callable, Iterator
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from flockcal.atomic import write_pieces
 from flockcal.errors import FlockcalError
 from flockcal.exports.bvh import Playback, bvh_names, depth_first, local_rotations, playback, rest_pose
+from flockcal.rotations import as_quat
 from flockcal.solver.reconstruct import Articulation, Reconstruction, reconstruct
 from flockcal.takes import ChunkedTake
 
@@ -178,8 +178,7 @@ def animation_rows(rec: Reconstruction, world: np.ndarray, A: np.ndarray, rig: R
     frame before it (`previous`: the last row of an earlier chunk), so interpolation never spins the long way.
     """
     local = local_rotations(rec, world, A)[:, rig.bodies]
-    n, m = local.shape[:2]
-    q = Rotation.from_matrix(local.reshape(-1, 3, 3)).as_quat().reshape(n, m, 4)
+    q = as_quat(local, scalar_first=False)
     prev = q[:1] if previous is None else np.asarray(previous, dtype=float)[None]
     dots = np.einsum("nmk,nmk->nm", q, np.concatenate([prev, q[:-1]]))
     q *= np.cumprod(np.where(dots < 0, -1.0, 1.0), axis=0)[..., None]

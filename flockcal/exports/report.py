@@ -10,11 +10,15 @@ import html
 import io
 import os
 import warnings
+from dataclasses import fields, replace
 from datetime import datetime, timezone
 
 import numpy as np
 
 from flockcal.atomic import write_atomic
+from flockcal.solver.calibration import Calibration
+from flockcal.solver.fits import PairFits
+from flockcal.solver.progress import JointProgress, Progress
 from flockcal.solver.reconstruct import Articulation, articulation, reconstruct, tree_residuals
 
 MAX_PLOT_POINTS = 4000  # per joint trace: enough to see every burst, small enough to draw quickly
@@ -144,7 +148,7 @@ def _fmt(x, scale=1.0, digits=1) -> str:
     return f"{float(x) * scale:.{digits}f}"
 
 
-def _tree_html(art: Articulation, rms_by_child: dict[str, float], standing: dict[str, dict],
+def _tree_html(art: Articulation, rms_by_child: dict[str, float], standing: dict[str, JointProgress],
                bones: dict[str, str] | None = None, joint_names: dict[str, str] | None = None) -> str:
     bones, joint_names = bones or {}, joint_names or {}
 
@@ -155,8 +159,8 @@ def _tree_html(art: Articulation, rms_by_child: dict[str, float], standing: dict
             said = f"{html.escape(joint_names[name])}: " if name in joint_names else ""
             label += f" <span class=meta>({said}joint rms {_fmt(rms_by_child.get(name), 1000, 2)} mm"
             st = standing.get(art.names[i])
-            if st and not st["done"]:
-                label += f"; not calibrated: {html.escape(st['why'] or st['state'])}"
+            if st and not st.done:
+                label += f"; not calibrated: {html.escape(st.why or st.state.value)}"
             label += ")</span>"
         kids = "".join(node(k) for k in art.children(i))
         return f"<li>{label}{f'<ul class=tree>{kids}</ul>' if kids else ''}</li>"
@@ -192,13 +196,13 @@ def _table(headers: list[str], rows: list[list]) -> str:
     return f"<table><tr>{head}</tr>{body}</table>"
 
 
-def _find_slips(take, d: dict) -> list[dict]:
+def _find_slips(take, cal: Calibration) -> list:
     """Slip events: the calibration's own, else the slippage detector's over the take."""
-    if d.get("slip_events"):
-        return list(d["slip_events"])
+    if cal.slip_events:
+        return list(cal.slip_events)
     from flockcal.solver.slippage import detect_slips
 
-    return [e.to_dict() if hasattr(e, "to_dict") else dict(e) for e in detect_slips(take, d)]
+    return list(detect_slips(take, cal))
 
 
 def _longest_gap_s(valid: np.ndarray, rate_hz: float) -> np.ndarray:
@@ -213,37 +217,46 @@ def _longest_gap_s(valid: np.ndarray, rate_hz: float) -> np.ndarray:
 REPORT_STAGES = ("residuals", "slips", "figures")
 
 
-def joined_forest(d: dict, take) -> dict:
+def joined_forest(cal: Calibration, take) -> Calibration:
     """An optical fit's forest (bodies no exercised joint reaches hang from nothing) made one tree for the
     page: each part's root hangs from the main root by the plain least-squares joint of the two bodies'
     poses, marked undetermined (drawn dotted, listed as unjoined). A tree is returned as it is."""
-    names = list(d["sensors"])
-    if len(d.get("parent", {})) == len(names) - 1:
-        return d
+    names = list(cal.names)
+    loose = [i for i in range(len(names)) if i != cal.root and cal.parent[i] < 0]
+    if not loose:
+        return cal
     from flockcal.solver.accumulator import GramAccumulator
     from flockcal.solver.fits import pair_fits
 
-    root = d["root"]
-    loose = [x for x in names if x != root and x not in d["parent"]]
-    idx = {n: take.names.index(n) for n in names}
+    idx = [take.names.index(n) for n in names]
     acc = GramAccumulator(take.n_sensors)
     acc.add_poses(take.rotations, take.positions, take.valid)
-    pf = pair_fits(acc, np.array([[idx[x], idx[root]] for x in loose]))
-    joints = list(d.get("joints", []))
-    for k, x in enumerate(loose):
-        joints.append({"child": x, "parent": root, "c": pf.c[k].tolist(), "l": pf.l[k].tolist(),
-                       "rms_m": float(pf.rms[k]), "hinge": False, "determined": False, "unjoined": True,
-                       "coverage": pf.coverage[k].tolist()})
-    return {**d, "parent": {**d["parent"], **{x: root for x in loose}}, "joints": joints}
+    pf = pair_fits(acc, np.array([[idx[x], idx[cal.root]] for x in loose]))
+    none = np.full(len(loose), np.nan)  # a stand-in's own statistics are not the page's: its rms is measured below
+    added = replace(pf, pairs=np.array([[x, cal.root] for x in loose]), hinge=np.zeros(len(loose), dtype=bool),
+                    determined=np.zeros(len(loose), dtype=bool), epsilon=none, c_stderr=none)
+    joints = PairFits(*(np.concatenate([getattr(cal.joints, f.name), getattr(added, f.name)])
+                        for f in fields(PairFits)))
+    parent = cal.parent.copy()
+    parent[loose] = cal.root
+    optical = cal.optical
+    if optical is not None:  # what the page reads of each added joint: not determined, no Kirk fit
+        optical = replace(optical, kirk_rms=np.concatenate([optical.kirk_rms, np.full(len(loose), np.nan)]),
+                          joint_decisions=tuple(optical.joint_decisions) + ({"determined": False,
+                                                                             "direction_error_m": None},) * len(loose))
+    return replace(cal, parent=parent, joints=joints, optical=optical,
+                   order=np.concatenate([cal.order, [x for x in loose if x not in cal.order]]).astype(int))
 
 
-def optical_html(d: dict) -> str:
+def optical_html(cal: Calibration) -> str:
     """What a marker fit adds: its bodies and their markers, which groups of markers were merged into one
     body and why, the joints fitted on part of a body, the bodies no exercised joint reaches."""
+    d = cal.optical.exercise  # the optical fit's exercise report (solver/optical/pipeline.py)
+    parents = cal.parent_map()
     motion = d.get("body_motion_m", {})
     unjoined = set(d.get("unjoined", []))
-    rows = [[Text(b), Text(d["parent"].get(b, "–") if b not in unjoined else "unjoined"), _fmt(motion.get(b), 1000, 1),
-             Text(", ".join(m))] for b, m in d["bodies"].items()]
+    rows = [[Text(b), Text(parents.get(b, "–") if b not in unjoined else "unjoined"), _fmt(motion.get(b), 1000, 1),
+             Text(", ".join(m))] for b, m in cal.optical.bodies.items()]
     out = ["<h2>Bodies from the markers</h2>",
            f"<p class=meta>Two groups of markers are two bodies when a joint explains their relative motion, "
            f"however small; one body when they turned no more than their own soft tissue turns them, or barely "
@@ -288,41 +301,40 @@ def report_html(
 
     matplotlib.use("Agg")
     from flockcal.exports.bvh import bvh_world
-    from flockcal.solver.known_skeleton import bones as bones_of
-
-    from flockcal.solver.calibration import Calibration
+    from flockcal.solver.calibration_json import as_calibration
     from flockcal.solver.fits import TOLERANCE_M
+    from flockcal.solver.known_skeleton import bone_arrays
     from flockcal.solver.progress import default_target, progress_of
 
     step(REPORT_STAGES[0])
-    d = calibration.to_dict() if hasattr(calibration, "to_dict") else dict(calibration)
-    optical = "bodies" in d
+    # A §5 dict (a fit written out) is decoded once, by the one parser; everything below reads the typed fit.
+    cal = as_calibration(calibration)
+    given = isinstance(calibration, Calibration) and calibration.hierarchy_given  # a file says not
+    optical = cal.optical is not None
+    # Each joint as people name it (the stand-ins an optical forest is joined with below have no name).
+    joint_names = dict(zip((cal.names[c] for c in cal.joint_child.tolist()), cal.joint_names()))
     if optical:
-        d = joined_forest(d, take)
-    art = articulation(d).reordered(take.names).completed(take.rotations, take.positions, take.valid)
+        cal = joined_forest(cal, take)
+    art = articulation(cal).reordered(take.names).completed(take.rotations, take.positions, take.valid)
     names = art.names
-    # The service's one definition of progress, for this one fit (a given tree cannot re-link): read off the
-    # typed fit, or off the dict where there is none (a §5 file, an optical fit's forest joined above).
-    fixed = bool(getattr(calibration, "hierarchy_given", False) or d.get("known_skeleton"))
-    fit = calibration if isinstance(calibration, Calibration) and not optical else d
-    calibrated = progress_of(fit, default_target(TOLERANCE_M), TOLERANCE_M, tree_fixed=fixed).to_dict()
-    standing = {j["joint"]: j for j in calibrated["joint_progress"]}
+    # The service's one definition of progress, for this one fit (a given tree cannot re-link).
+    calibrated = progress_of(cal, default_target(TOLERANCE_M), TOLERANCE_M, tree_fixed=given or cal.known_skeleton)
+    standing = {j.joint: j for j in calibrated.joints}
     e = tree_residuals(take.rotations, take.positions, art, take.valid)
     sep = np.linalg.norm(e, axis=-1)
     rec = reconstruct(take.rotations, take.positions, art, take.valid)
     joints = [int(j) for j in art.order[1:]]
-    by_child = {j["child"]: j for j in d.get("joints", [])}
-    joint_names = {c: j["name"] for c, j in by_child.items() if j.get("name")}
+    row_of = {cal.names[c]: k for k, c in enumerate(cal.joint_child.tolist())}  # a body's joint row in the fit
     titles = [joint_names.get(n, n) for n in names]  # the residual figures' joints, as people name them
+    decided = _determined(cal)
     # Bodies ending at a determined joint (a saved skeleton's bones are known whatever this take pinned).
-    determined = np.array([d.get("known_skeleton") or (n in by_child and by_child[n].get("determined", True))
-                           for n in names], dtype=bool)
+    determined = np.array([cal.known_skeleton or (n in row_of and decided[row_of[n]]) for n in names], dtype=bool)
     with np.errstate(invalid="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # a joint with no valid frame has no rms: shown as –
         rms = np.sqrt(np.nanmean(sep**2, axis=0))
         worst = np.nanmax(sep, axis=0)
     step(REPORT_STAGES[1])
-    slips = _find_slips(take, d) if slips is None else list(slips)
+    slips = _find_slips(take, cal) if slips is None else [_event(x, take.names) for x in slips]
     step(REPORT_STAGES[2])
     duration = float(take.times[-1] - take.times[0]) if take.n_frames > 1 else 0.0
     title = title or f"flockcal calibration report{f' — {source}' if source else ''}"
@@ -338,37 +350,41 @@ def report_html(
         "<h2>Skeleton</h2>",
         _img(skeleton_figure(rec, _pose_frame(take.valid), bvh_world(up), determined), "skeleton drawing"),
         "<h2>Topology</h2>",
-        _tree_html(art, {names[j]: rms[j] for j in joints}, standing, d.get("humanoid") or {}, joint_names),
+        _tree_html(art, {names[j]: rms[j] for j in joints}, standing,
+                   cal.humanoid.mapping(cal.names) if cal.humanoid is not None else {}, joint_names),
         "<h2>Humanoid</h2>",
-        _humanoid_html(d),
+        _humanoid_html(cal),
         "<h2>Calibration progress</h2>",
         _progress_html(calibrated),
     ]
     if optical:
-        parts.append(optical_html(d))
-    loops = d.get("loop_candidates") or []
-    if loops:
+        parts.append(optical_html(cal))
+    if cal.loop_candidates:
         parts.append("<p>Loop candidates (non-tree pairs that fit as well as tree joints):</p>")
-        parts.append(_table(["<a", "<b", "rms (mm)"], [[Text(x["a"]), Text(x["b"]), _fmt(x.get("rms_m"), 1000, 2)] for x in loops]))
+        parts.append(_table(["<a", "<b", "rms (mm)"], [[Text(cal.names[a]), Text(cal.names[b]), _fmt(r, 1000, 2)]
+                                                        for a, b, r in cal.loop_candidates]))
 
     parts.append("<h2>Bones</h2>")
+    # The fit's bones, else (none measured) the articulation's, each named by its own sensor order.
+    bones, bone_names = (cal.bones, cal.names) if len(cal.bones) else (bone_arrays(art), art.names)
     bone_rows = [
-        [Text(b["body"]), Text(str(b.get("from_joint"))), Text(b["to_joint"]),
-         _fmt(b.get("length_m"), 100, 2), _fmt(b.get("stderr_m"), 1000, 2)]
-        for b in d.get("bones") or bones_of(art)
+        [Text(bone_names[body]), Text(str(bone_names[frm] if frm >= 0 else None)), Text(bone_names[to]),
+         _fmt(length, 100, 2), _fmt(stderr, 1000, 2)]
+        for body, frm, to, length, stderr in zip(bones.body.tolist(), bones.from_joint.tolist(),
+                                                 bones.to_joint.tolist(), bones.length.tolist(), bones.stderr.tolist())
     ]  # fmt: skip
     parts.append(_table(["<body", "<from joint", "<to joint", "length (cm)", "std err (mm)"], bone_rows))
 
     parts.append("<h2>Joints and sensor placement</h2>")
     joint_rows = []
     for j in joints:
-        info = by_child.get(names[j], {})
+        k = row_of.get(names[j])
         joint_rows.append([
             Text(joint_names.get(names[j], "–")), Text(names[j]), Text(names[art.parent[j]]), _fmt(rms[j], 1000, 2),
             _fmt(worst[j], 1000, 2),
-            _fmt(info.get("epsilon"), 1000, 4), _fmt(float(np.linalg.norm(art.c[j])), 100, 2),
-            _fmt(info.get("c_stderr_m"), 1000, 2), Text("yes" if info.get("hinge") else "no"),
-            Text("yes" if info.get("determined") else "no"), _bars(info.get("coverage")),
+            _fmt(_at(cal.epsilon, k), 1000, 4), _fmt(float(np.linalg.norm(art.c[j])), 100, 2),
+            _fmt(_at(cal.c_stderr, k), 1000, 2), Text("yes" if k is not None and cal.hinge[k] else "no"),
+            Text("yes" if k is not None and decided[k] else "no"), _bars(None if k is None else cal.coverage[k]),
         ])  # fmt: skip
     headers = ["<joint", "<child", "<parent", "rms (mm)", "max (mm)", "ε (mm)", "sensor→joint (cm)",
                "c std err (mm)", "<hinge", "<determined", "<coverage (3 axes)"]  # fmt: skip
@@ -395,9 +411,8 @@ def report_html(
     parts.append("<h2>Slip events</h2>")
     if slips:
         slip_rows = [
-            [_fmt(s.get("time_s"), 1, 2), Text(str(s.get("kind", "slip"))),
-             Text(" ↔ ".join(map(str, s["sensors"])) if s.get("sensors") else str(s.get("sensor"))),
-             Text(", ".join(map(str, s.get("joints", [])))), _fmt(s.get("jump_mm"), 1, 1)]
+            [_fmt(s.time_s, 1, 2), Text(s.kind), Text(" ↔ ".join(s.candidates) if s.kind == "swap" else s.sensor),
+             Text(", ".join(s.joints)), _fmt(s.jump_mm, 1, 1)]
             for s in slips
         ]  # fmt: skip
         parts.append(_table(["time (s)", "<kind", "<sensor", "<joints", "jump (mm)"], slip_rows))
@@ -407,32 +422,52 @@ def report_html(
     return "\n".join(parts)
 
 
-def _humanoid_html(d: dict) -> str:
+def _humanoid_html(cal: Calibration) -> str:
     """Which humanoid bone each sensor was found on, and the names that say otherwise; or why there is none."""
-    mapping = d.get("humanoid")
-    if not isinstance(mapping, dict):
-        return f"<p>{html.escape(str(d.get('humanoid_note') or 'No humanoid was looked for.'))}</p>"
-    rows = [[Text(sensor), Text(bone)] for sensor, bone in mapping.items()]
+    from flockcal.solver.calibration_json import NOT_LOOKED_FOR
+    from flockcal.solver.humanoid import conflict_message
+
+    hum = cal.humanoid
+    if hum is None or not hum.human:
+        return f"<p>{html.escape(NOT_LOOKED_FOR if hum is None else hum.reason)}</p>"
+    rows = [[Text(sensor), Text(bone)] for sensor, bone in hum.mapping(cal.names).items()]
     out = ("<p>Each body's bone (VRM 1.0 names), found from the tree's shape and the take's motion, whatever "
            "the sensors are called:</p>" + _table(["<sensor", "<found on"], rows))
-    conflicts = d.get("humanoid_conflicts") or []
-    if conflicts:
+    if hum.conflicts:
         out += "<p><b>Names that say otherwise</b> (the outputs follow the data):</p><ul>" + "".join(
-            f"<li>{html.escape(c.get('message') or str(c))}</li>" for c in conflicts) + "</ul>"
+            f"<li>{html.escape(conflict_message(cal.names, c))}</li>" for c in hum.conflicts) + "</ul>"
     return out
 
 
-def _progress_html(doc: dict) -> str:
-    """The progress document as the kiosk and dashboard show it: the figure, done, and what is missing."""
-    head = (f"<p>{doc['joints_done']} of {doc['joints_needed']} joints calibrated ({doc['percent']} %), each "
-            f"determined with its centre pinned to {1000 * doc['target_m']:.1f} mm: "
-            f"<b>{'done' if doc['done'] else 'not done'}</b>.</p>")
-    if not doc["missing"]:
+def _progress_html(progress: Progress) -> str:
+    """The progress as the kiosk and dashboard show it: the figure, done, and what is missing."""
+    head = (f"<p>{progress.joints_done} of {progress.joints_needed} joints calibrated ({progress.percent} %), each "
+            f"determined with its centre pinned to {1000 * progress.target_m:.1f} mm: "
+            f"<b>{'done' if progress.done else 'not done'}</b>.</p>")
+    if not progress.missing:
         return head
-    rows = [[Text(m["label"]), Text(m["joint"]), Text(m["parent"] or "–"), Text(m["why"] or m["state"])]
-            for m in doc["missing"]]
+    rows = [[Text(m.label), Text(m.joint), Text(m.parent or "–"), Text(m.why or m.state.value)]
+            for m in progress.missing_joints()]
     return head + _table(["<joint", "<child", "<parent", "<why not yet"], rows) + \
         "<p class=meta>Same rule as the live service's progress (flockcal's docs/service.md#progress-one-figure-for-the-kiosk-the-dashboard-and-the-api).</p>"
+
+
+def _determined(cal: Calibration) -> list[bool]:
+    """Each joint determined, as the fit's §5 object says (an optical fit: judged from the bodies' poses)."""
+    if cal.optical is not None and cal.optical.joint_decisions:
+        return [bool(x.get("determined")) for x in cal.optical.joint_decisions]
+    return cal.joints.determined.tolist()
+
+
+def _at(values, k: int | None):
+    return None if k is None else values[k]
+
+
+def _event(x, names):
+    """A slip or swap event: itself, or its §5 entry read by the one parser."""
+    from flockcal.solver.calibration_json import event_from_json
+
+    return x if hasattr(x, "kind") else event_from_json(x, names)
 
 
 def write_report(path: str | os.PathLike, calibration, take, **options) -> None:

@@ -16,8 +16,10 @@ def get_service(request: Request):
     return request.app.state.service
 
 
-def session_id(id: str = Path(description="session id, as returned by POST /api/sessions")) -> str:
-    # Ids become file names; refuse anything that could walk out of the recordings directory.
+def session_id(id: str = Path(description="session id, as returned by POST /api/sessions",
+                              json_schema_extra={"pattern": f"^{SESSION_ID_RE.pattern}$"})) -> str:
+    # Ids become file names; refuse anything that could walk out of the recordings directory. The pattern is
+    # documented, not validated by FastAPI: an id that does not match is a 400 with this message, not a 422.
     if not SESSION_ID_RE.fullmatch(id):
         raise BadRequest(f"{id[:80]!r} is not a session id (letters, digits and '-' only); GET /api/sessions lists them")
     return id

@@ -17,6 +17,7 @@ from fastapi import APIRouter, WebSocket, WebSocketDisconnect
 from flockcal.server.auth import origin_allowed, presented_role
 from flockcal.server.errors import ServerError
 from flockcal.server.jsonbounds import loads_bounded
+from flockcal.server.models import ClientMessage
 from flockcal.server.snapshot import Snapshot, residual_message
 from flockcal.server.wsgate import PENDING_KEY, abort
 
@@ -41,17 +42,17 @@ class Subscription:
         self.content = content
 
 
-def parse_message(text: str) -> dict:
-    """A client's text frame as a dict; ValueError with a readable reason otherwise."""
+def parse_message(text: str) -> ClientMessage:
+    """A client's text frame as its message; ValueError with a readable reason otherwise."""
     msg = loads_bounded(text, MAX_DEPTH, "the message")
     if not isinstance(msg, dict):
         raise ValueError(f"the message must be a JSON object, got a {type(msg).__name__}")
-    return msg
+    return ClientMessage.model_validate(msg)
 
 
-def parse_subscribe(msg: dict, max_rate: float) -> Subscription:
+def parse_subscribe(msg: ClientMessage, max_rate: float) -> Subscription:
     """Validate a subscribe message; ValueError with a readable reason otherwise."""
-    rate = msg.get("rate_hz", 10)
+    rate = msg.rate_hz
     if rate is None:
         rate = max_rate
     try:  # an integer past float's range (1 and 400 zeros) cannot be a rate either
@@ -61,7 +62,7 @@ def parse_subscribe(msg: dict, max_rate: float) -> Subscription:
     if not finite or not MIN_RATE_HZ <= rate <= MAX_RATE_HZ:
         raise ValueError(f"rate_hz must be a number from {MIN_RATE_HZ:g} to {MAX_RATE_HZ:g} (messages a second; "
                          f"above {max_rate:g}, the publish rate, it is capped to it), got {str(rate)[:40]}")
-    content = msg.get("content", ["status"])
+    content = msg.content
     if isinstance(content, str):
         content = [content]
     if not isinstance(content, list) or not all(isinstance(c, str) for c in content):
@@ -167,10 +168,10 @@ class Connection:
             if not await self.handle(msg):
                 return
 
-    async def handle(self, msg: dict) -> bool:
+    async def handle(self, msg: ClientMessage) -> bool:
         """Act on one client message; False when the connection is to close."""
         settings = self.service.settings
-        kind = msg.get("type")
+        kind = msg.type
         if kind == "ping":
             await self.send(self.envelope("pong"))
             return True
@@ -180,7 +181,7 @@ class Connection:
                                           '{"type": "subscribe", "rate_hz": 10, "content": ["status", "fit"]}'))
             return True
         if not self.authorised:
-            role, why = self.check_token(msg.get("token"))
+            role, why = self.check_token(msg.token)
             if role is None:
                 await self.refuse(why, 1008)
                 return False
@@ -262,9 +263,9 @@ class Connection:
                     out.append(self.envelope("residuals", json.dumps(residual_message(new))))
             if "events" in content:
                 for ev in snap.events:
-                    if ev["id"] > event_id:
-                        event_id = ev["id"]
-                        out.append(self.envelope("event", json.dumps({"event": ev})))
+                    if ev.id > event_id:
+                        event_id = ev.id
+                        out.append(self.envelope("event", ev.message()))
             if "pose" in content and snap.pose is not None:
                 out.append(self.envelope("pose", snap.pose_json))
             for text in out:
@@ -273,11 +274,11 @@ class Connection:
     def _initial_event_id(self, snap: Snapshot) -> int:
         # Replay the live session's last few events so a reconnecting page shows them again.
         if snap.session is None:
-            return snap.events[-1]["id"] if snap.events else 0
-        mine = [e["id"] for e in snap.events if e.get("session_id") == snap.session.id]
+            return snap.events[-1].id if snap.events else 0
+        mine = [e.id for e in snap.events if e.session_id == snap.session.id]
         if len(mine) > REPLAY_EVENTS:
             return mine[-REPLAY_EVENTS - 1]
-        return (mine[0] - 1) if mine else (snap.events[-1]["id"] if snap.events else 0)
+        return (mine[0] - 1) if mine else (snap.events[-1].id if snap.events else 0)
 
 
 def _residual_start(snap: Snapshot) -> int:

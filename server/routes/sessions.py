@@ -28,17 +28,21 @@ MAX_EVENTS = 5000
 def presets(service) -> dict[str, dict | None]:
     """Named hierarchies a session can start with: 'auto', 'human' when the sensors are the simulator's,
     and every saved skeleton (GET /api/skeletons)."""
-    out: dict[str, dict | None] = {"auto": None}
+    human = _human_tree(service.pipeline.names)
+    return {"auto": None, **({"human": human} if human is not None else {}), **service.skeletons.hierarchies()}
+
+
+def _human_tree(names) -> dict[str, str] | None:
+    """The simulator's body's {child: parent} when `names` are its sensors, else None."""
     try:
         from flockcal.simulator.body import human
 
-        truth = human(n_bodies=len(service.pipeline.names)).truth()
-        if list(truth["sensors"]) == list(service.pipeline.names):
-            out["human"] = dict(truth["parent"])
+        body = human(n_bodies=len(names))
     except Exception:  # no simulator body for this sensor set: only automatic topology
-        pass
-    out.update(service.skeletons.hierarchies())
-    return out
+        return None
+    if list(body.names) != list(names):
+        return None
+    return {body.names[i]: body.names[p] for i, p in enumerate(body.parent) if p >= 0}
 
 
 @router.get("", response_model=SessionList, summary="all sessions, newest first", responses=ERRORS)
@@ -108,8 +112,8 @@ def resolve_session(sid: str = Depends(session_id), service=Depends(get_service)
 @router.get("/{id}/result", response_model=CalibrationResult, responses=ERRORS,
             summary="the calibration, same shape as `flockcal fit --json`")
 def get_result(sid: str = Depends(session_id), service=Depends(get_service), _role=Depends(require_read)):
-    result, _live = service.sessions.result(sid)
-    return result
+    fit, _live = service.sessions.result(sid)
+    return fit.doc  # its §5 object, made once per fit
 
 
 @router.get("/{id}/progress", response_model=Progress, responses=ERRORS,
@@ -117,7 +121,7 @@ def get_result(sid: str = Depends(session_id), service=Depends(get_service), _ro
 def get_progress(sid: str = Depends(session_id), service=Depends(get_service), _role=Depends(require_read)):
     """The service's one definition of progress, for the live session as it goes and for a stopped one as
     it ended. `done` is what an integration waits for; `missing` names every joint still to calibrate."""
-    return service.sessions.progress(sid)
+    return service.sessions.progress(sid).to_dict()
 
 
 @router.get("/{id}/residuals", response_model=ResidualSeries, responses=ERRORS,
@@ -147,8 +151,8 @@ def get_events(sid: str = Depends(session_id),
     events = service.sessions.events(sid, since, limit + 1)
     more = len(events) > limit
     events = events[:limit]
-    return {"session_id": sid, "events": events, "more": more,
-            "next_since": events[-1]["id"] if events else since}
+    return {"session_id": sid, "events": [e.doc for e in events], "more": more,
+            "next_since": events[-1].id if events else since}
 
 
 @router.get("/{id}/take", responses={200: {"content": {"application/octet-stream": {}}}, **ERRORS},
@@ -174,7 +178,7 @@ def get_skeleton(sid: str = Depends(session_id), service=Depends(get_service), _
     headers = {"Content-Disposition": f'attachment; filename="{sid}-skeleton.json"'}
     # Built whole while the session's files are held (a DELETE meanwhile answers 409), then sent from memory.
     with _held(service, sid) as hold:
-        result, _live = service.sessions.result(sid)
+        fit, _live = service.sessions.result(sid)
         row = service.sessions.get(sid)
         kept = service.retention.kept_skeleton_path(sid)
         if not service.sessions.frames_path(sid).exists() and kept.exists():
@@ -184,10 +188,10 @@ def get_skeleton(sid: str = Depends(session_id), service=Depends(get_service), _
 
         def make():
             # The performer names the file's preset when it is loaded back (`--skeleton`, POST /api/skeletons).
-            source = {"session": sid, "performer": row["performer"], "take": f"{sid}.npz",
+            source = {"session": sid, "performer": row.performer, "take": f"{sid}.npz",
                       "frames": int(frames.n), "rate_hz": float(frames.rate_hz)}
             # Sensors riding rigidly on their parent are placed from the recording, read a chunk at a time.
-            return skeleton_bytes(result, source=source, take=frames)
+            return skeleton_bytes(fit.calibration, source=source, take=frames)
 
         data = _export(make)
         hold.end()
@@ -204,10 +208,10 @@ def get_bvh(request: Request, sid: str = Depends(session_id),
     from flockcal.server.downloads import SlottedResponse, primed
 
     with _held(service, sid) as hold:
-        result, _live = service.sessions.result(sid)
+        fit, _live = service.sessions.result(sid)
         frames = hold.frames()
         # The exports' own writer, reading the frame log a chunk at a time (server/downloads.py FrameFile).
-        text = bvh_chunks(result, frames, units=units, up=up, chunk_frames=frames.play_frames)
+        text = bvh_chunks(fit.calibration, frames, units=units, up=up, chunk_frames=frames.play_frames)
         body = _slotted(request, lambda: _export(lambda: primed(part.encode("ascii") for part in text)), hold)
     return SlottedResponse(body, request.app.state.download_slots, media_type="text/plain",
                            headers={"Content-Disposition": f'attachment; filename="{sid}.bvh"'})
@@ -234,9 +238,10 @@ def get_gltf(request: Request, sid: str = Depends(session_id),
     # The fit's number travels in a header (the file stays the CLI's): a page matches it with the live
     # pose's `rig.fit_seq` to know the rig it loaded is the one the stream drives ("final": the stored fit).
     with _held(service, sid) as hold:
-        result, fit_seq = service.sessions.result_seq(sid)
+        fit, fit_seq = service.sessions.result_seq(sid)
+        result = fit.calibration
         frames = hold.frames()
-        performer = service.sessions.get(sid).get("performer") or sid
+        performer = service.sessions.get(sid).performer or sid
         vrm = []  # the VRM plan, made in the download's slot before the first byte (its reason goes in a header)
 
         def stream():
@@ -246,10 +251,10 @@ def get_gltf(request: Request, sid: str = Depends(session_id),
                                      chunk_frames=frames.play_frames, out_bytes=OUT_BYTES, vrm=vrm[0] if vrm else None))
 
         body = _slotted(request, lambda: _export(stream), hold)
+    vrm_header = {"X-Flockcal-Vrm": vrm[0].spec or f"none: {vrm[0].reason}".encode("ascii", "replace").decode()} \
+        if vrm else {}
     headers = {"Content-Disposition": f'attachment; filename="{sid}.glb"',
-               "X-Flockcal-Fit-Seq": "final" if fit_seq is None else str(fit_seq)}
-    if vrm:
-        headers["X-Flockcal-Vrm"] = vrm[0].spec or f"none: {vrm[0].reason}".encode("ascii", "replace").decode()
+               "X-Flockcal-Fit-Seq": "final" if fit_seq is None else str(fit_seq), **vrm_header}
     # In a slot like /take and /bvh: a client that stops reading a long animation is cut off after the stall time.
     return SlottedResponse(body, request.app.state.download_slots, media_type="model/gltf-binary", headers=headers)
 
@@ -263,10 +268,10 @@ def get_trc(request: Request, sid: str = Depends(session_id),
     from flockcal.server.downloads import SlottedResponse, primed
 
     with _held(service, sid) as hold:
-        result, _live = service.sessions.result(sid)
+        fit, _live = service.sessions.result(sid)
         frames = hold.frames()
         # The exports' own writer, reading the frame log a chunk at a time (server/downloads.py FrameFile).
-        text = trc_chunks(result, frames, up=up, file_name=f"{sid}.trc", chunk_frames=frames.play_frames)
+        text = trc_chunks(fit.calibration, frames, up=up, file_name=f"{sid}.trc", chunk_frames=frames.play_frames)
         body = _slotted(request, lambda: _export(lambda: primed(part.encode("utf-8") for part in text)), hold)
     return SlottedResponse(body, request.app.state.download_slots, media_type="text/plain",
                            headers={"Content-Disposition": f'attachment; filename="{sid}.trc"'})

@@ -51,15 +51,16 @@ def slip(body: SlipRequest, service=Depends(get_service), _role=Depends(require_
             ev = sim.inject_slip(body.sensor, body.distance_m)
         except FlockcalError as exc:
             raise BadRequest(str(exc)) from None
+    routine_s = ev.time_s  # the slip's moment on the performer's clock
     clock = getattr(service.source, "reader_time", None)
-    ev["reader_time"] = clock(ev["time_s"]) if clock is not None else None
+    reader_time = clock(routine_s) if clock is not None else None
     # Seconds from now to the slip's sample: the simulator computes poses up to 0.1 s ahead.
-    in_s = None if ev["reader_time"] is None else round(ev["reader_time"] - time.monotonic(), 4)
-    session_id, at_s = _session_time(service.pipeline.live, ev["reader_time"])
+    in_s = None if reader_time is None else round(reader_time - time.monotonic(), 4)
+    session_id, at_s = _session_time(service.pipeline.live, reader_time)
     when = f" at {at_s:.3f} s into session {session_id}" if at_s is not None else ""
     return {"message": f"sensor {body.sensor} slipped by {body.distance_m * 1000:.0f} mm{when}",
             "sensor": body.sensor, "distance_m": body.distance_m, "session_id": session_id, "at_s": at_s,
-            "in_s": in_s, "routine_s": round(ev["time_s"], 4)}
+            "in_s": in_s, "routine_s": round(routine_s, 4)}
 
 
 def _session_time(live, reader_time: float | None) -> tuple[str | None, float | None]:

@@ -20,7 +20,8 @@ router = APIRouter(prefix="/api/skeletons", tags=["skeletons"])
 ERRORS = {code: {"model": ErrorReply} for code in (400, 401, 403, 404, 409, 413, 422)}
 
 
-def skeleton_name(name: str = Path(description="the skeleton's preset name (GET /api/skeletons)")) -> str:
+def skeleton_name(name: str = Path(description="the skeleton's preset name (GET /api/skeletons)",
+                                   json_schema_extra={"pattern": NAME_PATTERN})) -> str:
     # Names become file names in the data directory: nothing that could leave it.
     if not NAME_RE.fullmatch(name):
         raise BadRequest(f"{name[:80]!r} is not a skeleton name (letters, digits, space, _ . -)")

@@ -34,5 +34,5 @@ def get_events(response: Response,
     events = service.store.events(None, since, limit + 1)
     if len(events) > limit:
         events = events[:limit]
-        response.headers["Link"] = f'</api/events?since={events[-1]["id"]}&limit={limit}>; rel="next"'
-    return events
+        response.headers["Link"] = f'</api/events?since={events[-1].id}&limit={limit}>; rel="next"'
+    return [e.doc for e in events]
