@@ -23,6 +23,7 @@ from pathlib import Path
 import httpx
 import numpy as np
 
+from flockcal.drivers.records import decode_block, encode_records
 from flockcal.server.framelog import FrameLog
 from flockcal.server.fitting import fit_calibration
 from flockcal.solver.accumulator import GramAccumulator
@@ -48,6 +49,12 @@ def make_session(data: Path, minutes: float) -> dict:
     performer = Performer("human", "exercise", seed=1, rate_hz=RATE, period=8.0)
     t = np.arange(int(60 * RATE)) / RATE
     R, p, valid = performer.poses(t)
+    # As the reader hands them over: the tracker's position/matrix words decoded (the frame log keeps words).
+    n, m = valid.shape
+    raw = np.frombuffer(encode_records("position_matrix", R.reshape(-1, 3, 3), p.reshape(-1, 3), scale_inches=72),
+                        np.uint8).reshape(n * m, -1)
+    R, p, ok, _ = decode_block("position_matrix", raw, scale_inches=72)
+    R, p, valid = R.reshape(n, m, 3, 3), p.reshape(n, m, 3), valid & ok.reshape(n, m)
     acc = GramAccumulator(performer.n_sensors)
     acc.add_poses(R, p, valid)
     result = fit_calibration(acc, performer.names)[0]

@@ -127,7 +127,7 @@ def decode_records(fmt: RecordFormat | str, records, *, scale_inches: float = 36
     rec = as_u8(records)
     rec = rec.reshape(-1, record_length(fmt, group=group, button=button))
     words = decode_words(rec[:, :fmt.n_data_bytes])
-    rotations, positions = _poses_from_words(fmt, words, scale_inches, quaternion_convention)
+    rotations, positions = poses_from_words(fmt, words, scale_inches, quaternion_convention)
     addresses = rec[:, -1].astype(np.int64) if group else None
     return rotations, positions, addresses
 
@@ -139,8 +139,11 @@ def saturated_records(fmt: RecordFormat | str, records) -> np.ndarray:
     return ~np.any(rec & 0x7F, axis=1)
 
 
-def _poses_from_words(fmt: RecordFormat, words: np.ndarray, scale_inches: float,
-                      quaternion_convention: str) -> tuple[np.ndarray, np.ndarray]:
+def poses_from_words(fmt: RecordFormat | str, words: np.ndarray, scale_inches: float = 36.0,
+                     quaternion_convention: str = "fob") -> tuple[np.ndarray, np.ndarray]:
+    """Data words (n, fmt.n_words) → (rotations (n,3,3), positions (n,3) m): the decoding every reader of
+    records uses (the live reader, replay, the service's frame log), so each gives the same floats."""
+    fmt = as_format(fmt)
     n = len(words)
     positions = np.full((n, 3), np.nan)
     rotations = np.full((n, 3, 3), np.nan)
@@ -191,7 +194,7 @@ def decode_block(fmt: RecordFormat | str, records: np.ndarray, *, scale_inches: 
     fmt = as_format(fmt)
     data = records[:, :fmt.n_data_bytes]
     words = decode_words(data)
-    rotations, positions = _poses_from_words(fmt, words, scale_inches, quaternion_convention)
+    rotations, positions = poses_from_words(fmt, words, scale_inches, quaternion_convention)
     clipped = position_clipped(fmt, words)
     valid = np.any(words, axis=1) & ~clipped
     return rotations, positions, valid, clipped

@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import asyncio
 import logging
-import os
 import threading
 import zipfile
 from pathlib import Path
@@ -23,7 +22,7 @@ from flockcal.frames import Frames
 from flockcal.server.wsgate import abort
 
 from flockcal.server.errors import Unavailable
-from flockcal.server.framelog import parse_header, record_dtype, sanitize, time_span
+from flockcal.server.framelog import FrameLogReader, record_dtype, sanitize, time_span  # noqa: F401 (record_dtype: chunk sizes)
 
 log = logging.getLogger(__name__)
 
@@ -36,31 +35,28 @@ class FrameFile:
     `flockcal.takes.ChunkedTake`: the exports read it as they read a Take."""
 
     def __init__(self, path: str | Path):
-        self.path = Path(path)
         # Held open until `close()`: a download reads what it began with, whatever happens to the name
         # (retention and DELETE wait for it, server/holds.py; this is the last line of defence).
-        self._fh = open(self.path, "rb")
+        self.log = FrameLogReader(path)  # FrameLogError (a ValueError) when cut or damaged
         try:
             self._open()
         except BaseException:
-            self._fh.close()
+            self.log.close()
             raise
 
     def _open(self) -> None:
-        line = self._fh.readline()
-        self.offset = self._fh.tell()
-        header = parse_header(line, self.path.name)  # FrameLogError (a ValueError) when cut or damaged
-        self.names: list[str] = list(header["names"])
-        self.m = len(self.names)
-        self.dtype = record_dtype(self.m)
-        self.n = (os.fstat(self._fh.fileno()).st_size - self.offset) // self.dtype.itemsize
+        self.path = self.log.path
+        self.names: list[str] = list(self.log.names)
+        self.m = self.log.m
+        self.dtype = self.log.dtype
+        self.n = self.log.n
         self.chunk = max(1, CHUNK_BYTES // self.dtype.itemsize)
         # Damaged records become frames with no valid sensor (server/framelog.py: sanitize), chunk by chunk
         # exactly as read_frames does for the whole log.
         self.span = time_span(self.records(0, min(self.n, 100))["time"],
                               self.records(max(self.n - 100, 0), min(self.n, 100))["time"])
         self.t0 = float(sanitize(self.records(0, 1), self.span, -np.inf)[0][0]) if self.n else 0.0
-        rate = header.get("rate_hz")
+        rate = self.log.rate_hz
         if not rate:  # as SessionManager.take: the mean rate of the arrivals
             span = float(sanitize(self.records(self.n - 1, 1), self.span, self.t0)[0][0]) - self.t0 if self.n > 1 else 0.0
             rate = (self.n - 1) / span if span > 0 else 1.0
@@ -77,27 +73,16 @@ class FrameFile:
         return max(1, self.chunk // 4)
 
     def close(self) -> None:
-        self._fh.close()
-
-    def _read(self, start: int, count: int) -> np.ndarray:
-        size = self.dtype.itemsize
-        data = os.pread(self._fh.fileno(), count * size, self.offset + start * size)
-        return np.frombuffer(data, dtype=self.dtype, count=len(data) // size)
+        self.log.close()
 
     def records(self, start: int, count: int) -> np.ndarray:
-        return self._read(start, count)
+        return self.log.records(start, count)
 
     def chunks(self, size: int | None = None) -> Iterator[Frames]:
         """`Frames` (times from the first frame) per chunk of `size` frames (default CHUNK_BYTES' worth), as a
         Take holds them: invalid sensor-frames zeroed (flockcal.takes.make_take)."""
-        size = size or self.chunk
         last = -np.inf
-        start = 0
-        while start < self.n:
-            rec = self._read(start, min(size, self.n - start))
-            if not len(rec):
-                return
-            start += len(rec)
+        for rec in self.log.chunks(size or self.chunk):
             times, R, t, valid, last = sanitize(rec, self.span, last)
             yield Frames(times - self.t0, R, t, valid)
 

@@ -1,9 +1,11 @@
 """A session's received frames, appended to a file as they arrive and flushed several times a second.
 
-Format: one JSON header line (`{"format": "flockcal-frames", "version": 1, "names": [...], "rate_hz": r}`)
-then fixed-size little-endian records: time f8, valid m×u1, rotations m×9 f8, positions m×3 f8.
-A crash leaves at most a partial last record, which `read_frames` ignores; so a kill -9 loses only
-what had not been flushed (≤ `flush_s`).
+Format: one JSON header line (`{"format": "flockcal-frames", "version": 2, "names": [...], "rate_hz": r}`)
+then blocks of the frames of each flush (server/frameblocks.py: the tracker's words, deflated, each block
+with its checksum), about 180 bytes a frame for 16 sensors. Version 1 (still read) held fixed-size
+little-endian records instead: time f8, valid m×u1, rotations m×9 f8, positions m×3 f8 (1,560 bytes a
+frame for 16). Either way a crash leaves at most a partial last block or record, which readers ignore;
+so a kill -9 loses only what had not been flushed (≤ `flush_s`).
 """
 
 from __future__ import annotations
@@ -12,21 +14,26 @@ import json
 import os
 import time
 from pathlib import Path
+from typing import Iterator
 
 import numpy as np
 
+from flockcal.server.frameblocks import HEAD, SYNC, BlockError, Encoder, decode, parse_head, record_dtype
+
 MAGIC = "flockcal-frames"
+VERSION = 2
+BLOCK_BYTES = 1 << 20  # a block decodes to at most this much (a reader holds a block at a time)
 
-
-def record_dtype(m: int) -> np.dtype:
-    return np.dtype([("time", "<f8"), ("valid", "u1", (m,)), ("rot", "<f8", (m, 3, 3)), ("pos", "<f8", (m, 3))])
+__all__ = ["FrameLog", "FrameLogError", "FrameLogReader", "parse_header", "read_frames", "record_dtype",
+           "sanitize", "time_span"]
 
 
 class FrameLog:
-    """Append-only writer; `write` buffers, `flush` hands the bytes to the OS (survives a process kill).
+    """Append-only writer; `write` buffers (the first frames are written at once), `flush` hands the bytes
+    to the OS (survives a process kill).
 
     A write that fails (a full disk) ends the log: `error` holds why, the file is cut back to its last
-    whole record, and later frames are not written; the caller stops the session (server/limits.py)."""
+    whole block, and later frames are not written; the caller stops the session (server/limits.py)."""
 
     def __init__(self, path: str | Path, names: list[str], rate_hz: float | None, flush_s: float = 0.25):
         self.path = Path(path)
@@ -35,15 +42,18 @@ class FrameLog:
         self.flush_s = flush_s
         self.error: OSError | None = None
         self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
-        header = (json.dumps({"format": MAGIC, "version": 1, "names": list(names), "rate_hz": rate_hz}) + "\n").encode()
+        header = (json.dumps({"format": MAGIC, "version": VERSION, "names": list(names), "rate_hz": rate_hz})
+                  + "\n").encode()
         try:
             _write_all(self._fd, header)
         except OSError:
             os.close(self._fd)
             self.path.unlink(missing_ok=True)
             raise
-        self._whole = len(header)  # file size up to the last whole record written
-        self._pending: list[bytes] = []
+        self._whole = len(header)  # file size up to the last whole block written
+        self._pending: list[np.ndarray] = []
+        self._encoder = Encoder()
+        self._block_frames = max(1, BLOCK_BYTES // self.dtype.itemsize)
         self.last_flush = time.monotonic()
         self.frames = 0
 
@@ -56,15 +66,20 @@ class FrameLog:
         rec["valid"] = valid
         rec["rot"] = rotations
         rec["pos"] = positions
-        self._pending.append(rec.tobytes())
+        self._pending.append(rec)
         self.frames += n
-        if time.monotonic() - self.last_flush >= self.flush_s:
+        # The first frames go out at once: a fit of them is published within a frame or two (fits run at
+        # 30 Hz), and a download or the rig a page loads for it must find the session's log holding frames.
+        if (n and self.frames == n) or time.monotonic() - self.last_flush >= self.flush_s:
             self.flush()
 
     def flush(self) -> None:
         if self._pending and self._fd is not None:
-            data = b"".join(self._pending)
+            rec = np.concatenate(self._pending) if len(self._pending) > 1 else self._pending[0]
             self._pending.clear()
+            step = self._block_frames
+            data = b"".join(self._encoder.block(r["time"], r["rot"], r["pos"], r["valid"].astype(bool))
+                            for r in (rec[a:a + step] for a in range(0, len(rec), step)))
             try:
                 _write_all(self._fd, data)
                 self._whole += len(data)
@@ -121,6 +136,10 @@ def parse_header(line: bytes, name: str) -> dict:
     names = header.get("names")
     if not isinstance(names, list) or not names or not all(isinstance(x, str) for x in names):
         raise FrameLogError(f"{name}: the frame log's header names no sensors")
+    version = header.get("version", 1)
+    if version not in (1, VERSION):
+        raise FrameLogError(f"{name}: a frame log of version {version!r}, which this flockcal does not read "
+                            f"(it reads versions 1 and {VERSION}); read it with the flockcal that wrote it")
     rate = header.get("rate_hz")
     if rate is not None and (isinstance(rate, bool) or not isinstance(rate, (int, float)) or not 0 < rate < 1e5):
         header["rate_hz"] = None  # the mean rate of the arrivals is used instead
@@ -166,23 +185,143 @@ def sanitize(rec: np.ndarray, span: tuple[float, float], last_time: float) -> tu
     return times, R, p, valid, (float(times[-1]) if len(times) else last_time)
 
 
+class FrameLogReader:
+    """A frame log opened for reading: `names`, `rate_hz`, `n` whole frames (fixed at open: a live session's
+    log grows on), and its records (`record_dtype`, as version 1 stored them) read by range or in turn.
+
+    The file stays open until `close()` (or the end of a `with`): what is read is what was opened, whatever
+    happens to its name meanwhile. A block whose bytes are damaged reads as records with no time and no valid
+    sensor (`sanitize` makes them frames with no valid sensor); one whose head is damaged is skipped to the
+    next whole block."""
+
+    def __init__(self, path: str | Path):
+        self.path = Path(path)
+        self._fh = open(self.path, "rb")
+        try:
+            self._open()
+        except BaseException:
+            self._fh.close()
+            raise
+
+    def _open(self) -> None:
+        line = self._fh.readline()
+        self.offset = self._fh.tell()
+        header = parse_header(line, self.path.name)  # FrameLogError (a ValueError) when cut or damaged
+        self.names: list[str] = list(header["names"])
+        self.rate_hz: float | None = header.get("rate_hz")
+        self.version: int = header.get("version", 1)
+        self.m = len(self.names)
+        self.dtype = record_dtype(self.m)
+        size = os.fstat(self._fh.fileno()).st_size
+        if self.version == 1:
+            self.n = (size - self.offset) // self.dtype.itemsize
+        else:
+            self._blocks = _block_index(self._fh.fileno(), self.offset, size)  # (offset, codec, frames, bytes, crc)
+            counts = np.array([b[2] for b in self._blocks], dtype=np.int64)
+            self._starts = np.concatenate([[0], np.cumsum(counts)])  # first frame of each block
+            self.n = int(self._starts[-1])
+
+    def close(self) -> None:
+        self._fh.close()
+
+    def __enter__(self) -> "FrameLogReader":
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def records(self, start: int, count: int) -> np.ndarray:
+        """Records start … start + count (clipped to the log's n)."""
+        start, stop = max(0, start), min(self.n, start + count)
+        if stop <= start:
+            return np.empty(0, self.dtype)
+        if self.version == 1:
+            return self._records_v1(start, stop - start)
+        first = int(np.searchsorted(self._starts, start, side="right")) - 1
+        last = int(np.searchsorted(self._starts, stop, side="left"))
+        rec = np.concatenate([self._decode(k) for k in range(first, last)])
+        a = start - int(self._starts[first])
+        return rec[a:a + stop - start]
+
+    def chunks(self, size: int) -> Iterator[np.ndarray]:
+        """All n records, `size` at a time (the last chunk shorter): memory stays a chunk and a block."""
+        if self.version == 1:
+            for start in range(0, self.n, size):
+                rec = self._records_v1(start, min(size, self.n - start))
+                if not len(rec):
+                    return
+                yield rec
+            return
+        held: list[np.ndarray] = []
+        have = 0
+        for k in range(len(self._blocks)):
+            held.append(self._decode(k))
+            have += len(held[-1])
+            while have >= size:
+                rec = np.concatenate(held) if len(held) > 1 else held[0]
+                yield rec[:size]
+                held, have = [rec[size:]], have - size
+        if have:
+            yield np.concatenate(held)
+
+    def _records_v1(self, start: int, count: int) -> np.ndarray:
+        size = self.dtype.itemsize
+        data = os.pread(self._fh.fileno(), count * size, self.offset + start * size)
+        return np.frombuffer(data, dtype=self.dtype, count=len(data) // size)
+
+    def _decode(self, k: int) -> np.ndarray:
+        offset, codec, n, size, crc = self._blocks[k]
+        try:
+            return decode(codec, n, self.m, os.pread(self._fh.fileno(), size, offset + HEAD.size), crc)
+        except BlockError:
+            rec = np.zeros(n, self.dtype)
+            rec["time"] = np.nan
+            return rec
+
+
+def _block_index(fd: int, offset: int, size: int) -> list[tuple[int, int, int, int, int]]:
+    """(offset, codec, frames, payload bytes, payload CRC) of each whole block of a version-2 log of `size`
+    bytes; a damaged head is skipped to the next whole block, a block cut short by a crash ends the list."""
+    out = []
+    at = offset
+    while at + HEAD.size <= size:
+        head = parse_head(os.pread(fd, HEAD.size, at))
+        if head is None:
+            at = _next_head(fd, at + 1, size)
+            continue
+        codec, n, length, crc = head
+        if at + HEAD.size + length > size:
+            break
+        out.append((at, codec, n, length, crc))
+        at += HEAD.size + length
+    return out
+
+
+def _next_head(fd: int, at: int, size: int, step: int = 1 << 20) -> int:
+    """Where the next whole block head lies from `at` on (`size` when there is none)."""
+    while at + HEAD.size <= size:
+        buf = os.pread(fd, step + HEAD.size, at)
+        i = buf.find(SYNC)
+        while i >= 0 and i + HEAD.size <= len(buf):
+            head = parse_head(buf[i:i + HEAD.size])
+            if head is not None and at + i + HEAD.size + head[2] <= size:
+                return at + i
+            i = buf.find(SYNC, i + 1)
+        at += step
+    return size
+
+
 def read_frames(path: str | Path) -> dict:
     """Read a frame log: dict(names, rate_hz, times (n,), rotations (n,m,3,3), positions (n,m,3), valid (n,m)).
     Damaged records are kept as frames with no valid sensor (`sanitize`); FrameLogError when the log has
     no readable header."""
-    path = Path(path)
-    with open(path, "rb") as fh:
-        header = parse_header(fh.readline(), path.name)
-        body = fh.read()
-    m = len(header["names"])
-    dt = record_dtype(m)
-    n = len(body) // dt.itemsize
-    rec = np.frombuffer(body[: n * dt.itemsize], dtype=dt)
+    with FrameLogReader(path) as log:
+        rec = log.records(0, log.n)
     span = time_span(rec["time"][:100], rec["time"][-100:])
     times, R, p, valid, _ = sanitize(rec, span, -np.inf)
     return {
-        "names": header["names"],
-        "rate_hz": header.get("rate_hz"),
+        "names": log.names,
+        "rate_hz": log.rate_hz,
         "times": times,
         "rotations": R,
         "positions": p,

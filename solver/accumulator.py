@@ -44,8 +44,13 @@ _JIT_SCALE = 20.0 * 2.3660
 _JIT_DENSE = 4096
 _JIT_STRIDE = 32
 # Finished score blocks wait in a list and are folded into the moments together (one product per pair for
-# many blocks instead of one per block); at most this many wait.
+# many blocks instead of one per block); at most this many all-valid blocks' Grams wait in `_gram_buf`.
 _FOLD_EVERY = 128
+# ... and at most this many blocks' terms wait in `_waiting`. Copies share the waiting terms and the moments
+# rather than folding (a fold makes a new moments array, 240 kB at 16 sensors): the live service's 150
+# segment snapshots (solver/segments.py) then hold a few moments arrays between them, not one per fold the
+# refits happened to trigger, which made their memory grow with the machine's load up to 36 MB.
+_SHARED_WAITING = 16
 
 
 class GramAccumulator:
@@ -272,7 +277,7 @@ class GramAccumulator:
         P = all_pairs_of(m)
         blocks = mirrored(self._open_gram).reshape(4, m, 4, m)
         wt = pair_terms(blocks, self._open_self, self._open_pf, P)
-        self._waiting.append(wt[None])
+        self._waiting = self._waiting + [wt[None]]  # a new list: copies share the old one
         self._moment_frames = self._moment_frames + wt[:, 0]
         self._moment_blocks = self._moment_blocks + (wt[:, 0] > 0)
         self._fold_if_many()
@@ -282,26 +287,32 @@ class GramAccumulator:
         self._open_n = 0
 
     def _fold_if_many(self) -> None:
-        if len(self._waiting) >= _FOLD_EVERY:
+        if len(self._waiting) >= _SHARED_WAITING:
             self._fold()
+
+    def _gather(self) -> None:
+        """The all-valid blocks' Grams in `_gram_buf` as waiting terms (a buffer that is written again cannot
+        be shared with a copy; the terms, never written once made, can)."""
+        if not self._n_buf:
+            return
+        take, minus = term_index(self.n_sensors)
+        flat = self._gram_buf[:self._n_buf].reshape(self._n_buf, -1)
+        k = self._n_buf
+        # np.take along an axis gathers several times faster than fancy indexing here.
+        wt = np.take(flat, take.ravel(), axis=1).reshape(k, *take.shape)  # (k, p, 16)
+        wt[:, :, 10:] -= np.take(flat, minus[:, 10:].ravel(), axis=1).reshape(k, len(take), 6)
+        wt[:, :, 0] = SCORE_BLOCK
+        self._waiting = self._waiting + [wt]
+        self._n_buf = 0
 
     def _fold(self) -> None:
         """Add the waiting blocks' Σ w wᵀ into the moments (a new array: copies share the old one)."""
-        if not self._waiting and not self._n_buf:
+        self._gather()
+        if not self._waiting:
             return
-        parts = list(self._waiting)
-        if self._n_buf:
-            take, minus = term_index(self.n_sensors)
-            flat = self._gram_buf[:self._n_buf].reshape(self._n_buf, -1)
-            k = self._n_buf
-            # np.take along an axis gathers several times faster than fancy indexing here.
-            wt = np.take(flat, take.ravel(), axis=1).reshape(k, *take.shape)  # (k, p, 16)
-            wt[:, :, 10:] -= np.take(flat, minus[:, 10:].ravel(), axis=1).reshape(k, len(take), 6)
-            wt[:, :, 0] = SCORE_BLOCK
-            parts.append(wt)
-        W = np.concatenate(parts).transpose(1, 0, 2)  # (p, k, 16)
+        W = np.concatenate(self._waiting).transpose(1, 0, 2)  # (p, k, 16)
         self._moments = self._moments + W.transpose(0, 2, 1) @ W
-        self._waiting, self._n_buf = [], 0
+        self._waiting = []
 
     def _add_jitter(self, R: np.ndarray, w: np.ndarray, first: int) -> None:
         """Each sensor's third difference of its rotation over four frames, for the jitter (docs/design.md §3a).
@@ -521,10 +532,12 @@ class GramAccumulator:
         new._self = self._self.copy()
         new._pair_frames = self._pair_frames.copy()
         new._frames = self._frames
-        # The moments array is shared, not copied: it is replaced whenever blocks are folded in, never written.
-        self._fold()
+        # The moments array and the waiting blocks' terms are shared, not copied: both are replaced, never
+        # written (a copy folds its own when it needs its moments: `block_moments`).
+        self._gather()
+        self._fold_if_many()
         self._histogram()
-        new._moments, new._moment_frames = self._moments, self._moment_frames.copy()
+        new._moments, new._waiting, new._moment_frames = self._moments, self._waiting, self._moment_frames.copy()
         new._moment_blocks, new._jitter = self._moment_blocks.copy(), self._jitter.copy()
         new._noise = self._noise  # read-only, and of the same histogram
         new._open_gram, new._open_self = self._open_gram.copy(), self._open_self.copy()

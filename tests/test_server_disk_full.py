@@ -100,11 +100,12 @@ def frames_of(url: str, sid: str) -> int:
     return httpx.get(url + f"/api/sessions/{sid}", timeout=10).json()["frames"]
 
 
-def whole_records(recording: Path, birds: int = 6) -> int:
-    """Whole records in a frame log as another process sees it on disk: a header line, then records of a
-    time, m valid bytes, m rotations and m positions (8-byte floats)."""
-    raw = recording.read_bytes()
-    return (len(raw) - raw.index(b"\n") - 1) // (8 + birds + birds * 12 * 8)
+def whole_records(recording: Path) -> int:
+    """Whole frames in a frame log as another process sees it on disk (its reader counts the whole blocks)."""
+    from flockcal.server.framelog import FrameLogReader
+
+    with FrameLogReader(recording) as log:
+        return log.n
 
 
 def check_the_full_disk(url: str, recordings: Path, fill_disk, give_room) -> None:

@@ -64,6 +64,20 @@ def test_streamed_take_equals_the_whole_take(session):
     assert list(got["names"]) == list(want.names) and float(got["rate_hz"]) == want.rate_hz
 
 
+def test_the_live_frame_log_holds_the_trackers_words_not_floats(session):
+    """The session's log, recorded by the real reader from the simulator's bytes, is stored as the tracker's
+    words (server/frameblocks.py): under a third of the 8 + 4 + 4 × 96 bytes a frame of 4 birds as floats."""
+    from flockcal.server.framelog import FrameLogReader
+
+    srv, sid = session
+    path = srv.service.sessions.frames_path(sid)
+    with FrameLogReader(path) as log:
+        version, n = log.version, log.n
+    body = path.stat().st_size - len(path.read_bytes().split(b"\n", 1)[0]) - 1
+    assert version == 2 and n > 100
+    assert body / n < (8 + 4 + 4 * 96) / 3, f"{body / n:.0f} bytes a frame"
+
+
 def test_streamed_bvh_and_skeleton_equal_the_exports_of_the_whole_take(session):
     srv, sid = session
     result = httpx.get(srv.url + f"/api/sessions/{sid}/result").json()

@@ -173,12 +173,14 @@ def test_budget_keeps_room_for_the_next_session_to_record(tracker, tmp_path):
     # oldest is gone, with room to spare; then one it would meet by a few kB if a prune only freed bytes.
     # A prune also writes (the kept skeleton file, the database's rows): counted as freed bytes alone, a
     # pass stopped ~70 kB over the room it meant to keep (at a load of 10-16, 77 kB over this test's margin).
+    # 600 frames each: with the compact frame log (~180 bytes a frame, not 1,560) 200 frames made sessions
+    # of ~120 kB, whose half (the spare room) was less than what a prune writes.
     from flockcal.server.retention import GB, Policy
 
     with ServerThread(settings_for(tracker, tmp_path / "data", keep_disk_gb=1000.0)) as srv:
         url = srv.url
         wait_connected(url)
-        sids = [session(url, frames=200) for _ in range(3)]
+        sids = [session(url, frames=600) for _ in range(3)]
         ret, mgr = srv.service.retention, srv.service.sessions
         # The passes below are the test's alone: the housekeeping thread, woken by each stop, ran its pass
         # after a budget below was set on a loaded machine (and pruned what the test's pass was to prune).

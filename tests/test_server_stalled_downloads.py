@@ -20,8 +20,9 @@ from service_process import Serve, wait_for
 
 # --- downloads -----------------------------------------------------------------------------------------
 def big_session(data: Path, frames: int = 100_000, moving: bool = False) -> str:
-    """A stopped session of 4 sensors whose frame log is 40 MB, put in the data directory before the service
-    starts (as retention's benchmark does): big enough that a client that stops reading stalls its download.
+    """A stopped session of 4 sensors whose take is 40 MB (its frame log, deflated, far less), put in the data
+    directory before the service starts (as retention's benchmark does): big enough that a client that stops
+    reading stalls its download.
     `moving`: a chain a-b-c-d turning about ball joints (so a re-solve finds joints), else all at rest."""
     from flockcal.server.framelog import FrameLog
     from flockcal.server.store import Store
