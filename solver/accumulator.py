@@ -13,9 +13,11 @@ from collections.abc import Mapping
 from types import MappingProxyType
 
 import numpy as np
+
 from flockcal.solver.blas import dsyrk
 
 from flockcal.rotations import nearest_rotation
+from flockcal.solver import rotation_jitter as jitter
 from flockcal.solver.errors import SolverError
 from flockcal.solver.gram_layout import (
     BLOCK_TERMS,
@@ -34,15 +36,6 @@ BLOCK = 256
 # Frames per score block: the unit of the batch-means standard error (docs/design.md §3a). About half a second of
 # tracker data, long enough to hold the time correlation of soft-tissue residuals; BLOCK is a multiple.
 SCORE_BLOCK = 64
-# Rotation jitter histogram: log10 of the squared third difference of the frame-to-frame rotation.
-_JIT_LO, _JIT_HI, _JIT_BINS = -20.0, 1.0, 210
-# A white per-axis jitter s² makes the third difference's squared norm 20 s² × χ²(3); χ²(3)'s median is 2.366.
-_JIT_SCALE = 20.0 * 2.3660
-# Four-frame windows for the jitter: back to back (every frame used, the windows independent) over the
-# take's first _JIT_DENSE frames, so a short take still gives its median enough samples; then one every
-# _JIT_STRIDE frames, which keeps a long take's median current at an eighth of the cost.
-_JIT_DENSE = 4096
-_JIT_STRIDE = 32
 # Finished score blocks wait in a list and are folded into the moments together (one product per pair for
 # many blocks instead of one per block); at most this many all-valid blocks' Grams wait in `_gram_buf`.
 _FOLD_EVERY = 128
@@ -99,7 +92,7 @@ class GramAccumulator:
         self._n_buf = 0
         self._waiting_windows: list[tuple[np.ndarray, np.ndarray]] = []  # jitter windows not yet histogrammed
         # Rotation jitter: per-sensor histogram of third differences, and the last frames to difference with.
-        self._jitter = np.zeros((m, _JIT_BINS))
+        self._jitter = np.zeros((m, jitter.BINS))
         # `rotation_noise()` of the histogram as it stands (None: worked out again on the next call). The
         # histogram changes a few times a second, the live service reads the noise ~90 times.
         self._noise: np.ndarray | None = None
@@ -320,7 +313,7 @@ class GramAccumulator:
         A third difference cancels any smooth motion (to the motion's jerk × dt³) and keeps 20× the
         per-axis jitter variance of the angles (1 + 9 + 9 + 1). Position noise does not enter: this is
         rotation noise alone. Windows start at fixed frames of the take (`first` is the global index of R's
-        first frame; see _JIT_DENSE), so however the frames arrive they make the same windows.
+        first frame; see solver/rotation_jitter.py), so however the frames arrive they make the same windows.
         """
         n = len(R)
         if len(self._tail_R):  # a window begun in the last block: complete it with this block's frames
@@ -330,14 +323,9 @@ class GramAccumulator:
             if len(self._tail_R) == 4:
                 self._waiting_windows.append(third_difference(self._tail_R[None], self._tail_w[None]))
                 self._tail_R, self._tail_w = self._tail_R[:0], self._tail_w[:0]
-        # Window starts in [first, first + n): every 4th frame below _JIT_DENSE, every _JIT_STRIDE-th after.
-        end = first + n
-        dense = np.arange(first + (-first) % 4, min(end, _JIT_DENSE), 4)
-        lo = max(first, _JIT_DENSE)
-        sparse = np.arange(lo + (_JIT_DENSE - lo) % _JIT_STRIDE, end, _JIT_STRIDE)
-        starts = np.concatenate([dense, sparse]) - first
+        starts, dense = jitter.window_starts(first, n)
         whole = starts[starts + 4 <= n]
-        if len(whole) and len(dense) == len(whole) and len(whole) * 4 == whole[-1] + 4 - whole[0]:
+        if len(whole) and dense == len(whole) and len(whole) * 4 == whole[-1] + 4 - whole[0]:
             span = slice(whole[0], whole[-1] + 4)  # back-to-back windows: a reshape, no gather
             W = R[span].reshape((len(whole), 4) + R.shape[1:])
             V = w[span].reshape((len(whole), 4) + w.shape[1:])
@@ -360,11 +348,7 @@ class GramAccumulator:
         self._waiting_windows = []
         if not sel.any():
             return
-        with np.errstate(divide="ignore"):
-            lg = np.log10(np.maximum(x[sel], 1e-300))
-        bins = np.clip(((lg - _JIT_LO) * (_JIT_BINS / (_JIT_HI - _JIT_LO))).astype(np.intp), 0, _JIT_BINS - 1)
-        sensor = np.nonzero(sel)[1]
-        self._jitter += np.bincount(sensor * _JIT_BINS + bins, minlength=m * _JIT_BINS).reshape(m, _JIT_BINS)
+        self._jitter += jitter.bin_counts(x, sel, m)
         self._noise = None
 
     def ingest(self, times, rotations, positions, valid=None) -> "GramAccumulator":
@@ -465,15 +449,7 @@ class GramAccumulator:
         self._histogram()
         if self._noise is not None:
             return self._noise
-        h = self._jitter
-        total = h.sum(axis=1)
-        cum = np.cumsum(h, axis=1)
-        k = np.argmax(cum >= 0.5 * total[:, None], axis=1)
-        below = np.where(k > 0, cum[np.arange(len(k)), k - 1], 0.0)
-        inside = h[np.arange(len(k)), k]
-        frac = np.where(inside > 0, (0.5 * total - below) / np.where(inside > 0, inside, 1.0), 0.5)
-        lg = _JIT_LO + (k + frac) * ((_JIT_HI - _JIT_LO) / _JIT_BINS)
-        noise = np.where(total >= 8, 10.0 ** lg / _JIT_SCALE, np.nan)
+        noise = jitter.median_noise(self._jitter)
         noise.setflags(write=False)
         self._noise = noise
         return noise
