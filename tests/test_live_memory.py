@@ -111,7 +111,8 @@ def test_the_live_pipeline_holds_as_much_after_100_s_as_after_50_s(tmp_path):
                               "names": list(names), "device": "test", "rate_hz": RATE, "created_at": time.time(),
                               "frames": 0, "recording": "s.frames", "profile": "stage"})
         prof = profile("stage", 0.005, 0.005 / 2 ** 0.5)
-        pipe.begin_session(LiveSession("s", "p", names, None, None, FrameLog(tmp_path / "s.frames", list(names), RATE), prof))
+        pipe.begin_session(LiveSession("s", "p", names, None, None, FrameLog(tmp_path / "s.frames", list(names), RATE), prof,
+                                       started_wall=time.time(), started_mono=time.monotonic()))
         held = []
         start = time.monotonic()
         for part in range(2):
