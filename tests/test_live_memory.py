@@ -97,14 +97,18 @@ def test_the_live_pipeline_holds_as_much_after_100_s_as_after_50_s(tmp_path):
     frame or per sample would add more: 50 s of the residual samples alone are 3 %)."""
     from flockcal.server.framelog import FrameLog
     from flockcal.server.live_session import LiveSession
+    from flockcal.drivers.tracker_status import TrackerStatus
+    from flockcal.server.limits import DiskStatus
     from flockcal.server.pipeline import Pipeline
+    from flockcal.server.snapshot import SourceStatus
     from flockcal.server.store import Store
     from flockcal.solver.progress import profile
 
     perf = Performer("human", routine="walk", rate_hz=RATE, birds=6)
     names = tuple(perf.names)
     store = Store(tmp_path / "flockcal.sqlite3")
-    pipe = Pipeline(names, store, lambda: {"connected": True})
+    pipe = Pipeline(names, store, lambda: SourceStatus(TrackerStatus(connected=True), "test", False,
+                                                         DiskStatus(False, None, 0)))
     pipe.start()
     try:
         store.insert_session({"id": "s", "performer": "p", "state": "live", "root": None, "hierarchy": None,

@@ -197,14 +197,18 @@ def test_a_fit_published_before_the_first_flush_interval_finds_its_frames_in_the
     from flockcal.exports.gltf import glb_chunks
     from flockcal.frames import Frames
     from flockcal.server.live_session import LiveSession
+    from flockcal.drivers.tracker_status import TrackerStatus
+    from flockcal.server.limits import DiskStatus
     from flockcal.server.pipeline import Pipeline
+    from flockcal.server.snapshot import SourceStatus
     from flockcal.server.store import Store
     from flockcal.solver.progress import profile
 
     perf = Performer("human", routine="walk", rate_hz=RATE, birds=6)
     names = tuple(perf.names)
     store = Store(tmp_path / "flockcal.sqlite3")
-    pipe = Pipeline(names, store, lambda: {"connected": True})
+    pipe = Pipeline(names, store, lambda: SourceStatus(TrackerStatus(connected=True), "test", False,
+                                                         DiskStatus(False, None, 0)))
     pipe.start()
     path = tmp_path / "s.frames"
     try:
