@@ -12,7 +12,7 @@ import logging
 import queue
 import select
 import threading
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from typing import Callable
 
 import numpy as np
@@ -26,6 +26,7 @@ from flockcal.drivers.link import (FlockLink, FlockSetup, LinkLost, Timing, Trac
 from flockcal.drivers.rate_check import RateCheck
 from flockcal.drivers.recording import RecordingWriter
 from flockcal.drivers.records import FORMATS, record_length
+from flockcal.drivers.tracker_status import TrackerStatus
 from flockcal.frames import Frames
 from flockcal.threads import name_os_thread
 
@@ -178,11 +179,8 @@ class TrackerReader:
         self._recording_lock = threading.Lock()
         self._stream_marker: dict | None = None  # the current stream's setup: every recording starts with it
         self.setup: FlockSetup | None = None
-        self._status = dict(connected=False, birds=cfg.birds, rate_hz=None, frames=0, dropped_records=0,
-                            resynced=0, reconnects=0, last_error=None, record_format=None, urls=list(cfg.urls),
-                            mode=cfg.mode, group=cfg.resolved_group(), rejected_records=0, dropped_bytes=0,
-                            bird_errors=0, recording_path=cfg.recording_path, saturated_records=0,
-                            scale_inches=cfg.scale_inches, model=None)
+        self._status = TrackerStatus(birds=cfg.birds, urls=list(cfg.urls), mode=cfg.mode, group=cfg.resolved_group(),
+                                     recording_path=cfg.recording_path, scale_inches=cfg.scale_inches)
         self._totals = dict(frames=0, dropped_records=0, resynced=0, rejected_records=0, dropped_bytes=0,
                             saturated_records=0)
 
@@ -243,9 +241,10 @@ class TrackerReader:
         if old is not None:
             old.close()
 
-    def status(self) -> dict:
+    def status(self) -> TrackerStatus:
+        """The link now (a copy)."""
         with self._lock:
-            return dict(self._status)
+            return replace(self._status, urls=list(self._status.urls))
 
     @property
     def running(self) -> bool:
@@ -258,9 +257,9 @@ class TrackerReader:
         log.log(level, "%s", event)
         if kind in ("disconnected", "stalled", "error", "bird_error"):
             with self._lock:
-                self._status["last_error"] = message
+                self._status.last_error = message
                 if kind == "bird_error":
-                    self._status["bird_errors"] += 1
+                    self._status.bird_errors += 1
         if (rec := self._recorder) is not None:
             rec.mark(event.time, {"event": kind, "message": message, **data})
         if self.on_event is not None:
@@ -293,12 +292,12 @@ class TrackerReader:
         frames = asm.take()
         with self._lock:
             s = self._status
-            s["frames"] = self._totals["frames"] + asm.frames
-            s["dropped_records"] = self._totals["dropped_records"] + asm.dropped_records
-            s["resynced"] = self._totals["resynced"] + asm.resyncs
-            s["rejected_records"] = self._totals["rejected_records"] + asm.rejected_records
-            s["dropped_bytes"] = self._totals["dropped_bytes"] + asm.dropped_bytes
-            s["saturated_records"] = self._totals["saturated_records"] + asm.saturated_records
+            s.frames = self._totals["frames"] + asm.frames
+            s.dropped_records = self._totals["dropped_records"] + asm.dropped_records
+            s.resynced = self._totals["resynced"] + asm.resyncs
+            s.rejected_records = self._totals["rejected_records"] + asm.rejected_records
+            s.dropped_bytes = self._totals["dropped_bytes"] + asm.dropped_bytes
+            s.saturated_records = self._totals["saturated_records"] + asm.saturated_records
         if (rec := self._recorder) is not None:
             rec.flush()
             if rec.error is not None:
@@ -343,7 +342,7 @@ class TrackerReader:
                     self._retire(asm, type(exc).__name__)
                     self._close_links()
                     with self._lock:
-                        self._status["connected"] = False
+                        self._status.connected = False
                     if self._fail_fast and not self._connected_once.is_set():
                         # The caller of start(wait=…) raises it; no event, no retry.
                         self._first_failure = exc if isinstance(exc, TrackerError) else TrackerError(str(exc))
@@ -361,14 +360,14 @@ class TrackerReader:
                     first, longest = self.cfg.backoff
                     delay = min(longest, first * 2 ** (attempt - 1))
                     with self._lock:
-                        self._status["reconnects"] += 1
+                        self._status.reconnects += 1
                     self._emit("reconnecting", f"reconnecting in {delay:.2f} s (attempt {attempt})",
                                attempt=attempt, delay=delay)
                     self.clock.wait(self._stop, delay)
         finally:
             self._close_links()
             with self._lock:
-                self._status["connected"] = False
+                self._status.connected = False
             self.stop_recording()
             self._emit_stopped()
 
@@ -412,8 +411,8 @@ class TrackerReader:
         if cfg.mode == "stream":
             start_stream(self._links, setup)
         with self._lock:
-            self._status.update(connected=True, rate_hz=setup.rate_hz, record_format=setup.record_format,
-                                group=setup.group, scale_inches=setup.scale_inches, model=setup.model)
+            self._status = replace(self._status, connected=True, rate_hz=setup.rate_hz, record_format=setup.record_format,
+                                   group=setup.group, scale_inches=setup.scale_inches, model=setup.model)
         self._connected_once.set()
         where = setup.urls[0] if len(setup.urls) == 1 else f"{len(setup.urls)} ports ({setup.urls[0]}, …)"
         self._emit("connected", f"{setup.birds} bird(s) on {where}: {setup.record_format}, "

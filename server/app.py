@@ -19,7 +19,9 @@ from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
+from starlette.datastructures import MutableHeaders
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.requests import ClientDisconnect
 
 from flockcal import __version__
 from flockcal.clock import SYSTEM, Clock
@@ -127,8 +129,8 @@ class BodyLimit:
     async def __call__(self, scope, receive, send):
         if scope["type"] != "http":
             return await self.app(scope, receive, send)
-        headers = dict(scope.get("headers") or [])
-        length = headers.get(b"content-length")
+        request = Request(scope, receive)
+        length = request.headers.get("content-length")
         too_big = _error(413, f"request body too large (limit {self.limit} bytes)", "too_large")
         if length is not None:
             try:
@@ -136,21 +138,19 @@ class BodyLimit:
                     return await too_big(scope, receive, send)
             except ValueError:
                 return await _error(400, "bad Content-Length header", "bad_request")(scope, receive, send)
-        if scope.get("method") in ("GET", "HEAD", "OPTIONS", "DELETE") and length is None:
+        if request.method in ("GET", "HEAD", "OPTIONS", "DELETE") and length is None:
             return await self.app(scope, receive, send)
         # Read the body here, whatever the headers claim (chunked uploads have no length), stopping
         # past the limit, then hand it to the app in one piece.
-        chunks, seen, more = [], 0, True
-        while more:
-            message = await receive()
-            if message["type"] != "http.request":
-                return
-            chunk = message.get("body", b"")
-            seen += len(chunk)
-            if seen > self.limit:
-                return await too_big(scope, receive, send)
-            chunks.append(chunk)
-            more = message.get("more_body", False)
+        chunks, seen = [], 0
+        try:
+            async for chunk in request.stream():
+                seen += len(chunk)
+                if seen > self.limit:
+                    return await too_big(scope, receive, send)
+                chunks.append(chunk)
+        except ClientDisconnect:
+            return
         body = b"".join(chunks)
         sent = False
 
@@ -184,8 +184,7 @@ class DocsPolicy:
 
         async def with_policy(message):
             if message["type"] == "http.response.start":
-                message = dict(message, headers=[*message.get("headers", []),
-                                                 (b"content-security-policy", DOCS_POLICY.encode())])
+                MutableHeaders(scope=message).append("content-security-policy", DOCS_POLICY)
             await send(message)
 
         await self.app(scope, receive, with_policy)

@@ -53,12 +53,13 @@ class FrameFile:
         self.chunk = max(1, CHUNK_BYTES // self.dtype.itemsize)
         # Damaged records become frames with no valid sensor (server/framelog.py: sanitize), chunk by chunk
         # exactly as read_frames does for the whole log.
-        self.span = time_span(self.records(0, min(self.n, 100))["time"],
-                              self.records(max(self.n - 100, 0), min(self.n, 100))["time"])
-        self.t0 = float(sanitize(self.records(0, 1), self.span, -np.inf)[0][0]) if self.n else 0.0
+        self.span = time_span(self.log.frames(0, min(self.n, 100)).times,
+                              self.log.frames(max(self.n - 100, 0), min(self.n, 100)).times)
+        self.t0 = float(sanitize(self.log.frames(0, 1), self.span, -np.inf)[0].times[0]) if self.n else 0.0
         rate = self.log.rate_hz
         if not rate:  # as SessionManager.take: the mean rate of the arrivals
-            span = float(sanitize(self.records(self.n - 1, 1), self.span, self.t0)[0][0]) - self.t0 if self.n > 1 else 0.0
+            last = float(sanitize(self.log.frames(self.n - 1, 1), self.span, self.t0)[0].times[0]) if self.n > 1 else self.t0
+            span = last - self.t0
             rate = (self.n - 1) / span if span > 0 else 1.0
         self.rate_hz = float(rate)
 
@@ -75,16 +76,13 @@ class FrameFile:
     def close(self) -> None:
         self.log.close()
 
-    def records(self, start: int, count: int) -> np.ndarray:
-        return self.log.records(start, count)
-
     def chunks(self, size: int | None = None) -> Iterator[Frames]:
         """`Frames` (times from the first frame) per chunk of `size` frames (default CHUNK_BYTES' worth), as a
         Take holds them: invalid sensor-frames zeroed (flockcal.takes.make_take)."""
         last = -np.inf
-        for rec in self.log.chunks(size or self.chunk):
-            times, R, t, valid, last = sanitize(rec, self.span, last)
-            yield Frames(times - self.t0, R, t, valid)
+        for raw in self.log.chunks(size or self.chunk):
+            frames, last = sanitize(raw, self.span, last)
+            yield Frames(frames.times - self.t0, frames.rotations, frames.positions, frames.valid)
 
 
 DOWNLOAD_STALL_S = 30.0  # a download whose client takes no data for this long is cut off, its slot freed

@@ -20,6 +20,7 @@ import zlib
 import numpy as np
 
 from flockcal.drivers.records import FORMAT_BY_COMMAND, FORMATS, RecordFormat, data_words, poses_from_words
+from flockcal.frames import Frames
 
 HEAD = struct.Struct("<2sBBIIII")
 SYNC = b"FB"
@@ -37,6 +38,12 @@ NO_CODEC = 1 / 4  # ... and with none better than this, the block is stored as r
 def record_dtype(m: int) -> np.dtype:
     """The version-1 record of m sensors: what a block decodes to."""
     return np.dtype([("time", "<f8"), ("valid", "u1", (m,)), ("rot", "<f8", (m, 3, 3)), ("pos", "<f8", (m, 3))])
+
+
+def records_frames(rec: np.ndarray) -> Frames:
+    """Version-1 records as they were stored: `valid` keeps the stored 0/1 flags (any other byte is damage,
+    which framelog.sanitize judges)."""
+    return Frames(rec["time"], rec["rot"], rec["pos"], rec["valid"])
 
 
 class BlockError(ValueError):
@@ -149,10 +156,7 @@ def _block(codec: int, n: int, payload: bytes) -> bytes:
 
 
 def _records_payload(times, R, p, valid) -> bytes:
-    n, m = valid.shape
-    rec = np.empty(n, dtype=record_dtype(m))
-    rec["time"], rec["valid"], rec["rot"], rec["pos"] = times, valid, R, p
-    return rec.tobytes()
+    return np.rec.fromarrays([times, valid, R, p], dtype=record_dtype(valid.shape[1])).tobytes()
 
 
 def _words_payload(fmt, scale, times, valid, ok, w, found, Rf, pf, m) -> bytes | None:
@@ -204,8 +208,9 @@ def parse_head(head: bytes) -> tuple[int, int, int, int] | None:
     return codec, n, size, crc
 
 
-def decode(codec: int, n: int, m: int, data: bytes, crc: int) -> np.ndarray:
-    """A block's payload as n version-1 records of m sensors; BlockError when its bytes are damaged."""
+def decode(codec: int, n: int, m: int, data: bytes, crc: int) -> Frames:
+    """A block's payload as n frames of m sensors, as stored (`records_frames`); BlockError when its bytes
+    are damaged."""
     if zlib.crc32(data) != crc:
         raise BlockError("a frame log block failed its checksum")
     try:
@@ -216,9 +221,9 @@ def decode(codec: int, n: int, m: int, data: bytes, crc: int) -> np.ndarray:
     if codec == RECORDS:
         if len(raw) != n * dt.itemsize:
             raise BlockError("a frame log block holds the wrong number of records")
-        return np.frombuffer(raw, dtype=dt).copy()
+        return records_frames(np.frombuffer(raw, dtype=dt).copy())
     try:
-        return _decode_words(raw, n, m, dt)
+        return _decode_words(raw, n, m)
     except (ValueError, KeyError, IndexError) as exc:
         raise BlockError(f"a frame log block does not decode: {exc}") from None
 
@@ -239,7 +244,7 @@ class _Cursor:
         return out
 
 
-def _decode_words(raw: bytes, n: int, m: int, dt: np.dtype) -> np.ndarray:
+def _decode_words(raw: bytes, n: int, m: int) -> Frames:
     cur = _Cursor(raw)
     command, scale = cur.take(2, np.uint8).tolist()
     fmt = FORMAT_BY_COMMAND[command]
@@ -266,7 +271,4 @@ def _decode_words(raw: bytes, n: int, m: int, dt: np.dtype) -> np.ndarray:
     if len(idx):
         R[idx], p[idx] = poses_from_words(fmt, words[idx], scale)
     R[kept], p[kept] = kR, kp
-    rec = np.empty(n, dtype=dt)
-    rec["time"], rec["valid"] = times, valid.reshape(n, m)
-    rec["rot"], rec["pos"] = R.reshape(n, m, 3, 3), p.reshape(n, m, 3)
-    return rec
+    return Frames(times, R.reshape(n, m, 3, 3), p.reshape(n, m, 3), valid.reshape(n, m))

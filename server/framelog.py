@@ -13,18 +13,20 @@ from __future__ import annotations
 import json
 import os
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
 import numpy as np
 
-from flockcal.server.frameblocks import HEAD, SYNC, BlockError, Encoder, decode, parse_head, record_dtype
+from flockcal.frames import Frames
+from flockcal.server.frameblocks import HEAD, SYNC, BlockError, Encoder, decode, parse_head, record_dtype, records_frames
 
 MAGIC = "flockcal-frames"
 VERSION = 2
 BLOCK_BYTES = 1 << 20  # a block decodes to at most this much (a reader holds a block at a time)
 
-__all__ = ["FrameLog", "FrameLogError", "FrameLogReader", "parse_header", "read_frames", "record_dtype",
+__all__ = ["FrameLog", "FrameLogError", "FrameLogReader", "Header", "parse_header", "read_frames", "record_dtype",
            "sanitize", "time_span"]
 
 
@@ -51,7 +53,7 @@ class FrameLog:
             self.path.unlink(missing_ok=True)
             raise
         self._whole = len(header)  # file size up to the last whole block written
-        self._pending: list[np.ndarray] = []
+        self._pending: list[Frames] = []
         self._encoder = Encoder()
         self._block_frames = max(1, BLOCK_BYTES // self.dtype.itemsize)
         self.last_flush = time.monotonic()
@@ -61,12 +63,9 @@ class FrameLog:
         if self._fd is None:  # ended (a failed write, or closed): the frames still reach the live fit
             return
         n = len(times)
-        rec = np.empty(n, dtype=self.dtype)
-        rec["time"] = times
-        rec["valid"] = valid
-        rec["rot"] = rotations
-        rec["pos"] = positions
-        self._pending.append(rec)
+        # Copies: the caller's arrays may be reused before the flush.
+        self._pending.append(Frames(np.array(times, "<f8"), np.array(rotations, float), np.array(positions, float),
+                                    np.array(valid, bool)))
         self.frames += n
         # The first frames go out at once: a fit of them is published within a frame or two (fits run at
         # 30 Hz), and a download or the rig a page loads for it must find the session's log holding frames.
@@ -75,11 +74,11 @@ class FrameLog:
 
     def flush(self) -> None:
         if self._pending and self._fd is not None:
-            rec = np.concatenate(self._pending) if len(self._pending) > 1 else self._pending[0]
+            frames = Frames.concat(self._pending, self.m)
             self._pending.clear()
             step = self._block_frames
-            data = b"".join(self._encoder.block(r["time"], r["rot"], r["pos"], r["valid"].astype(bool))
-                            for r in (rec[a:a + step] for a in range(0, len(rec), step)))
+            data = b"".join(self._encoder.block(f.times, f.rotations, f.positions, f.valid)
+                            for f in (frames[a:a + step] for a in range(0, len(frames), step)))
             try:
                 _write_all(self._fd, data)
                 self._whole += len(data)
@@ -123,8 +122,18 @@ class FrameLogError(ValueError):
     """A frame log that cannot be read at all (its header is cut or damaged)."""
 
 
-def parse_header(line: bytes, name: str) -> dict:
-    """The frame log's JSON header line as a dict with a list of sensor names; FrameLogError otherwise."""
+@dataclass(frozen=True)
+class Header:
+    """A frame log's header line: the sensors' names, the tracker's rate (None: unknown or implausible, the
+    mean rate of the arrivals is used instead) and the format's version (1 or 2)."""
+
+    names: tuple[str, ...]
+    rate_hz: float | None
+    version: int
+
+
+def parse_header(line: bytes, name: str) -> Header:
+    """The frame log's JSON header line; FrameLogError when it is not one this flockcal reads."""
     if not line.endswith(b"\n"):
         raise FrameLogError(f"{name}: not a whole flockcal frame log (its header is cut short)")
     try:
@@ -142,8 +151,8 @@ def parse_header(line: bytes, name: str) -> dict:
                             f"(it reads versions 1 and {VERSION}); read it with the flockcal that wrote it")
     rate = header.get("rate_hz")
     if rate is not None and (isinstance(rate, bool) or not isinstance(rate, (int, float)) or not 0 < rate < 1e5):
-        header["rate_hz"] = None  # the mean rate of the arrivals is used instead
-    return header
+        rate = None
+    return Header(tuple(names), rate, version)
 
 
 # A damaged record (bytes overwritten on disk) must not reach a fit or a download as a pose.
@@ -160,14 +169,14 @@ def time_span(first: np.ndarray, last: np.ndarray) -> tuple[float, float]:
     return float(lo[0]), float(hi[-1])
 
 
-def sanitize(rec: np.ndarray, span: tuple[float, float], last_time: float) -> tuple:
-    """Records (a frame log's dtype) as (times, rotations, positions, valid, the last time): a record whose
+def sanitize(raw: Frames, span: tuple[float, float], last_time: float) -> tuple[Frames, float]:
+    """Frames as stored (`valid` the stored flags) as frames to use, and the last time: a record whose
     time is not finite, outside the log's `span` or going back (before `last_time` or an earlier record), or
     whose valid flags are not 0/1, is damaged: it keeps the time before it and no valid sensor. A sensor
     whose rotation is not a rotation, or whose position is not finite or beyond MAX_POSITION_M, is invalid."""
-    times = rec["time"].astype(float)
-    flags = rec["valid"]
-    R, p = rec["rot"], rec["pos"]
+    times = raw.times.astype(float)
+    flags = raw.valid
+    R, p = raw.rotations, raw.positions
     ok = np.isfinite(times) & (times >= span[0]) & (times <= span[1])
     prev = np.maximum.accumulate(np.concatenate([[last_time], np.where(ok, times, -np.inf)]))[:-1]
     ok &= times >= prev
@@ -182,12 +191,13 @@ def sanitize(rec: np.ndarray, span: tuple[float, float], last_time: float) -> tu
     valid = (flags == 1) & ok[:, None] & rotation & place
     R = np.where(valid[..., None, None], R, 0.0)
     p = np.where(valid[..., None], p, 0.0)
-    return times, R, p, valid, (float(times[-1]) if len(times) else last_time)
+    return Frames(times, R, p, valid), (float(times[-1]) if len(times) else last_time)
 
 
 class FrameLogReader:
-    """A frame log opened for reading: `names`, `rate_hz`, `n` whole frames (fixed at open: a live session's
-    log grows on), and its records (`record_dtype`, as version 1 stored them) read by range or in turn.
+    """A frame log opened for reading: `header`, `names`, `rate_hz`, `version`, `n` whole frames (fixed at
+    open: a live session's log grows on), and its frames as stored (`frameblocks.records_frames`: not yet
+    `sanitize`d) read by range or in turn.
 
     The file stays open until `close()` (or the end of a `with`): what is read is what was opened, whatever
     happens to its name meanwhile. A block whose bytes are damaged reads as records with no time and no valid
@@ -206,10 +216,10 @@ class FrameLogReader:
     def _open(self) -> None:
         line = self._fh.readline()
         self.offset = self._fh.tell()
-        header = parse_header(line, self.path.name)  # FrameLogError (a ValueError) when cut or damaged
-        self.names: list[str] = list(header["names"])
-        self.rate_hz: float | None = header.get("rate_hz")
-        self.version: int = header.get("version", 1)
+        self.header = parse_header(line, self.path.name)  # FrameLogError (a ValueError) when cut or damaged
+        self.names: list[str] = list(self.header.names)
+        self.rate_hz = self.header.rate_hz
+        self.version = self.header.version
         self.m = len(self.names)
         self.dtype = record_dtype(self.m)
         size = os.fstat(self._fh.fileno()).st_size
@@ -230,53 +240,53 @@ class FrameLogReader:
     def __exit__(self, *exc) -> None:
         self.close()
 
-    def records(self, start: int, count: int) -> np.ndarray:
-        """Records start … start + count (clipped to the log's n)."""
+    def frames(self, start: int, count: int) -> Frames:
+        """Frames start … start + count (clipped to the log's n), as stored."""
         start, stop = max(0, start), min(self.n, start + count)
         if stop <= start:
-            return np.empty(0, self.dtype)
+            return Frames.empty(self.m)
         if self.version == 1:
-            return self._records_v1(start, stop - start)
+            return self._frames_v1(start, stop - start)
         first = int(np.searchsorted(self._starts, start, side="right")) - 1
         last = int(np.searchsorted(self._starts, stop, side="left"))
-        rec = np.concatenate([self._decode(k) for k in range(first, last)])
+        frames = Frames.concat([self._decode(k) for k in range(first, last)], self.m)
         a = start - int(self._starts[first])
-        return rec[a:a + stop - start]
+        return frames[a:a + stop - start]
 
-    def chunks(self, size: int) -> Iterator[np.ndarray]:
-        """All n records, `size` at a time (the last chunk shorter): memory stays a chunk and a block."""
+    def chunks(self, size: int) -> Iterator[Frames]:
+        """All n frames as stored, `size` at a time (the last chunk shorter): memory stays a chunk and a block."""
         if self.version == 1:
             for start in range(0, self.n, size):
-                rec = self._records_v1(start, min(size, self.n - start))
-                if not len(rec):
+                frames = self._frames_v1(start, min(size, self.n - start))
+                if not len(frames):
                     return
-                yield rec
+                yield frames
             return
-        held: list[np.ndarray] = []
+        held: list[Frames] = []
         have = 0
         for k in range(len(self._blocks)):
             held.append(self._decode(k))
             have += len(held[-1])
             while have >= size:
-                rec = np.concatenate(held) if len(held) > 1 else held[0]
-                yield rec[:size]
-                held, have = [rec[size:]], have - size
+                frames = Frames.concat(held, self.m)
+                yield frames[:size]
+                held, have = [frames[size:]], have - size
         if have:
-            yield np.concatenate(held)
+            yield Frames.concat(held, self.m)
 
-    def _records_v1(self, start: int, count: int) -> np.ndarray:
+    def _frames_v1(self, start: int, count: int) -> Frames:
         size = self.dtype.itemsize
         data = os.pread(self._fh.fileno(), count * size, self.offset + start * size)
-        return np.frombuffer(data, dtype=self.dtype, count=len(data) // size)
+        return records_frames(np.frombuffer(data, dtype=self.dtype, count=len(data) // size))
 
-    def _decode(self, k: int) -> np.ndarray:
+    def _decode(self, k: int) -> Frames:
         offset, codec, n, size, crc = self._blocks[k]
         try:
             return decode(codec, n, self.m, os.pread(self._fh.fileno(), size, offset + HEAD.size), crc)
         except BlockError:
-            rec = np.zeros(n, self.dtype)
-            rec["time"] = np.nan
-            return rec
+            # No time and no valid sensor: `sanitize` makes them frames with no valid sensor.
+            return Frames(np.full(n, np.nan), np.zeros((n, self.m, 3, 3)), np.zeros((n, self.m, 3)),
+                          np.zeros((n, self.m), np.uint8))
 
 
 def _block_index(fd: int, offset: int, size: int) -> list[tuple[int, int, int, int, int]]:
@@ -311,19 +321,10 @@ def _next_head(fd: int, at: int, size: int, step: int = 1 << 20) -> int:
     return size
 
 
-def read_frames(path: str | Path) -> dict:
-    """Read a frame log: dict(names, rate_hz, times (n,), rotations (n,m,3,3), positions (n,m,3), valid (n,m)).
-    Damaged records are kept as frames with no valid sensor (`sanitize`); FrameLogError when the log has
-    no readable header."""
+def read_frames(path: str | Path) -> tuple[Header, Frames]:
+    """Read a whole frame log: its header and its frames. Damaged records are kept as frames with no valid
+    sensor (`sanitize`); FrameLogError when the log has no readable header."""
     with FrameLogReader(path) as log:
-        rec = log.records(0, log.n)
-    span = time_span(rec["time"][:100], rec["time"][-100:])
-    times, R, p, valid, _ = sanitize(rec, span, -np.inf)
-    return {
-        "names": log.names,
-        "rate_hz": log.rate_hz,
-        "times": times,
-        "rotations": R,
-        "positions": p,
-        "valid": valid,
-    }
+        raw = log.frames(0, log.n)
+    frames, _ = sanitize(raw, time_span(raw.times[:100], raw.times[-100:]), -np.inf)
+    return log.header, frames

@@ -14,13 +14,29 @@ from __future__ import annotations
 import logging
 import os
 import threading
-from dataclasses import dataclass
+from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Callable
 
 from flockcal.server.clock import ServiceClock
 from flockcal.server.errors import InsufficientStorage
 from flockcal.server.events import Event
+
+
+@dataclass(frozen=True)
+class DiskStatus:
+    """The disk holding the recordings: full (a write failed, or free space fell under the reserve) since
+    when and why; free bytes at the last look and the reserve kept."""
+
+    full: bool
+    free_bytes: int | None
+    reserve_bytes: int
+    since: float | None = None
+    message: str | None = None
+
+    @property
+    def doc(self) -> dict:
+        return asdict(self)
 
 log = logging.getLogger(__name__)
 
@@ -74,10 +90,10 @@ class SessionLimits:
         self.full_message: str | None = None
 
     # --- the disk ----------------------------------------------------------------------------------
-    def disk_status(self) -> dict:
+    def disk_status(self) -> DiskStatus:
         """What `/api/status` shows as `disk` (cheap: the last look, at most a second old)."""
-        return {"full": self.full_since is not None, "free_bytes": self.free, "reserve_bytes": self.min_free_bytes,
-                "since": self.full_since, "message": self.full_message}
+        return DiskStatus(self.full_since is not None, self.free, self.min_free_bytes, self.full_since,
+                          self.full_message)
 
     def storage_failed(self, why: str) -> list[Event]:
         """A write failed for want of room (the frame log, the raw recording, the database): the disk is

@@ -25,7 +25,7 @@ from flockcal.server.limits import LimitStop, SessionLimits
 from flockcal.server.live_session import LiveSession
 from flockcal.server.events import Event
 from flockcal.server.persistence import Persistence, slip_event
-from flockcal.server.snapshot import Snapshot, SnapshotMaker
+from flockcal.server.snapshot import Snapshot, SnapshotMaker, SourceStatus
 from flockcal.server.sources import tracker_event
 from flockcal.server.store import Store
 from flockcal.solver.calibration import Calibration
@@ -74,7 +74,7 @@ class Pipeline:
         self,
         names: tuple[str, ...],
         store: Store,
-        source_status: Callable[[], dict],
+        source_status: Callable[[], SourceStatus],
         publish_hz: float = 60.0,
         fit_hz: float = 30.0,
         residual_hz: float = 20.0,

@@ -24,6 +24,7 @@ from flockcal.server.retention import policy_from
 from flockcal.server.sessions import SessionManager
 from flockcal.server.settings import Settings
 from flockcal.server.skeletons import SkeletonLibrary
+from flockcal.server.snapshot import SourceStatus
 from flockcal.server.sources import FrameSource, TrackerSource
 from flockcal.server.store import SessionRow, Store
 
@@ -126,17 +127,15 @@ class Service:
 
     def source_rate(self) -> float | None:
         """The rate the tracker streams at (its status's), else --rate's; None when neither is known."""
-        return self.source.status().get("rate_hz") or self.settings.rate_hz
+        return self.source.status().rate_hz or self.settings.rate_hz
 
     def tracker_rate(self) -> float:
         rate = self.source_rate()
         return float(rate) if rate else 100.0
 
-    def status_of_source(self) -> dict:
-        st = self.source.status()
-        birds = {} if "birds" in st else {"birds": self.settings.birds}
-        return {**st, **birds, "device": self.settings.device_url, "simulator": self.simulator is not None,
-                "disk": self.limits.disk_status()}
+    def status_of_source(self) -> SourceStatus:
+        return SourceStatus(self.source.status(), self.settings.device_url, self.simulator is not None,
+                            self.limits.disk_status())
 
     @property
     def simulator(self):

@@ -515,17 +515,17 @@ class SessionManager:
             self._check_pruned(session_id, "recording (frames)")
             raise NotFound(f"session {session_id} has no recording on disk")
         try:
-            data = read_frames(path)  # damaged records come back as frames with no valid sensor
+            header, frames = read_frames(path)  # damaged records come back as frames with no valid sensor
         except (ValueError, OSError) as exc:
             raise Conflict(f"session {session_id}'s recording {path.name} cannot be read ({exc}); its result "
                            "and events are unaffected") from None
-        n = len(data["times"])
+        n = len(frames)
         if n == 0:
             raise Conflict(f"session {session_id}'s recording holds no frames yet")
-        times = data["times"] - data["times"][0]
-        rate = data["rate_hz"] or (float((n - 1) / times[-1]) if n > 1 and times[-1] > 0 else 1.0)
+        times = frames.times - frames.times[0]
+        rate = header.rate_hz or (float((n - 1) / times[-1]) if n > 1 and times[-1] > 0 else 1.0)
         # Arrival times can repeat (several records read at once); a take only needs them not to go back.
-        return make_take(data["rotations"], data["positions"], data["names"], rate, valid=data["valid"],
+        return make_take(frames.rotations, frames.positions, list(header.names), rate, valid=frames.valid,
                          times=times, source=f"session {session_id}")
 
     def events(self, session_id: str, since_id: int = 0, limit: int = 1000) -> list[Event]:

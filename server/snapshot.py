@@ -15,8 +15,10 @@ from typing import Callable
 
 import numpy as np
 
+from flockcal.drivers.tracker_status import TrackerStatus
 from flockcal.server.events import Event
 from flockcal.server.fitting import FitView
+from flockcal.server.limits import DiskStatus
 from flockcal.server.live_session import SessionSummary
 from flockcal.server.pose import live_pose
 from flockcal.solver.calibration import Calibration
@@ -41,6 +43,21 @@ class ResidualSample:
                                                    if v == v})
 
 
+@dataclass(frozen=True)
+class SourceStatus:
+    """The frame source's part of the status: the reader's link, the device it was given (a URL), whether
+    that is the simulator, and the disk the recordings go to."""
+
+    tracker: TrackerStatus
+    device: str
+    simulator: bool
+    disk: DiskStatus
+
+    @property
+    def doc(self) -> dict:
+        return {**self.tracker.doc, "device": self.device, "simulator": self.simulator, "disk": self.disk.doc}
+
+
 @dataclass(frozen=True, eq=False)
 class Snapshot:
     seq: int  # increases with every publish
@@ -60,6 +77,15 @@ class Snapshot:
     pose_fit: Calibration | None = None  # fit used to draw the skeleton (live or the last stopped session's)
     pose_fit_id: tuple | None = None  # (session id, fit_seq or None for its stored final fit) of pose_fit
     progress: Progress | None = None  # the live session's progress (solver/progress.py), None without one
+    source: SourceStatus | None = None  # what `status` was made of (None: the source's status failed)
+
+    @property
+    def connected(self) -> bool:
+        return self.source is not None and self.source.tracker.connected
+
+    @property
+    def disk_full(self) -> bool:
+        return self.source is not None and self.source.disk.full
 
     @property
     def has_fit(self) -> bool:
@@ -119,7 +145,7 @@ class SnapshotMaker:
     `make` runs on the pipeline thread (which owns `seq`); any thread reads `current`, which is only ever
     replaced, never changed: the event loop never waits for the pipeline."""
 
-    def __init__(self, names, source_status: Callable[[], dict], target: float, stamp: Callable[[], float]):
+    def __init__(self, names, source_status: Callable[[], SourceStatus], target: float, stamp: Callable[[], float]):
         self.names = tuple(names)
         self.stamp = stamp
         self.source_status = source_status
@@ -143,9 +169,10 @@ class SnapshotMaker:
              fits_done: int, fit_seconds: float, pose_fit, pose_fit_id=None) -> Snapshot:
         self.seq += 1
         try:
-            tracker = dict(self.source_status())
+            source = self.source_status()
+            tracker = source.doc
         except Exception as exc:  # the status of a source that failed is itself news
-            tracker = {"connected": False, "last_error": f"status unavailable: {exc}"}
+            source, tracker = None, {"connected": False, "last_error": f"status unavailable: {exc}"}
         session = None
         progress = None
         if live is not None:
@@ -177,5 +204,6 @@ class SnapshotMaker:
             pose_fit=pose_fit,
             pose_fit_id=pose_fit_id,
             progress=progress,
+            source=source,
         )
         return self.current

@@ -13,6 +13,7 @@ import urllib.parse
 from typing import TYPE_CHECKING, Callable, Protocol
 
 from flockcal.clock import SYSTEM, Clock
+from flockcal.drivers.tracker_status import TrackerStatus
 from flockcal.drivers.port_guard import check_port
 from flockcal.errors import FlockcalError
 from flockcal.frames import Frames
@@ -34,7 +35,7 @@ class FrameSource(Protocol):
 
     def stop(self) -> None: ...
 
-    def status(self) -> dict: ...
+    def status(self) -> TrackerStatus: ...
 
     def start_recording(self, path) -> None: ...
 
@@ -148,7 +149,7 @@ class TrackerSource:
         if self.reader is not None and self.recording_path is None:
             self.reader.stop_recording()
 
-    def status(self) -> dict:
+    def status(self) -> TrackerStatus:
         if self.reader is None:
-            return {"connected": False, "birds": self.settings.birds, "last_error": "not started"}
-        return dict(self.reader.status())
+            return TrackerStatus(birds=self.settings.birds, last_error="not started")
+        return self.reader.status()

@@ -81,7 +81,7 @@ def manual_service(settings, wall: float = 1.7e9):
     clock = ManualClock(wall=wall, monotonic=1000.0)
     service = Service(settings, clock=clock)
     with ServerThread(settings, service) as srv:
-        run_clock(clock, 30.0, until=lambda: service.source.status().get("frames", 0) >= 10)
+        run_clock(clock, 30.0, until=lambda: service.source.status().frames >= 10)
         yield srv, clock
 
 

@@ -101,10 +101,10 @@ def test_without_a_scale_the_driver_keeps_the_trackers_own(power_up):
         reader.stop()
         flock_scale = trk.flock.scale_inches
     assert reader.setup.scale_from_tracker and reader.setup.scale_inches == power_up == flock_scale
-    assert reader.setup.model == "6DFOB" and reader.status()["model"] == "6DFOB"
+    assert reader.setup.model == "6DFOB" and reader.status().model == "6DFOB"
     connected = next(e for e in events if e.kind == "connected")
     assert f"{power_up:g}-inch scale (as the tracker was set)" in connected.message
-    saturated = reader.status()["saturated_records"]
+    saturated = reader.status().saturated_records
     if power_up == 72.0:  # the reach fits the tracker's scale: nothing clipped
         assert saturated == 0 and np.concatenate(valid)[1:-1].all()
     else:  # kept at 36 in, the reach clips and the operator is told the fix

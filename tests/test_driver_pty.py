@@ -208,7 +208,7 @@ def test_group_mode_16_birds_decodes_the_simulated_poses_in_every_format(fmt):
     with PtyTracker(src, birds=16, baud=921600) as trk:
         col, status = read_for(fast_config([trk.device], 16, rate_hz=40, record_format=fmt), 48)
     times, R, p, valid = col.arrays()
-    assert status["record_format"] == fmt and status["group"]
+    assert status.record_format == fmt and status.group
     assert valid[1:-1].all(), "a complete group response was marked invalid"
     rot_tol, pos_tol = tolerance(fmt, 36)
     rot_err, pos_err, idx = worst_match(src, R, p, valid)
@@ -224,7 +224,7 @@ def test_one_port_per_bird_16_ports_decodes_the_simulated_poses_in_every_format(
     with PtyTracker(src, birds=16, ports=16, baud=115200) as trk:
         col, status = read_for(fast_config(trk.devices, 16, rate_hz=40, record_format=fmt), 40)
     times, R, p, valid = col.arrays()
-    assert not status["group"] and status["record_format"] == fmt
+    assert not status.group and status.record_format == fmt
     rot_tol, pos_tol = tolerance(fmt, 36)
     # Every record is one the fake tracker made for its bird (decoded right), whatever the host did.
     rot_bird, pos_bird = worst_bird_match(src, R, p, valid)
@@ -248,7 +248,7 @@ def test_auto_format_falls_back_to_position_quaternion_when_the_line_is_too_slow
     with PtyTracker(src, birds=16, baud=115200) as trk:
         col, status = read_for(fast_config([trk.device], 16, rate_hz=40), 20)
     # position/matrix needs 16 × 40 × 25 = 16000 B/s; 115200 baud carries about 11520.
-    assert status["record_format"] == "position_quaternion"
+    assert status.record_format == "position_quaternion"
     fallback = [e for e in col.events if e.kind == "format_fallback"]
     assert fallback and "position/quaternion" in fallback[0].message
     assert col.arrays()[3][1:-1].all()
@@ -287,7 +287,7 @@ def test_garbage_and_dropped_bytes_lose_only_damaged_records_and_never_a_corrupt
         col, status = read_for(fast_config([trk.device], 8, rate_hz=50, record_format="position_quaternion"),
                                0, during=faults)
     times, R, p, valid = col.arrays()
-    assert status["resynced"] >= 6 and "resync" in col.kinds()
+    assert status.resynced >= 6 and "resync" in col.kinds()
     lost = int((~valid[1:-1]).sum())
     assert 1 <= lost <= 6 * 2, f"{lost} bird-frames lost for 6 drops"
     rot_tol, pos_tol = tolerance("position_quaternion")
@@ -338,7 +338,7 @@ def test_an_unplugged_port_is_reported_and_reopened_when_it_comes_back():
                                until=lambda col: streaming_again(col, 1.2))
     kinds = col.kinds()
     assert "disconnected" in kinds and "reconnecting" in kinds and kinds.count("connected") >= 2
-    assert status["reconnects"] >= 1
+    assert status.reconnects >= 1
     times, _, _, valid = col.arrays()
     assert (times > times[0] + 1.2).sum() > 10, "no frames after the reconnect"
 

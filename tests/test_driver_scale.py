@@ -61,10 +61,10 @@ def test_a_sensor_beyond_36_inches_is_invalid_counted_and_reported_not_clipped()
     p, valid, events, status, flock_scale = read_reaching(36, power_up=72.0)
     fs = 36 * INCH
     assert flock_scale == 36.0
-    assert status["scale_inches"] == 36 and status["saturated_records"] > 0
+    assert status.scale_inches == 36 and status.saturated_records > 0
     assert np.abs(p[valid]).max() < fs  # no clipped position handed out as a pose
     assert valid[1:-1][:, [0, 2, 3]].all()  # only the reaching bird loses frames (ends: partial cycles)
-    assert 0 < status["saturated_records"] <= np.count_nonzero(~valid[:, 1])
+    assert 0 < status.saturated_records <= np.count_nonzero(~valid[:, 1])
     saturated = [e for e in events if e.kind == "position_saturated"]
     assert 1 <= len(saturated) <= 2  # one per reach out of range (about 0.6 s each in 1.25 s)
     assert saturated[0].data["birds"] == [1] and "--scale 72" in saturated[0].message
@@ -74,7 +74,7 @@ def test_at_72_inches_the_same_reach_is_read_in_full():
     # The flock powers up at 36 in: the driver must switch it to the 72 in asked for.
     p, valid, events, status, flock_scale = read_reaching(72, power_up=36.0)
     assert flock_scale == 72.0
-    assert valid[1:-1].all() and status["saturated_records"] == 0  # (ends: partial cycles)
+    assert valid[1:-1].all() and status.saturated_records == 0  # (ends: partial cycles)
     assert p[:, 1, 0].max() > 36 * INCH + 0.05  # beyond the 36-inch scale, read correctly
     assert not [e for e in events if e.kind == "position_saturated"]
 

@@ -46,13 +46,13 @@ def big_session(srv, source: str, n: int) -> str:
     """A stopped session of the recorded one's frames repeated REPEAT times, its result and raw bytes too."""
     mgr, store = srv.service.sessions, srv.service.store
     sid = f"20200101-000000-{n:06x}"
-    data = read_frames(mgr.frames_path(source))
-    k = len(data["times"])
-    step = data["times"][-1] - data["times"][0] + 1 / 60
-    times = (data["times"][None, :] + step * np.arange(REPEAT)[:, None]).ravel()
-    log = FrameLog(mgr.frames_path(sid), data["names"], data["rate_hz"])
+    header, data = read_frames(mgr.frames_path(source))
+    k = len(data)
+    step = data.times[-1] - data.times[0] + 1 / 60
+    times = (data.times[None, :] + step * np.arange(REPEAT)[:, None]).ravel()
+    log = FrameLog(mgr.frames_path(sid), list(header.names), header.rate_hz)
     for part in range(REPEAT):
-        log.write(times[part * k:(part + 1) * k], data["rotations"], data["positions"], data["valid"])
+        log.write(times[part * k:(part + 1) * k], data.rotations, data.positions, data.valid)
     log.close()
     mgr.raw_path(sid).write_bytes(mgr.raw_path(source).read_bytes() * 40)
     row = store.session(source)

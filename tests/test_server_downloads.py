@@ -30,11 +30,11 @@ from flockcal.takes import make_take
 
 def take_of(path) -> object:
     """The reference: the whole log in memory, as SessionManager.take made it."""
-    data = read_frames(path)
-    times = data["times"] - data["times"][0]
+    header, frames = read_frames(path)
+    times = frames.times - frames.times[0]
     n = len(times)
-    rate = data["rate_hz"] or (n - 1) / times[-1]  # a log without a rate: its arrivals' mean rate
-    return make_take(data["rotations"], data["positions"], data["names"], rate, valid=data["valid"], times=times)
+    rate = header.rate_hz or (n - 1) / times[-1]  # a log without a rate: its arrivals' mean rate
+    return make_take(frames.rotations, frames.positions, list(header.names), rate, valid=frames.valid, times=times)
 
 
 @pytest.fixture(scope="module")
@@ -166,15 +166,15 @@ def test_chunked_exports_hold_dropouts_and_rigid_sensors_like_the_whole_take(ses
     from flockcal.server import downloads
 
     srv, sid = session
-    data = read_frames(srv.service.sessions.frames_path(sid))
+    header, data = read_frames(srv.service.sessions.frames_path(sid))
     rng = np.random.default_rng(3)
-    valid = data["valid"] & (rng.random(data["valid"].shape) > 0.1)
+    valid = data.valid & (rng.random(data.valid.shape) > 0.1)
     valid[:20, 1] = False
     path = tmp_path / "gappy.frames"
-    log = FrameLog(path, data["names"], data["rate_hz"])
-    log.write(data["times"], data["rotations"], data["positions"], valid)
+    log = FrameLog(path, list(header.names), header.rate_hz)
+    log.write(data.times, data.rotations, data.positions, valid)
     log.close()
-    monkeypatch.setattr(downloads, "CHUNK_BYTES", 7 * downloads.record_dtype(len(data["names"])).itemsize)
+    monkeypatch.setattr(downloads, "CHUNK_BYTES", 7 * downloads.record_dtype(len(header.names)).itemsize)
     frames = downloads.FrameFile(path)
     take = take_of(path)
 

@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 from flockcal.drivers.records import decode_block, encode_records, record_length
+from flockcal.frames import Frames
 from flockcal.server.downloads import FrameFile, npz_stream
 from flockcal.server.framelog import FrameLog, FrameLogError, FrameLogReader, read_frames
 from flockcal.simulator.performer import Performer
@@ -60,11 +61,11 @@ def write_version_1(path, names, times, R, p, valid) -> None:
     assert path.stat().st_size > m * 96 * len(times)
 
 
-def assert_bitwise(got: dict, times, R, p, valid) -> None:
-    assert got["times"].tobytes() == np.asarray(times, dtype=float).tobytes()
-    assert np.array_equal(got["valid"], valid)
-    assert got["rotations"].tobytes() == R.tobytes()
-    assert got["positions"].tobytes() == p.tobytes()
+def assert_bitwise(got: Frames, times, R, p, valid) -> None:
+    assert got.times.tobytes() == np.asarray(times, dtype=float).tobytes()
+    assert np.array_equal(got.valid, valid)
+    assert got.rotations.tobytes() == R.tobytes()
+    assert got.positions.tobytes() == p.tobytes()
 
 
 @pytest.mark.parametrize("fmt,scale,limit", [("position_matrix", 72, 250), ("position_quaternion", 36, 200),
@@ -76,7 +77,7 @@ def test_tracker_frames_come_back_bit_for_bit_in_a_fraction_of_the_space(tmp_pat
     names, times, R, p, valid = tracker_frames(fmt, scale)
     path = tmp_path / "take.frames"
     write_log(path, names, times, R, p, valid)
-    assert_bitwise(read_frames(path), times, R, p, valid)
+    assert_bitwise(read_frames(path)[1], times, R, p, valid)
     per_frame = (path.stat().st_size - len(path.read_bytes().split(b"\n", 1)[0])) / len(times)
     assert per_frame < limit, f"{per_frame:.0f} bytes a frame"
 
@@ -99,7 +100,7 @@ def test_frames_from_no_tracker_and_a_format_that_changes_are_kept_exactly(tmp_p
     write_log(path, names, times, R, p, valid)
     want_R = np.where(valid[..., None, None], R, 0.0)
     want_p = np.where(valid[..., None], p, 0.0)
-    assert_bitwise(read_frames(path), times, want_R, want_p, valid)
+    assert_bitwise(read_frames(path)[1], times, want_R, want_p, valid)
 
 
 def test_a_version_1_log_reads_and_downloads_byte_for_byte_as_its_version_2_twin(tmp_path):
@@ -116,10 +117,10 @@ def test_a_version_1_log_reads_and_downloads_byte_for_byte_as_its_version_2_twin
     with open(old, "ab") as fh:
         fh.write(b"\x00" * 100)  # a partial record after a kill -9
     write_log(new, names, times, R, p, valid)
-    a, b = read_frames(old), read_frames(new)
-    for key in ("times", "rotations", "positions", "valid"):
-        assert a[key].tobytes() == b[key].tobytes(), key
-    assert_bitwise(a, times, R, p, valid)
+    (head_a, a), (head_b, b) = read_frames(old), read_frames(new)
+    assert head_a.names == head_b.names and head_a.rate_hz == head_b.rate_hz == RATE
+    for got in (a, b):
+        assert_bitwise(got, times, R, p, valid)
     with FrameLogReader(old) as a, FrameLogReader(new) as b:
         assert a.version == 1 and b.version == 2
     result = solve_take(make_take(R, p, names, RATE, valid=valid, times=times - times[0])).to_dict()
@@ -154,7 +155,7 @@ def test_a_crash_or_damage_on_disk_costs_only_the_blocks_it_hits(tmp_path):
     cut = tmp_path / "cut.frames"
     cut.write_bytes(data[:heads[5] + 30])  # five whole blocks and the start of the sixth
     f5 = first[5]
-    assert_bitwise(read_frames(cut), times[:f5], R[:f5], p[:f5], valid[:f5])
+    assert_bitwise(read_frames(cut)[1], times[:f5], R[:f5], p[:f5], valid[:f5])
     with FrameLogReader(cut) as log:
         assert log.n == f5
 
@@ -162,22 +163,20 @@ def test_a_crash_or_damage_on_disk_costs_only_the_blocks_it_hits(tmp_path):
     damaged[heads[2] + 40:heads[2] + 60] = bytes(20)  # block 2's payload (frames 36-71)
     damaged[heads[4] + 3] ^= 0xFF  # block 4's head (frames 108-143)
     (tmp_path / "damaged.frames").write_bytes(bytes(damaged))
-    got = read_frames(tmp_path / "damaged.frames")
+    _, got = read_frames(tmp_path / "damaged.frames")
     keep = np.r_[0:first[4], first[5]:len(times)]
-    assert len(got["times"]) == len(keep)
+    assert len(got) == len(keep)
     lost = np.arange(first[2], first[3])
-    assert not got["valid"][lost].any() and (got["times"][lost] == times[first[2] - 1]).all()
+    assert not got.valid[lost].any() and (got.times[lost] == times[first[2] - 1]).all()
     fine = np.r_[0:first[2], first[3]:first[4]]
-    assert_bitwise({k: got[k][fine] for k in got if k not in ("names", "rate_hz")}, times[fine], R[fine], p[fine],
-                   valid[fine])
+    assert_bitwise(got[fine], times[fine], R[fine], p[fine], valid[fine])
     rest = np.arange(first[4], len(keep))
-    assert_bitwise({k: got[k][rest] for k in got if k not in ("names", "rate_hz")}, times[first[5]:], R[first[5]:],
-                   p[first[5]:], valid[first[5]:])
+    assert_bitwise(got[rest], times[first[5]:], R[first[5]:], p[first[5]:], valid[first[5]:])
     frames = FrameFile(tmp_path / "damaged.frames")
     chunks = list(frames.chunks(50))
     frames.close()
     assert [len(c) for c in chunks] == [50] * (len(keep) // 50) + ([len(keep) % 50] if len(keep) % 50 else [])
-    assert np.concatenate([c.rotations for c in chunks]).tobytes() == got["rotations"].tobytes()
+    assert np.concatenate([c.rotations for c in chunks]).tobytes() == got.rotations.tobytes()
 
 
 def test_a_log_of_a_newer_version_is_refused_in_one_line(tmp_path):
@@ -198,14 +197,18 @@ def test_a_fit_published_before_the_first_flush_interval_finds_its_frames_in_the
     from flockcal.exports.gltf import glb_chunks
     from flockcal.frames import Frames
     from flockcal.server.live_session import LiveSession
+    from flockcal.drivers.tracker_status import TrackerStatus
+    from flockcal.server.limits import DiskStatus
     from flockcal.server.pipeline import Pipeline
+    from flockcal.server.snapshot import SourceStatus
     from flockcal.server.store import Store
     from flockcal.solver.progress import profile
 
     perf = Performer("human", routine="walk", rate_hz=RATE, birds=6)
     names = tuple(perf.names)
     store = Store(tmp_path / "flockcal.sqlite3")
-    pipe = Pipeline(names, store, lambda: {"connected": True})
+    pipe = Pipeline(names, store, lambda: SourceStatus(TrackerStatus(connected=True), "test", False,
+                                                         DiskStatus(False, None, 0)))
     pipe.start()
     path = tmp_path / "s.frames"
     try:
@@ -214,7 +217,7 @@ def test_a_fit_published_before_the_first_flush_interval_finds_its_frames_in_the
                               "frames": 0, "recording": "s.frames", "profile": "stage"})
         prof = profile("stage", 0.005, 0.005 / 2 ** 0.5)
         pipe.begin_session(LiveSession("s", "p", names, None, None, FrameLog(path, list(names), RATE, flush_s=3600.0),
-                                       prof))
+                                       prof, started_wall=time.time(), started_mono=time.monotonic()))
         times = np.arange(int(RATE)) / RATE
         R, t, valid = perf.poses(times)
         start = time.monotonic()

@@ -135,7 +135,7 @@ def test_kill9_mid_session_loses_at_most_a_quarter_second_and_can_be_resolved(tr
     with sqlite3.connect(data / "flockcal.sqlite3") as db:
         assert db.execute("PRAGMA integrity_check").fetchone()[0] == "ok"
         assert db.execute("SELECT state FROM sessions WHERE id = ?", (sid,)).fetchone()[0] == "live"
-    logged = len(read_frames(data / "recordings" / f"{sid}.frames")["times"])
+    logged = len(read_frames(data / "recordings" / f"{sid}.frames")[1])
     # docs/service.md: after a kill -9 at most the last 0.25 s of frames is lost. `received` was read a
     # moment before the kill (so the true loss can only be smaller than this bound says); margin 0.15 s
     # for a flush that runs late on a loaded 2-core machine.

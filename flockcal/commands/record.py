@@ -149,9 +149,9 @@ def _record_with(args, names: list[str] | None) -> int:
     first, last, n = span
     seconds = (last - first) if n > 1 else 0.0
     got = (n - 1) / seconds if seconds > 0 else 0.0
-    print(f"flockcal record: wrote {args.output}: {n} frames of {s['birds']} birds in {seconds:.1f} s "
+    print(f"flockcal record: wrote {args.output}: {n} frames of {s.birds} birds in {seconds:.1f} s "
           f"({got:.1f} frames/s; the flock measures at {setup.rate_hz:g} Hz), {setup.record_format}, {scale}; "
-          f"{s['dropped_records']} bird-frames invalid, {s['resynced']} resyncs, {s['reconnects']} reconnects",
+          f"{s.dropped_records} bird-frames invalid, {s.resynced} resyncs, {s.reconnects} reconnects",
           file=sys.stderr)
     # Judged over the whole take (the live check looks at its first seconds only), unless it was short.
     warning = rate_warning(setup, got) if seconds >= 1.0 and setup.mode == "stream" else None

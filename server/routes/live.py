@@ -248,8 +248,7 @@ class Connection:
             out = []
             content = sub.content
             if "status" in content:
-                key = (snap.status.get("connected"), snap.session and snap.session.id,
-                       (snap.status.get("disk") or {}).get("full"))
+                key = (snap.connected, snap.session and snap.session.id, snap.disk_full)
                 if key != status_key or clock.monotonic() - status_at >= STATUS_PERIOD_S:
                     status_key, status_at = key, clock.monotonic()
                     out.append(self.envelope("status", snap.status_json))
