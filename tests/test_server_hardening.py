@@ -334,7 +334,7 @@ def test_the_documented_send_buffer_is_what_the_kernel_gives(open_server):
 
     from flockcal.server.listen import listen_socket
 
-    text = (Path(__file__).parents[1] / "docs" / "websocket.md").read_text()
+    text = (Path(__file__).parents[1] / "docs" / "service.md").read_text()  # the serving example lives there
     asked, given = (int(x) * 1024 for x in re.search(r"send buffer is set to (\d+) kB, which Linux doubles to (\d+) kB",
                                                         text).groups())
     assert asked == Settings().send_buffer_bytes
@@ -356,7 +356,7 @@ def test_the_documented_token_examples_are_accepted():
     from flockcal.cli import build_parser
     from flockcal.commands.serve import settings_from_args
 
-    text = (Path(__file__).parents[1] / "docs" / "websocket.md").read_text()
+    text = (Path(__file__).parents[1] / "docs" / "service.md").read_text()  # the serving example lives there
     line = re.search(r"^flockcal serve --host 0\.0\.0\.0 --token .*$", text, re.M).group(0)
     settings = settings_from_args(build_parser().parse_args(shlex.split(line)[1:])).check()
     assert settings.token and settings.read_token and settings.kiosk_token
