@@ -52,7 +52,8 @@ def test_inject_slip_moves_one_sensor_from_then_on_and_truth_follows():
     before = np.arange(0, 100) / 100.0
     R0, t0, _ = perf.poses(before)
     ev = perf.inject_slip("l_forearm", 0.02, at_time=1.5)
-    assert ev["sensor"] == "l_forearm" and ev["jump_mm"] == pytest.approx(20.0)
+    assert perf.model.names[ev.sensor] == "l_forearm" and ev.time_s == 1.5
+    assert np.linalg.norm(ev.displacement_m) == pytest.approx(0.02)
     times = np.arange(0, 300) / 100.0
     exact_R, exact_t, _ = Performer(routine="exercise", seed=2, noise=None, sta_mm=0).poses(times)
     R, t, _ = perf.poses(times)
