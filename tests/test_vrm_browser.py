@@ -62,9 +62,13 @@ def test_the_download_is_the_vrm_of_the_whole_take(session):
     assert vrm["specVersion"] == "1.0" and vrm["meta"]["name"] == PERFORMER
     sensor = {k: n["extras"]["flockcal"]["sensor"] for k, n in enumerate(doc["nodes"]) if "extras" in n}
     assert {b: sensor[e["node"]] for b, e in vrm["humanoid"]["humanBones"].items()} == {b: s for s, b in TRUTH.items()}
+    # The VRM of the session's whole take: its stored fit (as the service holds it, with each joint's rank:
+    # the §5 JSON keeps no rank, and the finding places undetermined centres by it) and the humanoid found
+    # on the whole take's sample, as `flockcal fit --gltf` does.
+    cal = srv.service.sessions.result_seq(sid)[0].calibration
     take = take_of(srv.service.sessions.frames_path(sid))
-    plan = vrm_plan(result, take, meta=vrm_meta(PERFORMER))
-    same_glb(r.content, gltf_bytes(result, take, name=sid, vrm=plan))
+    plan = vrm_plan(cal, take, meta=vrm_meta(PERFORMER), from_take=True)
+    same_glb(r.content, gltf_bytes(cal, take, name=sid, vrm=plan))
     path = srv.service.sessions.frames_path(sid).parent / "served.glb"
     path.write_bytes(r.content)
     issues = validator_issues(path)
@@ -133,8 +137,6 @@ def test_three_vrm_reads_the_service_rig_as_a_humanoid(session):
 
     from flockcal.exports.vrm import take_humanoid
     from flockcal.server.downloads import FrameFile
-    from flockcal.solver.calibration_json import as_calibration
-
     srv, sid, result = session
     with sync_playwright() as pw:
         browser = launch(pw)
@@ -154,8 +156,8 @@ def test_three_vrm_reads_the_service_rig_as_a_humanoid(session):
 
     # The rest: the fitted joints in the T-pose of the humanoid's frames (the finding the service used:
     # the same calibration and the same frames, read from the session's recording).
-    cal = as_calibration(result)
-    hum = take_humanoid(cal, FrameFile(srv.service.sessions.frames_path(sid)))
+    cal = srv.service.sessions.result_seq(sid)[0].calibration
+    hum = take_humanoid(cal, FrameFile(srv.service.sessions.frames_path(sid)), from_take=True)
     where, low = tpose_layout(result, np.asarray(hum.frames), list(cal.names))
     hips = np.array(got["rest"]["hips"])
     np.testing.assert_allclose(hips, [0.0, -low, 0.0], atol=CLAIM_M)  # standing on y = 0 (VRM T-pose §1.3)

@@ -83,22 +83,25 @@ def plain_rig_note(path, reason: str) -> str:
     return f"{path}: a plain glTF rig, not a VRM humanoid: {reason}"
 
 
-def take_humanoid(cal, take: ChunkedTake) -> Humanoid:
+def take_humanoid(cal, take: ChunkedTake, *, from_take: bool = False) -> Humanoid:
     """The humanoid of calibration `cal` (a Calibration): the one its fit found (`cal.humanoid`, as `fit --json`
     and the service publish it), else `find_humanoid` on the take's sample (`solver.humanoid.take_sample`),
-    as for a calibration read back from its §5 dict, which keeps the bones but not the T-pose frames."""
+    as for a calibration read back from its §5 dict, which keeps the bones but not the T-pose frames.
+    `from_take`: always found on the take's sample (a live fit's humanoid comes from the frames held live)."""
     hum = getattr(cal, "humanoid", None)
-    if hum is not None and hum.posable:
+    if hum is not None and hum.posable and not from_take:
         return hum
     f = take_sample(take).frames()
     order = [list(take.names).index(n) for n in cal.names]
     return find_humanoid(cal, f.rotations[:, order], f.positions[:, order], f.valid[:, order])
 
 
-def vrm_plan(calibration, take: ChunkedTake, up: str = "-z", *, meta: dict | None = None) -> VrmPlan:
+def vrm_plan(calibration, take: ChunkedTake, up: str = "-z", *, meta: dict | None = None,
+             from_take: bool = False) -> VrmPlan:
     """The VRM of `take` played through `calibration` (a Calibration, a KnownFit or a §5 dict; an
     Articulation has no tree data to read a humanoid from), or the reason it has none. `up` is the
-    tracker's up axis, as for the BVH: the animation's world; the rest pose is the humanoid's own."""
+    tracker's up axis, as for the BVH: the animation's world; the rest pose is the humanoid's own.
+    `from_take`: the humanoid found on `take` itself (`take_humanoid`), whatever the calibration carries."""
     from flockcal.solver.calibration_json import as_calibration
     from flockcal.solver.errors import SolverError
 
@@ -109,7 +112,7 @@ def vrm_plan(calibration, take: ChunkedTake, up: str = "-z", *, meta: dict | Non
         cal = as_calibration(calibration)
     except SolverError as exc:
         return VrmPlan(f"the calibration cannot be read as a fit ({exc})")
-    hum = take_humanoid(cal, take)
+    hum = take_humanoid(cal, take, from_take=from_take)
     if not hum.human:
         return VrmPlan(hum.reason)
     art = pb.articulation

@@ -246,7 +246,9 @@ def get_gltf(request: Request, sid: str = Depends(session_id),
 
         def stream():
             if rest == "tpose":
-                vrm.append(vrm_plan(result, frames, up, meta=vrm_meta(performer)))
+                # The VRM of the session's whole take, as `flockcal fit --gltf` of its /take makes it: the live
+                # fit's humanoid was found on the frames held live, a sample that differs from the take's.
+                vrm.append(vrm_plan(result, frames, up, meta=vrm_meta(performer), from_take=True))
             return primed(glb_chunks(result, frames, up=up, name=sid, rest=rest, animation=animation,
                                      chunk_frames=frames.play_frames, out_bytes=OUT_BYTES, vrm=vrm[0] if vrm else None))
 
