@@ -107,6 +107,7 @@ def main() -> int:
                     break
                 time.sleep(max(0.0, min(next_sample, end) - time.monotonic()))
             stopped = client.post(f"/api/sessions/{sid}/stop").json()
+            kept = client.get("/api/status").json().get("retention") or {}  # its heap trims (None before them)
             load1 = os.getloadavg()
         finally:
             if dash is not None:
@@ -149,6 +150,10 @@ def main() -> int:
           f"{args.warmup_min:g} min of frames when the warm-up ended")
     print(f"Python's live blocks after warm-up {blocks[after][0] / 1e3:.0f}k → {blocks[-1] / 1e3:.0f}k "
           f"({block_slope:+.1f}k an hour)")
+    if kept.get("heap_trims") is not None:
+        mean = kept.get("heap_trim_ms_mean")
+        print(f"heap trims (malloc_trim on the housekeeping thread): {kept['heap_trims']}, "
+              f"{'-' if mean is None else f'{mean:.1f}'} ms mean, {kept['heap_trim_ms_max']:.1f} ms longest")
     rows = []
     for part in ("frames", "raw", "database", "total"):
         y = np.array([s[f"{part}_bytes"] for s in samples], dtype=float)

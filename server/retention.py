@@ -40,6 +40,10 @@ KEPT_SKELETON_SUFFIX = ".result-skeleton.json"
 # Room kept under --keep-disk for the session that records next (see Retention.next_session_bytes).
 ROOM_SESSIONS = 5
 ROOM_SHARE = 0.25
+# While a session records, freed heap goes back to the system at most this often (service seconds): a catch-up
+# batch after the pipeline fell behind its tracker leaves glibc arenas holding tens of MB that are free but
+# resident (docs/service.md, "A long session's memory and disk"); a trim takes milliseconds.
+HEAP_TRIM_LIVE_S = 30.0
 # A pruned session keeps one residual sample per this many seconds of its time.
 PRUNED_RESIDUAL_S = 1.0
 
@@ -136,6 +140,10 @@ class Retention:
         self.last_error: str | None = None
         self.over_budget = False  # live, pinned and kept files alone exceed the budget
         self._usage: tuple[float, int] | None = None  # (monotonic time, bytes) of the last data-directory walk
+        self.heap_trims = 0
+        self.heap_trim_s = 0.0  # the time they took, all told (service clock)
+        self.heap_trim_max_s = 0.0
+        self._trimmed_at: float | None = None  # monotonic time of the last trim
 
     # --- the background thread ----------------------------------------------------------------
     def start(self) -> None:
@@ -161,13 +169,28 @@ class Retention:
                 self._save_clock()
                 self.prune_once()
                 self.last_error = None
-                if self.sessions.live_id() is None:  # the gap between guests: no session's I/O to delay
-                    release_free_heap()
+                self.trim_heap()
             except Exception as exc:  # a failing pass must not end the service; the next one retries
                 self.last_error = f"{type(exc).__name__}: {exc}"
                 log.exception("retention pass failed")
             self.clock.wait(self._wake, self.interval_s)
             self._wake.clear()
+
+    def trim_heap(self) -> bool:
+        """Hand freed heap back to the system: in every gap between sessions, and while one records at most
+        every HEAP_TRIM_LIVE_S (the loop passes every interval_s, and on each stop). True if it trimmed."""
+        now = self.clock.monotonic()
+        live = self.sessions.live_id() is not None
+        if live and self._trimmed_at is not None and now - self._trimmed_at < HEAP_TRIM_LIVE_S:
+            return False
+        if not release_free_heap():
+            return False
+        took = self.clock.monotonic() - now
+        self._trimmed_at = now
+        self.heap_trims += 1
+        self.heap_trim_s += took
+        self.heap_trim_max_s = max(self.heap_trim_max_s, took)
+        return True
 
     def _save_clock(self) -> None:
         """Keep the service clock (woken at once when the wall clock steps: Service._clock_stepped). A full or
@@ -384,6 +407,9 @@ class Retention:
             "freed_bytes": int(freed),
             "last_run_at": self.last_run_at,
             "last_error": self.last_error,
+            "heap_trims": self.heap_trims,
+            "heap_trim_ms_mean": 1e3 * self.heap_trim_s / self.heap_trims if self.heap_trims else None,
+            "heap_trim_ms_max": 1e3 * self.heap_trim_max_s,
         }
 
 
