@@ -1,6 +1,6 @@
 """glibc's allocator, tuned and trimmed: the one place flockcal reaches into the C library's malloc.
 Dask workers set its thresholds back (`roomy_malloc`); the live service hands freed heap back to the
-system (`release_free_heap`). Both are no-ops where the C library is not glibc.
+system between guests (`release_free_heap`). Both are no-ops where the C library is not glibc.
 """
 
 from __future__ import annotations
@@ -47,11 +47,9 @@ def roomy_malloc() -> None:
 def release_free_heap() -> bool:
     """Return free heap pages to the system (glibc's `malloc_trim(0)`); False where there is no such call.
 
-    glibc keeps every arena's high-water mark: a take read for a download, a prune, a re-solve or a
-    catch-up batch after the pipeline fell behind its tracker leaves pages that are free but still resident,
-    and they add up in steps. The service's housekeeping thread calls it in the gap between guests and at
-    most every 30 s while a session records (server/retention.py: each call holds one arena's lock at a time
-    for a few milliseconds)."""
+    glibc keeps every arena's high-water mark: a take read for a download, a prune or a re-solve leaves
+    pages that are free but still resident, and over a season they add up in steps. The service calls it
+    in the gap between guests (a few milliseconds), never while a session records."""
     libc = _glibc()
     if not libc:
         return False
