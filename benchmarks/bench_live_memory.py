@@ -9,6 +9,7 @@ hour), and the data folder's growth (GB an hour, by part) against its target (< 
 
     nice -n 10 python benchmarks/bench_live_memory.py                 # 30 minutes, 5 of them warm-up
     nice -n 10 python benchmarks/bench_live_memory.py --rev main      # the service of git revision `main`
+    nice -n 10 python benchmarks/bench_live_memory.py --arena-max 2   # two malloc arenas, as the kiosk's unit
 
 With `--rev REV` the service runs the code of revision REV (exported with `git archive`, as
 benchmarks/bench_server.py's A/B mode lays it out) instead of this tree's.
@@ -62,7 +63,14 @@ def main() -> int:
     ap.add_argument("--motion", default="walk")
     ap.add_argument("--rev", metavar="REV", help="run the service of git revision REV instead of this tree's")
     ap.add_argument("--out", type=Path, default=Path("live-memory-out"))
+    ap.add_argument("--arena-max", type=int, default=0, metavar="N",
+                    help="MALLOC_ARENA_MAX for the service (default 0: glibc's own, as a plain `flockcal serve`; "
+                         "the kiosk's systemd unit sets 2)")
     args = ap.parse_args()
+    if args.arena_max > 0:
+        os.environ["MALLOC_ARENA_MAX"] = str(args.arena_max)  # the service inherits it (glibc reads it at start)
+    else:
+        os.environ.pop("MALLOC_ARENA_MAX", None)
     args.out.mkdir(parents=True, exist_ok=True)
     samples: list[dict] = []
     with tempfile.TemporaryDirectory(prefix="flockcal-live-memory-") as tmp:
@@ -107,6 +115,7 @@ def main() -> int:
                     break
                 time.sleep(max(0.0, min(next_sample, end) - time.monotonic()))
             stopped = client.post(f"/api/sessions/{sid}/stop").json()
+            kept = client.get("/api/status").json().get("retention") or {}  # its heap trims (None before them)
             load1 = os.getloadavg()
         finally:
             if dash is not None:
@@ -129,7 +138,8 @@ def main() -> int:
     minutes = t[-1] / 60.0
     print(f"live session: {minutes:.1f} min, {args.birds} birds at {args.rate:g} Hz ({args.motion}), "
           f"{stopped.get('frames')} frames, dashboard websocket {dash.messages} messages, "
-          f"{len(dash.failures)} websocket failures; service: {'revision ' + args.rev if args.rev else 'this tree'}")
+          f"{len(dash.failures)} websocket failures; service: {'revision ' + args.rev if args.rev else 'this tree'}, "
+          f"MALLOC_ARENA_MAX={args.arena_max or 'glibc default'}")
     print(f"load average (1, 5, 15 min) at the start {load0[0]:.2f} {load0[1]:.2f} {load0[2]:.2f}, at the end "
           f"{load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f}, 1-min mean over the samples {np.mean([s['load1'] for s in samples]):.2f} "
           f"({os.cpu_count()} cores)")
@@ -149,6 +159,10 @@ def main() -> int:
           f"{args.warmup_min:g} min of frames when the warm-up ended")
     print(f"Python's live blocks after warm-up {blocks[after][0] / 1e3:.0f}k → {blocks[-1] / 1e3:.0f}k "
           f"({block_slope:+.1f}k an hour)")
+    if kept.get("heap_trims") is not None:
+        mean = kept.get("heap_trim_ms_mean")
+        print(f"heap trims (malloc_trim on the housekeeping thread): {kept['heap_trims']}, "
+              f"{'-' if mean is None else f'{mean:.1f}'} ms mean, {kept['heap_trim_ms_max']:.1f} ms longest")
     rows = []
     for part in ("frames", "raw", "database", "total"):
         y = np.array([s[f"{part}_bytes"] for s in samples], dtype=float)

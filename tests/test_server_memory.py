@@ -1,6 +1,6 @@
-"""The service's memory figures (server/memory.py) and its hand-back of freed heap between guests (flockcal/malloc.py), tried
-in a fresh Python process so nothing else this suite allocated is in the way; and /api/status reporting
-them from a real service.
+"""The service's memory figures (server/memory.py) and its hand-back of freed heap (flockcal/malloc.py), tried
+in a fresh Python process so nothing else this suite allocated is in the way; /api/status reporting them from a
+real service; and the service trimming between sessions but not while one records, on its own clock.
 """
 
 from __future__ import annotations
@@ -12,7 +12,9 @@ import sys
 import httpx
 import pytest
 
-from server_helpers import ServerProcess, free_port, wait_connected
+from flockcal.server.settings import Settings
+from server_helpers import ServerProcess, free_port, manual_service, run_clock, start_session, status, wait_connected
+from service_process import wait_for
 
 FRAGMENT = r"""
 import json
@@ -52,3 +54,25 @@ def test_api_status_reports_the_services_memory(tmp_path):
         assert proc["threads"] >= 3  # uvicorn's loop, the tracker reader, the pipeline at least
     finally:
         server.stop()
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="malloc_trim is glibc's")
+def test_the_service_trims_freed_heap_after_a_session_and_not_while_it_records(tmp_path):
+    # Tried: one session recording for 65 s of the service's clock (moved by the test), the housekeeping pass
+    # looking every 5 s (13 passes): no trim while it records (a trim holds the pipeline's arena locks), one
+    # at once when it stops (the stop wakes the pass), and /api/status counts them with what they took.
+    settings = Settings(device="sim://trim?birds=4&motion=walk&rate=144&baud=921600", birds=4, baud=921600,
+                        http_port=free_port(), data_dir=tmp_path, retention_interval_s=5.0)
+    with manual_service(settings) as (srv, clock):
+        url = srv.url
+        wait_for(lambda: status(url)["retention"]["heap_trims"] >= 1, 30, "the first pass's trim, before any session")
+        sid = start_session(url, performer="Long")
+        before = status(url)["retention"]["heap_trims"]
+        run_clock(clock, 65.0, dt=0.25)
+        during = status(url)["retention"]
+        assert httpx.get(url + f"/api/sessions/{sid}", timeout=10).json()["state"] == "live"
+        assert during["heap_trims"] == before, during
+        assert httpx.post(url + f"/api/sessions/{sid}/stop", timeout=30).status_code == 200
+        after = wait_for(lambda: (st := status(url)["retention"])["heap_trims"] > before and st, 30,
+                         "a trim in the gap after the session stopped (the stop wakes the housekeeping pass)")
+        assert after["heap_trim_ms_max"] >= after["heap_trim_ms_mean"] >= 0.0
