@@ -334,7 +334,7 @@ def test_the_documented_send_buffer_is_what_the_kernel_gives(open_server):
 
     from flockcal.server.listen import listen_socket
 
-    text = (Path(__file__).parents[1] / "docs" / "service.md").read_text()  # the serving example lives there
+    text = (Path(__file__).parents[1] / "docs" / "websocket.md").read_text()
     asked, given = (int(x) * 1024 for x in re.search(r"send buffer is set to (\d+) kB, which Linux doubles to (\d+) kB",
                                                         text).groups())
     assert asked == Settings().send_buffer_bytes
