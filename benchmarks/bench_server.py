@@ -67,6 +67,7 @@ import httpx
 import numpy as np
 import websockets
 
+from flockcal.clock import SYSTEM
 from flockcal.simulator.performer import Performer
 from flockcal.simulator.pty_tracker import PtyTracker
 
@@ -142,7 +143,7 @@ async def measure(url: str, clock_t0: float, seconds: float, dashboards: int, pr
             end = time.monotonic() + seconds
             while time.monotonic() < end:
                 msg = json.loads(await ws.recv())
-                now = time.monotonic()
+                now = SYSTEM.monotonic()  # the fake tracker's clock, the same in every process (the boot clock)
                 if msg.get("type") == "subscribed":
                     granted[0] = msg["rate_hz"]
                 if msg.get("type") != "pose" or not msg["pose"]:
@@ -216,7 +217,7 @@ class Service:
     def __enter__(self) -> "Service":
         performer = Performer("human", "exercise", seed=1, rate_hz=RATE)
         self.pty = PtyTracker(MarkedSource(performer), birds=16, baud=921600, rate_hz=RATE).start()
-        self.clock_t0 = self.pty.flock.clock._t0
+        self.clock_t0 = self.pty.flock.origin  # the performance's time 0 on the flock's clock (SYSTEM)
         self.data = tempfile.mkdtemp(prefix="flockcal-bench-")
         extra = []
         if self.streams:
