@@ -277,3 +277,36 @@ class SlowDownload:
 
     def close(self) -> None:
         self.sock.close()
+
+
+@contextlib.contextmanager
+def live_pipeline(tmp_path: Path, names: tuple[str, ...], rate_hz: float, **log_options):
+    """The service's own Pipeline (no reader, no HTTP) with one live stage-profile session "s" begun, its frame
+    log at tmp_path/s.frames (`log_options` go to FrameLog, e.g. flush_s) and its row in a real SQLite file;
+    yields the pipeline, stopped on the way out. For tests that feed it frames the reader would hand over."""
+    import time
+
+    from flockcal.drivers.tracker_status import TrackerStatus
+    from flockcal.server.framelog import FrameLog
+    from flockcal.server.limits import DiskStatus
+    from flockcal.server.live_session import LiveSession
+    from flockcal.server.pipeline import Pipeline
+    from flockcal.server.snapshot import SourceStatus
+    from flockcal.server.store import Store
+    from flockcal.solver.progress import profile
+
+    store = Store(tmp_path / "flockcal.sqlite3")
+    pipe = Pipeline(names, store, lambda: SourceStatus(TrackerStatus(connected=True), "test", False,
+                                                         DiskStatus(False, None, 0)))
+    pipe.start()
+    try:
+        store.insert_session({"id": "s", "performer": "p", "state": "live", "root": None, "hierarchy": None,
+                              "names": list(names), "device": "test", "rate_hz": rate_hz, "created_at": time.time(),
+                              "frames": 0, "recording": "s.frames", "profile": "stage"})
+        prof = profile("stage", 0.005, 0.005 / 2 ** 0.5)
+        log = FrameLog(tmp_path / "s.frames", list(names), rate_hz, **log_options)
+        pipe.begin_session(LiveSession("s", "p", names, None, None, log, prof,
+                                       started_wall=time.time(), started_mono=time.monotonic()))
+        yield pipe
+    finally:
+        pipe.stop()

@@ -95,28 +95,10 @@ def test_the_live_pipeline_holds_as_much_after_100_s_as_after_50_s(tmp_path):
     for the monitor's log of its frame scan's best steps (2,000 entries, full at ~70 s: +1 %); so the bytes
     its objects hold at 100 s are those at 50 s within 2 % (a series, event list or frame list kept per
     frame or per sample would add more: 50 s of the residual samples alone are 3 %)."""
-    from flockcal.server.framelog import FrameLog
-    from flockcal.server.live_session import LiveSession
-    from flockcal.drivers.tracker_status import TrackerStatus
-    from flockcal.server.limits import DiskStatus
-    from flockcal.server.pipeline import Pipeline
-    from flockcal.server.snapshot import SourceStatus
-    from flockcal.server.store import Store
-    from flockcal.solver.progress import profile
+    from server_helpers import live_pipeline
 
     perf = Performer("human", routine="walk", rate_hz=RATE, birds=6)
-    names = tuple(perf.names)
-    store = Store(tmp_path / "flockcal.sqlite3")
-    pipe = Pipeline(names, store, lambda: SourceStatus(TrackerStatus(connected=True), "test", False,
-                                                         DiskStatus(False, None, 0)))
-    pipe.start()
-    try:
-        store.insert_session({"id": "s", "performer": "p", "state": "live", "root": None, "hierarchy": None,
-                              "names": list(names), "device": "test", "rate_hz": RATE, "created_at": time.time(),
-                              "frames": 0, "recording": "s.frames", "profile": "stage"})
-        prof = profile("stage", 0.005, 0.005 / 2 ** 0.5)
-        pipe.begin_session(LiveSession("s", "p", names, None, None, FrameLog(tmp_path / "s.frames", list(names), RATE), prof,
-                                       started_wall=time.time(), started_mono=time.monotonic()))
+    with live_pipeline(tmp_path, tuple(perf.names), RATE) as pipe:
         held = []
         start = time.monotonic()
         for part in range(2):
@@ -131,5 +113,3 @@ def test_the_live_pipeline_holds_as_much_after_100_s_as_after_50_s(tmp_path):
         assert pipe.call(lambda: pipe.live.cal.received) == 2 * int(HALF_S * RATE)
         assert pipe.fits_done > 10 and pipe.live.cal.watch.monitor is not None
         assert held[1] <= 1.02 * held[0], held
-    finally:
-        pipe.stop()

@@ -196,38 +196,20 @@ def test_a_fit_published_before_the_first_flush_interval_finds_its_frames_in_the
 
     from flockcal.exports.gltf import glb_chunks
     from flockcal.frames import Frames
-    from flockcal.server.live_session import LiveSession
-    from flockcal.drivers.tracker_status import TrackerStatus
-    from flockcal.server.limits import DiskStatus
-    from flockcal.server.pipeline import Pipeline
-    from flockcal.server.snapshot import SourceStatus
-    from flockcal.server.store import Store
-    from flockcal.solver.progress import profile
+    from server_helpers import live_pipeline
+    from service_process import wait_for
 
     perf = Performer("human", routine="walk", rate_hz=RATE, birds=6)
-    names = tuple(perf.names)
-    store = Store(tmp_path / "flockcal.sqlite3")
-    pipe = Pipeline(names, store, lambda: SourceStatus(TrackerStatus(connected=True), "test", False,
-                                                         DiskStatus(False, None, 0)))
-    pipe.start()
     path = tmp_path / "s.frames"
-    try:
-        store.insert_session({"id": "s", "performer": "p", "state": "live", "root": None, "hierarchy": None,
-                              "names": list(names), "device": "test", "rate_hz": RATE, "created_at": time.time(),
-                              "frames": 0, "recording": "s.frames", "profile": "stage"})
-        prof = profile("stage", 0.005, 0.005 / 2 ** 0.5)
-        pipe.begin_session(LiveSession("s", "p", names, None, None, FrameLog(path, list(names), RATE, flush_s=3600.0),
-                                       prof, started_wall=time.time(), started_mono=time.monotonic()))
+    with live_pipeline(tmp_path, tuple(perf.names), RATE, flush_s=3600.0) as pipe:
         times = np.arange(int(RATE)) / RATE
         R, t, valid = perf.poses(times)
         start = time.monotonic()
         for a in range(0, len(times), 3):
             pipe.feed(Frames(start + times[a:a + 3], R[a:a + 3], t[a:a + 3], valid[a:a + 3]))
-        deadline = time.monotonic() + 120
-        while (pipe.snapshot.pose_fit_id or ("",))[0] != "s":
-            assert time.monotonic() < deadline, "no fit of the session within 120 s"
-            pipe.call(lambda: None, timeout=60)  # the pipeline has taken what it was fed
-            time.sleep(0.05)
+        # The pipeline has taken what it was fed (the call), then the pose names the session's fit.
+        wait_for(lambda: pipe.call(lambda: None, timeout=60) or (pipe.snapshot.pose_fit_id or ("",))[0] == "s",
+                 120, "a fit of the session")
         snap = pipe.snapshot
         assert snap.has_fit and snap.session.id == "s"
         frames = FrameFile(path)  # as the routes open it: n fixed at open
@@ -238,5 +220,3 @@ def test_a_fit_published_before_the_first_flush_interval_finds_its_frames_in_the
             assert glb[:4] == b"glTF"
         finally:
             frames.close()
-    finally:
-        pipe.stop()
