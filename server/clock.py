@@ -18,6 +18,10 @@ log = logging.getLogger(__name__)
 # are a step: NTP slews the wall clock by at most 500 ppm, and the boot clock reads in 10 ms steps.
 STEP_S = 1.0
 STEP_SHARE = 0.002
+# A wall reading is bracketed by two monotonic ones; wider than this, it is read again (at most TRIES times):
+# a thread descheduled between the two clocks (a loaded machine, a slow faked clock) must not look like a step.
+TIGHT_S = 0.02
+TRIES = 3
 # After the wall clock steps back, stamps run at this share of real time until it catches up with them.
 SLEW = 0.5
 
@@ -60,8 +64,7 @@ class ServiceClock:
         self._lock = threading.Lock()
         self._sink: Callable[[dict], None] | None = None
         self._pending: list[dict] = []
-        self._mono = clock.monotonic()
-        self._wall = clock.wall()
+        self._mono, self._wall, self._width = self._sample()
         self._stamp = self._wall
         self.offset = 0.0
         self.steps = 0
@@ -75,19 +78,34 @@ class ServiceClock:
     def read(self) -> Reading:
         step = None
         with self._lock:
-            m, w = self.clock.monotonic(), self.clock.wall()
+            m, w, width = self._sample()
             dm = max(m - self._mono, 0.0)
             jump = (w - self._wall) - dm
-            if abs(jump) > max(STEP_S, STEP_SHARE * dm):
+            # Each reading's wall time is known to within its bracket: the two brackets widen the bound.
+            if abs(jump) > max(STEP_S, STEP_SHARE * dm) + width + self._width:
                 self.offset += jump
                 step = self._stepped(jump, w, while_down=False)
             # Stamps follow the wall clock forward; behind them, it is caught up slowly, never stepped back to.
             self._stamp = w if w >= self._stamp else self._stamp + SLEW * dm
-            self._mono, self._wall = m, w
+            self._mono, self._wall, self._width = m, w, width
             reading = Reading(m, w, self._stamp, w - self.offset)
         if step is not None:
             self._emit(step)
         return reading
+
+    def _sample(self) -> tuple[float, float, float]:
+        """(monotonic, wall, width): the wall clock read between two monotonic readings, `monotonic` their
+        midpoint and `width` the time between them; the narrowest of up to TRIES tries."""
+        best = None
+        for _ in range(TRIES):
+            before = self.clock.monotonic()
+            wall = self.clock.wall()
+            after = self.clock.monotonic()
+            if best is None or after - before < best[2]:
+                best = (0.5 * (before + after), wall, after - before)
+            if best[2] <= TIGHT_S:
+                break
+        return best
 
     def stamp(self) -> float:
         """Unix seconds for a stamp: the wall clock, never earlier than a stamp already given."""

@@ -10,6 +10,7 @@ hour forward mid-session and back again.
 from __future__ import annotations
 
 import json
+import os
 import time
 
 import httpx
@@ -59,6 +60,55 @@ def test_a_step_moves_the_offset_not_service_time_and_stamps_never_go_back():
         manual.step_wall(0.03)
         clock.read()
     assert len(events) == 2
+
+
+class _StallingWall:
+    """A ManualClock whose wall reading takes `stall` seconds for the next `stalls` readings (the thread
+    descheduled inside it on a loaded machine, or a faked clock reading its file), the time read at its end."""
+
+    def __init__(self, manual: ManualClock):
+        self.manual, self.stall, self.stalls = manual, 0.0, 0
+
+    def monotonic(self) -> float:
+        return self.manual.monotonic()
+
+    def wall(self) -> float:
+        if self.stalls > 0:
+            self.stalls -= 1
+            self.manual.advance(self.stall)
+        return self.manual.wall()
+
+    def epoch(self):
+        return self.manual.epoch()
+
+
+def test_a_reading_stalled_between_the_two_clocks_is_no_step():
+    manual = ManualClock(wall=1.7e9, monotonic=50.0)
+    stalling = _StallingWall(manual)
+    clock = ServiceClock(stalling)
+    events = []
+    clock.bind(events.append)
+    start = clock.read()
+    # Tried: one wall reading 1.5 s late (the old way, a pair of 1.5 s "steps", forward then back).
+    stalling.stall, stalling.stalls = 1.5, 1
+    manual.advance(1.0)
+    clock.read()
+    manual.advance(1.0)
+    clock.read()
+    # Tried: every reading of one look stalls 3 s: the wall time is known to 3 s only, still no step.
+    stalling.stall, stalling.stalls = 3.0, 3
+    clock.read()
+    manual.advance(1.0)
+    r = clock.read()
+    assert events == [] and clock.status()["steps"] == 0
+    assert r.service_s - start.service_s == pytest.approx(manual.monotonic() - 50.0, abs=1e-9)
+    # A real step is still found, and found once, through stalled readings.
+    stalling.stall, stalling.stalls = 2.0, 3
+    manual.step_wall(HOUR)
+    clock.read()
+    manual.advance(1.0)
+    clock.read()
+    assert [e["step_s"] for e in events] == [pytest.approx(HOUR, abs=4.0)]
 
 
 def test_the_clock_carries_across_restarts_and_finds_a_step_while_the_service_was_down(tmp_path):
@@ -202,6 +252,13 @@ def _libfaketime() -> str | None:
     return found[0] if found else None
 
 
+def _set_faketime(stamp, offset: str) -> None:
+    # Replaced whole (libfaketime reads the file at each clock call: never a half-written one).
+    part = stamp.with_suffix(".part")
+    part.write_text(offset + "\n")
+    os.replace(part, stamp)
+
+
 @pytest.mark.skipif(_libfaketime() is None, reason="libfaketime is not installed (Debian: apt-get install faketime); "
                                                      "the in-process stepping-clock test above still runs")
 def test_serve_under_libfaketime_stepped_an_hour_forward_mid_session_and_back(tmp_path, monkeypatch):
@@ -214,7 +271,7 @@ def test_serve_under_libfaketime_stepped_an_hour_forward_mid_session_and_back(tm
 
     perf = Performer("human", "exercise", seed=1, birds=6, rate_hz=60.0, period=8.0, sta_mm=0)
     stamp = tmp_path / "faketime"
-    stamp.write_text("+0\n")
+    _set_faketime(stamp, "+0")
     env = {"LD_PRELOAD": _libfaketime(), "FAKETIME_TIMESTAMP_FILE": str(stamp), "FAKETIME_NO_CACHE": "1",
            "FAKETIME_DONT_FAKE_MONOTONIC": "1"}
     for k, v in env.items():  # the child's environment (this process was started without the library)
@@ -243,7 +300,7 @@ def test_serve_under_libfaketime_stepped_an_hour_forward_mid_session_and_back(tm
             second = httpx.post(url + "/api/sessions", json={"performer": "Bo"}, timeout=30).json()["id"]
             wait_for(lambda: frames(second) >= 60, 30, "the second session records")
             # Tried: the clock steps an hour forward in the middle of the second session.
-            stamp.write_text("+1h\n")
+            _set_faketime(stamp, "+1h")
             forward = wait_for(steps, 30, "the step forward is an event")
             assert forward[0]["step_s"] == pytest.approx(HOUR, abs=5), forward
             ran = httpx.get(url + "/api/status", timeout=10).json()["retention"]["last_run_at"]
@@ -261,7 +318,7 @@ def test_serve_under_libfaketime_stepped_an_hour_forward_mid_session_and_back(tm
                 assert httpx.get(url + f"/api/sessions/{sid}/take", timeout=30).status_code == 200
                 assert httpx.get(url + f"/api/sessions/{sid}/raw", timeout=30).status_code == 200
             # Tried: the hour back again. Stamps never step back: events in id order, the websocket's time.
-            stamp.write_text("+0\n")
+            _set_faketime(stamp, "+0")
             both = wait_for(lambda: len(s := steps()) >= 2 and s, 30, "the step back is an event")
             assert both[1]["step_s"] == pytest.approx(-HOUR, abs=5), both
             third = httpx.post(url + "/api/sessions", json={"performer": "Cy"}, timeout=30).json()
@@ -272,6 +329,7 @@ def test_serve_under_libfaketime_stepped_an_hour_forward_mid_session_and_back(tm
             assert walls == sorted(walls)
             times = watch.close()
             assert len(times) > 20 and times == sorted(times)
-            assert httpx.get(url + "/api/status", timeout=10).json()["clock"]["steps"] == 2
+            clock = httpx.get(url + "/api/status", timeout=10).json()["clock"]
+            assert clock["steps"] == 2, (clock, steps())
     finally:
         tracker.stop()
