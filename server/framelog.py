@@ -12,15 +12,17 @@ from __future__ import annotations
 
 import json
 import os
-import time
+import threading
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
 import numpy as np
 
+from flockcal.clock import SYSTEM, Clock
 from flockcal.frames import Frames
 from flockcal.server.frameblocks import HEAD, SYNC, BlockError, Encoder, decode, parse_head, record_dtype, records_frames
+from flockcal.threads import name_os_thread
 
 MAGIC = "flockcal-frames"
 VERSION = 2
@@ -34,14 +36,22 @@ class FrameLog:
     """Append-only writer; `write` buffers (the first frames are written at once), `flush` hands the bytes
     to the OS (survives a process kill).
 
+    The blocks are encoded and written on a thread of the log's own ("fc-framelog"): encoding a quarter
+    second of frames takes milliseconds, which the pipeline thread, on the way from a frame to the clients'
+    snapshots, would otherwise spend every quarter second. `write` and `flush(wait=False)` only hand a
+    flush's frames over; `flush()` and `close()` return once everything handed over is written. Each flush's
+    frames become their own blocks, in order, whatever thread encodes them.
+
     A write that fails (a full disk) ends the log: `error` holds why, the file is cut back to its last
     whole block, and later frames are not written; the caller stops the session (server/limits.py)."""
 
-    def __init__(self, path: str | Path, names: list[str], rate_hz: float | None, flush_s: float = 0.25):
+    def __init__(self, path: str | Path, names: list[str], rate_hz: float | None, flush_s: float = 0.25,
+                 clock: Clock = SYSTEM):
         self.path = Path(path)
         self.m = len(names)
         self.dtype = record_dtype(self.m)
         self.flush_s = flush_s
+        self.clock = clock  # the flush cadence
         self.error: OSError | None = None
         self._fd = os.open(self.path, os.O_WRONLY | os.O_CREAT | os.O_TRUNC, 0o644)
         header = (json.dumps({"format": MAGIC, "version": VERSION, "names": list(names), "rate_hz": rate_hz})
@@ -56,11 +66,18 @@ class FrameLog:
         self._pending: list[Frames] = []
         self._encoder = Encoder()
         self._block_frames = max(1, BLOCK_BYTES // self.dtype.itemsize)
-        self.last_flush = time.monotonic()
+        self.last_flush = clock.monotonic()
         self.frames = 0
+        self._ended = False  # a write failed, or closed: later frames are not logged
+        # The writer thread's hand-over: flushes' frames in order, how many were handed over and written.
+        self._cond = threading.Condition()
+        self._queue: list[list[Frames]] = []
+        self._handed = self._written = 0
+        self._closing = False
+        self._thread: threading.Thread | None = None
 
     def write(self, times, rotations, positions, valid) -> None:
-        if self._fd is None:  # ended (a failed write, or closed): the frames still reach the live fit
+        if self._ended:  # a failed write, or closed: the frames still reach the live fit
             return
         n = len(times)
         # Copies: the caller's arrays may be reused before the flush.
@@ -69,27 +86,58 @@ class FrameLog:
         self.frames += n
         # The first frames go out at once: a fit of them is published within a frame or two (fits run at
         # 30 Hz), and a download or the rig a page loads for it must find the session's log holding frames.
-        if (n and self.frames == n) or time.monotonic() - self.last_flush >= self.flush_s:
+        if n and self.frames == n:
             self.flush()
+        elif self.clock.monotonic() - self.last_flush >= self.flush_s:
+            self.flush(wait=False)
 
-    def flush(self) -> None:
-        if self._pending and self._fd is not None:
-            frames = Frames.concat(self._pending, self.m)
-            self._pending.clear()
-            step = self._block_frames
-            data = b"".join(self._encoder.block(f.times, f.rotations, f.positions, f.valid)
-                            for f in (frames[a:a + step] for a in range(0, len(frames), step)))
-            try:
-                _write_all(self._fd, data)
-                self._whole += len(data)
-            except OSError as exc:
-                self._fail(exc)
-        elif self._fd is None:
-            self._pending.clear()
-        self.last_flush = time.monotonic()
+    def flush(self, wait: bool = True) -> None:
+        """Hand the frames written since the last flush to the writer thread; with `wait`, return once
+        they (and all before them) are in the file, or the log has ended."""
+        self.last_flush = self.clock.monotonic()
+        with self._cond:
+            if self._pending and not self._ended:
+                self._queue.append(self._pending)
+                self._handed += 1
+                if self._thread is None:
+                    self._thread = threading.Thread(target=self._run, name="flockcal-framelog", daemon=True)
+                    self._thread.start()
+                self._cond.notify_all()
+            self._pending = []
+            if wait:
+                target = self._handed
+                while self._written < target and not self._ended:
+                    self._cond.wait()
+
+    def _run(self) -> None:
+        name_os_thread("fc-framelog")
+        while True:
+            with self._cond:
+                while not self._queue and not self._closing:
+                    self._cond.wait()
+                if not self._queue:
+                    return
+                batches = self._queue.pop(0)
+            self._write_blocks(batches)
+            with self._cond:
+                self._written += 1
+                self._cond.notify_all()
+
+    def _write_blocks(self, batches: list[Frames]) -> None:
+        if self._fd is None:
+            return
+        frames = Frames.concat(batches, self.m)
+        step = self._block_frames
+        data = b"".join(self._encoder.block(f.times, f.rotations, f.positions, f.valid)
+                        for f in (frames[a:a + step] for a in range(0, len(frames), step)))
+        try:
+            _write_all(self._fd, data)
+            self._whole += len(data)
+        except OSError as exc:
+            self._fail(exc)
 
     def _fail(self, exc: OSError) -> None:
-        """Stop logging: keep the whole records written so far, readable as they are."""
+        """Stop logging: keep the whole records written so far, readable as they are (the writer thread)."""
         self.error = exc
         try:
             os.ftruncate(self._fd, self._whole)  # frees space; a partial record would only be skipped anyway
@@ -97,12 +145,23 @@ class FrameLog:
             pass
         os.close(self._fd)
         self._fd = None
+        with self._cond:
+            self._ended = True
+            self._queue.clear()
+            self._cond.notify_all()
 
     def close(self) -> None:
-        if self._fd is None:
+        """Write what is pending, stop the writer thread, and close the file (synced to the disk)."""
+        if self._ended and self._thread is None and self._fd is None:
             return
         self.flush()
-        if self._fd is None:  # the last flush failed and closed it
+        with self._cond:
+            self._ended = self._closing = True
+            self._cond.notify_all()
+        if self._thread is not None:
+            self._thread.join()
+            self._thread = None
+        if self._fd is None:  # a flush failed and closed it
             return
         try:
             os.fsync(self._fd)

@@ -109,7 +109,7 @@ class Persistence:
         """Flush what is due: the frame log every flush_s, the database once a second."""
         # Timed here on the service's clock (the log also flushes itself as frames arrive).
         if now - self._last_log_flush >= live.framelog.flush_s:
-            live.framelog.flush()
+            live.framelog.flush(wait=False)  # encoded and written on the log's own thread
             self._last_log_flush = now
         if now - self._last_db_flush >= DB_FLUSH_S:
             self.flush_db(live)
