@@ -176,6 +176,23 @@ def stop_report(service) -> list[str]:
     return lines
 
 
+def settle_heap() -> None:
+    """Ready the process for serving: load what the live pose loads on its first use, then freeze what start-up
+    made (modules, the app, the service's parts) out of the collector's sight.
+
+    Both would otherwise stall every thread: the pose's first skeleton imports the rig's naming (scipy's
+    spatial package: 0.2-0.6 s on the event loop, every client's messages waiting), and a full collection
+    walks every object the process holds while holding the GIL (45-90 ms with the start-up's objects in
+    it, the slowest step of a live session; frozen, a full collection walks only what serving made since).
+    """
+    import gc
+
+    import flockcal.exports.bvh  # noqa: F401  (server/pose.py imports it where it names the rig's nodes)
+
+    gc.collect()
+    gc.freeze()
+
+
 def run(args: argparse.Namespace) -> int:
     import uvicorn
 
@@ -248,6 +265,7 @@ def run(args: argparse.Namespace) -> int:
                             timeout_graceful_shutdown=10)
     throttle_all_handlers(service.clock)  # after uvicorn.Config: it configures uvicorn's handlers
     server = uvicorn.Server(config)
+    settle_heap()
     # uvicorn stops gracefully on SIGTERM as on Ctrl-C, then raises the signal again with the handler it
     # found: Python's default for SIGTERM ends the process there, before the stop report below. With a
     # handler of ours that re-raised signal only ends `run`, so `systemctl stop` prints what Ctrl-C prints.
