@@ -14,7 +14,7 @@ from __future__ import annotations
 import logging
 import os
 import threading
-from dataclasses import asdict, dataclass
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
@@ -36,7 +36,7 @@ class DiskStatus:
 
     @property
     def doc(self) -> dict:
-        return asdict(self)
+        return dict(vars(self))  # its fields in order, as asdict, without its deep walk (every snapshot)
 
 log = logging.getLogger(__name__)
 
