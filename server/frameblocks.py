@@ -58,8 +58,9 @@ def _same(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return (a == b).all(axis=1)
 
 
-def _words_for(fmt: RecordFormat, scale: int, R: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(words (k, fmt.n_words), found (k,)): words that decode to exactly R (k,3,3) and p (k,3), where found.
+def _words_for(fmt: RecordFormat, scale: int, R: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(words (k, fmt.n_words), found (k,), direct (k,)): words that decode to exactly R (k,3,3) and p (k,3),
+    where found; `direct` where the re-encoded words did, before any neighbour was tried.
 
     The poses are the tracker's own decoding of its words, so re-encoding them mostly gives those words
     back; a matrix made orthonormal after decoding (`nearest_rotation`) may come back one step off in
@@ -70,6 +71,7 @@ def _words_for(fmt: RecordFormat, scale: int, R: np.ndarray, p: np.ndarray) -> t
         w = data_words(fmt, R, p, scale_inches=scale)
         dR, dp = poses_from_words(fmt, w, scale)
     found = _same(dR, R) & _same(dp, p)
+    direct = found.copy()
     if fmt.orientation == "matrix" and not found.all() and found.sum() >= len(found) // 2:
         for tries in (lambda miss: _guesses(w[miss], R[miss])[:, :2], lambda miss: _neighbours(w[miss], 1),
                       lambda miss: _guesses(w[miss], R[miss])[:, 2:], lambda miss: _neighbours(w[miss], 2)):
@@ -84,7 +86,17 @@ def _words_for(fmt: RecordFormat, scale: int, R: np.ndarray, p: np.ndarray) -> t
             got = hit.any(axis=1)
             w[miss[got]] = cand[got, hit[got].argmax(axis=1)]
             found[miss[got]] = True
-    return w, found
+    return w, found, direct
+
+
+def _sample_found(found: np.ndarray, direct: np.ndarray, pick: np.ndarray) -> np.ndarray | None:
+    """What `_words_for` of the rows `pick` alone would find, read off its result for all rows (each row's
+    neighbours are tried on their own), or None where the two would differ: the neighbours are tried only
+    when half the rows came back directly, and the sample and the whole may fall either side of that."""
+    part = direct[pick]
+    if (part.sum() >= len(part) // 2) != (direct.sum() >= len(direct) // 2):
+        return None
+    return found[pick]
 
 
 def _guesses(w: np.ndarray, R: np.ndarray) -> np.ndarray:
@@ -150,9 +162,9 @@ class Encoder:
         R, p = np.asarray(R, dtype=float), np.asarray(p, dtype=float)
         ok = np.flatnonzero(valid.reshape(-1))
         Rf, pf = R.reshape(n * m, 3, 3)[ok], p.reshape(n * m, 3)[ok]
-        codec = self._choose(Rf, pf)
+        codec, known = self._choose(Rf, pf)
         if codec is not None:
-            w, found = _words_for(*codec, Rf, pf)
+            w, found = known if known is not None else _words_for(*codec, Rf, pf)[:2]
             payload = None if len(found) - found.sum() > NO_CODEC * len(found) else \
                 _words_payload(*codec, times, valid, ok, w, found, Rf, pf, m)
             if payload is not None:
@@ -161,18 +173,28 @@ class Encoder:
         self.codec, self._records_left = None, self.RETRY
         return _block(RECORDS, n, _records_payload(times, R, p, valid))
 
-    def _choose(self, Rf: np.ndarray, pf: np.ndarray) -> tuple | None:
+    def _choose(self, Rf: np.ndarray, pf: np.ndarray) -> tuple[tuple | None, tuple | None]:
+        """(the codec, and the block's (words, found) in it when they were worked out on the way)."""
         if not len(Rf):
-            return self.codec or CANDIDATES[0]
+            return self.codec or CANDIDATES[0], None
         if self._records_left > 0:
             self._records_left -= 1
-            return None
+            return None, None
         pick = np.linspace(0, len(Rf) - 1, min(self.SAMPLE, len(Rf))).astype(int)
         for cand in ([self.codec] if self.codec else []) + [c for c in CANDIDATES if c != self.codec]:
-            _, found = _words_for(*cand, Rf[pick], pf[pick])
+            if cand == self.codec:
+                # The last block's codec mostly fits again: the whole block's words, the sample's read off them.
+                w, found, direct = _words_for(*cand, Rf, pf)
+                sample = _sample_found(found, direct, pick)
+                if sample is None:
+                    sample = _words_for(*cand, Rf[pick], pf[pick])[1]
+                if len(sample) - sample.sum() <= WRONG_CODEC * len(sample):
+                    return cand, (w, found)
+                continue
+            found = _words_for(*cand, Rf[pick], pf[pick])[1]
             if len(found) - found.sum() <= WRONG_CODEC * len(found):
-                return cand
-        return None
+                return cand, None
+        return None, None
 
 
 def _block(codec: int, n: int, payload: bytes) -> bytes:
