@@ -12,13 +12,13 @@ from __future__ import annotations
 
 import json
 import os
-import time
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
 import numpy as np
 
+from flockcal.clock import SYSTEM, Clock
 from flockcal.frames import Frames
 from flockcal.server.frameblocks import HEAD, SYNC, BlockError, Encoder, decode, parse_head, record_dtype, records_frames
 
@@ -37,8 +37,10 @@ class FrameLog:
     A write that fails (a full disk) ends the log: `error` holds why, the file is cut back to its last
     whole block, and later frames are not written; the caller stops the session (server/limits.py)."""
 
-    def __init__(self, path: str | Path, names: list[str], rate_hz: float | None, flush_s: float = 0.25):
+    def __init__(self, path: str | Path, names: list[str], rate_hz: float | None, flush_s: float = 0.25,
+                 clock: Clock = SYSTEM):
         self.path = Path(path)
+        self.clock = clock  # its monotonic time paces the flushes
         self.m = len(names)
         self.dtype = record_dtype(self.m)
         self.flush_s = flush_s
@@ -56,7 +58,7 @@ class FrameLog:
         self._pending: list[Frames] = []
         self._encoder = Encoder()
         self._block_frames = max(1, BLOCK_BYTES // self.dtype.itemsize)
-        self.last_flush = time.monotonic()
+        self.last_flush = self.clock.monotonic()
         self.frames = 0
 
     def write(self, times, rotations, positions, valid) -> None:
@@ -69,7 +71,7 @@ class FrameLog:
         self.frames += n
         # The first frames go out at once: a fit of them is published within a frame or two (fits run at
         # 30 Hz), and a download or the rig a page loads for it must find the session's log holding frames.
-        if (n and self.frames == n) or time.monotonic() - self.last_flush >= self.flush_s:
+        if (n and self.frames == n) or self.clock.monotonic() - self.last_flush >= self.flush_s:
             self.flush()
 
     def flush(self) -> None:
@@ -86,7 +88,7 @@ class FrameLog:
                 self._fail(exc)
         elif self._fd is None:
             self._pending.clear()
-        self.last_flush = time.monotonic()
+        self.last_flush = self.clock.monotonic()
 
     def _fail(self, exc: OSError) -> None:
         """Stop logging: keep the whole records written so far, readable as they are."""

@@ -189,7 +189,7 @@ class SessionManager:
                 "profile": prof.name,
             }
             try:
-                framelog = FrameLog(self.frames_path(sid), list(self.names), rate)
+                framelog = FrameLog(self.frames_path(sid), list(self.names), rate, clock=self.clock)
             except OSError as exc:
                 raise InsufficientStorage(f"cannot create the session's recording {self.frames_path(sid)}: "
                                           f"{exc.strerror}; make room on that disk (DELETE old sessions)") from None

@@ -220,3 +220,23 @@ def test_a_fit_published_before_the_first_flush_interval_finds_its_frames_in_the
             assert glb[:4] == b"glTF"
         finally:
             frames.close()
+
+
+def test_the_log_flushes_on_the_clock_it_is_given(tmp_path):
+    from flockcal.clock import ManualClock
+
+    names, times, R, p, valid = tracker_frames("position_matrix", 72, seconds=1.5, birds=6)
+    clock = ManualClock(monotonic=10.0)
+    path = tmp_path / "s.frames"
+    log = FrameLog(path, names, RATE, flush_s=0.25, clock=clock)
+    log.write(times[:2], R[:2], p[:2], valid[:2])  # the first frames go out at once
+    flushed = path.stat().st_size
+    # Tried: frames written with no time passing on the log's clock (however long the machine takes): held.
+    for a in range(2, 40, 2):
+        log.write(times[a:a + 2], R[a:a + 2], p[a:a + 2], valid[a:a + 2])
+    assert path.stat().st_size == flushed
+    clock.advance(0.25)
+    log.write(times[40:42], R[40:42], p[40:42], valid[40:42])  # a quarter second later on its clock: flushed
+    assert path.stat().st_size > flushed
+    log.close()
+    assert_bitwise(read_frames(path)[1], times[:42], R[:42], p[:42], valid[:42])
