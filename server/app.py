@@ -11,7 +11,7 @@ import json
 import logging
 from contextlib import asynccontextmanager
 from pathlib import Path
-from typing import NamedTuple
+from typing import Annotated, Any
 
 from fastapi import FastAPI, Request
 from fastapi.exceptions import RequestValidationError
@@ -19,6 +19,7 @@ from fastapi.middleware.cors import CORSMiddleware
 from fastapi.responses import FileResponse, HTMLResponse, JSONResponse, Response
 from fastapi.staticfiles import StaticFiles
 from fastapi_offline import FastAPIOffline
+from pydantic import BaseModel, BeforeValidator, TypeAdapter
 from starlette.datastructures import MutableHeaders
 from starlette.exceptions import HTTPException as StarletteHTTPException
 from starlette.requests import ClientDisconnect
@@ -74,7 +75,7 @@ def _error(status: int, message: str, code: str, headers: dict | None = None) ->
 
 
 def _validation_message(exc: RequestValidationError) -> tuple[int, str]:
-    errors = [_Problem.of(e) for e in exc.errors()]
+    errors = PROBLEMS.validate_python(exc.errors())
     for e in errors:
         if e.type == "json_invalid":
             return 400, f"the request body is not valid JSON ({e.ctx.get('error', 'parse error')}); send a JSON object"
@@ -91,19 +92,18 @@ def _validation_message(exc: RequestValidationError) -> tuple[int, str]:
     return 422, "invalid request — " + "; ".join(parts) + more
 
 
-class _Problem(NamedTuple):
-    """One of pydantic's validation errors (its ErrorDetails), read once."""
+class _Problem(BaseModel):
+    """One of pydantic's validation errors (its ErrorDetails; FastAPI hands them over as dicts), read once."""
 
-    type: str | None
-    loc: tuple
-    msg: str
-    input: object
-    ctx: dict
+    type: str | None = None
+    loc: tuple[Any, ...] = ()
+    msg: str = "invalid"
+    input: Any = None
+    # What the error type adds (the pattern, the JSON parser's message); none: empty.
+    ctx: Annotated[dict[str, Any], BeforeValidator(lambda ctx: ctx or {})] = {}
 
-    @staticmethod
-    def of(e) -> "_Problem":
-        return _Problem(e.get("type"), tuple(e.get("loc", ())), e.get("msg", "invalid"), e.get("input"),
-                        e.get("ctx") or {})
+
+PROBLEMS = TypeAdapter(list[_Problem])
 
 
 def _pattern_message(loc: str, error: _Problem) -> str:

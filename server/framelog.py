@@ -104,10 +104,15 @@ class FrameLog:
                     self._thread.start()
                 self._cond.notify_all()
             self._pending = []
-            if wait:
-                target = self._handed
-                while self._written < target and not self._ended:
-                    self._cond.wait()
+        if wait:
+            self.wait_written()
+
+    def wait_written(self) -> None:
+        """Return once every flush handed over so far is in the file (or the log has ended)."""
+        with self._cond:
+            target = self._handed
+            while self._written < target and not self._ended:
+                self._cond.wait()
 
     def _run(self) -> None:
         name_os_thread("fc-framelog")

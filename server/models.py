@@ -12,6 +12,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
+from flockcal.server.openapi import preset_or_none, sensor_enum, sensor_or_none
 from flockcal.server.settings import PERFORMER_PATTERN, performer_pattern
 from flockcal.simulator.motion import ROUTINES
 from flockcal.solver.progress import STATES
@@ -105,9 +106,11 @@ class SessionCreate(Strict):
                            json_schema_extra={"pattern": performer_pattern()})
     hierarchy: dict[str, str] | None = Field(
         None, description="known {child: parent} map, root omitted; leave out for automatic topology")
-    root: str | None = Field(None, pattern=NAME_PATTERN, description="root body; default chosen by the solver")
+    # The service's own sensors and presets, listed in its document (server/openapi.py).
+    root: str | None = Field(None, pattern=NAME_PATTERN, description="root body; default chosen by the solver",
+                             json_schema_extra=sensor_or_none)
     skeleton: str | None = Field(
-        None, pattern=NAME_PATTERN,
+        None, pattern=NAME_PATTERN, json_schema_extra=preset_or_none,
         description="named preset instead of `hierarchy` (GET /api/sessions/presets): 'auto' (default), 'human' "
                     "(the simulator's body) or a saved skeleton (its tree and bones kept, only placements fitted)")
     profile: Literal["stage", "kiosk"] | None = Field(
@@ -288,7 +291,7 @@ class EventList(BaseModel):
 
 
 class SlipRequest(Strict):
-    sensor: str = Field(pattern=NAME_PATTERN)
+    sensor: str = Field(pattern=NAME_PATTERN, json_schema_extra=sensor_enum)
     distance_m: float = Field(0.02, gt=0, le=0.5, description="how far the sensor slides on the skin, metres "
                                                                "(default 0.02: the 2 cm slip of design.md §6)")
     at_routine_s: float | None = Field(None, ge=0, le=86400, description="when, on the simulated performer's own clock "

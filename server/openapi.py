@@ -6,6 +6,8 @@ need them, every error status an operation can answer (with its Retry-After / WW
 from __future__ import annotations
 
 import copy
+from contextvars import ContextVar
+from dataclasses import dataclass
 
 from fastapi import FastAPI
 from fastapi.openapi.utils import get_openapi
@@ -36,10 +38,49 @@ WHY = {
               "description": "seconds to wait (a DELETE while the session is being downloaded)", "required": False,
               "schema": {"type": "integer"}}}),
 }
+BEARER = {"bearer": {
+    "type": "http", "scheme": "bearer",
+    "description": "Authorization: Bearer TOKEN — read (--read-token: GET and the websocket), kiosk "
+                   "(--kiosk-token: read, start and stop sessions) or admin (--token: everything)"}}
 ROLES = {require_read: "read", require_session_control: "kiosk", require_admin: "admin"}
 ROLE_WORDS = {"read": "any token (--read-token, --kiosk-token or --token)",
               "kiosk": "the kiosk or admin token (--kiosk-token or --token)",
               "admin": "the admin token (--token)"}
+
+
+@dataclass(frozen=True)
+class Names:
+    """The names this service accepts now, which its document lists: its sensors, its session presets."""
+
+    sensors: tuple[str, ...] = ()
+    presets: tuple[str, ...] = ()
+
+
+# The names of the service whose document is being made (none outside `openapi_document`: fields as declared).
+# The models' and routes' `json_schema_extra` hooks below read it, so pydantic writes the lists in place.
+NAMES: ContextVar[Names] = ContextVar("flockcal_openapi_names", default=Names())
+
+
+def _one_of(names: tuple[str, ...]) -> list[dict]:
+    return [{"type": "string", "enum": list(names)}, {"type": "null"}]
+
+
+def sensor_enum(schema: dict) -> None:
+    """`json_schema_extra` of a field naming a sensor: one of this service's sensors."""
+    if NAMES.get().sensors:
+        schema["enum"] = list(NAMES.get().sensors)
+
+
+def sensor_or_none(schema: dict) -> None:
+    """`json_schema_extra` of an optional field naming a sensor (a joint, a root): one of the sensors or null."""
+    if NAMES.get().sensors:
+        schema["anyOf"] = _one_of(NAMES.get().sensors)
+
+
+def preset_or_none(schema: dict) -> None:
+    """`json_schema_extra` of an optional field naming a session preset: one of those saved now, or null."""
+    if NAMES.get().sensors and NAMES.get().presets:
+        schema["anyOf"] = _one_of(NAMES.get().presets)
 
 
 def api_routes(routes) -> list[APIRoute]:
@@ -52,19 +93,37 @@ def api_routes(routes) -> list[APIRoute]:
     return [r for r in map(_get_api_route_for_openapi, iter_route_contexts(routes)) if r is not None]
 
 
-def route_roles(app: FastAPI) -> dict[tuple[str, str], str]:
-    """{(path, method): the role its auth dependency asks for}, read off each route's dependencies."""
-    out = {}
-    for route in api_routes(app.routes):
-        stack = list(route.dependant.dependencies)
-        role = None
-        while stack:
-            dep = stack.pop()
-            role = ROLES.get(dep.call, role)
-            stack.extend(dep.dependencies)
-        if role is not None:
-            for method in route.methods:
-                out[(route.path_format, method.lower())] = role
+def route_role(route: APIRoute) -> str | None:
+    """The role the route's auth dependency asks for ("read", "kiosk", "admin"), None for an open route."""
+    stack = list(route.dependant.dependencies)
+    role = None
+    while stack:
+        dep = stack.pop()
+        role = ROLES.get(dep.call, role)
+        stack.extend(dep.dependencies)
+    return role
+
+
+def documented(route: APIRoute, token_required: bool) -> APIRoute:
+    """A copy of `route` (for the document only) saying what it answers on this service: the statuses any
+    operation may answer, 401/429 and the bearer scheme where a token is asked for, 403 where a role or
+    another site's page can be refused, the reason for a 409 it declares."""
+    role = route_role(route)
+    guarded = role is not None and token_required
+    answers = dict(COMMON)
+    if guarded:
+        answers.update({401: WHY[401], 429: WHY[429]})
+    if role in ("kiosk", "admin"):
+        answers[403] = WHY[403]
+    if 409 in route.responses:
+        answers[409] = WHY[409]
+    out = copy.copy(getattr(route, "original_route", route))  # FastAPI's route behind its include context
+    out.responses = {**route.responses, **{
+        code: {"description": why, "content": ERROR, **({"headers": headers} if headers else {})}
+        for code, (why, headers) in answers.items()}}
+    if guarded:
+        out.description = f"Needs {ROLE_WORDS[role]}.\n\n{route.description or ''}"
+        out.openapi_extra = {**(route.openapi_extra or {}), "security": [{"bearer": []}]}
     return out
 
 
@@ -72,59 +131,12 @@ def openapi_document(app: FastAPI, token_required: bool, sensors: tuple[str, ...
                      presets: tuple[str, ...] = ()) -> dict:
     """The document of `app` as this service runs: tokens required or not, its sensors' names, the session
     presets it has now."""
-    doc = get_openapi(title=app.title, version=app.version, description=app.description, routes=app.routes)
-    roles = route_roles(app)
-    schemas = doc.setdefault("components", {}).setdefault("schemas", {})
+    routes = [documented(route, token_required) for route in api_routes(app.routes)]
+    names = NAMES.set(Names(tuple(sensors), tuple(presets)))
+    try:
+        doc = get_openapi(title=app.title, version=app.version, description=app.description, routes=routes)
+    finally:
+        NAMES.reset(names)
     if token_required:
-        doc["components"]["securitySchemes"] = {"bearer": {
-            "type": "http", "scheme": "bearer",
-            "description": "Authorization: Bearer TOKEN — read (--read-token: GET and the websocket), kiosk "
-                           "(--kiosk-token: read, start and stop sessions) or admin (--token: everything)"}}
-    for path, ops in doc.get("paths", {}).items():
-        for method, op in ops.items():
-            role = roles.get((path, method))
-            responses = op.setdefault("responses", {})
-            wanted = dict(COMMON)
-            if role is not None and token_required:
-                wanted.update({401: WHY[401], 429: WHY[429]})
-                op["security"] = [{"bearer": []}]
-                op["description"] = f"Needs {ROLE_WORDS[role]}.\n\n" + op.get("description", "")
-            if role in ("kiosk", "admin"):
-                wanted[403] = WHY[403]
-            if "409" in responses:
-                wanted[409] = WHY[409]
-            for code, (why, headers) in wanted.items():
-                reply = responses.setdefault(str(code), {})
-                reply["description"] = why
-                reply["content"] = copy.deepcopy(ERROR)
-                if headers:
-                    reply["headers"] = copy.deepcopy(headers)
-            for reply in responses.values():  # what the routers declared, with no reason: the status's name
-                reply.setdefault("description", "error")
-            _patterns(op, sensors)
-    for name in ("HTTPValidationError", "ValidationError"):
-        schemas.pop(name, None)
-    _bodies(schemas, sensors, presets)
+        doc["components"]["securitySchemes"] = copy.deepcopy(BEARER)
     return doc
-
-
-def _patterns(op: dict, sensors: tuple[str, ...]) -> None:
-    """Query parameters naming a joint as the route checks them: one of this service's sensors (the patterns
-    of ids and names are the routes' own: routes/deps.py, routes/skeletons.py)."""
-    for param in op.get("parameters", []):
-        if (param["in"], param["name"]) == ("query", "joint") and sensors:
-            param["schema"]["anyOf"] = [{"type": "string", "enum": list(sensors)}, {"type": "null"}]
-
-
-def _bodies(schemas: dict, sensors: tuple[str, ...], presets: tuple[str, ...]) -> None:
-    """Request bodies naming a sensor or a preset name one this service has (none known: as declared)."""
-    if not sensors:
-        return
-    slip = schemas.get("SlipRequest", {}).get("properties", {})
-    if "sensor" in slip:
-        slip["sensor"] = {**slip["sensor"], "enum": list(sensors)}
-    create = schemas.get("SessionCreate", {}).get("properties", {})
-    for field, names in (("root", sensors), ("skeleton", presets)):
-        if field in create and names:
-            create[field] = {"anyOf": [{"type": "string", "enum": list(names)}, {"type": "null"}],
-                             "description": create[field].get("description", "")}

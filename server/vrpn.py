@@ -11,6 +11,7 @@ import selectors
 import socket
 import struct
 from dataclasses import dataclass, field
+from enum import StrEnum
 
 import numpy as np
 
@@ -122,6 +123,16 @@ def unit_to_sensor_payload(sensor: int) -> bytes:
     return np.array([sensor, 0], dtype=">i4").tobytes() + np.array([0, 0, 0, 0, 0, 0, 1], dtype=">f8").tobytes()
 
 
+class Drop(StrEnum):
+    """Why a client was let go (counted in `VrpnServer.status()`'s `dropped`)."""
+
+    SLOW = "slow"  # its TCP backlog passed the bound: it stopped reading
+    CLOSED = "closed"  # it hung up, or its socket failed
+    PROTOCOL = "protocol"  # not a VRPN 07 client, or a message no client sends
+    COOKIE_TIMEOUT = "cookie_timeout"  # it never finished connecting
+    REFUSED = "refused"  # max_clients were already connected
+
+
 @dataclass
 class Client:
     """One VRPN connection: its TCP socket, what it described of itself, what waits to be sent to it."""
@@ -158,7 +169,7 @@ class VrpnServer:
         self.max_clients = max_clients
         self.backlog_bytes = backlog_bytes
         self.clients: list[Client] = []
-        self.dropped: dict[str, int] = {"slow": 0, "closed": 0, "protocol": 0, "cookie_timeout": 0, "refused": 0}
+        self.dropped: dict[Drop, int] = dict.fromkeys(Drop, 0)
         self.reports = 0
         self.seq = 0
         self._sel: selectors.BaseSelector | None = None
@@ -193,7 +204,7 @@ class VrpnServer:
                 log.warning("VRPN: cannot accept a client: %s", exc.strerror or exc)
                 return
             if len(self.clients) >= self.max_clients:
-                self.dropped["refused"] += 1
+                self.dropped[Drop.REFUSED] += 1
                 sock.close()
                 continue
             self._add(Client(sock, addr, True, self.clock.wall(), self.clock.monotonic()))
@@ -219,7 +230,7 @@ class VrpnServer:
             if any(c.address[:2] == (ip, port) for c in self.clients):
                 continue  # a repeat of a request already being served
             if len(self.clients) >= self.max_clients:
-                self.dropped["refused"] += 1
+                self.dropped[Drop.REFUSED] += 1
                 continue
             sock = socket.socket(self.tcp.family, socket.SOCK_STREAM)
             sock.setblocking(False)
@@ -248,7 +259,7 @@ class VrpnServer:
         if c.state == "connecting":
             err = c.sock.getsockopt(socket.SOL_SOCKET, socket.SO_ERROR)
             if err:
-                self._drop(c, "closed")
+                self._drop(c, Drop.CLOSED)
                 return
             c.state = "cookie"
             self._send(c, cookie())
@@ -267,10 +278,10 @@ class VrpnServer:
         except (BlockingIOError, InterruptedError):
             return
         except OSError:
-            self._drop(c, "closed")
+            self._drop(c, Drop.CLOSED)
             return
         if not data:
-            self._drop(c, "closed")
+            self._drop(c, Drop.CLOSED)
             return
         c.inbox += data
         if c.state == "cookie":
@@ -279,7 +290,7 @@ class VrpnServer:
             if not cookie_ok(bytes(c.inbox[:COOKIE_SIZE])):
                 log.warning("VRPN: client %s is no VRPN 07 client (cookie %r); dropped", c.label,
                             bytes(c.inbox[:len(MAGIC)]))
-                self._drop(c, "protocol")
+                self._drop(c, Drop.PROTOCOL)
                 return
             del c.inbox[:COOKIE_SIZE]
             c.state = "connected"
@@ -291,7 +302,7 @@ class VrpnServer:
             length, _sec, _usec, sender, kind = struct.unpack_from(">iIIii", c.inbox)
             size = length - HEADER
             if size < 0 or size > MAX_MESSAGE:
-                self._drop(c, "protocol")
+                self._drop(c, Drop.PROTOCOL)
                 return
             if len(c.inbox) < HEADER + padded(size):
                 return
@@ -331,7 +342,7 @@ class VrpnServer:
             except (BlockingIOError, InterruptedError):
                 sent = 0
             except OSError:
-                self._drop(c, "closed")
+                self._drop(c, Drop.CLOSED)
                 return
             if sent < len(data):
                 c.outbox += data[sent:]
@@ -340,7 +351,7 @@ class VrpnServer:
                                      lambda mask, c=c: self._ready(c, mask))
         if len(c.outbox) > self.backlog_bytes:
             log.warning("VRPN: client %s stopped reading (%d KB waiting); dropped", c.label, len(c.outbox) // 1024)
-            self._drop(c, "slow")
+            self._drop(c, Drop.SLOW)
 
     def _flush(self, c: Client) -> None:
         try:
@@ -348,7 +359,7 @@ class VrpnServer:
         except (BlockingIOError, InterruptedError):
             return
         except OSError:
-            self._drop(c, "closed")
+            self._drop(c, Drop.CLOSED)
             return
         del c.outbox[:sent]
 
@@ -378,9 +389,9 @@ class VrpnServer:
         """Drop clients that never finished connecting."""
         for c in list(self.clients):
             if c.state != "connected" and now - c.started > COOKIE_TIMEOUT_S:
-                self._drop(c, "cookie_timeout")
+                self._drop(c, Drop.COOKIE_TIMEOUT)
 
-    def _drop(self, c: Client, why: str | None) -> None:
+    def _drop(self, c: Client, why: Drop | None) -> None:
         if c not in self.clients:
             return
         self.clients.remove(c)
@@ -399,7 +410,7 @@ class VrpnServer:
                 "clients": [{"address": c.label, "state": c.state,
                              "channel": "udp" if c.udp is not None else "tcp", "since": round(c.since, 3)}
                             for c in self.clients],
-                "reports": self.reports, "dropped": dict(self.dropped)}
+                "reports": self.reports, "dropped": {why.value: n for why, n in self.dropped.items()}}
 
 
 def _bind(host: str, port: int) -> tuple[socket.socket, socket.socket, int]:

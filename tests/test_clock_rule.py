@@ -23,8 +23,8 @@ CLOCK_MODULES = {"server/clock.py"}
 # The machine's clock is a parameter's default (what a caller who gives none gets: the command line, a
 # library user) and nothing else, but where a sim:// port is opened by its URL alone (pyserial passes no clock).
 SYSTEM_NAMED = {"simulator/protocol_sim.py"}
-# Reads not yet moved onto the clock, counted exactly so that none is added and the entry goes with the last
-# (none left: the frame log times its flushes on the clock it is given, the service's).
+# Reads not yet moved onto the clock, counted exactly so that none is added and an entry goes with its last
+# read (none left: the frame log's flush cadence was the last, now on the session's clock).
 PENDING: dict[str, int] = {}
 
 TIME_READERS = {"time", "time_ns", "monotonic", "monotonic_ns", "perf_counter", "perf_counter_ns",

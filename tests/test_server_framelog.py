@@ -220,3 +220,45 @@ def test_a_fit_published_before_the_first_flush_interval_finds_its_frames_in_the
             assert glb[:4] == b"glTF"
         finally:
             frames.close()
+
+
+def test_the_log_flushes_on_the_clock_it_is_given(tmp_path):
+    from flockcal.clock import ManualClock
+
+    names, times, R, p, valid = tracker_frames("position_matrix", 72, seconds=1.5, birds=6)
+    clock = ManualClock(monotonic=10.0)
+    path = tmp_path / "s.frames"
+    log = FrameLog(path, names, RATE, flush_s=0.25, clock=clock)
+    log.write(times[:2], R[:2], p[:2], valid[:2])  # the first frames go out at once
+    flushed = path.stat().st_size
+    # Tried: frames written with no time passing on the log's clock (however long the machine takes): held.
+    for a in range(2, 40, 2):
+        log.write(times[a:a + 2], R[a:a + 2], p[a:a + 2], valid[a:a + 2])
+    log.wait_written()  # what was handed to the log's writer thread is in the file
+    assert path.stat().st_size == flushed
+    clock.advance(0.25)
+    log.write(times[40:42], R[40:42], p[40:42], valid[40:42])  # a quarter second later on its clock: flushed
+    log.wait_written()
+    assert path.stat().st_size > flushed
+    log.close()
+    assert_bitwise(read_frames(path)[1], times[:42], R[:42], p[:42], valid[:42])
+
+
+def test_flushes_handed_to_the_writer_thread_arrive_whole_and_in_order(tmp_path):
+    """What was tried: 3 s of 16 birds handed over a quarter second at a time without waiting (as the pipeline
+    does), then closed. Every frame comes back bit for bit, the blocks are those a waiting flush writes, and
+    the log's writer thread is gone once it is closed."""
+    import threading
+
+    names, times, R, p, valid = tracker_frames("position_matrix", 72, seconds=3.0)
+    waited, handed = tmp_path / "waited.frames", tmp_path / "handed.frames"
+    write_log(waited, names, times, R, p, valid)
+    log = FrameLog(handed, names, RATE, flush_s=3600.0)
+    for a in range(0, len(times), 3):
+        log.write(times[a:a + 3], R[a:a + 3], p[a:a + 3], valid[a:a + 3])
+        if (a + 3) % 36 == 0:
+            log.flush(wait=False)
+    log.close()
+    assert not [t for t in threading.enumerate() if t.name == "flockcal-framelog"]
+    assert handed.read_bytes() == waited.read_bytes()
+    assert_bitwise(read_frames(handed)[1], times, R, p, valid)

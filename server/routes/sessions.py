@@ -12,6 +12,7 @@ from fastapi.responses import Response
 
 from flockcal.server.auth import require_admin, require_read, require_session_control
 from flockcal.server.errors import BadRequest, Conflict, NotFound
+from flockcal.server.openapi import sensor_or_none
 from flockcal.server.models import (
     CalibrationResult, ErrorReply, EventList, Lease, Progress, ResidualSeries, Session, SessionCreate, SessionList,
 )
@@ -127,7 +128,8 @@ def get_progress(sid: str = Depends(session_id), service=Depends(get_service), _
 @router.get("/{id}/residuals", response_model=ResidualSeries, responses=ERRORS,
             summary="per-joint residual rms (mm) over time, oldest first, a page at a time")
 def get_residuals(sid: str = Depends(session_id),
-                  joint: str | None = Query(None, max_length=64, description="a joint, named by its child body"),
+                  joint: str | None = Query(None, max_length=64, description="a joint, named by its child body",
+                                            json_schema_extra=sensor_or_none),
                   since: float | None = Query(None, allow_inf_nan=False,
                                               description="session clock, seconds: only later samples"),
                   limit: int = Query(MAX_RESIDUALS, ge=1, le=MAX_RESIDUALS, description="samples per page"),
