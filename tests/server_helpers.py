@@ -310,3 +310,5 @@ def live_pipeline(tmp_path: Path, names: tuple[str, ...], rate_hz: float, **log_
         yield pipe
     finally:
         pipe.stop()
+        if pipe.live is not None:  # a session left live: its log's writer thread goes with the log
+            pipe.live.framelog.close()

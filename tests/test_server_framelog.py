@@ -253,12 +253,14 @@ def test_flushes_handed_to_the_writer_thread_arrive_whole_and_in_order(tmp_path)
     names, times, R, p, valid = tracker_frames("position_matrix", 72, seconds=3.0)
     waited, handed = tmp_path / "waited.frames", tmp_path / "handed.frames"
     write_log(waited, names, times, R, p, valid)
+    before = set(threading.enumerate())  # other tests' live logs may still have theirs
     log = FrameLog(handed, names, RATE, flush_s=3600.0)
     for a in range(0, len(times), 3):
         log.write(times[a:a + 3], R[a:a + 3], p[a:a + 3], valid[a:a + 3])
         if (a + 3) % 36 == 0:
             log.flush(wait=False)
+    assert [t for t in set(threading.enumerate()) - before if t.name == "flockcal-framelog"]
     log.close()
-    assert not [t for t in threading.enumerate() if t.name == "flockcal-framelog"]
+    assert not [t for t in set(threading.enumerate()) - before if t.name == "flockcal-framelog"]
     assert handed.read_bytes() == waited.read_bytes()
     assert_bitwise(read_frames(handed)[1], times, R, p, valid)
