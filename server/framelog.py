@@ -10,7 +10,9 @@ so a kill -9 loses only what had not been flushed (≤ `flush_s`).
 
 from __future__ import annotations
 
+import errno
 import json
+import logging
 import os
 import threading
 from dataclasses import dataclass
@@ -23,6 +25,8 @@ from flockcal.clock import SYSTEM, Clock
 from flockcal.frames import Frames
 from flockcal.server.frameblocks import HEAD, SYNC, BlockError, Encoder, decode, parse_head, record_dtype, records_frames
 from flockcal.threads import name_os_thread
+
+log = logging.getLogger(__name__)
 
 MAGIC = "flockcal-frames"
 VERSION = 2
@@ -123,7 +127,11 @@ class FrameLog:
                 if not self._queue:
                     return
                 batches = self._queue.pop(0)
-            self._write_blocks(batches)
+            try:
+                self._write_blocks(batches)
+            except Exception as exc:  # noqa: BLE001 -- not a disk's error: the log ends as on one, said why
+                log.exception("frame log %s: encoding failed; the recording stops here", self.path.name)
+                self._fail(OSError(errno.EIO, f"encoding the frames failed ({type(exc).__name__}: {exc})"))
             with self._cond:
                 self._written += 1
                 self._cond.notify_all()

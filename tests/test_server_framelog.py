@@ -264,3 +264,22 @@ def test_flushes_handed_to_the_writer_thread_arrive_whole_and_in_order(tmp_path)
     assert not [t for t in set(threading.enumerate()) - before if t.name == "flockcal-framelog"]
     assert handed.read_bytes() == waited.read_bytes()
     assert_bitwise(read_frames(handed)[1], times, R, p, valid)
+
+
+def test_a_failure_to_encode_ends_the_log_as_a_full_disk_does_and_nothing_waits_forever(tmp_path):
+    names, times, R, p, valid = tracker_frames("position_matrix", 72, seconds=1.0, birds=6)
+    path = tmp_path / "s.frames"
+    log = FrameLog(path, names, RATE, flush_s=3600.0)
+    log.write(times[:10], R[:10], p[:10], valid[:10])  # written at once: a whole block on disk
+
+    def broken(*args):
+        raise ValueError("a codec bug")
+
+    # Tried: the writer thread's encoder raising (not a disk's error). flush() returns, the log says why.
+    log._encoder.block = broken
+    log.write(times[10:20], R[10:20], p[10:20], valid[10:20])
+    log.flush()
+    assert log.error is not None and "a codec bug" in str(log.error)
+    log.write(times[20:30], R[20:30], p[20:30], valid[20:30])  # later frames: not logged, no error raised
+    log.close()
+    assert_bitwise(read_frames(path)[1], times[:10], R[:10], p[:10], valid[:10])
