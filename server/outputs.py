@@ -33,6 +33,11 @@ RETRY_S = 1.0  # a stopped session's fit that gave no rig (too few frames yet) i
 SAMPLE_S, SAMPLE_FRAMES = 0.1, 600  # the frames the humanoid is found from: one every 0.1 s, the last minute
 TRACKING_S = 0.25  # newer frames than this, every bone's sensor valid: VMC's tracking status is OK
 OSC_GRACE_S = 0.02  # how long a due VMC bundle waits for a frame's wake-up to ride on
+# While a VRPN client takes every frame, the thread wakes for every second frame, not each: a wake-up costs
+# about as much as a frame's work (docs/streams.md), so a frame waits at most for the next one, one frame
+# period (6.9 ms at 144 Hz). Frames more than PAIR_S apart (a slower tracker, the frame after a gap) wake it
+# at once; a lone frame before a pause goes within STALL_S.
+PAIR_S, STALL_S = 0.008, 0.02
 QUEUE_BATCHES = 256  # batches waiting for the thread at most (the oldest go first: live streams want the newest)
 
 
@@ -78,9 +83,11 @@ class Outputs:
         self._wake_r.setblocking(False)
         self._wake_w.setblocking(False)
         self._woken = False
-        # Wake the thread for each batch only while a VRPN client takes every frame; VMC's ticks take the
-        # newest (waking per batch cost as much again as VMC's own work).
+        # Wake the thread only while a VRPN client takes every frame (every second frame: PAIR_S); VMC's
+        # ticks take the newest (waking per batch cost as much again as VMC's own work).
         self._eager = False
+        self._unwoken = 0  # frames queued since `feed` last woke the thread (`feed`'s own)
+        self._fed_t = -np.inf  # the newest queued frame's time (`feed`'s own)
         self._stop = False
         self._thread: threading.Thread | None = None
         # Below: the thread's own.
@@ -126,9 +133,17 @@ class Outputs:
 
     # -- any thread ---------------------------------------------------------------------------------------
     def feed(self, frames: Frames) -> None:
-        """A batch from the reader: queued, the thread woken if a VRPN client waits for it. Never blocks."""
+        """A batch from the reader: queued, the thread woken if a VRPN client waits for it and a second frame
+        is here (or this one came over PAIR_S after the last). Never blocks."""
+        n = len(frames)
+        if not n:
+            return
         self._queue.append(frames)
-        if self._eager and not self._woken:
+        self._unwoken += n
+        gap, self._fed_t = frames.times[-1] - self._fed_t, frames.times[-1]
+        if self._eager and (self._unwoken >= 2 or gap > PAIR_S):
+            self._unwoken = 0
+        if self._eager and not self._unwoken and not self._woken:
             self._woken = True
             try:
                 self._wake_w.send(b"\0")
@@ -176,7 +191,10 @@ class Outputs:
             # (frames come 144 times a second): a wake-up of its own cost as much again on a busy machine,
             # whose caches hold none of this between wake-ups. A tracker gone quiet still gets its bundles.
             osc_due = next_osc + (OSC_GRACE_S if self._eager else 0.0) if self.vmc is not None else now + 0.5
-            timeout = max(0.0, min(osc_due, next_tick) - now)
+            due = min(osc_due, next_tick)
+            if self._eager and self._newest is not None and now - self._newest[0] < 10 * STALL_S:
+                due = min(due, now + STALL_S)  # frames are coming: a lone one before a pause is not held long
+            timeout = max(0.0, due - now)
             for key, mask in sel.select(timeout):
                 try:
                     key.data(mask)
