@@ -10,7 +10,7 @@ from functools import cached_property
 
 import numpy as np
 
-from flockcal.solver.humanoid import BONES, Humanoid, proximal_points, segment_rotations, tpose_offsets
+from flockcal.solver.humanoid import BONES, Humanoid, proximal_points, tpose_offsets
 from flockcal.solver.reconstruct import Articulation, ArticulationError, articulation, reconstruct
 
 
@@ -56,25 +56,27 @@ class HumanoidRig:
             y[~finite @ self._reach] = np.nan
         return y[:, :3 * K].reshape(n, K, 3), y[:, 3 * K:].reshape(n, K, 3, 3)
 
-    def _walk(self, R: np.ndarray, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """`segments` by walking down the tree: what `_map` is read from."""
-        s, path, start, up, l, c = self._plan
-        # reconstruct's walk down the tree, as one sum along each body's path from the root: t'_j = t_root +
-        # Σ (R_p l_a − R_a c_a) over the bodies a on the way.
-        step = (R[:, up] @ l - R @ c)[..., 0]
-        at = t[:, self.art.root, None] + path @ step + (R[:, s] @ start)[..., 0]
-        return at @ self.humanoid.world.T, segment_rotations(self.humanoid, R)[:, s]
-
     @cached_property
     def _map(self) -> np.ndarray:
         """(9m + 3, 12K): the K bones' positions then rotations (flattened) as linear in one frame's sensor
-        rotations (flattened) and the root sensor's position: `_walk` of each unit input, its row."""
-        m = self.art.n_bodies
-        unit = np.eye(9 * m + 3)
-        t = np.zeros((len(unit), m, 3))
-        t[:, self.art.root] = unit[:, 9 * m:]
-        pos, rot = self._walk(unit[:, :9 * m].reshape(-1, m, 3, 3), t)
-        return np.ascontiguousarray(np.concatenate([pos.reshape(len(unit), -1), rot.reshape(len(unit), -1)], axis=1))
+        rotations (flattened) and the root sensor's position. A bone's start is reconstruct's walk down the
+        tree as one sum along its body's path from the root, t_root + Σ (R_p l_a − R_a c_a) over the bodies
+        a on the way, plus its own R_s start; its rotation R_s frames_s; both on the humanoid's world axes."""
+        m, K = self.art.n_bodies, len(self.present)
+        s, path, start, up, l, c = self._plan
+        world, frames = self.humanoid.world, self.humanoid.frames[s]
+        # coef[k, b, j]: what entry (i, j) of body b's rotation adds to bone k's start along row i.
+        parent_of = (up[:, None] == np.arange(m)).astype(float)  # (m, m): a body's parent
+        coef = (path @ (parent_of[:, :, None] * l[:, None, :, 0]).reshape(m, 3 * m)).reshape(K, m, 3)
+        coef -= path[:, :, None] * c[None, :, :, 0]
+        coef[np.arange(K), s] += start[:, :, 0]
+        out = np.zeros((9 * m + 3, 12 * K))
+        body = out[:9 * m].reshape(m, 3, 3, 12 * K)  # views: rows (body, i, j), columns (bone, ...)
+        body[..., :3 * K].reshape(m, 3, 3, K, 3)[...] = np.einsum("kbj,xi->bijkx", coef, world)
+        out[9 * m:, :3 * K] = np.tile(world.T, K)
+        # A bone's rotation turns with its own body only.
+        body[..., 3 * K:].reshape(m, 3, 3, K, 3, 3)[s, :, :, np.arange(K)] = np.einsum("xi,kjy->kijxy", world, frames)
+        return out
 
     @cached_property
     def _reach(self) -> np.ndarray:
