@@ -93,7 +93,7 @@ class Outputs:
         # Below: the thread's own.
         self._held = (np.full((self.m, 3, 3), np.nan), np.full((self.m, 3), np.nan))
         self._newest: tuple | None = None  # (reader time, valid (m,)) of the newest frame
-        self._segments: tuple | None = None  # (reader time, positions, rotations) worked out for it
+        self._segments: tuple | None = None  # (reader time, positions, rotations, VMC's local quaternions or None)
         self._sample = (np.zeros((SAMPLE_FRAMES, self.m, 3, 3)), np.zeros((SAMPLE_FRAMES, self.m, 3)),
                         np.zeros((SAMPLE_FRAMES, self.m), dtype=bool))
         self._sampled, self._sample_t = 0, -np.inf
@@ -203,9 +203,10 @@ class Outputs:
             now = self.clock.monotonic()
             self._eager = self.vrpn is not None and self.vrpn.streaming
             try:
+                osc_due = self.vmc is not None and now >= next_osc
                 if self._queue:
-                    self._frames()
-                if self.vmc is not None and now >= next_osc:
+                    self._frames(osc_due)
+                if osc_due:
                     self._send_vmc(now, next_osc)
                     # A fixed grid, so the rate holds; a thread held up skips the ticks it missed rather than
                     # sending them in a burst (each would carry the same newest pose).
@@ -226,7 +227,9 @@ class Outputs:
         except (BlockingIOError, OSError):
             pass
 
-    def _frames(self) -> None:
+    def _frames(self, osc_due: bool = False) -> None:
+        """The queued frames: held, sampled, and while a VRPN client takes them, sent; with a VMC bundle due
+        in this wake-up, its bones' local quaternions come out of the same `as_quat` call as VRPN's."""
         batches = []
         while self._queue:
             batches.append(self._queue.popleft())
@@ -251,8 +254,13 @@ class Outputs:
         if rig is None or not streaming:
             return
         pos, rot = rig.segments(R, t)
-        self._segments = (self._newest[0], pos[-1], rot[-1])
-        quats = as_quat(rot, scalar_first=False)
+        n, k = rot.shape[:2]
+        turns = rot.reshape(n * k, 3, 3)
+        if osc_due:
+            turns = np.concatenate([turns, self._layout.local(rot[-1])])
+        quats = as_quat(turns, scalar_first=False)
+        self._segments = (self._newest[0], pos[-1], rot[-1], quats[n * k:] if osc_due else None)
+        quats = quats[:n * k].reshape(n, k, 4)
         wall = f.times + (self.clock.wall() - self.clock.monotonic())
         self.vrpn.send_reports(self._packer.frames(wall, pos, quats))
 
@@ -318,11 +326,12 @@ class Outputs:
         numbers = None
         if rig is not None and newest is not None:
             if self._segments is not None and self._segments[0] == newest[0]:
-                pos, rot = self._segments[1], self._segments[2]
+                pos, rot, local = self._segments[1:]
             else:
                 pos, rot = (a[0] for a in rig.segments(self._held[0][None], self._held[1][None]))
-                self._segments = (newest[0], pos, rot)
-            numbers = self._layout.numbers(pos, rot)
+                self._segments, local = (newest[0], pos, rot, None), None
+            numbers = (self._layout.numbers(pos, rot) if local is None
+                       else self._layout.assemble(pos, local))
             if not np.isfinite(numbers).all():  # a sensor with no pose yet: the bones wait for one
                 numbers = None
         if numbers is None:
