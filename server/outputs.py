@@ -32,7 +32,9 @@ HUMANOID_REFRESH_S = 5.0  # the humanoid is found again this often, and whenever
 RETRY_S = 1.0  # a stopped session's fit that gave no rig (too few frames yet) is tried again this often
 SAMPLE_S, SAMPLE_FRAMES = 0.1, 600  # the frames the humanoid is found from: one every 0.1 s, the last minute
 TRACKING_S = 0.25  # newer frames than this, every bone's sensor valid: VMC's tracking status is OK
-OSC_GRACE_S = 0.02  # how long a due VMC bundle waits for a frame's wake-up to ride on
+# How long a due VMC bundle waits for a frame's wake-up to ride on: under one VMC period, or a tick that waits
+# past the next one is skipped and the rate drops (wake-ups every second frame come 14 ms apart at 144 Hz).
+OSC_GRACE_S, OSC_GRACE_PERIODS = 0.02, 0.75
 # While a VRPN client takes every frame, the thread wakes for every second frame, not each: a wake-up costs
 # about as much as a frame's work (docs/streams.md), so a frame waits at most for the next one, one frame
 # period (6.9 ms at 144 Hz). Frames more than PAIR_S apart (a slower tracker, the frame after a gap) wake it
@@ -69,6 +71,7 @@ class Outputs:
         self.vrpn: vrpn.VrpnServer | None = None
         self.vmc: vmc.VmcSender | None = None
         self.osc_period = 1.0 / settings.osc_hz
+        self._osc_grace = min(OSC_GRACE_S, OSC_GRACE_PERIODS * self.osc_period)
         if settings.vrpn_port is not None:
             self._open_vrpn(settings.host, settings.vrpn_port)
         if settings.osc_targets:
@@ -190,7 +193,7 @@ class Outputs:
             # While frames wake the thread (a VRPN client), a VMC bundle rides on the next frame's wake-up
             # (frames come 144 times a second): a wake-up of its own cost as much again on a busy machine,
             # whose caches hold none of this between wake-ups. A tracker gone quiet still gets its bundles.
-            osc_due = next_osc + (OSC_GRACE_S if self._eager else 0.0) if self.vmc is not None else now + 0.5
+            osc_due = next_osc + (self._osc_grace if self._eager else 0.0) if self.vmc is not None else now + 0.5
             due = min(osc_due, next_tick)
             if self._eager and self._newest is not None and now - self._newest[0] < 10 * STALL_S:
                 due = min(due, now + STALL_S)  # frames are coming: a lone one before a pause is not held long
@@ -204,10 +207,9 @@ class Outputs:
             self._eager = self.vrpn is not None and self.vrpn.streaming
             try:
                 osc_due = self.vmc is not None and now >= next_osc
-                if self._queue:
-                    self._frames(osc_due)
+                followed = self._frames(osc_due) if self._queue else False
                 if osc_due:
-                    self._send_vmc(now, next_osc)
+                    self._send_vmc(now, next_osc, followed)
                     # A fixed grid, so the rate holds; a thread held up skips the ticks it missed rather than
                     # sending them in a burst (each would carry the same newest pose).
                     next_osc += self.osc_period * max(1, np.ceil((now - next_osc) / self.osc_period))
@@ -227,9 +229,10 @@ class Outputs:
         except (BlockingIOError, OSError):
             pass
 
-    def _frames(self, osc_due: bool = False) -> None:
+    def _frames(self, osc_due: bool = False) -> bool:
         """The queued frames: held, sampled, and while a VRPN client takes them, sent; with a VMC bundle due
-        in this wake-up, its bones' local quaternions come out of the same `as_quat` call as VRPN's."""
+        in this wake-up, its bones' local quaternions come out of the same `as_quat` call as VRPN's. Whether
+        it followed the newest fit (it does whenever there were frames)."""
         batches = []
         while self._queue:
             batches.append(self._queue.popleft())
@@ -238,7 +241,7 @@ class Outputs:
             batches = [batches[-1][-1:]]  # VMC takes the newest frame: held poses need nothing before it
         f = Frames.concat(batches, self.m)
         if not len(f):
-            return
+            return False
         R, t = held_poses(f.rotations, f.positions, f.valid, before=self._held)
         self._held = (R[-1], t[-1])
         self._newest = (float(f.times[-1]), f.valid[-1])
@@ -252,7 +255,7 @@ class Outputs:
         self._follow_fit()
         rig = self._rig
         if rig is None or not streaming:
-            return
+            return True
         pos, rot = rig.segments(R, t)
         n, k = rot.shape[:2]
         turns = rot.reshape(n * k, 3, 3)
@@ -263,6 +266,7 @@ class Outputs:
         quats = quats[:n * k].reshape(n, k, 4)
         wall = f.times + (self.clock.wall() - self.clock.monotonic())
         self.vrpn.send_reports(self._packer.frames(wall, pos, quats))
+        return True
 
     def _follow_fit(self) -> None:
         """The rig of the newest fit: the live session's own (not the last session's until it has one), or
@@ -315,10 +319,12 @@ class Outputs:
             self._layout = vmc.BoneLayout(rig)
         self._rig, self.reason, self._rig_key = rig, reason, key
 
-    def _send_vmc(self, now: float, tick: float) -> None:
+    def _send_vmc(self, now: float, tick: float, followed: bool = False) -> None:
         """One bundle: the newest frame's bones once there is a rig, else /VMC/Ext/OK "not loaded"; its
-        /VMC/Ext/T is the tick's time on the sender's grid (seconds since the streams started)."""
-        self._follow_fit()
+        /VMC/Ext/T is the tick's time on the sender's grid (seconds since the streams started). `followed`:
+        this wake-up's frames just followed the newest fit."""
+        if not followed:
+            self._follow_fit()
         rig, newest, session = self._rig, self._newest, self._session
         tracking = int(newest is not None and now - newest[0] <= TRACKING_S
                        and (rig is None or bool(newest[1][rig.sensor[rig.present]].all())))
