@@ -32,9 +32,11 @@ HUMANOID_REFRESH_S = 5.0  # the humanoid is found again this often, and whenever
 RETRY_S = 1.0  # a stopped session's fit that gave no rig (too few frames yet) is tried again this often
 SAMPLE_S, SAMPLE_FRAMES = 0.1, 600  # the frames the humanoid is found from: one every 0.1 s, the last minute
 TRACKING_S = 0.25  # newer frames than this, every bone's sensor valid: VMC's tracking status is OK
-# How long a due VMC bundle waits for a frame's wake-up to ride on: under one VMC period, or a tick that waits
-# past the next one is skipped and the rate drops (wake-ups every second frame come 14 ms apart at 144 Hz).
-OSC_GRACE_S, OSC_GRACE_PERIODS = 0.02, 0.75
+OSC_GRACE_S = 0.02  # how long a due VMC bundle waits for a frame's wake-up to ride on
+# VMC bundles go one a wake-up, at least half a period apart, each stamped with its own tick: a tick that
+# waited for a wake-up is caught up by the next ones (they come 64-72 times a second), not skipped. A
+# sender held up for OSC_BEHIND periods skips what it missed rather than sending a burst.
+OSC_SPACING, OSC_BEHIND = 0.5, 3
 # While a VRPN client takes every frame, the thread wakes for every second frame, not each: a wake-up costs
 # about as much as a frame's work (docs/streams.md), so a frame waits at most for the next one, one frame
 # period (6.9 ms at 144 Hz). Frames more than PAIR_S apart (a slower tracker, the frame after a gap) wake it
@@ -71,7 +73,6 @@ class Outputs:
         self.vrpn: vrpn.VrpnServer | None = None
         self.vmc: vmc.VmcSender | None = None
         self.osc_period = 1.0 / settings.osc_hz
-        self._osc_grace = min(OSC_GRACE_S, OSC_GRACE_PERIODS * self.osc_period)
         if settings.vrpn_port is not None:
             self._open_vrpn(settings.host, settings.vrpn_port)
         if settings.osc_targets:
@@ -186,14 +187,15 @@ class Outputs:
         sel.register(self._wake_r, selectors.EVENT_READ, self._drain_wake)
         if self.vrpn is not None:
             self.vrpn.register(sel)
-        next_osc = self._t0
+        next_osc, last_osc = self._t0, -np.inf
         next_tick = 0.0
         while not self._stop:
             now = self.clock.monotonic()
             # While frames wake the thread (a VRPN client), a VMC bundle rides on the next frame's wake-up
             # (frames come 144 times a second): a wake-up of its own cost as much again on a busy machine,
             # whose caches hold none of this between wake-ups. A tracker gone quiet still gets its bundles.
-            osc_due = next_osc + (self._osc_grace if self._eager else 0.0) if self.vmc is not None else now + 0.5
+            osc_due = (max(next_osc + (OSC_GRACE_S if self._eager else 0.0), last_osc + OSC_SPACING * self.osc_period)
+                       if self.vmc is not None else now + 0.5)
             due = min(osc_due, next_tick)
             if self._eager and self._newest is not None and now - self._newest[0] < 10 * STALL_S:
                 due = min(due, now + STALL_S)  # frames are coming: a lone one before a pause is not held long
@@ -206,13 +208,17 @@ class Outputs:
             now = self.clock.monotonic()
             self._eager = self.vrpn is not None and self.vrpn.streaming
             try:
-                osc_due = self.vmc is not None and now >= next_osc
+                osc_due = (self.vmc is not None and now >= next_osc
+                           and now - last_osc >= OSC_SPACING * self.osc_period)
                 followed = self._frames(osc_due) if self._queue else False
                 if osc_due:
                     self._send_vmc(now, next_osc, followed)
-                    # A fixed grid, so the rate holds; a thread held up skips the ticks it missed rather than
-                    # sending them in a burst (each would carry the same newest pose).
-                    next_osc += self.osc_period * max(1, np.ceil((now - next_osc) / self.osc_period))
+                    last_osc = now
+                    # A fixed grid, so the rate holds: a late tick is caught up by the next wake-ups (OSC_SPACING
+                    # apart); held up OSC_BEHIND periods, the ticks missed are skipped, not sent in a burst.
+                    late = now - next_osc
+                    next_osc += self.osc_period * (1 if late < OSC_BEHIND * self.osc_period
+                                                   else np.ceil(late / self.osc_period))
                 if now >= next_tick:
                     if self.vrpn is not None:
                         self.vrpn.tick(now)
