@@ -21,12 +21,26 @@ def _paired_side(site: str, streams: bool, conn) -> None:
     """One side of a paired run, in a process of its own with its fake tracker: serve until told to stop."""
     try:
         with Service(site, streams=streams) as svc:
+            if streams:  # the streams' cost is what they cost sending bones: the session's fit must be a humanoid
+                wait_streaming(svc.proc.url)
             conn.send((svc.proc.proc.pid, svc.proc.url))
             conn.recv()
             conn.send(svc.vmc.received if streams else None)
     except BaseException as exc:
         conn.send(exc)
         raise
+
+
+def wait_streaming(url: str, timeout: float = 120.0) -> None:
+    """Until the service's streams send the humanoid's bones to a connected VRPN client: a live session's first
+    fits (the first 10-20 s of the routine) are not human-shaped yet, and bones cost what sending none does not."""
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        out = httpx.get(url + "/api/status").json()["outputs"]
+        if out["humanoid"]["streaming"] and any(c["state"] == "connected" for c in out["vrpn"]["clients"]):
+            return
+        time.sleep(0.5)
+    raise RuntimeError(f"the streams sent no bones within {timeout:g} s: {out['humanoid']}")
 
 
 def _paired_reading(pid: int, url: str) -> tuple:

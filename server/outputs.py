@@ -33,6 +33,15 @@ RETRY_S = 1.0  # a stopped session's fit that gave no rig (too few frames yet) i
 SAMPLE_S, SAMPLE_FRAMES = 0.1, 600  # the frames the humanoid is found from: one every 0.1 s, the last minute
 TRACKING_S = 0.25  # newer frames than this, every bone's sensor valid: VMC's tracking status is OK
 OSC_GRACE_S = 0.02  # how long a due VMC bundle waits for a frame's wake-up to ride on
+# VMC bundles go one a wake-up, at least half a period apart, each stamped with its own tick: a tick that
+# waited for a wake-up is caught up by the next ones (they come 64-72 times a second), not skipped. A
+# sender held up for OSC_BEHIND periods skips what it missed rather than sending a burst.
+OSC_SPACING, OSC_BEHIND = 0.5, 3
+# While a VRPN client takes every frame, the thread wakes for every second frame, not each: a wake-up costs
+# about as much as a frame's work (docs/streams.md), so a frame waits at most for the next one, one frame
+# period (6.9 ms at 144 Hz). Frames more than PAIR_S apart (a slower tracker, the frame after a gap) wake it
+# at once; a lone frame before a pause goes within STALL_S.
+PAIR_S, STALL_S = 0.008, 0.02
 QUEUE_BATCHES = 256  # batches waiting for the thread at most (the oldest go first: live streams want the newest)
 
 
@@ -78,15 +87,17 @@ class Outputs:
         self._wake_r.setblocking(False)
         self._wake_w.setblocking(False)
         self._woken = False
-        # Wake the thread for each batch only while a VRPN client takes every frame; VMC's ticks take the
-        # newest (waking per batch cost as much again as VMC's own work).
+        # Wake the thread only while a VRPN client takes every frame (every second frame: PAIR_S); VMC's
+        # ticks take the newest (waking per batch cost as much again as VMC's own work).
         self._eager = False
+        self._unwoken = 0  # frames queued since `feed` last woke the thread (`feed`'s own)
+        self._fed_t = -np.inf  # the newest queued frame's time (`feed`'s own)
         self._stop = False
         self._thread: threading.Thread | None = None
         # Below: the thread's own.
         self._held = (np.full((self.m, 3, 3), np.nan), np.full((self.m, 3), np.nan))
         self._newest: tuple | None = None  # (reader time, valid (m,)) of the newest frame
-        self._segments: tuple | None = None  # (reader time, positions, rotations) worked out for it
+        self._segments: tuple | None = None  # (reader time, positions, rotations, VMC's local quaternions or None)
         self._sample = (np.zeros((SAMPLE_FRAMES, self.m, 3, 3)), np.zeros((SAMPLE_FRAMES, self.m, 3)),
                         np.zeros((SAMPLE_FRAMES, self.m), dtype=bool))
         self._sampled, self._sample_t = 0, -np.inf
@@ -126,9 +137,17 @@ class Outputs:
 
     # -- any thread ---------------------------------------------------------------------------------------
     def feed(self, frames: Frames) -> None:
-        """A batch from the reader: queued, the thread woken if a VRPN client waits for it. Never blocks."""
+        """A batch from the reader: queued, the thread woken if a VRPN client waits for it and a second frame
+        is here (or this one came over PAIR_S after the last). Never blocks."""
+        n = len(frames)
+        if not n:
+            return
         self._queue.append(frames)
-        if self._eager and not self._woken:
+        self._unwoken += n
+        gap, self._fed_t = frames.times[-1] - self._fed_t, frames.times[-1]
+        if self._eager and (self._unwoken >= 2 or gap > PAIR_S):
+            self._unwoken = 0
+        if self._eager and not self._unwoken and not self._woken:
             self._woken = True
             try:
                 self._wake_w.send(b"\0")
@@ -168,15 +187,19 @@ class Outputs:
         sel.register(self._wake_r, selectors.EVENT_READ, self._drain_wake)
         if self.vrpn is not None:
             self.vrpn.register(sel)
-        next_osc = self._t0
+        next_osc, last_osc = self._t0, -np.inf
         next_tick = 0.0
         while not self._stop:
             now = self.clock.monotonic()
             # While frames wake the thread (a VRPN client), a VMC bundle rides on the next frame's wake-up
             # (frames come 144 times a second): a wake-up of its own cost as much again on a busy machine,
             # whose caches hold none of this between wake-ups. A tracker gone quiet still gets its bundles.
-            osc_due = next_osc + (OSC_GRACE_S if self._eager else 0.0) if self.vmc is not None else now + 0.5
-            timeout = max(0.0, min(osc_due, next_tick) - now)
+            osc_due = (max(next_osc + (OSC_GRACE_S if self._eager else 0.0), last_osc + OSC_SPACING * self.osc_period)
+                       if self.vmc is not None else now + 0.5)
+            due = min(osc_due, next_tick)
+            if self._eager and self._newest is not None and now - self._newest[0] < 10 * STALL_S:
+                due = min(due, now + STALL_S)  # frames are coming: a lone one before a pause is not held long
+            timeout = max(0.0, due - now)
             for key, mask in sel.select(timeout):
                 try:
                     key.data(mask)
@@ -185,13 +208,17 @@ class Outputs:
             now = self.clock.monotonic()
             self._eager = self.vrpn is not None and self.vrpn.streaming
             try:
-                if self._queue:
-                    self._frames()
-                if self.vmc is not None and now >= next_osc:
-                    self._send_vmc(now, next_osc)
-                    # A fixed grid, so the rate holds; a thread held up skips the ticks it missed rather than
-                    # sending them in a burst (each would carry the same newest pose).
-                    next_osc += self.osc_period * max(1, np.ceil((now - next_osc) / self.osc_period))
+                osc_due = (self.vmc is not None and now >= next_osc
+                           and now - last_osc >= OSC_SPACING * self.osc_period)
+                followed = self._frames(osc_due) if self._queue else False
+                if osc_due:
+                    self._send_vmc(now, next_osc, followed)
+                    last_osc = now
+                    # A fixed grid, so the rate holds: a late tick is caught up by the next wake-ups (OSC_SPACING
+                    # apart); held up OSC_BEHIND periods, the ticks missed are skipped, not sent in a burst.
+                    late = now - next_osc
+                    next_osc += self.osc_period * (1 if late < OSC_BEHIND * self.osc_period
+                                                   else np.ceil(late / self.osc_period))
                 if now >= next_tick:
                     if self.vrpn is not None:
                         self.vrpn.tick(now)
@@ -208,7 +235,10 @@ class Outputs:
         except (BlockingIOError, OSError):
             pass
 
-    def _frames(self) -> None:
+    def _frames(self, osc_due: bool = False) -> bool:
+        """The queued frames: held, sampled, and while a VRPN client takes them, sent; with a VMC bundle due
+        in this wake-up, its bones' local quaternions come out of the same `as_quat` call as VRPN's. Whether
+        it followed the newest fit (it does whenever there were frames)."""
         batches = []
         while self._queue:
             batches.append(self._queue.popleft())
@@ -217,7 +247,7 @@ class Outputs:
             batches = [batches[-1][-1:]]  # VMC takes the newest frame: held poses need nothing before it
         f = Frames.concat(batches, self.m)
         if not len(f):
-            return
+            return False
         R, t = held_poses(f.rotations, f.positions, f.valid, before=self._held)
         self._held = (R[-1], t[-1])
         self._newest = (float(f.times[-1]), f.valid[-1])
@@ -231,12 +261,18 @@ class Outputs:
         self._follow_fit()
         rig = self._rig
         if rig is None or not streaming:
-            return
+            return True
         pos, rot = rig.segments(R, t)
-        self._segments = (self._newest[0], pos[-1], rot[-1])
-        quats = as_quat(rot, scalar_first=False)
+        n, k = rot.shape[:2]
+        turns = rot.reshape(n * k, 3, 3)
+        if osc_due:
+            turns = np.concatenate([turns, self._layout.local(rot[-1])])
+        quats = as_quat(turns, scalar_first=False)
+        self._segments = (self._newest[0], pos[-1], rot[-1], quats[n * k:] if osc_due else None)
+        quats = quats[:n * k].reshape(n, k, 4)
         wall = f.times + (self.clock.wall() - self.clock.monotonic())
         self.vrpn.send_reports(self._packer.frames(wall, pos, quats))
+        return True
 
     def _follow_fit(self) -> None:
         """The rig of the newest fit: the live session's own (not the last session's until it has one), or
@@ -289,10 +325,12 @@ class Outputs:
             self._layout = vmc.BoneLayout(rig)
         self._rig, self.reason, self._rig_key = rig, reason, key
 
-    def _send_vmc(self, now: float, tick: float) -> None:
+    def _send_vmc(self, now: float, tick: float, followed: bool = False) -> None:
         """One bundle: the newest frame's bones once there is a rig, else /VMC/Ext/OK "not loaded"; its
-        /VMC/Ext/T is the tick's time on the sender's grid (seconds since the streams started)."""
-        self._follow_fit()
+        /VMC/Ext/T is the tick's time on the sender's grid (seconds since the streams started). `followed`:
+        this wake-up's frames just followed the newest fit."""
+        if not followed:
+            self._follow_fit()
         rig, newest, session = self._rig, self._newest, self._session
         tracking = int(newest is not None and now - newest[0] <= TRACKING_S
                        and (rig is None or bool(newest[1][rig.sensor[rig.present]].all())))
@@ -300,11 +338,12 @@ class Outputs:
         numbers = None
         if rig is not None and newest is not None:
             if self._segments is not None and self._segments[0] == newest[0]:
-                pos, rot = self._segments[1], self._segments[2]
+                pos, rot, local = self._segments[1:]
             else:
                 pos, rot = (a[0] for a in rig.segments(self._held[0][None], self._held[1][None]))
-                self._segments = (newest[0], pos, rot)
-            numbers = self._layout.numbers(pos, rot)
+                self._segments, local = (newest[0], pos, rot, None), None
+            numbers = (self._layout.numbers(pos, rot) if local is None
+                       else self._layout.assemble(pos, local))
             if not np.isfinite(numbers).all():  # a sensor with no pose yet: the bones wait for one
                 numbers = None
         if numbers is None:

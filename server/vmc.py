@@ -128,11 +128,22 @@ class BoneLayout:
     def numbers(self, positions: np.ndarray, rotations: np.ndarray) -> np.ndarray:
         """From the bones' segments in one frame: (K, 3) positions, (K, 3, 3) rotations on the humanoid's world
         axes (`HumanoidRig.segments`)."""
+        return self.assemble(positions, as_quat(self.local(rotations), scalar_first=False))
+
+    def local(self, rotations: np.ndarray) -> np.ndarray:
+        """(K, 3, 3) each bone's rotation local to its parent bone (the hips': their own), still on the
+        humanoid's axes: what `assemble` takes as quaternions (the streams turn them in one call with VRPN's)."""
         local = rotations.copy()
         local[self.has] = np.swapaxes(rotations[self.up], -1, -2) @ rotations[self.has]
-        pos = self.offsets.copy()
-        pos[~self.has] = positions[~self.has] * UNITY_POSITION
-        return np.concatenate([pos, as_quat(local, scalar_first=False) * UNITY_QUATERNION], axis=1)
+        return local
+
+    def assemble(self, positions: np.ndarray, local_quats: np.ndarray) -> np.ndarray:
+        """(K, 7) numbers from one frame's (K, 3) segment positions and (K, 4) quaternions x y z w of `local`."""
+        out = np.empty((len(self.has), 7))
+        out[:, :3] = self.offsets
+        out[~self.has, :3] = positions[~self.has] * UNITY_POSITION
+        out[:, 3:] = local_quats * UNITY_QUATERNION
+        return out
 
 
 class Bundle:
