@@ -9,7 +9,7 @@ are every distance between two joints of one body (a hip's width too, which the 
 from each body's inboard joint, leaves out), found against true, a joint named by the two bodies it links.
 
     python benchmarks/bench_optical_fixed.py                     # 3 routines × seeds 0-3 × swaps 0/1
-    python benchmarks/bench_optical_fixed.py --seeds 0 1 2       # docs/optical.md's figure
+    python benchmarks/bench_optical_fixed.py --seeds 0 1 2 3 4 5 6 7 8 9   # docs/optical.md's figure (60 takes)
     python benchmarks/bench_optical_fixed.py --birds 16 --seeds 0 --swaps 1
 """
 

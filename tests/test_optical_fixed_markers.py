@@ -1,9 +1,11 @@
 """Issue 50 item 1: markers fixed on their bones (no skin), 2–4 a body, 1 mm of noise, occlusion gaps and a
 label swap — `fit_markers` finds every body, the true tree and every bone within 3 mm on a walk and the
-exercise routine (docs/optical.md: 22 of 24 takes; a joint the take barely turns can be looser).
+exercise routine (docs/optical.md: 60 of 60 simulated 30 s takes).
 Before, the walk's tree hung a thigh on the chest (12 of 14 edges) and its bones were up to 9 mm off: bodies
 of two markers were judged through a pose they do not have (their turn about the line between their markers
-is free), and three markers close together give a pose whose turn carries their noise to the joint."""
+is free), and three markers close together give a pose whose turn carries their noise to the joint. Then,
+with Kirk's free point placing each joint between two bodies of three markers or more, this walk (seed 4,
+12 s) had a forearm's bone 4.3 mm off; the bundle of poses and offsets places every joint now."""
 
 import numpy as np
 import pytest
@@ -13,7 +15,8 @@ from flockcal.simulator.body import by_name
 from flockcal.solver.optical.marker_noise import RATIO_SD, fixed_labels, marker_noise, white_sd
 from flockcal.solver.optical.pipeline import fit_markers
 
-# docs/optical.md's claim for fixed markers: every bone within 3 mm. The margin: 1 mm.
+# docs/optical.md's claim for fixed markers: every bone within 3 mm (on 30 s takes at 100 Hz). The margin:
+# 1 mm, for these shorter takes (12 s of walking, 720 frames, pins a nearly-hinge hip more loosely).
 BONE_CLAIM_M, BONE_MARGIN_M = 0.003, 0.001
 
 
@@ -46,7 +49,7 @@ def fitted_joint_distances(fit) -> dict:
     return out
 
 
-@pytest.fixture(scope="module", params=[("walk", 0), ("exercise", 2)])
+@pytest.fixture(scope="module", params=[("walk", 4), ("exercise", 2)])
 def fixed_fit(request):
     # The issue's conditions, shorter: 15 bodies (the simulated human without its abdomen), 2–4 markers a body
     # fixed to the bone, 1 mm noise, 3.6 % gaps, one label swap; 12 s of walking, or the whole exercise routine

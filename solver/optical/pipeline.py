@@ -19,7 +19,8 @@ from flockcal.solver.fits import TOLERANCE_M as SENSOR_TOLERANCE_M
 from flockcal.solver.optical.exercised import (
     Exercised, candidate_costs, exercise_report, joint_decision, judge_pairs, spanning_forest,
 )  # fmt: skip
-from flockcal.solver.optical.fixed_markers import fixed_costs, fixed_joint_points, fixed_segmentation, hinge_slides
+from flockcal.solver.optical.fixed_hinges import hinge_slides
+from flockcal.solver.optical.fixed_markers import fixed_costs, fixed_joint_points, fixed_segmentation
 from flockcal.solver.optical.joints import Tree, joint_point
 from flockcal.solver.optical.marker_noise import MarkerNoise, marker_noise
 from flockcal.solver.optical.pair_joints import pair_joint_points
