@@ -105,6 +105,7 @@ class Outputs:
         self._rig: HumanoidRig | None = None
         self._packer: vrpn.ReportPacker | None = None  # the rig's VRPN messages, laid out once
         self._layout: vmc.BoneLayout | None = None  # the rig's VMC bones, laid out once
+        self._bone_sensors = np.zeros(0, dtype=int)  # the rig's bones' sensors, in its `present` order
         self._rig_at = -np.inf
         self._rig_stale = False
         self._retry: tuple = (None, -np.inf)  # (a fit that gave no rig, when to try it again)
@@ -242,13 +243,15 @@ class Outputs:
         batches = []
         while self._queue:
             batches.append(self._queue.popleft())
-        streaming = self.vrpn is not None and self.vrpn.streaming
+        streaming = self._eager  # whether a VRPN client takes every frame, as `_run` read it this wake-up
         if not streaming and batches and len(batches[-1]) and batches[-1].valid[-1].all():
             batches = [batches[-1][-1:]]  # VMC takes the newest frame: held poses need nothing before it
         f = Frames.concat(batches, self.m)
         if not len(f):
             return False
-        R, t = held_poses(f.rotations, f.positions, f.valid, before=self._held)
+        # Every sensor valid, the usual case: the frames are their own held poses.
+        R, t = ((f.rotations, f.positions) if np.logical_and.reduce(f.valid, axis=None)
+                else held_poses(f.rotations, f.positions, f.valid, before=self._held))
         self._held = (R[-1], t[-1])
         self._newest = (float(f.times[-1]), f.valid[-1])
         self._segments = None
@@ -265,8 +268,10 @@ class Outputs:
         pos, rot = rig.segments(R, t)
         n, k = rot.shape[:2]
         turns = rot.reshape(n * k, 3, 3)
-        if osc_due:
-            turns = np.concatenate([turns, self._layout.local(rot[-1])])
+        if osc_due:  # VMC's local rotations written after VRPN's: one `as_quat` for both
+            turns = np.empty((n * k + k, 3, 3))
+            turns[:n * k] = rot.reshape(n * k, 3, 3)
+            self._layout.local(rot[-1], out=turns[n * k:])
         quats = as_quat(turns, scalar_first=False)
         self._segments = (self._newest[0], pos[-1], rot[-1], quats[n * k:] if osc_due else None)
         quats = quats[:n * k].reshape(n, k, 4)
@@ -323,6 +328,7 @@ class Outputs:
             if self._rig is None or not np.array_equal(self._rig.present, rig.present):
                 self._packer = vrpn.ReportPacker(rig.present)  # its layout hangs on the bones present only
             self._layout = vmc.BoneLayout(rig)
+            self._bone_sensors = rig.sensor[rig.present]
         self._rig, self.reason, self._rig_key = rig, reason, key
 
     def _send_vmc(self, now: float, tick: float, followed: bool = False) -> None:
@@ -333,7 +339,7 @@ class Outputs:
             self._follow_fit()
         rig, newest, session = self._rig, self._newest, self._session
         tracking = int(newest is not None and now - newest[0] <= TRACKING_S
-                       and (rig is None or bool(newest[1][rig.sensor[rig.present]].all())))
+                       and (rig is None or bool(np.logical_and.reduce(newest[1][self._bone_sensors]))))
         t = tick - self._t0
         numbers = None
         if rig is not None and newest is not None:
@@ -344,7 +350,7 @@ class Outputs:
                 self._segments, local = (newest[0], pos, rot, None), None
             numbers = (self._layout.numbers(pos, rot) if local is None
                        else self._layout.assemble(pos, local))
-            if not np.isfinite(numbers).all():  # a sensor with no pose yet: the bones wait for one
+            if not np.isfinite(np.add.reduce(numbers, axis=None)):  # a sensor with no pose yet: the bones wait for one
                 numbers = None
         if numbers is None:
             state = vmc.CALIBRATING if session is not None else vmc.UNCALIBRATED

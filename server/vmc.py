@@ -124,25 +124,32 @@ class BoneLayout:
         self.has = parent >= 0
         self.up = slot[parent[self.has]]
         self.offsets = rig.local_offset[present] * UNITY_POSITION
+        # Indices, not masks, and the numbers' constant part laid out once: the streams call `local` and
+        # `assemble` 60 times a second, where each numpy call's overhead is the cost.
+        self._child, self._root = np.flatnonzero(self.has), np.flatnonzero(~self.has)
+        self._template = np.zeros((len(self.has), 7))
+        self._template[:, :3] = self.offsets
 
     def numbers(self, positions: np.ndarray, rotations: np.ndarray) -> np.ndarray:
         """From the bones' segments in one frame: (K, 3) positions, (K, 3, 3) rotations on the humanoid's world
         axes (`HumanoidRig.segments`)."""
         return self.assemble(positions, as_quat(self.local(rotations), scalar_first=False))
 
-    def local(self, rotations: np.ndarray) -> np.ndarray:
+    def local(self, rotations: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """(K, 3, 3) each bone's rotation local to its parent bone (the hips': their own), still on the
-        humanoid's axes: what `assemble` takes as quaternions (the streams turn them in one call with VRPN's)."""
-        local = rotations.copy()
-        local[self.has] = np.swapaxes(rotations[self.up], -1, -2) @ rotations[self.has]
-        return local
+        humanoid's axes: what `assemble` takes as quaternions (the streams turn them in one call with VRPN's,
+        written with `out` straight into that call's input)."""
+        if out is None:
+            out = np.empty_like(rotations)
+        out[self._root] = rotations[self._root]
+        out[self._child] = np.swapaxes(rotations[self.up], -1, -2) @ rotations[self._child]
+        return out
 
     def assemble(self, positions: np.ndarray, local_quats: np.ndarray) -> np.ndarray:
         """(K, 7) numbers from one frame's (K, 3) segment positions and (K, 4) quaternions x y z w of `local`."""
-        out = np.empty((len(self.has), 7))
-        out[:, :3] = self.offsets
-        out[~self.has, :3] = positions[~self.has] * UNITY_POSITION
-        out[:, 3:] = local_quats * UNITY_QUATERNION
+        out = self._template.copy()
+        out[self._root, :3] = positions[self._root] * UNITY_POSITION
+        np.multiply(local_quats, UNITY_QUATERNION, out=out[:, 3:])
         return out
 
 
@@ -174,6 +181,9 @@ class Bundle:
         self._ok = np.arange(ends[0] - 4, ends[0])
         self._t = ends[1] - 1
         self._poses = np.array([np.arange(e - 7, e) for e in ends[2:]]).reshape(-1, 7)
+        if bones:  # the root stays at the origin, unturned
+            self._floats[self._poses[0]] = (0, 0, 0, 0, 0, 0, 1)
+        self._bones = self._poses[1:]
 
     @property
     def size(self) -> int:
@@ -184,8 +194,7 @@ class Bundle:
         self._ints[self._ok] = ok
         self._floats[self._t] = t
         if self.bones:
-            self._floats[self._poses[0]] = (0, 0, 0, 0, 0, 0, 1)
-            self._floats[self._poses[1:]] = bones
+            self._floats[self._bones] = bones
         return self.data
 
 

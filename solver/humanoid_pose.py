@@ -48,10 +48,10 @@ class HumanoidRig:
         # Both are linear in the rotations' entries and the root sensor's position: one product for the whole
         # batch (a live wake-up's frames) with the map `_walk` gives, instead of ~15 numpy calls a batch.
         x = np.concatenate([R.reshape(n, 9 * m), t[:, self.art.root]], axis=1)
-        finite = np.isfinite(x)
-        if finite.all():
+        if np.isfinite(np.add.reduce(x, axis=None)):  # a sum is finite only when every term is (one call, not two)
             y = x @ self._map
         else:  # a sensor with no pose yet: NaN in what depends on it (its subtree), the rest as ever
+            finite = np.isfinite(x)
             y = np.where(finite, x, 0.0) @ self._map
             y[~finite @ self._reach] = np.nan
         return y[:, :3 * K].reshape(n, K, 3), y[:, 3 * K:].reshape(n, K, 3, 3)
