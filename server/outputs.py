@@ -244,28 +244,45 @@ class Outputs:
         while self._queue:
             batches.append(self._queue.popleft())
         streaming = self._eager  # whether a VRPN client takes every frame, as `_run` read it this wake-up
-        if not streaming and batches and len(batches[-1]) and batches[-1].valid[-1].all():
+        if not streaming and batches and batches[-1].valid[-1].all():
             batches = [batches[-1][-1:]]  # VMC takes the newest frame: held poses need nothing before it
-        f = Frames.concat(batches, self.m)
-        if not len(f):
+        if not batches:  # `feed` queues no empty batch
             return False
-        # Every sensor valid, the usual case: the frames are their own held poses.
-        R, t = ((f.rotations, f.positions) if np.logical_and.reduce(f.valid, axis=None)
-                else held_poses(f.rotations, f.positions, f.valid, before=self._held))
-        self._held = (R[-1], t[-1])
-        self._newest = (float(f.times[-1]), f.valid[-1])
+        last = batches[-1]
+        # Every sensor valid in every frame, the usual case: the frames are their own held poses, and the rig
+        # reads them batch by batch (a wake-up's first calls cost several times their warm cost: joining the
+        # batches first cost as much as playing them through the rig).
+        if all(np.logical_and.reduce(b.valid, axis=None) for b in batches):
+            R = t = None
+            self._held = (last.rotations[-1], last.positions[-1])
+        else:
+            f = Frames.concat(batches, self.m)
+            R, t = held_poses(f.rotations, f.positions, f.valid, before=self._held)
+            self._held = (R[-1], t[-1])
+        newest = float(last.times[-1])
+        self._newest = (newest, last.valid[-1])
         self._segments = None
-        if f.times[-1] - self._sample_t >= SAMPLE_S:
+        if newest - self._sample_t >= SAMPLE_S:
             k = self._sampled % SAMPLE_FRAMES
-            self._sample[0][k], self._sample[1][k] = R[-1], t[-1]
-            self._sample[2][k] = np.isfinite(t[-1]).all(axis=1)
+            self._sample[0][k], self._sample[1][k] = self._held
+            self._sample[2][k] = np.isfinite(self._held[1]).all(axis=1)
             self._sampled += 1
-            self._sample_t = f.times[-1]
+            self._sample_t = newest
         self._follow_fit()
         rig = self._rig
         if rig is None or not streaming:
             return True
-        pos, rot = rig.segments(R, t)
+        if R is None:
+            n = sum(len(b) for b in batches)
+            x, times, at = np.empty((n, rig.width)), np.empty(n), 0
+            for b in batches:
+                rig.inputs(b.rotations, b.positions, x[at:at + len(b)])
+                times[at:at + len(b)] = b.times
+                at += len(b)
+            pos, rot = rig.play(x)
+        else:
+            pos, rot = rig.segments(R, t)
+            times = f.times.copy()  # a lone batch's own: the reader's, not to be written
         n, k = rot.shape[:2]
         turns = rot.reshape(n * k, 3, 3)
         if osc_due:  # VMC's local rotations written after VRPN's: one `as_quat` for both
@@ -273,10 +290,10 @@ class Outputs:
             turns[:n * k] = rot.reshape(n * k, 3, 3)
             self._layout.local(rot[-1], out=turns[n * k:])
         quats = as_quat(turns, scalar_first=False)
-        self._segments = (self._newest[0], pos[-1], rot[-1], quats[n * k:] if osc_due else None)
+        self._segments = (newest, pos[-1], rot[-1], quats[n * k:] if osc_due else None)
         quats = quats[:n * k].reshape(n, k, 4)
-        wall = f.times + (self.clock.wall() - self.clock.monotonic())
-        self.vrpn.send_reports(self._packer.frames(wall, pos, quats))
+        times += self.clock.wall() - self.clock.monotonic()  # the frames' wall times, in place
+        self.vrpn.send_reports(self._packer.frames(times, pos, quats))
         return True
 
     def _follow_fit(self) -> None:
