@@ -96,7 +96,7 @@ class Outputs:
         self._thread: threading.Thread | None = None
         # Below: the thread's own.
         self._held = (np.full((self.m, 3, 3), np.nan), np.full((self.m, 3), np.nan))
-        self._newest: tuple | None = None  # (reader time, valid (m,)) of the newest frame
+        self._newest: tuple | None = None  # (reader time, valid (m,), whether every sensor is) of the newest frame
         self._segments: tuple | None = None  # (reader time, positions, rotations, VMC's local quaternions or None)
         self._sample = (np.zeros((SAMPLE_FRAMES, self.m, 3, 3)), np.zeros((SAMPLE_FRAMES, self.m, 3)),
                         np.zeros((SAMPLE_FRAMES, self.m), dtype=bool))
@@ -252,7 +252,8 @@ class Outputs:
         # Every sensor valid in every frame, the usual case: the frames are their own held poses, and the rig
         # reads them batch by batch (a wake-up's first calls cost several times their warm cost: joining the
         # batches first cost as much as playing them through the rig).
-        if all(np.logical_and.reduce(b.valid, axis=None) for b in batches):
+        whole = all(np.logical_and.reduce(b.valid, axis=None) for b in batches)
+        if whole:
             R = t = None
             self._held = (last.rotations[-1], last.positions[-1])
         else:
@@ -260,7 +261,7 @@ class Outputs:
             R, t = held_poses(f.rotations, f.positions, f.valid, before=self._held)
             self._held = (R[-1], t[-1])
         newest = float(last.times[-1])
-        self._newest = (newest, last.valid[-1])
+        self._newest = (newest, last.valid[-1], whole)
         self._segments = None
         if newest - self._sample_t >= SAMPLE_S:
             k = self._sampled % SAMPLE_FRAMES
@@ -356,7 +357,7 @@ class Outputs:
             self._follow_fit()
         rig, newest, session = self._rig, self._newest, self._session
         tracking = int(newest is not None and now - newest[0] <= TRACKING_S
-                       and (rig is None or bool(np.logical_and.reduce(newest[1][self._bone_sensors]))))
+                       and (rig is None or newest[2] or bool(np.logical_and.reduce(newest[1][self._bone_sensors]))))
         t = tick - self._t0
         numbers = None
         if rig is not None and newest is not None:

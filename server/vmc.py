@@ -178,7 +178,7 @@ class Bundle:
             ends.append(at // 4)
         self._ints = np.frombuffer(self.data, dtype=">i4")
         self._floats = np.frombuffer(self.data, dtype=">f4")
-        self._ok = np.arange(ends[0] - 4, ends[0])
+        self._ok = slice(ends[0] - 4, ends[0])  # /VMC/Ext/OK's four ints, side by side
         self._t = ends[1] - 1
         self._poses = np.array([np.arange(e - 7, e) for e in ends[2:]]).reshape(-1, 7)
         if bones:  # the root stays at the origin, unturned

@@ -102,13 +102,13 @@ class ReportPacker:
         out = []
         for at in range(0, len(wall_times), len(self._buf)):
             n = min(len(self._buf), len(wall_times) - at)
-            sec_f, usec_f, pos_f, quat_f = (a[:n] for a in self._fields)
+            sec_f, usec_f, pos_f, quat_f = self._fields
             when = wall_times[at:at + n]
             sec = np.floor(when)
-            sec_f[...] = sec[:, None]
-            usec_f[...] = ((when - sec) * 1e6).astype(np.int64)[:, None]
+            sec_f[:n] = sec[:, None]
+            usec_f[:n] = ((when - sec) * 1e6)[:, None]  # truncated as it is cast, as astype(int) would
             pos = positions[at:at + n]
-            pos_f[...], quat_f[...] = pos, quats[at:at + n]
+            pos_f[:n], quat_f[:n] = pos, quats[at:at + n]
             # A sensor with no pose has NaN in its position (its rotation too makes the position NaN); a sum
             # is finite only when every term is.
             if np.isfinite(np.add.reduce(pos, axis=None)):
