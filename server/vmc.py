@@ -126,7 +126,7 @@ class BoneLayout:
         self.offsets = rig.local_offset[present] * UNITY_POSITION
         # Indices, not masks, and the numbers' constant part laid out once: the streams call `local` and
         # `assemble` 60 times a second, where each numpy call's overhead is the cost.
-        self._child, self._root = np.flatnonzero(self.has), np.flatnonzero(~self.has)
+        self._child, self._root = _as_slice(np.flatnonzero(self.has)), _as_slice(np.flatnonzero(~self.has))
         self._template = np.zeros((len(self.has), 7))
         self._template[:, :3] = self.offsets
 
@@ -196,6 +196,14 @@ class Bundle:
         if self.bones:
             self._floats[self._bones] = bones
         return self.data
+
+
+def _as_slice(index: np.ndarray) -> slice | np.ndarray:
+    """`index` as a slice where it is a run of consecutive indices (the hips first, every other bone after
+    them, as a rig has them): read and written as a view, not gathered and scattered."""
+    if len(index) and np.array_equal(index, np.arange(index[0], index[0] + len(index))):
+        return slice(int(index[0]), int(index[0]) + len(index))
+    return index
 
 
 def _message(address: str, args: list[tuple]) -> object:
