@@ -96,7 +96,7 @@ class Outputs:
         self._thread: threading.Thread | None = None
         # Below: the thread's own.
         self._held = (np.full((self.m, 3, 3), np.nan), np.full((self.m, 3), np.nan))
-        self._newest: tuple | None = None  # (reader time, valid (m,)) of the newest frame
+        self._newest: tuple | None = None  # (reader time, valid (m,), whether every sensor is) of the newest frame
         self._segments: tuple | None = None  # (reader time, positions, rotations, VMC's local quaternions or None)
         self._sample = (np.zeros((SAMPLE_FRAMES, self.m, 3, 3)), np.zeros((SAMPLE_FRAMES, self.m, 3)),
                         np.zeros((SAMPLE_FRAMES, self.m), dtype=bool))
@@ -105,6 +105,7 @@ class Outputs:
         self._rig: HumanoidRig | None = None
         self._packer: vrpn.ReportPacker | None = None  # the rig's VRPN messages, laid out once
         self._layout: vmc.BoneLayout | None = None  # the rig's VMC bones, laid out once
+        self._bone_sensors = np.zeros(0, dtype=int)  # the rig's bones' sensors, in its `present` order
         self._rig_at = -np.inf
         self._rig_stale = False
         self._retry: tuple = (None, -np.inf)  # (a fit that gave no rig, when to try it again)
@@ -242,36 +243,58 @@ class Outputs:
         batches = []
         while self._queue:
             batches.append(self._queue.popleft())
-        streaming = self.vrpn is not None and self.vrpn.streaming
-        if not streaming and batches and len(batches[-1]) and batches[-1].valid[-1].all():
+        streaming = self._eager  # whether a VRPN client takes every frame, as `_run` read it this wake-up
+        if not streaming and batches and batches[-1].valid[-1].all():
             batches = [batches[-1][-1:]]  # VMC takes the newest frame: held poses need nothing before it
-        f = Frames.concat(batches, self.m)
-        if not len(f):
+        if not batches:  # `feed` queues no empty batch
             return False
-        R, t = held_poses(f.rotations, f.positions, f.valid, before=self._held)
-        self._held = (R[-1], t[-1])
-        self._newest = (float(f.times[-1]), f.valid[-1])
+        last = batches[-1]
+        # Every sensor valid in every frame, the usual case: the frames are their own held poses, and the rig
+        # reads them batch by batch (a wake-up's first calls cost several times their warm cost: joining the
+        # batches first cost as much as playing them through the rig).
+        whole = all(np.logical_and.reduce(b.valid, axis=None) for b in batches)
+        if whole:
+            R = t = None
+            self._held = (last.rotations[-1], last.positions[-1])
+        else:
+            f = Frames.concat(batches, self.m)
+            R, t = held_poses(f.rotations, f.positions, f.valid, before=self._held)
+            self._held = (R[-1], t[-1])
+        newest = float(last.times[-1])
+        self._newest = (newest, last.valid[-1], whole)
         self._segments = None
-        if f.times[-1] - self._sample_t >= SAMPLE_S:
+        if newest - self._sample_t >= SAMPLE_S:
             k = self._sampled % SAMPLE_FRAMES
-            self._sample[0][k], self._sample[1][k] = R[-1], t[-1]
-            self._sample[2][k] = np.isfinite(t[-1]).all(axis=1)
+            self._sample[0][k], self._sample[1][k] = self._held
+            self._sample[2][k] = np.isfinite(self._held[1]).all(axis=1)
             self._sampled += 1
-            self._sample_t = f.times[-1]
+            self._sample_t = newest
         self._follow_fit()
         rig = self._rig
         if rig is None or not streaming:
             return True
-        pos, rot = rig.segments(R, t)
+        if R is None:
+            n = sum(len(b) for b in batches)
+            x, times, at = np.empty((n, rig.width)), np.empty(n), 0
+            for b in batches:
+                rig.inputs(b.rotations, b.positions, x[at:at + len(b)])
+                times[at:at + len(b)] = b.times
+                at += len(b)
+            pos, rot = rig.play(x)
+        else:
+            pos, rot = rig.segments(R, t)
+            times = f.times.copy()  # a lone batch's own: the reader's, not to be written
         n, k = rot.shape[:2]
         turns = rot.reshape(n * k, 3, 3)
-        if osc_due:
-            turns = np.concatenate([turns, self._layout.local(rot[-1])])
+        if osc_due:  # VMC's local rotations written after VRPN's: one `as_quat` for both
+            turns = np.empty((n * k + k, 3, 3))
+            turns[:n * k] = rot.reshape(n * k, 3, 3)
+            self._layout.local(rot[-1], out=turns[n * k:])
         quats = as_quat(turns, scalar_first=False)
-        self._segments = (self._newest[0], pos[-1], rot[-1], quats[n * k:] if osc_due else None)
+        self._segments = (newest, pos[-1], rot[-1], quats[n * k:] if osc_due else None)
         quats = quats[:n * k].reshape(n, k, 4)
-        wall = f.times + (self.clock.wall() - self.clock.monotonic())
-        self.vrpn.send_reports(self._packer.frames(wall, pos, quats))
+        times += self.clock.wall() - self.clock.monotonic()  # the frames' wall times, in place
+        self.vrpn.send_reports(self._packer.frames(times, pos, quats))
         return True
 
     def _follow_fit(self) -> None:
@@ -323,6 +346,7 @@ class Outputs:
             if self._rig is None or not np.array_equal(self._rig.present, rig.present):
                 self._packer = vrpn.ReportPacker(rig.present)  # its layout hangs on the bones present only
             self._layout = vmc.BoneLayout(rig)
+            self._bone_sensors = rig.sensor[rig.present]
         self._rig, self.reason, self._rig_key = rig, reason, key
 
     def _send_vmc(self, now: float, tick: float, followed: bool = False) -> None:
@@ -333,7 +357,7 @@ class Outputs:
             self._follow_fit()
         rig, newest, session = self._rig, self._newest, self._session
         tracking = int(newest is not None and now - newest[0] <= TRACKING_S
-                       and (rig is None or bool(newest[1][rig.sensor[rig.present]].all())))
+                       and (rig is None or newest[2] or bool(np.logical_and.reduce(newest[1][self._bone_sensors]))))
         t = tick - self._t0
         numbers = None
         if rig is not None and newest is not None:
@@ -344,7 +368,7 @@ class Outputs:
                 self._segments, local = (newest[0], pos, rot, None), None
             numbers = (self._layout.numbers(pos, rot) if local is None
                        else self._layout.assemble(pos, local))
-            if not np.isfinite(numbers).all():  # a sensor with no pose yet: the bones wait for one
+            if not np.isfinite(np.add.reduce(numbers, axis=None)):  # a sensor with no pose yet: the bones wait for one
                 numbers = None
         if numbers is None:
             state = vmc.CALIBRATING if session is not None else vmc.UNCALIBRATED

@@ -124,25 +124,32 @@ class BoneLayout:
         self.has = parent >= 0
         self.up = slot[parent[self.has]]
         self.offsets = rig.local_offset[present] * UNITY_POSITION
+        # Indices, not masks, and the numbers' constant part laid out once: the streams call `local` and
+        # `assemble` 60 times a second, where each numpy call's overhead is the cost.
+        self._child, self._root = _as_slice(np.flatnonzero(self.has)), _as_slice(np.flatnonzero(~self.has))
+        self._template = np.zeros((len(self.has), 7))
+        self._template[:, :3] = self.offsets
 
     def numbers(self, positions: np.ndarray, rotations: np.ndarray) -> np.ndarray:
         """From the bones' segments in one frame: (K, 3) positions, (K, 3, 3) rotations on the humanoid's world
         axes (`HumanoidRig.segments`)."""
         return self.assemble(positions, as_quat(self.local(rotations), scalar_first=False))
 
-    def local(self, rotations: np.ndarray) -> np.ndarray:
+    def local(self, rotations: np.ndarray, out: np.ndarray | None = None) -> np.ndarray:
         """(K, 3, 3) each bone's rotation local to its parent bone (the hips': their own), still on the
-        humanoid's axes: what `assemble` takes as quaternions (the streams turn them in one call with VRPN's)."""
-        local = rotations.copy()
-        local[self.has] = np.swapaxes(rotations[self.up], -1, -2) @ rotations[self.has]
-        return local
+        humanoid's axes: what `assemble` takes as quaternions (the streams turn them in one call with VRPN's,
+        written with `out` straight into that call's input)."""
+        if out is None:
+            out = np.empty_like(rotations)
+        out[self._root] = rotations[self._root]
+        out[self._child] = np.swapaxes(rotations[self.up], -1, -2) @ rotations[self._child]
+        return out
 
     def assemble(self, positions: np.ndarray, local_quats: np.ndarray) -> np.ndarray:
         """(K, 7) numbers from one frame's (K, 3) segment positions and (K, 4) quaternions x y z w of `local`."""
-        out = np.empty((len(self.has), 7))
-        out[:, :3] = self.offsets
-        out[~self.has, :3] = positions[~self.has] * UNITY_POSITION
-        out[:, 3:] = local_quats * UNITY_QUATERNION
+        out = self._template.copy()
+        out[self._root, :3] = positions[self._root] * UNITY_POSITION
+        np.multiply(local_quats, UNITY_QUATERNION, out=out[:, 3:])
         return out
 
 
@@ -171,9 +178,12 @@ class Bundle:
             ends.append(at // 4)
         self._ints = np.frombuffer(self.data, dtype=">i4")
         self._floats = np.frombuffer(self.data, dtype=">f4")
-        self._ok = np.arange(ends[0] - 4, ends[0])
+        self._ok = slice(ends[0] - 4, ends[0])  # /VMC/Ext/OK's four ints, side by side
         self._t = ends[1] - 1
         self._poses = np.array([np.arange(e - 7, e) for e in ends[2:]]).reshape(-1, 7)
+        if bones:  # the root stays at the origin, unturned
+            self._floats[self._poses[0]] = (0, 0, 0, 0, 0, 0, 1)
+        self._bones = self._poses[1:]
 
     @property
     def size(self) -> int:
@@ -184,9 +194,16 @@ class Bundle:
         self._ints[self._ok] = ok
         self._floats[self._t] = t
         if self.bones:
-            self._floats[self._poses[0]] = (0, 0, 0, 0, 0, 0, 1)
-            self._floats[self._poses[1:]] = bones
+            self._floats[self._bones] = bones
         return self.data
+
+
+def _as_slice(index: np.ndarray) -> slice | np.ndarray:
+    """`index` as a slice where it is a run of consecutive indices (the hips first, every other bone after
+    them, as a rig has them): read and written as a view, not gathered and scattered."""
+    if len(index) and np.array_equal(index, np.arange(index[0], index[0] + len(index))):
+        return slice(int(index[0]), int(index[0]) + len(index))
+    return index
 
 
 def _message(address: str, args: list[tuple]) -> object:

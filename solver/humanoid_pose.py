@@ -42,16 +42,31 @@ class HumanoidRig:
         played through the fit (only the rotations and the hips sensor's position drive it, as
         `reconstruct` plays a take), so a bone and its parent bone are exactly the fitted bone apart; NaN
         in the subtree of a sensor with no pose yet."""
-        R = np.asarray(rotations, dtype=float)
-        t = np.asarray(positions, dtype=float)
-        n, m, K = len(R), self.art.n_bodies, len(self.present)
+        R, t = np.asarray(rotations, dtype=float), np.asarray(positions, dtype=float)
+        return self.play(self.inputs(R, t, np.empty((len(R), self.width))))
+
+    @property
+    def width(self) -> int:
+        """Columns of `play`'s input: a frame's sensor rotations flattened, then the root sensor's position."""
+        return 9 * self.art.n_bodies + 3
+
+    def inputs(self, rotations: np.ndarray, positions: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """`out` ((n, width)) filled with `play`'s input from sensor poses (n, m, 3, 3) / (n, m, 3): a caller
+        with frames in several batches writes each batch's rows in place instead of joining them first."""
+        n, m = len(out), self.art.n_bodies
+        out[:, :9 * m] = rotations.reshape(n, 9 * m)
+        out[:, 9 * m:] = positions[:, self.art.root]
+        return out
+
+    def play(self, x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """`segments` of frames given as `inputs` rows (n, width)."""
+        n, K = len(x), len(self.present)
         # Both are linear in the rotations' entries and the root sensor's position: one product for the whole
         # batch (a live wake-up's frames) with the map `_walk` gives, instead of ~15 numpy calls a batch.
-        x = np.concatenate([R.reshape(n, 9 * m), t[:, self.art.root]], axis=1)
-        finite = np.isfinite(x)
-        if finite.all():
+        if np.isfinite(np.add.reduce(x, axis=None)):  # a sum is finite only when every term is (one call, not two)
             y = x @ self._map
         else:  # a sensor with no pose yet: NaN in what depends on it (its subtree), the rest as ever
+            finite = np.isfinite(x)
             y = np.where(finite, x, 0.0) @ self._map
             y[~finite @ self._reach] = np.nan
         return y[:, :3 * K].reshape(n, K, 3), y[:, 3 * K:].reshape(n, K, 3, 3)

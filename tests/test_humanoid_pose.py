@@ -189,3 +189,103 @@ def test_a_sensor_with_no_pose_yet_loses_only_its_own_subtree(take):
     assert np.isnan(pos[:, lost]).all()
     kept = [k for k in range(16) if k not in lost]
     np.testing.assert_array_equal(pos[:, kept], whole[:, kept])
+
+
+class _Sent:
+    """What the streams' thread hands its sockets, kept: VRPN's datagrams (one frame's reports each) and VMC's
+    bundles; a VRPN client connected throughout."""
+
+    streaming = True
+
+    def __init__(self):
+        self.sent = []
+
+    def send_reports(self, frames):
+        self.sent.append([bytes(f) for f in frames])
+
+    def send(self, data):
+        self.sent.append(bytes(data))
+
+    def status(self):
+        return {}
+
+    def close(self):
+        pass
+
+
+def streamed(cal, names, R, x, valid, batches_per_wake: list[list[int]]):
+    """Every datagram the streams send for these frames (times 1/144 s apart) handed over in `batches_per_wake`
+    (per wake-up, the sizes of its batches), a VMC bundle due every second wake-up: what `Outputs._run` does
+    per wake-up, on a clock that stands still just after the last frame (so that every wake-up reads the same
+    offset of the wall clock from the frames' clock, whatever the batching)."""
+    import tempfile
+    from pathlib import Path
+
+    from flockcal.clock import ManualClock
+    from flockcal.frames import Frames
+    from flockcal.server.outputs import Outputs
+    from flockcal.server.settings import Settings
+
+    class Stopped:  # a stopped session's final fit, no session live
+        pose_fit, pose_fit_id, session = cal, ("s", None), None
+
+    clock = ManualClock(wall=1.7e9, monotonic=1000.2)
+    out = Outputs(Settings(data_dir=Path(tempfile.gettempdir())), tuple(names), Stopped, clock)
+    out.vrpn, out.vmc, out._eager = _Sent(), _Sent(), True
+    times = 1000.0 + np.arange(len(R)) / 144
+    at = 0
+    for wake, sizes in enumerate(batches_per_wake):
+        for n in sizes:
+            out.feed(Frames(times[at:at + n], R[at:at + n], x[at:at + n], valid[at:at + n]))
+            at += n
+        due = wake % 2 == 1
+        followed = out._frames(due)
+        if due:
+            out._send_vmc(clock.monotonic(), clock.monotonic(), followed)
+    out.stop()
+    return out.vrpn.sent, out.vmc.sent, times + (1.7e9 - 1000.2)
+
+
+def test_the_streams_send_the_same_bytes_however_the_frames_are_batched_and_they_decode_to_the_segments(take):
+    """The streams take frames with every sensor valid batch by batch and others joined and held
+    (reconstruct.held_poses): the same frames handed over one, two or three at a time, or with a sensor's
+    record marked invalid where it held the pose it had before, must send the same datagrams byte for byte;
+    each VRPN report decodes (VRPN's Format_Of_Protocol.txt: big-endian header, sensor twice, 7 doubles) to the
+    rig's segment for its frame and the frame's wall time."""
+    import dataclasses
+    import struct
+
+    names, R, x, _ = take
+    cal, hum = fit(take, "pelvis")
+    cal = dataclasses.replace(cal, humanoid=hum)
+    R, x = R[:24].copy(), x[:24].copy()
+    valid = np.ones((24, len(names)), dtype=bool)
+    ones = streamed(cal, names, R, x, valid, [[1, 1]] * 12)
+    twos = streamed(cal, names, R, x, valid, [[2]] * 12)
+    threes = streamed(cal, names, R, x, valid, [[1, 2]] * 8)
+    # A sensor's record invalid at frames 5 and 6 whose pose stayed frame 4's: held, it is what was sent.
+    s = names.index("l_forearm")
+    R[5:7, s], x[5:7, s] = R[4, s], x[4, s]
+    still = streamed(cal, names, R, x, valid, [[1, 1]] * 12)
+    gaps = valid.copy()
+    gaps[5:7, s] = False
+    R2, x2 = R.copy(), x.copy()
+    R2[5:7, s], x2[5:7, s] = 0.0, 0.0  # what an invalid slot holds
+    held = streamed(cal, names, R2, x2, gaps, [[1, 1]] * 12)
+    assert len(ones[0]) == 12 and len(ones[1]) == 6
+    assert twos[:2] == ones[:2]
+    assert still[:2] == held[:2]
+    reports = [d for wake in threes[0] for d in wake]
+    assert [d for wake in ones[0] for d in wake] == reports
+    assert len(reports) == 24 and all(len(d) == 16 * 88 for d in reports)
+
+    rig = humanoid_rig(cal, hum)
+    pos, rot = rig.segments(take[1][:24], take[2][:24])  # the frames as first sent, before the edit above
+    for f, d in enumerate(reports):
+        for k in range(16):
+            length, sec, usec, _sender, _type, _seq, sensor, again = struct.unpack_from(">IIIiiIii", d, 88 * k)
+            numbers = struct.unpack_from(">7d", d, 88 * k + 32)
+            assert (length, sensor, again) == (24 + 64, k, k)
+            assert abs(sec + usec * 1e-6 - ones[2][f]) < 1.5e-6
+            np.testing.assert_allclose(numbers[:3], pos[f, k], atol=1e-12)
+            np.testing.assert_allclose(quat_matrix(np.array(numbers[3:])), rot[f, k], atol=1e-12)
