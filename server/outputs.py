@@ -255,7 +255,7 @@ class Outputs:
         whole = all(np.logical_and.reduce(b.valid, axis=None) for b in batches)
         if whole:
             R = t = None
-            self._held = (last.rotations[-1], last.positions[-1])
+            self._held = (last.rotations[-1].copy(), last.positions[-1].copy())  # the reader may reuse its arrays
         else:
             f = Frames.concat(batches, self.m)
             R, t = held_poses(f.rotations, f.positions, f.valid, before=self._held)
