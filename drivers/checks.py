@@ -35,6 +35,11 @@ def _angle(A: np.ndarray, B: np.ndarray) -> float:
     return float(np.arccos(np.clip((np.trace(A.T @ B) - 1.0) / 2.0, -1.0, 1.0)))
 
 
+# A bird first seen with its mirror image this much nearer the other sensors (and at most half as far) began
+# in the other hemisphere; fewer other birds in its frame than PLACE_MIN_OTHERS place nothing.
+PLACE_FAR_M, PLACE_MIN_OTHERS = 0.5, 3
+
+
 class BirdChecks:
     """Per-bird memory (last valid pose and its time, last raw position, hemisphere parity) and the
     checks that use it. `emit((kind, message, data))` receives the events (flips, saturation)."""
@@ -156,6 +161,7 @@ class BirdChecks:
         real move would have to pass through the transmitter: `path_toggles`, which files are unfolded
         with too). Positions are corrected in place.
         """
+        self._place_first_seen(p, valid)
         toggle, self.raw_last = path_toggles(p, valid, self.raw_last)
         if toggle.any():
             for b in np.flatnonzero(toggle.any(axis=0)):
@@ -169,6 +175,30 @@ class BirdChecks:
         parity = (np.cumsum(toggle, axis=0) + self.flipped[None, :]) % 2 == 1
         self.flipped = parity[-1].copy()
         p[parity] *= -1.0
+
+    def _place_first_seen(self, p: np.ndarray, valid: np.ndarray) -> None:
+        """A bird's first record since the reader started (a service started while the performer moves) may
+        come from the other hemisphere, and toggles are tracked from there on: its sign is set once, by where
+        the other birds of the same frame are. A body's sensors sit together, so a reported position
+        PLACE_FAR_M or more farther from the others' median than its mirror image, at twice the distance at
+        least, is the mirror image (a hemisphere flip no continuity saw); otherwise it is taken as reported."""
+        new = np.isnan(self.raw_last[:, 0]) & valid.any(axis=0)
+        if not new.any():
+            return
+        for b in np.flatnonzero(new):
+            r = int(np.argmax(valid[:, b]))
+            others = valid[r].copy()
+            others[b] = False
+            if others.sum() < PLACE_MIN_OTHERS:
+                continue
+            signs = np.where(self.flipped[others], -1.0, 1.0)[:, None]
+            centre = np.median(p[r, others] * signs, axis=0)
+            near, far = np.linalg.norm(-p[r, b] - centre), np.linalg.norm(p[r, b] - centre)
+            if far - near >= PLACE_FAR_M and near <= 0.5 * far:
+                self.flipped[b] = True
+                self.emit(("hemisphere_flip", f"bird {b} began across the hemisphere boundary (its mirror image "
+                                              f"sits {near:.2f} m from the other sensors, as read {far:.2f} m); "
+                                              "positions corrected", {"bird": int(b), "count": 1}))
 
     def _remember(self, R, p, valid, rec_time) -> None:
         if valid[-1].all():

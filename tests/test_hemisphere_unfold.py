@@ -129,3 +129,38 @@ def test_the_python_api_unfolds_as_the_command_does(walk):
     with pytest.warns(UserWarning, match="unfolded hemisphere flips in"):
         got = flockcal.fit(flipped, slips=False).to_dict()
     assert got == flockcal.fit(take, slips=False).to_dict()
+
+
+def test_the_live_driver_places_a_bird_that_began_across_the_boundary_by_the_other_sensors():
+    # A service (re)started while the performer moves: the right hand's first record comes from behind the
+    # forward hemisphere (reported as −p), and every toggle after it would keep it mirrored for the session.
+    from flockcal.drivers.checks import BirdChecks
+    from flockcal.drivers.hemispheres import fold_to_hemisphere
+    from flockcal.drivers.link import FlockSetup
+
+    rng = np.random.default_rng(3)
+    m, n = 8, 40
+    centre = np.array([0.3, 1.2, 0.0])  # the performer beside the transmitter, the x = 0 plane near them
+    true = centre + rng.uniform(-0.25, 0.25, (m, 3)) + 0.002 * np.arange(n)[:, None, None]
+    true[:, 5] = np.array([-0.05, 1.3, 0.1]) + np.column_stack([np.linspace(0, 0.2, n), np.zeros(n), np.zeros(n)])
+    assert true[0, 5, 0] < 0 < true[-1, 5, 0]  # it begins behind the plane and crosses into the hemisphere
+    reported = fold_to_hemisphere(true, "forward")
+    setup = FlockSetup(urls=[], birds=m, addresses=list(range(1, m + 1)), group=True, mode="stream",
+                       record_format="position_matrix", scale_inches=72, rate_hz=144.0, hemisphere="forward",
+                       baud=115200)
+    events = []
+    checks = BirdChecks(setup, events.append)
+    times = np.arange(n) / 144.0
+    R = np.broadcast_to(np.eye(3), (n, m, 3, 3)).copy()
+    valid = np.ones((n, m), bool)
+    p = reported.copy()
+    for a in range(0, n, 3):  # the reader's small hand-overs
+        s = slice(a, a + 3)
+        checks.apply(times[s], R[s], p[s], valid[s], np.repeat(times[s, None], m, axis=1), None)
+    np.testing.assert_allclose(p, true, atol=1e-12)
+    assert any("began across the hemisphere boundary" in e[1] for e in events), events
+    # The same frames fed from a moment the hand is in front: nothing to place, nothing changed.
+    later = BirdChecks(setup, events.append)
+    q = reported[30:].copy()
+    later.apply(times[30:], R[30:], q, valid[30:], np.repeat(times[30:, None], m, axis=1), None)
+    np.testing.assert_allclose(q, true[30:], atol=1e-12)
