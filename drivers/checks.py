@@ -59,6 +59,7 @@ class BirdChecks:
         self.last_rot = np.full((self.m, 3, 3), np.nan)
         self.raw_last = np.full((self.m, 3), np.nan)  # last raw (folded) position, for the flip test
         self.flipped = np.zeros(self.m, bool)
+        self._all_seen = False  # every bird has had a record (`_place_first_seen` has placed them all)
         self.saturated_records = 0  # bird-frames whose position was clipped at full scale
         self.last_saturated = -np.inf  # time of the last frame with a clipped position
 
@@ -182,7 +183,11 @@ class BirdChecks:
         the other birds of the same frame are. A body's sensors sit together, so a reported position
         PLACE_FAR_M or more farther from the others' median than its mirror image, at twice the distance at
         least, is the mirror image (a hemisphere flip no continuity saw); otherwise it is taken as reported."""
-        new = np.isnan(self.raw_last[:, 0]) & valid.any(axis=0)
+        if self._all_seen:  # every bird placed: nothing to look at on the reader's hand-overs from here on
+            return
+        unseen = np.isnan(self.raw_last[:, 0])
+        self._all_seen = not (unseen & ~valid.any(axis=0)).any()
+        new = unseen & valid.any(axis=0)
         if not new.any():
             return
         for b in np.flatnonzero(new):
