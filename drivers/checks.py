@@ -12,7 +12,7 @@ from typing import Callable
 import numpy as np
 
 from flockcal.drivers.link import FlockSetup
-from flockcal.hemisphere_unfold import path_toggles
+from flockcal.hemisphere_unfold import HemisphereUnfold, path_toggles
 
 _POSITION_FORMATS = ("position", "position_angles", "position_matrix", "position_quaternion")
 
@@ -35,9 +35,10 @@ def _angle(A: np.ndarray, B: np.ndarray) -> float:
     return float(np.arccos(np.clip((np.trace(A.T @ B) - 1.0) / 2.0, -1.0, 1.0)))
 
 
-# A bird first seen with its mirror image this much nearer the other sensors (and at most half as far) began
-# in the other hemisphere; fewer other birds in its frame than PLACE_MIN_OTHERS place nothing.
-PLACE_FAR_M, PLACE_MIN_OTHERS = 0.5, 3
+# A bird's first record is placed by the other birds of its frame only when there are more than this many:
+# one frame's distances among fewer say little (the take's own rule, flockcal/hemisphere_unfold.py, has
+# every frame of a stretch to go on).
+PLACE_MIN_OTHERS = 3
 
 
 class BirdChecks:
@@ -179,10 +180,12 @@ class BirdChecks:
 
     def _place_first_seen(self, p: np.ndarray, valid: np.ndarray) -> None:
         """A bird's first record since the reader started (a service started while the performer moves) may
-        come from the other hemisphere, and toggles are tracked from there on: its sign is set once, by where
-        the other birds of the same frame are. A body's sensors sit together, so a reported position
-        PLACE_FAR_M or more farther from the others' median than its mirror image, at twice the distance at
-        least, is the mirror image (a hemisphere flip no continuity saw); otherwise it is taken as reported."""
+        come from the other hemisphere, and toggles are tracked from there on: its sign is set once, by the
+        rule that places a take's new stretches (`HemisphereUnfold`, on the one frame it first appears in):
+        where the birds already placed are, strongest pair first; birds that all appear together (the
+        connection's first frame) are placed among themselves, and if that shows a flip, which of the two
+        mirror images of the whole performer is real is the take rule's convention (in front of the
+        transmitter, else inside the configured hemisphere), not whichever most birds happen to read."""
         if self._all_seen:  # every bird placed: nothing to look at on the reader's hand-overs from here on
             return
         unseen = np.isnan(self.raw_last[:, 0])
@@ -190,20 +193,25 @@ class BirdChecks:
         new = unseen & valid.any(axis=0)
         if not new.any():
             return
-        for b in np.flatnonzero(new):
-            r = int(np.argmax(valid[:, b]))
-            others = valid[r].copy()
-            others[b] = False
-            if others.sum() < PLACE_MIN_OTHERS:
-                continue
-            signs = np.where(self.flipped[others], -1.0, 1.0)[:, None]
-            centre = np.median(p[r, others] * signs, axis=0)
-            near, far = np.linalg.norm(-p[r, b] - centre), np.linalg.norm(p[r, b] - centre)
-            if far - near >= PLACE_FAR_M and near <= 0.5 * far:
-                self.flipped[b] = True
-                self.emit(("hemisphere_flip", f"bird {b} began across the hemisphere boundary (its mirror image "
-                                              f"sits {near:.2f} m from the other sensors, as read {far:.2f} m); "
-                                              "positions corrected", {"bird": int(b), "count": 1}))
+        first = np.argmax(valid, axis=0)
+        placed = ~unseen
+        for r in sorted(set(first[new].tolist())):  # the rows birds first appear in: nearly always one
+            birds = new & (first == r)
+            here = valid[r] & (birds | placed)
+            if here.sum() > PLACE_MIN_OTHERS:
+                x = np.where((self.flipped & placed)[:, None], -p[r], p[r])  # placed birds as corrected
+                unfold = HemisphereUnfold(self.m, self.setup.hemisphere)
+                known = here & placed
+                unfold.placed[known] = True  # carried: placed from the start, never mirrored themselves
+                unfold.last_time[known] = 0.0
+                unfold.last_raw[known] = x[known]
+                unfold.feed(np.zeros(1), x[None], here[None])
+                for b in np.flatnonzero(unfold.started_mirrored & birds):
+                    self.flipped[b] = True
+                    self.emit(("hemisphere_flip", f"bird {b} began across the hemisphere boundary (its mirror "
+                                                  "image is where the other sensors place it); positions "
+                                                  "corrected", {"bird": int(b), "count": 1}))
+            placed = placed | birds
 
     def _remember(self, R, p, valid, rec_time) -> None:
         if valid[-1].all():

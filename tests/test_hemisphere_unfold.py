@@ -101,20 +101,22 @@ def test_a_take_without_flips_is_left_as_it_is(walk):
     assert got is take and how.frames_unfolded == 0 and how.summary(take.names) is None
 
 
-def test_convert_and_replay_unfold_sensors_the_reader_took_to_be_inside(tmp_path, capsys):
-    # The live reader unfolds crossings but takes every sensor to start inside the hemisphere; recorded in
-    # "lower", the simulated performer's chest, head and arms start outside (the transmitter is at hip
-    # height) and stay mirrored in what the reader delivers. The simulated performer stands in front of
-    # the transmitter (x > 0.2 m for every sensor, simulator/body.py); mirrored ones read x < 0.
+def test_a_recording_begun_with_most_sensors_outside_reads_right_from_the_reader(tmp_path, capsys):
+    # Recorded in "lower" with the transmitter at hip height, the simulated performer's chest, head and arms
+    # start outside (read as -p) and the legs inside: most birds read mirrored from the connection's first
+    # frame. The reader places them by the take's own rule (the performer in front of the transmitter), not
+    # by what most birds read: placing each by the others' median (the rule before) turned the legs to
+    # match the mirrored majority, a performer mirrored whole that `replay` and `convert` then had no flip
+    # to undo (CI, 2026-12-07). The simulated performer stands in front of the transmitter (x > 0.2 m for
+    # every sensor, simulator/body.py); mirrored ones read x < 0.
     raw, npz = tmp_path / "take.fobraw", tmp_path / "take.npz"
     assert main(["record", "--port", "sim://flips-convert?birds=16&rate=50&motion=walk", "--birds", "16",
                  "--rate", "50", "--hemisphere", "lower", "--scale", "72", "-o", str(raw), "--seconds", "1.5"]) == 0
     capsys.readouterr()
     assert main(["replay", str(raw)]) == 0
-    assert "unfolded hemisphere flips in" in capsys.readouterr().out
+    assert "no hemisphere flips left to unfold" in capsys.readouterr().out
     assert main(["convert", str(raw), "-o", str(npz)]) == 0
-    err = capsys.readouterr().err
-    assert "unfolded hemisphere flips in" in err and "outside the hemisphere from the start" in err
+    assert "unfolded" not in capsys.readouterr().err
     take = load_take(npz)
     x = take.positions[..., 0][take.valid]
     assert len(x) > 0 and (x > 0.2).all(), x.min()
