@@ -10,6 +10,7 @@ What the calibration returns is typed; it becomes JSON at the store and the snap
 from __future__ import annotations
 
 import logging
+import math
 import threading
 from concurrent.futures import Future
 from dataclasses import replace
@@ -103,6 +104,10 @@ class Pipeline:
         self._commands: list[tuple[Callable, Future, int]] = []  # (fn, its future, frames before it)
         self._stop = False
         self._thread: threading.Thread | None = None
+        # Work that rides on this thread's steps (the live streams' `Outputs.hand_over`, given by the service
+        # before `start`): run at each step, and again when the time it returned comes with no step before.
+        self.beside: Callable[[], float] | None = None
+        self._beside_due = math.inf
         # The session manager's side, given at `start`: stop a session for a limit, store held row updates.
         self._stop_session: Callable[[LimitStop], None] = lambda stop: None
         self._flush_held_rows: Callable[[], bool] = lambda: True
@@ -246,6 +251,7 @@ class Pipeline:
         last_publish = 0.0
         backlog = False
         while True:
+            beside_only = False
             with self._cond:
                 while not self._stop and not self._commands and not backlog:
                     has_work = bool(self._pending or self._pending_events or self.fitter.has_result())
@@ -254,7 +260,14 @@ class Pipeline:
                     now = self.clock.monotonic()
                     if now >= due:
                         break
-                    self.clock.wait(self._cond, due - now)
+                    if now >= self._beside_due:  # the streams' time, nothing else's
+                        beside_only = True
+                        break
+                    self.clock.wait(self._cond, min(due, self._beside_due) - now)
+            if beside_only:
+                self._run_beside()
+                continue
+            with self._cond:
                 stopping = self._stop
                 if stopping:
                     batches, self._pending = self._pending, []
@@ -269,6 +282,7 @@ class Pipeline:
                     commands = []
                 backlog = bool(self._pending)
                 events, self._pending_events = self._pending_events, []
+            self._run_beside()  # the streams first: their frames go out before this step's work on them
             try:
                 if batches:
                     self._process_frames(batches)
@@ -288,6 +302,15 @@ class Pipeline:
                     self.persistence.flush_db(self.live)
                     self.live.framelog.flush()
                 return
+
+    def _run_beside(self) -> None:
+        if self.beside is None:
+            return
+        try:
+            self._beside_due = self.beside()
+        except Exception:  # the streams' fault is not the pipeline's
+            log.exception("work beside the pipeline failed")
+            self._beside_due = math.inf
 
     def _session_time(self) -> float | None:
         """The live session's time of its newest frame; None without a session or before its first frame."""
