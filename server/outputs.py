@@ -339,7 +339,7 @@ class Outputs:
                 rig.inputs(b.rotations, b.positions, x[at:at + len(b)])
                 times[at:at + len(b)] = b.times
                 at += len(b)
-            pos, rot = rig.play(x)
+            pos, rot = rig.play(x, finite=True)  # every sensor valid: every pose is a reading
         else:
             pos, rot = rig.segments(R, t)
             times = f.times.copy()  # a lone batch's own: the reader's, not to be written
@@ -353,7 +353,7 @@ class Outputs:
         self._segments = (newest, pos[-1], rot[-1], quats[n * k:] if osc_due else None)
         quats = quats[:n * k].reshape(n, k, 4)
         times += self.clock.wall() - self.clock.monotonic()  # the frames' wall times, in place
-        self.vrpn.send_reports(self._packer.frames(times, pos, quats))
+        self.vrpn.send_reports(self._packer.frames(times, pos, quats, finite=R is None))
         return True
 
     def _follow_fit(self) -> None:
