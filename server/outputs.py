@@ -427,7 +427,8 @@ class Outputs:
                 self._segments, local = (newest[0], pos, rot, None), None
             numbers = (self._layout.numbers(pos, rot) if local is None
                        else self._layout.assemble(pos, local))
-            if not np.isfinite(np.add.reduce(numbers, axis=None)):  # a sensor with no pose yet: the bones wait for one
+            # A sensor with no pose yet: the bones wait for one (a frame with every sensor valid has them all).
+            if not newest[2] and not np.isfinite(np.add.reduce(numbers, axis=None)):
                 numbers = None
         if numbers is None:
             state = vmc.CALIBRATING if session is not None else vmc.UNCALIBRATED
