@@ -333,16 +333,16 @@ class Outputs:
         if rig is None or not streaming:
             return True
         if R is None:
-            n = sum(len(b) for b in batches)
-            x, times, at = np.empty((n, rig.width)), np.empty(n), 0
+            times = [t for b in batches for t in b.times.tolist()]  # a few frames: Python floats, no arrays
+            x, at = np.empty((len(times), rig.width)), 0
             for b in batches:
-                rig.inputs(b.rotations, b.positions, x[at:at + len(b)])
-                times[at:at + len(b)] = b.times
-                at += len(b)
+                n = len(b.times)
+                rig.inputs(b.rotations, b.positions, x[at:at + n])
+                at += n
             pos, rot = rig.play(x, finite=True)  # every sensor valid: every pose is a reading
         else:
             pos, rot = rig.segments(R, t)
-            times = f.times.copy()  # a lone batch's own: the reader's, not to be written
+            times = f.times.tolist()
         n, k = rot.shape[:2]
         turns = rot.reshape(n * k, 3, 3)
         if osc_due:  # VMC's local rotations written after VRPN's: one `as_quat` for both
@@ -352,8 +352,9 @@ class Outputs:
         quats = as_quat(turns, scalar_first=False)
         self._segments = (newest, pos[-1], rot[-1], quats[n * k:] if osc_due else None)
         quats = quats[:n * k].reshape(n, k, 4)
-        times += self.clock.wall() - self.clock.monotonic()  # the frames' wall times, in place
-        self.vrpn.send_reports(self._packer.frames(times, pos, quats, finite=R is None))
+        offset = self.clock.wall() - self.clock.monotonic()
+        walls = [t + offset for t in times]  # the frames' wall times
+        self.vrpn.send_reports(self._packer.frames(walls, pos, quats, finite=R is None))
         return True
 
     def _follow_fit(self) -> None:
@@ -367,6 +368,8 @@ class Outputs:
             fit = None
         if fit is not self._fit:
             self._fit, self._rig_stale = fit, True
+        elif not self._rig_stale:  # the usual case, at every hand-over that sends frames
+            return
         now = self.clock.monotonic()
         # Another session's fit, a session's final fit or none at all: at once (what VMC's calibration
         # state says must be what its bones are); the same session's next live fit: at the refresh rate.

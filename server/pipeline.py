@@ -104,9 +104,9 @@ class Pipeline:
         self._commands: list[tuple[Callable, Future, int]] = []  # (fn, its future, frames before it)
         self._stop = False
         self._thread: threading.Thread | None = None
-        # Work that rides on this thread's steps (the live streams' `Outputs.hand_over`, given by the service
-        # before `start`): run at each step, and again when the time it returned comes with no step before.
-        self.beside: Callable[[], float] | None = None
+        # Work that rides on this thread's steps (the live streams' `Outputs.hand_over`), given at `start`:
+        # run at each step, and again when the time it returned comes with no step before it.
+        self._beside: Callable[[], float] | None = None
         self._beside_due = math.inf
         # The session manager's side, given at `start`: stop a session for a limit, store held row updates.
         self._stop_session: Callable[[LimitStop], None] = lambda stop: None
@@ -170,10 +170,13 @@ class Pipeline:
         return fut.result(timeout)
 
     def start(self, stop_session: Callable[[LimitStop], None] | None = None,
-              flush_held_rows: Callable[[], bool] | None = None) -> None:
+              flush_held_rows: Callable[[], bool] | None = None, beside: Callable[[], float] | None = None) -> None:
         """Start the pipeline and fit threads. A limit reached stops its session through `stop_session`
         (SessionManager.stop_for_limit: on a thread of its own, as a client's stop); room again on the disk
-        stores the session rows held meanwhile with `flush_held_rows`."""
+        stores the session rows held meanwhile with `flush_held_rows`. `beside` (the live streams'
+        `Outputs.hand_over`) runs on this thread at the start of every step, and on its own when the time it
+        returned (monotonic seconds; inf: none) comes first: it must never wait."""
+        self._beside = beside
         if stop_session is not None:
             self._stop_session = stop_session
         if flush_held_rows is not None:
@@ -304,10 +307,10 @@ class Pipeline:
                 return
 
     def _run_beside(self) -> None:
-        if self.beside is None:
+        if self._beside is None:
             return
         try:
-            self._beside_due = self.beside()
+            self._beside_due = self._beside()
         except Exception:  # the streams' fault is not the pipeline's
             log.exception("work beside the pipeline failed")
             self._beside_due = math.inf

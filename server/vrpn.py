@@ -96,19 +96,19 @@ class ReportPacker:
         self._fields = tuple(self._buf[k] for k in ("sec", "usec", "pos", "quat"))
         self._row = self._buf.itemsize * len(self.sensors)
 
-    def frames(self, wall_times: np.ndarray, positions: np.ndarray, quats: np.ndarray,
-               finite: bool = False) -> list[bytes]:
-        """`positions` (n, K, 3) metres, `quats` (n, K, 4) x y z w, `wall_times` (n,) unix seconds: per frame
-        the messages of its sensors with a position (a sensor with NaN, no pose yet, is left out; `finite`:
-        the caller knows there is none)."""
+    def frames(self, wall_times, positions: np.ndarray, quats: np.ndarray, finite: bool = False) -> list[bytes]:
+        """`positions` (n, K, 3) metres, `quats` (n, K, 4) x y z w, `wall_times` (n,) unix seconds (a sequence
+        of floats): per frame the messages of its sensors with a position (a sensor with NaN, no pose yet, is
+        left out; `finite`: the caller knows there is none)."""
         out = []
+        sec_f, usec_f, pos_f, quat_f = self._fields
         for at in range(0, len(wall_times), len(self._buf)):
             n = min(len(self._buf), len(wall_times) - at)
-            sec_f, usec_f, pos_f, quat_f = self._fields
-            when = wall_times[at:at + n]
-            sec = np.floor(when)
-            sec_f[:n] = sec[:, None]
-            usec_f[:n] = ((when - sec) * 1e6)[:, None]  # truncated as it is cast, as astype(int) would
+            # Frame by frame in Python: the streams pack two or three at a time, where each array call costs
+            # more than these few numbers' arithmetic.
+            for i, when in enumerate(wall_times[at:at + n]):
+                sec = int(when)  # the floor: wall times are positive
+                sec_f[i], usec_f[i] = sec, int((when - sec) * 1e6)  # truncated, as a cast to an integer is
             pos = positions[at:at + n]
             pos_f[:n], quat_f[:n] = pos, quats[at:at + n]
             # A sensor with no pose has NaN in its position (its rotation too makes the position NaN); a sum
