@@ -48,7 +48,7 @@ PAIR_S, STALL_S = 0.008, 0.02
 # reader's hand-overs as the pipeline is.
 STAND_IN_S = 0.25
 LOOK_S = 0.1  # frames no stream sends yet are taken this often all the same: held, sampled, the fit followed
-QUEUE_BATCHES = 256  # batches waiting for the thread at most (the oldest go first: live streams want the newest)
+QUEUE_BATCHES = 256  # batches waiting for the streams at most (the oldest go first: live streams want the newest)
 
 
 def humanoid_of(fit, sample: tuple[np.ndarray, np.ndarray, np.ndarray]) -> Humanoid:
@@ -66,8 +66,10 @@ def humanoid_of(fit, sample: tuple[np.ndarray, np.ndarray, np.ndarray]) -> Human
 class Outputs:
     """VRPN and VMC out, as `settings` ask (`vrpn_port`, `osc_targets`, `osc_hz`). Built before the service
     serves: a port in use or a receiver that cannot be resolved is one line in `lines` (what `serve` prints)
-    and the service runs without that output. `feed` (the reader's thread) only queues; `start` / `stop`
-    run the thread. `clock`: the service's (the frames' times, the streams' cadence, VRPN's wall times)."""
+    and the service runs without that output. `feed` (the reader's thread) only queues; `hand_over` (the
+    pipeline's thread, at each step) does the streams' work; `start` / `stop` run their own thread (the
+    sockets; the work while the pipeline does not come by). `clock`: the service's (the frames' times, the
+    streams' cadence, VRPN's wall times)."""
 
     def __init__(self, settings, names: tuple[str, ...], snapshot: Callable[[], object], clock: Clock):
         self.clock = clock
@@ -309,7 +311,7 @@ class Outputs:
             return False
         last = batches[-1]
         # Every sensor valid in every frame, the usual case: the frames are their own held poses, and the rig
-        # reads them batch by batch (a wake-up's first calls cost several times their warm cost: joining the
+        # reads them batch by batch (a hand-over's first calls cost several times their warm cost: joining the
         # batches first cost as much as playing them through the rig).
         whole = all(np.logical_and.reduce(b.valid, axis=None) for b in batches)
         if whole:
@@ -414,7 +416,7 @@ class Outputs:
     def _send_vmc(self, now: float, tick: float, followed: bool = False) -> None:
         """One bundle: the newest frame's bones once there is a rig, else /VMC/Ext/OK "not loaded"; its
         /VMC/Ext/T is the tick's time on the sender's grid (seconds since the streams started). `followed`:
-        this wake-up's frames just followed the newest fit."""
+        this hand-over's frames just followed the newest fit."""
         if not followed:
             self._follow_fit()
         rig, newest, session = self._rig, self._newest, self._session

@@ -169,7 +169,9 @@ class VrpnServer:
     selector (`register`); `send_reports` hands out one datagram (or TCP write) per frame to every client.
 
     A client whose TCP backlog (what its socket would not take) passes `backlog_bytes` has stopped reading
-    and is dropped, as the websocket's slow clients are; UDP reports are fire-and-forget."""
+    and is dropped, as the websocket's slow clients are; UDP reports are fire-and-forget, from a socket
+    connected to each client. The caller makes the calls one at a time (server/outputs.py's lock):
+    `send_reports` may come from another thread than the one that waits in the selector."""
 
     def __init__(self, host: str, port: int, clock: Clock, device: str = "flockcal", sensors: int = 16,
                  max_clients: int = 32, backlog_bytes: int = BACKLOG):
