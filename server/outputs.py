@@ -27,7 +27,9 @@ from flockcal.threads import name_os_thread
 
 log = logging.getLogger(__name__)
 
-RIG_REFRESH_S = 0.5  # a new live fit reaches the streams' rig at most this often (fits come 30 times a second; a rebuild costs ~1.5 ms in the service)
+# A live session's next fit reaches the streams' rig at most this often (fits come 30 times a second; a rebuild
+# costs about 1.5 ms of the pipeline thread in the service: at 0.2 s they were 0.8 points of a core).
+RIG_REFRESH_S = 0.5
 HUMANOID_REFRESH_S = 5.0  # the humanoid is found again this often, and whenever the tree changes
 RETRY_S = 1.0  # a stopped session's fit that gave no rig (too few frames yet) is tried again this often
 SAMPLE_S, SAMPLE_FRAMES = 0.1, 600  # the frames the humanoid is found from: one every 0.1 s, the last minute
