@@ -10,7 +10,8 @@ less than it moves a whole service's (issue 33): CPU time of the thread doing it
 - reader: the tracker reader (`TrackerReader`, the service's 5 ms hand-over) on a pty fake tracker at
   921600 baud for `--reader-seconds`: its thread's CPU and wake-ups a second.
 - service: the service's own `Pipeline` (its fit thread, frame log, SQLite store and snapshots) with a live
-  session, fed the same performer as the tracker sends it (words decoded) in real time, 5 ms hand-overs,
+  session, fed the same performer as the tracker sends it (words decoded, and handed over with the frames
+  where the code takes them) in real time, 5 ms hand-overs,
   for `--pipeline-seconds` after 5 s: each pipeline step's CPU (its p99 is the tail a snapshot, and so a
   client's latency, waits for) and every thread's share (fc-framelog: the frame log's writer).
 
@@ -148,6 +149,17 @@ def service(seconds: float, warm: float = 5.0) -> dict:
                         np.uint8)
     R, p, _ = decode_records("position_matrix", raw.reshape(n * m, -1), scale_inches=72, group=False)
     R, p, valid = R.reshape(n, m, 3, 3), p.reshape(n, m, 3), np.ones((n, m), bool)
+    try:  # the reader hands over the words it decoded (Frames.words) since issue 49; the frame log stores them
+        from flockcal.drivers.records import FORMATS, decode_block_words
+        from flockcal.frames import TrackerWords
+
+        W = decode_block_words("position_matrix", raw.reshape(n * m, -1), scale_inches=72)[0].reshape(n, m, -1)
+
+        def words(sl):
+            return (TrackerWords(W[sl], FORMATS["position_matrix"].command, 72),)
+    except ImportError:
+        def words(sl):
+            return ()
     names = tuple(perf.names)
     if hasattr(snapshot, "SourceStatus"):  # typed since issue 49
         from flockcal.drivers.tracker_status import TrackerStatus
@@ -189,7 +201,7 @@ def service(seconds: float, warm: float = 5.0) -> dict:
                 mark = (time.monotonic(), _threads_cpu(), len(ends))
             k1 = min(n, int(now * RATE) + 1)
             if k1 > k:  # what the reader hands over every 5 ms
-                pipe.feed(Frames(1000.0 + t[k:k1], R[k:k1], p[k:k1], valid[k:k1]))
+                pipe.feed(Frames(1000.0 + t[k:k1], R[k:k1], p[k:k1], valid[k:k1], *words(slice(k, k1))))
                 k = k1
             time.sleep(0.005)
         end = (time.monotonic(), _threads_cpu(), len(ends))

@@ -12,8 +12,8 @@ import numpy as np
 from flockcal.drivers.checks import BirdChecks
 from flockcal.drivers.link import FlockSetup
 from flockcal.drivers.port_stream import HeldRecords, PortStream
-from flockcal.drivers.records import FORMATS, decode_block
-from flockcal.frames import Frames
+from flockcal.drivers.records import FORMATS, decode_block_words
+from flockcal.frames import Frames, TrackerWords
 
 
 class FrameAssembler:
@@ -33,8 +33,9 @@ class FrameAssembler:
 
     def __init__(self, setup: FlockSetup, *, hemisphere_tracking: bool = True, max_speed: float = 20.0,
                  max_turn_rate: float = 60.0, saturation_quiet: float = 1.0, coalesce_bytes: int = 512,
-                 coalesce_seconds: float = 0.01):
+                 coalesce_seconds: float = 0.01, words: bool = False):
         self.setup = setup
+        self.keep_words = words  # the frames carry the data words their poses came from (Frames.words)
         self.format = FORMATS[setup.record_format]
         self.m = setup.birds
         if setup.mode == "point":  # a poll's answer should come out before the next poll
@@ -52,7 +53,7 @@ class FrameAssembler:
         self.pending: list[tuple[np.ndarray, np.ndarray, np.ndarray, HeldRecords]] = []
         self.pending_cycles = 0
         # Decoded cycles held back from a suspect record on: (cycle_times, R, p, valid, suspect, rec_time,
-        # clipped), until its bird's next record shows whether it was line noise (checks.decide_suspects).
+        # clipped, words), until its bird's next record shows whether it was line noise (checks.decide_suspects).
         self.held: tuple | None = None
         # One-port-per-bird queues of released records.
         self.port_cycle = [-1] * len(self.ports)  # cycle number of each port's last record
@@ -359,13 +360,14 @@ class FrameAssembler:
     def _decode_cycles(self, cycle_times: np.ndarray, cycle: np.ndarray, bird: np.ndarray, rec: HeldRecords,
                        final: bool = False) -> None:
         n, m = len(cycle_times), self.m
-        rotations, positions, rec_valid, rec_clipped = decode_block(
+        words, rotations, positions, rec_valid, rec_clipped = decode_block_words(
             self.format, rec.raw, scale_inches=self.setup.scale_inches)
         grid = np.arange(n * m)
         if len(bird) == n * m and np.array_equal(bird, grid % m) and np.array_equal(cycle, grid // m):
             # Every bird of every cycle, in order (the usual case): the records already are the frames.
             R = rotations.reshape(n, m, 3, 3)
             p = positions.reshape(n, m, 3)
+            W = words.reshape(n, m, -1)
             valid = rec_valid.reshape(n, m)
             suspect = (rec.suspect & rec_valid).reshape(n, m)
             rec_time = rec.times.reshape(n, m)
@@ -374,12 +376,14 @@ class FrameAssembler:
         else:
             R = np.zeros((n, m, 3, 3))
             p = np.zeros((n, m, 3))
+            W = np.zeros((n, m, words.shape[1]), words.dtype)
             valid = np.zeros((n, m), bool)
             suspect = np.zeros((n, m), bool)
             ok = bird >= 0
             c, b = cycle[ok], bird[ok]
             R[c, b] = rotations[ok]
             p[c, b] = positions[ok]
+            W[c, b] = words[ok]
             valid[c, b] = rec_valid[ok]
             suspect[c, b] = rec.suspect[ok] & rec_valid[ok]
             rec_time = np.zeros((n, m))
@@ -387,28 +391,29 @@ class FrameAssembler:
             np.maximum.at(self.last_seen, b, rec.times[ok])
             clipped = np.zeros((n, m), bool)
             clipped[c, b] = rec_clipped[ok]
-        self._check_cycles(cycle_times.astype(float), R, p, valid, suspect, rec_time, clipped, final)
+        self._check_cycles(cycle_times.astype(float), R, p, valid, suspect, rec_time, clipped, W, final)
 
-    def _check_cycles(self, cycle_times, R, p, valid, suspect, rec_time, clipped, final: bool = False) -> None:
+    def _check_cycles(self, cycle_times, R, p, valid, suspect, rec_time, clipped, W, final: bool = False) -> None:
         """Decide the suspect records (holding back cycles from the first that waits for its bird's next
         record), then finish and queue the cycles before it as frames."""
         if self.held is not None:
-            parts = (self.held, (cycle_times, R, p, valid, suspect, rec_time, clipped))
-            cycle_times, R, p, valid, suspect, rec_time, clipped = (np.concatenate(x) for x in zip(*parts))
+            parts = (self.held, (cycle_times, R, p, valid, suspect, rec_time, clipped, W))
+            cycle_times, R, p, valid, suspect, rec_time, clipped, W = (np.concatenate(x) for x in zip(*parts))
             self.held = None
         n = len(cycle_times)
         if suspect.any():
             n, rejected = self.checks.decide_suspects(cycle_times, R, p, valid, suspect, rec_time, final)
             self.rejected_records += rejected
             if n < len(cycle_times):
-                self.held = tuple(x[n:] for x in (cycle_times, R, p, valid, suspect, rec_time, clipped))
-                cycle_times, R, p, valid, rec_time, clipped = (x[:n] for x in (cycle_times, R, p, valid, rec_time,
-                                                                                clipped))
+                self.held = tuple(x[n:] for x in (cycle_times, R, p, valid, suspect, rec_time, clipped, W))
+                cycle_times, R, p, valid, rec_time, clipped, W = (x[:n] for x in (cycle_times, R, p, valid, rec_time,
+                                                                                   clipped, W))
         if n == 0:
             return
-        self.checks.apply(cycle_times, R, p, valid, rec_time, clipped if clipped.any() else None)
+        self.checks.apply(cycle_times, R, p, valid, rec_time, clipped if clipped.any() else None, W)
         R[~valid] = 0.0
         p[~valid] = 0.0
         self.frames += n
         self.dropped_records += int(np.count_nonzero(~valid))
-        self.out.append(Frames(cycle_times, R, p, valid))
+        words = TrackerWords(W, self.format.command, self.setup.scale_inches) if self.keep_words else None
+        self.out.append(Frames(cycle_times, R, p, valid, words))

@@ -64,13 +64,15 @@ class BirdChecks:
         self.saturated_records = 0  # bird-frames whose position was clipped at full scale
         self.last_saturated = -np.inf  # time of the last frame with a clipped position
 
-    def apply(self, cycle_times, R, p, valid, rec_time, clipped) -> None:
+    def apply(self, cycle_times, R, p, valid, rec_time, clipped, words=None) -> None:
         """Finish one batch of cycles (n, m) whose suspects `decide_suspects` has decided, in place: unfolds
-        hemisphere flips in `p`, reports clipping (`clipped` None when there is none)."""
+        hemisphere flips in `p` (and in the position words of `words` (n, m, k), the data words the poses
+        came from, so that they stay the words of the corrected positions), reports clipping (`clipped` None
+        when there is none)."""
         if clipped is not None:
             self._report_saturation(cycle_times, clipped)
         if self.hemisphere_tracking:
-            self._track_hemisphere(p, valid)
+            self._track_hemisphere(p, valid, words)
         self._remember(R, p, valid, rec_time)
 
     def _report_saturation(self, cycle_times: np.ndarray, clipped: np.ndarray) -> None:
@@ -156,7 +158,7 @@ class BirdChecks:
                 return False
         return True
 
-    def _track_hemisphere(self, p: np.ndarray, valid: np.ndarray) -> None:
+    def _track_hemisphere(self, p: np.ndarray, valid: np.ndarray, words: np.ndarray | None = None) -> None:
         """Undo hemisphere folding: the bird reports −p once a sensor crosses into the other hemisphere.
 
         Consecutive valid raw positions pointing to opposite sides (p·q < 0) can only be such a flip (a
@@ -172,11 +174,16 @@ class BirdChecks:
                                     {"bird": int(b), "count": int(toggle[:, b].sum())}))
         if not toggle.any():
             if self.flipped.any():
-                p[:, self.flipped] *= -1.0
+                # 0 − p, not −p: a zero coordinate stays +0.0, as the negated word (0) decodes
+                p[:, self.flipped] = 0.0 - p[:, self.flipped]
+                if words is not None:  # the words of the corrected positions, decoding to them bit for bit
+                    words[:, self.flipped, :3] *= -1
             return
         parity = (np.cumsum(toggle, axis=0) + self.flipped[None, :]) % 2 == 1
         self.flipped = parity[-1].copy()
-        p[parity] *= -1.0
+        p[parity] = 0.0 - p[parity]
+        if words is not None:
+            words[parity, :3] *= -1
 
     def _place_first_seen(self, p: np.ndarray, valid: np.ndarray) -> None:
         """A bird's first record since the reader started (a service started while the performer moves) may

@@ -57,6 +57,7 @@ class TrackerConfig:
     hemisphere_tracking: bool = True
     max_speed: float = 20.0  # m/s: a record next to lost bytes that implies more is treated as garbled
     max_turn_rate: float = 60.0  # rad/s, likewise for orientation
+    tracker_words: bool = False  # frames carry the data words they were decoded from (Frames.words)
 
     def __post_init__(self) -> None:
         if isinstance(self.urls, str):
@@ -407,7 +408,7 @@ class TrackerReader:
             if (rec := self._recorder) is not None:
                 rec.mark(self.clock.monotonic(), self._stream_marker)
                 rec.commit()
-        asm = FrameAssembler(setup, **options)
+        asm = FrameAssembler(setup, words=cfg.tracker_words, **options)
         if cfg.mode == "stream":
             start_stream(self._links, setup)
         with self._lock:

@@ -191,10 +191,16 @@ def decode_block(fmt: RecordFormat | str, records: np.ndarray, *, scale_inches: 
 
     `valid` is False for the all-zero record (no data) and for a position clipped at full scale.
     """
+    return decode_block_words(fmt, records, scale_inches=scale_inches, quaternion_convention=quaternion_convention)[1:]
+
+
+def decode_block_words(fmt: RecordFormat | str, records: np.ndarray, *, scale_inches: float = 36.0,
+                       quaternion_convention: str = "fob") -> tuple[np.ndarray, ...]:
+    """`decode_block` with the data words (n, fmt.n_words) int32 the poses came from, first."""
     fmt = as_format(fmt)
     data = records[:, :fmt.n_data_bytes]
     words = decode_words(data)
     rotations, positions = poses_from_words(fmt, words, scale_inches, quaternion_convention)
     clipped = position_clipped(fmt, words)
     valid = np.any(words, axis=1) & ~clipped
-    return rotations, positions, valid, clipped
+    return words, rotations, positions, valid, clipped

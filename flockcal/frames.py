@@ -19,6 +19,21 @@ ROW_ALIGN = 256
 
 
 @dataclass(frozen=True)
+class TrackerWords:
+    """The tracker's data words a batch's poses were decoded from: words (n, m, k) int32 of the record format
+    whose command byte is `command`, at `scale_inches` (drivers/records.py `poses_from_words` of them gives
+    the batch's rotations and positions bit for bit, wherever valid). The service's frame log stores these
+    rather than working them out again from the floats."""
+
+    words: np.ndarray
+    command: int
+    scale_inches: float
+
+    def __getitem__(self, index) -> "TrackerWords":
+        return TrackerWords(self.words[index], self.command, self.scale_inches)
+
+
+@dataclass(frozen=True)
 class Frames:
     """A batch of n frames of m sensors, SI units. Slots that are not valid hold zeros (parts a record
     format lacks may be NaN); readers of `rotations`/`positions` must look at `valid`."""
@@ -27,6 +42,7 @@ class Frames:
     rotations: np.ndarray  # (n, m, 3, 3) body → world (the transmitter frame for a tracker)
     positions: np.ndarray  # (n, m, 3) metres
     valid: np.ndarray  # (n, m) bool
+    words: TrackerWords | None = None  # what a tracker sent, when a reader was asked to keep it
 
     def __len__(self) -> int:
         return len(self.times)
@@ -43,7 +59,8 @@ class Frames:
         """Frames `index` (a slice, an index array or a boolean mask over frames), as Frames."""
         if isinstance(index, (int, np.integer)):
             index = slice(int(index), int(index) + 1 or None)
-        return Frames(self.times[index], self.rotations[index], self.positions[index], self.valid[index])
+        return Frames(self.times[index], self.rotations[index], self.positions[index], self.valid[index],
+                      None if self.words is None else self.words[index])
 
     @staticmethod
     def empty(m: int) -> "Frames":
@@ -56,8 +73,13 @@ class Frames:
             return Frames.empty(m)
         if len(parts) == 1:
             return parts[0]
+        words = None
+        first = parts[0].words
+        if first is not None and all(p.words is not None and (p.words.command, p.words.scale_inches)
+                                     == (first.command, first.scale_inches) for p in parts):
+            words = TrackerWords(np.concatenate([p.words.words for p in parts]), first.command, first.scale_inches)
         return Frames(*(np.concatenate([getattr(p, k) for p in parts])
-                        for k in ("times", "rotations", "positions", "valid")))
+                        for k in ("times", "rotations", "positions", "valid")), words)
 
 
 def frames_of(take, size: int) -> Iterator[Frames]:

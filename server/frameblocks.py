@@ -1,6 +1,7 @@
 """The frame log's blocks: a batch of frames as the tracker's own 16-bit words, delta-coded and deflated,
-decoding to the very float64 values that were logged (each sensor-frame is checked when written; one that
-no word pattern reproduces is kept whole). About 7x smaller than the fixed records of version 1.
+decoding to the very float64 values that were logged: the words the reader decoded them from when the
+frames carry them (`Frames.words`), else words worked out from the poses; each checked when written, and a
+sensor-frame no word pattern reproduces is kept whole. About 7x smaller than the fixed records of version 1.
 
 A block is a 20-byte head (b"FB", codec, 0, frames u32, payload bytes u32, payload CRC-32, head CRC-32)
 and a zlib payload. Codec RECORDS holds version-1 records (frames that come from no tracker, e.g. a take
@@ -19,17 +20,19 @@ import zlib
 
 import numpy as np
 
-from flockcal.drivers.records import FORMAT_BY_COMMAND, FORMATS, RecordFormat, data_words, poses_from_words
-from flockcal.frames import Frames
+from flockcal.drivers.records import FORMAT_BY_COMMAND, FORMATS, RecordFormat, as_format, data_words, poses_from_words
+from flockcal.frames import Frames, TrackerWords
 
 HEAD = struct.Struct("<2sBBIIII")
 SYNC = b"FB"
 RECORDS, WORDS = 0, 1
-LEVEL = 6  # zlib: level 9 saved 1 % more for 4x the time
+LEVEL = 3  # zlib: 6 saved 2.6 % more bytes for 1.6x its time, 9 another 1 % for 4x
 # Formats that carry a whole pose, most words first: a log of position/matrix records is decoded by the
 # matrix words, and so on. Scales: the simulator's 72 in, a real flock's default 36 in.
 CANDIDATES = tuple((FORMATS[name], scale) for name in ("position_matrix", "position_quaternion", "position_angles")
                    for scale in (72, 36))
+_WORD_FORMATS = {fmt.name for fmt, _ in CANDIDATES}
+_POSITION = as_format("position")  # a pose format's first three words decode as this one's
 # A codec that has to keep more than this share of a block's sensor-frames whole is the wrong one.
 WRONG_CODEC = 1 / 16
 NO_CODEC = 1 / 4  # ... and with none better than this, the block is stored as records
@@ -154,14 +157,23 @@ class Encoder:
         self.codec: tuple | None = None  # the last block's (format, scale)
         self._records_left = 0
 
-    def block(self, times: np.ndarray, R: np.ndarray, p: np.ndarray, valid: np.ndarray) -> bytes:
-        """A block (head and payload) of n frames: times (n,), rotations (n,m,3,3), positions (n,m,3), valid (n,m)."""
+    def block(self, times: np.ndarray, R: np.ndarray, p: np.ndarray, valid: np.ndarray,
+              words: TrackerWords | None = None) -> bytes:
+        """A block (head and payload) of n frames: times (n,), rotations (n,m,3,3), positions (n,m,3), valid (n,m);
+        `words`, the data words the poses were decoded from (frames from a tracker's reader), are stored as
+        they came, with no search."""
         times = np.ascontiguousarray(times, dtype="<f8")
         valid = np.asarray(valid, dtype=bool)
         n, m = valid.shape
         R, p = np.asarray(R, dtype=float), np.asarray(p, dtype=float)
         ok = np.flatnonzero(valid.reshape(-1))
         Rf, pf = R.reshape(n * m, 3, 3)[ok], p.reshape(n * m, 3)[ok]
+        carried = self._carried(words, ok, Rf, pf) if words is not None else None
+        if carried is not None:
+            payload = _words_payload(*carried[0], times, valid, ok, carried[1], carried[2], Rf, pf, m)
+            if payload is not None:
+                self.codec = carried[0]
+                return _block(WORDS, n, payload)
         codec, known = self._choose(Rf, pf)
         if codec is not None:
             w, found = known if known is not None else _words_for(*codec, Rf, pf)[:2]
@@ -172,6 +184,27 @@ class Encoder:
                 return _block(WORDS, n, payload)
         self.codec, self._records_left = None, self.RETRY
         return _block(RECORDS, n, _records_payload(times, R, p, valid))
+
+    def _carried(self, words: TrackerWords, ok: np.ndarray, Rf: np.ndarray, pf: np.ndarray
+                 ) -> tuple[tuple, np.ndarray, np.ndarray] | None:
+        """((format, scale), the valid sensor-frames' words, which of them decode to the very poses given)
+        from the words the frames carry, when their format is one a block stores and a sample of SAMPLE of
+        their rotations decodes to the very rotations given; None otherwise, and the block's words are worked
+        out from the poses. Positions are checked one and all (a multiplication each); rotations on a sample:
+        the reader decoded them from these very words, so the sample guards the hand-over (frames and words
+        out of step), which it would find in any row."""
+        fmt = FORMAT_BY_COMMAND.get(int(words.command))
+        scale = int(words.scale_inches)
+        if fmt is None or fmt.name not in _WORD_FORMATS or scale != words.scale_inches or not 0 < scale < 256:
+            return None
+        w = words.words.reshape(-1, fmt.n_words)[ok]
+        with np.errstate(invalid="ignore", over="ignore"):
+            found = _same(poses_from_words(_POSITION, w[:, :3], scale)[1], pf)
+            pick = np.linspace(0, len(ok) - 1, min(self.SAMPLE, len(ok))).astype(int)
+            sample = _same(poses_from_words(fmt, w[pick], scale)[0], Rf[pick])
+        if not sample.all() or len(found) - found.sum() > WRONG_CODEC * len(found):
+            return None
+        return (fmt, scale), w, found
 
     def _choose(self, Rf: np.ndarray, pf: np.ndarray) -> tuple[tuple | None, tuple | None]:
         """(the codec, and the block's (words, found) in it when they were worked out on the way)."""

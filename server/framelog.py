@@ -15,14 +15,14 @@ import json
 import logging
 import os
 import threading
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Iterator
 
 import numpy as np
 
 from flockcal.clock import SYSTEM, Clock
-from flockcal.frames import Frames
+from flockcal.frames import Frames, TrackerWords
 from flockcal.server.frameblocks import HEAD, SYNC, BlockError, Encoder, decode, parse_head, record_dtype, records_frames
 from flockcal.threads import name_os_thread
 
@@ -80,13 +80,16 @@ class FrameLog:
         self._closing = False
         self._thread: threading.Thread | None = None
 
-    def write(self, times, rotations, positions, valid) -> None:
+    def write(self, times, rotations, positions, valid, words: TrackerWords | None = None) -> None:
+        """Log n frames; `words`, the tracker's data words they were decoded from where they came from a
+        tracker (Frames.words), are stored as they are instead of being worked out again from the floats."""
         if self._ended:  # a failed write, or closed: the frames still reach the live fit
             return
         n = len(times)
         # Copies: the caller's arrays may be reused before the flush.
         self._pending.append(Frames(np.array(times, "<f8"), np.array(rotations, float), np.array(positions, float),
-                                    np.array(valid, bool)))
+                                    np.array(valid, bool),
+                                    None if words is None else replace(words, words=np.array(words.words))))
         self.frames += n
         # The first frames go out at once: a fit of them is published within a frame or two (fits run at
         # 30 Hz), and a download or the rig a page loads for it must find the session's log holding frames.
@@ -141,7 +144,7 @@ class FrameLog:
             return
         frames = Frames.concat(batches, self.m)
         step = self._block_frames
-        data = b"".join(self._encoder.block(f.times, f.rotations, f.positions, f.valid)
+        data = b"".join(self._encoder.block(f.times, f.rotations, f.positions, f.valid, f.words)
                         for f in (frames[a:a + step] for a in range(0, len(frames), step)))
         try:
             _write_all(self._fd, data)

@@ -32,6 +32,12 @@ class Ingest:
         valid = np.asarray(f.valid, dtype=bool)
         self.frames += n
         self.last_frame_time = float(f.times[-1])
+        if valid[-1].all():  # the usual case: the newest frame holds every sensor's newest pose
+            self.rotations[:] = f.rotations[-1]
+            self.positions[:] = f.positions[-1]
+            self.have_pose = True
+            self.valid = valid[-1].copy()
+            return f
         any_valid = valid.any(axis=0)
         if any_valid.any():
             last = n - 1 - np.argmax(valid[::-1], axis=0)

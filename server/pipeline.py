@@ -342,7 +342,7 @@ class Pipeline:
         live = self.live
         if frames is None or live is None:
             return
-        live.framelog.write(frames.times, frames.rotations, frames.positions, frames.valid)
+        live.framelog.write(frames.times, frames.rotations, frames.positions, frames.valid, frames.words)
         if live.framelog.error is not None and not live.log_failed:
             live.log_failed = True  # the log ended at its last whole record; the live fit goes on
             self._storage_failed(f"{live.framelog.path.name}: {live.framelog.error.strerror or live.framelog.error}")

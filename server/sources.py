@@ -127,6 +127,7 @@ class TrackerSource:
             # The simulator's performer reaches past 36 in; a real tracker keeps the scale it is set to.
             scale_inches=self.settings.scale_inches or (72 if self.simulator is not None else None),
             recording_path=self.recording_path,
+            tracker_words=True,  # the frame log stores them (server/frameblocks.py)
         )
         try:
             self.reader = TrackerReader(cfg, on_frames=on_frames,

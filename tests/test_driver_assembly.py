@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from flockcal.drivers.hemispheres import fold_to_hemisphere
-from flockcal.drivers.records import decode_block, encode_records, record_length
+from flockcal.drivers.records import FORMATS, decode_block, encode_records, poses_from_words, record_length
 from quantisation import position_axis_m
 from flockcal.drivers.stream import StreamDecoder
 from flockcal.rotations import from_euler
@@ -76,6 +76,42 @@ def test_frames_do_not_depend_on_how_reads_are_batched_or_when_frames_are_taken(
     for other in results[1:]:
         for name, a in results[0].items():
             assert np.array_equal(a, other[name], equal_nan=True), name
+
+
+@pytest.mark.parametrize("fmt", ["position_matrix", "position_quaternion"])
+def test_the_words_frames_carry_decode_to_their_poses_through_flips_and_damage(fmt):
+    # What was tried: a stream with lost bytes and one bird crossing the hemisphere boundary (its positions
+    # negated from there on, batch after batch), read in chunks with frames taken after every 5th read. The words the frames carry (words=True, what the service's
+    # frame log stores) must decode, through the same decoding every reader uses, to the very floats of
+    # every valid pose; asking for them changes no frame.
+    n, m = 240, 6
+    R, p = moving_poses(n, m, reach=0.6)
+    p[:, 2, 0] -= 0.6  # crosses x = 0
+    assert p[0, 2, 0] > 0 and (p[:, 2, 0] < 0).any() and p[-1, 2, 0] < 0
+    data = bytearray(group_bytes(fmt, R, fold_to_hemisphere(p, "forward"), scale=72.0))
+    L = record_length(fmt, group=True)
+    for r in (700, 400, 90):
+        del data[r * L + 3:r * L + 5]
+    data = bytes(data)
+    frames = []
+    asm = FrameAssembler(group_setup(m, fmt, scale=72.0), words=True)
+    for i in range(0, len(data), 97):
+        asm.feed(0, i / 16000.0, data[i:i + 97])
+        if (i // 97) % 5 == 0:
+            frames.append(asm.take())
+    asm.flush()
+    frames.append(asm.take())
+    from flockcal.frames import Frames
+    f = Frames.concat([x for x in frames if len(x)], m)
+    assert f.words is not None and f.words.words.shape == (len(f), m, FORMATS[fmt].n_words)
+    v = f.valid
+    assert v.sum() > 0.9 * n * m and not v.all()
+    dR, dp = poses_from_words(fmt, f.words.words[v], f.words.scale_inches)
+    assert dR.tobytes() == f.rotations[v].tobytes() and dp.tobytes() == f.positions[v].tobytes()
+    assert (f.positions[-20:, 2, 0] < 0).all()  # unfolded: behind, as it is
+    plain = feed_all(FrameAssembler(group_setup(m, fmt, scale=72.0)), data, [97], take_every=5)
+    for name, a in plain.items():
+        assert np.array_equal(a, getattr(f, name), equal_nan=True), name
 
 
 def test_a_position_word_at_full_scale_is_invalid_and_one_step_inside_is_valid():

@@ -13,8 +13,8 @@ import json
 import numpy as np
 import pytest
 
-from flockcal.drivers.records import decode_block, encode_records, record_length
-from flockcal.frames import Frames
+from flockcal.drivers.records import FORMATS, decode_block_words, encode_records, record_length
+from flockcal.frames import Frames, TrackerWords
 from flockcal.server.downloads import FrameFile, npz_stream
 from flockcal.server.framelog import FrameLog, FrameLogError, FrameLogReader, read_frames
 from flockcal.simulator.performer import Performer
@@ -22,28 +22,34 @@ from flockcal.simulator.performer import Performer
 RATE = 144.0
 
 
-def tracker_frames(fmt: str, scale: int, seconds: float = 6.0, birds: int = 16, seed: int = 0):
-    """(names, times, rotations, positions, valid) as the reader hands them over for `fmt` at `scale` inches."""
+def tracker_frames(fmt: str, scale: int, seconds: float = 6.0, birds: int = 16, seed: int = 0, words: bool = False):
+    """(names, times, rotations, positions, valid) as the reader hands them over for `fmt` at `scale` inches;
+    with `words`, the data words they were decoded from as well (Frames.words, flips negated in them)."""
     perf = Performer("human", routine="walk", rate_hz=RATE, birds=birds, seed=seed)
     times = 1234.5 + np.arange(int(seconds * RATE)) / RATE  # reader clock: monotonic seconds
     R0, x0, _ = perf.poses(times - times[0])
     n, m = R0.shape[:2]
     raw = np.frombuffer(encode_records(fmt, R0.reshape(-1, 3, 3), x0.reshape(-1, 3), scale_inches=scale), np.uint8)
-    R, p, valid, _ = decode_block(fmt, raw.reshape(n * m, record_length(fmt, group=False)), scale_inches=scale)
-    R, p, valid = R.reshape(n, m, 3, 3), p.reshape(n, m, 3), valid.reshape(n, m)
+    W, R, p, valid, _ = decode_block_words(fmt, raw.reshape(n * m, record_length(fmt, group=False)), scale_inches=scale)
+    W, R, p, valid = W.reshape(n, m, -1), R.reshape(n, m, 3, 3), p.reshape(n, m, 3), valid.reshape(n, m)
     rng = np.random.default_rng(seed)
     valid &= rng.random((n, m)) > 0.02  # dropped records
     valid[100:160, 3] = False  # a sensor out for a while
-    p[:, 5] *= np.where(rng.random(n) < 0.1, -1.0, 1.0)[:, None]  # hemisphere flips, unfolded by negation
+    flip = np.where(rng.random(n) < 0.1, -1, 1)
+    p[:, 5] *= flip[:, None]  # hemisphere flips, unfolded by negation
+    W[:, 5, :3] *= flip[:, None]
     R[~valid], p[~valid] = 0.0, 0.0  # Frames: slots that are not valid hold zeros
+    if words:
+        return list(perf.names), times, R, p, valid, TrackerWords(W, FORMATS[fmt].command, scale)
     return list(perf.names), times, R, p, valid
 
 
-def write_log(path, names, times, R, p, valid, per_flush: int = 36, batch: int = 3) -> None:
+def write_log(path, names, times, R, p, valid, per_flush: int = 36, batch: int = 3, words=None) -> None:
     """As the pipeline writes: small batches, a flush every `per_flush` frames (a quarter second at 144 Hz)."""
     log = FrameLog(path, names, RATE, flush_s=3600.0)
     for a in range(0, len(times), batch):
-        log.write(times[a:a + batch], R[a:a + batch], p[a:a + batch], valid[a:a + batch])
+        log.write(times[a:a + batch], R[a:a + batch], p[a:a + batch], valid[a:a + batch],
+                  None if words is None else words[a:a + batch])
         if (a + batch) % per_flush == 0:
             log.flush()
     log.close()
@@ -80,6 +86,22 @@ def test_tracker_frames_come_back_bit_for_bit_in_a_fraction_of_the_space(tmp_pat
     assert_bitwise(read_frames(path)[1], times, R, p, valid)
     per_frame = (path.stat().st_size - len(path.read_bytes().split(b"\n", 1)[0])) / len(times)
     assert per_frame < limit, f"{per_frame:.0f} bytes a frame"
+
+
+@pytest.mark.parametrize("fmt,scale", [("position_matrix", 72), ("position_quaternion", 36)])
+def test_the_words_the_reader_hands_over_are_stored_as_they_came(tmp_path, fmt, scale):
+    """What was tried: the same frames written with the data words the reader decoded them from (hemisphere
+    flips negated in them, as the reader negates the positions), and with words that belong to the next
+    frame (a hand-over gone wrong). Both read back bit for bit; the words as they came take no more room
+    than the words the log works out from the poses itself (which keeps whole what no pattern reproduces)."""
+    names, times, R, p, valid, words = tracker_frames(fmt, scale, seconds=3.0, words=True)
+    sizes = {}
+    for how, w in (("searched", None), ("carried", words), ("wrong", words[np.r_[1:len(times), 0]])):
+        path = tmp_path / f"{how}.frames"
+        write_log(path, names, times, R, p, valid, words=w)
+        assert_bitwise(read_frames(path)[1], times, R, p, valid)
+        sizes[how] = path.stat().st_size
+    assert sizes["carried"] <= sizes["searched"] and sizes["wrong"] == sizes["searched"], sizes
 
 
 def test_frames_from_no_tracker_and_a_format_that_changes_are_kept_exactly(tmp_path):

@@ -80,6 +80,17 @@ def test_full_session_matches_fit_and_survives_restart(tracker, performer, tmp_p
     replayed = replay(recording).frames
     assert abs(len(replayed) - stopped["frames"]) <= 0.2 * RATE
     assert recording.settings["names"] == list(performer.names)  # so `flockcal convert` names the sensors
+    # The session's frame log holds the reader's very frames (it stores the tracker words they were decoded
+    # from, server/frameblocks.py): the take is, bit for bit, a run of the replayed frames, found by its
+    # poses (its times are the session's). Not its first frame: the raw bytes start at the session's start,
+    # in the middle of a cycle whose first records the replay never sees.
+    with np.load(io.BytesIO(take.content)) as z:
+        R, p, v = z["rotations"][1:], z["positions"][1:], z["valid"][1:]
+    start = [i for i in range(len(replayed) - len(R) + 1) if replayed.rotations[i:i + 3].tobytes() == R[:3].tobytes()]
+    assert len(start) == 1, start
+    run = replayed[start[0]:start[0] + len(R)]
+    assert np.array_equal(run.valid, v)
+    assert run.rotations.tobytes() == R.tobytes() and run.positions.tobytes() == p.tobytes()
     # The skeleton file describes this session's calibration: its tree, its joints, its measured bones.
     assert skeleton.status_code == 200
     sk = skeleton.json()
