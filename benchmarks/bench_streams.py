@@ -1,10 +1,11 @@
-"""What the live humanoid streams (VRPN, VMC; server/outputs.py) cost their own thread, in process, where a
-shared machine's load moves the figure less than a whole service's (bench_server.py --streams-paired measures
-the service itself): CPU time of the fc-outputs thread and of the feeding thread inside `Outputs.feed` (the
-reader's side: a queue append and the wake-up) as % of one core while `Outputs` is fed 16 birds at 144 Hz in
-the reader's 5 ms hand-overs, in real time, from the simulated performer's noisy poses through a fit of them
-that carries its humanoid, as the service's fits do; the same for VMC alone (60 Hz), VMC with VRPN's own
-client over UDP, and over TCP.
+"""What the live humanoid streams (VRPN, VMC; server/outputs.py) cost, in process, where a shared machine's load
+moves the figure less than a whole service's (bench_server.py --streams-paired measures the service itself): CPU
+time of the fc-outputs thread, of the feeding thread inside `Outputs.feed` (the reader's side: a queue append)
+and inside `Outputs.hand_over` (the pipeline's side: the streams' work), as % of one core, while `Outputs` is fed
+16 birds at 144 Hz in the reader's 5 ms hand-overs, in real time, from the simulated performer's noisy poses
+through a fit of them that carries its humanoid, as the service's fits do; the same for VMC alone (60 Hz), VMC
+with VRPN's own client over UDP, and over TCP. The feeding thread plays the pipeline's too: it hands over to the
+streams after each batch and when the time the last hand-over asked for comes, as `Pipeline._run` does.
 
     python benchmarks/bench_streams.py [--seconds 20]
 
@@ -72,18 +73,26 @@ def run(mode: str, seconds: float, fit, names, R, x, v, t) -> dict:
         client = subprocess.Popen([str(PRINT_DEVICES), device], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         tid = next(th.native_id for th in threading.enumerate() if th.name == "flockcal-outputs")
-        start, fed, c0, in_feed = time.monotonic(), 0, None, 0.0
+        start, fed, c0, in_feed, in_hand, again, f = SYSTEM.monotonic(), 0, None, 0.0, 0.0, np.inf, None
         total = int(seconds * RATE) + int(2 * RATE)  # 2 s to settle (the client connects), then the window
         while fed < total:
-            due = min(total, int((time.monotonic() - start) * RATE))
+            due = min(total, int((SYSTEM.monotonic() - start) * RATE))
             if due > fed:
                 f = Frames(t[fed:due] - t[0] + start, R[fed:due], x[fed:due], v[fed:due])
                 before = time.thread_time()
                 out.feed(f)
                 in_feed += time.thread_time() - before
                 fed = due
+            # This thread is the pipeline's too: it hands over to the streams at each step (a batch came, or
+            # the time the last hand-over asked for has).
+            if f is not None or SYSTEM.monotonic() >= again:
+                before = time.thread_time()
+                again = out.hand_over()
+                in_hand += time.thread_time() - before
+            f = None
             if c0 is None and fed >= 2 * RATE:
-                c0, w0, r0, in_feed = thread_cpu(tid), time.monotonic(), (out.vrpn.reports if out.vrpn else 0), 0.0
+                c0, w0, r0 = thread_cpu(tid), time.monotonic(), (out.vrpn.reports if out.vrpn else 0)
+                in_feed = in_hand = 0.0
             time.sleep(0.005)
         c1, w1, r1 = thread_cpu(tid), time.monotonic(), (out.vrpn.reports if out.vrpn else 0)
         st = out.status()
@@ -93,7 +102,8 @@ def run(mode: str, seconds: float, fit, names, R, x, v, t) -> dict:
             client.wait(10)
         out.stop()
         drain.close()
-    return {"cpu": 100 * (c1 - c0) / (w1 - w0), "feed": 100 * in_feed / (w1 - w0), "reports_hz": (r1 - r0) / (w1 - w0),
+    return {"cpu": 100 * (c1 - c0) / (w1 - w0), "feed": 100 * in_feed / (w1 - w0),
+            "hand": 100 * in_hand / (w1 - w0), "reports_hz": (r1 - r0) / (w1 - w0),
             "clients": len(st["vrpn"]["clients"]) if st["vrpn"] else 0, "bundles": st["vmc"]["bundles_sent"]}
 
 
@@ -126,12 +136,12 @@ def main(argv=None) -> int:
     if not fit.humanoid.posable:
         print(f"bench_streams: no humanoid found from {every} frames: {fit.humanoid.reason}", file=sys.stderr)
         return 2
-    print(f"the streams (fc-outputs and the reader's side in feed), 16 birds at {RATE:g} Hz fed in real time, {args.seconds:g} s windows")
+    print(f"the streams (fc-outputs, the reader's side in feed, the pipeline's in hand_over), 16 birds at {RATE:g} Hz fed in real time, {args.seconds:g} s windows")
     for mode, what in (("vmc", "VMC at 60 Hz alone"), ("udp", "VMC + VRPN, vrpn_print_devices over UDP"),
                        ("tcp", "VMC + VRPN, vrpn_print_devices over TCP")):
         w = run(mode, args.seconds, fit, p.names, R, x, v, t)
-        print(f"  {what:42s} {w['cpu'] + w['feed']:5.2f} % of one core: fc-outputs {w['cpu']:5.2f}, in feed "
-              f"{w['feed']:5.2f}   (VRPN frames {w['reports_hz']:5.1f}/s to "
+        print(f"  {what:42s} {w['cpu'] + w['feed'] + w['hand']:5.2f} % of one core: fc-outputs {w['cpu']:5.2f}, "
+              f"in feed {w['feed']:5.2f}, in hand_over {w['hand']:5.2f}   (VRPN frames {w['reports_hz']:5.1f}/s to "
               f"{w['clients']} client(s); load {os.getloadavg()[0]:.1f})", flush=True)
     return 0
 

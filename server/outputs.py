@@ -1,6 +1,6 @@
-"""The live humanoid streams, VRPN (server/vrpn.py) and VMC (server/vmc.py), on a thread of their own
-("fc-outputs"), fed each batch of frames as the reader hands it over and the newest fit from the snapshots:
-nothing here runs on the reader's or the pipeline's thread, and no socket ever blocks (docs/server.md).
+"""The live humanoid streams, VRPN (server/vrpn.py) and VMC (server/vmc.py): their work done at the pipeline
+thread's steps (`Outputs.hand_over`, from the frames the reader queued), their sockets on a thread of their own
+("fc-outputs"), which also stands in while the pipeline does not come by. No socket ever blocks (docs/server.md).
 """
 
 from __future__ import annotations
@@ -27,22 +27,30 @@ from flockcal.threads import name_os_thread
 
 log = logging.getLogger(__name__)
 
-RIG_REFRESH_S = 0.2  # a new fit reaches the streams' rig at most this often (fits come 30 times a second)
+# A live session's next fit reaches the streams' rig at most this often (fits come 30 times a second; a rebuild
+# costs about 1.5 ms of the pipeline thread in the service: at 0.2 s they were 0.8 points of a core).
+RIG_REFRESH_S = 0.5
 HUMANOID_REFRESH_S = 5.0  # the humanoid is found again this often, and whenever the tree changes
 RETRY_S = 1.0  # a stopped session's fit that gave no rig (too few frames yet) is tried again this often
 SAMPLE_S, SAMPLE_FRAMES = 0.1, 600  # the frames the humanoid is found from: one every 0.1 s, the last minute
 TRACKING_S = 0.25  # newer frames than this, every bone's sensor valid: VMC's tracking status is OK
-OSC_GRACE_S = 0.02  # how long a due VMC bundle waits for a frame's wake-up to ride on
-# VMC bundles go one a wake-up, at least half a period apart, each stamped with its own tick: a tick that
-# waited for a wake-up is caught up by the next ones (they come 64-72 times a second), not skipped. A
+OSC_GRACE_S = 0.02  # how long a due VMC bundle waits for a hand-over that sends frames, to ride on it
+# VMC bundles go one a hand-over, at least half a period apart, each stamped with its own tick: a tick that
+# waited for frames is caught up by the next hand-overs (they come 64-72 times a second), not skipped. A
 # sender held up for OSC_BEHIND periods skips what it missed rather than sending a burst.
 OSC_SPACING, OSC_BEHIND = 0.5, 3
-# While a VRPN client takes every frame, the thread wakes for every second frame, not each: a wake-up costs
-# about as much as a frame's work (docs/streams.md), so a frame waits at most for the next one, one frame
-# period (6.9 ms at 144 Hz). Frames more than PAIR_S apart (a slower tracker, the frame after a gap) wake it
-# at once; a lone frame before a pause goes within STALL_S.
+# While a VRPN client takes every frame, they go out two at a time, not each: a hand-over's work costs about
+# as much for two frames as for one (docs/streams.md), so a frame waits at most for the next one, one frame
+# period (6.9 ms at 144 Hz). A frame more than PAIR_S after the one before (a slower tracker, the frame after
+# a gap) goes at once; a lone frame before a pause goes within STALL_S.
 PAIR_S, STALL_S = 0.008, 0.02
-QUEUE_BATCHES = 256  # batches waiting for the thread at most (the oldest go first: live streams want the newest)
+# The pipeline's thread does the streams' work at its steps (it wakes for every batch anyway: a thread of
+# their own woken for it cost a point of a core more). When it has not come by for STAND_IN_S (a session's
+# stop holding it up, or no pipeline at all), the streams' own thread does the same work, woken by the
+# reader's hand-overs as the pipeline is.
+STAND_IN_S = 0.25
+LOOK_S = 0.1  # frames no stream sends yet are taken this often all the same: held, sampled, the fit followed
+QUEUE_BATCHES = 256  # batches waiting for the streams at most (the oldest go first: live streams want the newest)
 
 
 def humanoid_of(fit, sample: tuple[np.ndarray, np.ndarray, np.ndarray]) -> Humanoid:
@@ -60,8 +68,10 @@ def humanoid_of(fit, sample: tuple[np.ndarray, np.ndarray, np.ndarray]) -> Human
 class Outputs:
     """VRPN and VMC out, as `settings` ask (`vrpn_port`, `osc_targets`, `osc_hz`). Built before the service
     serves: a port in use or a receiver that cannot be resolved is one line in `lines` (what `serve` prints)
-    and the service runs without that output. `feed` (the reader's thread) only queues; `start` / `stop`
-    run the thread. `clock`: the service's (the frames' times, the streams' cadence, VRPN's wall times)."""
+    and the service runs without that output. `feed` (the reader's thread) only queues; `hand_over` (the
+    pipeline's thread, at each step) does the streams' work; `start` / `stop` run their own thread (the
+    sockets; the work while the pipeline does not come by). `clock`: the service's (the frames' times, the
+    streams' cadence, VRPN's wall times)."""
 
     def __init__(self, settings, names: tuple[str, ...], snapshot: Callable[[], object], clock: Clock):
         self.clock = clock
@@ -82,19 +92,26 @@ class Outputs:
                 self.vmc = vmc.VmcSender(targets)
                 self.lines.append(f"VMC to {', '.join(t.label for t in targets)} at {settings.osc_hz:g} Hz")
         self.lines += self.problems
-        self._queue: collections.deque[Frames] = collections.deque(maxlen=QUEUE_BATCHES)
+        self._queue: collections.deque[Frames] = collections.deque(maxlen=QUEUE_BATCHES)  # the reader's batches
         self._wake_r, self._wake_w = socket.socketpair()
         self._wake_r.setblocking(False)
         self._wake_w.setblocking(False)
         self._woken = False
-        # Wake the thread only while a VRPN client takes every frame (every second frame: PAIR_S); VMC's
-        # ticks take the newest (waking per batch cost as much again as VMC's own work).
+        self._lock = threading.Lock()  # the streams' state below: whichever thread serves them holds it
+        # While a VRPN client takes every frame, and the pipeline does not come by, `feed` wakes the streams'
+        # thread for every second frame (PAIR_S); VMC's ticks take the newest.
         self._eager = False
+        self._handed_at = -np.inf  # when the pipeline's thread last came by (`hand_over`)
         self._unwoken = 0  # frames queued since `feed` last woke the thread (`feed`'s own)
         self._fed_t = -np.inf  # the newest queued frame's time (`feed`'s own)
         self._stop = False
         self._thread: threading.Thread | None = None
-        # Below: the thread's own.
+        # Below: the streams' own, under `_lock`.
+        self._waiting: collections.deque[Frames] = collections.deque(maxlen=QUEUE_BATCHES)  # taken, not yet sent
+        self._sent_t = -np.inf  # the newest frame the streams took
+        self._next_osc, self._last_osc = clock.monotonic(), -np.inf  # VMC's tick grid, its last bundle
+        self._next_tick = 0.0  # the VRPN server's and the status's half-second tick
+        self._next_look = -np.inf  # when frames no stream sends are next taken (LOOK_S)
         self._held = (np.full((self.m, 3, 3), np.nan), np.full((self.m, 3), np.nan))
         self._newest: tuple | None = None  # (reader time, valid (m,), whether every sensor is) of the newest frame
         self._segments: tuple | None = None  # (reader time, positions, rotations, VMC's local quaternions or None)
@@ -138,22 +155,45 @@ class Outputs:
 
     # -- any thread ---------------------------------------------------------------------------------------
     def feed(self, frames: Frames) -> None:
-        """A batch from the reader: queued, the thread woken if a VRPN client waits for it and a second frame
-        is here (or this one came over PAIR_S after the last). Never blocks."""
+        """A batch from the reader: queued. Only while the pipeline's thread has not come by for STAND_IN_S (it
+        does the streams' work at its steps) is the streams' own thread woken, as it would: when a VRPN client
+        waits for the frames and a second frame is here (or this one came over PAIR_S after the last). Never
+        blocks."""
         n = len(frames)
         if not n:
             return
         self._queue.append(frames)
         self._unwoken += n
         gap, self._fed_t = frames.times[-1] - self._fed_t, frames.times[-1]
-        if self._eager and (self._unwoken >= 2 or gap > PAIR_S):
+        if not self._eager or self._fed_t - self._handed_at < STAND_IN_S:
+            return
+        if self._unwoken >= 2 or gap > PAIR_S:
             self._unwoken = 0
-        if self._eager and not self._unwoken and not self._woken:
-            self._woken = True
-            try:
-                self._wake_w.send(b"\0")
-            except (BlockingIOError, OSError):
-                pass
+            if not self._woken:
+                self._woken = True
+                try:
+                    self._wake_w.send(b"\0")
+                except (BlockingIOError, OSError):
+                    pass
+
+    def hand_over(self) -> float:
+        """The streams' work for the frames queued since (the pipeline's thread, at each of its steps): sent in
+        twos while a VRPN client takes them, with VMC's bundle when due. Returns when it wants to be called
+        again with no new frames (a lone frame's STALL_S, VMC's next tick; inf: not before frames come).
+        Never waits: while the streams' own thread holds their state, the next step takes the frames."""
+        if self._stop:
+            return np.inf
+        now = self.clock.monotonic()
+        self._handed_at = now
+        if not self._lock.acquire(blocking=False):
+            return now + PAIR_S
+        try:
+            return self._serve(now)
+        except Exception:
+            log.exception("outputs: a step failed; the streams go on with the next frames")
+            return now + STALL_S
+        finally:
+            self._lock.release()
 
     def start(self) -> None:
         if not self.active:
@@ -170,10 +210,11 @@ class Outputs:
             pass
         if self._thread is not None:
             self._thread.join(5)
-        if self.vrpn is not None:
-            self.vrpn.close()
-        if self.vmc is not None:
-            self.vmc.close()
+        with self._lock:  # the pipeline's thread may be in `hand_over`: it sends nothing from here on
+            if self.vrpn is not None:
+                self.vrpn.close()
+            if self.vmc is not None:
+                self.vmc.close()
         self._wake_r.close()
         self._wake_w.close()
 
@@ -183,51 +224,76 @@ class Outputs:
 
     # -- the thread ---------------------------------------------------------------------------------------
     def _run(self) -> None:
+        """The sockets (VRPN's clients, the wake-ups), the half-second tick, and the streams' work while the
+        pipeline's thread does not come by (STAND_IN_S)."""
         name_os_thread("fc-outputs")
         sel = selectors.DefaultSelector()
         sel.register(self._wake_r, selectors.EVENT_READ, self._drain_wake)
         if self.vrpn is not None:
             self.vrpn.register(sel)
-        next_osc, last_osc = self._t0, -np.inf
-        next_tick = 0.0
+        due = self.clock.monotonic()  # when the streams want serving, while this thread stands in
         while not self._stop:
             now = self.clock.monotonic()
-            # While frames wake the thread (a VRPN client), a VMC bundle rides on the next frame's wake-up
-            # (frames come 144 times a second): a wake-up of its own cost as much again on a busy machine,
-            # whose caches hold none of this between wake-ups. A tracker gone quiet still gets its bundles.
-            osc_due = (max(next_osc + (OSC_GRACE_S if self._eager else 0.0), last_osc + OSC_SPACING * self.osc_period)
-                       if self.vmc is not None else now + 0.5)
-            due = min(osc_due, next_tick)
-            if self._eager and self._newest is not None and now - self._newest[0] < 10 * STALL_S:
-                due = min(due, now + STALL_S)  # frames are coming: a lone one before a pause is not held long
-            timeout = max(0.0, due - now)
-            for key, mask in sel.select(timeout):
+            handed = self._handed_at + STAND_IN_S  # until then the pipeline's thread serves the streams
+            timeout = max(0.0, min(self._next_tick, due if now >= handed else handed) - now)
+            events = sel.select(timeout)
+            with self._lock:
+                for key, mask in events:
+                    try:
+                        key.data(mask)
+                    except Exception:  # one client's fault is not the stream's: log it, go on
+                        log.exception("outputs: a socket event failed")
+                now = self.clock.monotonic()
                 try:
-                    key.data(mask)
-                except Exception:  # one client's fault is not the stream's: log it, go on
-                    log.exception("outputs: a socket event failed")
-            now = self.clock.monotonic()
-            self._eager = self.vrpn is not None and self.vrpn.streaming
-            try:
-                osc_due = (self.vmc is not None and now >= next_osc
-                           and now - last_osc >= OSC_SPACING * self.osc_period)
-                followed = self._frames(osc_due) if self._queue else False
-                if osc_due:
-                    self._send_vmc(now, next_osc, followed)
-                    last_osc = now
-                    # A fixed grid, so the rate holds: a late tick is caught up by the next wake-ups (OSC_SPACING
-                    # apart); held up OSC_BEHIND periods, the ticks missed are skipped, not sent in a burst.
-                    late = now - next_osc
-                    next_osc += self.osc_period * (1 if late < OSC_BEHIND * self.osc_period
-                                                   else np.ceil(late / self.osc_period))
-                if now >= next_tick:
-                    if self.vrpn is not None:
-                        self.vrpn.tick(now)
-                    self._status = self._make_status()
-                    next_tick = now + 0.5
-            except Exception:
-                log.exception("outputs: a step failed; the streams go on with the next frames")
+                    if now - self._handed_at >= STAND_IN_S:
+                        due = self._serve(now)
+                        if self._eager and self._newest is not None and now - self._newest[0] < 10 * STALL_S:
+                            due = min(due, now + STALL_S)  # frames are coming: a lone one before a pause is not held long
+                    if now >= self._next_tick:
+                        if self.vrpn is not None:
+                            self.vrpn.tick(now)
+                        self._status = self._make_status()
+                        self._next_tick = now + 0.5
+                except Exception:
+                    log.exception("outputs: a step failed; the streams go on with the next frames")
         sel.close()
+
+    def _serve(self, now: float) -> float:
+        """The streams' work at `now` (under `_lock`): the frames taken, sent while a VRPN client takes them (two
+        at a time: PAIR_S), VMC's bundle when its tick is due. Returns when it next wants to run with no new
+        frames."""
+        self._eager = eager = self.vrpn is not None and self.vrpn.streaming
+        while self._queue:
+            self._waiting.append(self._queue.popleft())
+        waiting = self._waiting
+        send = False
+        if eager and waiting:
+            last = waiting[-1].times
+            n = len(waiting[0]) if len(waiting) == 1 else 2
+            before = last[-2] if len(last) > 1 else (waiting[-2].times[-1] if len(waiting) > 1 else self._sent_t)
+            send = n >= 2 or last[-1] - before > PAIR_S or now - last[-1] >= STALL_S
+        spacing = OSC_SPACING * self.osc_period
+        osc_due = (self.vmc is not None and now >= self._next_osc and now - self._last_osc >= spacing
+                   and (send or not eager or now >= self._next_osc + OSC_GRACE_S))
+        followed = False
+        if send or osc_due or (waiting and now >= self._next_look):
+            followed = self._frames(list(waiting), osc_due)
+            waiting.clear()
+            self._next_look = now + LOOK_S
+        if osc_due:
+            self._send_vmc(now, self._next_osc, followed)
+            self._last_osc = now
+            # A fixed grid, so the rate holds: a late tick is caught up by the next hand-overs (OSC_SPACING
+            # apart); held up OSC_BEHIND periods, the ticks missed are skipped, not sent in a burst.
+            late = now - self._next_osc
+            self._next_osc += self.osc_period * (1 if late < OSC_BEHIND * self.osc_period
+                                                 else np.ceil(late / self.osc_period))
+        due = np.inf
+        if self.vmc is not None:
+            due = max(self._next_osc + (OSC_GRACE_S if eager else 0.0), self._last_osc + spacing)
+        if eager and self._waiting:
+            due = min(due, self._waiting[-1].times[-1] + STALL_S)
+        return due
 
     def _drain_wake(self, _mask) -> None:
         self._woken = False
@@ -236,21 +302,18 @@ class Outputs:
         except (BlockingIOError, OSError):
             pass
 
-    def _frames(self, osc_due: bool = False) -> bool:
-        """The queued frames: held, sampled, and while a VRPN client takes them, sent; with a VMC bundle due
-        in this wake-up, its bones' local quaternions come out of the same `as_quat` call as VRPN's. Whether
+    def _frames(self, batches: list[Frames], osc_due: bool = False) -> bool:
+        """Frames taken from the reader's queue: held, sampled, and while a VRPN client takes them, sent; with a
+        VMC bundle due now, its bones' local quaternions come out of the same `as_quat` call as VRPN's. Whether
         it followed the newest fit (it does whenever there were frames)."""
-        batches = []
-        while self._queue:
-            batches.append(self._queue.popleft())
-        streaming = self._eager  # whether a VRPN client takes every frame, as `_run` read it this wake-up
+        streaming = self._eager  # whether a VRPN client takes every frame, as `_serve` read it
         if not streaming and batches and batches[-1].valid[-1].all():
             batches = [batches[-1][-1:]]  # VMC takes the newest frame: held poses need nothing before it
         if not batches:  # `feed` queues no empty batch
             return False
         last = batches[-1]
         # Every sensor valid in every frame, the usual case: the frames are their own held poses, and the rig
-        # reads them batch by batch (a wake-up's first calls cost several times their warm cost: joining the
+        # reads them batch by batch (a hand-over's first calls cost several times their warm cost: joining the
         # batches first cost as much as playing them through the rig).
         whole = all(np.logical_and.reduce(b.valid, axis=None) for b in batches)
         if whole:
@@ -261,7 +324,7 @@ class Outputs:
             R, t = held_poses(f.rotations, f.positions, f.valid, before=self._held)
             self._held = (R[-1], t[-1])
         newest = float(last.times[-1])
-        self._newest = (newest, last.valid[-1], whole)
+        self._newest, self._sent_t = (newest, last.valid[-1], whole), newest
         self._segments = None
         if newest - self._sample_t >= SAMPLE_S:
             k = self._sampled % SAMPLE_FRAMES
@@ -274,16 +337,16 @@ class Outputs:
         if rig is None or not streaming:
             return True
         if R is None:
-            n = sum(len(b) for b in batches)
-            x, times, at = np.empty((n, rig.width)), np.empty(n), 0
+            times = [t for b in batches for t in b.times.tolist()]  # a few frames: Python floats, no arrays
+            x, at = np.empty((len(times), rig.width)), 0
             for b in batches:
-                rig.inputs(b.rotations, b.positions, x[at:at + len(b)])
-                times[at:at + len(b)] = b.times
-                at += len(b)
-            pos, rot = rig.play(x)
+                n = len(b.times)
+                rig.inputs(b.rotations, b.positions, x[at:at + n])
+                at += n
+            pos, rot = rig.play(x, finite=True)  # every sensor valid: every pose is a reading
         else:
             pos, rot = rig.segments(R, t)
-            times = f.times.copy()  # a lone batch's own: the reader's, not to be written
+            times = f.times.tolist()
         n, k = rot.shape[:2]
         turns = rot.reshape(n * k, 3, 3)
         if osc_due:  # VMC's local rotations written after VRPN's: one `as_quat` for both
@@ -293,8 +356,9 @@ class Outputs:
         quats = as_quat(turns, scalar_first=False)
         self._segments = (newest, pos[-1], rot[-1], quats[n * k:] if osc_due else None)
         quats = quats[:n * k].reshape(n, k, 4)
-        times += self.clock.wall() - self.clock.monotonic()  # the frames' wall times, in place
-        self.vrpn.send_reports(self._packer.frames(times, pos, quats))
+        offset = self.clock.wall() - self.clock.monotonic()
+        walls = [t + offset for t in times]  # the frames' wall times
+        self.vrpn.send_reports(self._packer.frames(walls, pos, quats, finite=R is None))
         return True
 
     def _follow_fit(self) -> None:
@@ -308,6 +372,8 @@ class Outputs:
             fit = None
         if fit is not self._fit:
             self._fit, self._rig_stale = fit, True
+        elif not self._rig_stale:  # the usual case, at every hand-over that sends frames
+            return
         now = self.clock.monotonic()
         # Another session's fit, a session's final fit or none at all: at once (what VMC's calibration
         # state says must be what its bones are); the same session's next live fit: at the refresh rate.
@@ -352,7 +418,7 @@ class Outputs:
     def _send_vmc(self, now: float, tick: float, followed: bool = False) -> None:
         """One bundle: the newest frame's bones once there is a rig, else /VMC/Ext/OK "not loaded"; its
         /VMC/Ext/T is the tick's time on the sender's grid (seconds since the streams started). `followed`:
-        this wake-up's frames just followed the newest fit."""
+        this hand-over's frames just followed the newest fit."""
         if not followed:
             self._follow_fit()
         rig, newest, session = self._rig, self._newest, self._session
@@ -368,7 +434,8 @@ class Outputs:
                 self._segments, local = (newest[0], pos, rot, None), None
             numbers = (self._layout.numbers(pos, rot) if local is None
                        else self._layout.assemble(pos, local))
-            if not np.isfinite(np.add.reduce(numbers, axis=None)):  # a sensor with no pose yet: the bones wait for one
+            # A sensor with no pose yet: the bones wait for one (a frame with every sensor valid has them all).
+            if not newest[2] and not np.isfinite(np.add.reduce(numbers, axis=None)):
                 numbers = None
         if numbers is None:
             state = vmc.CALIBRATING if session is not None else vmc.UNCALIBRATED

@@ -10,6 +10,7 @@ What the calibration returns is typed; it becomes JSON at the store and the snap
 from __future__ import annotations
 
 import logging
+import math
 import threading
 from concurrent.futures import Future
 from dataclasses import replace
@@ -103,6 +104,10 @@ class Pipeline:
         self._commands: list[tuple[Callable, Future, int]] = []  # (fn, its future, frames before it)
         self._stop = False
         self._thread: threading.Thread | None = None
+        # Work that rides on this thread's steps (the live streams' `Outputs.hand_over`), given at `start`:
+        # run at each step, and again when the time it returned comes with no step before it.
+        self._beside: Callable[[], float] | None = None
+        self._beside_due = math.inf
         # The session manager's side, given at `start`: stop a session for a limit, store held row updates.
         self._stop_session: Callable[[LimitStop], None] = lambda stop: None
         self._flush_held_rows: Callable[[], bool] = lambda: True
@@ -165,10 +170,13 @@ class Pipeline:
         return fut.result(timeout)
 
     def start(self, stop_session: Callable[[LimitStop], None] | None = None,
-              flush_held_rows: Callable[[], bool] | None = None) -> None:
+              flush_held_rows: Callable[[], bool] | None = None, beside: Callable[[], float] | None = None) -> None:
         """Start the pipeline and fit threads. A limit reached stops its session through `stop_session`
         (SessionManager.stop_for_limit: on a thread of its own, as a client's stop); room again on the disk
-        stores the session rows held meanwhile with `flush_held_rows`."""
+        stores the session rows held meanwhile with `flush_held_rows`. `beside` (the live streams'
+        `Outputs.hand_over`) runs on this thread at the start of every step, and on its own when the time it
+        returned (monotonic seconds; inf: none) comes first: it must never wait."""
+        self._beside = beside
         if stop_session is not None:
             self._stop_session = stop_session
         if flush_held_rows is not None:
@@ -246,6 +254,7 @@ class Pipeline:
         last_publish = 0.0
         backlog = False
         while True:
+            beside_only = False
             with self._cond:
                 while not self._stop and not self._commands and not backlog:
                     has_work = bool(self._pending or self._pending_events or self.fitter.has_result())
@@ -254,7 +263,14 @@ class Pipeline:
                     now = self.clock.monotonic()
                     if now >= due:
                         break
-                    self.clock.wait(self._cond, due - now)
+                    if now >= self._beside_due:  # the streams' time, nothing else's
+                        beside_only = True
+                        break
+                    self.clock.wait(self._cond, min(due, self._beside_due) - now)
+            if beside_only:
+                self._run_beside()
+                continue
+            with self._cond:
                 stopping = self._stop
                 if stopping:
                     batches, self._pending = self._pending, []
@@ -269,6 +285,7 @@ class Pipeline:
                     commands = []
                 backlog = bool(self._pending)
                 events, self._pending_events = self._pending_events, []
+            self._run_beside()  # the streams first: their frames go out before this step's work on them
             try:
                 if batches:
                     self._process_frames(batches)
@@ -288,6 +305,15 @@ class Pipeline:
                     self.persistence.flush_db(self.live)
                     self.live.framelog.flush()
                 return
+
+    def _run_beside(self) -> None:
+        if self._beside is None:
+            return
+        try:
+            self._beside_due = self._beside()
+        except Exception:  # the streams' fault is not the pipeline's
+            log.exception("work beside the pipeline failed")
+            self._beside_due = math.inf
 
     def _session_time(self) -> float | None:
         """The live session's time of its newest frame; None without a session or before its first frame."""

@@ -145,18 +145,19 @@ class Service:
     def start(self) -> None:
         # A step of the wall clock is an event, and kept at once (the housekeeping pass saves the clock).
         self.clock.bind(self._clock_stepped)
-        self.pipeline.start(stop_session=self.sessions.stop_for_limit, flush_held_rows=self.sessions.flush_held_rows)
-        feed = self.pipeline.feed
+        feed, beside = self.pipeline.feed, None
         if self.outputs is not None and self.outputs.active:
             self.outputs.start()
-            feed = self._feed_all
+            feed, beside = self._feed_all, self.outputs.hand_over  # the streams' work rides on the pipeline's steps
+        self.pipeline.start(stop_session=self.sessions.stop_for_limit, flush_held_rows=self.sessions.flush_held_rows,
+                            beside=beside)
         self.source.start(feed, self.pipeline.tracker_event)
         self.retention.start()
         self.leases.start()
         self.started = True
 
     def _feed_all(self, frames) -> None:
-        """The reader's batch to the pipeline and, queued for their own thread, to the live streams."""
+        """The reader's batch to the pipeline and, queued for the pipeline's steps, to the live streams."""
         self.pipeline.feed(frames)
         self.outputs.feed(frames)
     def _clock_stepped(self, event: dict) -> None:

@@ -96,22 +96,24 @@ class ReportPacker:
         self._fields = tuple(self._buf[k] for k in ("sec", "usec", "pos", "quat"))
         self._row = self._buf.itemsize * len(self.sensors)
 
-    def frames(self, wall_times: np.ndarray, positions: np.ndarray, quats: np.ndarray) -> list[bytes]:
-        """`positions` (n, K, 3) metres, `quats` (n, K, 4) x y z w, `wall_times` (n,) unix seconds: per frame
-        the messages of its sensors with a position (a sensor with NaN, no pose yet, is left out)."""
+    def frames(self, wall_times, positions: np.ndarray, quats: np.ndarray, finite: bool = False) -> list[bytes]:
+        """`positions` (n, K, 3) metres, `quats` (n, K, 4) x y z w, `wall_times` (n,) unix seconds (a sequence
+        of floats): per frame the messages of its sensors with a position (a sensor with NaN, no pose yet, is
+        left out; `finite`: the caller knows there is none)."""
         out = []
+        sec_f, usec_f, pos_f, quat_f = self._fields
         for at in range(0, len(wall_times), len(self._buf)):
             n = min(len(self._buf), len(wall_times) - at)
-            sec_f, usec_f, pos_f, quat_f = self._fields
-            when = wall_times[at:at + n]
-            sec = np.floor(when)
-            sec_f[:n] = sec[:, None]
-            usec_f[:n] = ((when - sec) * 1e6)[:, None]  # truncated as it is cast, as astype(int) would
+            # Frame by frame in Python: the streams pack two or three at a time, where each array call costs
+            # more than these few numbers' arithmetic.
+            for i, when in enumerate(wall_times[at:at + n]):
+                sec = int(when)  # the floor: wall times are positive
+                sec_f[i], usec_f[i] = sec, int((when - sec) * 1e6)  # truncated, as a cast to an integer is
             pos = positions[at:at + n]
             pos_f[:n], quat_f[:n] = pos, quats[at:at + n]
             # A sensor with no pose has NaN in its position (its rotation too makes the position NaN); a sum
             # is finite only when every term is.
-            if np.isfinite(np.add.reduce(pos, axis=None)):
+            if finite or np.isfinite(np.add.reduce(pos, axis=None)):
                 raw = self._buf[:n].tobytes()
                 out += [raw[i:i + self._row] for i in range(0, len(raw), self._row)]
             else:
@@ -153,6 +155,7 @@ class Client:
     inbox: bytearray = field(default_factory=bytearray)
     outbox: bytearray = field(default_factory=bytearray)
     udp: tuple | None = None  # where its reports go once it described its UDP port
+    udp_sock: socket.socket | None = None  # ... connected there (no address to read and route to look up per datagram)
     types: dict = field(default_factory=dict)  # the client's type numbers → names
     senders: dict = field(default_factory=dict)  # the client's sender numbers → names
 
@@ -166,7 +169,9 @@ class VrpnServer:
     selector (`register`); `send_reports` hands out one datagram (or TCP write) per frame to every client.
 
     A client whose TCP backlog (what its socket would not take) passes `backlog_bytes` has stopped reading
-    and is dropped, as the websocket's slow clients are; UDP reports are fire-and-forget."""
+    and is dropped, as the websocket's slow clients are; UDP reports are fire-and-forget, from a socket
+    connected to each client. The caller makes the calls one at a time (server/outputs.py's lock):
+    `send_reports` may come from another thread than the one that waits in the selector."""
 
     def __init__(self, host: str, port: int, clock: Clock, device: str = "flockcal", sensors: int = 16,
                  max_clients: int = 32, backlog_bytes: int = BACKLOG):
@@ -179,10 +184,9 @@ class VrpnServer:
         self.dropped: dict[Drop, int] = dict.fromkeys(Drop, 0)
         self.reports = 0
         self.seq = 0
+        self.streaming = False  # whether a client is connected (the streams ask before each frame's work)
         self._sel: selectors.BaseSelector | None = None
         self.tcp, self.udp_in, self.port = _bind(host, port)
-        self.udp_out = socket.socket(self.udp_in.family, socket.SOCK_DGRAM)
-        self.udp_out.setblocking(False)
 
     # -- sockets ------------------------------------------------------------------------------------------
     def register(self, sel: selectors.BaseSelector) -> None:
@@ -193,8 +197,8 @@ class VrpnServer:
     def close(self) -> None:
         for c in list(self.clients):
             self._drop(c, None)
-        for s in (self.tcp, self.udp_in, self.udp_out):
-            if self._sel is not None and s is not self.udp_out:
+        for s in (self.tcp, self.udp_in):
+            if self._sel is not None:
                 try:
                     self._sel.unregister(s)
                 except (KeyError, ValueError):
@@ -301,6 +305,7 @@ class VrpnServer:
                 return
             del c.inbox[:COOKIE_SIZE]
             c.state = "connected"
+            self.streaming = True
             now = self.clock.wall()
             self._send(c, description(SENDER_DESCRIPTION, 0, self.device, now)
                        + b"".join(description(TYPE_DESCRIPTION, k, name, now) for k, name in enumerate(TYPES)))
@@ -327,7 +332,18 @@ class VrpnServer:
         elif kind == UDP_DESCRIPTION and not c.tcp_only:
             # The sender field holds the port; reports go to the TCP peer's address (see `_lobbed`).
             if 0 < sender < 65536:
-                c.udp = (c.address[0], sender)
+                udp = socket.socket(self.tcp.family, socket.SOCK_DGRAM)
+                udp.setblocking(False)
+                try:
+                    udp.connect((c.address[0], sender))
+                except OSError as exc:  # no route to it: its reports go over TCP
+                    udp.close()
+                    log.warning("VRPN: client %s: cannot send to its UDP port %d: %s", c.label, sender,
+                                exc.strerror or exc)
+                    return
+                if c.udp_sock is not None:
+                    c.udp_sock.close()
+                c.udp, c.udp_sock = (c.address[0], sender), udp
         elif kind >= 0 and c.senders.get(sender) == self.device:
             what, now = c.types.get(kind), self.clock.wall()
             if what == PING:
@@ -376,10 +392,11 @@ class VrpnServer:
         for c in list(self.clients):
             if c.state != "connected":
                 continue
-            if c.udp is not None:
+            if c.udp_sock is not None:
+                send = c.udp_sock.send
                 for data in frames:
                     try:
-                        self.udp_out.sendto(data, c.udp)
+                        send(data)
                     except (BlockingIOError, InterruptedError):
                         pass  # the socket's buffer is full: this report is lost, as UDP's may be
                     except OSError:
@@ -387,10 +404,6 @@ class VrpnServer:
             else:
                 self._send(c, b"".join(frames))
         self.reports += len(frames)
-
-    @property
-    def streaming(self) -> bool:
-        return any(c.state == "connected" for c in self.clients)
 
     def tick(self, now: float) -> None:
         """Drop clients that never finished connecting."""
@@ -402,6 +415,9 @@ class VrpnServer:
         if c not in self.clients:
             return
         self.clients.remove(c)
+        self.streaming = any(other.state == "connected" for other in self.clients)
+        if c.udp_sock is not None:
+            c.udp_sock.close()
         if why is not None:
             self.dropped[why] += 1
             log.info("VRPN: client %s gone (%s)", c.label, why)

@@ -215,8 +215,8 @@ class _Sent:
 
 def streamed(cal, names, R, x, valid, batches_per_wake: list[list[int]]):
     """Every datagram the streams send for these frames (times 1/144 s apart) handed over in `batches_per_wake`
-    (per wake-up, the sizes of its batches), a VMC bundle due every second wake-up: what `Outputs._run` does
-    per wake-up, on a clock that stands still just after the last frame (so that every wake-up reads the same
+    (per wake-up, the sizes of its batches), a VMC bundle due every second wake-up: what `Outputs._serve` does
+    when it sends, on a clock that stands still just after the last frame (so that every wake-up reads the same
     offset of the wall clock from the frames' clock, whatever the batching)."""
     import tempfile
     from pathlib import Path
@@ -235,11 +235,12 @@ def streamed(cal, names, R, x, valid, batches_per_wake: list[list[int]]):
     times = 1000.0 + np.arange(len(R)) / 144
     at = 0
     for wake, sizes in enumerate(batches_per_wake):
+        batches = []
         for n in sizes:
-            out.feed(Frames(times[at:at + n], R[at:at + n], x[at:at + n], valid[at:at + n]))
+            batches.append(Frames(times[at:at + n], R[at:at + n], x[at:at + n], valid[at:at + n]))
             at += n
         due = wake % 2 == 1
-        followed = out._frames(due)
+        followed = out._frames(batches, due)
         if due:
             out._send_vmc(clock.monotonic(), clock.monotonic(), followed)
     out.stop()

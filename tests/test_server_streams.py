@@ -446,3 +446,40 @@ def test_a_stopped_sessions_fit_without_a_humanoid_streams_once_frames_find_one(
         assert out.status()["humanoid"]["streaming"], f"no bones after {fed / 144:.1f} s of frames: {out.reason}"
     finally:
         out.stop()
+
+
+# -- the hand-over on the pipeline thread -----------------------------------------------------------------
+def test_with_no_frames_the_pipeline_hands_over_to_the_streams_when_they_ask_and_not_before(tmp_path):
+    """The streams' work rides on the pipeline thread's steps (`Pipeline.start(beside=…)`); a tracker gone
+    quiet still gets VMC's bundles because the pipeline also runs the hand-over when the time it returned
+    comes. Tried: a pipeline with no frames at all and a hand-over that asks again 10 ms on, 30 times: each
+    comes no sooner than asked and most long before the next idle step, and the snapshots stay at their idle
+    rate (twice a second), not one per hand-over."""
+    from flockcal.drivers.tracker_status import TrackerStatus
+    from flockcal.server.limits import DiskStatus
+    from flockcal.server.pipeline import Pipeline
+    from flockcal.server.snapshot import SourceStatus
+    from flockcal.server.store import Store
+
+    calls, asked, published = [], [], []
+
+    def hand_over() -> float:
+        calls.append(SYSTEM.monotonic())
+        asked.append(calls[-1] + 0.01)
+        return asked[-1]
+
+    store = Store(tmp_path / "flockcal.sqlite3")
+    pipe = Pipeline(("a", "b"), store, lambda: SourceStatus(TrackerStatus(connected=True), "test", False,
+                                                            DiskStatus(False, None, 0)),
+                    on_publish=lambda snap: published.append(SYSTEM.monotonic()))
+    pipe.start(beside=hand_over)
+    try:
+        wait_for(lambda: len(calls) >= 31, 60, "31 hand-overs with no frames")
+    finally:
+        pipe.stop()
+        store.close()
+    assert all(calls[k + 1] >= asked[k] for k in range(30)), np.diff(calls[:31])
+    # Not merely at the idle steps (twice a second): at the time asked, give or take a loaded machine's wake-up.
+    assert np.median(np.diff(calls[:31])) < 0.25, np.diff(calls[:31])
+    span = calls[30] - calls[0]
+    assert sum(calls[0] < t <= calls[30] for t in published) <= span / 0.5 + 1, (published, span)
