@@ -76,7 +76,8 @@ def test_the_live_fit_carries_the_humanoid_the_joint_names_and_the_conflicts(ser
     stopped = httpx.post(server.url + f"/api/sessions/{sid}/stop", timeout=60)
     assert stopped.status_code == 200, stopped.text
     stored = httpx.get(server.url + f"/api/sessions/{sid}/result", timeout=10).json()
-    assert stored["humanoid"] == TRUE and len(stored["humanoid_conflicts"]) == 2
+    assert stored["humanoid"] == TRUE and len(stored["humanoid_conflicts"]) == 2, \
+        (stored.get("humanoid_note"), stored.get("frames"), stored.get("root"), stored.get("parent"), stored["humanoid"])
     bvh = httpx.get(server.url + f"/api/sessions/{sid}/bvh", timeout=120).text
     assert "ROOT Hips" in bvh and "JOINT LeftUpperLeg" in bvh and "JOINT r_hand" not in bvh
     # A re-solve from the recording finds the same.
