@@ -81,16 +81,22 @@ def test_full_session_matches_fit_and_survives_restart(tracker, performer, tmp_p
     assert abs(len(replayed) - stopped["frames"]) <= 0.2 * RATE
     assert recording.settings["names"] == list(performer.names)  # so `flockcal convert` names the sensors
     # The session's frame log holds the reader's very frames (it stores the tracker words they were decoded
-    # from, server/frameblocks.py): the take is, bit for bit, a run of the replayed frames, found by its
-    # poses (its times are the session's). Not its first frame: the raw bytes start at the session's start,
-    # in the middle of a cycle whose first records the replay never sees.
+    # from, server/frameblocks.py): the take is, bit for bit, a run of the replayed frames, found by a pose
+    # from its middle (its times are the session's). Not the first half second the replay has nor the last
+    # frame: the raw recording starts (a few frames after the log, or before) and stops with the session,
+    # mid-cycle, and the replay's assembler starts afresh there (reading the flock's phase, placing each
+    # bird) where the live one had the stream's history.
     with np.load(io.BytesIO(take.content)) as z:
-        R, p, v = z["rotations"][1:], z["positions"][1:], z["valid"][1:]
-    start = [i for i in range(len(replayed) - len(R) + 1) if replayed.rotations[i:i + 3].tobytes() == R[:3].tobytes()]
-    assert len(start) == 1, start
-    run = replayed[start[0]:start[0] + len(R)]
-    assert np.array_equal(run.valid, v)
-    assert run.rotations.tobytes() == R.tobytes() and run.positions.tobytes() == p.tobytes()
+        R, p, v = z["rotations"], z["positions"], z["valid"]
+    mid = len(R) // 2
+    at = [i for i in range(len(replayed)) if replayed.rotations[i].tobytes() == R[mid].tobytes()]
+    assert len(at) == 1, at
+    first = at[0] - mid  # the take's first frame in the replay (negative: the replay starts later)
+    lo, hi = max(0, -first) + int(0.5 * RATE), min(len(R), len(replayed) - first) - 1
+    assert hi - lo > 0.5 * len(R), (first, lo, hi, len(R), len(replayed))
+    run = replayed[first + lo:first + hi]
+    assert np.array_equal(run.valid, v[lo:hi])
+    assert run.rotations.tobytes() == R[lo:hi].tobytes() and run.positions.tobytes() == p[lo:hi].tobytes()
     # The skeleton file describes this session's calibration: its tree, its joints, its measured bones.
     assert skeleton.status_code == 200
     sk = skeleton.json()
